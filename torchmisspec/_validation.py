@@ -1,0 +1,81 @@
+"""Private input checks shared by the public functions (raise, never assert)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from ._errors import InputError, ShapeError
+
+DEFAULT_DTYPE = torch.float64
+
+
+def as_tensor(x, name: str, *, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
+    """Convert ``x`` to a floating tensor (float64 unless it already is floating or ``dtype`` is given)."""
+    if isinstance(x, torch.Tensor):
+        t = x
+        if dtype is not None or not t.is_floating_point():
+            t = t.to(dtype=dtype or DEFAULT_DTYPE)
+        if device is not None:
+            t = t.to(device)
+        return t
+    try:
+        return torch.as_tensor(x, dtype=dtype or DEFAULT_DTYPE, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"{name}: expected an array of numbers, got {type(x).__name__} ({exc})") from exc
+
+
+def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
+    """Raise :class:`InputError` naming the first NaN/inf entry of ``t``."""
+    bad = ~torch.isfinite(t)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        n_bad = int(bad.sum())
+        raise InputError(
+            f"{name}: expected finite values, got {n_bad} NaN/inf entr{'y' if n_bad == 1 else 'ies'} "
+            f"(first at index {idx}: {t[idx].item()})"
+        )
+    return t
+
+
+def check_ndim(t: torch.Tensor, ndim: int | Sequence[int], name: str, shape_doc: str) -> torch.Tensor:
+    allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+    if t.dim() not in allowed:
+        raise ShapeError(f"{name}: expected shape {shape_doc}, got {tuple(t.shape)}")
+    return t
+
+
+def check_increasing(times: torch.Tensor, name: str = "times") -> torch.Tensor:
+    """Times along the last axis must be strictly increasing."""
+    if times.shape[-1] >= 2:
+        dt = times[..., 1:] - times[..., :-1]
+        bad = dt <= 0
+        if bool(bad.any()):
+            idx = tuple(int(i) for i in bad.nonzero()[0])
+            j = idx[-1]
+            where = f"row {idx[0]}, " if times.dim() == 2 else ""
+            raise InputError(
+                f"{name}: expected strictly increasing values, got {times[idx[:-1] + (j,)].item()} followed by "
+                f"{times[idx[:-1] + (j + 1,)].item()} ({where}positions {j} and {j + 1}); sort the times and drop "
+                "repeats"
+            )
+    return times
+
+
+def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
+    """Indices into a vector of length ``size``: integers, in range, no repeats. ``None`` means all."""
+    if indices is None:
+        return tuple(range(size))
+    try:
+        out = tuple(int(i) for i in indices)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected a sequence of integers, got {indices!r}") from exc
+    if len(out) == 0:
+        raise InputError(f"{name}: expected at least one index, got an empty sequence")
+    for i in out:
+        if not 0 <= i < size:
+            raise InputError(f"{name}: expected indices in [0, {size - 1}], got {i} in {list(out)}")
+    if len(set(out)) != len(out):
+        raise InputError(f"{name}: expected distinct indices, got repeats in {list(out)}")
+    return out

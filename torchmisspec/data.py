@@ -1,0 +1,176 @@
+"""Trajectories: observed or simulated states of K experiments, and :func:`simulate`.
+
+``Trajectories(times, states)`` holds ``states (K, T, d)`` sampled at ``times (T,)`` shared by all experiments or
+``(K, T)`` one grid per experiment (irregular spacing allowed, strictly increasing along each row). It wraps user
+data as well as simulations and saves to / loads from ``.npz`` and CSV.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ._errors import InputError, ShapeError
+from ._ode import solve
+from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+from .systems import MisspecifiedSystem
+
+__all__ = ["Trajectories", "simulate"]
+
+
+@dataclass(frozen=True)
+class Trajectories:
+    """States of K experiments observed at T times.
+
+    Attributes:
+        times: ``(T,)`` shared by all experiments, or ``(K, T)`` one strictly increasing grid per experiment.
+        states: ``(K, T, d)``.
+    """
+
+    times: torch.Tensor
+    states: torch.Tensor
+
+    def __post_init__(self) -> None:
+        states = check_ndim(as_tensor(self.states, "states"), 3, "states", "(K, T, d)")
+        times = as_tensor(self.times, "times", dtype=states.dtype, device=states.device)
+        check_ndim(times, (1, 2), "times", "(T,) or (K, T)")
+        check_finite(states, "states")
+        check_finite(times, "times")
+        K, T, _ = states.shape
+        if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
+            expected = f"({T},) or ({K}, {T})"
+            raise ShapeError(f"times: expected shape {expected} to match states {tuple(states.shape)}, "
+                             f"got {tuple(times.shape)}")
+        check_increasing(times, "times")
+        object.__setattr__(self, "states", states)
+        object.__setattr__(self, "times", times)
+
+    # ----------------------------------------------------------------------------------------------------------
+    @property
+    def num_experiments(self) -> int:
+        return self.states.shape[0]
+
+    @property
+    def num_times(self) -> int:
+        return self.states.shape[1]
+
+    @property
+    def state_dim(self) -> int:
+        return self.states.shape[2]
+
+    @property
+    def time_grid(self) -> torch.Tensor:
+        """Times as ``(K, T)``, expanded when shared."""
+        return self.times.expand(self.num_experiments, -1) if self.times.dim() == 1 else self.times
+
+    @property
+    def initial_conditions(self) -> torch.Tensor:
+        """``(K, d)``."""
+        return self.states[:, 0]
+
+    def __len__(self) -> int:
+        return self.num_experiments
+
+    def __getitem__(self, index) -> Trajectories:
+        """A subset of experiments (int, slice, index list or boolean mask)."""
+        if isinstance(index, int):
+            index = [index]
+        times = self.times if self.times.dim() == 1 else self.times[index]
+        return Trajectories(times, self.states[index])
+
+    def to(self, *args, **kwargs) -> Trajectories:
+        return Trajectories(self.times.to(*args, **kwargs), self.states.to(*args, **kwargs))
+
+    # ----------------------------------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write to ``path``: ``.npz`` (times, states) or ``.csv`` (experiment, time, y0, ..., y{d-1})."""
+        path = Path(path)
+        if path.suffix == ".npz":
+            np.savez(path, times=self.times.detach().cpu().numpy(), states=self.states.detach().cpu().numpy())
+        elif path.suffix == ".csv":
+            grid = self.time_grid.detach().cpu().numpy()
+            states = self.states.detach().cpu().numpy()
+            with path.open("w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(["experiment", "time"] + [f"y{i}" for i in range(self.state_dim)])
+                for k in range(self.num_experiments):
+                    for j in range(self.num_times):
+                        w.writerow([k, repr(float(grid[k, j]))] + [repr(float(v)) for v in states[k, j]])
+        else:
+            raise InputError(f"path: expected a .npz or .csv file name, got {str(path)!r}")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Trajectories:
+        """Read a file written by :meth:`save` (or a CSV with the same columns, rows in any order)."""
+        path = Path(path)
+        if path.suffix == ".npz":
+            with np.load(path) as data:
+                missing = {"times", "states"} - set(data.files)
+                if missing:
+                    raise InputError(f"{path}: expected arrays 'times' and 'states', missing {sorted(missing)}")
+                return cls(torch.from_numpy(data["times"]), torch.from_numpy(data["states"]))
+        if path.suffix == ".csv":
+            with path.open(newline="") as fh:
+                rows = list(csv.reader(fh))
+            header, body = rows[0], rows[1:]
+            if header[:2] != ["experiment", "time"] or len(header) < 3:
+                raise InputError(f"{path}: expected a header 'experiment,time,y0,...', got {','.join(header)}")
+            arr = np.asarray(body, dtype=np.float64)
+            exp_ids = np.unique(arr[:, 0])
+            per = [arr[arr[:, 0] == e] for e in exp_ids]
+            counts = {len(p) for p in per}
+            if len(counts) != 1:
+                raise ShapeError(f"{path}: expected the same number of rows per experiment, got {sorted(counts)}")
+            per = [p[np.argsort(p[:, 1], kind="stable")] for p in per]
+            times = np.stack([p[:, 1] for p in per])
+            states = np.stack([p[:, 2:] for p in per])
+            if np.all(times == times[:1]):
+                times = times[0]
+            return cls(torch.from_numpy(times), torch.from_numpy(states))
+        raise InputError(f"path: expected a .npz or .csv file name, got {str(path)!r}")
+
+
+def simulate(
+    system: MisspecifiedSystem,
+    y0,
+    times,
+    *,
+    known_only: bool = False,
+    method: str = "dopri5",
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+) -> Trajectories:
+    """Integrate the true dynamics G + F from every initial condition in one batched solve.
+
+    Args:
+        system: the system; for one without a true correction the known model G alone is integrated.
+        y0: initial conditions ``(K, d)`` (or ``(d,)`` for one), the states at ``times[..., 0]``.
+        times: ``(T,)`` shared, or ``(K, T)`` per experiment; strictly increasing.
+        known_only: integrate the misspecified model G alone (the proxy / baseline trajectories).
+        method, rtol, atol: torchdiffeq options (tight tolerances by default: this is the ground truth).
+
+    Returns:
+        :class:`Trajectories` with ``states (K, T, d)``.
+    """
+    y0 = as_tensor(y0, "y0")
+    if y0.dim() == 1:
+        y0 = y0.unsqueeze(0)
+    check_ndim(y0, 2, "y0", f"(K, {system.state_dim})")
+    system.check_states(y0, "y0")
+    check_finite(y0, "y0")
+    times = as_tensor(times, "times", dtype=y0.dtype, device=y0.device)
+    check_ndim(times, (1, 2), "times", "(T,) or (K, T)")
+    check_finite(times, "times")
+    check_increasing(times, "times")
+    if times.dim() == 2 and times.shape[0] != y0.shape[0]:
+        raise ShapeError(f"times: expected ({y0.shape[0]}, T) to match y0 {tuple(y0.shape)}, got {tuple(times.shape)}")
+    field = system.known if known_only else system.true_rhs
+    with torch.no_grad():
+        states, _ = solve(field, y0, times, method=method, rtol=rtol, atol=atol,
+                          what=f"simulate({system.name})")
+    return Trajectories(times, states)

@@ -1,0 +1,250 @@
+"""Misspecified dynamical systems dy/dt = G(y) + F(y) and the paper's two set-ups.
+
+A :class:`MisspecifiedSystem` carries the known right-hand side G, the state dimension, and (for simulation and
+benchmarks only) the true correction F. F may act on some state components (``correction_outputs``) and depend on
+others (``correction_inputs``), as in the gravity set-up of paper §5.3 where F maps positions to accelerations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import nn
+
+from ._errors import InputError, ShapeError
+from ._validation import check_indices
+
+__all__ = [
+    "MisspecifiedSystem",
+    "LinearField",
+    "QuadraticField",
+    "PointMassGravity",
+    "paper_linear",
+    "paper_gravity",
+    "get_system",
+    "SYSTEMS",
+]
+
+
+class MisspecifiedSystem:
+    """An ODE dy/dt = G(y) + F(y) whose G is known and whose F is the correction to learn.
+
+    Args:
+        known: G, maps states ``(..., d)`` to ``(..., d)``.
+        state_dim: d.
+        correction: the true F (simulation and benchmarks only); maps ``(..., len(correction_inputs))`` to
+            ``(..., len(correction_outputs))``. ``None`` for a system whose true correction is unknown.
+        correction_inputs: the state components F depends on (default: all).
+        correction_outputs: the state components F acts on (default: all).
+        domain: optional box ``(lo, hi)`` per correction input, the region D where the correction is assessed.
+        known_matrix: optional ``(d, d)`` matrix A when G(y) = A y, so proxies can use ``matrix_exp``.
+        name: a label for printing.
+    """
+
+    def __init__(
+        self,
+        known: Callable[[torch.Tensor], torch.Tensor],
+        state_dim: int,
+        *,
+        correction: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        correction_inputs: Sequence[int] | None = None,
+        correction_outputs: Sequence[int] | None = None,
+        domain: Sequence[Sequence[float]] | None = None,
+        known_matrix: torch.Tensor | None = None,
+        name: str = "system",
+    ) -> None:
+        if not callable(known):
+            raise InputError(f"known: expected a callable G(y), got {type(known).__name__}")
+        if correction is not None and not callable(correction):
+            raise InputError(f"correction: expected a callable F or None, got {type(correction).__name__}")
+        if isinstance(state_dim, bool) or not isinstance(state_dim, int) or state_dim < 1:
+            raise InputError(f"state_dim: expected a positive integer, got {state_dim!r}")
+        self.known = known
+        self.state_dim = state_dim
+        self.correction = correction
+        self.correction_inputs = check_indices(correction_inputs, state_dim, "correction_inputs")
+        self.correction_outputs = check_indices(correction_outputs, state_dim, "correction_outputs")
+        if domain is not None:
+            domain = tuple((float(lo), float(hi)) for lo, hi in domain)
+            if len(domain) != len(self.correction_inputs) or any(lo >= hi for lo, hi in domain):
+                raise InputError(
+                    f"domain: expected {len(self.correction_inputs)} intervals (lo, hi) with lo < hi, one per "
+                    f"correction input, got {domain}"
+                )
+        self.domain = domain
+        if known_matrix is not None:
+            known_matrix = torch.as_tensor(known_matrix, dtype=torch.float64)
+            if known_matrix.shape != (state_dim, state_dim):
+                raise ShapeError(
+                    f"known_matrix: expected shape ({state_dim}, {state_dim}), got {tuple(known_matrix.shape)}"
+                )
+        self.known_matrix = known_matrix
+        self.name = name
+
+    # ----------------------------------------------------------------------------------------------------------
+    @property
+    def has_correction(self) -> bool:
+        """Whether the true correction F is known (simulation / benchmark systems)."""
+        return self.correction is not None
+
+    @property
+    def input_dim(self) -> int:
+        return len(self.correction_inputs)
+
+    @property
+    def output_dim(self) -> int:
+        return len(self.correction_outputs)
+
+    def check_states(self, y: torch.Tensor, name: str = "states") -> torch.Tensor:
+        if y.dim() < 1 or y.shape[-1] != self.state_dim:
+            raise ShapeError(
+                f"{name}: expected a last dimension of size state_dim={self.state_dim} for system "
+                f"'{self.name}', got shape {tuple(y.shape)}"
+            )
+        return y
+
+    def select_inputs(self, y: torch.Tensor) -> torch.Tensor:
+        """The correction's inputs ``(..., d_in)`` from states ``(..., d)``."""
+        if self.correction_inputs == tuple(range(self.state_dim)):
+            return y
+        return y[..., list(self.correction_inputs)]
+
+    def select_outputs(self, v: torch.Tensor) -> torch.Tensor:
+        """The correction's output components ``(..., d_out)`` of a full vector field ``(..., d)``."""
+        if self.correction_outputs == tuple(range(self.state_dim)):
+            return v
+        return v[..., list(self.correction_outputs)]
+
+    def embed(self, f: torch.Tensor) -> torch.Tensor:
+        """Place a correction ``(..., d_out)`` on its output components of a zero ``(..., d)`` field."""
+        if self.correction_outputs == tuple(range(self.state_dim)):
+            return f
+        out = f.new_zeros(f.shape[:-1] + (self.state_dim,))
+        out[..., list(self.correction_outputs)] = f
+        return out
+
+    def true_correction(self, x: torch.Tensor) -> torch.Tensor:
+        """F at correction inputs ``x (..., d_in)``; raises if this system has no true correction."""
+        if self.correction is None:
+            raise InputError(
+                f"system '{self.name}' has no true correction F; pass correction=... to MisspecifiedSystem "
+                "(only simulation and benchmark systems have one)"
+            )
+        return self.correction(x)
+
+    def true_rhs(self, y: torch.Tensor) -> torch.Tensor:
+        """G(y) + F(y) (just G(y) when the system has no true correction)."""
+        g = self.known(y)
+        if self.correction is None:
+            return g
+        return g + self.embed(self.correction(self.select_inputs(y)))
+
+    def __repr__(self) -> str:
+        return (
+            f"MisspecifiedSystem(name={self.name!r}, state_dim={self.state_dim}, "
+            f"correction_inputs={list(self.correction_inputs)}, correction_outputs={list(self.correction_outputs)}, "
+            f"has_correction={self.has_correction})"
+        )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Vector fields used by the built-in systems. nn.Modules so they follow the states' dtype and device.
+class LinearField(nn.Module):
+    """y -> A y for states ``(..., d)``."""
+
+    def __init__(self, matrix) -> None:
+        super().__init__()
+        self.register_buffer("matrix", torch.as_tensor(matrix, dtype=torch.float64))
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        return y @ self.matrix.to(dtype=y.dtype, device=y.device).T
+
+
+class QuadraticField(nn.Module):
+    """y -> coef * y**2 componentwise (paper §5.1: F(y) = 0.01 [y1^2, y2^2])."""
+
+    def __init__(self, coef: float) -> None:
+        super().__init__()
+        self.coef = float(coef)
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        return self.coef * y**2
+
+
+class PointMassGravity(nn.Module):
+    """Acceleration -sum_i m_i (x - x_i) / ||x - x_i||^3 at positions ``x (..., 2)``.
+
+    With ``first_order=True`` it is the first-order field of the state (x1, x2, v1, v2):
+    (v1, v2, a1(x), a2(x)).
+    """
+
+    def __init__(self, masses, positions, *, first_order: bool = False) -> None:
+        super().__init__()
+        self.register_buffer("masses", torch.as_tensor(masses, dtype=torch.float64).reshape(-1))
+        self.register_buffer("positions", torch.as_tensor(positions, dtype=torch.float64).reshape(-1, 2))
+        self.first_order = first_order
+
+    def acceleration(self, x: torch.Tensor) -> torch.Tensor:
+        m = self.masses.to(dtype=x.dtype, device=x.device)
+        p = self.positions.to(dtype=x.dtype, device=x.device)
+        diff = x.unsqueeze(-2) - p  # (..., n_masses, 2)
+        r3 = diff.pow(2).sum(-1).pow(1.5)  # (..., n_masses)
+        return -(m.unsqueeze(-1) * diff / r3.unsqueeze(-1)).sum(-2)
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        if not self.first_order:
+            return self.acceleration(y)
+        return torch.cat([y[..., 2:4], self.acceleration(y[..., 0:2])], dim=-1)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+PAPER_LINEAR_A = ((0.02, 0.10), (-0.10, -0.06))
+
+
+def paper_linear() -> MisspecifiedSystem:
+    """Paper §5.1: G(y) = A y with A = [[0.02, 0.10], [-0.10, -0.06]], true F(y) = 0.01 [y1^2, y2^2].
+
+    The domain is D = [-1, 1]^2; the paper observes t in [0, 6] at T = 11 times.
+    """
+    A = torch.tensor(PAPER_LINEAR_A, dtype=torch.float64)
+    return MisspecifiedSystem(
+        LinearField(A),
+        2,
+        correction=QuadraticField(0.01),
+        domain=((-1.0, 1.0), (-1.0, 1.0)),
+        known_matrix=A,
+        name="paper_linear",
+    )
+
+
+def paper_gravity() -> MisspecifiedSystem:
+    """Paper §5.3: a unit mass in the plane, state (x1, x2, v1, v2).
+
+    G: one mass 0.2 at the origin. True F: masses 0.1 at (0, 4) and 0.4 at (0.5, 3.8), acting on the velocities
+    (outputs 2, 3) and depending on the positions (inputs 0, 1). The paper does not state its domain D; we use
+    the box [-2.5, 2.5]^2 around the central mass (see docs/reproduction.md).
+    """
+    return MisspecifiedSystem(
+        PointMassGravity([0.2], [[0.0, 0.0]], first_order=True),
+        4,
+        correction=PointMassGravity([0.1, 0.4], [[0.0, 4.0], [0.5, 3.8]]),
+        correction_inputs=(0, 1),
+        correction_outputs=(2, 3),
+        domain=((-2.5, 2.5), (-2.5, 2.5)),
+        name="paper_gravity",
+    )
+
+
+SYSTEMS: dict[str, Callable[[], MisspecifiedSystem]] = {
+    "paper_linear": paper_linear,
+    "paper_gravity": paper_gravity,
+}
+
+
+def get_system(name: str) -> MisspecifiedSystem:
+    """A built-in system by name (see :data:`SYSTEMS`)."""
+    try:
+        return SYSTEMS[name]()
+    except KeyError:
+        raise InputError(f"unknown system name {name!r}; expected one of {sorted(SYSTEMS)}") from None
