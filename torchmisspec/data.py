@@ -8,6 +8,7 @@ data as well as simulations and saves to / loads from ``.npz`` and CSV.
 from __future__ import annotations
 
 import csv
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,8 +78,8 @@ class Trajectories:
 
     def __getitem__(self, index) -> Trajectories:
         """A subset of experiments (int, slice, index list or boolean mask)."""
-        if isinstance(index, int):
-            index = [index]
+        if isinstance(index, numbers.Integral) or (isinstance(index, torch.Tensor) and index.dim() == 0):
+            index = [int(index)]
         times = self.times if self.times.dim() == 1 else self.times[index]
         return Trajectories(times, self.states[index])
 
@@ -117,10 +118,15 @@ class Trajectories:
         if path.suffix == ".csv":
             with path.open(newline="") as fh:
                 rows = list(csv.reader(fh))
-            header, body = rows[0], rows[1:]
+            header, body = (rows[0], rows[1:]) if rows else ([], [])
             if header[:2] != ["experiment", "time"] or len(header) < 3:
-                raise InputError(f"{path}: expected a header 'experiment,time,y0,...', got {','.join(header)}")
-            arr = np.asarray(body, dtype=np.float64)
+                raise InputError(f"{path}: expected a header 'experiment,time,y0,...', got {','.join(header)!r}")
+            if not body:
+                raise InputError(f"{path}: expected at least one data row after the header, got none")
+            try:
+                arr = np.asarray(body, dtype=np.float64)
+            except ValueError as exc:
+                raise InputError(f"{path}: expected {len(header)} numeric columns in every row ({exc})") from exc
             exp_ids = np.unique(arr[:, 0])
             per = [arr[arr[:, 0] == e] for e in exp_ids]
             counts = {len(p) for p in per}
