@@ -49,8 +49,8 @@ class CorrectedODE(nn.Module):
         """mu placed on the full state: ``(..., d)`` from states ``(..., d)``."""
         x = self.system.select_inputs(y)
         shape = x.shape[:-1]
-        mu = self.gp.predict_mean(x.reshape(-1, x.shape[-1]).to(self.gp.dtype))
-        return self.system.embed(mu.reshape(*shape, -1).to(y.dtype))
+        mu = self.gp.predict_mean(x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype))
+        return self.system.embed(mu.reshape(*shape, -1).to(y.device, y.dtype))
 
     def field(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) + mu(y) for states ``(..., d)``."""

@@ -173,12 +173,16 @@ class CorrectionGP:
         covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=_log_positive())
         lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=_log_positive())
         covar, lik = covar.to(self.device, self.dtype), lik.to(self.device, self.dtype)
+        # GPyTorch's setters would round a Python float through float32: pass tensors of the model's dtype
+        def value(name):
+            return torch.tensor(self.fixed[name], dtype=self.dtype, device=self.device)
+
         if self.fixed["lengthscale"] is not None:
-            base.lengthscale = self.fixed["lengthscale"]
+            base.lengthscale = value("lengthscale")
         if self.fixed["outputscale"] is not None:
-            covar.outputscale = self.fixed["outputscale"]
+            covar.outputscale = value("outputscale")
         if self.fixed["noise_variance"] is not None:
-            lik.noise = self.fixed["noise_variance"]
+            lik.noise = value("noise_variance")
         self.covar_module, self.likelihood = covar, lik
 
     def _free_parameters(self) -> list[tuple[str, torch.nn.Parameter]]:
@@ -416,8 +420,9 @@ class CorrectionGP:
         Differentiable with respect to ``x`` (autograd flows through the kernel), never refactorizes.
         """
         self._require_fitted()
-        if not (isinstance(x, torch.Tensor) and x.dtype == self.dtype and x.dim() == 2):
-            x = self._check_inputs(x, "x")
+        if not (isinstance(x, torch.Tensor) and x.dtype == self.dtype and x.device == self.device and x.dim() == 2
+                and x.shape[1] == self.train_inputs_.shape[1]):
+            x = self._check_inputs(x, "x")  # the fast path above skips only the NaN scan (ODE right-hand sides)
         mean = self._cross(x) @ self._alpha  # (1, M, d_out) or (d_out, M, 1)
         return mean[0] if not self.per_output else mean.squeeze(-1).T
 

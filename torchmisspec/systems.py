@@ -67,7 +67,7 @@ class MisspecifiedSystem:
         self.correction_outputs = check_indices(correction_outputs, state_dim, "correction_outputs")
         if domain is not None:
             domain = tuple((float(lo), float(hi)) for lo, hi in domain)
-            if len(domain) != len(self.correction_inputs) or any(lo >= hi for lo, hi in domain):
+            if len(domain) != len(self.correction_inputs) or any(not lo < hi for lo, hi in domain):
                 raise InputError(
                     f"domain: expected {len(self.correction_inputs)} intervals (lo, hi) with lo < hi, one per "
                     f"correction input, got {domain}"

@@ -1,0 +1,158 @@
+import numpy as np
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.systems import MisspecifiedSystem
+
+
+def _expm_reference(A, y0, grid):
+    """States (K, T, d) of dy/dt = A y from y0 (K, d) on per-row grids (K, T) by the matrix exponential."""
+    return torch.stack([
+        torch.stack([torch.linalg.matrix_exp(A * (t - row[0])) @ y for t in row]) for y, row in zip(y0, grid)
+    ])
+
+
+def test_simulate_known_linear_matches_matrix_exp(linear_system, paper_times, generator):
+    y0 = torch.rand(6, 2, generator=generator, dtype=torch.float64) * 2 - 1
+    traj = tms.simulate(linear_system, y0, paper_times, known_only=True)
+    ref = _expm_reference(linear_system.known_matrix, y0, paper_times.expand(6, -1))
+    assert traj.states.shape == (6, 11, 2)
+    torch.testing.assert_close(traj.states, ref, rtol=0, atol=1e-9)
+
+
+def test_simulate_linear_system_without_correction_uses_known_model(generator):
+    A = torch.tensor([[-0.3, 1.0], [-1.0, -0.2]], dtype=torch.float64)
+    system = MisspecifiedSystem(tms.systems.LinearField(A), 2)  # no true correction: G alone
+    y0 = torch.randn(3, 2, generator=generator, dtype=torch.float64)
+    times = torch.tensor([0.0, 0.1, 0.5, 0.55, 2.0, 4.5], dtype=torch.float64)  # irregular spacing
+    ref = _expm_reference(A, y0, times.expand(3, -1))
+    torch.testing.assert_close(tms.simulate(system, y0, times).states, ref, rtol=0, atol=1e-9)
+
+
+def test_simulate_per_experiment_time_grids(linear_system, generator):
+    y0 = torch.rand(3, 2, generator=generator, dtype=torch.float64)
+    grid = torch.tensor([[0.0, 1.0, 2.0, 6.0], [1.0, 1.5, 4.0, 4.1], [-2.0, 0.0, 0.3, 3.0]], dtype=torch.float64)
+    traj = tms.simulate(linear_system, y0, grid, known_only=True)
+    torch.testing.assert_close(traj.states, _expm_reference(linear_system.known_matrix, y0, grid), rtol=0, atol=1e-9)
+    # with the true correction, each row equals a separate solve on its own grid
+    full = tms.simulate(linear_system, y0, grid)
+    for k in range(3):
+        single = tms.simulate(linear_system, y0[k:k + 1], grid[k])
+        torch.testing.assert_close(full.states[k], single.states[0], rtol=0, atol=1e-9)
+
+
+def test_true_dynamics_differ_from_known_by_small_amount(linear_system, paper_times, generator):
+    y0 = torch.rand(5, 2, generator=generator, dtype=torch.float64) * 2 - 1
+    true = tms.simulate(linear_system, y0, paper_times).states
+    known = tms.simulate(linear_system, y0, paper_times, known_only=True).states
+    gap = (true - known).abs().max()
+    assert 1e-4 < gap < 0.1
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".csv"])
+@pytest.mark.parametrize("per_experiment", [False, True])
+def test_trajectories_save_load_roundtrip(tmp_path, suffix, per_experiment, generator):
+    states = torch.randn(4, 5, 3, generator=generator, dtype=torch.float64)
+    times = torch.cumsum(torch.rand(4 if per_experiment else 1, 5, generator=generator, dtype=torch.float64) + 0.1,
+                         -1)
+    times = times if per_experiment else times[0]
+    traj = tms.Trajectories(times, states)
+    loaded = tms.Trajectories.load(traj.save(tmp_path / f"traj{suffix}"))
+    torch.testing.assert_close(loaded.states, traj.states, rtol=0, atol=0)
+    torch.testing.assert_close(loaded.times, traj.times, rtol=0, atol=0)
+
+
+def test_trajectories_indexing_and_properties(generator):
+    traj = tms.Trajectories(torch.arange(4.0), torch.randn(3, 4, 2, generator=generator))
+    assert (traj.num_experiments, traj.num_times, traj.state_dim, len(traj)) == (3, 4, 2, 3)
+    assert traj[1].states.shape == (1, 4, 2)
+    assert traj[np.int64(2)].states.shape == (1, 4, 2)
+    assert traj[[0, 2]].time_grid.shape == (2, 4)
+    torch.testing.assert_close(traj.initial_conditions, traj.states[:, 0])
+
+
+# ------------------------------------------------------------------------------------------------------ bad input
+def test_trajectories_reject_nan_states():
+    states = torch.zeros(2, 3, 2)
+    states[1, 2, 0] = float("nan")
+    with pytest.raises(tms.InputError, match=r"states: expected finite values, got 1 NaN/inf entry"):
+        tms.Trajectories(torch.arange(3.0), states)
+
+
+def test_trajectories_reject_inf_times():
+    with pytest.raises(tms.InputError, match="times: expected finite"):
+        tms.Trajectories(torch.tensor([0.0, float("inf"), 2.0]), torch.zeros(1, 3, 2))
+
+
+def test_trajectories_reject_non_increasing_times():
+    with pytest.raises(tms.InputError, match=r"times: expected strictly increasing values, got 1.0 followed by 1.0"):
+        tms.Trajectories(torch.tensor([0.0, 1.0, 1.0]), torch.zeros(1, 3, 2))
+
+
+def test_trajectories_reject_shape_mismatch():
+    with pytest.raises(tms.ShapeError, match=r"times: expected shape \(3,\) or \(2, 3\).*got \(4,\)"):
+        tms.Trajectories(torch.arange(4.0), torch.zeros(2, 3, 2))
+    with pytest.raises(tms.ShapeError, match=r"states: expected shape \(K, T, d\), got \(3, 2\)"):
+        tms.Trajectories(torch.arange(3.0), torch.zeros(3, 2))
+
+
+def test_load_rejects_bad_files(tmp_path):
+    bad = tmp_path / "x.txt"
+    bad.write_text("1,2")
+    with pytest.raises(tms.InputError, match="expected a .npz or .csv"):
+        tms.Trajectories.load(bad)
+    empty = tmp_path / "e.csv"
+    empty.write_text("experiment,time,y0\n")
+    with pytest.raises(tms.InputError, match="at least one data row"):
+        tms.Trajectories.load(empty)
+    wrong = tmp_path / "w.csv"
+    wrong.write_text("a,b,c\n1,2,3\n")
+    with pytest.raises(tms.InputError, match="expected a header 'experiment,time,y0"):
+        tms.Trajectories.load(wrong)
+
+
+def test_simulate_rejects_wrong_state_dim(linear_system, paper_times):
+    with pytest.raises(tms.ShapeError, match=r"y0: expected a last dimension of size state_dim=2.*got shape \(4, 3\)"):
+        tms.simulate(linear_system, torch.zeros(4, 3), paper_times)
+
+
+def test_simulate_rejects_nan_and_bad_times(linear_system):
+    with pytest.raises(tms.InputError, match="y0: expected finite"):
+        tms.simulate(linear_system, torch.tensor([[float("nan"), 0.0]]), torch.arange(3.0))
+    with pytest.raises(tms.InputError, match="times: expected strictly increasing"):
+        tms.simulate(linear_system, torch.zeros(1, 2), torch.tensor([0.0, 2.0, 1.0]))
+    with pytest.raises(tms.ShapeError, match=r"times: expected \(2, T\) to match y0"):
+        tms.simulate(linear_system, torch.zeros(2, 2), torch.arange(6.0).reshape(3, 2))
+
+
+def test_simulate_reports_blow_up():
+    system = MisspecifiedSystem(lambda y: y**2, 1, name="riccati")  # y' = y^2 blows up at t = 1 / y0
+    with pytest.raises(tms.IntegrationError, match="blows up"):
+        tms.simulate(system, torch.tensor([[2.0]], dtype=torch.float64), torch.linspace(0, 1, 5))
+
+
+def test_system_rejects_bad_indices_and_names():
+    field = tms.systems.LinearField(torch.eye(3))
+    with pytest.raises(tms.InputError, match=r"correction_inputs: expected indices in \[0, 2\], got 3"):
+        MisspecifiedSystem(field, 3, correction_inputs=[0, 3])
+    with pytest.raises(tms.InputError, match="correction_outputs: expected distinct indices, got repeats"):
+        MisspecifiedSystem(field, 3, correction_outputs=[1, 1])
+    with pytest.raises(tms.InputError, match="state_dim: expected a positive integer"):
+        MisspecifiedSystem(field, 0)
+    with pytest.raises(tms.InputError, match="unknown system name 'nope'"):
+        tms.systems.get_system("nope")
+
+
+def test_gravity_system_structure():
+    system = tms.systems.paper_gravity()
+    y = torch.tensor([[1.0, -1.0, 0.3, 0.2]], dtype=torch.float64)
+    rhs = system.true_rhs(y)
+    g = system.known(y)
+    torch.testing.assert_close(rhs[:, :2], y[:, 2:])  # positions move with the velocities
+    # the correction only changes the accelerations, from the two extra masses
+    expected = sum(-m * (y[0, :2] - torch.tensor(p, dtype=torch.float64))
+                   / torch.linalg.vector_norm(y[0, :2] - torch.tensor(p, dtype=torch.float64)) ** 3
+                   for m, p in ((0.1, (0.0, 4.0)), (0.4, (0.5, 3.8))))
+    torch.testing.assert_close((rhs - g)[0, 2:], expected)
+    torch.testing.assert_close((rhs - g)[0, :2], torch.zeros(2, dtype=torch.float64))

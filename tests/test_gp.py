@@ -1,0 +1,202 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.gp import cholesky_with_jitter
+
+HYPER = {"lengthscale": 0.7, "outputscale": 2e-3, "noise_variance": 1e-4}
+
+
+def _data(generator, n=60, d_in=2, d_out=2):
+    X = torch.rand(n, d_in, generator=generator, dtype=torch.float64) * 2 - 1
+    F = torch.stack([torch.sin(2 * X[:, 0]) * X[:, -1], X.pow(2).sum(-1)], -1)[:, :d_out] * 0.05
+    return X, F + 0.01 * torch.randn(n, d_out, generator=generator, dtype=torch.float64)
+
+
+def _kernel(kind, X1, X2, l, s, degree=2):
+    """Independent kernel formulas (not the package's GPyTorch kernels)."""
+    if kind == "polynomial":
+        return s * (1.0 + X1 @ X2.T) ** degree
+    r = torch.cdist(X1, X2) / l
+    if kind == "rbf":
+        return s * torch.exp(-0.5 * r**2)
+    return s * (1 + math.sqrt(5) * r + 5.0 / 3.0 * r**2) * torch.exp(-math.sqrt(5) * r)
+
+
+def _cholesky_posterior(K, Ks, kss_diag, Y, noise):
+    L = torch.linalg.cholesky(K + noise * torch.eye(K.shape[0], dtype=K.dtype))
+    alpha = torch.cholesky_solve(Y, L)
+    V = torch.linalg.solve_triangular(L, Ks.T, upper=False)
+    mean = Ks @ alpha
+    var = kss_diag - V.pow(2).sum(0)
+    n, d = Y.shape
+    lml = -0.5 * (Y * alpha).sum() - d * torch.log(L.diagonal()).sum() - 0.5 * n * d * math.log(2 * math.pi)
+    return mean, var, lml
+
+
+@pytest.mark.parametrize("kind", ["rbf", "matern52", "polynomial"])
+def test_posterior_equals_hand_written_cholesky(kind, generator):
+    X, Y = _data(generator)
+    Xs = torch.rand(25, 2, generator=generator, dtype=torch.float64) * 3 - 1.5
+    hyper = dict(HYPER) if kind != "polynomial" else {"outputscale": 2e-3, "noise_variance": 1e-4}
+    gp = tms.CorrectionGP(kernel=kind, **hyper).fit(X, Y)
+    l, s, noise = HYPER["lengthscale"], HYPER["outputscale"], HYPER["noise_variance"]
+    mean, var, lml = _cholesky_posterior(_kernel(kind, X, X, l, s), _kernel(kind, Xs, X, l, s),
+                                         _kernel(kind, Xs, Xs, l, s).diagonal(), Y, noise)
+    post = gp.predict(Xs)
+    torch.testing.assert_close(post.mean, mean, rtol=1e-10, atol=1e-14)
+    torch.testing.assert_close(post.variance, var.unsqueeze(-1).expand(-1, 2), rtol=1e-8, atol=1e-14)
+    torch.testing.assert_close(gp.predict_mean(Xs), mean, rtol=1e-10, atol=1e-14)
+    assert gp.log_marginal_likelihood_ == pytest.approx(float(lml), rel=1e-9)
+    # fixed hyperparameters are reported as given
+    assert gp.outputscale == pytest.approx(s) and gp.noise_variance == pytest.approx(noise)
+
+
+def test_posterior_agrees_with_sklearn(generator):
+    sk_gp = pytest.importorskip("sklearn.gaussian_process")
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+
+    X, Y = _data(generator, n=80)
+    Xs = torch.rand(30, 2, generator=generator, dtype=torch.float64) * 2 - 1
+    gp = tms.CorrectionGP(**HYPER).fit(X, Y)
+    kernel = ConstantKernel(HYPER["outputscale"]) * RBF(HYPER["lengthscale"])
+    sk = sk_gp.GaussianProcessRegressor(kernel, alpha=HYPER["noise_variance"], optimizer=None).fit(X.numpy(),
+                                                                                                     Y.numpy())
+    mean, std = sk.predict(Xs.numpy(), return_std=True)
+    post = gp.predict(Xs)
+    np.testing.assert_allclose(post.mean.numpy(), mean, rtol=1e-8, atol=1e-13)
+    np.testing.assert_allclose(post.stddev.numpy(), std, rtol=1e-6, atol=1e-12)
+    # scikit-learn's multi-output likelihood sums the outputs' likelihoods under the shared kernel, as ours does
+    assert gp.log_marginal_likelihood_ == pytest.approx(sk.log_marginal_likelihood_value_, rel=1e-10)
+
+
+def test_fit_reaches_at_least_sklearn_marginal_likelihood(generator):
+    sk_gp = pytest.importorskip("sklearn.gaussian_process")
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+    X, Y = _data(generator, n=150)
+    gp = tms.CorrectionGP().fit(X, Y)
+    kernel = ConstantKernel(1.0, (1e-8, 1e3)) * RBF(1.0, (1e-3, 1e3)) + WhiteKernel(1.0, (1e-10, 1e1))
+    sk = sk_gp.GaussianProcessRegressor(kernel, alpha=0.0, n_restarts_optimizer=3, random_state=0).fit(X.numpy(),
+                                                                                                       Y.numpy())
+    assert gp.log_marginal_likelihood_ >= sk.log_marginal_likelihood_value_ - 1e-3 * abs(
+        sk.log_marginal_likelihood_value_)
+    # our reported value is the exact likelihood at our hyperparameters, as scikit-learn evaluates it
+    theta = np.log([gp.outputscale, gp.lengthscale, gp.noise_variance])
+    assert sk.log_marginal_likelihood(theta) == pytest.approx(gp.log_marginal_likelihood_, rel=1e-9)
+
+
+@pytest.mark.parametrize("fixed", [{}, {"noise_variance": 1e-4}, {"lengthscale": 0.5}, {"outputscale": 1e-3}])
+def test_fit_raises_marginal_likelihood_and_keeps_fixed_values(fixed, generator):
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP(**fixed).fit(X, Y)
+    start = tms.CorrectionGP(**fixed)
+    start._build(1)
+    start._initialise(X, Y)  # the fit's starting point, held fixed
+    init = tms.CorrectionGP(lengthscale=start.lengthscale, outputscale=start.outputscale,
+                            noise_variance=start.noise_variance).fit(X, Y)
+    assert gp.log_marginal_likelihood_ > init.log_marginal_likelihood_ + 1.0
+    for name, value in fixed.items():
+        assert getattr(gp, name) == pytest.approx(value, rel=1e-12)
+    # a stationary point: no small step on any learned hyperparameter increases the likelihood
+    for name in {"lengthscale", "outputscale", "noise_variance"} - set(fixed):
+        for factor in (0.97, 1.03):
+            other = {k: getattr(gp, k) for k in ("lengthscale", "outputscale", "noise_variance")}
+            other[name] *= factor
+            assert tms.CorrectionGP(**other).fit(X, Y).log_marginal_likelihood_ <= gp.log_marginal_likelihood_ + 1e-6
+
+
+def test_per_output_hyperparameters_equal_separate_fits(generator):
+    X, Y = _data(generator, n=70)
+    Y = Y * torch.tensor([1.0, 5.0], dtype=torch.float64)
+    gp = tms.CorrectionGP(per_output=True).fit(X, Y)
+    singles = [tms.CorrectionGP().fit(X, Y[:, i:i + 1]) for i in range(2)]
+    assert gp.log_marginal_likelihood_ == pytest.approx(sum(s.log_marginal_likelihood_ for s in singles), rel=1e-5)
+    Xs = torch.rand(10, 2, generator=generator, dtype=torch.float64)
+    for i, single in enumerate(singles):
+        torch.testing.assert_close(gp.predict(Xs).mean[:, i], single.predict(Xs).mean[:, 0], rtol=1e-3, atol=1e-7)
+        assert float(gp.outputscale[i]) == pytest.approx(single.outputscale, rel=1e-2)
+
+
+def test_gpytorch_model_view_matches_cached_posterior(generator):
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP().fit(X, Y)
+    Xs = torch.rand(7, 2, generator=generator, dtype=torch.float64)
+    with torch.no_grad():
+        dist = gp.model(Xs)
+    post = gp.predict(Xs)
+    torch.testing.assert_close(dist.mean.T, post.mean, rtol=1e-9, atol=1e-14)
+    torch.testing.assert_close(dist.variance.T, post.variance, rtol=1e-7, atol=1e-14)
+
+
+def test_save_and_load_roundtrip(tmp_path, generator):
+    X, Y = _data(generator)
+    for gp in (tms.CorrectionGP().fit(X, Y), tms.CorrectionGP(per_output=True, kernel="matern52").fit(X, Y)):
+        loaded = tms.CorrectionGP.load(gp.save(tmp_path / "gp.pt"))
+        Xs = torch.rand(9, 2, generator=generator, dtype=torch.float64)
+        torch.testing.assert_close(loaded.predict(Xs).mean, gp.predict(Xs).mean, rtol=1e-12, atol=0)
+        assert loaded.log_marginal_likelihood_ == pytest.approx(gp.log_marginal_likelihood_, rel=1e-12)
+
+
+def test_one_dimensional_targets_and_float32_inputs(generator):
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP(**HYPER).fit(X.float(), Y[:, 0].float())
+    assert gp.train_inputs_.dtype == torch.float64 and gp.output_dim == 1
+    assert gp.predict_mean(X[:3]).shape == (3, 1)
+
+
+def test_prior_covariance_before_fit():
+    gp = tms.CorrectionGP(**HYPER)
+    x = torch.tensor([[0.0, 0.0], [0.7, 0.0]], dtype=torch.float64)
+    K = gp.covariance(x)
+    assert K[0, 0].item() == pytest.approx(2e-3)
+    assert K[0, 1].item() == pytest.approx(2e-3 * math.exp(-0.5))
+
+
+# ------------------------------------------------------------------------------------------------------ bad input
+def test_rejects_bad_configuration():
+    with pytest.raises(tms.InputError, match=r"kernel: expected one of .*got 'cubic'"):
+        tms.CorrectionGP(kernel="cubic")
+    with pytest.raises(tms.InputError, match="lengthscale: expected a positive finite number or None.*got -1"):
+        tms.CorrectionGP(lengthscale=-1.0)
+    with pytest.raises(tms.InputError, match="polynomial kernel .* has no lengthscale"):
+        tms.CorrectionGP(kernel="polynomial", lengthscale=1.0)
+
+
+def test_rejects_bad_data(generator):
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP()
+    with pytest.raises(tms.ShapeError, match=r"targets: expected 60 rows to match inputs \(60, 2\), got \(59, 2\)"):
+        gp.fit(X, Y[:-1])
+    Xn = X.clone()
+    Xn[3, 1] = float("nan")
+    with pytest.raises(tms.InputError, match=r"inputs: expected finite values, got 1 NaN/inf entry \(first at index "
+                                             r"\(3, 1\)"):
+        gp.fit(Xn, Y)
+    with pytest.raises(ValueError):  # fitting errors are ValueErrors
+        gp.fit(X, Y.unsqueeze(0))
+    with pytest.raises(tms.NotFittedError, match="not fitted yet"):
+        gp.predict(X)
+    gp.fit(X, Y)
+    with pytest.raises(tms.ShapeError, match=r"x: expected 2 input columns \(as in training\), got shape \(4, 3\)"):
+        gp.predict(torch.zeros(4, 3))
+
+
+def test_cholesky_failure_is_reported():
+    indefinite = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=torch.float64)
+    with pytest.raises(tms.NotPositiveDefiniteError, match="failed even with jitter"):
+        cholesky_with_jitter(indefinite)
+    # a nearly singular matrix is rescued by jitter
+    x = torch.ones(4, 1, dtype=torch.float64)
+    L = cholesky_with_jitter(x @ x.T)
+    assert torch.isfinite(L).all()
+
+
+def test_duplicate_inputs_with_tiny_noise_are_handled(generator):
+    X = torch.rand(5, 2, generator=generator, dtype=torch.float64).repeat(3, 1)
+    Y = torch.randn(15, 2, generator=generator, dtype=torch.float64) * 1e-2
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1.0, noise_variance=1e-12).fit(X, Y)
+    assert torch.isfinite(gp.predict(X).mean).all()

@@ -1,0 +1,229 @@
+"""Private helpers of the design subpackage: the GP kernel view, input checks, the result type."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import BudgetError, InputError, ShapeError
+from .._validation import as_tensor, check_finite, check_increasing, check_ndim
+from ..gp import CorrectionGP, cholesky_with_jitter
+from ..systems import MisspecifiedSystem
+
+__all__ = ["DesignResult"]
+
+
+@dataclass(frozen=True)
+class DesignResult:
+    """A chosen set of experiments (initial conditions) and what the criterion says about it.
+
+    All information quantities are in nats of a *real* Gaussian: the information gain of a set S is
+    ``(d_out / 2) * logdet(I + K(P_S, P_S) / sigma^2)`` with ``P_S`` the proxy points of S restricted to the
+    correction inputs (the paper's complex-Gaussian convention gives twice these numbers; the picks are the same).
+
+    Attributes:
+        indices: ``(K,)`` long, the chosen candidates in pick order.
+        gains: ``(K,)`` marginal information gain of each pick given the earlier ones (nats); NaN when not computed
+            (a random design without ``system``/``times``/``gp``).
+        information_gain: sum of ``gains`` = information gain of the whole chosen proxy set (nats; NaN when not
+            computed).
+        points: ``(K, d)`` the chosen candidates.
+        method: ``"lazy"``, ``"greedy"``, ``"naive"``, ``"random"`` or ``"agnostic-lazy"`` / ``"agnostic-greedy"``.
+        evaluations: number of single-candidate marginal-gain evaluations (the initial pass over all candidates
+            included); for ``"naive"`` the number of full log-determinants.
+        proxies: ``(K, T, d)`` proxy trajectories of the picks, or ``None`` when not computed.
+        elapsed: wall-clock seconds spent in the selection (proxies excluded).
+    """
+
+    indices: torch.Tensor
+    gains: torch.Tensor
+    information_gain: float
+    points: torch.Tensor
+    method: str
+    evaluations: int = 0
+    proxies: torch.Tensor | None = None
+    elapsed: float = 0.0
+
+    def __len__(self) -> int:
+        return int(self.indices.numel())
+
+
+# ---------------------------------------------------------------------------------------------------- the kernel
+class GPKernel:
+    """The correction GP's prior kernel k (outputscale included) and noise variance, ready for batched use.
+
+    Calls the GP's own GPyTorch kernel module, so the design uses exactly the covariance the GP will use; inputs
+    may carry batch dimensions (``(..., M1, d_in)`` with ``(..., M2, d_in)``). Only the shared kernel is
+    supported: the design criterion is then ``d_out`` times the single-output one.
+    """
+
+    def __init__(self, gp: CorrectionGP, *, input_dim: int | None = None) -> None:
+        if not isinstance(gp, CorrectionGP):
+            raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
+        if gp.per_output:
+            raise InputError(
+                "gp: experimental design supports the shared kernel only (the paper's model, one kernel for all "
+                "outputs); got a CorrectionGP with per_output=True. Build the design GP with per_output=False")
+        if not gp.is_fitted:
+            needed = ["noise_variance", "outputscale"] + ([] if gp.kernel == "polynomial" else ["lengthscale"])
+            missing = [name for name in needed if gp.fixed.get(name) is None]
+            if missing:
+                args = ", ".join(f"{m}=..." for m in missing)
+                raise InputError(
+                    f"gp: the design needs the kernel hyperparameters before any data, but {', '.join(missing)} "
+                    f"{'is' if len(missing) == 1 else 'are'} not set (None) on this unfitted CorrectionGP; pass "
+                    f"CorrectionGP({args}) or fit the GP on earlier data first")
+        noise = gp.noise_variance
+        if noise is None or not math.isfinite(float(noise)) or float(noise) <= 0:
+            raise InputError(f"gp: expected a positive finite noise_variance, got {noise!r}")
+        if gp.is_fitted and input_dim is not None and gp.input_dim != input_dim:
+            raise ShapeError(f"gp: expected a GP with {input_dim} inputs (the system's correction inputs), got one "
+                             f"fitted on {gp.input_dim}")
+        self.gp = gp
+        self.module = gp.covar_module
+        self.noise = float(noise)
+        self.dtype = gp.dtype
+        self.device = gp.device
+
+    def __call__(self, x1: torch.Tensor, x2: torch.Tensor | None = None) -> torch.Tensor:
+        with torch.no_grad():
+            return self.module.forward(x1, x1 if x2 is None else x2)
+
+    def block_diagonal(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+        """k(P_c, P_c) for every candidate: ``points (N, T, d_in)`` -> ``(N, T, T)`` (chunked over N)."""
+        n = points.shape[0]
+        if n <= chunk:
+            return self(points)
+        return torch.cat([self(points[i:i + chunk]) for i in range(0, n, chunk)])
+
+
+def logdet_identity_plus(cov: torch.Tensor, noise: float, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(log det(I + cov / noise), L)`` for ``cov (..., m, m)``, L the Cholesky factor of ``I + cov / noise``."""
+    m = cov.shape[-1]
+    A = cov / noise
+    A.diagonal(dim1=-2, dim2=-1).add_(1.0)
+    L, info = torch.linalg.cholesky_ex(A)
+    if bool((info != 0).any()):
+        L = cholesky_with_jitter(A, what=what)
+    if m == 0:
+        return cov.new_zeros(cov.shape[:-2]), L
+    return 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1), L
+
+
+# ---------------------------------------------------------------------------------------------------- input checks
+def check_system(system) -> MisspecifiedSystem:
+    if not isinstance(system, MisspecifiedSystem):
+        raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
+    return system
+
+
+def check_candidates(candidates, system: MisspecifiedSystem, *, dtype=None, device=None) -> torch.Tensor:
+    """Candidates ``(N, d)``: 2-D, d = state_dim, finite, at least one row."""
+    c = as_tensor(candidates, "candidates", dtype=dtype, device=device)
+    check_ndim(c, 2, "candidates", f"(N, {system.state_dim})")
+    if c.shape[1] != system.state_dim:
+        raise ShapeError(f"candidates: expected shape (N, {system.state_dim}) (state_dim of system "
+                         f"'{system.name}'), got {tuple(c.shape)}")
+    if c.shape[0] < 1:
+        raise ShapeError("candidates: expected at least one candidate, got shape (0, d)")
+    check_finite(c, "candidates")
+    return c
+
+
+def check_times(times, *, dtype, device) -> torch.Tensor:
+    """Observation times ``(T,)``: 1-D, at least one, finite, strictly increasing."""
+    t = as_tensor(times, "times", dtype=dtype, device=device)
+    check_ndim(t, 1, "times", "(T,)")
+    if t.shape[0] < 1:
+        raise ShapeError("times: expected at least one time, got shape (0,)")
+    check_finite(t, "times")
+    check_increasing(t, "times")
+    return t
+
+
+def check_proxies(proxies, n: int, system: MisspecifiedSystem, times: torch.Tensor | None, *, dtype,
+                  device) -> torch.Tensor:
+    p = as_tensor(proxies, "proxies", dtype=dtype, device=device)
+    T = "T" if times is None else str(times.shape[0])
+    check_ndim(p, 3, "proxies", f"({n}, {T}, {system.state_dim})")
+    if p.shape[0] != n or p.shape[2] != system.state_dim or (times is not None and p.shape[1] != times.shape[0]):
+        raise ShapeError(f"proxies: expected shape ({n}, {T}, {system.state_dim}) to match the candidates and "
+                         f"times, got {tuple(p.shape)}")
+    if p.shape[1] < 1:
+        raise ShapeError("proxies: expected at least one time, got T = 0")
+    check_finite(p, "proxies")
+    return p
+
+
+def check_budget(budget, n: int) -> int:
+    if isinstance(budget, bool) or not isinstance(budget, int):
+        try:
+            if isinstance(budget, bool) or int(budget) != budget:
+                raise TypeError
+            budget = int(budget)
+        except (TypeError, ValueError):
+            raise BudgetError(f"budget: expected a positive integer, got {budget!r}") from None
+    if budget < 1:
+        raise BudgetError(f"budget: expected at least 1 experiment, got {budget}")
+    if budget > n:
+        raise BudgetError(f"budget: expected at most the number of candidates ({n}), got budget = {budget}")
+    return budget
+
+
+def check_partition(partition, capacities, n: int, budget: int, device) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Region label per candidate and capacity per region, as ``(region (N,) long in 0..R-1, caps (R,) long)``.
+
+    ``capacities`` is a mapping label -> most picks, or a sequence indexed by label (labels 0..len-1). Raises
+    BudgetError when the budget exceeds what the capacities (and the region sizes) allow.
+    """
+    if partition is None and capacities is None:
+        return None
+    if partition is None or capacities is None:
+        raise InputError("partition and capacities: expected both (a region label per candidate and the most picks "
+                         "per region) or neither, got only "
+                         f"{'partition' if capacities is None else 'capacities'}")
+    lab = torch.as_tensor(partition)
+    if lab.dim() != 1 or lab.shape[0] != n:
+        raise ShapeError(f"partition: expected one region label per candidate, shape ({n},), got {tuple(lab.shape)}")
+    if lab.is_floating_point() or lab.is_complex() or lab.dtype == torch.bool:
+        if lab.is_complex() or not bool((lab == lab.round()).all()) or lab.dtype == torch.bool:
+            raise InputError(f"partition: expected integer region labels, got dtype {lab.dtype}")
+    lab = lab.to(torch.long).cpu()
+    labels = sorted(int(v) for v in torch.unique(lab))
+    if isinstance(capacities, Mapping):
+        caps_map = dict(capacities)
+    elif isinstance(capacities, (Sequence, torch.Tensor)) and not isinstance(capacities, str):
+        caps_map = {i: c for i, c in enumerate(capacities.tolist() if isinstance(capacities, torch.Tensor)
+                                                else capacities)}
+    else:
+        raise InputError(f"capacities: expected a mapping label -> most picks or a sequence indexed by label, got "
+                         f"{type(capacities).__name__}")
+    clean = {}
+    for key, val in caps_map.items():
+        try:
+            k = int(key)
+            if k != key:
+                raise TypeError
+        except (TypeError, ValueError):
+            raise InputError(f"capacities: expected integer region labels as keys, got {key!r}") from None
+        integral = isinstance(val, numbers.Integral) or (isinstance(val, float) and val.is_integer())
+        if isinstance(val, bool) or not integral or int(val) < 0:
+            raise InputError(f"capacities: expected non-negative integers, got {val!r} for region {k}")
+        clean[k] = int(val)
+    missing = [lbl for lbl in labels if lbl not in clean]
+    if missing:
+        raise InputError(f"capacities: expected a capacity for every region label in partition {labels}, missing "
+                         f"{missing} (got capacities for {sorted(clean)})")
+    region = torch.searchsorted(torch.tensor(labels, dtype=torch.long), lab)  # labels -> 0..R-1
+    caps = torch.tensor([clean[lbl] for lbl in labels], dtype=torch.long)
+    sizes = torch.bincount(region, minlength=len(labels))
+    allowed = int(torch.minimum(caps, sizes).sum())
+    if budget > allowed:
+        region_sizes = dict(zip(labels, sizes.tolist(), strict=True))
+        raise BudgetError(f"budget: expected at most {allowed} experiments (what the capacities {clean} allow "
+                          f"with the region sizes {region_sizes}), got budget = {budget}")
+    return region.to(device), caps.to(device)
