@@ -22,6 +22,9 @@ __all__ = [
     "PointMassGravity",
     "paper_linear",
     "paper_gravity",
+    "gravity_candidates",
+    "data_driven",
+    "ZeroField",
     "get_system",
     "SYSTEMS",
 ]
@@ -223,7 +226,7 @@ def paper_gravity() -> MisspecifiedSystem:
 
     G: one mass 0.2 at the origin. True F: masses 0.1 at (0, 4) and 0.4 at (0.5, 3.8), acting on the velocities
     (outputs 2, 3) and depending on the positions (inputs 0, 1). The paper does not state its domain D; we use
-    the box [-2.5, 2.5]^2 around the central mass (see docs/reproduction.md).
+    the box [-2, 2]^2 around the central mass, where :func:`gravity_candidates` places the initial positions.
     """
     return MisspecifiedSystem(
         PointMassGravity([0.2], [[0.0, 0.0]], first_order=True),
@@ -231,9 +234,64 @@ def paper_gravity() -> MisspecifiedSystem:
         correction=PointMassGravity([0.1, 0.4], [[0.0, 4.0], [0.5, 3.8]]),
         correction_inputs=(0, 1),
         correction_outputs=(2, 3),
-        domain=((-2.5, 2.5), (-2.5, 2.5)),
+        domain=((-2.0, 2.0), (-2.0, 2.0)),
         name="paper_gravity",
     )
+
+
+def gravity_candidates(n: int = 300, *, generator: torch.Generator | None = None, half_width: float = 2.0,
+                       min_radius: float = 0.75, dtype=torch.float64) -> torch.Tensor:
+    """Candidate initial conditions ``(n, 4)`` for :func:`paper_gravity` (the paper does not list its set).
+
+    Positions uniform in the box [-half_width, half_width]^2 outside a disc of ``min_radius`` around the known
+    mass; velocities of a circular counter-clockwise orbit about the known mass (speed sqrt(m / r)), so every
+    experiment is a satellite released into orbit that the unknown masses perturb.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise InputError(f"n: expected a positive integer, got {n!r}")
+    if not 0 < min_radius < half_width:
+        raise InputError(f"min_radius: expected 0 < min_radius < half_width={half_width}, got {min_radius}")
+    points = []
+    count = 0
+    while count < n:
+        x = (torch.rand(2 * n, 2, generator=generator, dtype=dtype) * 2 - 1) * half_width
+        x = x[torch.linalg.vector_norm(x, dim=-1) >= min_radius]
+        points.append(x)
+        count += x.shape[0]
+    x = torch.cat(points)[:n]
+    r = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
+    speed = torch.sqrt(0.2 / r)
+    v = speed * torch.stack([-x[:, 1], x[:, 0]], -1) / r
+    return torch.cat([x, v], dim=-1)
+
+
+def data_driven(system: MisspecifiedSystem) -> MisspecifiedSystem:
+    """The fully data-driven view of ``system`` (paper §5.2): no known part, the whole G + F is to be learned.
+
+    Its known model is zero and its true correction is G + F of the original system (so it needs a system whose
+    correction inputs and outputs are all components). Fit a :class:`CorrectionGP` to its correction samples to get
+    the data-driven estimator; its estimate of F is then (estimate - G).
+    """
+    full = tuple(range(system.state_dim))
+    if system.correction_inputs != full or system.correction_outputs != full:
+        raise InputError(
+            f"system '{system.name}': the data-driven view needs a correction on all components, got "
+            f"correction_inputs={list(system.correction_inputs)}, correction_outputs={list(system.correction_outputs)}"
+        )
+    return MisspecifiedSystem(
+        ZeroField(),
+        system.state_dim,
+        correction=system.true_rhs,
+        domain=system.domain,
+        name=f"{system.name}_data_driven",
+    )
+
+
+class ZeroField(nn.Module):
+    """y -> 0 (the known model of a fully data-driven estimator)."""
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(y)
 
 
 SYSTEMS: dict[str, Callable[[], MisspecifiedSystem]] = {

@@ -1,0 +1,69 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from torchmisspec.cli import main
+from torchmisspec.studies import grid_candidates
+
+
+@pytest.fixture
+def candidates_csv(tmp_path):
+    path = tmp_path / "cands.csv"
+    np.savetxt(path, grid_candidates(((-1, 1), (-1, 1)), 7).numpy(), delimiter=",", header="y0,y1", comments="")
+    return path
+
+
+def test_demo_runs_end_to_end(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--quiet", "--n-train", "15", "--n-test", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "integrated error of the correction over D" in out and "trajectory RMSE" in out
+    results = json.loads((tmp_path / "demo" / "results.json").read_text())
+    assert results["rmse_corrected"] < results["rmse_misspecified"]
+    for name in ("trajectories.png", "error_map.png"):
+        assert (tmp_path / "demo" / name).read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".json"])
+def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
+    out = tmp_path / f"picks{suffix}"
+    argv = ["design", "--candidates", str(candidates_csv), "--system", "paper_linear", "--times", "0:6:11",
+            "--budget", "4", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    if suffix == ".json":
+        data = json.loads(out.read_text())
+        assert len(data["indices"]) == 4 and len(set(data["indices"])) == 4
+        assert data["information_gain"] == pytest.approx(sum(data["gains"]))
+    else:
+        assert out.read_text().splitlines()[0] == "order,index,gain,y0,y1"
+
+
+def test_design_command_with_partition(tmp_path, candidates_csv):
+    labels = tmp_path / "labels.csv"
+    np.savetxt(labels, (np.arange(49) % 2)[:, None], fmt="%d")
+    out = tmp_path / "p.json"
+    argv = ["design", "--candidates", str(candidates_csv), "--system", "paper_linear", "--times", "0:6:11",
+            "--budget", "3", "--partition", str(labels), "--capacities", "0=1,1=2", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    picks = json.loads(out.read_text())["indices"]
+    assert sum(1 for i in picks if i % 2 == 0) <= 1
+
+
+def test_design_command_errors(tmp_path, candidates_csv, capsys):
+    base = ["design", "--candidates", str(candidates_csv), "--times", "0:6:11", "--quiet", "--out",
+            str(tmp_path / "x.csv")]
+    assert main(base + ["--system", "nope", "--budget", "2"]) == 2
+    assert "unknown system name 'nope'" in capsys.readouterr().err
+    assert main(base + ["--system", "paper_linear", "--budget", "100"]) == 2
+    assert "expected at most the number of candidates (49), got budget = 100" in capsys.readouterr().err
+    assert main(base + ["--system", "paper_gravity", "--budget", "2"]) == 2
+    assert r"expected shape (N, 4)" in capsys.readouterr().err
+
+
+def test_console_script_help():
+    proc = subprocess.run([sys.executable, "-m", "torchmisspec.cli", "design", "--help"], capture_output=True,
+                          text=True, check=True)
+    for option in ("--candidates", "--system", "--times", "--budget", "--partition", "--capacities", "--out"):
+        assert option in proc.stdout
