@@ -12,7 +12,26 @@ from collections.abc import Callable
 import torch
 from torchdiffeq import odeint
 
-from ._errors import IntegrationError
+from ._errors import IntegrationError, ShapeError
+from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+
+
+def initial_conditions_and_times(y0, times, state_dim: int, check_states, *, dtype=None, device=None
+                                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate ``y0 (B, d)`` (or ``(d,)``) and ``times (T,)`` or ``(B, T)`` for a batched solve."""
+    y0 = as_tensor(y0, "y0", dtype=dtype, device=device)
+    if y0.dim() == 1:
+        y0 = y0.unsqueeze(0)
+    check_ndim(y0, 2, "y0", f"(B, {state_dim})")
+    check_states(y0, "y0")
+    check_finite(y0, "y0")
+    times = as_tensor(times, "times", dtype=y0.dtype, device=y0.device)
+    check_ndim(times, (1, 2), "times", "(T,) or (B, T)")
+    check_finite(times, "times")
+    check_increasing(times, "times")
+    if times.dim() == 2 and times.shape[0] != y0.shape[0]:
+        raise ShapeError(f"times: expected ({y0.shape[0]}, T) to match y0 {tuple(y0.shape)}, got {tuple(times.shape)}")
+    return y0, times
 
 
 class _Autonomous(torch.nn.Module):

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from ._errors import InputError, ShapeError
-from ._ode import solve
+from ._ode import initial_conditions_and_times, solve
 from ._validation import as_tensor, check_finite, check_increasing, check_ndim
 from .systems import MisspecifiedSystem
 
@@ -163,18 +163,7 @@ def simulate(
     Returns:
         :class:`Trajectories` with ``states (K, T, d)``.
     """
-    y0 = as_tensor(y0, "y0")
-    if y0.dim() == 1:
-        y0 = y0.unsqueeze(0)
-    check_ndim(y0, 2, "y0", f"(K, {system.state_dim})")
-    system.check_states(y0, "y0")
-    check_finite(y0, "y0")
-    times = as_tensor(times, "times", dtype=y0.dtype, device=y0.device)
-    check_ndim(times, (1, 2), "times", "(T,) or (K, T)")
-    check_finite(times, "times")
-    check_increasing(times, "times")
-    if times.dim() == 2 and times.shape[0] != y0.shape[0]:
-        raise ShapeError(f"times: expected ({y0.shape[0]}, T) to match y0 {tuple(y0.shape)}, got {tuple(times.shape)}")
+    y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
     field = system.known if known_only else system.true_rhs
     with torch.no_grad():
         states, _ = solve(field, y0, times, method=method, rtol=rtol, atol=atol,

@@ -6,8 +6,7 @@ import torch
 from torch import nn
 
 from ._errors import InputError, NotFittedError, ShapeError
-from ._ode import solve
-from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+from ._ode import initial_conditions_and_times, solve
 from .gp import CorrectionGP
 from .systems import MisspecifiedSystem
 
@@ -78,19 +77,8 @@ class CorrectedODE(nn.Module):
         Returns:
             states ``(B, T, d)`` in the GP's dtype. Raises :class:`IntegrationError` if a trajectory blows up.
         """
-        y0 = as_tensor(y0, "y0", dtype=self.gp.dtype, device=self.gp.device)
-        if y0.dim() == 1:
-            y0 = y0.unsqueeze(0)
-        check_ndim(y0, 2, "y0", f"(B, {self.system.state_dim})")
-        self.system.check_states(y0, "y0")
-        check_finite(y0, "y0")
-        times = as_tensor(times, "times", dtype=y0.dtype, device=y0.device)
-        check_ndim(times, (1, 2), "times", "(T,) or (B, T)")
-        check_finite(times, "times")
-        check_increasing(times, "times")
-        if times.dim() == 2 and times.shape[0] != y0.shape[0]:
-            raise ShapeError(f"times: expected ({y0.shape[0]}, T) to match y0 {tuple(y0.shape)}, got "
-                             f"{tuple(times.shape)}")
+        y0, times = initial_conditions_and_times(y0, times, self.system.state_dim, self.system.check_states,
+                                                 dtype=self.gp.dtype, device=self.gp.device)
         with torch.no_grad():
             states, self.nfe = solve(self.field, y0, times, method=method, rtol=rtol, atol=atol, options=options,
                                      what="CorrectedODE.predict")
