@@ -96,8 +96,9 @@ def test_fit_raises_marginal_likelihood_and_keeps_fixed_values(fixed, generator)
     start = tms.CorrectionGP(**fixed)
     start._build(1)
     start._initialise(X, Y)  # the fit's starting point, held fixed
-    init = tms.CorrectionGP(lengthscale=start.lengthscale, outputscale=start.outputscale,
-                            noise_variance=start.noise_variance).fit(X, Y)
+    init = tms.CorrectionGP(lengthscale=start.covar_module.base_kernel.lengthscale.item(),
+                            outputscale=start.covar_module.outputscale.item(),
+                            noise_variance=start.likelihood.noise.item()).fit(X, Y)
     assert gp.log_marginal_likelihood_ > init.log_marginal_likelihood_ + 1.0
     for name, value in fixed.items():
         assert getattr(gp, name) == pytest.approx(value, rel=1e-12)
@@ -146,6 +147,11 @@ def test_one_dimensional_targets_and_float32_inputs(generator):
     gp = tms.CorrectionGP(**HYPER).fit(X.float(), Y[:, 0].float())
     assert gp.train_inputs_.dtype == torch.float64 and gp.output_dim == 1
     assert gp.predict_mean(X[:3]).shape == (3, 1)
+
+
+def test_unfitted_model_reports_only_given_values():
+    gp = tms.CorrectionGP(lengthscale=0.5)
+    assert (gp.lengthscale, gp.outputscale, gp.noise_variance) == (0.5, None, None)
 
 
 def test_prior_covariance_before_fit():

@@ -441,29 +441,29 @@ class CorrectionGP:
         return GPPosterior(mean=mean, variance=var.contiguous())
 
     # ------------------------------------------------------------------------------------------ hyperparameters
-    def _value(self, t: torch.Tensor) -> float | torch.Tensor:
+    def _value(self, name: str, t: torch.Tensor) -> float | torch.Tensor | None:
+        """The value in use; before fitting only a fixed (given) value is in use, otherwise ``None``."""
+        if not self.is_fitted:
+            return self.fixed[name]
         t = t.detach().reshape(-1)
         return float(t[0]) if (not self.per_output or t.numel() == 1) else t.clone()
 
     @property
     def lengthscale(self) -> float | torch.Tensor | None:
+        """The kernel lengthscale in use (``None`` for the polynomial kernel, or when unfitted and not given)."""
         if self.kernel == "polynomial":
             return None
-        if self.covar_module is None:
-            return self.fixed["lengthscale"]
-        return self._value(self.covar_module.base_kernel.lengthscale)
+        return self._value("lengthscale", self.covar_module.base_kernel.lengthscale if self.covar_module else None)
 
     @property
     def outputscale(self) -> float | torch.Tensor | None:
-        if self.covar_module is None:
-            return self.fixed["outputscale"]
-        return self._value(self.covar_module.outputscale)
+        """The kernel output scale in use (``None`` when unfitted and not given)."""
+        return self._value("outputscale", self.covar_module.outputscale if self.covar_module else None)
 
     @property
     def noise_variance(self) -> float | torch.Tensor | None:
-        if self.likelihood is None:
-            return self.fixed["noise_variance"]
-        return self._value(self.likelihood.noise)
+        """The observation-noise variance in use (``None`` when unfitted and not given)."""
+        return self._value("noise_variance", self.likelihood.noise if self.likelihood else None)
 
     def __repr__(self) -> str:
         state = f"fitted on N={self.train_inputs_.shape[0]}" if self.is_fitted else "not fitted"

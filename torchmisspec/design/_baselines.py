@@ -76,6 +76,7 @@ def random(
     partition=None,
     capacities=None,
     proxies=None,
+    progress: bool = False,
 ) -> DesignResult:
     """A random design: ``budget`` distinct candidates drawn uniformly (respecting region capacities if given).
 
@@ -90,6 +91,9 @@ def random(
         candidates: ``(N, d)``.
         budget: number of experiments, 1 <= budget <= N.
         generator: a ``torch.Generator`` for reproducible draws.
+        system, times, gp, proxies: as for :func:`greedy`; only needed for the gains.
+        partition, capacities: as for :func:`greedy`.
+        progress: accepted for a signature uniform with :func:`greedy`; a random draw has nothing to show.
     """
     start = time.perf_counter()
     if system is not None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -37,6 +37,8 @@ class DesignResult:
             included); for ``"naive"`` the number of full log-determinants.
         proxies: ``(K, T, d)`` proxy trajectories of the picks, or ``None`` when not computed.
         elapsed: wall-clock seconds spent in the selection (proxies excluded).
+        diagnostics: engine details (lazy greedy with screening: ``rank`` of the kernel features and the
+            ``residual`` variance e_max that sets its bounds).
     """
 
     indices: torch.Tensor
@@ -47,6 +49,7 @@ class DesignResult:
     evaluations: int = 0
     proxies: torch.Tensor | None = None
     elapsed: float = 0.0
+    diagnostics: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.indices.numel())
@@ -92,6 +95,11 @@ class GPKernel:
     def __call__(self, x1: torch.Tensor, x2: torch.Tensor | None = None) -> torch.Tensor:
         with torch.no_grad():
             return self.module.forward(x1, x1 if x2 is None else x2)
+
+    def diag(self, x: torch.Tensor) -> torch.Tensor:
+        """k(x_i, x_i) for ``x (M, d_in)``: ``(M,)``."""
+        with torch.no_grad():
+            return self.module.forward(x, x, diag=True)
 
     def block_diagonal(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
         """k(P_c, P_c) for every candidate: ``points (N, T, d_in)`` -> ``(N, T, T)`` (chunked over N)."""
