@@ -126,6 +126,79 @@ def bench_predict(smoke: bool, repeats: int) -> dict:
     }
 
 
+def _design_worker(n: int, T: int, K: int, outputscale: float, repeats: int) -> dict:
+    """10k-candidate design, run in a fresh process so that its peak memory is its own."""
+    import resource
+
+    from torchmisspec import design
+
+    def peak_mb() -> float:
+        """Peak resident memory of this process (VmHWM; ru_maxrss can carry the parent's peak across exec)."""
+        try:
+            with open("/proc/self/status") as fh:
+                for line in fh:
+                    if line.startswith("VmHWM:"):
+                        return int(line.split()[1]) / 1024
+        except OSError:
+            pass
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    system = tms.systems.paper_linear()
+    gen = torch.Generator().manual_seed(0)
+    candidates = uniform_in_box(n, system.domain, generator=gen)
+    times = torch.linspace(0.0, 6.0, T, dtype=torch.float64)
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=outputscale, noise_variance=1e-4)
+    design.greedy(candidates[:50], 3, system=system, times=times, gp=gp)  # warm-up: first-call overheads
+    before = peak_mb()
+
+    def run():
+        return design.greedy(candidates, K, system=system, times=times, gp=gp)  # proxies included
+
+    plan, seconds, all_seconds = _timed(run, repeats)
+    return {"candidates": n, "T": T, "K": K, "kernel": f"RBF lengthscale 1, outputscale {outputscale}, noise 1e-4",
+            "seconds": seconds, "all_seconds": all_seconds, "gain_evaluations": plan.evaluations,
+            "information_gain_nats": plan.information_gain, "diagnostics": plan.diagnostics,
+            "peak_rss_mb": peak_mb(), "rss_after_imports_and_warmup_mb": before}
+
+
+def bench_design(smoke: bool, repeats: int) -> dict:
+    import subprocess
+    import sys
+
+    n, K = (1000, 10) if smoke else (10_000, 50)
+    out = {}
+    for outputscale in (4e-5, 1e-2):
+        cmd = [sys.executable, __file__, "--design-worker", json.dumps([n, 20, K, outputscale, repeats])]
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        out[f"outputscale={outputscale}"] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return out
+
+
+def bench_naive(smoke: bool, repeats: int) -> dict:
+    from torchmisspec import design
+
+    system = tms.systems.paper_linear()
+    n, T, K = (100, 11, 5) if smoke else (500, 11, 15)
+    candidates = uniform_in_box(n, system.domain, generator=torch.Generator().manual_seed(1))
+    times = torch.linspace(0.0, 6.0, T, dtype=torch.float64)
+    out = {}
+    for outputscale in (4e-5, 1e-2):
+        gp = tms.CorrectionGP(lengthscale=1.0, outputscale=outputscale, noise_variance=1e-4)
+        design.greedy(candidates[:30], 3, system=system, times=times, gp=gp, method="naive")  # warm-up
+        runs = {m: _timed(lambda m=m: design.greedy(candidates, K, system=system, times=times, gp=gp, method=m),
+                          repeats) for m in ("naive", "greedy", "lazy")}
+        picks = {m: r[0].indices.tolist() for m, r in runs.items()}
+        out[f"outputscale={outputscale}"] = {
+            "candidates": n, "T": T, "K": K,
+            **{f"{m}_seconds": r[1] for m, r in runs.items()},
+            **{f"{m}_evaluations": r[0].evaluations for m, r in runs.items()},
+            "identical_picks": picks["naive"] == picks["greedy"] == picks["lazy"],
+            "picks": picks["lazy"],
+            "speedup_lazy_vs_naive": runs["naive"][1] / runs["lazy"][1],  # >= 20 required
+        }
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", choices=["fit", "predict", "design", "naive"], action="append",
@@ -133,14 +206,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check that the script runs")
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats (median reported)")
     parser.add_argument("--json", help="write the results to this JSON file")
+    parser.add_argument("--design-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.design_worker:
+        print(json.dumps(_design_worker(*json.loads(args.design_worker))))
+        return 0
     repeats = args.repeats or (1 if args.smoke else 3)
-    benches = {"fit": bench_fit, "predict": bench_predict}
-    try:
-        from _design_bench import bench_design, bench_naive  # noqa: F401  (added with the design module)
-        benches.update(design=bench_design, naive=bench_naive)
-    except ImportError:
-        pass
+    benches = {"fit": bench_fit, "predict": bench_predict, "design": bench_design, "naive": bench_naive}
     results = {"machine": _machine(), "smoke": args.smoke, "repeats": repeats}
     for name in args.only or list(benches):
         print(f"--- {name}", flush=True)

@@ -206,3 +206,11 @@ def test_duplicate_inputs_with_tiny_noise_are_handled(generator):
     Y = torch.randn(15, 2, generator=generator, dtype=torch.float64) * 1e-2
     gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1.0, noise_variance=1e-12).fit(X, Y)
     assert torch.isfinite(gp.predict(X).mean).all()
+
+
+def test_warm_start_reaches_the_same_optimum(generator):
+    X, Y = _data(generator, n=700)
+    cold = tms.CorrectionGP().fit(X, Y, warm_start=0)
+    warm = tms.CorrectionGP().fit(X, Y, warm_start=100)
+    assert warm.log_marginal_likelihood_ == pytest.approx(cold.log_marginal_likelihood_, rel=1e-7)
+    assert warm.lengthscale == pytest.approx(cold.lengthscale, rel=1e-2)
