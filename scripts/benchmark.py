@@ -185,7 +185,8 @@ def bench_naive(smoke: bool, repeats: int) -> dict:
     for outputscale in (4e-5, 1e-2):
         gp = tms.CorrectionGP(lengthscale=1.0, outputscale=outputscale, noise_variance=1e-4)
         design.greedy(candidates[:30], 3, system=system, times=times, gp=gp, method="naive")  # warm-up
-        runs = {m: _timed(lambda m=m: design.greedy(candidates, K, system=system, times=times, gp=gp, method=m),
+        runs = {m: _timed(lambda m=m, gp=gp: design.greedy(candidates, K, system=system, times=times, gp=gp,
+                                                                method=m),
                           repeats) for m in ("naive", "greedy", "lazy")}
         picks = {m: r[0].indices.tolist() for m, r in runs.items()}
         out[f"outputscale={outputscale}"] = {

@@ -15,7 +15,7 @@ Typical use::
     pred = tms.CorrectedODE(system, gp).predict(y0_new, times)
 """
 
-from . import metrics, systems
+from . import design, metrics, studies, systems
 from ._errors import (
     BudgetError,
     FittingError,
@@ -52,12 +52,14 @@ __all__ = [
     "Trajectories",
     "correction_error",
     "correction_samples",
+    "design",
     "finite_difference",
     "integrated_error",
     "integrated_norm",
     "metrics",
     "simulate",
     "smoothed_derivative",
+    "studies",
     "systems",
     "trajectory_rmse",
 ]

@@ -101,7 +101,8 @@ class StudyResult:
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        paths = {"json": out / f"{self.name}.json", "table": out / f"{self.name}.md", "figure": out / f"{self.name}.png"}
+        paths = {"json": out / f"{self.name}.json", "table": out / f"{self.name}.md",
+                 "figure": out / f"{self.name}.png"}
         data = self.to_dict()
         data["ratios"] = {f"{a}/{b}": self.ratio(a, b) for a, b in ratios}
         paths["json"].write_text(json.dumps(data, indent=2))
