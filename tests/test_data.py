@@ -9,7 +9,8 @@ from torchmisspec.systems import MisspecifiedSystem
 def _expm_reference(A, y0, grid):
     """States (K, T, d) of dy/dt = A y from y0 (K, d) on per-row grids (K, T) by the matrix exponential."""
     return torch.stack([
-        torch.stack([torch.linalg.matrix_exp(A * (t - row[0])) @ y for t in row]) for y, row in zip(y0, grid, strict=False)
+        torch.stack([torch.linalg.matrix_exp(A * (t - row[0])) @ y for t in row])
+        for y, row in zip(y0, grid, strict=True)
     ])
 
 

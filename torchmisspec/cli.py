@@ -117,7 +117,8 @@ def _design(args: argparse.Namespace) -> int:
         plan = design.greedy(candidates, args.budget, method=args.method, partition=partition,
                              capacities=capacities, **common)
     rows = [{"order": i, "index": int(c), "gain": float(g), **{f"y{j}": float(v) for j, v in enumerate(pt)}}
-            for i, (c, g, pt) in enumerate(zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(), strict=False))]
+            for i, (c, g, pt) in enumerate(zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(),
+                                               strict=True))]
     out = Path(args.out)
     if out.suffix == ".json":
         out.write_text(json.dumps({"system": system.name, "method": plan.method, "budget": args.budget,
