@@ -57,3 +57,12 @@ def test_study_bad_input():
         linear_study(ks=(0, 2), realizations=1)
     with pytest.raises(tms.InputError, match="realizations: expected a positive integer, got 0"):
         linear_study(ks=(2,), realizations=0)
+
+
+def test_data_driven_view_learns_the_whole_field(linear_system):
+    view = tms.systems.data_driven(linear_system)
+    y = torch.rand(7, 2, dtype=torch.float64)
+    torch.testing.assert_close(view.known(y), torch.zeros_like(y))
+    torch.testing.assert_close(view.true_correction(y), linear_system.true_rhs(y))
+    with pytest.raises(tms.InputError, match="the data-driven view needs a correction on all components"):
+        tms.systems.data_driven(tms.systems.paper_gravity())
