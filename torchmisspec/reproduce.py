@@ -497,6 +497,18 @@ def _study_numbers(study: StudyResult, ratios: Iterable[tuple[str, str]]) -> dic
     return data
 
 
+def _study_figure(study, path: Path, labels: dict, ylabel: str, title: str, ratios: list[tuple[str, str]]) -> dict:
+    """Error-vs-K curves of a study (Figs 5 and 8) and the numbers behind them."""
+    files: list[str] = []
+    curves = {labels.get(name, name): (m, e) for name, (m, e) in study.summary().items()}
+    fig = plotting.plot_error_curves(study.ks, curves, reference_lines=study.references, ylabel=ylabel)
+    _curves_layout(fig, title)
+    _save(fig, path, files)
+    data = _study_numbers(study, ratios)
+    data["files"] = files
+    return data
+
+
 def figure_5(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = False) -> dict:
     """Paper Fig 5: integrated error of F_hat vs K for design / random / data-driven, with the energies of F and
     G + F (:func:`~torchmisspec.studies.linear_study`, 10 realizations; smoke: 2 and fewer K).
@@ -504,20 +516,13 @@ def figure_5(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     Returns the study's summary (mean and standard error per K) and the paired per-K ratios design/random,
     data-driven/design and random/design (mean and standard error over realizations).
     """
-    out = Path(out)
-    files: list[str] = []
     study = linear_study(_pick(_FIG5_KS, smoke), _pick(_FIG5_REALIZATIONS, smoke), seed=seed, progress=progress)
-    summary = study.summary()
     labels = {"design": "design + misspecified model", "random": "random sets + misspecified model",
               "data-driven": "design + fully data-driven GP"}
-    fig = plotting.plot_error_curves(
-        study.ks, {labels.get(name, name): (m, e) for name, (m, e) in summary.items()},
-        reference_lines=study.references, ylabel=r"$\int_D \|\hat F(y) - F(y)\|_2\,dy$")
-    _curves_layout(fig, f"Paper Fig 5 (§5.2): estimation error vs training set size\n"
-                        f"linear system, {study.realizations} realizations, mean ± standard error")
-    _save(fig, out / "fig5.png", files)
-    data = _study_numbers(study, [("design", "random"), ("data-driven", "design"), ("random", "design")])
-    data["files"] = files
+    data = _study_figure(study, Path(out) / "fig5.png", labels, r"$\int_D \|\hat F(y) - F(y)\|_2\,dy$",
+                         f"Paper Fig 5 (§5.2): estimation error vs training set size\n"
+                         f"linear system, {study.realizations} realizations, mean ± standard error",
+                         [("design", "random"), ("data-driven", "design"), ("random", "design")])
     return data
 
 
@@ -663,21 +668,14 @@ def figure_8(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
 
     Returns the summary per K and the paired ratios aided/agnostic and aided/random per K with standard errors.
     """
-    out = Path(out)
-    files: list[str] = []
     study = gravity_study(realizations=_pick(_FIG8_REALIZATIONS, smoke), seed=seed, progress=progress)
-    summary = study.summary()
     labels = {"misspecified-aided": "misspecified-aided design", "agnostic": "agnostic design",
               "random": "random sets (new each realization)"}
-    fig = plotting.plot_error_curves(
-        study.ks, {labels.get(name, name): (m, e) for name, (m, e) in summary.items()},
-        reference_lines=study.references, ylabel=r"$\frac{1}{|D|}\int_D \|\hat F_{3,4} - F_{3,4}\|_2^2\,dy$")
-    _curves_layout(fig, f"Paper Fig 8 (§5.3): average estimation error vs training set size\n"
-                        f"gravity, {study.realizations} noise realizations, mean ± standard error")
-    _save(fig, out / "fig8.png", files)
-    data = _study_numbers(study, [("misspecified-aided", "agnostic"), ("misspecified-aided", "random")])
-    data["files"] = files
-    return data
+    return _study_figure(study, Path(out) / "fig8.png", labels,
+                         r"$\frac{1}{|D|}\int_D \|\hat F_{3,4} - F_{3,4}\|_2^2\,dy$",
+                         f"Paper Fig 8 (§5.3): average estimation error vs training set size\n"
+                         f"gravity, {study.realizations} noise realizations, mean ± standard error",
+                         [("misspecified-aided", "agnostic"), ("misspecified-aided", "random")])
 
 
 # ==================================================================================================== driver
