@@ -214,3 +214,15 @@ def test_warm_start_reaches_the_same_optimum(generator):
     warm = tms.CorrectionGP().fit(X, Y, warm_start=100)
     assert warm.log_marginal_likelihood_ == pytest.approx(cold.log_marginal_likelihood_, rel=1e-7)
     assert warm.lengthscale == pytest.approx(cold.lengthscale, rel=1e-2)
+
+
+def test_tiny_and_degenerate_data():
+    X = torch.tensor([[0.1, 0.2]], dtype=torch.float64)
+    gp = tms.CorrectionGP().fit(X, torch.tensor([[0.01, -0.02]], dtype=torch.float64))  # one sample
+    assert torch.isfinite(gp.predict(X).mean).all()
+    zeros = torch.zeros(10, 2, dtype=torch.float64)
+    with pytest.raises(tms.FittingError, match="got all zeros"):
+        tms.CorrectionGP().fit(torch.rand(10, 2, dtype=torch.float64), zeros)
+    fixed = tms.CorrectionGP(outputscale=1e-3, noise_variance=1e-4).fit(torch.rand(10, 2, dtype=torch.float64),
+                                                                         zeros)
+    assert fixed.predict(X).mean.abs().max() == 0

@@ -197,7 +197,7 @@ class CorrectionGP:
 
     def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
         """Data-driven starting values for the learned hyperparameters (the fixed ones are already set)."""
-        var = Y.var(dim=0).clamp_min(1e-12)  # (d_out,)
+        var = Y.var(dim=0, unbiased=False).clamp_min(1e-10)  # (d_out,); floored for constant targets
         var = var if self.per_output else var.mean()
         with torch.no_grad():
             if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
@@ -276,6 +276,11 @@ class CorrectionGP:
             self._build(batch=d_out)
         self.train_inputs_, self.train_targets_ = X, Y
         free = self._free_parameters()
+        if any(name in ("outputscale", "noise_variance") for name, _ in free) and not bool((Y != 0).any()):
+            raise FittingError(
+                "targets: expected some non-zero samples to learn the output scale and noise from, got all zeros "
+                "(the likelihood grows without bound as both shrink to 0); fix them: CorrectionGP(outputscale=..., "
+                "noise_variance=...)")
         if free:
             self._initialise(X, Y)
             params = [p for _, p in free]
