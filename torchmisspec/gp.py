@@ -203,7 +203,8 @@ class CorrectionGP:
             if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
                 sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
                 dist = torch.cdist(sub, sub)
-                med = dist[dist > 0].median() if bool((dist > 0).any()) else torch.ones((), dtype=X.dtype, device=X.device)
+                positive = dist[dist > 0]
+                med = positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
                 self.covar_module.base_kernel.lengthscale = med.clamp_min(1e-6).expand(
                     self.covar_module.base_kernel.lengthscale.shape)
             if self.fixed["outputscale"] is None:
