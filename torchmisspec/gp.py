@@ -78,6 +78,15 @@ def cholesky_with_jitter(K: torch.Tensor, *, max_tries: int = 6, what: str = "co
     )
 
 
+def _solve(K: torch.Tensor, diag: torch.Tensor, Yb: torch.Tensor):
+    """Factorize C = K + diag I ``(B, N, N)`` once: (L, alpha = C^-1 Yb, total logdet C, sum Yb * alpha)."""
+    C = K + torch.diag_embed(diag.expand(-1, K.shape[-1]))
+    L = cholesky_with_jitter(C, what="K + noise_variance * I")
+    alpha = torch.cholesky_solve(Yb, L)
+    logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum()
+    return L, alpha, logdet, (Yb * alpha).sum()
+
+
 class _IndependentOutputsGP(gpytorch.models.ExactGP):
     """GPyTorch ExactGP: d_out independent outputs (a batch) sharing one kernel."""
 
@@ -214,13 +223,10 @@ class CorrectionGP:
                 self.likelihood.noise = noise
 
     # ----------------------------------------------------------------------------------------------- the maths
-    def _prior_covariance(self, X: torch.Tensor) -> torch.Tensor:
-        """K(X, X) + sigma^2 I as a dense ``(B, N, N)`` tensor (B = 1 shared, d_out per output)."""
+    def _kernel_parts(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """C = K + sigma^2 I as kernel part ``(B, N, N)`` and diagonal ``(B, 1)``; B = 1 shared, d_out per output."""
         K = self.covar_module.forward(X, X)
-        if K.dim() == 2:
-            K = K.unsqueeze(0)
-        noise = self.likelihood.noise.reshape(-1, 1)  # (B, 1)
-        return K + torch.diag_embed(noise.expand(-1, X.shape[0]))
+        return (K.unsqueeze(0) if K.dim() == 2 else K), self.likelihood.noise.reshape(-1, 1)
 
     def _targets_batched(self, Y: torch.Tensor) -> torch.Tensor:
         """Targets arranged to match ``(B, N, N)``: shared -> ``(1, N, d_out)``; per output -> ``(d_out, N, 1)``."""
@@ -228,14 +234,10 @@ class CorrectionGP:
 
     def _exact_mll(self, X: torch.Tensor, Y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Exact log marginal likelihood summed over outputs, with one factorization per distinct covariance."""
-        L = cholesky_with_jitter(self._prior_covariance(X), what="K + noise_variance * I")
-        Yb = self._targets_batched(Y)
-        alpha = torch.cholesky_solve(Yb, L)
         n, d_out = Y.shape
-        logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)  # (B,)
+        L, alpha, logdet, quad = _solve(*self._kernel_parts(X), self._targets_batched(Y))
         outputs_per_factor = 1 if self.per_output else d_out
-        mll = -0.5 * (Yb * alpha).sum() - 0.5 * outputs_per_factor * logdet.sum() - 0.5 * n * d_out * math.log(
-            2 * math.pi)
+        mll = -0.5 * quad - 0.5 * outputs_per_factor * logdet - 0.5 * n * d_out * math.log(2 * math.pi)
         return mll, L, alpha
 
     # ------------------------------------------------------------------------------------------------- fitting
@@ -322,17 +324,12 @@ class CorrectionGP:
             with torch.set_grad_enabled(with_grad):
                 if profile:
                     return self.covar_module.base_kernel.forward(X, X).unsqueeze(0), log_ratio.exp().reshape(1, 1)
-                K = self.covar_module.forward(X, X)
-                return (K.unsqueeze(0) if K.dim() == 2 else K), self.likelihood.noise.reshape(-1, 1)
+                return self._kernel_parts(X)
 
         def evaluate(K: torch.Tensor, diag: torch.Tensor):
             """Log marginal likelihood, Q = dmll/dC * 2 and the profiled scale (None unless profiling)."""
             with torch.no_grad():
-                C = K + torch.diag_embed(diag.expand(-1, n))
-                L = cholesky_with_jitter(C, what="K + noise_variance * I")
-                alpha = torch.cholesky_solve(Yb, L)
-                logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum()
-                quad = (Yb * alpha).sum()
+                L, alpha, logdet, quad = _solve(K, diag, Yb)
                 if profile:
                     scale = quad / (n * d_out)
                     mll = -0.5 * n * d_out * (torch.log(2 * math.pi * scale) + 1.0) - 0.5 * d_out * logdet
