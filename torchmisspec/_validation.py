@@ -79,3 +79,12 @@ def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
     if len(set(out)) != len(out):
         raise InputError(f"{name}: expected distinct indices, got repeats in {list(out)}")
     return out
+
+
+def progress_bar(enabled: bool, total: int, desc: str, unit: str = "it"):
+    """A tqdm progress bar, or ``None`` when ``enabled`` is false (tqdm is imported only when needed)."""
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, leave=False)

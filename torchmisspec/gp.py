@@ -25,7 +25,7 @@ import gpytorch
 import torch
 
 from ._errors import FittingError, InputError, NotFittedError, NotPositiveDefiniteError, ShapeError
-from ._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim
+from ._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, progress_bar
 
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS", "cholesky_with_jitter"]
 
@@ -340,11 +340,7 @@ class CorrectionGP:
                     Q = torch.cholesky_inverse(L).mul_(-m).add_(alpha @ alpha.transpose(-1, -2))
             return mll, Q, scale
 
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=max_iter, desc=f"fit GP (N={n})", unit="eval", leave=False)
+        bar = progress_bar(progress, max_iter, f"fit GP (N={n})", "eval")
         per_sample = float(n * d_out)  # optimise the mean per-sample value: O(1) gradients
         state = {"evals": 0, "scale": None}
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, history_size=20, line_search_fn="strong_wolfe",

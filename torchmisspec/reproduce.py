@@ -51,6 +51,7 @@ import torch
 from . import design as _design
 from . import plotting
 from ._errors import InputError
+from ._validation import progress_bar
 from .data import Trajectories, simulate
 from .dynamics import CorrectedODE
 from .experiments import uniform_in_box
@@ -295,7 +296,7 @@ def figure_1(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
 
     n_real = _pick(_FIG1_REALIZATIONS, smoke)
     ratios = {"paper_prior": [], "marginal_likelihood": []}
-    bar = _bar(progress, n_real, "Fig 1 realizations")
+    bar = progress_bar(progress, n_real, "Fig 1 realizations")
     for r in range(n_real):
         nums = _fit_numbers(run if r == 0 else _linear_fit_run(seed, r))
         for name in ratios:
@@ -681,14 +682,6 @@ def figure_8(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
 # ==================================================================================================== driver
 FIGURES: dict[int, Callable[..., dict]] = {1: figure_1, 2: figure_2, 3: figure_3, 4: figure_4, 5: figure_5,
                                            6: figure_6, 7: figure_7, 8: figure_8}
-
-
-def _bar(enabled: bool, total: int, desc: str):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, leave=False)
 
 
 def reproduce(figures: Iterable[int], out: str | Path = "reproduction-output", *, smoke: bool = False,

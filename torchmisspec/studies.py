@@ -22,6 +22,7 @@ import torch
 
 from . import design as _design
 from ._errors import InputError
+from ._validation import progress_bar
 from .data import simulate
 from .gp import CorrectionGP
 from .metrics import box_grid, integrated_norm
@@ -115,14 +116,6 @@ class StudyResult:
 
 
 # ------------------------------------------------------------------------------------------------------- helpers
-def _progress(enabled: bool, total: int, desc: str):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, leave=False)
-
-
 def _check_ks(ks, n_candidates: int) -> list[int]:
     ks = sorted({int(k) for k in ks})
     if not ks or ks[0] < 1 or ks[-1] > n_candidates:
@@ -201,7 +194,7 @@ def linear_study(
 
     names = ("design", "random", "data-driven")
     errors = {n: torch.empty(realizations, len(ks), dtype=torch.float64) for n in names}
-    bar = _progress(progress, realizations * len(ks), "linear study")
+    bar = progress_bar(progress, realizations * len(ks), "linear study")
     for r in range(realizations):
         gen = torch.Generator().manual_seed(seed * 100_003 + r)
         noise = noise_std * torch.randn(clean_f.shape, generator=gen, dtype=clean_f.dtype)
@@ -269,7 +262,7 @@ def gravity_study(
 
     names = list(plans) + (["random"] if include_random else [])
     errors = {n: torch.empty(realizations, len(ks), dtype=torch.float64) for n in names}
-    bar = _progress(progress, realizations, "gravity study")
+    bar = progress_bar(progress, realizations, "gravity study")
     for r in range(realizations):
         gen = torch.Generator().manual_seed(seed * 100_003 + r)
         targets = _noisy_targets(clean, noise_std, gen)

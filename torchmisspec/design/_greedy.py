@@ -40,6 +40,7 @@ import time
 import torch
 
 from .._errors import InputError
+from .._validation import progress_bar
 from ..gp import CorrectionGP, cholesky_with_jitter
 from ..systems import MisspecifiedSystem
 from ._common import (
@@ -138,14 +139,6 @@ class _Feasible:
 
 def _first_at_least(values: torch.Tensor, mask: torch.Tensor, thr: float) -> int:
     return int(torch.nonzero(mask & (values >= thr))[0, 0])
-
-
-def _progress(enabled: bool, total: int, desc: str):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="pick", leave=False)
 
 
 # ------------------------------------------------------------------------------------------------ lazy greedy
@@ -264,7 +257,7 @@ def _lazy(prob: _Problem, batch_size: int, progress: bool, screen: bool, max_ran
     evaluations, n_bounds = N, 0
     neg_inf = torch.tensor(-math.inf, dtype=P.dtype, device=dev)
     picks, gains = [], []
-    bar = _progress(progress, K, f"lazy greedy (N={N})")
+    bar = progress_bar(progress, K, f"lazy greedy (N={N})", "pick")
 
     def evaluate(idx: torch.Tensor, m: int, Lm: torch.Tensor):
         """Exact gains of candidates ``idx (b,)`` given the m selected proxy points (factor Lm): gains, V, chol."""
@@ -352,7 +345,7 @@ def _plain(prob: _Problem, progress: bool) -> tuple[list[int], list[float], int,
     feas = _Feasible(prob)
     evaluations = 0
     picks, gains = [], []
-    bar = _progress(progress, K, f"greedy (N={N})")
+    bar = progress_bar(progress, K, f"greedy (N={N})", "pick")
     for k in range(K):
         m = k * T
         avail = feas.mask()
@@ -394,7 +387,7 @@ def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20
     feas = _Feasible(prob)
     evaluations, current = 0, 0.0
     picks, gains = [], []
-    bar = _progress(progress, K, f"naive greedy (N={prob.n})")
+    bar = progress_bar(progress, K, f"naive greedy (N={prob.n})", "pick")
     for k in range(K):
         m = (k + 1) * T
         idx = torch.nonzero(feas.mask()).flatten()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from .._errors import InputError
-from .._ode import solve
+from ..data import simulate
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
 
@@ -49,8 +49,4 @@ def proxy_trajectories(
         A = system.known_matrix.to(dtype=y0.dtype, device=y0.device)
         E = torch.linalg.matrix_exp(A.unsqueeze(0) * (t - t[0]).reshape(-1, 1, 1))  # (T, d, d)
         return torch.einsum("tij,nj->nti", E, y0)
-    field = system.known if known_only else system.true_rhs
-    with torch.no_grad():
-        states, _ = solve(field, y0, t, method=method, rtol=rtol, atol=atol,
-                          what=f"proxy_trajectories({system.name})")
-    return states
+    return simulate(system, y0, t, known_only=known_only, method=method, rtol=rtol, atol=atol).states
