@@ -273,7 +273,7 @@ def _lazy(prob: _Problem, batch_size: int, progress: bool, screen: bool, max_ran
 
     for k in range(K):
         m = k * T
-        cache: dict[int, tuple] = {}
+        batches: list[tuple] = []  # (idx, V, C) of this step's exact evaluations; only the pick's rows are kept
         avail = feas.mask()
         if k > 0:
             level.zero_()
@@ -306,18 +306,23 @@ def _lazy(prob: _Problem, batch_size: int, progress: bool, screen: bool, max_ran
             evaluations += idx.shape[0]
             ub[idx] = g
             level[idx] = 2
-            for j, i in enumerate(idx.tolist()):
-                cache[i] = (None if V is None else V[j], C[j])
+            batches.append((idx, V, C))
             b_exact *= 2  # many bounds above the best: widen the next batch
         n = _first_at_least(ub, done, thr)
-        if n not in cache:  # step 0: the initial pass kept only the gains
-            _, V, C = evaluate(torch.tensor([n], device=dev), m, Lm)
-            cache[n] = (None if V is None else V[0], C[0])
+        v = C = None
+        for idx, Vb, Cb in reversed(batches):  # the pick's latest exact evaluation (a few batches per step)
+            hit = (idx == n).nonzero()
+            if hit.numel():
+                j = int(hit[0, 0])
+                v, C = (None if Vb is None else Vb[j]), Cb[j]
+                break
+        else:  # step 0: the initial pass kept only the gains
+            _, Vb, Cb = evaluate(torch.tensor([n], device=dev), m, Lm)
+            v, C = (None if Vb is None else Vb[0]), Cb[0]
         picks.append(n)
         gains.append(float(ub[n]))
         feas.add(n)
         if k + 1 < K:  # grow L_S by the block row [v_n^T, chol(Sigma_{n|S} + sigma^2 I)]
-            v, C = cache[n]
             if v is not None:
                 L[m:m + T, :m] = v.T
             L[m:m + T, m:m + T] = math.sqrt(noise) * C
