@@ -297,7 +297,9 @@ covariance. Lazy: Algorithm 2 with a growing Cholesky factor. Target: identical 
                      f"| {v['greedy_seconds'] * 1000:.1f} ms | **{v['lazy_seconds'] * 1000:.1f} ms** | "
                      f"**{v['speedup_lazy_vs_naive']:.1f}x** | {v['identical_picks']} |")
     lines.append("""
-At this small size the vectorised plain greedy is faster still (one batched T x T Cholesky per step beats lazy
+The naive greedy's own time varies by up to 2x between processes on this machine (the lazy greedy's much less), so
+the ratio moves between full runs: one earlier run of this same command measured just under 20x (19x) for output
+scale 1e-2, the others 22-38x. At this small size the vectorised plain greedy is faster still (one batched T x T Cholesky per step beats lazy
 greedy's bookkeeping) at O(N K T^2) memory; lazy greedy is the default because its memory stays
 O(N T^2 + (K T)^2), which is what makes 10,000 candidates fit in 1 GB.
 """)
