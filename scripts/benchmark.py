@@ -34,8 +34,10 @@ from torchmisspec.experiments import uniform_in_box
 
 
 def _machine() -> str:
-    return (f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads, "
-            f"python {platform.python_version()}, torch {torch.__version__}")
+    return (
+        f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads, "
+        f"python {platform.python_version()}, torch {torch.__version__}"
+    )
 
 
 def _timed(fn, repeats: int):
@@ -76,11 +78,20 @@ def bench_fit(smoke: bool, repeats: int) -> dict:
     sk, t_sk, all_sk = _timed(sklearn, repeats)
     lml_ours, lml_sk = gp.log_marginal_likelihood_, float(sk.log_marginal_likelihood_value_)
     return {
-        "N": X.shape[0], "d_out": Y.shape[1],
-        "ours_seconds": t_ours, "ours_all_seconds": all_ours, "ours_lml": lml_ours, "ours_evaluations": gp.n_iter_,
-        "ours_hyperparameters": {"lengthscale": gp.lengthscale, "outputscale": gp.outputscale,
-                                 "noise_variance": gp.noise_variance},
-        "sklearn_seconds": t_sk, "sklearn_all_seconds": all_sk, "sklearn_lml": lml_sk,
+        "N": X.shape[0],
+        "d_out": Y.shape[1],
+        "ours_seconds": t_ours,
+        "ours_all_seconds": all_ours,
+        "ours_lml": lml_ours,
+        "ours_evaluations": gp.n_iter_,
+        "ours_hyperparameters": {
+            "lengthscale": gp.lengthscale,
+            "outputscale": gp.outputscale,
+            "noise_variance": gp.noise_variance,
+        },
+        "sklearn_seconds": t_sk,
+        "sklearn_all_seconds": all_sk,
+        "sklearn_lml": lml_sk,
         "sklearn_kernel": str(sk.kernel_),
         "lml_relative_gap": (lml_sk - lml_ours) / abs(lml_sk),  # <= 5e-4 required (negative: ours is higher)
         "time_ratio": t_ours / t_sk,  # <= 0.5 required
@@ -119,9 +130,15 @@ def bench_predict(smoke: bool, repeats: int) -> dict:
     pred, t_ours, all_ours = _timed(ours, repeats)
     ref, t_peer, all_peer = _timed(peer, repeats)
     return {
-        "initial_conditions": n_ic, "output_times": times.numel(), "train_samples": samples.inputs.shape[0],
-        "ours_seconds": t_ours, "ours_all_seconds": all_ours, "ours_rhs_evaluations": ode.nfe,
-        "gpytorch_rhs_seconds": t_peer, "gpytorch_all_seconds": all_peer, "gpytorch_rhs_evaluations": counter["nfe"],
+        "initial_conditions": n_ic,
+        "output_times": times.numel(),
+        "train_samples": samples.inputs.shape[0],
+        "ours_seconds": t_ours,
+        "ours_all_seconds": all_ours,
+        "ours_rhs_evaluations": ode.nfe,
+        "gpytorch_rhs_seconds": t_peer,
+        "gpytorch_all_seconds": all_peer,
+        "gpytorch_rhs_evaluations": counter["nfe"],
         "max_abs_difference": float((pred - ref).abs().max()),
         "speedup": t_peer / t_ours,  # >= 10 required
     }
@@ -156,10 +173,20 @@ def _design_worker(n: int, T: int, K: int, outputscale: float, lengthscale: floa
         return design.greedy(candidates, K, system=system, times=times, gp=gp)  # proxies included
 
     plan, seconds, all_seconds = _timed(run, repeats)
-    return {"candidates": n, "T": T, "K": K, "lengthscale": lengthscale, "outputscale": outputscale,
-            "seconds": seconds, "all_seconds": all_seconds, "gain_evaluations": plan.evaluations,
-            "information_gain_nats": plan.information_gain, "diagnostics": plan.diagnostics,
-            "peak_rss_mb": peak_mb(), "rss_after_imports_and_warmup_mb": before}
+    return {
+        "candidates": n,
+        "T": T,
+        "K": K,
+        "lengthscale": lengthscale,
+        "outputscale": outputscale,
+        "seconds": seconds,
+        "all_seconds": all_seconds,
+        "gain_evaluations": plan.evaluations,
+        "information_gain_nats": plan.information_gain,
+        "diagnostics": plan.diagnostics,
+        "peak_rss_mb": peak_mb(),
+        "rss_after_imports_and_warmup_mb": before,
+    }
 
 
 def bench_design(smoke: bool, repeats: int) -> dict:
@@ -188,12 +215,17 @@ def bench_naive(smoke: bool, repeats: int) -> dict:
     for outputscale in (4e-5, 1e-2):
         gp = tms.CorrectionGP(lengthscale=1.0, outputscale=outputscale, noise_variance=1e-4)
         design.greedy(candidates[:30], 3, system=system, times=times, gp=gp, method="naive")  # warm-up
-        runs = {m: _timed(lambda m=m, gp=gp: design.greedy(candidates, K, system=system, times=times, gp=gp,
-                                                                method=m),
-                          repeats) for m in ("naive", "greedy", "lazy")}
+        runs = {
+            m: _timed(
+                lambda m=m, gp=gp: design.greedy(candidates, K, system=system, times=times, gp=gp, method=m), repeats
+            )
+            for m in ("naive", "greedy", "lazy")
+        }
         picks = {m: r[0].indices.tolist() for m, r in runs.items()}
         out[f"outputscale={outputscale}"] = {
-            "candidates": n, "T": T, "K": K,
+            "candidates": n,
+            "T": T,
+            "K": K,
             **{f"{m}_seconds": r[1] for m, r in runs.items()},
             **{f"{m}_evaluations": r[0].evaluations for m, r in runs.items()},
             "identical_picks": picks["naive"] == picks["greedy"] == picks["lazy"],
@@ -205,12 +237,14 @@ def bench_naive(smoke: bool, repeats: int) -> dict:
 
 def render_markdown(r: dict, command: str) -> str:
     """BENCHMARKS.md from the results of a full run: every figure comes from ``r``, none is typed in."""
+
     def secs(xs):
         return ", ".join(f"{x:.2f}" for x in xs)
 
     f, p, d, n = r["fit"], r["predict"], r["design"], r["naive"]
     hp = f["ours_hyperparameters"]
-    lines = [f"""# Benchmarks
+    lines = [
+        f"""# Benchmarks
 
 All figures below come from one run of
 
@@ -218,27 +252,27 @@ All figures below come from one run of
 {command}
 ```
 
-on the development machine: {r['machine']}, 2 vCPUs, 24 GB, no GPU, nothing else running. This page is written
+on the development machine: {r["machine"]}, 2 vCPUs, 24 GB, no GPU, nothing else running. This page is written
 by that command (`--markdown`) from the measured numbers, also kept in
 [`benchmarks/results.json`](benchmarks/results.json) with every repeat. Each benchmark reports the median of
-{r['repeats']} repeats and measures its peer in the same run. `--smoke` runs tiny sizes (the test suite checks it).
+{r["repeats"]} repeats and measures its peer in the same run. `--smoke` runs tiny sizes (the test suite checks it).
 
 ## Fitting: CorrectionGP vs scikit-learn (issue 2)
 
-N = {f['N']} samples of paper 5.1's correction (200 random trajectories x 10 times on [0, 6], oracle noise std 1e-2),
-d_out = {f['d_out']}, shared RBF kernel, output scale, lengthscale and noise all learned. Peer: scikit-learn's
+N = {f["N"]} samples of paper 5.1's correction (200 random trajectories x 10 times on [0, 6], oracle noise std 1e-2),
+d_out = {f["d_out"]}, shared RBF kernel, output scale, lengthscale and noise all learned. Peer: scikit-learn's
 `GaussianProcessRegressor(ConstantKernel(1) * RBF(1) + WhiteKernel(1), alpha=0)` fitted to the same (N, 2) targets
 (its multi-output likelihood shares the kernel, like ours), default optimizer (L-BFGS-B, no restarts).
 
 | | wall time (median) | repeats (s) | log marginal likelihood | hyperparameters |
 |---|---|---|---|---|
-| torchmisspec `CorrectionGP().fit` | **{f['ours_seconds']:.2f} s** | {secs(f['ours_all_seconds'])} | **{f['ours_lml']:.2f}** | lengthscale {hp['lengthscale']:.3f}, outputscale {hp['outputscale']:.3g}, noise {hp['noise_variance']:.4g} |
-| scikit-learn | {f['sklearn_seconds']:.2f} s | {secs(f['sklearn_all_seconds'])} | {f['sklearn_lml']:.2f} | `{f['sklearn_kernel']}` |
+| torchmisspec `CorrectionGP().fit` | **{f["ours_seconds"]:.2f} s** | {secs(f["ours_all_seconds"])} | **{f["ours_lml"]:.2f}** | lengthscale {hp["lengthscale"]:.3f}, outputscale {hp["outputscale"]:.3g}, noise {hp["noise_variance"]:.4g} |
+| scikit-learn | {f["sklearn_seconds"]:.2f} s | {secs(f["sklearn_all_seconds"])} | {f["sklearn_lml"]:.2f} | `{f["sklearn_kernel"]}` |
 
-- Time ratio ours / scikit-learn: **{f['time_ratio']:.2f}** (target: at most 0.5).
-- Likelihood: ours minus scikit-learn's is {-f['lml_relative_gap'] * 100:+.2f} % of scikit-learn's (target: within
+- Time ratio ours / scikit-learn: **{f["time_ratio"]:.2f}** (target: at most 0.5).
+- Likelihood: ours minus scikit-learn's is {-f["lml_relative_gap"] * 100:+.2f} % of scikit-learn's (target: within
   0.05 % below it or higher).
-- {f['ours_evaluations']} likelihood evaluations on all N points, after a warm start on a 500-point subsample.
+- {f["ours_evaluations"]} likelihood evaluations on all N points, after a warm start on a 500-point subsample.
 
 What makes it fast: one Cholesky serves both outputs; the gradient 0.5 tr((alpha alpha^T - m C^-1) dC/dtheta) uses
 C^-1 from `cholesky_inverse` and autograd through the O(N^2) kernel only, never through the factorization; the
@@ -247,18 +281,18 @@ scikit-learn's.
 
 ## Prediction: cached posterior vs GPyTorch's predictive distribution per step (issue 2)
 
-{p['initial_conditions']} new initial conditions, {p['output_times']} output times on [0, 6], GP trained on
-{p['train_samples']} samples (40 trajectories x 11), dopri5 with rtol 1e-7, atol 1e-9, all initial conditions in one
+{p["initial_conditions"]} new initial conditions, {p["output_times"]} output times on [0, 6], GP trained on
+{p["train_samples"]} samples (40 trajectories x 11), dopri5 with rtol 1e-7, atol 1e-9, all initial conditions in one
 batched solve in both cases. Peer: the same `odeint` call with a right-hand side G(y) + `gp.model(y).mean`, the
 GPyTorch `ExactGP` (eval mode, same hyperparameters and data) asked for its predictive distribution at every step.
 
 | | wall time (median) | right-hand-side evaluations |
 |---|---|---|
-| `CorrectedODE.predict` | **{p['ours_seconds'] * 1000:.1f} ms** | {p['ours_rhs_evaluations']} |
-| GPyTorch predictive distribution per step | {p['gpytorch_rhs_seconds'] * 1000:.0f} ms | {p['gpytorch_rhs_evaluations']} |
+| `CorrectedODE.predict` | **{p["ours_seconds"] * 1000:.1f} ms** | {p["ours_rhs_evaluations"]} |
+| GPyTorch predictive distribution per step | {p["gpytorch_rhs_seconds"] * 1000:.0f} ms | {p["gpytorch_rhs_evaluations"]} |
 
-- Speed-up: **{p['speedup']:.1f}x** (target: at least 10x). Largest difference between the two predictions:
-  {p['max_abs_difference']:.1e}.
+- Speed-up: **{p["speedup"]:.1f}x** (target: at least 10x). Largest difference between the two predictions:
+  {p["max_abs_difference"]:.1e}.
 
 ## Experimental design at scale (issue 3)
 
@@ -267,14 +301,16 @@ Candidates uniform in [-1, 1]^2 (paper 5.1's system), T = 20 times on [0, 6], RB
 memory is the process's high-water mark (VmHWM), imports included. Target (lengthscale 1): at most 3 s and 1 GB.
 
 | candidates | K | lengthscale | output scale | wall time (median) | repeats (s) | peak memory | after imports + warm-up | exact gain evaluations | screening |
-|---|---|---|---|---|---|---|---|---|---|"""]
+|---|---|---|---|---|---|---|---|---|---|"""
+    ]
     for v in d.values():
         diag = v["diagnostics"]
-        screen = (f"{'on' if diag.get('screening') else 'off'}, rank {diag.get('rank')}, "
-                  f"{diag.get('bounds', 0)} bounds")
-        lines.append(f"| {v['candidates']} | {v['K']} | {v['lengthscale']} | {v['outputscale']} | **{v['seconds']:.2f} s** "
-                     f"| {secs(v['all_seconds'])} | **{v['peak_rss_mb']:.0f} MB** | "
-                     f"{v['rss_after_imports_and_warmup_mb']:.0f} MB | {v['gain_evaluations']} | {screen} |")
+        screen = f"{'on' if diag.get('screening') else 'off'}, rank {diag.get('rank')}, {diag.get('bounds', 0)} bounds"
+        lines.append(
+            f"| {v['candidates']} | {v['K']} | {v['lengthscale']} | {v['outputscale']} | **{v['seconds']:.2f} s** "
+            f"| {secs(v['all_seconds'])} | **{v['peak_rss_mb']:.0f} MB** | "
+            f"{v['rss_after_imports_and_warmup_mb']:.0f} MB | {v['gain_evaluations']} | {screen} |"
+        )
     lines.append("""
 With lengthscale 1 every candidate's gain falls at every pick, so stale lazy bounds stay above the best and plain
 lazy greedy would re-evaluate most candidates at most steps. Lazy greedy therefore first checks candidates against
@@ -293,9 +329,11 @@ covariance. Lazy: Algorithm 2 with a growing Cholesky factor. Target: identical 
 | candidates | T | K | output scale | naive | plain greedy | lazy greedy | lazy speed-up vs naive | identical picks |
 |---|---|---|---|---|---|---|---|---|""")
     for key, v in n.items():
-        lines.append(f"| {v['candidates']} | {v['T']} | {v['K']} | {key.split('=')[1]} | {v['naive_seconds'] * 1000:.0f} ms "
-                     f"| {v['greedy_seconds'] * 1000:.1f} ms | **{v['lazy_seconds'] * 1000:.1f} ms** | "
-                     f"**{v['speedup_lazy_vs_naive']:.1f}x** | {v['identical_picks']} |")
+        lines.append(
+            f"| {v['candidates']} | {v['T']} | {v['K']} | {key.split('=')[1]} | {v['naive_seconds'] * 1000:.0f} ms "
+            f"| {v['greedy_seconds'] * 1000:.1f} ms | **{v['lazy_seconds'] * 1000:.1f} ms** | "
+            f"**{v['speedup_lazy_vs_naive']:.1f}x** | {v['identical_picks']} |"
+        )
     lines.append("""
 The naive greedy's own time varies by up to 2x between processes on this machine (the lazy greedy's much less), so
 the ratio moves between full runs: one earlier run of this same command measured just under 20x (19x) for output
@@ -308,8 +346,12 @@ O(N T^2 + (K T)^2), which is what makes 10,000 candidates fit in 1 GB.
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--only", choices=["fit", "predict", "design", "naive"], action="append",
-                        help="run only these benchmarks (repeatable)")
+    parser.add_argument(
+        "--only",
+        choices=["fit", "predict", "design", "naive"],
+        action="append",
+        help="run only these benchmarks (repeatable)",
+    )
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check that the script runs")
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats (median reported)")
     parser.add_argument("--json", help="write the results to this JSON file")

@@ -23,18 +23,29 @@ from torchmisspec.reproduce import FIGURES, reproduce
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="reproduce_paper.py",
-        description="Regenerate the figures of paper §5 (Numerical Experiments) with the numbers behind them.")
+        description="Regenerate the figures of paper §5 (Numerical Experiments) with the numbers behind them.",
+    )
     which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--figure", type=int, action="append", choices=sorted(FIGURES), metavar="N",
-                       help="figure number 1-8 (repeatable)")
+    which.add_argument(
+        "--figure",
+        type=int,
+        action="append",
+        choices=sorted(FIGURES),
+        metavar="N",
+        help="figure number 1-8 (repeatable)",
+    )
     which.add_argument("--all", action="store_true", help="all eight figures")
     p.add_argument("--out", default="reproduction-output", help="output folder (default: %(default)s)")
     p.add_argument("--smoke", action="store_true", help="tiny sizes: checks that everything runs, in seconds")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars and no summary")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch threads (default: %(default)s; the problems are small, one thread is fastest on a "
-                        "shared machine; 0 keeps torch's default)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default: %(default)s; the problems are small, one thread is fastest on a "
+        "shared machine; 0 keeps torch's default)",
+    )
     return p
 
 
@@ -54,33 +65,47 @@ def _summary(results: dict) -> str:
         if key == "fig1":
             p = d["fits"]["paper_prior"]
             r = d["rmse_ratio_over_realizations"]["paper_prior"]
-            lines.append(f"  test RMSE corrected/misspecified {p['rmse_ratio']:.3f} (paper prior); over {r['n']} "
-                         f"realizations {r['mean']:.3f}±{r['stderr']:.3f}")
+            lines.append(
+                f"  test RMSE corrected/misspecified {p['rmse_ratio']:.3f} (paper prior); over {r['n']} "
+                f"realizations {r['mean']:.3f}±{r['stderr']:.3f}"
+            )
         elif key == "fig2":
-            lines.append(f"  integrated error {d['integrated_error']['paper_prior']:.4g} (energy of F "
-                         f"{d['energy_of_F']:.4g}); far/near traces {d['near_vs_far']['far_over_near']:.2f}")
+            lines.append(
+                f"  integrated error {d['integrated_error']['paper_prior']:.4g} (energy of F "
+                f"{d['energy_of_F']:.4g}); far/near traces {d['near_vs_far']['far_over_near']:.2f}"
+            )
         elif key == "fig3":
-            lines.append(f"  design/random: test RMSE {d['design_over_random']['test_rmse']:.3f}, integrated error "
-                         f"{d['design_over_random']['integrated_error']:.3f}, information gain "
-                         f"{d['design']['information_gain_nats']:.2f} vs {d['random']['information_gain_nats']:.2f} "
-                         "nats")
+            lines.append(
+                f"  design/random: test RMSE {d['design_over_random']['test_rmse']:.3f}, integrated error "
+                f"{d['design_over_random']['integrated_error']:.3f}, information gain "
+                f"{d['design']['information_gain_nats']:.2f} vs {d['random']['information_gain_nats']:.2f} "
+                "nats"
+            )
         elif key == "fig4":
-            lines.append(f"  per-component integrated |error| design/random: "
-                         f"{', '.join(f'{v:.3f}' for v in d['design_over_random'])}")
+            lines.append(
+                f"  per-component integrated |error| design/random: "
+                f"{', '.join(f'{v:.3f}' for v in d['design_over_random'])}"
+            )
         elif key == "fig5":
             lines += [ratio_line(d, "design/random"), ratio_line(d, "data-driven/design")]
         elif key == "fig6":
-            lines.append(f"  test RMSE: misspecified {d['misspecified_test_rmse']:.3g}, agnostic "
-                         f"{d['agnostic']['test_rmse_corrected']:.3g}, aided "
-                         f"{d['misspecified-aided']['test_rmse_corrected']:.3g}")
+            lines.append(
+                f"  test RMSE: misspecified {d['misspecified_test_rmse']:.3g}, agnostic "
+                f"{d['agnostic']['test_rmse_corrected']:.3g}, aided "
+                f"{d['misspecified-aided']['test_rmse_corrected']:.3g}"
+            )
         elif key == "fig7":
-            lines.append(f"  MSE over D: agnostic {d['agnostic']['mse_over_D']:.3g}, aided "
-                         f"{d['misspecified-aided']['mse_over_D']:.3g} (ratio "
-                         f"{d['aided_over_agnostic_mse_over_D']:.3f})")
+            lines.append(
+                f"  MSE over D: agnostic {d['agnostic']['mse_over_D']:.3g}, aided "
+                f"{d['misspecified-aided']['mse_over_D']:.3g} (ratio "
+                f"{d['aided_over_agnostic_mse_over_D']:.3f})"
+            )
         elif key == "fig8":
             lines.append(ratio_line(d, "misspecified-aided/agnostic"))
-    lines.append(f"total {results['seconds'].get('total', 0.0):.1f} s; realizations {results['realizations']}; "
-                 f"smoke={results['smoke']}")
+    lines.append(
+        f"total {results['seconds'].get('total', 0.0):.1f} s; realizations {results['realizations']}; "
+        f"smoke={results['smoke']}"
+    )
     return "\n".join(lines)
 
 
@@ -90,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if args.threads < 0:
         _parser().error(f"argument --threads: expected an integer >= 0, got {args.threads}")
-    results = reproduce(figures, args.out, smoke=args.smoke, seed=args.seed, progress=not args.quiet,
-                        threads=args.threads or None)
+    results = reproduce(
+        figures, args.out, smoke=args.smoke, seed=args.seed, progress=not args.quiet, threads=args.threads or None
+    )
     if not args.quiet:
         print(_summary(results))
         print(f"wrote {args.out}/results.json in {time.perf_counter() - t0:.1f} s")

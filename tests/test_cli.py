@@ -29,8 +29,20 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
 @pytest.mark.parametrize("suffix", [".csv", ".json"])
 def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
     out = tmp_path / f"picks{suffix}"
-    argv = ["design", "--candidates", str(candidates_csv), "--system", "paper_linear", "--times", "0:6:11",
-            "--budget", "4", "--out", str(out), "--quiet"]
+    argv = [
+        "design",
+        "--candidates",
+        str(candidates_csv),
+        "--system",
+        "paper_linear",
+        "--times",
+        "0:6:11",
+        "--budget",
+        "4",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     assert main(argv) == 0
     if suffix == ".json":
         data = json.loads(out.read_text())
@@ -44,16 +56,40 @@ def test_design_command_with_partition(tmp_path, candidates_csv):
     labels = tmp_path / "labels.csv"
     np.savetxt(labels, (np.arange(49) % 2)[:, None], fmt="%d")
     out = tmp_path / "p.json"
-    argv = ["design", "--candidates", str(candidates_csv), "--system", "paper_linear", "--times", "0:6:11",
-            "--budget", "3", "--partition", str(labels), "--capacities", "0=1,1=2", "--out", str(out), "--quiet"]
+    argv = [
+        "design",
+        "--candidates",
+        str(candidates_csv),
+        "--system",
+        "paper_linear",
+        "--times",
+        "0:6:11",
+        "--budget",
+        "3",
+        "--partition",
+        str(labels),
+        "--capacities",
+        "0=1,1=2",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     assert main(argv) == 0
     picks = json.loads(out.read_text())["indices"]
     assert sum(1 for i in picks if i % 2 == 0) <= 1
 
 
 def test_design_command_errors(tmp_path, candidates_csv, capsys):
-    base = ["design", "--candidates", str(candidates_csv), "--times", "0:6:11", "--quiet", "--out",
-            str(tmp_path / "x.csv")]
+    base = [
+        "design",
+        "--candidates",
+        str(candidates_csv),
+        "--times",
+        "0:6:11",
+        "--quiet",
+        "--out",
+        str(tmp_path / "x.csv"),
+    ]
     assert main(base + ["--system", "nope", "--budget", "2"]) == 2
     assert "unknown system name 'nope'" in capsys.readouterr().err
     assert main(base + ["--system", "paper_linear", "--budget", "100"]) == 2
@@ -63,7 +99,8 @@ def test_design_command_errors(tmp_path, candidates_csv, capsys):
 
 
 def test_console_script_help():
-    proc = subprocess.run([sys.executable, "-m", "torchmisspec.cli", "design", "--help"], capture_output=True,
-                          text=True, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "torchmisspec.cli", "design", "--help"], capture_output=True, text=True, check=True
+    )
     for option in ("--candidates", "--system", "--times", "--budget", "--partition", "--capacities", "--out"):
         assert option in proc.stdout

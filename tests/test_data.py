@@ -8,10 +8,12 @@ from torchmisspec.systems import MisspecifiedSystem
 
 def _expm_reference(A, y0, grid):
     """States (K, T, d) of dy/dt = A y from y0 (K, d) on per-row grids (K, T) by the matrix exponential."""
-    return torch.stack([
-        torch.stack([torch.linalg.matrix_exp(A * (t - row[0])) @ y for t in row])
-        for y, row in zip(y0, grid, strict=True)
-    ])
+    return torch.stack(
+        [
+            torch.stack([torch.linalg.matrix_exp(A * (t - row[0])) @ y for t in row])
+            for y, row in zip(y0, grid, strict=True)
+        ]
+    )
 
 
 def test_simulate_known_linear_matches_matrix_exp(linear_system, paper_times, generator):
@@ -39,7 +41,7 @@ def test_simulate_per_experiment_time_grids(linear_system, generator):
     # with the true correction, each row equals a separate solve on its own grid
     full = tms.simulate(linear_system, y0, grid)
     for k in range(3):
-        single = tms.simulate(linear_system, y0[k:k + 1], grid[k])
+        single = tms.simulate(linear_system, y0[k : k + 1], grid[k])
         torch.testing.assert_close(full.states[k], single.states[0], rtol=0, atol=1e-9)
 
 
@@ -55,8 +57,7 @@ def test_true_dynamics_differ_from_known_by_small_amount(linear_system, paper_ti
 @pytest.mark.parametrize("per_experiment", [False, True])
 def test_trajectories_save_load_roundtrip(tmp_path, suffix, per_experiment, generator):
     states = torch.randn(4, 5, 3, generator=generator, dtype=torch.float64)
-    times = torch.cumsum(torch.rand(4 if per_experiment else 1, 5, generator=generator, dtype=torch.float64) + 0.1,
-                         -1)
+    times = torch.cumsum(torch.rand(4 if per_experiment else 1, 5, generator=generator, dtype=torch.float64) + 0.1, -1)
     times = times if per_experiment else times[0]
     traj = tms.Trajectories(times, states)
     loaded = tms.Trajectories.load(traj.save(tmp_path / f"traj{suffix}"))
@@ -152,8 +153,11 @@ def test_gravity_system_structure():
     g = system.known(y)
     torch.testing.assert_close(rhs[:, :2], y[:, 2:])  # positions move with the velocities
     # the correction only changes the accelerations, from the two extra masses
-    expected = sum(-m * (y[0, :2] - torch.tensor(p, dtype=torch.float64))
-                   / torch.linalg.vector_norm(y[0, :2] - torch.tensor(p, dtype=torch.float64)) ** 3
-                   for m, p in ((0.1, (0.0, 4.0)), (0.4, (0.5, 3.8))))
+    expected = sum(
+        -m
+        * (y[0, :2] - torch.tensor(p, dtype=torch.float64))
+        / torch.linalg.vector_norm(y[0, :2] - torch.tensor(p, dtype=torch.float64)) ** 3
+        for m, p in ((0.1, (0.0, 4.0)), (0.4, (0.5, 3.8)))
+    )
     torch.testing.assert_close((rhs - g)[0, 2:], expected)
     torch.testing.assert_close((rhs - g)[0, :2], torch.zeros(2, dtype=torch.float64))

@@ -35,8 +35,9 @@ def rbf(x: torch.Tensor, y: torch.Tensor, outputscale: float, lengthscale: float
     return outputscale * torch.exp(-0.5 * d2 / lengthscale**2)
 
 
-def brute_gain(points: torch.Tensor, outputscale: float, lengthscale: float, d_out: int = 2,
-               noise: float = NOISE) -> float:
+def brute_gain(
+    points: torch.Tensor, outputscale: float, lengthscale: float, d_out: int = 2, noise: float = NOISE
+) -> float:
     """(d_out / 2) logdet(I + K / sigma^2) with torch.logdet on an independently built K."""
     if points.shape[0] == 0:
         return 0.0
@@ -135,8 +136,9 @@ def problems():
 def test_lazy_greedy_and_naive_pick_identical_sets(outputscale):
     system, gp = paper_linear(), make_gp(outputscale)
     for name, cand in problems():
-        res = {m: design.greedy(cand, 9, system=system, times=TIMES, gp=gp, method=m)
-               for m in ("lazy", "greedy", "naive")}
+        res = {
+            m: design.greedy(cand, 9, system=system, times=TIMES, gp=gp, method=m) for m in ("lazy", "greedy", "naive")
+        }
         ref = res["naive"].indices.tolist()
         for m, r in res.items():
             assert r.indices.tolist() == ref, (name, m)
@@ -176,8 +178,10 @@ def test_screened_lazy_greedy_identical_to_plain_greedy():
     assert screened.indices.tolist() == plain.indices.tolist() == unscreened.indices.tolist()
     torch.testing.assert_close(screened.gains, plain.gains, atol=1e-9, rtol=1e-9)
     for bs in (1, 64):
-        assert design.greedy(cand, 14, system=system, times=times, gp=gp, batch_size=bs,
-                             screen=True).indices.tolist() == plain.indices.tolist()
+        assert (
+            design.greedy(cand, 14, system=system, times=times, gp=gp, batch_size=bs, screen=True).indices.tolist()
+            == plain.indices.tolist()
+        )
     # too few features for useful bounds: screening switches itself off, same picks
     weak = design.greedy(cand, 14, system=system, times=times, gp=gp, screen=True, max_rank=8)
     assert not weak.diagnostics["screening"] and weak.indices.tolist() == plain.indices.tolist()
@@ -225,8 +229,10 @@ def test_greedy_within_1_minus_1_over_e_of_bruteforce(capsys):
         assert got >= (1 - 1 / math.e) * best
         ratios.append(got / best)
     with capsys.disabled():
-        print(f"\ngreedy / brute-force optimum on 12 candidates, K = 3: min {min(ratios):.6f}, "
-              f"mean {sum(ratios) / len(ratios):.6f}")
+        print(
+            f"\ngreedy / brute-force optimum on 12 candidates, K = 3: min {min(ratios):.6f}, "
+            f"mean {sum(ratios) / len(ratios):.6f}"
+        )
     assert min(ratios) > 0.9  # in practice far above the guarantee
 
 
@@ -237,14 +243,19 @@ def test_partition_matroid_capacities_and_half_guarantee():
     labels = torch.tensor([5, 5, 5, 5, 7, 7, 7, 7, 9, 9, 9, 9])
     caps = {5: 1, 7: 0, 9: 3}
     prox = simulate(system, cand, TIMES, known_only=True).states
-    res = {m: design.greedy(cand, 4, system=system, times=TIMES, gp=gp, partition=labels, capacities=caps,
-                            method=m) for m in ("lazy", "greedy", "naive")}
+    res = {
+        m: design.greedy(cand, 4, system=system, times=TIMES, gp=gp, partition=labels, capacities=caps, method=m)
+        for m in ("lazy", "greedy", "naive")
+    }
     picks = res["lazy"].indices.tolist()
     assert res["greedy"].indices.tolist() == picks == res["naive"].indices.tolist()
     counts = {lbl: sum(int(labels[i]) == lbl for i in picks) for lbl in caps}
     assert all(counts[lbl] <= caps[lbl] for lbl in caps) and len(set(picks)) == 4
-    feasible = [s for s in itertools.combinations(range(12), 4)
-                if all(sum(int(labels[i]) == lbl for i in s) <= c for lbl, c in caps.items())]
+    feasible = [
+        s
+        for s in itertools.combinations(range(12), 4)
+        if all(sum(int(labels[i]) == lbl for i in s) <= c for lbl, c in caps.items())
+    ]
     best = max(set_gain(prox, s, outputscale) for s in feasible)
     assert set_gain(prox, picks, outputscale) >= 0.5 * best
     # sequence capacities indexed by label, and a binding capacity changes the design
@@ -309,8 +320,9 @@ def test_random_design():
     greedy = design.greedy(cand, 9, system=system, times=TIMES, gp=gp)
     assert greedy.information_gain > c.information_gain
     labels = torch.arange(169) % 3
-    d = design.random(cand, 5, generator=torch.Generator().manual_seed(1), partition=labels,
-                      capacities={0: 0, 1: 2, 2: 3})
+    d = design.random(
+        cand, 5, generator=torch.Generator().manual_seed(1), partition=labels, capacities={0: 0, 1: 2, 2: 3}
+    )
     counts = torch.bincount(labels[d.indices], minlength=3).tolist()
     assert counts == [0, 2, 3]
 
@@ -385,8 +397,13 @@ def test_bad_inputs_raise():
     with pytest.raises(InputError, match="noise_variance"):
         design.greedy(cand, 2, system=system, times=TIMES, gp=CorrectionGP(lengthscale=1.0, outputscale=1.0))
     with pytest.raises(InputError, match="per_output"):
-        design.greedy(cand, 2, system=system, times=TIMES,
-                      gp=CorrectionGP(lengthscale=1.0, outputscale=1.0, noise_variance=1e-4, per_output=True))
+        design.greedy(
+            cand,
+            2,
+            system=system,
+            times=TIMES,
+            gp=CorrectionGP(lengthscale=1.0, outputscale=1.0, noise_variance=1e-4, per_output=True),
+        )
     with pytest.raises(InputError, match="method"):
         design.greedy(cand, 2, method="fast", **kw)
     with pytest.raises(ShapeError, match="proxies"):

@@ -84,10 +84,10 @@ def test_structured_correction_on_gravity(generator):
     v = torch.sqrt(0.2 / r)
     y0 = torch.stack([r * angle.cos(), r * angle.sin(), -v * angle.sin(), v * angle.cos()], -1)
     times = torch.linspace(0, 3, 20, dtype=torch.float64)
-    samples = tms.correction_samples(tms.simulate(system, y0, times), system, derivative="oracle", noise_std=1e-2,
-                                     generator=generator)
-    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-3, noise_variance=1e-4).fit(samples.inputs,
-                                                                                       samples.targets)
+    samples = tms.correction_samples(
+        tms.simulate(system, y0, times), system, derivative="oracle", noise_std=1e-2, generator=generator
+    )
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-3, noise_variance=1e-4).fit(samples.inputs, samples.targets)
     ode = tms.CorrectedODE(system, gp)
     y = y0[:3]
     rhs = ode(torch.tensor(0.0), y)
@@ -97,10 +97,14 @@ def test_structured_correction_on_gravity(generator):
 
 # ------------------------------------------------------------------------------------------------------ bad input
 def test_rejects_mismatched_models(linear_system, fitted):
-    with pytest.raises(tms.ShapeError, match=r"gp: expected a GP with 2 inputs and 2 outputs.*got one fitted with 2 "
-                                             r"inputs and 1 outputs"):
-        tms.CorrectedODE(linear_system, tms.CorrectionGP(**{"lengthscale": 1.0}).fit(torch.rand(5, 2),
-                                                                                     torch.rand(5, 1)))
+    with pytest.raises(
+        tms.ShapeError,
+        match=r"gp: expected a GP with 2 inputs and 2 outputs.*got one fitted with 2 "
+        r"inputs and 1 outputs",
+    ):
+        tms.CorrectedODE(
+            linear_system, tms.CorrectionGP(**{"lengthscale": 1.0}).fit(torch.rand(5, 2), torch.rand(5, 1))
+        )
     with pytest.raises(tms.NotFittedError, match="expected a fitted CorrectionGP"):
         tms.CorrectedODE(linear_system, tms.CorrectionGP())
     ode = tms.CorrectedODE(linear_system, fitted)

@@ -44,8 +44,9 @@ def test_posterior_equals_hand_written_cholesky(kind, generator):
     hyper = dict(HYPER) if kind != "polynomial" else {"outputscale": 2e-3, "noise_variance": 1e-4}
     gp = tms.CorrectionGP(kernel=kind, **hyper).fit(X, Y)
     l, s, noise = HYPER["lengthscale"], HYPER["outputscale"], HYPER["noise_variance"]
-    mean, var, lml = _cholesky_posterior(_kernel(kind, X, X, l, s), _kernel(kind, Xs, X, l, s),
-                                         _kernel(kind, Xs, Xs, l, s).diagonal(), Y, noise)
+    mean, var, lml = _cholesky_posterior(
+        _kernel(kind, X, X, l, s), _kernel(kind, Xs, X, l, s), _kernel(kind, Xs, Xs, l, s).diagonal(), Y, noise
+    )
     post = gp.predict(Xs)
     torch.testing.assert_close(post.mean, mean, rtol=1e-10, atol=1e-14)
     torch.testing.assert_close(post.variance, var.unsqueeze(-1).expand(-1, 2), rtol=1e-8, atol=1e-14)
@@ -63,8 +64,7 @@ def test_posterior_agrees_with_sklearn(generator):
     Xs = torch.rand(30, 2, generator=generator, dtype=torch.float64) * 2 - 1
     gp = tms.CorrectionGP(**HYPER).fit(X, Y)
     kernel = ConstantKernel(HYPER["outputscale"]) * RBF(HYPER["lengthscale"])
-    sk = sk_gp.GaussianProcessRegressor(kernel, alpha=HYPER["noise_variance"], optimizer=None).fit(X.numpy(),
-                                                                                                     Y.numpy())
+    sk = sk_gp.GaussianProcessRegressor(kernel, alpha=HYPER["noise_variance"], optimizer=None).fit(X.numpy(), Y.numpy())
     mean, std = sk.predict(Xs.numpy(), return_std=True)
     post = gp.predict(Xs)
     np.testing.assert_allclose(post.mean.numpy(), mean, rtol=1e-8, atol=1e-13)
@@ -80,10 +80,12 @@ def test_fit_reaches_at_least_sklearn_marginal_likelihood(generator):
     X, Y = _data(generator, n=150)
     gp = tms.CorrectionGP().fit(X, Y)
     kernel = ConstantKernel(1.0, (1e-8, 1e3)) * RBF(1.0, (1e-3, 1e3)) + WhiteKernel(1.0, (1e-10, 1e1))
-    sk = sk_gp.GaussianProcessRegressor(kernel, alpha=0.0, n_restarts_optimizer=3, random_state=0).fit(X.numpy(),
-                                                                                                       Y.numpy())
+    sk = sk_gp.GaussianProcessRegressor(kernel, alpha=0.0, n_restarts_optimizer=3, random_state=0).fit(
+        X.numpy(), Y.numpy()
+    )
     assert gp.log_marginal_likelihood_ >= sk.log_marginal_likelihood_value_ - 1e-3 * abs(
-        sk.log_marginal_likelihood_value_)
+        sk.log_marginal_likelihood_value_
+    )
     # our reported value is the exact likelihood at our hyperparameters, as scikit-learn evaluates it
     theta = np.log([gp.outputscale, gp.lengthscale, gp.noise_variance])
     assert sk.log_marginal_likelihood(theta) == pytest.approx(gp.log_marginal_likelihood_, rel=1e-9)
@@ -96,9 +98,11 @@ def test_fit_raises_marginal_likelihood_and_keeps_fixed_values(fixed, generator)
     start = tms.CorrectionGP(**fixed)
     start._build(1)
     start._initialise(X, Y)  # the fit's starting point, held fixed
-    init = tms.CorrectionGP(lengthscale=start.covar_module.base_kernel.lengthscale.item(),
-                            outputscale=start.covar_module.outputscale.item(),
-                            noise_variance=start.likelihood.noise.item()).fit(X, Y)
+    init = tms.CorrectionGP(
+        lengthscale=start.covar_module.base_kernel.lengthscale.item(),
+        outputscale=start.covar_module.outputscale.item(),
+        noise_variance=start.likelihood.noise.item(),
+    ).fit(X, Y)
     assert gp.log_marginal_likelihood_ > init.log_marginal_likelihood_ + 1.0
     for name, value in fixed.items():
         assert getattr(gp, name) == pytest.approx(value, rel=1e-12)
@@ -114,7 +118,7 @@ def test_per_output_hyperparameters_equal_separate_fits(generator):
     X, Y = _data(generator, n=70)
     Y = Y * torch.tensor([1.0, 5.0], dtype=torch.float64)
     gp = tms.CorrectionGP(per_output=True).fit(X, Y)
-    singles = [tms.CorrectionGP().fit(X, Y[:, i:i + 1]) for i in range(2)]
+    singles = [tms.CorrectionGP().fit(X, Y[:, i : i + 1]) for i in range(2)]
     assert gp.log_marginal_likelihood_ == pytest.approx(sum(s.log_marginal_likelihood_ for s in singles), rel=1e-5)
     Xs = torch.rand(10, 2, generator=generator, dtype=torch.float64)
     for i, single in enumerate(singles):
@@ -179,8 +183,11 @@ def test_rejects_bad_data(generator):
         gp.fit(X, Y[:-1])
     Xn = X.clone()
     Xn[3, 1] = float("nan")
-    with pytest.raises(tms.InputError, match=r"inputs: expected finite values, got 1 NaN/inf entry \(first at index "
-                                             r"\(3, 1\)"):
+    with pytest.raises(
+        tms.InputError,
+        match=r"inputs: expected finite values, got 1 NaN/inf entry \(first at index "
+        r"\(3, 1\)",
+    ):
         gp.fit(Xn, Y)
     with pytest.raises(ValueError):  # fitting errors are ValueErrors
         gp.fit(X, Y.unsqueeze(0))
@@ -223,6 +230,5 @@ def test_tiny_and_degenerate_data():
     zeros = torch.zeros(10, 2, dtype=torch.float64)
     with pytest.raises(tms.FittingError, match="got all zeros"):
         tms.CorrectionGP().fit(torch.rand(10, 2, dtype=torch.float64), zeros)
-    fixed = tms.CorrectionGP(outputscale=1e-3, noise_variance=1e-4).fit(torch.rand(10, 2, dtype=torch.float64),
-                                                                         zeros)
+    fixed = tms.CorrectionGP(outputscale=1e-3, noise_variance=1e-4).fit(torch.rand(10, 2, dtype=torch.float64), zeros)
     assert fixed.predict(X).mean.abs().max() == 0

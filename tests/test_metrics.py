@@ -11,7 +11,8 @@ def test_quadrature_closed_forms():
     box = ((-1.0, 1.0), (-1.0, 1.0))
     assert integrate_over_box(lambda x: x[:, 0].abs(), box) == pytest.approx(2.0, rel=1e-12)  # kink on a node
     assert integrate_over_box(lambda x: x[:, 0] ** 2 * x[:, 1] ** 2, box, resolution=401) == pytest.approx(
-        4 / 9, rel=1e-4)
+        4 / 9, rel=1e-4
+    )
     box3 = ((0.0, 1.0), (0.0, 2.0), (-1.0, 0.0))
     assert integrate_over_box(lambda x: torch.ones(x.shape[0], dtype=x.dtype), box3, resolution=5) == pytest.approx(2)
     points, weights = box_grid(box, 11)
@@ -22,7 +23,8 @@ def test_energy_of_paper_correction_against_scipy(linear_system):
     integrate = pytest.importorskip("scipy.integrate")
     ref, _ = integrate.dblquad(lambda y2, y1: 0.01 * math.sqrt(y1**4 + y2**4), -1, 1, -1, 1, epsabs=1e-12)
     assert tms.integrated_norm(linear_system.correction, linear_system.domain, resolution=201) == pytest.approx(
-        ref, rel=1e-4)
+        ref, rel=1e-4
+    )
 
 
 def test_integrated_error_of_zero_estimate_is_energy(linear_system):
@@ -39,8 +41,9 @@ def test_trajectory_rmse():
     b = torch.ones(2, 3, 2, dtype=torch.float64)
     b[1] *= 3
     assert tms.trajectory_rmse(a, b).item() == pytest.approx(math.sqrt(5))
-    torch.testing.assert_close(tms.trajectory_rmse(a, b, per_trajectory=True), torch.tensor([1.0, 3.0],
-                                                                                               dtype=torch.float64))
+    torch.testing.assert_close(
+        tms.trajectory_rmse(a, b, per_trajectory=True), torch.tensor([1.0, 3.0], dtype=torch.float64)
+    )
     with pytest.raises(tms.ShapeError, match=r"predicted: expected the shape of true \(2, 3, 2\), got \(2, 3\)"):
         tms.trajectory_rmse(a[..., 0], b)
 

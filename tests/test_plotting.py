@@ -107,8 +107,14 @@ def test_plot_trajectories_rejects_bad_shapes():
 
 def test_plot_training_and_test(tmp_path):
     path = tmp_path / "sub" / "fig1.png"  # parent folders are created
-    fig = plot_training_and_test(spirals(5), spirals(5, shift=0.1).numpy(), spirals(2, seed=1),
-                                 spirals(2, seed=1, shift=0.1), spirals(2, seed=1, shift=0.01), path=path)
+    fig = plot_training_and_test(
+        spirals(5),
+        spirals(5, shift=0.1).numpy(),
+        spirals(2, seed=1),
+        spirals(2, seed=1, shift=0.1),
+        spirals(2, seed=1, shift=0.01),
+        path=path,
+    )
     assert_png(path)
     left, right = fig.axes
     assert len(left.lines) == 2 * 5 + 1 and len(right.lines) == 3 * 2 + 1
@@ -143,8 +149,9 @@ def test_plot_error_map_callable_and_grid_agree(tmp_path):
 
 
 def test_plot_error_map_log_scale_and_dashed_box():
-    fig = plot_error_map(lambda x: x.pow(2).sum(-1) + 1e-6, DOMAIN, resolution=11, log_scale=True,
-                         dashed_box=((-0.5, 0.5), (-1.0, 1.0)))
+    fig = plot_error_map(
+        lambda x: x.pow(2).sum(-1) + 1e-6, DOMAIN, resolution=11, log_scale=True, dashed_box=((-0.5, 0.5), (-1.0, 1.0))
+    )
     ax = fig.axes[0]
     assert type(ax.images[0].norm).__name__ == "LogNorm"
     assert len(ax.patches) == 1
@@ -263,9 +270,14 @@ def test_plot_design(tmp_path):
     mask = np.zeros(169, dtype=bool)
     mask[[3, 50, 99]] = True
     path = tmp_path / "design.png"
-    fig = plot_design(cand, {"design": torch.tensor([0, 12, 84, 156, 168]), "random": mask},
-                      proxies={"design": spirals(5, d=4)}, masses=[(0.0, 0.0, 0.2), (0.5, 0.5, 0.4)],
-                      domain=((-1, 1), (-1, 1)), path=path)
+    fig = plot_design(
+        cand,
+        {"design": torch.tensor([0, 12, 84, 156, 168]), "random": mask},
+        proxies={"design": spirals(5, d=4)},
+        masses=[(0.0, 0.0, 0.2), (0.5, 0.5, 0.4)],
+        domain=((-1, 1), (-1, 1)),
+        path=path,
+    )
     assert_png(path)
     (ax,) = fig.axes
     assert len(ax.collections) == 1 + 2 + 1  # candidates, the two designs, the masses
@@ -284,8 +296,11 @@ def test_plot_design(tmp_path):
 
 def test_plot_design_grouped_masses_numpy_and_other_names():
     cand = np.random.default_rng(0).uniform(-3, 3, (300, 2))
-    fig = plot_design(cand, {"agnostic": [1, 2, 3], "misspecified": np.array([4, 5]), "other": [6]},
-                      masses={"known (G)": [(0, 0, 0.2)], "unknown (F)": np.array([[0, 4, 0.1], [0.5, 3.8, 0.4]])})
+    fig = plot_design(
+        cand,
+        {"agnostic": [1, 2, 3], "misspecified": np.array([4, 5]), "other": [6]},
+        masses={"known (G)": [(0, 0, 0.2)], "unknown (F)": np.array([[0, 4, 0.1], [0.5, 3.8, 0.4]])},
+    )
     (ax,) = fig.axes
     assert len(ax.collections) == 1 + 3 + 2
     assert {"known (G)", "unknown (F)"} <= set(legend_labels(ax))
@@ -311,9 +326,13 @@ def test_plot_design_rejects_bad_inputs():
 def test_plot_error_curves(tmp_path):
     ks = torch.arange(1, 6)
     path = tmp_path / "curves.png"
-    fig = plot_error_curves(ks, {"random": (1 / ks, 0.1 / ks), "design": (np.full(5, 0.1), None),
-                                 "data-driven": [0.9, 0.8, 0.7, 0.6, 0.5]},
-                            reference_lines={"energy of F": 2.0, "energy of G + F": 5.0}, ylabel="MSE", path=path)
+    fig = plot_error_curves(
+        ks,
+        {"random": (1 / ks, 0.1 / ks), "design": (np.full(5, 0.1), None), "data-driven": [0.9, 0.8, 0.7, 0.6, 0.5]},
+        reference_lines={"energy of F": 2.0, "energy of G + F": 5.0},
+        ylabel="MSE",
+        path=path,
+    )
     assert_png(path)
     (ax,) = fig.axes
     assert len(ax.containers) == 3  # one errorbar container per curve

@@ -16,28 +16,56 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 # figure -> paths (into its numbers) of the key numbers that must be finite
 KEY_NUMBERS = {
-    "fig1": [("fits", "paper_prior", "rmse_ratio"), ("fits", "marginal_likelihood", "rmse_ratio"),
-             ("fits", "paper_prior", "rmse_corrected"), ("fits", "marginal_likelihood", "hyperparameters",
-                                                         "lengthscale"),
-             ("rmse_ratio_over_realizations", "paper_prior", "mean"),
-             ("rmse_ratio_over_realizations", "paper_prior", "stderr")],
-    "fig2": [("integrated_error", "paper_prior"), ("energy_of_F",), ("energy_of_G_plus_F",),
-             ("near_vs_far", "far_over_near")],
-    "fig3": [("design", "information_gain_nats"), ("random", "information_gain_nats"), ("design", "gains_nats"),
-             ("design", "test_rmse_corrected"), ("random", "test_rmse_corrected"), ("design", "integrated_error"),
-             ("random", "integrated_error"), ("misspecified_test_rmse",)],
+    "fig1": [
+        ("fits", "paper_prior", "rmse_ratio"),
+        ("fits", "marginal_likelihood", "rmse_ratio"),
+        ("fits", "paper_prior", "rmse_corrected"),
+        ("fits", "marginal_likelihood", "hyperparameters", "lengthscale"),
+        ("rmse_ratio_over_realizations", "paper_prior", "mean"),
+        ("rmse_ratio_over_realizations", "paper_prior", "stderr"),
+    ],
+    "fig2": [
+        ("integrated_error", "paper_prior"),
+        ("energy_of_F",),
+        ("energy_of_G_plus_F",),
+        ("near_vs_far", "far_over_near"),
+    ],
+    "fig3": [
+        ("design", "information_gain_nats"),
+        ("random", "information_gain_nats"),
+        ("design", "gains_nats"),
+        ("design", "test_rmse_corrected"),
+        ("random", "test_rmse_corrected"),
+        ("design", "integrated_error"),
+        ("random", "integrated_error"),
+        ("misspecified_test_rmse",),
+    ],
     "fig4": [("design", "integrated_abs_error"), ("random", "integrated_abs_error"), ("design_over_random",)],
-    "fig5": [("summary", "design", "mean"), ("summary", "random", "mean"), ("summary", "data-driven", "mean"),
-             ("ratios", "design/random", "mean"), ("ratios", "design/random", "stderr"),
-             ("ratios", "data-driven/design", "mean"), ("references", "energy of F"),
-             ("references", "energy of G + F")],
-    "fig6": [("agnostic", "test_rmse_corrected"), ("misspecified-aided", "test_rmse_corrected"),
-             ("misspecified_test_rmse",), ("agnostic", "gains_nats_own_criterion"),
-             ("misspecified-aided", "exact_information_gain_nats")],
+    "fig5": [
+        ("summary", "design", "mean"),
+        ("summary", "random", "mean"),
+        ("summary", "data-driven", "mean"),
+        ("ratios", "design/random", "mean"),
+        ("ratios", "design/random", "stderr"),
+        ("ratios", "data-driven/design", "mean"),
+        ("references", "energy of F"),
+        ("references", "energy of G + F"),
+    ],
+    "fig6": [
+        ("agnostic", "test_rmse_corrected"),
+        ("misspecified-aided", "test_rmse_corrected"),
+        ("misspecified_test_rmse",),
+        ("agnostic", "gains_nats_own_criterion"),
+        ("misspecified-aided", "exact_information_gain_nats"),
+    ],
     "fig7": [("agnostic", "mse_over_D"), ("misspecified-aided", "mse_over_D"), ("mean_energy_of_F_over_D",)],
-    "fig8": [("summary", "agnostic", "mean"), ("summary", "misspecified-aided", "mean"),
-             ("ratios", "misspecified-aided/agnostic", "mean"), ("ratios", "misspecified-aided/agnostic", "stderr"),
-             ("references", "mean energy of F")],
+    "fig8": [
+        ("summary", "agnostic", "mean"),
+        ("summary", "misspecified-aided", "mean"),
+        ("ratios", "misspecified-aided/agnostic", "mean"),
+        ("ratios", "misspecified-aided/agnostic", "stderr"),
+        ("references", "mean energy of F"),
+    ],
 }
 
 
@@ -131,13 +159,16 @@ def test_quiet_prints_nothing_and_selected_figures_only(tmp_path, capsys):
     assert not (tmp_path / "fig1.png").exists()
 
 
-@pytest.mark.parametrize("argv, message", [
-    ([], "one of the arguments --figure --all is required"),
-    (["--smoke"], "one of the arguments --figure --all is required"),
-    (["--all", "--figure", "1"], "not allowed with argument"),
-    (["--figure", "9"], "invalid choice: 9"),
-    (["--figure", "one"], "invalid int value"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([], "one of the arguments --figure --all is required"),
+        (["--smoke"], "one of the arguments --figure --all is required"),
+        (["--all", "--figure", "1"], "not allowed with argument"),
+        (["--figure", "9"], "invalid choice: 9"),
+        (["--figure", "one"], "invalid int value"),
+    ],
+)
 def test_argument_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
         _load_script().main(argv)

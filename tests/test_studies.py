@@ -31,8 +31,10 @@ def test_designed_sets_beat_random_sets_on_paper_linear_over_many_realizations()
 
 
 def test_study_result_summary_table_and_files(tmp_path):
-    errors = {"a": torch.tensor([[1.0, 2.0], [3.0, 4.0]], dtype=torch.float64),
-              "b": torch.tensor([[2.0, 2.0], [2.0, 8.0]], dtype=torch.float64)}
+    errors = {
+        "a": torch.tensor([[1.0, 2.0], [3.0, 4.0]], dtype=torch.float64),
+        "b": torch.tensor([[2.0, 2.0], [2.0, 8.0]], dtype=torch.float64),
+    }
     result = StudyResult("toy", [1, 2], errors, {"ref": 5.0}, "error")
     mean, stderr = result.summary()["a"]
     assert mean == [2.0, 3.0] and stderr == pytest.approx([1.0, 1.0])

@@ -16,8 +16,9 @@ from ._errors import IntegrationError, ShapeError
 from ._validation import as_tensor, check_finite, check_increasing, check_ndim
 
 
-def initial_conditions_and_times(y0, times, state_dim: int, check_states, *, dtype=None, device=None
-                                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def initial_conditions_and_times(
+    y0, times, state_dim: int, check_states, *, dtype=None, device=None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Validate ``y0 (B, d)`` (or ``(d,)``) and ``times (T,)`` or ``(B, T)`` for a batched solve."""
     y0 = as_tensor(y0, "y0", dtype=dtype, device=device)
     if y0.dim() == 1:

@@ -12,19 +12,33 @@ __all__ = ["main"]
 def _demo(args: argparse.Namespace) -> int:
     from .experiments import linear_demo
 
-    print(f"paper 5.1: {args.n_train} random experiments in [-1, 1]^2, T = 11 on [0, 6], oracle noise std "
-          f"{args.noise_std}, seed {args.seed}")
-    r = linear_demo(args.out, n_train=args.n_train, n_test=args.n_test, seed=args.seed, noise_std=args.noise_std,
-                    progress=not args.quiet)
-    print(f"fitted GP: lengthscale {r.lengthscale:.4g}, outputscale {r.outputscale:.4g}, noise variance "
-          f"{r.noise_variance:.4g}, log marginal likelihood {r.log_marginal_likelihood:.6g} "
-          f"({r.seconds['fit']:.2f} s)")
-    print(f"integrated error of the correction over D: {r.integrated_error:.4g}   "
-          f"(energy of F: {r.energy_of_F:.4g}, ratio {r.integrated_error / r.energy_of_F:.3f}; "
-          f"energy of G + F: {r.energy_of_G_plus_F:.4g})")
-    print(f"trajectory RMSE on {r.n_test} new initial conditions: corrected {r.rmse_corrected:.4g}, misspecified "
-          f"{r.rmse_misspecified:.4g}, ratio {r.rmse_ratio:.3f} ({r.rhs_evaluations} right-hand-side evaluations, "
-          f"{r.seconds['predict']:.2f} s)")
+    print(
+        f"paper 5.1: {args.n_train} random experiments in [-1, 1]^2, T = 11 on [0, 6], oracle noise std "
+        f"{args.noise_std}, seed {args.seed}"
+    )
+    r = linear_demo(
+        args.out,
+        n_train=args.n_train,
+        n_test=args.n_test,
+        seed=args.seed,
+        noise_std=args.noise_std,
+        progress=not args.quiet,
+    )
+    print(
+        f"fitted GP: lengthscale {r.lengthscale:.4g}, outputscale {r.outputscale:.4g}, noise variance "
+        f"{r.noise_variance:.4g}, log marginal likelihood {r.log_marginal_likelihood:.6g} "
+        f"({r.seconds['fit']:.2f} s)"
+    )
+    print(
+        f"integrated error of the correction over D: {r.integrated_error:.4g}   "
+        f"(energy of F: {r.energy_of_F:.4g}, ratio {r.integrated_error / r.energy_of_F:.3f}; "
+        f"energy of G + F: {r.energy_of_G_plus_F:.4g})"
+    )
+    print(
+        f"trajectory RMSE on {r.n_test} new initial conditions: corrected {r.rmse_corrected:.4g}, misspecified "
+        f"{r.rmse_misspecified:.4g}, ratio {r.rmse_ratio:.3f} ({r.rhs_evaluations} right-hand-side evaluations, "
+        f"{r.seconds['predict']:.2f} s)"
+    )
     if r.figures:
         print("figures: " + ", ".join(r.figures) + f"; numbers: {args.out}/results.json")
     return 0
@@ -91,8 +105,13 @@ def _design(args: argparse.Namespace) -> int:
     if candidates.dim() == 1:
         candidates = candidates.unsqueeze(-1)
     times = _parse_times(args.times)
-    gp = CorrectionGP(kernel=args.kernel, lengthscale=args.lengthscale, outputscale=args.outputscale,
-                      noise_variance=args.noise_variance, degree=args.degree)
+    gp = CorrectionGP(
+        kernel=args.kernel,
+        lengthscale=args.lengthscale,
+        outputscale=args.outputscale,
+        noise_variance=args.noise_variance,
+        degree=args.degree,
+    )
     partition = capacities = None
     if args.partition is not None:
         partition = torch.as_tensor(_read_table(args.partition, "partition")).reshape(-1).round().long()
@@ -105,26 +124,48 @@ def _design(args: argparse.Namespace) -> int:
             else:
                 capacities = [int(v) for v in args.capacities.split(",")]
         except ValueError as exc:
-            raise InputError(f"--capacities: expected 'label=count,...' or 'count,count,...', got "
-                             f"{args.capacities!r}") from exc
+            raise InputError(
+                f"--capacities: expected 'label=count,...' or 'count,count,...', got {args.capacities!r}"
+            ) from exc
     common = dict(system=system, times=times, gp=gp, progress=not args.quiet)
     if args.method == "random":
-        plan = design.random(candidates, args.budget, generator=torch.Generator().manual_seed(args.seed),
-                             partition=partition, capacities=capacities, **common)
+        plan = design.random(
+            candidates,
+            args.budget,
+            generator=torch.Generator().manual_seed(args.seed),
+            partition=partition,
+            capacities=capacities,
+            **common,
+        )
     elif args.method == "agnostic":
         plan = design.agnostic(candidates, args.budget, partition=partition, capacities=capacities, **common)
     else:
-        plan = design.greedy(candidates, args.budget, method=args.method, partition=partition,
-                             capacities=capacities, **common)
-    rows = [{"order": i, "index": int(c), "gain": float(g), **{f"y{j}": float(v) for j, v in enumerate(pt)}}
-            for i, (c, g, pt) in enumerate(zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(),
-                                               strict=True))]
+        plan = design.greedy(
+            candidates, args.budget, method=args.method, partition=partition, capacities=capacities, **common
+        )
+    rows = [
+        {"order": i, "index": int(c), "gain": float(g), **{f"y{j}": float(v) for j, v in enumerate(pt)}}
+        for i, (c, g, pt) in enumerate(
+            zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(), strict=True)
+        )
+    ]
     out = Path(args.out)
     if out.suffix == ".json":
-        out.write_text(json.dumps({"system": system.name, "method": plan.method, "budget": args.budget,
-                                   "indices": plan.indices.tolist(), "gains": plan.gains.tolist(),
-                                   "information_gain": plan.information_gain, "points": plan.points.tolist(),
-                                   "units": "nats (real-Gaussian convention)"}, indent=2))
+        out.write_text(
+            json.dumps(
+                {
+                    "system": system.name,
+                    "method": plan.method,
+                    "budget": args.budget,
+                    "indices": plan.indices.tolist(),
+                    "gains": plan.gains.tolist(),
+                    "information_gain": plan.information_gain,
+                    "points": plan.points.tolist(),
+                    "units": "nats (real-Gaussian convention)",
+                },
+                indent=2,
+            )
+        )
     elif out.suffix == ".csv":
         import csv
 
@@ -134,20 +175,26 @@ def _design(args: argparse.Namespace) -> int:
             writer.writerows(rows)
     else:
         raise InputError(f"--out: expected a .csv or .json file name, got {args.out!r}")
-    print(f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on "
-          f"{system.name}: information gain {plan.information_gain:.4f} nats; indices {plan.indices.tolist()}; "
-          f"written to {out}")
+    print(
+        f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on "
+        f"{system.name}: information gain {plan.information_gain:.4f} nats; indices {plan.indices.tolist()}; "
+        f"written to {out}"
+    )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchmisspec", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="run paper 5.1 end to end (fit, predict, figures)",
-                          description="Paper 5.1 end to end: simulate random experiments of the linear system, fit "
-                                      "the correction GP, predict new trajectories, write figures.")
-    demo.add_argument("--out", default="demo-output", help="folder for the figures and results.json "
-                                                           "(default: %(default)s)")
+    demo = sub.add_parser(
+        "demo",
+        help="run paper 5.1 end to end (fit, predict, figures)",
+        description="Paper 5.1 end to end: simulate random experiments of the linear system, fit "
+        "the correction GP, predict new trajectories, write figures.",
+    )
+    demo.add_argument(
+        "--out", default="demo-output", help="folder for the figures and results.json (default: %(default)s)"
+    )
     demo.add_argument("--n-train", type=int, default=40, help="number of training experiments (default: 40)")
     demo.add_argument("--n-test", type=int, default=20, help="number of new initial conditions (default: 20)")
     demo.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -156,31 +203,53 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo)
 
     des = sub.add_parser(
-        "design", help="choose the initial conditions that teach the most about the correction",
+        "design",
+        help="choose the initial conditions that teach the most about the correction",
         description="Experimental design (paper section 4): pick BUDGET of the candidate initial conditions whose "
-                    "proxy trajectories (the known model's) maximise the information gain about F under the given "
-                    "GP prior; writes the picks in order with their marginal gains (nats, real-Gaussian "
-                    "convention: half the paper's complex-convention numbers).")
-    des.add_argument("--candidates", required=True,
-                     help="candidate initial conditions, one per row (N, d): CSV/TXT (optional header row), .npy, "
-                          "or .npz (array 'candidates' or a single array)")
+        "proxy trajectories (the known model's) maximise the information gain about F under the given "
+        "GP prior; writes the picks in order with their marginal gains (nats, real-Gaussian "
+        "convention: half the paper's complex-convention numbers).",
+    )
+    des.add_argument(
+        "--candidates",
+        required=True,
+        help="candidate initial conditions, one per row (N, d): CSV/TXT (optional header row), .npy, "
+        "or .npz (array 'candidates' or a single array)",
+    )
     des.add_argument("--system", required=True, help="built-in system name: paper_linear or paper_gravity")
-    des.add_argument("--times", required=True,
-                     help="observation times: 'start:stop:count' (equally spaced, e.g. 0:6:11) or a comma list")
+    des.add_argument(
+        "--times",
+        required=True,
+        help="observation times: 'start:stop:count' (equally spaced, e.g. 0:6:11) or a comma list",
+    )
     des.add_argument("--budget", type=int, required=True, help="number of experiments K to choose")
-    des.add_argument("--kernel", default="rbf", choices=["rbf", "matern52", "polynomial"],
-                     help="GP kernel of the correction (default: rbf)")
+    des.add_argument(
+        "--kernel",
+        default="rbf",
+        choices=["rbf", "matern52", "polynomial"],
+        help="GP kernel of the correction (default: rbf)",
+    )
     des.add_argument("--lengthscale", type=float, default=1.0, help="kernel lengthscale l (default: 1.0)")
     des.add_argument("--outputscale", type=float, default=4e-5, help="kernel output scale (default: 4e-5)")
-    des.add_argument("--noise-variance", type=float, default=1e-4,
-                     help="variance of the noise on the correction samples (default: 1e-4)")
+    des.add_argument(
+        "--noise-variance",
+        type=float,
+        default=1e-4,
+        help="variance of the noise on the correction samples (default: 1e-4)",
+    )
     des.add_argument("--degree", type=int, default=2, help="polynomial kernel order (default: 2)")
-    des.add_argument("--method", default="lazy", choices=["lazy", "greedy", "naive", "agnostic", "random"],
-                     help="lazy greedy (default), plain greedy, naive greedy (reference), agnostic (ignores the "
-                          "known model), or random")
+    des.add_argument(
+        "--method",
+        default="lazy",
+        choices=["lazy", "greedy", "naive", "agnostic", "random"],
+        help="lazy greedy (default), plain greedy, naive greedy (reference), agnostic (ignores the "
+        "known model), or random",
+    )
     des.add_argument("--partition", help="optional file with one integer region label per candidate")
-    des.add_argument("--capacities", help="most picks per region: 'label=count,...' or 'count,count,...' "
-                                          "(indexed by label); needs --partition")
+    des.add_argument(
+        "--capacities",
+        help="most picks per region: 'label=count,...' or 'count,count,...' (indexed by label); needs --partition",
+    )
     des.add_argument("--seed", type=int, default=0, help="seed of the random design (default: 0)")
     des.add_argument("--out", default="design.csv", help="output file, .csv or .json (default: %(default)s)")
     des.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -44,8 +44,9 @@ class Trajectories:
         K, T, _ = states.shape
         if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
             expected = f"({T},) or ({K}, {T})"
-            raise ShapeError(f"times: expected shape {expected} to match states {tuple(states.shape)}, "
-                             f"got {tuple(times.shape)}")
+            raise ShapeError(
+                f"times: expected shape {expected} to match states {tuple(states.shape)}, got {tuple(times.shape)}"
+            )
         check_increasing(times, "times")
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
@@ -166,6 +167,5 @@ def simulate(
     y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
     field = system.known if known_only else system.true_rhs
     with torch.no_grad():
-        states, _ = solve(field, y0, times, method=method, rtol=rtol, atol=atol,
-                          what=f"simulate({system.name})")
+        states, _ = solve(field, y0, times, method=method, rtol=rtol, atol=atol, what=f"simulate({system.name})")
     return Trajectories(times, states)

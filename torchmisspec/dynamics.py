@@ -77,9 +77,11 @@ class CorrectedODE(nn.Module):
         Returns:
             states ``(B, T, d)`` in the GP's dtype. Raises :class:`IntegrationError` if a trajectory blows up.
         """
-        y0, times = initial_conditions_and_times(y0, times, self.system.state_dim, self.system.check_states,
-                                                 dtype=self.gp.dtype, device=self.gp.device)
+        y0, times = initial_conditions_and_times(
+            y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
+        )
         with torch.no_grad():
-            states, self.nfe = solve(self.field, y0, times, method=method, rtol=rtol, atol=atol, options=options,
-                                     what="CorrectedODE.predict")
+            states, self.nfe = solve(
+                self.field, y0, times, method=method, rtol=rtol, atol=atol, options=options, what="CorrectedODE.predict"
+            )
         return states

@@ -23,8 +23,7 @@ from .systems import MisspecifiedSystem, paper_linear
 __all__ = ["DemoResult", "linear_demo", "uniform_in_box"]
 
 
-def uniform_in_box(n: int, domain, *, generator: torch.Generator | None = None,
-                   dtype=torch.float64) -> torch.Tensor:
+def uniform_in_box(n: int, domain, *, generator: torch.Generator | None = None, dtype=torch.float64) -> torch.Tensor:
     """``n`` points drawn uniformly in the box ``domain`` ((lo, hi) per dimension): ``(n, len(domain))``."""
     lo = torch.tensor([b[0] for b in domain], dtype=dtype)
     hi = torch.tensor([b[1] for b in domain], dtype=dtype)
@@ -96,15 +95,20 @@ def linear_demo(
     test_mis = simulate(system, y_test, times, known_only=True).states
 
     result = DemoResult(
-        n_train=n_train, n_test=n_test, seed=seed,
-        lengthscale=float(gp.lengthscale), outputscale=float(gp.outputscale),
-        noise_variance=float(gp.noise_variance), log_marginal_likelihood=gp.log_marginal_likelihood_,
+        n_train=n_train,
+        n_test=n_test,
+        seed=seed,
+        lengthscale=float(gp.lengthscale),
+        outputscale=float(gp.outputscale),
+        noise_variance=float(gp.noise_variance),
+        log_marginal_likelihood=gp.log_marginal_likelihood_,
         integrated_error=correction_error(gp, system),
         energy_of_F=integrated_norm(system.true_correction, system.domain),
         energy_of_G_plus_F=integrated_norm(system.true_rhs, system.domain),
         rmse_corrected=float(trajectory_rmse(corrected, test_true)),
         rmse_misspecified=float(trajectory_rmse(test_mis, test_true)),
-        rhs_evaluations=ode.nfe, seconds=seconds,
+        rhs_evaluations=ode.nfe,
+        seconds=seconds,
     )
     if out is not None:
         from . import plotting
@@ -112,10 +116,16 @@ def linear_demo(
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         train_mis = simulate(system, y0, times, known_only=True).states
-        plotting.plot_training_and_test(train.states, train_mis, test_true, test_mis, corrected,
-                                        path=out / "trajectories.png")
-        plotting.plot_error_map(plotting.correction_error_fn(system, gp), system.domain, traces=train.states,
-                                title=r"$\|\hat F(y) - F(y)\|_2$ with training traces", path=out / "error_map.png")
+        plotting.plot_training_and_test(
+            train.states, train_mis, test_true, test_mis, corrected, path=out / "trajectories.png"
+        )
+        plotting.plot_error_map(
+            plotting.correction_error_fn(system, gp),
+            system.domain,
+            traces=train.states,
+            title=r"$\|\hat F(y) - F(y)\|_2$ with training traces",
+            path=out / "error_map.png",
+        )
         result.figures = [str(out / "trajectories.png"), str(out / "error_map.png")]
         (out / "results.json").write_text(json.dumps(result.to_dict(), indent=2))
     return result

@@ -143,8 +143,11 @@ class CorrectionGP:
             raise InputError("lengthscale: the polynomial kernel (1 + <y, y'>)^m has no lengthscale; pass None")
         if kernel == "polynomial" and (isinstance(degree, bool) or not isinstance(degree, int) or degree < 1):
             raise InputError(f"degree: expected a positive integer, got {degree!r}")
-        for name, value in (("lengthscale", lengthscale), ("outputscale", outputscale),
-                            ("noise_variance", noise_variance)):
+        for name, value in (
+            ("lengthscale", lengthscale),
+            ("outputscale", outputscale),
+            ("noise_variance", noise_variance),
+        ):
             if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InputError(f"{name}: expected a positive finite number or None (learned), got {value!r}")
         if not dtype.is_floating_point:
@@ -182,6 +185,7 @@ class CorrectionGP:
         covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=_log_positive())
         lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=_log_positive())
         covar, lik = covar.to(self.device, self.dtype), lik.to(self.device, self.dtype)
+
         # GPyTorch's setters would round a Python float through float32: pass tensors of the model's dtype
         def value(name):
             return torch.tensor(self.fixed[name], dtype=self.dtype, device=self.device)
@@ -215,7 +219,8 @@ class CorrectionGP:
                 positive = dist[dist > 0]
                 med = positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
                 self.covar_module.base_kernel.lengthscale = med.clamp_min(1e-6).expand(
-                    self.covar_module.base_kernel.lengthscale.shape)
+                    self.covar_module.base_kernel.lengthscale.shape
+                )
             if self.fixed["outputscale"] is None:
                 self.covar_module.outputscale = var.expand(self.covar_module.outputscale.shape)
             if self.fixed["noise_variance"] is None:
@@ -248,12 +253,15 @@ class CorrectionGP:
         check_ndim(x, 2, name, "(M, d_in)")
         check_finite(x, name)
         if self.train_inputs_ is not None and x.shape[1] != self.train_inputs_.shape[1]:
-            raise ShapeError(f"{name}: expected {self.train_inputs_.shape[1]} input columns (as in training), got "
-                             f"shape {tuple(x.shape)}")
+            raise ShapeError(
+                f"{name}: expected {self.train_inputs_.shape[1]} input columns (as in training), got "
+                f"shape {tuple(x.shape)}"
+            )
         return x
 
-    def fit(self, inputs, targets, *, progress: bool = False, max_iter: int | None = None,
-            warm_start: int = 500) -> CorrectionGP:
+    def fit(
+        self, inputs, targets, *, progress: bool = False, max_iter: int | None = None, warm_start: int = 500
+    ) -> CorrectionGP:
         """Fit to samples of F: ``inputs (N, d_in)``, ``targets (N, d_out)``. Returns ``self``.
 
         The learned hyperparameters maximise the exact log marginal likelihood (L-BFGS with strong Wolfe line
@@ -268,8 +276,9 @@ class CorrectionGP:
         check_ndim(X, 2, "inputs", "(N, d_in)")
         check_ndim(Y, 2, "targets", "(N, d_out)")
         if X.shape[0] != Y.shape[0]:
-            raise ShapeError(f"targets: expected {X.shape[0]} rows to match inputs {tuple(X.shape)}, got "
-                             f"{tuple(Y.shape)}")
+            raise ShapeError(
+                f"targets: expected {X.shape[0]} rows to match inputs {tuple(X.shape)}, got {tuple(Y.shape)}"
+            )
         if X.shape[0] < 1:
             raise FittingError("inputs: expected at least one sample, got 0")
         check_finite(X, "inputs")
@@ -283,7 +292,8 @@ class CorrectionGP:
             raise FittingError(
                 "targets: expected some non-zero samples to learn the output scale and noise from, got all zeros "
                 "(the likelihood grows without bound as both shrink to 0); fix them: CorrectionGP(outputscale=..., "
-                "noise_variance=...)")
+                "noise_variance=...)"
+            )
         if free:
             self._initialise(X, Y)
             params = [p for _, p in free]
@@ -309,15 +319,18 @@ class CorrectionGP:
         and the noise ratio g for L-BFGS (the same optimum of the same likelihood, in fewer iterations).
         """
         n, d_out = Y.shape
-        profile = (not self.per_output and self.fixed["outputscale"] is None and self.fixed["noise_variance"] is None)
+        profile = not self.per_output and self.fixed["outputscale"] is None and self.fixed["noise_variance"] is None
         Yb = self._targets_batched(Y)
         m = 1 if self.per_output else d_out
         const = 0.5 * n * d_out * math.log(2 * math.pi)
         if profile:
             log_ratio = (self.likelihood.noise.detach() / self.covar_module.outputscale.detach()).log().reshape(1)
             log_ratio = log_ratio.clone().requires_grad_(True)
-            params = [p for p in params if p is not self.covar_module.raw_outputscale
-                      and p is not self.likelihood.noise_covar.raw_noise] + [log_ratio]
+            params = [
+                p
+                for p in params
+                if p is not self.covar_module.raw_outputscale and p is not self.likelihood.noise_covar.raw_noise
+            ] + [log_ratio]
 
         def matrices(with_grad: bool):
             """(kernel part (B, N, N), diagonal (B, 1)) of C, the unit-scale kernel and ratio g when profiling."""
@@ -343,8 +356,15 @@ class CorrectionGP:
         bar = progress_bar(progress, max_iter, f"fit GP (N={n})", "eval")
         per_sample = float(n * d_out)  # optimise the mean per-sample value: O(1) gradients
         state = {"evals": 0, "scale": None}
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, history_size=20, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-7, tolerance_change=1e-12)
+        opt = torch.optim.LBFGS(
+            params,
+            lr=1.0,
+            max_iter=max_iter,
+            history_size=20,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-7,
+            tolerance_change=1e-12,
+        )
 
         def closure():
             opt.zero_grad()
@@ -374,8 +394,10 @@ class CorrectionGP:
         self.n_iter_ = state["evals"]  # evaluations of this pass (on all the data for the final pass)
         for p in params:
             if not bool(torch.isfinite(p).all()):
-                raise FittingError("fitting diverged: a hyperparameter became non-finite; fix some of them "
-                                   "(lengthscale=..., outputscale=..., noise_variance=...) or rescale the data")
+                raise FittingError(
+                    "fitting diverged: a hyperparameter became non-finite; fix some of them "
+                    "(lengthscale=..., outputscale=..., noise_variance=...) or rescale the data"
+                )
 
     def _refresh_cache(self) -> None:
         """Factorize once and cache the posterior solve; builds the GPyTorch ExactGP view of the model."""
@@ -428,8 +450,13 @@ class CorrectionGP:
         Differentiable with respect to ``x`` (autograd flows through the kernel), never refactorizes.
         """
         self._require_fitted()
-        if not (isinstance(x, torch.Tensor) and x.dtype == self.dtype and x.device == self.device and x.dim() == 2
-                and x.shape[1] == self.train_inputs_.shape[1]):
+        if not (
+            isinstance(x, torch.Tensor)
+            and x.dtype == self.dtype
+            and x.device == self.device
+            and x.dim() == 2
+            and x.shape[1] == self.train_inputs_.shape[1]
+        ):
             x = self._check_inputs(x, "x")  # the fast path above skips only the NaN scan (ODE right-hand sides)
         mean = self._cross(x) @ self._alpha  # (1, M, d_out) or (d_out, M, 1)
         return mean[0] if not self.per_output else mean.squeeze(-1).T
@@ -475,23 +502,34 @@ class CorrectionGP:
 
     def __repr__(self) -> str:
         state = f"fitted on N={self.train_inputs_.shape[0]}" if self.is_fitted else "not fitted"
-        return (f"CorrectionGP(kernel={self.kernel!r}, lengthscale={self.lengthscale}, outputscale="
-                f"{self.outputscale}, noise_variance={self.noise_variance}, per_output={self.per_output}; {state})")
+        return (
+            f"CorrectionGP(kernel={self.kernel!r}, lengthscale={self.lengthscale}, outputscale="
+            f"{self.outputscale}, noise_variance={self.noise_variance}, per_output={self.per_output}; {state})"
+        )
 
     # ------------------------------------------------------------------------------------------- persistence
     def save(self, path: str | Path) -> Path:
         """Save a fitted model (configuration, hyperparameters, training data) with ``torch.save``."""
         self._require_fitted()
         path = Path(path)
-        torch.save({
-            "config": {"kernel": self.kernel, "per_output": self.per_output, "degree": self.degree,
-                       "max_iter": self.max_iter, "fixed": self.fixed, "dtype": str(self.dtype).split(".")[-1]},
-            "covar_module": self.covar_module.state_dict(),
-            "likelihood": self.likelihood.state_dict(),
-            "train_inputs": self.train_inputs_.cpu(),
-            "train_targets": self.train_targets_.cpu(),
-            "n_iter": self.n_iter_,
-        }, path)
+        torch.save(
+            {
+                "config": {
+                    "kernel": self.kernel,
+                    "per_output": self.per_output,
+                    "degree": self.degree,
+                    "max_iter": self.max_iter,
+                    "fixed": self.fixed,
+                    "dtype": str(self.dtype).split(".")[-1],
+                },
+                "covar_module": self.covar_module.state_dict(),
+                "likelihood": self.likelihood.state_dict(),
+                "train_inputs": self.train_inputs_.cpu(),
+                "train_targets": self.train_targets_.cpu(),
+                "n_iter": self.n_iter_,
+            },
+            path,
+        )
         return path
 
     @classmethod
@@ -499,8 +537,15 @@ class CorrectionGP:
         """Load a model written by :meth:`save`; the posterior cache is rebuilt (one factorization)."""
         blob = torch.load(Path(path), map_location="cpu", weights_only=False)
         cfg = blob["config"]
-        gp = cls(kernel=cfg["kernel"], per_output=cfg["per_output"], degree=cfg["degree"], max_iter=cfg["max_iter"],
-                 dtype=getattr(torch, cfg["dtype"]), device=device, **cfg["fixed"])
+        gp = cls(
+            kernel=cfg["kernel"],
+            per_output=cfg["per_output"],
+            degree=cfg["degree"],
+            max_iter=cfg["max_iter"],
+            dtype=getattr(torch, cfg["dtype"]),
+            device=device,
+            **cfg["fixed"],
+        )
         X = blob["train_inputs"].to(gp.device, gp.dtype)
         Y = blob["train_targets"].to(gp.device, gp.dtype)
         if gp.per_output:

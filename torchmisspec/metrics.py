@@ -56,24 +56,26 @@ def box_grid(domain, resolution: int = 101, *, dtype=DEFAULT_DTYPE, device=None)
     return points, weight
 
 
-def integrate_over_box(fn: Callable[[torch.Tensor], torch.Tensor], domain, *, resolution: int = 101,
-                       chunk: int = 65536) -> float:
+def integrate_over_box(
+    fn: Callable[[torch.Tensor], torch.Tensor], domain, *, resolution: int = 101, chunk: int = 65536
+) -> float:
     """Trapezoidal integral over the box of a scalar function ``fn: (M, n) -> (M,)``."""
     points, weight = box_grid(domain, resolution)
     total = 0.0
     for start in range(0, points.shape[0], chunk):
-        vals = as_tensor(fn(points[start:start + chunk]), "fn(points)", dtype=points.dtype)
+        vals = as_tensor(fn(points[start : start + chunk]), "fn(points)", dtype=points.dtype)
         if vals.shape != (min(chunk, points.shape[0] - start),):
             raise ShapeError(f"fn(points): expected shape (M,) for M points, got {tuple(vals.shape)}")
         check_finite(vals, "fn(points)")
-        total += float((vals * weight[start:start + chunk]).sum())
+        total += float((vals * weight[start : start + chunk]).sum())
     return total
 
 
 def integrated_error(estimate: Field, truth: Field, domain, *, resolution: int = 101) -> float:
     """Integral over the box D of ||estimate(y) - truth(y)||_2 (paper §5.2); fields map ``(M, n) -> (M, m)``."""
-    return integrate_over_box(lambda x: torch.linalg.vector_norm(estimate(x) - truth(x), dim=-1), domain,
-                              resolution=resolution)
+    return integrate_over_box(
+        lambda x: torch.linalg.vector_norm(estimate(x) - truth(x), dim=-1), domain, resolution=resolution
+    )
 
 
 def integrated_norm(field: Field, domain, *, resolution: int = 101) -> float:

@@ -46,8 +46,18 @@ __all__ = [
 PANEL_SIZE = (5.0, 4.0)  # inches per panel
 DPI = 100
 HEAT_LEVELS = 48  # colour levels of the heat maps
-_TRAJ_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink",
-                "tab:olive", "tab:cyan", "tab:gray")
+_TRAJ_COLORS = (
+    "tab:blue",
+    "tab:orange",
+    "tab:green",
+    "tab:red",
+    "tab:purple",
+    "tab:brown",
+    "tab:pink",
+    "tab:olive",
+    "tab:cyan",
+    "tab:gray",
+)
 _STYLE = {  # one legend entry per style
     "true": dict(linestyle="-", linewidth=1.3, label="true (G + F)"),
     "misspecified": dict(linestyle="--", linewidth=1.1, label="misspecified (G)"),
@@ -132,8 +142,9 @@ def _draw_box(ax: Axes, box, *, label: str | None = None, color: str = "black") 
     from matplotlib.patches import Rectangle
 
     (x0, x1), (y0, y1) = box
-    ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, linestyle="--", linewidth=1.2, edgecolor=color,
-                           label=label))
+    ax.add_patch(
+        Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, linestyle="--", linewidth=1.2, edgecolor=color, label=label)
+    )
 
 
 # ------------------------------------------------------------------------------------------------ trajectories
@@ -172,8 +183,9 @@ def plot_trajectories(
             continue
         arr = _states(value, f"{key}_states")
         if arr.shape[0] != K or arr.shape[2] != d:
-            raise ShapeError(f"{key}_states: expected shape ({K}, T, {d}) to match true_states {true.shape}, got "
-                             f"{arr.shape}")
+            raise ShapeError(
+                f"{key}_states: expected shape ({K}, T, {d}) to match true_states {true.shape}, got {arr.shape}"
+            )
         series[key] = arr
     dims = _check_dims(dims, d)
     if ax is None:
@@ -187,13 +199,14 @@ def plot_trajectories(
         style = {k: v for k, v in _STYLE[key].items() if k != "label"}
         fixed = style.pop("color", None)  # the corrected ones are black, on top, so they stay visible
         for k in range(K):  # otherwise trajectory k has one colour in every style
-            ax.plot(arr[k, :, dims[0]], arr[k, :, dims[1]], color=fixed or _TRAJ_COLORS[k % len(_TRAJ_COLORS)],
-                    **style)
-    ax.plot(true[:, 0, dims[0]], true[:, 0, dims[1]], linestyle="none", marker="o", markersize=4, color="black",
-            zorder=3)
+            ax.plot(arr[k, :, dims[0]], arr[k, :, dims[1]], color=fixed or _TRAJ_COLORS[k % len(_TRAJ_COLORS)], **style)
+    ax.plot(
+        true[:, 0, dims[0]], true[:, 0, dims[1]], linestyle="none", marker="o", markersize=4, color="black", zorder=3
+    )
     handles = [Line2D([], [], **{"color": "0.25", **_STYLE[key]}) for key in series]
-    handles.append(Line2D([], [], linestyle="none", marker="o", markersize=4, color="black",
-                          label="initial conditions"))
+    handles.append(
+        Line2D([], [], linestyle="none", marker="o", markersize=4, color="black", label="initial conditions")
+    )
     ax.legend(handles=handles, loc="best", fontsize="small", framealpha=0.8)
     xl, yl = axis_labels if axis_labels is not None else (f"$y_{{{dims[0] + 1}}}$", f"$y_{{{dims[1] + 1}}}$")
     ax.set_xlabel(xl)
@@ -229,10 +242,12 @@ def plot_training_and_test(
     k_train = _states(train_true, "train_true").shape[0]
     k_test = _states(test_true, "test_true").shape[0]
     titles = titles if titles is not None else (f"Training set (K={k_train})", f"Test set (K={k_test})")
-    plot_trajectories(train_true, train_misspecified, dims=dims, ax=axes[0, 0], title=titles[0],
-                      axis_labels=axis_labels)
-    plot_trajectories(test_true, test_misspecified, test_corrected, dims=dims, ax=axes[0, 1], title=titles[1],
-                      axis_labels=axis_labels)
+    plot_trajectories(
+        train_true, train_misspecified, dims=dims, ax=axes[0, 0], title=titles[0], axis_labels=axis_labels
+    )
+    plot_trajectories(
+        test_true, test_misspecified, test_corrected, dims=dims, ax=axes[0, 1], title=titles[1], axis_labels=axis_labels
+    )
     return _finish(fig, path, dpi)
 
 
@@ -259,8 +274,10 @@ def _evaluate(fn: Callable, pts: torch.Tensor, name: str) -> np.ndarray:
         except TorchMisspecError:
             raise
         except Exception as exc:  # report which callable failed, on which points
-            raise InputError(f"{name}: calling it on points of shape {tuple(pts.shape)} (float64) failed: "
-                             f"{type(exc).__name__}: {exc}") from exc
+            raise InputError(
+                f"{name}: calling it on points of shape {tuple(pts.shape)} (float64) failed: "
+                f"{type(exc).__name__}: {exc}"
+            ) from exc
     return _as_array(out, f"{name}(points)")
 
 
@@ -271,13 +288,15 @@ def _scalar_grid(source, domain, resolution: int, name: str) -> np.ndarray:
         vals = _evaluate(source, pts, name)
         M = pts.shape[0]
         if vals.shape not in ((M,), (M, 1)):
-            raise ShapeError(f"{name}: expected the callable to return shape ({M},) for points ({M}, 2), got "
-                             f"{vals.shape}")
+            raise ShapeError(
+                f"{name}: expected the callable to return shape ({M},) for points ({M}, 2), got {vals.shape}"
+            )
         return vals.reshape(resolution, resolution)
     grid = _as_array(source, name)
     if grid.ndim != 2 or min(grid.shape) < 2:
-        raise ShapeError(f"{name}: expected a callable or a 2-D grid (res_y, res_x) with res >= 2, got shape "
-                         f"{grid.shape}")
+        raise ShapeError(
+            f"{name}: expected a callable or a 2-D grid (res_y, res_x) with res >= 2, got shape {grid.shape}"
+        )
     return grid
 
 
@@ -291,8 +310,10 @@ def _component_grids(source, domain, resolution: int, name: str) -> list[np.ndar
         if vals.ndim == 1:
             vals = vals[:, None]
         if vals.ndim != 2 or vals.shape[0] != M:
-            raise ShapeError(f"{name}: expected the callable to return shape ({M},) or ({M}, C) for points "
-                             f"({M}, 2), got {vals.shape}")
+            raise ShapeError(
+                f"{name}: expected the callable to return shape ({M},) or ({M}, C) for points "
+                f"({M}, 2), got {vals.shape}"
+            )
         return [vals[:, c].reshape(resolution, resolution) for c in range(vals.shape[1])]
     if isinstance(source, (list, tuple)):
         if len(source) == 0:
@@ -303,8 +324,9 @@ def _component_grids(source, domain, resolution: int, name: str) -> list[np.ndar
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3 or min(arr.shape[1:]) < 2:
-        raise ShapeError(f"{name}: expected a callable, a grid (res_y, res_x) or grids (C, res_y, res_x), got "
-                         f"shape {arr.shape}")
+        raise ShapeError(
+            f"{name}: expected a callable, a grid (res_y, res_x) or grids (C, res_y, res_x), got shape {arr.shape}"
+        )
     return list(arr)
 
 
@@ -326,16 +348,24 @@ def _draw_heat(ax: Axes, grid: np.ndarray, domain, *, vmin=None, vmax=None, log_
         lo = vmin if vmin is not None else (float(finite.min()) if finite.size else 0.0)
         hi = vmax if vmax is not None else (float(finite.max()) if finite.size else 1.0)
         norm = Normalize(vmin=lo, vmax=hi)
-    return ax.imshow(grid, origin="lower", extent=(x0, x1, y0, y1), aspect="auto", cmap=cmap, norm=norm,
-                     interpolation="nearest")
+    return ax.imshow(
+        grid, origin="lower", extent=(x0, x1, y0, y1), aspect="auto", cmap=cmap, norm=norm, interpolation="nearest"
+    )
 
 
 def _overlay_traces(ax: Axes, traces, dims: Sequence[int], name: str) -> None:
     arr = _states(traces, name)
     dims = _check_dims(dims, arr.shape[2], "trace_dims")
     for k in range(arr.shape[0]):
-        ax.plot(arr[k, :, dims[0]], arr[k, :, dims[1]], color="white", linewidth=1.0, marker="o", markersize=2.5,
-                markeredgewidth=0)
+        ax.plot(
+            arr[k, :, dims[0]],
+            arr[k, :, dims[1]],
+            color="white",
+            linewidth=1.0,
+            marker="o",
+            markersize=2.5,
+            markeredgewidth=0,
+        )
 
 
 def plot_error_map(
@@ -486,8 +516,10 @@ def correction_error_fn(
     if not system.has_correction:
         raise InputError(f"system '{system.name}' has no true correction F; the error map needs one")
     if system.input_dim != 2:
-        raise ShapeError(f"system: expected a correction with 2 inputs for a 2-D error map, got "
-                         f"{system.input_dim} (correction_inputs={list(system.correction_inputs)})")
+        raise ShapeError(
+            f"system: expected a correction with 2 inputs for a 2-D error map, got "
+            f"{system.input_dim} (correction_inputs={list(system.correction_inputs)})"
+        )
     if gp.input_dim is not None and gp.input_dim != system.input_dim:
         raise ShapeError(f"gp: expected a GP with {system.input_dim} inputs, got {gp.input_dim}")
     d_out = system.output_dim
@@ -532,11 +564,15 @@ def _indices(idx, n: int, name: str) -> np.ndarray:
     if arr.ndim == 0:
         arr = arr.reshape(1)
     if arr.ndim != 1 or (arr.size and not np.issubdtype(arr.dtype, np.integer)):
-        raise InputError(f"{name}: expected a 1-D array of integer indices into the {n} candidates, got dtype "
-                         f"{arr.dtype} and shape {arr.shape}")
+        raise InputError(
+            f"{name}: expected a 1-D array of integer indices into the {n} candidates, got dtype "
+            f"{arr.dtype} and shape {arr.shape}"
+        )
     if arr.size and (arr.min() < 0 or arr.max() >= n):
-        raise InputError(f"{name}: expected indices in [0, {n - 1}] (there are {n} candidates), got values from "
-                         f"{int(arr.min())} to {int(arr.max())}")
+        raise InputError(
+            f"{name}: expected indices in [0, {n - 1}] (there are {n} candidates), got values from "
+            f"{int(arr.min())} to {int(arr.max())}"
+        )
     return arr.astype(np.int64)
 
 
@@ -604,18 +640,44 @@ def plot_design(
         color = styles[name][1] if name in styles else extra[j % 2][1]
         ls = "-" if name in styles else extra[j % 2][0]
         for k in range(arr.shape[0]):
-            ax.plot(arr[k, :, proxy_dims[0]], arr[k, :, proxy_dims[1]], color=color, linestyle=ls, linewidth=0.9,
-                    alpha=0.7, zorder=2, label=f"{name} trajectories" if k == 0 else None)
+            ax.plot(
+                arr[k, :, proxy_dims[0]],
+                arr[k, :, proxy_dims[1]],
+                color=color,
+                linestyle=ls,
+                linewidth=0.9,
+                alpha=0.7,
+                zorder=2,
+                label=f"{name} trajectories" if k == 0 else None,
+            )
     for name, idx in picks.items():
         marker, color, size = styles[name]
-        ax.scatter(cand[idx, 0], cand[idx, 1], s=size, marker=marker, facecolors="none", edgecolors=color,
-                   linewidths=1.6, zorder=4, label=f"{name} (K={idx.size})")
+        ax.scatter(
+            cand[idx, 0],
+            cand[idx, 1],
+            s=size,
+            marker=marker,
+            facecolors="none",
+            edgecolors=color,
+            linewidths=1.6,
+            zorder=4,
+            label=f"{name} (K={idx.size})",
+        )
     mass_colors = ("goldenrod", "tab:red", "tab:purple")
     all_m = np.concatenate([g[:, 2] for g in mass_groups.values()]) if mass_groups else np.ones(1)
     m_max = float(np.abs(all_m).max()) or 1.0
     for j, (label, arr) in enumerate(mass_groups.items()):
-        ax.scatter(arr[:, 0], arr[:, 1], s=40 + 360 * np.abs(arr[:, 2]) / m_max, marker="o",
-                   color=mass_colors[j % len(mass_colors)], edgecolors="black", linewidths=0.8, zorder=5, label=label)
+        ax.scatter(
+            arr[:, 0],
+            arr[:, 1],
+            s=40 + 360 * np.abs(arr[:, 2]) / m_max,
+            marker="o",
+            color=mass_colors[j % len(mass_colors)],
+            edgecolors="black",
+            linewidths=0.8,
+            zorder=5,
+            label=label,
+        )
     if box is not None:
         _draw_box(ax, box, label="domain D")
     ax.set_xlabel(axis_labels[0])
@@ -683,8 +745,9 @@ def plot_error_curves(
     ax = axes[0, 0]
     markers = ("o", "s", "^", "D", "v", "P")
     for i, (name, (mean, err)) in enumerate(data.items()):
-        ax.errorbar(k, mean, yerr=err, marker=markers[i % len(markers)], markersize=4, capsize=3, linewidth=1.3,
-                    label=name)
+        ax.errorbar(
+            k, mean, yerr=err, marker=markers[i % len(markers)], markersize=4, capsize=3, linewidth=1.3, label=name
+        )
     ref_colors = ("tab:red", "tab:gray", "tab:purple", "tab:brown")
     for i, (label, level) in enumerate(refs.items()):
         ax.axhline(level, linestyle="--", linewidth=1.2, color=ref_colors[i % len(ref_colors)], label=label)

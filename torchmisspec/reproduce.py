@@ -119,8 +119,12 @@ def _fit_fixed(inputs: torch.Tensor, targets: torch.Tensor, prior: dict) -> Corr
 
 
 def _hyper(gp: CorrectionGP) -> dict:
-    return {"lengthscale": float(gp.lengthscale), "outputscale": float(gp.outputscale),
-            "noise_variance": float(gp.noise_variance), "log_marginal_likelihood": gp.log_marginal_likelihood_}
+    return {
+        "lengthscale": float(gp.lengthscale),
+        "outputscale": float(gp.outputscale),
+        "noise_variance": float(gp.noise_variance),
+        "log_marginal_likelihood": gp.log_marginal_likelihood_,
+    }
 
 
 def _mean_se(values: Sequence[float]) -> dict:
@@ -154,15 +158,15 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def _overlay_corrected(ax, states: torch.Tensor, *, color: str, label: str, linestyle: str = ":",
-                       dims: Sequence[int] = (0, 1)) -> Any:
+def _overlay_corrected(
+    ax, states: torch.Tensor, *, color: str, label: str, linestyle: str = ":", dims: Sequence[int] = (0, 1)
+) -> Any:
     """Draw a second set of corrected trajectories on a :func:`plotting.plot_trajectories` panel."""
     from matplotlib.lines import Line2D
 
     arr = states.detach().cpu().numpy()
     for k in range(arr.shape[0]):
-        ax.plot(arr[k, :, dims[0]], arr[k, :, dims[1]], color=color, linestyle=linestyle, linewidth=1.8,
-                zorder=2.6)
+        ax.plot(arr[k, :, dims[0]], arr[k, :, dims[1]], color=color, linestyle=linestyle, linewidth=1.8, zorder=2.6)
     return Line2D([], [], color=color, linestyle=linestyle, linewidth=1.8, label=label)
 
 
@@ -228,8 +232,9 @@ class _LinearFit:
     seconds: dict
 
 
-def _linear_fit_run(seed: int, realization: int, *, n_train: int = 40, n_test: int = 10,
-                    progress: bool = False) -> _LinearFit:
+def _linear_fit_run(
+    seed: int, realization: int, *, n_train: int = 40, n_test: int = 10, progress: bool = False
+) -> _LinearFit:
     system = paper_linear()
     gen = _generator(seed, 100 + realization)
     times, fine = _linspace(6.0, 11), _linspace(6.0, FINE_TIMES)
@@ -251,11 +256,21 @@ def _linear_fit_run(seed: int, realization: int, *, n_train: int = 40, n_test: i
     corrected_ml = CorrectedODE(system, gp_ml).predict(y_test, fine)
     sec["predict"] = time.perf_counter() - t0
     return _LinearFit(
-        system=system, times=times, fine=fine, y0=y0, train=train, train_fine=simulate(system, y0, fine).states,
-        train_mis_fine=simulate(system, y0, fine, known_only=True).states, gp_paper=gp_paper, gp_ml=gp_ml,
-        y_test=y_test, test_true=simulate(system, y_test, fine).states,
-        test_mis=simulate(system, y_test, fine, known_only=True).states, corrected_paper=corrected_paper,
-        corrected_ml=corrected_ml, seconds=sec,
+        system=system,
+        times=times,
+        fine=fine,
+        y0=y0,
+        train=train,
+        train_fine=simulate(system, y0, fine).states,
+        train_mis_fine=simulate(system, y0, fine, known_only=True).states,
+        gp_paper=gp_paper,
+        gp_ml=gp_ml,
+        y_test=y_test,
+        test_true=simulate(system, y_test, fine).states,
+        test_mis=simulate(system, y_test, fine, known_only=True).states,
+        corrected_paper=corrected_paper,
+        corrected_ml=corrected_ml,
+        seconds=sec,
     )
 
 
@@ -268,11 +283,18 @@ def _linear_fit(seed: int) -> _LinearFit:
 def _fit_numbers(run: _LinearFit) -> dict:
     mis = _rmse(run.test_mis, run.test_true)
     out = {}
-    for name, gp, pred in (("paper_prior", run.gp_paper, run.corrected_paper),
-                           ("marginal_likelihood", run.gp_ml, run.corrected_ml)):
+    for name, gp, pred in (
+        ("paper_prior", run.gp_paper, run.corrected_paper),
+        ("marginal_likelihood", run.gp_ml, run.corrected_ml),
+    ):
         cor = _rmse(pred, run.test_true)
-        out[name] = {"hyperparameters": _hyper(gp), "rmse_corrected": cor, "rmse_misspecified": mis,
-                     "rmse_ratio": cor / mis, "integrated_error": correction_error(gp, run.system)}
+        out[name] = {
+            "hyperparameters": _hyper(gp),
+            "rmse_corrected": cor,
+            "rmse_misspecified": mis,
+            "rmse_ratio": cor / mis,
+            "integrated_error": correction_error(gp, run.system),
+        }
     return out
 
 
@@ -287,9 +309,16 @@ def figure_1(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     files: list[str] = []
     run = _linear_fit(seed)
     fig = plotting.plot_training_and_test(
-        run.train_fine, run.train_mis_fine, run.test_true, run.test_mis, run.corrected_paper,
-        titles=(f"Training set: {run.y0.shape[0]} random initial conditions",
-                f"Test set ({run.y_test.shape[0]} new initial conditions), paper prior"))
+        run.train_fine,
+        run.train_mis_fine,
+        run.test_true,
+        run.test_mis,
+        run.corrected_paper,
+        titles=(
+            f"Training set: {run.y0.shape[0]} random initial conditions",
+            f"Test set ({run.y_test.shape[0]} new initial conditions), paper prior",
+        ),
+    )
     fig.suptitle(r"Paper Fig 1 (§5.1): $G(y) = Ay$, $F(y) = 0.01\,[y_1^2, y_2^2]$, $t \in [0, 6]$")
     _legend_below(fig, fig.axes[1], [fig.axes[0]])
     _save(fig, out / "fig1.png", files)
@@ -306,9 +335,15 @@ def figure_1(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     if bar is not None:
         bar.close()
     return {
-        "setup": {"n_train": int(run.y0.shape[0]), "n_test": int(run.y_test.shape[0]), "T": int(run.times.numel()),
-                  "t_final": 6.0, "noise_std": NOISE_STD, "paper_prior": LINEAR_PRIOR,
-                  "rmse_on": f"{FINE_TIMES} equally spaced times on [0, 6], all test trajectories"},
+        "setup": {
+            "n_train": int(run.y0.shape[0]),
+            "n_test": int(run.y_test.shape[0]),
+            "T": int(run.times.numel()),
+            "t_final": 6.0,
+            "noise_std": NOISE_STD,
+            "paper_prior": LINEAR_PRIOR,
+            "rmse_on": f"{FINE_TIMES} equally spaced times on [0, 6], all test trajectories",
+        },
         "plotted_fit": "paper_prior",
         "fits": _fit_numbers(run),
         "rmse_ratio_over_realizations": {name: _mean_se(v) for name, v in ratios.items()},
@@ -328,8 +363,12 @@ def figure_2(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     run = _linear_fit(seed)
     system = run.system
     err_fn = plotting.correction_error_fn(system, run.gp_paper)
-    fig = plotting.plot_error_map(err_fn, system.domain, traces=run.train.states,
-                                  title=r"$\|\hat F(y) - F(y)\|_2$, training traces in white (paper prior)")
+    fig = plotting.plot_error_map(
+        err_fn,
+        system.domain,
+        traces=run.train.states,
+        title=r"$\|\hat F(y) - F(y)\|_2$, training traces in white (paper prior)",
+    )
     _save(fig, out / "fig2.png", files)
 
     points, _ = box_grid(system.domain, 101)
@@ -340,15 +379,21 @@ def figure_2(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     q1, q3 = torch.quantile(dist, torch.tensor([0.25, 0.75], dtype=dist.dtype)).tolist()
     near, far = float(err[dist <= q1].mean()), float(err[dist >= q3].mean())
     return {
-        "integrated_error": {"paper_prior": correction_error(run.gp_paper, system),
-                             "marginal_likelihood": correction_error(run.gp_ml, system)},
+        "integrated_error": {
+            "paper_prior": correction_error(run.gp_paper, system),
+            "marginal_likelihood": correction_error(run.gp_ml, system),
+        },
         "energy_of_F": integrated_norm(system.true_correction, system.domain),
         "energy_of_G_plus_F": integrated_norm(system.true_rhs, system.domain),
         "max_error": float(err.max()),
-        "near_vs_far": {"distance_quartiles": [q1, q3], "mean_error_near": near, "mean_error_far": far,
-                        "far_over_near": far / near,
-                        "definition": "grid points of D (101 x 101) by distance to the training trajectories: "
-                                      "nearest quarter vs farthest quarter"},
+        "near_vs_far": {
+            "distance_quartiles": [q1, q3],
+            "mean_error_near": near,
+            "mean_error_far": far,
+            "far_over_near": far / near,
+            "definition": "grid points of D (101 x 101) by distance to the training trajectories: "
+            "nearest quarter vs farthest quarter",
+        },
         "files": files,
     }
 
@@ -378,8 +423,10 @@ def _linear_design(seed: int, n_test: int = 30) -> _LinearDesign:
     candidates = grid_candidates(system.domain, 13)
     prior = CorrectionGP(**LINEAR_PRIOR)
     gen = _generator(seed, 300)
-    plans = {"design": _design.greedy(candidates, 9, system=system, times=times, gp=prior),
-             "random": _design.random(candidates, 9, generator=gen, system=system, times=times, gp=prior)}
+    plans = {
+        "design": _design.greedy(candidates, 9, system=system, times=times, gp=prior),
+        "random": _design.random(candidates, 9, generator=gen, system=system, times=times, gp=prior),
+    }
     traj_obs, traj_fine, gps, corrected = {}, {}, {}, {}
     y_test = uniform_in_box(n_test, system.domain, generator=gen)
     for name, plan in plans.items():
@@ -390,10 +437,21 @@ def _linear_design(seed: int, n_test: int = 30) -> _LinearDesign:
         traj_fine[name] = simulate(system, y0, fine).states
         gps[name] = _fit_fixed(samples.inputs, samples.targets, LINEAR_PRIOR)
         corrected[name] = CorrectedODE(system, gps[name]).predict(y_test, fine)
-    return _LinearDesign(system=system, candidates=candidates, times=times, fine=fine, prior=prior, plans=plans,
-                         traj_fine=traj_fine, traj_obs=traj_obs, gps=gps, y_test=y_test,
-                         test_true=simulate(system, y_test, fine).states,
-                         test_mis=simulate(system, y_test, fine, known_only=True).states, corrected=corrected)
+    return _LinearDesign(
+        system=system,
+        candidates=candidates,
+        times=times,
+        fine=fine,
+        prior=prior,
+        plans=plans,
+        traj_fine=traj_fine,
+        traj_obs=traj_obs,
+        gps=gps,
+        y_test=y_test,
+        test_true=simulate(system, y_test, fine).states,
+        test_mis=simulate(system, y_test, fine, known_only=True).states,
+        corrected=corrected,
+    )
 
 
 def figure_3(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = False) -> dict:
@@ -408,16 +466,26 @@ def figure_3(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     files: list[str] = []
     s = _linear_design(seed)
     system = s.system
-    fig = plotting.plot_design(s.candidates, {name: plan.indices for name, plan in s.plans.items()},
-                               proxies=s.traj_fine, domain=system.domain,
-                               title="Candidates (13 x 13), design vs random (K = 9)")
+    fig = plotting.plot_design(
+        s.candidates,
+        {name: plan.indices for name, plan in s.plans.items()},
+        proxies=s.traj_fine,
+        domain=system.domain,
+        title="Candidates (13 x 13), design vs random (K = 9)",
+    )
     _save(fig, out / "fig3_design.png", files)
     ax = _side_by_side(fig, 12.0, (1.3, 1.0))
     n_plot = 6
-    plotting.plot_trajectories(s.test_true[:n_plot], s.test_mis[:n_plot], s.corrected["design"][:n_plot], ax=ax,
-                               title=f"Test set ({n_plot} of {s.y_test.shape[0]} initial conditions)")
-    extra = _overlay_corrected(ax, s.corrected["random"][:n_plot], color="tab:red", linestyle=(0, (1, 2)),
-                               label=r"corrected, random-trained")
+    plotting.plot_trajectories(
+        s.test_true[:n_plot],
+        s.test_mis[:n_plot],
+        s.corrected["design"][:n_plot],
+        ax=ax,
+        title=f"Test set ({n_plot} of {s.y_test.shape[0]} initial conditions)",
+    )
+    extra = _overlay_corrected(
+        ax, s.corrected["random"][:n_plot], color="tab:red", linestyle=(0, (1, 2)), label=r"corrected, random-trained"
+    )
     _relegend(ax, [extra], rename={r"corrected (G + $\hat F$)": "corrected, design-trained"})
     fig.suptitle("Paper Fig 3 (§5.2): experimental design on the linear system")
     _save(fig, out / "fig3.png", files)
@@ -426,19 +494,32 @@ def figure_3(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     gen = _generator(seed, 301)
     draws = _pick(_FIG3_RANDOM_DRAWS, smoke)
     proxies = _design.proxy_trajectories(system, s.candidates, s.times)
-    rand_gain = [float(_design.marginal_gains(torch.randperm(s.candidates.shape[0], generator=gen)[:9],
-                                              s.candidates, system=system, gp=s.prior, proxies=proxies).sum())
-                 for _ in range(draws)]
+    rand_gain = [
+        float(
+            _design.marginal_gains(
+                torch.randperm(s.candidates.shape[0], generator=gen)[:9],
+                s.candidates,
+                system=system,
+                gp=s.prior,
+                proxies=proxies,
+            ).sum()
+        )
+        for _ in range(draws)
+    ]
     mis = _rmse(s.test_mis, s.test_true)
     res = {"misspecified_test_rmse": mis, "energy_of_F": integrated_norm(system.true_correction, system.domain)}
     for name, plan in s.plans.items():
         cor = _rmse(s.corrected[name], s.test_true)
         res[name] = {
-            "indices": plan.indices, "points": plan.points, "gains_nats": plan.gains,
+            "indices": plan.indices,
+            "points": plan.points,
+            "gains_nats": plan.gains,
             "information_gain_nats": plan.information_gain,
-            "exact_information_gain_nats": _design.exact_information_gain(plan.indices, s.candidates, system=system,
-                                                                          times=s.times, gp=s.prior),
-            "test_rmse_corrected": cor, "rmse_ratio_to_misspecified": cor / mis,
+            "exact_information_gain_nats": _design.exact_information_gain(
+                plan.indices, s.candidates, system=system, times=s.times, gp=s.prior
+            ),
+            "test_rmse_corrected": cor,
+            "rmse_ratio_to_misspecified": cor / mis,
             "integrated_error": correction_error(s.gps[name], system),
         }
     res["design_over_random"] = {
@@ -448,11 +529,21 @@ def figure_3(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     }
     arr = np.asarray(rand_gain)
     res["random_sets_information_gain_nats"] = {
-        **{k: v for k, v in _mean_se(rand_gain).items() if k != "values"}, "max": float(arr.max()),
-        "fraction_below_design": float((arr < res["design"]["information_gain_nats"]).mean())}
-    res["setup"] = {"candidates": "13 x 13 grid on D", "K": 9, "T": 11, "t_final": 6.0, "prior": LINEAR_PRIOR,
-                    "n_test": int(s.y_test.shape[0]), "n_plotted": n_plot, "design_method": s.plans["design"].method,
-                    "rmse_on": f"{FINE_TIMES} times on [0, 6]"}
+        **{k: v for k, v in _mean_se(rand_gain).items() if k != "values"},
+        "max": float(arr.max()),
+        "fraction_below_design": float((arr < res["design"]["information_gain_nats"]).mean()),
+    }
+    res["setup"] = {
+        "candidates": "13 x 13 grid on D",
+        "K": 9,
+        "T": 11,
+        "t_final": 6.0,
+        "prior": LINEAR_PRIOR,
+        "n_test": int(s.y_test.shape[0]),
+        "n_plotted": n_plot,
+        "design_method": s.plans["design"].method,
+        "rmse_on": f"{FINE_TIMES} times on [0, 6]",
+    }
     res["files"] = files
     return res
 
@@ -467,30 +558,45 @@ def figure_4(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     s = _linear_design(seed)
     system = s.system
     fns = {name: plotting.correction_error_fn(system, s.gps[name], component="all") for name in ("random", "design")}
-    fig = plotting.plot_component_error_maps(fns, system.domain, traces=s.traj_obs,
-                                             title=r"Paper Fig 4 (§5.2): $|\hat F_i - F_i|$, random (top) vs "
-                                                   r"design (bottom), K = 9")
+    fig = plotting.plot_component_error_maps(
+        fns,
+        system.domain,
+        traces=s.traj_obs,
+        title=r"Paper Fig 4 (§5.2): $|\hat F_i - F_i|$, random (top) vs "
+        r"design (bottom), K = 9",
+    )
     _save(fig, out / "fig4.png", files)
     res = {}
     with torch.no_grad():
         for name, fn in fns.items():
-            res[name] = {"integrated_abs_error": [integrate_over_box(lambda x, c=c, fn=fn: fn(x)[:, c], system.domain)
-                                                  for c in range(system.output_dim)]}
+            res[name] = {
+                "integrated_abs_error": [
+                    integrate_over_box(lambda x, c=c, fn=fn: fn(x)[:, c], system.domain)
+                    for c in range(system.output_dim)
+                ]
+            }
         res["energy_of_F_i"] = [
             integrate_over_box(lambda x, c=c: system.true_correction(x)[:, c].abs(), system.domain)
-            for c in range(system.output_dim)]
-    res["design_over_random"] = [d / r for d, r in zip(res["design"]["integrated_abs_error"],
-                                                       res["random"]["integrated_abs_error"], strict=True)]
+            for c in range(system.output_dim)
+        ]
+    res["design_over_random"] = [
+        d / r for d, r in zip(res["design"]["integrated_abs_error"], res["random"]["integrated_abs_error"], strict=True)
+    ]
     res["files"] = files
     return res
 
 
 # ======================================================================================== §5.2 study (Fig 5)
 def _study_numbers(study: StudyResult, ratios: Iterable[tuple[str, str]]) -> dict:
-    data = {"ks": study.ks, "metric": study.metric, "realizations": study.realizations,
-            "references": study.references, "summary": {k: {"mean": m, "stderr": e}
-                                                        for k, (m, e) in study.summary().items()},
-            "ratios": {}, "meta": study.meta}
+    data = {
+        "ks": study.ks,
+        "metric": study.metric,
+        "realizations": study.realizations,
+        "references": study.references,
+        "summary": {k: {"mean": m, "stderr": e} for k, (m, e) in study.summary().items()},
+        "ratios": {},
+        "meta": study.meta,
+    }
     for a, b in ratios:
         mean, se = study.ratio(a, b)
         data["ratios"][f"{a}/{b}"] = {"mean": mean, "stderr": se}
@@ -518,12 +624,20 @@ def figure_5(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     data-driven/design and random/design (mean and standard error over realizations).
     """
     study = linear_study(_pick(_FIG5_KS, smoke), _pick(_FIG5_REALIZATIONS, smoke), seed=seed, progress=progress)
-    labels = {"design": "design + misspecified model", "random": "random sets + misspecified model",
-              "data-driven": "design + fully data-driven GP"}
-    data = _study_figure(study, Path(out) / "fig5.png", labels, r"$\int_D \|\hat F(y) - F(y)\|_2\,dy$",
-                         f"Paper Fig 5 (§5.2): estimation error vs training set size\n"
-                         f"linear system, {study.realizations} realizations, mean ± standard error",
-                         [("design", "random"), ("data-driven", "design"), ("random", "design")])
+    labels = {
+        "design": "design + misspecified model",
+        "random": "random sets + misspecified model",
+        "data-driven": "design + fully data-driven GP",
+    }
+    data = _study_figure(
+        study,
+        Path(out) / "fig5.png",
+        labels,
+        r"$\int_D \|\hat F(y) - F(y)\|_2\,dy$",
+        f"Paper Fig 5 (§5.2): estimation error vs training set size\n"
+        f"linear system, {study.realizations} realizations, mean ± standard error",
+        [("design", "random"), ("data-driven", "design"), ("random", "design")],
+    )
     return data
 
 
@@ -554,8 +668,10 @@ def _gravity(seed: int, n_test: int = 5) -> _Gravity:
     candidates = gravity_candidates(300, generator=torch.Generator().manual_seed(seed))
     times, fine = _linspace(3.0, 20), _linspace(3.0, FINE_TIMES)
     prior = CorrectionGP(**GRAVITY_PRIOR)
-    plans = {"agnostic": _design.agnostic(candidates, 7, system=system, times=times, gp=prior),
-             "misspecified-aided": _design.greedy(candidates, 7, system=system, times=times, gp=prior)}
+    plans = {
+        "agnostic": _design.agnostic(candidates, 7, system=system, times=times, gp=prior),
+        "misspecified-aided": _design.greedy(candidates, 7, system=system, times=times, gp=prior),
+    }
     gen = _generator(seed, 600)
     traj_fine, gps, corrected = {}, {}, {}
     for name, plan in plans.items():
@@ -570,13 +686,25 @@ def _gravity(seed: int, n_test: int = 5) -> _Gravity:
     y_test = candidates[test_idx]
     for name in plans:
         corrected[name] = CorrectedODE(system, gps[name]).predict(y_test, fine)
-    return _Gravity(system=system, candidates=candidates, times=times, fine=fine, prior=prior, plans=plans,
-                    traj_fine=traj_fine, gps=gps, test_idx=test_idx, test_true=simulate(system, y_test, fine).states,
-                    test_mis=simulate(system, y_test, fine, known_only=True).states, corrected=corrected)
+    return _Gravity(
+        system=system,
+        candidates=candidates,
+        times=times,
+        fine=fine,
+        prior=prior,
+        plans=plans,
+        traj_fine=traj_fine,
+        gps=gps,
+        test_idx=test_idx,
+        test_true=simulate(system, y_test, fine).states,
+        test_mis=simulate(system, y_test, fine, known_only=True).states,
+        corrected=corrected,
+    )
 
 
 def _masses(system: MisspecifiedSystem) -> dict:
     """Rows (x, y, m) of the known and unknown point masses, read from the system's fields."""
+
     def rows(field):
         return torch.cat([field.positions, field.masses.unsqueeze(-1)], -1)
 
@@ -594,18 +722,29 @@ def figure_6(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     files: list[str] = []
     g = _gravity(seed)
     system = g.system
-    fig = plotting.plot_design(g.candidates[:, :2], {n: g.plans[n].indices for n in _GRAVITY_NAMES},
-                               proxies=g.traj_fine, masses=_masses(system), domain=system.domain,
-                               axis_labels=("$x_1$", "$x_2$"),
-                               title=f"{g.candidates.shape[0]} candidates, designs of size K = 7")
+    fig = plotting.plot_design(
+        g.candidates[:, :2],
+        {n: g.plans[n].indices for n in _GRAVITY_NAMES},
+        proxies=g.traj_fine,
+        masses=_masses(system),
+        domain=system.domain,
+        axis_labels=("$x_1$", "$x_2$"),
+        title=f"{g.candidates.shape[0]} candidates, designs of size K = 7",
+    )
     _save(fig, out / "fig6_design.png", files)
     fig.axes[0].set_aspect("equal", adjustable="box")
     ax = _side_by_side(fig, 12.5, (1.2, 1.0))
-    plotting.plot_trajectories(g.test_true, g.test_mis, g.corrected["misspecified-aided"], ax=ax,
-                               axis_labels=("$x_1$", "$x_2$"),
-                               title=f"Test set: {g.test_idx.numel()} random unchosen candidates")
-    extra = _overlay_corrected(ax, g.corrected["agnostic"], color="tab:blue", linestyle=(0, (1, 2)),
-                               label="corrected, agnostic design")
+    plotting.plot_trajectories(
+        g.test_true,
+        g.test_mis,
+        g.corrected["misspecified-aided"],
+        ax=ax,
+        axis_labels=("$x_1$", "$x_2$"),
+        title=f"Test set: {g.test_idx.numel()} random unchosen candidates",
+    )
+    extra = _overlay_corrected(
+        ax, g.corrected["agnostic"], color="tab:blue", linestyle=(0, (1, 2)), label="corrected, agnostic design"
+    )
     _relegend(ax, [extra], rename={r"corrected (G + $\hat F$)": "corrected, aided design"})
     ax.set_aspect("equal", adjustable="datalim")
     fig.suptitle("Paper Fig 6 (§5.3): misspecified gravitational field")
@@ -617,18 +756,30 @@ def figure_6(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
         plan = g.plans[name]
         cor = _rmse(g.corrected[name], g.test_true)
         res[name] = {
-            "indices": plan.indices, "positions": plan.points[:, :2], "gains_nats_own_criterion": plan.gains,
+            "indices": plan.indices,
+            "positions": plan.points[:, :2],
+            "gains_nats_own_criterion": plan.gains,
             "information_gain_nats_own_criterion": plan.information_gain,
-            "exact_information_gain_nats": _design.exact_information_gain(plan.indices, g.candidates, system=system,
-                                                                          times=g.times, gp=g.prior),
-            "test_rmse_corrected": cor, "rmse_ratio_to_misspecified": cor / mis,
+            "exact_information_gain_nats": _design.exact_information_gain(
+                plan.indices, g.candidates, system=system, times=g.times, gp=g.prior
+            ),
+            "test_rmse_corrected": cor,
+            "rmse_ratio_to_misspecified": cor / mis,
             "test_rmse_positions": _rmse(g.corrected[name][..., :2], g.test_true[..., :2]),
         }
     res["misspecified_test_rmse_positions"] = _rmse(g.test_mis[..., :2], g.test_true[..., :2])
-    res["aided_over_agnostic_test_rmse"] = (res["misspecified-aided"]["test_rmse_corrected"]
-                                            / res["agnostic"]["test_rmse_corrected"])
-    res["setup"] = {"candidates": "gravity_candidates(300, seed)", "K": 7, "T": 20, "t_final": 3.0,
-                    "prior": GRAVITY_PRIOR, "domain": system.domain, "rmse_on": f"{FINE_TIMES} times on [0, 3]"}
+    res["aided_over_agnostic_test_rmse"] = (
+        res["misspecified-aided"]["test_rmse_corrected"] / res["agnostic"]["test_rmse_corrected"]
+    )
+    res["setup"] = {
+        "candidates": "gravity_candidates(300, seed)",
+        "K": 7,
+        "T": 20,
+        "t_final": 3.0,
+        "prior": GRAVITY_PRIOR,
+        "domain": system.domain,
+        "rmse_on": f"{FINE_TIMES} times on [0, 3]",
+    }
     res["files"] = files
     return res
 
@@ -645,18 +796,27 @@ def figure_7(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     system = g.system
     fns = {name: plotting.correction_error_fn(system, g.gps[name]) for name in _GRAVITY_NAMES}
     fig = plotting.plot_component_error_maps(
-        fns, _FIG7_BOX, traces={n: g.traj_fine[n] for n in _GRAVITY_NAMES}, settings_as_columns=True,
-        log_scale=True, dashed_box=system.domain, axis_labels=("$x_1$", "$x_2$"),
+        fns,
+        _FIG7_BOX,
+        traces={n: g.traj_fine[n] for n in _GRAVITY_NAMES},
+        settings_as_columns=True,
+        log_scale=True,
+        dashed_box=system.domain,
+        axis_labels=("$x_1$", "$x_2$"),
         component_labels=[r"$\|\hat F_{3,4} - F_{3,4}\|_2$"],
-        title="Paper Fig 7 (§5.3): estimation error, D dashed, training trajectories in white")
+        title="Paper Fig 7 (§5.3): estimation error, D dashed, training trajectories in white",
+    )
     _save(fig, out / "fig7.png", files)
     res = {}
     for name in _GRAVITY_NAMES:
-        res[name] = {"mse_over_D": correction_error(g.gps[name], system, squared=True),
-                     "mse_over_box": correction_error(g.gps[name], system, domain=_FIG7_BOX, squared=True)}
+        res[name] = {
+            "mse_over_D": correction_error(g.gps[name], system, squared=True),
+            "mse_over_box": correction_error(g.gps[name], system, domain=_FIG7_BOX, squared=True),
+        }
     res["aided_over_agnostic_mse_over_D"] = res["misspecified-aided"]["mse_over_D"] / res["agnostic"]["mse_over_D"]
-    res["mean_energy_of_F_over_D"] = mean_squared_error(lambda x: torch.zeros_like(x), system.true_correction,
-                                                        system.domain)
+    res["mean_energy_of_F_over_D"] = mean_squared_error(
+        lambda x: torch.zeros_like(x), system.true_correction, system.domain
+    )
     res["box"] = _FIG7_BOX
     res["domain"] = system.domain
     res["files"] = files
@@ -670,22 +830,44 @@ def figure_8(out: Path, *, smoke: bool = False, seed: int = 0, progress: bool = 
     Returns the summary per K and the paired ratios aided/agnostic and aided/random per K with standard errors.
     """
     study = gravity_study(realizations=_pick(_FIG8_REALIZATIONS, smoke), seed=seed, progress=progress)
-    labels = {"misspecified-aided": "misspecified-aided design", "agnostic": "agnostic design",
-              "random": "random sets (new each realization)"}
-    return _study_figure(study, Path(out) / "fig8.png", labels,
-                         r"$\frac{1}{|D|}\int_D \|\hat F_{3,4} - F_{3,4}\|_2^2\,dy$",
-                         f"Paper Fig 8 (§5.3): average estimation error vs training set size\n"
-                         f"gravity, {study.realizations} noise realizations, mean ± standard error",
-                         [("misspecified-aided", "agnostic"), ("misspecified-aided", "random")])
+    labels = {
+        "misspecified-aided": "misspecified-aided design",
+        "agnostic": "agnostic design",
+        "random": "random sets (new each realization)",
+    }
+    return _study_figure(
+        study,
+        Path(out) / "fig8.png",
+        labels,
+        r"$\frac{1}{|D|}\int_D \|\hat F_{3,4} - F_{3,4}\|_2^2\,dy$",
+        f"Paper Fig 8 (§5.3): average estimation error vs training set size\n"
+        f"gravity, {study.realizations} noise realizations, mean ± standard error",
+        [("misspecified-aided", "agnostic"), ("misspecified-aided", "random")],
+    )
 
 
 # ==================================================================================================== driver
-FIGURES: dict[int, Callable[..., dict]] = {1: figure_1, 2: figure_2, 3: figure_3, 4: figure_4, 5: figure_5,
-                                           6: figure_6, 7: figure_7, 8: figure_8}
+FIGURES: dict[int, Callable[..., dict]] = {
+    1: figure_1,
+    2: figure_2,
+    3: figure_3,
+    4: figure_4,
+    5: figure_5,
+    6: figure_6,
+    7: figure_7,
+    8: figure_8,
+}
 
 
-def reproduce(figures: Iterable[int], out: str | Path = "reproduction-output", *, smoke: bool = False,
-              seed: int = 0, progress: bool = False, threads: int | None = 1) -> dict:
+def reproduce(
+    figures: Iterable[int],
+    out: str | Path = "reproduction-output",
+    *,
+    smoke: bool = False,
+    seed: int = 0,
+    progress: bool = False,
+    threads: int | None = 1,
+) -> dict:
     """Run the given figures (numbers 1-8) into ``out`` and write ``out/results.json``.
 
     ``results.json`` holds ``{"smoke", "seed", "figures": {"fig1": numbers, ...}, "seconds": {"fig1": s, ...,
@@ -709,8 +891,13 @@ def reproduce(figures: Iterable[int], out: str | Path = "reproduction-output", *
     numbers = sorted(set(numbers))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, Any] = {"smoke": bool(smoke), "seed": int(seed), "figures": {}, "seconds": {},
-                               "realizations": {}}
+    results: dict[str, Any] = {
+        "smoke": bool(smoke),
+        "seed": int(seed),
+        "figures": {},
+        "seconds": {},
+        "realizations": {},
+    }
     previous = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)

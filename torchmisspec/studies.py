@@ -92,9 +92,15 @@ class StudyResult:
         return "\n".join(lines) + f"\n\n{self.metric}; {self.realizations} realizations; reference lines: {refs}\n"
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "ks": self.ks, "metric": self.metric, "references": self.references,
-                "meta": self.meta, "summary": self.summary(),
-                "errors": {k: v.tolist() for k, v in self.errors.items()}}
+        return {
+            "name": self.name,
+            "ks": self.ks,
+            "metric": self.metric,
+            "references": self.references,
+            "meta": self.meta,
+            "summary": self.summary(),
+            "errors": {k: v.tolist() for k, v in self.errors.items()},
+        }
 
     def save(self, out: str | Path, *, ratios: list[tuple[str, str]] = (), logy: bool = True) -> dict[str, Path]:
         """Write ``<name>.json``, ``<name>.md`` (the table) and ``<name>.png`` (the curves) into ``out``."""
@@ -102,16 +108,25 @@ class StudyResult:
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        paths = {"json": out / f"{self.name}.json", "table": out / f"{self.name}.md",
-                 "figure": out / f"{self.name}.png"}
+        paths = {
+            "json": out / f"{self.name}.json",
+            "table": out / f"{self.name}.md",
+            "figure": out / f"{self.name}.png",
+        }
         data = self.to_dict()
         data["ratios"] = {f"{a}/{b}": self.ratio(a, b) for a, b in ratios}
         paths["json"].write_text(json.dumps(data, indent=2))
         paths["table"].write_text(self.table(ratios))
         summary = self.summary()
-        plot_error_curves(self.ks, {k: (v[0], v[1]) for k, v in summary.items()}, reference_lines=self.references,
-                          ylabel=self.metric, logy=logy, title=f"{self.name} ({self.realizations} realizations)",
-                          path=paths["figure"])
+        plot_error_curves(
+            self.ks,
+            {k: (v[0], v[1]) for k, v in summary.items()},
+            reference_lines=self.references,
+            ylabel=self.metric,
+            logy=logy,
+            title=f"{self.name} ({self.realizations} realizations)",
+            path=paths["figure"],
+        )
         return paths
 
 
@@ -129,8 +144,15 @@ def _check_realizations(realizations) -> int:
     return realizations
 
 
-def _grid_error(gp: CorrectionGP, truth: torch.Tensor, points: torch.Tensor, weights: torch.Tensor, *,
-                offset: torch.Tensor | None = None, squared: bool = False) -> float:
+def _grid_error(
+    gp: CorrectionGP,
+    truth: torch.Tensor,
+    points: torch.Tensor,
+    weights: torch.Tensor,
+    *,
+    offset: torch.Tensor | None = None,
+    squared: bool = False,
+) -> float:
     """Quadrature of ||mu - truth|| (or its square) on a fixed grid; ``offset`` is subtracted from mu first."""
     with torch.no_grad():
         diff = gp.predict_mean(points) - truth
@@ -142,8 +164,12 @@ def _grid_error(gp: CorrectionGP, truth: torch.Tensor, points: torch.Tensor, wei
 
 def _fit_fixed(prior: CorrectionGP, inputs: torch.Tensor, targets: torch.Tensor) -> CorrectionGP:
     """A GP with the prior's (fixed) hyperparameters conditioned on the samples."""
-    return CorrectionGP(kernel=prior.kernel, lengthscale=prior.lengthscale, outputscale=prior.outputscale,
-                        noise_variance=prior.noise_variance).fit(inputs, targets)
+    return CorrectionGP(
+        kernel=prior.kernel,
+        lengthscale=prior.lengthscale,
+        outputscale=prior.outputscale,
+        noise_variance=prior.noise_variance,
+    ).fit(inputs, targets)
 
 
 def _noisy_targets(clean: torch.Tensor, noise_std: float, gen: torch.Generator) -> torch.Tensor:
@@ -179,8 +205,7 @@ def linear_study(
     ks = _check_ks(ks, candidates.shape[0])
     times = torch.linspace(0.0, 6.0, 11, dtype=torch.float64)
     prior = CorrectionGP(lengthscale=lengthscale, outputscale=outputscale, noise_variance=noise_std**2)
-    prior_dd = CorrectionGP(lengthscale=lengthscale, outputscale=data_driven_outputscale,
-                            noise_variance=noise_std**2)
+    prior_dd = CorrectionGP(lengthscale=lengthscale, outputscale=data_driven_outputscale, noise_variance=noise_std**2)
     plan = _design.greedy(candidates, ks[-1], system=system, times=times, gp=prior)
     design_idx = plan.indices
 
@@ -201,9 +226,11 @@ def linear_study(
         targets_f, targets_h = clean_f + noise, clean_h + noise
         random_idx = torch.randperm(candidates.shape[0], generator=gen)
         for j, k in enumerate(ks):
-            for name, idx, prior_k, targets in (("design", design_idx[:k], prior, targets_f),
-                                                ("random", random_idx[:k], prior, targets_f),
-                                                ("data-driven", design_idx[:k], prior_dd, targets_h)):
+            for name, idx, prior_k, targets in (
+                ("design", design_idx[:k], prior, targets_f),
+                ("random", random_idx[:k], prior, targets_f),
+                ("data-driven", design_idx[:k], prior_dd, targets_h),
+            ):
                 x = inputs[idx].reshape(-1, inputs.shape[-1])
                 y = targets[idx].reshape(-1, targets.shape[-1])
                 gp = _fit_fixed(prior_k, x, y)
@@ -213,14 +240,26 @@ def linear_study(
                 bar.update(1)
     if bar is not None:
         bar.close()
-    references = {"energy of F": integrated_norm(system.true_correction, system.domain, resolution=resolution),
-                  "energy of G + F": integrated_norm(system.true_rhs, system.domain, resolution=resolution)}
-    meta = {"system": system.name, "candidates": f"{grid_size} x {grid_size} grid on {system.domain}",
-            "times": "11 equally spaced on [0, 6]", "noise_std": noise_std, "seed": seed,
-            "hyperparameters": {"lengthscale": lengthscale, "outputscale": outputscale,
-                                "noise_variance": noise_std**2, "data_driven_outputscale": data_driven_outputscale},
-            "design_indices": design_idx.tolist(), "design_gains": plan.gains.tolist(),
-            "quadrature": f"trapezoid, {resolution} x {resolution}"}
+    references = {
+        "energy of F": integrated_norm(system.true_correction, system.domain, resolution=resolution),
+        "energy of G + F": integrated_norm(system.true_rhs, system.domain, resolution=resolution),
+    }
+    meta = {
+        "system": system.name,
+        "candidates": f"{grid_size} x {grid_size} grid on {system.domain}",
+        "times": "11 equally spaced on [0, 6]",
+        "noise_std": noise_std,
+        "seed": seed,
+        "hyperparameters": {
+            "lengthscale": lengthscale,
+            "outputscale": outputscale,
+            "noise_variance": noise_std**2,
+            "data_driven_outputscale": data_driven_outputscale,
+        },
+        "design_indices": design_idx.tolist(),
+        "design_gains": plan.gains.tolist(),
+        "quadrature": f"trapezoid, {resolution} x {resolution}",
+    }
     return StudyResult("linear_study", ks, errors, references, "integral over D of ||F_hat - F||_2", meta)
 
 
@@ -249,8 +288,10 @@ def gravity_study(
     ks = _check_ks(ks, candidates.shape[0])
     times = torch.linspace(0.0, 3.0, 20, dtype=torch.float64)
     prior = CorrectionGP(lengthscale=lengthscale, outputscale=outputscale, noise_variance=noise_std**2)
-    plans = {"misspecified-aided": _design.greedy(candidates, ks[-1], system=system, times=times, gp=prior),
-             "agnostic": _design.agnostic(candidates, ks[-1], system=system, times=times, gp=prior)}
+    plans = {
+        "misspecified-aided": _design.greedy(candidates, ks[-1], system=system, times=times, gp=prior),
+        "agnostic": _design.agnostic(candidates, ks[-1], system=system, times=times, gp=prior),
+    }
 
     states = simulate(system, candidates, times).states
     inputs = system.select_inputs(states)
@@ -279,10 +320,15 @@ def gravity_study(
     if bar is not None:
         bar.close()
     references = {"mean energy of F": float((truth.pow(2).sum(-1) * weights).sum())}
-    meta = {"system": system.name, "candidates": f"{n_candidates} from gravity_candidates(seed={seed})",
-            "times": "20 equally spaced on [0, 3]", "noise_std": noise_std, "seed": seed, "domain": system.domain,
-            "hyperparameters": {"lengthscale": lengthscale, "outputscale": outputscale,
-                                "noise_variance": noise_std**2},
-            "designs": {name: plan.indices.tolist() for name, plan in plans.items()},
-            "quadrature": f"trapezoid, {resolution} x {resolution}"}
+    meta = {
+        "system": system.name,
+        "candidates": f"{n_candidates} from gravity_candidates(seed={seed})",
+        "times": "20 equally spaced on [0, 3]",
+        "noise_std": noise_std,
+        "seed": seed,
+        "domain": system.domain,
+        "hyperparameters": {"lengthscale": lengthscale, "outputscale": outputscale, "noise_variance": noise_std**2},
+        "designs": {name: plan.indices.tolist() for name, plan in plans.items()},
+        "quadrature": f"trapezoid, {resolution} x {resolution}",
+    }
     return StudyResult("gravity_study", ks, errors, references, "mean over D of ||F_hat - F||_2^2", meta)

@@ -239,8 +239,14 @@ def paper_gravity() -> MisspecifiedSystem:
     )
 
 
-def gravity_candidates(n: int = 300, *, generator: torch.Generator | None = None, half_width: float = 2.0,
-                       min_radius: float = 0.75, dtype=torch.float64) -> torch.Tensor:
+def gravity_candidates(
+    n: int = 300,
+    *,
+    generator: torch.Generator | None = None,
+    half_width: float = 2.0,
+    min_radius: float = 0.75,
+    dtype=torch.float64,
+) -> torch.Tensor:
     """Candidate initial conditions ``(n, 4)`` for :func:`paper_gravity` (the paper does not list its set).
 
     Positions uniform in the box [-half_width, half_width]^2 outside a disc of ``min_radius`` around the known

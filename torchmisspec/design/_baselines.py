@@ -18,8 +18,9 @@ from ._greedy import _Problem, greedy
 __all__ = ["random", "agnostic", "marginal_gains"]
 
 
-def marginal_gains(indices, candidates, *, system: MisspecifiedSystem, times=None, gp: CorrectionGP,
-                   proxies=None) -> torch.Tensor:
+def marginal_gains(
+    indices, candidates, *, system: MisspecifiedSystem, times=None, gp: CorrectionGP, proxies=None
+) -> torch.Tensor:
     """Marginal proxy information gains (nats) of the candidates ``indices`` taken in the given order.
 
     One Cholesky factorization of ``I + K / sigma^2`` over all K T proxy points of the design: the log-diagonal of
@@ -117,8 +118,16 @@ def random(
     else:
         gains = torch.full((budget,), math.nan, dtype=cand.dtype, device=cand.device)
         info = math.nan
-    return DesignResult(indices=idx, gains=gains, information_gain=info, points=cand[idx], method="random",
-                        evaluations=0, proxies=prox, elapsed=time.perf_counter() - start)
+    return DesignResult(
+        indices=idx,
+        gains=gains,
+        information_gain=info,
+        points=cand[idx],
+        method="random",
+        evaluations=0,
+        proxies=prox,
+        elapsed=time.perf_counter() - start,
+    )
 
 
 def agnostic(
@@ -145,6 +154,17 @@ def agnostic(
     cand = check_candidates(candidates, system)
     t = check_times(times, dtype=cand.dtype, device=cand.device)
     proxies = cand.unsqueeze(1).expand(-1, t.shape[0], -1)
-    res = greedy(cand, budget, system=system, times=t, gp=gp, lazy=lazy, partition=partition,
-                 capacities=capacities, proxies=proxies, progress=progress, **kwargs)
+    res = greedy(
+        cand,
+        budget,
+        system=system,
+        times=t,
+        gp=gp,
+        lazy=lazy,
+        partition=partition,
+        capacities=capacities,
+        proxies=proxies,
+        progress=progress,
+        **kwargs,
+    )
     return dataclasses.replace(res, method=f"agnostic-{res.method}")

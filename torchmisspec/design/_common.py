@@ -70,7 +70,8 @@ class GPKernel:
         if gp.per_output:
             raise InputError(
                 "gp: experimental design supports the shared kernel only (the paper's model, one kernel for all "
-                "outputs); got a CorrectionGP with per_output=True. Build the design GP with per_output=False")
+                "outputs); got a CorrectionGP with per_output=True. Build the design GP with per_output=False"
+            )
         if not gp.is_fitted:
             needed = ["noise_variance", "outputscale"] + ([] if gp.kernel == "polynomial" else ["lengthscale"])
             missing = [name for name in needed if gp.fixed.get(name) is None]
@@ -79,13 +80,16 @@ class GPKernel:
                 raise InputError(
                     f"gp: the design needs the kernel hyperparameters before any data, but {', '.join(missing)} "
                     f"{'is' if len(missing) == 1 else 'are'} not set (None) on this unfitted CorrectionGP; pass "
-                    f"CorrectionGP({args}) or fit the GP on earlier data first")
+                    f"CorrectionGP({args}) or fit the GP on earlier data first"
+                )
         noise = gp.noise_variance
         if noise is None or not math.isfinite(float(noise)) or float(noise) <= 0:
             raise InputError(f"gp: expected a positive finite noise_variance, got {noise!r}")
         if gp.is_fitted and input_dim is not None and gp.input_dim != input_dim:
-            raise ShapeError(f"gp: expected a GP with {input_dim} inputs (the system's correction inputs), got one "
-                             f"fitted on {gp.input_dim}")
+            raise ShapeError(
+                f"gp: expected a GP with {input_dim} inputs (the system's correction inputs), got one "
+                f"fitted on {gp.input_dim}"
+            )
         self.gp = gp
         self.module = gp.covar_module
         self.noise = float(noise)
@@ -106,7 +110,7 @@ class GPKernel:
         n = points.shape[0]
         if n <= chunk:
             return self(points)
-        return torch.cat([self(points[i:i + chunk]) for i in range(0, n, chunk)])
+        return torch.cat([self(points[i : i + chunk]) for i in range(0, n, chunk)])
 
 
 def logdet_identity_plus(cov: torch.Tensor, noise: float, what: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,8 +138,10 @@ def check_candidates(candidates, system: MisspecifiedSystem, *, dtype=None, devi
     c = as_tensor(candidates, "candidates", dtype=dtype, device=device)
     check_ndim(c, 2, "candidates", f"(N, {system.state_dim})")
     if c.shape[1] != system.state_dim:
-        raise ShapeError(f"candidates: expected shape (N, {system.state_dim}) (state_dim of system "
-                         f"'{system.name}'), got {tuple(c.shape)}")
+        raise ShapeError(
+            f"candidates: expected shape (N, {system.state_dim}) (state_dim of system "
+            f"'{system.name}'), got {tuple(c.shape)}"
+        )
     if c.shape[0] < 1:
         raise ShapeError("candidates: expected at least one candidate, got shape (0, d)")
     check_finite(c, "candidates")
@@ -153,14 +159,17 @@ def check_times(times, *, dtype, device) -> torch.Tensor:
     return t
 
 
-def check_proxies(proxies, n: int, system: MisspecifiedSystem, times: torch.Tensor | None, *, dtype,
-                  device) -> torch.Tensor:
+def check_proxies(
+    proxies, n: int, system: MisspecifiedSystem, times: torch.Tensor | None, *, dtype, device
+) -> torch.Tensor:
     p = as_tensor(proxies, "proxies", dtype=dtype, device=device)
     T = "T" if times is None else str(times.shape[0])
     check_ndim(p, 3, "proxies", f"({n}, {T}, {system.state_dim})")
     if p.shape[0] != n or p.shape[2] != system.state_dim or (times is not None and p.shape[1] != times.shape[0]):
-        raise ShapeError(f"proxies: expected shape ({n}, {T}, {system.state_dim}) to match the candidates and "
-                         f"times, got {tuple(p.shape)}")
+        raise ShapeError(
+            f"proxies: expected shape ({n}, {T}, {system.state_dim}) to match the candidates and "
+            f"times, got {tuple(p.shape)}"
+        )
     if p.shape[1] < 1:
         raise ShapeError("proxies: expected at least one time, got T = 0")
     check_finite(p, "proxies")
@@ -191,9 +200,11 @@ def check_partition(partition, capacities, n: int, budget: int, device) -> tuple
     if partition is None and capacities is None:
         return None
     if partition is None or capacities is None:
-        raise InputError("partition and capacities: expected both (a region label per candidate and the most picks "
-                         "per region) or neither, got only "
-                         f"{'partition' if capacities is None else 'capacities'}")
+        raise InputError(
+            "partition and capacities: expected both (a region label per candidate and the most picks "
+            "per region) or neither, got only "
+            f"{'partition' if capacities is None else 'capacities'}"
+        )
     lab = torch.as_tensor(partition)
     if lab.dim() != 1 or lab.shape[0] != n:
         raise ShapeError(f"partition: expected one region label per candidate, shape ({n},), got {tuple(lab.shape)}")
@@ -205,11 +216,14 @@ def check_partition(partition, capacities, n: int, budget: int, device) -> tuple
     if isinstance(capacities, Mapping):
         caps_map = dict(capacities)
     elif isinstance(capacities, (Sequence, torch.Tensor)) and not isinstance(capacities, str):
-        caps_map = {i: c for i, c in enumerate(capacities.tolist() if isinstance(capacities, torch.Tensor)
-                                                else capacities)}
+        caps_map = {
+            i: c for i, c in enumerate(capacities.tolist() if isinstance(capacities, torch.Tensor) else capacities)
+        }
     else:
-        raise InputError(f"capacities: expected a mapping label -> most picks or a sequence indexed by label, got "
-                         f"{type(capacities).__name__}")
+        raise InputError(
+            f"capacities: expected a mapping label -> most picks or a sequence indexed by label, got "
+            f"{type(capacities).__name__}"
+        )
     clean = {}
     for key, val in caps_map.items():
         try:
@@ -224,14 +238,18 @@ def check_partition(partition, capacities, n: int, budget: int, device) -> tuple
         clean[k] = int(val)
     missing = [lbl for lbl in labels if lbl not in clean]
     if missing:
-        raise InputError(f"capacities: expected a capacity for every region label in partition {labels}, missing "
-                         f"{missing} (got capacities for {sorted(clean)})")
+        raise InputError(
+            f"capacities: expected a capacity for every region label in partition {labels}, missing "
+            f"{missing} (got capacities for {sorted(clean)})"
+        )
     region = torch.searchsorted(torch.tensor(labels, dtype=torch.long), lab)  # labels -> 0..R-1
     caps = torch.tensor([clean[lbl] for lbl in labels], dtype=torch.long)
     sizes = torch.bincount(region, minlength=len(labels))
     allowed = int(torch.minimum(caps, sizes).sum())
     if budget > allowed:
         region_sizes = dict(zip(labels, sizes.tolist(), strict=True))
-        raise BudgetError(f"budget: expected at most {allowed} experiments (what the capacities {clean} allow "
-                          f"with the region sizes {region_sizes}), got budget = {budget}")
+        raise BudgetError(
+            f"budget: expected at most {allowed} experiments (what the capacities {clean} allow "
+            f"with the region sizes {region_sizes}), got budget = {budget}"
+        )
     return region.to(device), caps.to(device)

@@ -40,8 +40,10 @@ __all__ = ["information_gain", "exact_information_gain", "proxy_gap_bound", "pro
 def _d_out(d_out, gp: CorrectionGP) -> int:
     if d_out is None:
         if gp.output_dim is None:
-            raise InputError("d_out: expected the number of correction outputs (e.g. system.output_dim); it cannot "
-                             "be read from an unfitted gp")
+            raise InputError(
+                "d_out: expected the number of correction outputs (e.g. system.output_dim); it cannot "
+                "be read from an unfitted gp"
+            )
         return int(gp.output_dim)
     if isinstance(d_out, bool) or not isinstance(d_out, int) or d_out < 1:
         raise InputError(f"d_out: expected a positive integer, got {d_out!r}")
@@ -114,21 +116,26 @@ def _design_points(indices, candidates, system, times, gp, proxies, states):
         prox = check_proxies(proxies, cand.shape[0], system, t, dtype=kern.dtype, device=kern.device)[idx]
     if states is None:
         if not system.has_correction:
-            raise InputError(f"system '{system.name}' has no true correction F, so the true trajectories cannot be "
-                             "simulated; pass the observed states=(K, T, d) of the experiments")
+            raise InputError(
+                f"system '{system.name}' has no true correction F, so the true trajectories cannot be "
+                "simulated; pass the observed states=(K, T, d) of the experiments"
+            )
         true = simulate(system, chosen, t).states
     else:
         true = as_tensor(states, "states", dtype=kern.dtype, device=kern.device)
         if tuple(true.shape) != tuple(prox.shape):
-            raise ShapeError(f"states: expected shape {tuple(prox.shape)} (one trajectory per chosen index at the "
-                             f"given times), got {tuple(true.shape)}")
+            raise ShapeError(
+                f"states: expected shape {tuple(prox.shape)} (one trajectory per chosen index at the "
+                f"given times), got {tuple(true.shape)}"
+            )
         check_finite(true, "states")
     d_in = system.input_dim
     return kern, system.select_inputs(prox).reshape(-1, d_in), system.select_inputs(true).reshape(-1, d_in), system
 
 
-def exact_information_gain(indices, candidates, *, system: MisspecifiedSystem, times, gp: CorrectionGP,
-                           states=None) -> float:
+def exact_information_gain(
+    indices, candidates, *, system: MisspecifiedSystem, times, gp: CorrectionGP, states=None
+) -> float:
     """Information gain (nats) of samples along the TRUE trajectories (G + F) of the chosen experiments.
 
     This is the quantity G(Y_0) the proxy stands in for (paper eq. accurate_cost_function). The true trajectories
@@ -146,14 +153,23 @@ def exact_information_gain(indices, candidates, *, system: MisspecifiedSystem, t
 
 
 def _bound(delta: float, n: int, noise: float, blocks: int) -> float:
-    ratio = delta * n ** 1.5 / noise
+    ratio = delta * n**1.5 / noise
     if ratio >= 1.0:
         return math.inf
     return -0.5 * blocks * n * math.log1p(-ratio)
 
 
-def proxy_check(indices, candidates, *, system: MisspecifiedSystem, times, gp: CorrectionGP, proxies=None,
-                states=None, blockwise: bool = False) -> ProxyCheck:
+def proxy_check(
+    indices,
+    candidates,
+    *,
+    system: MisspecifiedSystem,
+    times,
+    gp: CorrectionGP,
+    proxies=None,
+    states=None,
+    blockwise: bool = False,
+) -> ProxyCheck:
     """Proxy gain, exact gain, their largest kernel discrepancy and the Theorem 1 bound, for one design.
 
     See :func:`proxy_gap_bound` for the bound and :func:`exact_information_gain` for the arguments.
@@ -166,12 +182,22 @@ def proxy_check(indices, candidates, *, system: MisspecifiedSystem, times, gp: C
     ld_t, _ = logdet_identity_plus(Kt, kern.noise, "I + K(true) / noise_variance")
     m = prox_x.shape[0]
     bound = _bound(delta, m, kern.noise, d_out) if blockwise else _bound(delta, d_out * m, kern.noise, 1)
-    return ProxyCheck(proxy_gain=0.5 * d_out * float(ld_p), exact_gain=0.5 * d_out * float(ld_t), bound=bound,
-                      delta=delta)
+    return ProxyCheck(
+        proxy_gain=0.5 * d_out * float(ld_p), exact_gain=0.5 * d_out * float(ld_t), bound=bound, delta=delta
+    )
 
 
-def proxy_gap_bound(indices, candidates, *, system: MisspecifiedSystem, times, gp: CorrectionGP, proxies=None,
-                    states=None, blockwise: bool = False) -> float:
+def proxy_gap_bound(
+    indices,
+    candidates,
+    *,
+    system: MisspecifiedSystem,
+    times,
+    gp: CorrectionGP,
+    proxies=None,
+    states=None,
+    blockwise: bool = False,
+) -> float:
     """Theorem 1 bound (nats) on ``|proxy information gain - true information gain|`` of a design.
 
     The paper bounds, in its complex-Gaussian convention (information = logdet, twice our nats),
@@ -198,5 +224,6 @@ def proxy_gap_bound(indices, candidates, *, system: MisspecifiedSystem, times, g
             correction unless ``states (K, T, d)`` are given.
         proxies: optional ``(N, T, d)`` proxy trajectories of all candidates (computed when omitted).
     """
-    return proxy_check(indices, candidates, system=system, times=times, gp=gp, proxies=proxies, states=states,
-                       blockwise=blockwise).bound
+    return proxy_check(
+        indices, candidates, system=system, times=times, gp=gp, proxies=proxies, states=states, blockwise=blockwise
+    ).bound

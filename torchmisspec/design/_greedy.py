@@ -82,8 +82,10 @@ class _Problem:
         kd = {"dtype": self.kern.dtype, "device": self.kern.device}
         if proxies is None:
             if times is None:
-                raise InputError("times: expected the observation times (T,) to compute the proxy trajectories, got "
-                                 "None (pass times=..., or proxies=(N, T, d))")
+                raise InputError(
+                    "times: expected the observation times (T,) to compute the proxy trajectories, got "
+                    "None (pass times=..., or proxies=(N, T, d))"
+                )
             self.times = check_times(times, **kd)
             self.proxies = proxy_trajectories(self.system, self.candidates.to(**kd), self.times)
         else:
@@ -104,15 +106,23 @@ class _Problem:
         """Gains at or above this value tie with ``best``."""
         return best - self.tie_tol * max(abs(best), 1.0)
 
-    def result(self, picks: list[int], gains: list[float], method: str, evaluations: int, elapsed: float,
-               info: dict) -> DesignResult:
+    def result(
+        self, picks: list[int], gains: list[float], method: str, evaluations: int, elapsed: float, info: dict
+    ) -> DesignResult:
         dev = self.candidates.device
         idx = torch.tensor(picks, dtype=torch.long, device=dev)
         g = torch.tensor(gains, dtype=self.kern.dtype, device=dev)
-        return DesignResult(indices=idx, gains=g, information_gain=float(sum(gains)), points=self.candidates[idx],
-                            method=method, evaluations=evaluations,
-                            proxies=self.proxies[idx.to(self.proxies.device)].to(dev), elapsed=elapsed,
-                            diagnostics=info)
+        return DesignResult(
+            indices=idx,
+            gains=g,
+            information_gain=float(sum(gains)),
+            points=self.candidates[idx],
+            method=method,
+            evaluations=evaluations,
+            proxies=self.proxies[idx.to(self.proxies.device)].to(dev),
+            elapsed=elapsed,
+            diagnostics=info,
+        )
 
 
 class _Feasible:
@@ -156,7 +166,7 @@ def _pivots(kern: GPKernel, X: torch.Tensor, max_rank: int, tol: float) -> tuple
         dj = float(resid[j])
         if dj <= tol:
             break
-        col = kern(X[j:j + 1], X)[0]
+        col = kern(X[j : j + 1], X)[0]
         if i:
             col = col - R[:i, j] @ R[:i]
         R[i] = col / math.sqrt(dj)
@@ -202,9 +212,9 @@ class _LowRank:
         phi = P.new_empty(N * T, r)
         e_max = 0.0
         for s in range(0, N * T, chunk):
-            x = flat[s:s + chunk]
+            x = flat[s : s + chunk]
             f = torch.linalg.solve_triangular(LZ, kern(Z, x), upper=False).T
-            phi[s:s + chunk] = f
+            phi[s : s + chunk] = f
             e_max = max(e_max, float((kern.diag(x) - f.pow(2).sum(-1)).max()))
         # floating-point slack on the residual (its computed value can be off by a few ulps of k0)
         self.e_max = max(e_max, 0.0) + 64 * torch.finfo(P.dtype).eps * k0
@@ -219,9 +229,10 @@ class _LowRank:
         chunk = max(1, CHUNK_BYTES // (8 * T * r))
         out = []
         for s in range(0, idx.shape[0], chunk):
-            c = idx[s:s + chunk]
-            X = torch.linalg.solve_triangular(self.LLam.T, self.phi[c].reshape(-1, r), upper=True,
-                                              left=False).reshape(-1, T, r)  # Phi_c L^-T
+            c = idx[s : s + chunk]
+            X = torch.linalg.solve_triangular(self.LLam.T, self.phi[c].reshape(-1, r), upper=True, left=False).reshape(
+                -1, T, r
+            )  # Phi_c L^-T
             ld, _ = logdet_identity_plus(X @ X.transpose(1, 2), prob.kern.noise, "I + Sigma~_{c|S} / noise_variance")
             out.append(ld)
         g = 0.5 * prob.d_out * torch.cat(out)
@@ -237,8 +248,9 @@ class _LowRank:
         self.LLam = cholesky_with_jitter(self.Lam, what="I + Phi_S^T Phi_S / noise_variance")
 
 
-def _lazy(prob: _Problem, batch_size: int, progress: bool, screen: bool, max_rank: int
-          ) -> tuple[list[int], list[float], int, dict]:
+def _lazy(
+    prob: _Problem, batch_size: int, progress: bool, screen: bool, max_rank: int
+) -> tuple[list[int], list[float], int, dict]:
     kern, P, T, K, half = prob.kern, prob.points, prob.T, prob.budget, 0.5 * prob.d_out
     d_in, noise, N = P.shape[-1], kern.noise, prob.n
     dev = P.device
@@ -280,8 +292,7 @@ def _lazy(prob: _Problem, batch_size: int, progress: bool, screen: bool, max_ran
         b_exact = batch_size
         b_bound = max(64, batch_size)
         # a feature bound costs ~ r^2 T, an exact gain ~ m^2 T: screen only once the exact gains cost more
-        use_low = (low is not None and m * m > 2 * low.rank * low.rank
-                   and low.slack(m) <= 1e-2 * abs(gains[-1]))
+        use_low = low is not None and m * m > 2 * low.rank * low.rank and low.slack(m) <= 1e-2 * abs(gains[-1])
         Lm = L[:m, :m].contiguous()
         while True:
             done = avail & (level == 2)
@@ -324,9 +335,9 @@ def _lazy(prob: _Problem, batch_size: int, progress: bool, screen: bool, max_ran
         feas.add(n)
         if k + 1 < K:  # grow L_S by the block row [v_n^T, chol(Sigma_{n|S} + sigma^2 I)]
             if v is not None:
-                L[m:m + T, :m] = v.T
-            L[m:m + T, m:m + T] = math.sqrt(noise) * C
-            PS[m:m + T] = P[n]
+                L[m : m + T, :m] = v.T
+            L[m : m + T, m : m + T] = math.sqrt(noise) * C
+            PS[m : m + T] = P[n]
             if low is not None:
                 low.add(n)
         if bar is not None:
@@ -370,10 +381,10 @@ def _plain(prob: _Problem, progress: bool) -> tuple[list[int], list[float], int,
             if m > 0:
                 Un = U[:m, n, :]  # (m, T) = L_S^-1 K_{S, n}
                 cross = cross - Un.T @ U[:m].reshape(m, N * T)  # Sigma_{n, c | S} for all c
-                L[m:m + T, :m] = Un.T
-            L[m:m + T, m:m + T] = Lnn
+                L[m : m + T, :m] = Un.T
+            L[m : m + T, m : m + T] = Lnn
             W = torch.linalg.solve_triangular(Lnn, cross, upper=False).reshape(T, N, T)
-            U[m:m + T] = W
+            U[m : m + T] = W
             Sig -= torch.einsum("anb,anc->nbc", W, W)
         if bar is not None:
             bar.update(1)
@@ -384,8 +395,7 @@ def _plain(prob: _Problem, progress: bool) -> tuple[list[int], list[float], int,
 
 
 # ---------------------------------------------------------------------------------------------- naive reference
-def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20
-           ) -> tuple[list[int], list[float], int, dict]:
+def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20) -> tuple[list[int], list[float], int, dict]:
     """Algorithm 1 literally: a fresh log-determinant of the whole (|S| + 1) T covariance per candidate per step."""
     kern, P, T, K, half = prob.kern, prob.points, prob.T, prob.budget, 0.5 * prob.d_out
     d_in, noise = P.shape[-1], kern.noise
@@ -400,7 +410,7 @@ def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20
         chunk = max(1, chunk_bytes // (8 * m * m))
         values = []
         for s in range(0, idx.shape[0], chunk):
-            c = idx[s:s + chunk]
+            c = idx[s : s + chunk]
             pts = torch.cat([PS.expand(c.shape[0], k * T, d_in), P[c]], dim=1)  # (b, (k + 1) T, d_in)
             ld, _ = logdet_identity_plus(kern(pts), noise, "I + K / noise_variance")
             values.append(half * ld)

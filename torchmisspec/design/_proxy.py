@@ -43,8 +43,10 @@ def proxy_trajectories(
     y0 = check_candidates(candidates, system)
     t = check_times(times, dtype=y0.dtype, device=y0.device)
     if not known_only and not system.has_correction:
-        raise InputError(f"known_only=False: system '{system.name}' has no true correction F to integrate; pass "
-                         "known_only=True for the proxy of the known model")
+        raise InputError(
+            f"known_only=False: system '{system.name}' has no true correction F to integrate; pass "
+            "known_only=True for the proxy of the known model"
+        )
     if known_only and system.known_matrix is not None:
         A = system.known_matrix.to(dtype=y0.dtype, device=y0.device)
         E = torch.linalg.matrix_exp(A.unsqueeze(0) * (t - t[0]).reshape(-1, 1, 1))  # (T, d, d)
