@@ -1,7 +1,8 @@
 """Exception hierarchy of torchmisspec.
 
 Every error raised on purpose by the package derives from :class:`TorchMisspecError`, so a caller can catch
-the whole family with one ``except``. Errors about bad input or failed fits also derive from ``ValueError``;
+the whole family with one ``except``. Errors about bad input, failed fits or
+failed factorizations also derive from ``ValueError``;
 errors found while running (a diverging ODE, a model used before it is fitted) derive from ``RuntimeError``.
 """
 
@@ -16,6 +17,9 @@ __all__ = [
     "NotFittedError",
     "IntegrationError",
     "BudgetError",
+    "LinearAlgebraError",
+    "TorchMisspecWarning",
+    "NumericalWarning",
 ]
 
 
@@ -35,7 +39,15 @@ class FittingError(TorchMisspecError, ValueError):
     """Fitting the correction model failed (bad data for the model, optimiser breakdown)."""
 
 
-class NotPositiveDefiniteError(FittingError):
+class LinearAlgebraError(TorchMisspecError, ValueError):
+    """A matrix computation failed: non-finite entries, or a factorization that failed even with jitter.
+
+    Raised wherever a covariance is factorized (fitting, prediction, design); the fit re-raises it as a
+    :class:`FittingError` that names the hyperparameters in use.
+    """
+
+
+class NotPositiveDefiniteError(LinearAlgebraError):
     """A covariance matrix could not be factorized, even after adding jitter."""
 
 
@@ -49,3 +61,11 @@ class IntegrationError(TorchMisspecError, RuntimeError):
 
 class BudgetError(InputError):
     """An experimental-design budget cannot be met by the candidate set or its capacities."""
+
+
+class TorchMisspecWarning(UserWarning):
+    """Base class of every warning issued by torchmisspec."""
+
+
+class NumericalWarning(TorchMisspecWarning):
+    """A numerical fix was applied (jitter added to a covariance diagonal) or a result may be inaccurate."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Sequence
 
 import torch
@@ -81,10 +83,80 @@ def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
     return out
 
 
+def check_positive_int(value, name: str, *, minimum: int = 1) -> int:
+    """An integer >= ``minimum`` (bools, floats and other types are refused; numpy/torch integers are accepted)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        if isinstance(value, torch.Tensor) and value.dim() == 0 and not value.is_floating_point():
+            value = int(value)
+        else:
+            raise InputError(f"{name}: expected an integer >= {minimum}, got {value!r} ({type(value).__name__})")
+    value = int(value)
+    if value < minimum:
+        raise InputError(f"{name}: expected an integer >= {minimum}, got {value}")
+    return value
+
+
+def check_domain(domain, name: str = "domain", *, dim: int | None = None) -> tuple[tuple[float, float], ...]:
+    """A box as a tuple of ``(lo, hi)`` float pairs with finite ``lo < hi``; ``dim`` intervals when given."""
+    try:
+        box = tuple((float(lo), float(hi)) for lo, hi in domain)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected a sequence of (lo, hi) pairs, got {domain!r}") from exc
+    if not box or any(not (math.isfinite(lo) and math.isfinite(hi) and lo < hi) for lo, hi in box):
+        raise InputError(f"{name}: expected at least one interval with finite lo < hi, got {box}")
+    if dim is not None and len(box) != dim:
+        raise ShapeError(f"{name}: expected {dim} intervals (lo, hi), got {len(box)}: {box}")
+    return box
+
+
+def states_and_times(states, times, *, states_name: str = "states", times_name: str = "times"):
+    """Validate ``states (K, T, d)`` and ``times (T,)`` or ``(K, T)``: shapes agree, finite, strictly increasing.
+
+    The times follow the states' dtype and device. Returns ``(states, times)`` with the times as given ((T,) or
+    (K, T)).
+    """
+    states = check_ndim(as_tensor(states, states_name), 3, states_name, "(K, T, d)")
+    times = as_tensor(times, times_name, dtype=states.dtype, device=states.device)
+    check_ndim(times, (1, 2), times_name, "(T,) or (K, T)")
+    K, T, _ = states.shape
+    if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
+        raise ShapeError(
+            f"{times_name}: expected shape ({T},) or ({K}, {T}) to match {states_name} {tuple(states.shape)}, "
+            f"got {tuple(times.shape)}"
+        )
+    check_finite(states, states_name)
+    check_finite(times, times_name)
+    check_increasing(times, times_name)
+    return states, times
+
+
+class _NoBar:
+    """Stands in for a tqdm bar when progress is off: every method does nothing."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix(self, *args, **kwargs) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> _NoBar:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
 def progress_bar(enabled: bool, total: int, desc: str, unit: str = "it"):
-    """A tqdm progress bar, or ``None`` when ``enabled`` is false (tqdm is imported only when needed)."""
+    """A tqdm progress bar, or an object with the same methods that does nothing when ``enabled`` is false.
+
+    Use it as a context manager (``with progress_bar(...) as bar:``) or call ``close()``; no ``None`` checks needed.
+    tqdm is imported only when a bar is shown.
+    """
     if not enabled:
-        return None
+        return _NoBar()
     from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=desc, unit=unit, leave=False)

@@ -171,6 +171,36 @@ class CorrectionGP:
         if not self.per_output:
             self._build(batch=1)
 
+    def fixed_copy(self) -> CorrectionGP:
+        """A new, unfitted CorrectionGP with every hyperparameter fixed at this one's values in use.
+
+        ``gp.fixed_copy().fit(inputs, targets)`` conditions on new samples without re-learning anything (the paper's
+        studies fit every realization with the same prior). Needs every hyperparameter to be set (given or fitted).
+        """
+        values = {
+            "lengthscale": self.lengthscale,
+            "outputscale": self.outputscale,
+            "noise_variance": self.noise_variance,
+        }
+        if self.kernel == "polynomial":
+            values.pop("lengthscale")
+        missing = [k for k, v in values.items() if v is None]
+        if missing:
+            raise NotFittedError(
+                f"fixed_copy: expected every hyperparameter to be set, but {missing} are not; pass them to "
+                "CorrectionGP(...) or fit first"
+            )
+        if self.per_output:
+            raise InputError("fixed_copy: per-output hyperparameters cannot be fixed by value; use per_output=False")
+        return CorrectionGP(
+            kernel=self.kernel,
+            degree=self.degree,
+            max_iter=self.max_iter,
+            dtype=self.dtype,
+            device=self.device,
+            **{k: float(v) for k, v in values.items()},
+        )
+
     # ------------------------------------------------------------------------------------------------ building
     def _build(self, batch: int) -> None:
         shape = torch.Size([]) if not self.per_output else torch.Size([batch])

@@ -8,12 +8,14 @@ error of knowing nothing.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import math
+import warnings
+from collections.abc import Callable
 
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import DEFAULT_DTYPE, as_tensor, check_finite
+from ._validation import DEFAULT_DTYPE, as_tensor, check_domain, check_finite, check_positive_int
 
 __all__ = [
     "box_grid",
@@ -23,26 +25,16 @@ __all__ = [
     "mean_squared_error",
     "correction_error",
     "trajectory_rmse",
+    "mean_and_standard_error",
 ]
 
 Field = Callable[[torch.Tensor], torch.Tensor]
 
 
-def _check_domain(domain: Sequence[Sequence[float]]) -> tuple[tuple[float, float], ...]:
-    try:
-        box = tuple((float(lo), float(hi)) for lo, hi in domain)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"domain: expected a sequence of (lo, hi) pairs, got {domain!r}") from exc
-    if not box or any(not lo < hi for lo, hi in box):
-        raise InputError(f"domain: expected at least one interval with lo < hi, got {box}")
-    return box
-
-
 def box_grid(domain, resolution: int = 101, *, dtype=DEFAULT_DTYPE, device=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Grid points ``(resolution**n, n)`` over the box and their trapezoidal weights ``(resolution**n,)``."""
-    box = _check_domain(domain)
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 2:
-        raise InputError(f"resolution: expected an integer >= 2, got {resolution!r}")
+    box = check_domain(domain)
+    resolution = check_positive_int(resolution, "resolution", minimum=2)
     axes, weights = [], []
     for lo, hi in box:
         axes.append(torch.linspace(lo, hi, resolution, dtype=dtype, device=device))
@@ -85,18 +77,40 @@ def integrated_norm(field: Field, domain, *, resolution: int = 101) -> float:
 
 def mean_squared_error(estimate: Field, truth: Field, domain, *, resolution: int = 101) -> float:
     """(1 / |D|) times the integral over D of ||estimate - truth||_2^2 (paper Fig 8's mean squared error)."""
-    box = _check_domain(domain)
+    box = check_domain(domain)
     volume = 1.0
     for lo, hi in box:
         volume *= hi - lo
     return integrate_over_box(lambda x: (estimate(x) - truth(x)).pow(2).sum(-1), box, resolution=resolution) / volume
 
 
-def correction_error(gp, system, *, domain=None, resolution: int = 101, squared: bool = False) -> float:
-    """Error of a fitted correction GP against the system's true F over ``domain`` (default ``system.domain``).
+CORRECTION_METRICS = ("integrated", "mean_squared")
 
-    ``squared=False``: the paper's integrated error; ``squared=True``: the mean squared error over D.
+
+def correction_error(
+    gp, system, *, domain=None, resolution: int = 101, metric: str = "integrated", squared: bool | None = None
+) -> float:
+    """Error of a fitted correction GP's posterior mean against the system's true F over ``domain``.
+
+    Args:
+        gp: a fitted :class:`~torchmisspec.CorrectionGP`.
+        system: a system with a true correction F.
+        domain: the box D (default ``system.domain``).
+        resolution: quadrature points per axis.
+        metric: ``"integrated"``, the paper's integral over D of ``||F_hat - F||_2`` (§5.2), or
+            ``"mean_squared"``, ``(1 / |D|)`` times the integral of ``||F_hat - F||_2^2`` (paper Fig 8).
+        squared: deprecated spelling of ``metric="mean_squared"`` (it returned a mean, not a square).
     """
+    if squared is not None:
+        warnings.warn(
+            "correction_error(squared=...) is deprecated: it returns the mean over D, not a squared integral; "
+            "use metric='mean_squared' (or metric='integrated')",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        metric = "mean_squared" if squared else "integrated"
+    if metric not in CORRECTION_METRICS:
+        raise InputError(f"metric: expected one of {CORRECTION_METRICS}, got {metric!r}")
     domain = system.domain if domain is None else domain
     if domain is None:
         raise InputError(f"domain: system '{system.name}' has no domain; pass domain=((lo, hi), ...)")
@@ -105,8 +119,24 @@ def correction_error(gp, system, *, domain=None, resolution: int = 101, squared:
         with torch.no_grad():
             return gp.predict_mean(x)
 
-    metric = mean_squared_error if squared else integrated_error
-    return metric(estimate, system.true_correction, domain, resolution=resolution)
+    fn = mean_squared_error if metric == "mean_squared" else integrated_error
+    return fn(estimate, system.true_correction, domain, resolution=resolution)
+
+
+def mean_and_standard_error(values, dim: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean over ``dim`` and the standard error of that mean, ``std(unbiased) / sqrt(n)`` (0 when n = 1).
+
+    ``values`` is a tensor or a sequence of numbers (float64); NaN entries are refused.
+    """
+    v = as_tensor(values, "values")
+    if v.dim() == 0 or v.shape[dim] == 0:
+        raise ShapeError(f"values: expected at least one value along dim {dim}, got shape {tuple(v.shape)}")
+    check_finite(v, "values")
+    n = v.shape[dim]
+    mean = v.mean(dim)
+    if n == 1:
+        return mean, torch.zeros_like(mean)
+    return mean, v.std(dim, unbiased=True) / math.sqrt(n)
 
 
 def trajectory_rmse(predicted, true, *, per_trajectory: bool = False) -> torch.Tensor:

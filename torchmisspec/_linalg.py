@@ -1,0 +1,83 @@
+"""The one linear-algebra layer: every factorization in the package goes through :func:`cholesky`.
+
+* :func:`cholesky` refuses non-finite matrices (:class:`LinearAlgebraError`), adds growing jitter only when the plain
+  factorization fails, and then says so with a :class:`NumericalWarning` that names the matrix and the jitter (as
+  linear_operator's ``psd_safe_cholesky`` does); it raises :class:`NotPositiveDefiniteError` when even the largest
+  jitter fails.
+* :func:`logdet_from_cholesky`, :func:`logdet_identity_plus`: log-determinants from a factor.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+
+from ._errors import LinearAlgebraError, NotPositiveDefiniteError, NumericalWarning
+
+__all__ = ["cholesky", "logdet_from_cholesky", "logdet_identity_plus", "JITTER_RANGE"]
+
+#: jitter tried, relative to the mean absolute diagonal: 1e-10, 1e-9, ..., 1e-5
+JITTER_RANGE = (-10, -5)
+
+
+def cholesky(A: torch.Tensor, *, what: str = "covariance", warn: bool = True, stacklevel: int = 2) -> torch.Tensor:
+    """Lower Cholesky factor of ``A (..., n, n)``, with jitter only when needed.
+
+    Args:
+        A: symmetric positive (semi-)definite matrices.
+        what: the matrix's name, used in warnings and errors.
+        warn: issue a :class:`NumericalWarning` when jitter had to be added.
+
+    Raises:
+        LinearAlgebraError: ``A`` has NaN or inf entries.
+        NotPositiveDefiniteError: the factorization fails even with jitter ``1e-5 * mean |diag A|``.
+    """
+    if not bool(torch.isfinite(A).all()):
+        n_bad = int((~torch.isfinite(A)).sum())
+        raise LinearAlgebraError(
+            f"{what}: expected a finite matrix to factorize, got {n_bad} NaN/inf entries of {A.numel()} (shape "
+            f"{tuple(A.shape)}); check the hyperparameters and the scale of the data"
+        )
+    L, info = torch.linalg.cholesky_ex(A)
+    if not bool((info != 0).any()):
+        return L
+    scale = A.diagonal(dim1=-2, dim2=-1).abs().mean().clamp_min(torch.finfo(A.dtype).tiny)
+    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    lo, hi = JITTER_RANGE
+    for exponent in range(lo, hi + 1):
+        jitter = scale * 10.0**exponent
+        L, info = torch.linalg.cholesky_ex(A + jitter * eye)
+        if not bool((info != 0).any()):
+            if warn:
+                warnings.warn(
+                    f"{what}: not numerically positive definite (size {A.shape[-1]}); added jitter "
+                    f"{float(jitter):.2e} (1e{exponent} x its mean diagonal) to factorize it. Results are "
+                    "approximate: raise the noise variance or remove repeated inputs",
+                    NumericalWarning,
+                    stacklevel=stacklevel,
+                )
+            return L
+    raise NotPositiveDefiniteError(
+        f"{what}: expected a positive definite matrix of size {A.shape[-1]}, but its Cholesky factorization failed "
+        f"even with jitter {float(jitter):.1e} added to the diagonal (is the noise variance zero with repeated "
+        "inputs?); use a larger noise_variance or remove duplicate inputs"
+    )
+
+
+def logdet_from_cholesky(L: torch.Tensor) -> torch.Tensor:
+    """log det(A) from its lower factor ``L (..., n, n)``: ``(...)``."""
+    return 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+
+
+def logdet_identity_plus(
+    cov: torch.Tensor, noise: float, what: str, *, warn: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(log det(I + cov / noise), L)`` for ``cov (..., m, m)``; L is the Cholesky factor of ``I + cov / noise``."""
+    m = cov.shape[-1]
+    A = cov / noise
+    A.diagonal(dim1=-2, dim2=-1).add_(1.0)
+    L = cholesky(A, what=what, warn=warn, stacklevel=3)
+    if m == 0:
+        return cov.new_zeros(cov.shape[:-2]), L
+    return logdet_from_cholesky(L), L
