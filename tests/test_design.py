@@ -137,16 +137,22 @@ def test_lazy_greedy_and_naive_pick_identical_sets(outputscale):
     system, gp = paper_linear(), make_gp(outputscale)
     for name, cand in problems():
         res = {
-            m: design.greedy(cand, 9, system=system, times=TIMES, gp=gp, method=m) for m in ("lazy", "greedy", "naive")
+            m: design.greedy(cand, 9, system=system, times=TIMES, gp=gp, method=m) for m in ("lazy", "plain", "naive")
         }
         ref = res["naive"].indices.tolist()
         for m, r in res.items():
             assert r.indices.tolist() == ref, (name, m)
             torch.testing.assert_close(r.gains, res["naive"].gains, atol=1e-9, rtol=1e-9)
-            assert r.information_gain == pytest.approx(float(r.gains.sum()), rel=1e-12)
             assert r.method == m
-        assert res["lazy"].evaluations < res["greedy"].evaluations  # lazy skips evaluations
-        assert design.greedy(cand, 9, system=system, times=TIMES, gp=gp, lazy=False).indices.tolist() == ref
+        # the total is the log-determinant of the whole chosen proxy set, computed independently
+        prox = simulate(system, cand[ref], TIMES, known_only=True).states
+        assert res["lazy"].information_gain == pytest.approx(set_gain(prox, range(9), outputscale), rel=1e-8)
+        assert res["lazy"].evaluations < res["plain"].evaluations  # lazy skips evaluations
+    with pytest.warns(DeprecationWarning, match="lazy=... is deprecated"):
+        old = design.greedy(cand, 9, system=system, times=TIMES, gp=gp, lazy=False)
+    assert old.method == "plain" and old.indices.tolist() == ref
+    with pytest.warns(DeprecationWarning, match="method='greedy' is deprecated"):
+        assert design.greedy(cand, 9, system=system, times=TIMES, gp=gp, method="greedy").indices.tolist() == ref
 
 
 @pytest.mark.parametrize("outputscale", [4e-5, 1e-2])
@@ -171,7 +177,7 @@ def test_screened_lazy_greedy_identical_to_plain_greedy():
     system, gp = paper_linear(), make_gp(1e-2)
     cand = torch.rand(300, 2, generator=torch.Generator().manual_seed(5), dtype=DT) * 2 - 1
     times = torch.linspace(0, 6, 20, dtype=DT)
-    plain = design.greedy(cand, 14, system=system, times=times, gp=gp, lazy=False)
+    plain = design.greedy(cand, 14, system=system, times=times, gp=gp, method="plain")
     screened = design.greedy(cand, 14, system=system, times=times, gp=gp, screen=True)
     unscreened = design.greedy(cand, 14, system=system, times=times, gp=gp, screen=False)
     assert screened.diagnostics["screening"] and screened.diagnostics["bounds"] > 0
@@ -245,10 +251,10 @@ def test_partition_matroid_capacities_and_half_guarantee():
     prox = simulate(system, cand, TIMES, known_only=True).states
     res = {
         m: design.greedy(cand, 4, system=system, times=TIMES, gp=gp, partition=labels, capacities=caps, method=m)
-        for m in ("lazy", "greedy", "naive")
+        for m in ("lazy", "plain", "naive")
     }
     picks = res["lazy"].indices.tolist()
-    assert res["greedy"].indices.tolist() == picks == res["naive"].indices.tolist()
+    assert res["plain"].indices.tolist() == picks == res["naive"].indices.tolist()
     counts = {lbl: sum(int(labels[i]) == lbl for i in picks) for lbl in caps}
     assert all(counts[lbl] <= caps[lbl] for lbl in caps) and len(set(picks)) == 4
     feasible = [
@@ -268,8 +274,8 @@ def test_duplicate_candidates():
     gp = make_gp(outputscale)
     base = torch.tensor([[0.9, 0.1], [-0.5, 0.7], [0.2, -0.8]], dtype=DT)
     cand = torch.cat([base, base, base[:1]])  # 7 candidates, several identical
-    res = {m: design.greedy(cand, 7, system=system, times=TIMES, gp=gp, method=m) for m in ("lazy", "greedy", "naive")}
-    assert res["lazy"].indices.tolist() == res["greedy"].indices.tolist() == res["naive"].indices.tolist()
+    res = {m: design.greedy(cand, 7, system=system, times=TIMES, gp=gp, method=m) for m in ("lazy", "plain", "naive")}
+    assert res["lazy"].indices.tolist() == res["plain"].indices.tolist() == res["naive"].indices.tolist()
     r = res["lazy"]
     assert sorted(r.indices.tolist()) == list(range(7))
     assert bool(torch.isfinite(r.gains).all()) and bool((r.gains > 0).all())
@@ -293,17 +299,19 @@ def test_gravity_system_uses_correction_inputs():
     cand = torch.cat([pos, vel], dim=1)
     times = torch.linspace(0, 3, 8, dtype=DT)
     gp = make_gp(1e-3)
-    res = {m: design.greedy(cand, 5, system=system, times=times, gp=gp, method=m) for m in ("lazy", "greedy", "naive")}
-    assert res["lazy"].indices.tolist() == res["greedy"].indices.tolist() == res["naive"].indices.tolist()
+    res = {m: design.greedy(cand, 5, system=system, times=times, gp=gp, method=m) for m in ("lazy", "plain", "naive")}
+    assert res["lazy"].indices.tolist() == res["plain"].indices.tolist() == res["naive"].indices.tolist()
     prox = simulate(system, cand[res["lazy"].indices], times, known_only=True).states[..., :2]
     assert res["lazy"].information_gain == pytest.approx(set_gain(prox, range(5), 1e-3), rel=1e-7)
 
 
-def test_progress_bar_and_frozen_result():
-    res = design.greedy(grid13(), 3, system=paper_linear(), times=TIMES, gp=make_gp(), progress=True)
-    assert len(res) == 3 and res.elapsed >= 0
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        res.method = "other"
+def test_progress_bar_shows_picks_and_changes_nothing(capsys):
+    quiet = design.greedy(grid13(), 3, system=paper_linear(), times=TIMES, gp=make_gp())
+    shown = design.greedy(grid13(), 3, system=paper_linear(), times=TIMES, gp=make_gp(), progress=True)
+    assert shown.indices.tolist() == quiet.indices.tolist()
+    torch.testing.assert_close(shown.gains, quiet.gains, rtol=0, atol=0)
+    err = capsys.readouterr().err
+    assert "lazy greedy (N=169)" in err and "3/3" in err
 
 
 # ------------------------------------------------------------------------------------------------ baselines
@@ -428,7 +436,7 @@ def test_screened_lazy_identical_on_larger_problem():
     times = torch.linspace(0, 6, 20, dtype=DT)
     lazy = design.greedy(cand, 25, system=system, times=times, gp=gp)
     assert lazy.diagnostics.get("screening")
-    plain = design.greedy(cand, 25, system=system, times=times, gp=gp, lazy=False)
+    plain = design.greedy(cand, 25, system=system, times=times, gp=gp, method="plain")
     assert lazy.indices.tolist() == plain.indices.tolist()
     torch.testing.assert_close(lazy.gains, plain.gains, atol=1e-9, rtol=1e-9)
 
@@ -440,6 +448,6 @@ def test_lazy_identical_to_plain_greedy_many_candidates(outputscale, lengthscale
     cand = torch.rand(3000, 2, generator=torch.Generator().manual_seed(10), dtype=DT) * 2 - 1
     times = torch.linspace(0, 6, 20, dtype=DT)
     lazy = design.greedy(cand, 30, system=system, times=times, gp=gp)
-    plain = design.greedy(cand, 30, system=system, times=times, gp=gp, lazy=False)
+    plain = design.greedy(cand, 30, system=system, times=times, gp=gp, method="plain")
     assert lazy.indices.tolist() == plain.indices.tolist()
     torch.testing.assert_close(lazy.gains, plain.gains, atol=1e-9, rtol=1e-9)

@@ -21,6 +21,7 @@ Public functions:
   trajectories and the Theorem 1 bound on the proxy's error.
 """
 
+from . import candidates
 from ._baselines import agnostic, marginal_gains, random
 from ._common import DesignResult
 from ._gain import ProxyCheck, exact_information_gain, information_gain, proxy_check, proxy_gap_bound
@@ -31,6 +32,7 @@ __all__ = [
     "DesignResult",
     "ProxyCheck",
     "agnostic",
+    "candidates",
     "exact_information_gain",
     "greedy",
     "information_gain",

@@ -12,8 +12,16 @@ from .._errors import InputError, ShapeError
 from .._validation import as_tensor, check_finite, check_ndim
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
-from ._common import DesignResult, check_budget, check_candidates, check_partition, check_system, check_times
-from ._greedy import _Problem, greedy
+from ._common import (
+    DesignResult,
+    check_budget,
+    check_candidates,
+    check_partition,
+    check_system,
+    check_times,
+    logdet_identity_plus,
+)
+from ._greedy import _Problem, greedy, resolve_method
 
 __all__ = ["random", "agnostic", "marginal_gains"]
 
@@ -43,9 +51,7 @@ def marginal_gains(
     # budget = K distinct candidates of the sub-problem; duplicates in ``indices`` are allowed here
     sub = _Problem(cand[idx.to(cand.device)], idx.numel(), system, times, gp, None, None, sel_prox, 1e-9)
     K, T, d_in = sub.points.shape
-    A = sub.kern(sub.points.reshape(K * T, d_in)) / sub.kern.noise
-    A.diagonal().add_(1.0)
-    L = torch.linalg.cholesky(A)
+    _, L = logdet_identity_plus(sub.kern(sub.points.reshape(K * T, d_in)), sub.kern.noise, "I + K / noise_variance")
     logs = torch.log(L.diagonal()).reshape(K, T).sum(-1)
     return (sub.d_out * logs).to(cand.device)
 
@@ -137,17 +143,18 @@ def agnostic(
     system: MisspecifiedSystem,
     times,
     gp: CorrectionGP,
-    lazy: bool = True,
+    method: str = "lazy",
     partition=None,
     capacities=None,
     progress: bool = False,
+    lazy: bool | None = None,
     **kwargs,
 ) -> DesignResult:
     """The design that ignores the known model: greedy on proxy trajectories that stay at the initial condition.
 
     Every one of the T proxy points of a candidate is the candidate itself (the trajectories of G = 0), so the
     criterion only sees where experiments start, not where the dynamics take them (paper §5.3's "agnostic"
-    design). Same arguments and result as :func:`greedy` (``method`` is ``"agnostic-lazy"`` / ``"agnostic-greedy"``
+    design). Same arguments and result as :func:`greedy` (``method`` is ``"agnostic-lazy"`` / ``"agnostic-plain"``
     / ``"agnostic-naive"``); gains are those of the constant proxies.
     """
     system = check_system(system)
@@ -160,7 +167,7 @@ def agnostic(
         system=system,
         times=t,
         gp=gp,
-        lazy=lazy,
+        method=resolve_method(method, lazy),
         partition=partition,
         capacities=capacities,
         proxies=proxies,

@@ -10,11 +10,12 @@ from dataclasses import dataclass, field
 import torch
 
 from .._errors import BudgetError, InputError, ShapeError
+from .._linalg import logdet_identity_plus
 from .._validation import as_tensor, check_finite, check_increasing, check_ndim
-from ..gp import CorrectionGP, cholesky_with_jitter
+from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 
-__all__ = ["DesignResult"]
+__all__ = ["DesignResult", "logdet_identity_plus"]
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,8 @@ class DesignResult:
         information_gain: sum of ``gains`` = information gain of the whole chosen proxy set (nats; NaN when not
             computed).
         points: ``(K, d)`` the chosen candidates.
-        method: ``"lazy"``, ``"greedy"``, ``"naive"``, ``"random"`` or ``"agnostic-lazy"`` / ``"agnostic-greedy"``.
+        method: ``"lazy"``, ``"plain"``, ``"naive"``, ``"random"`` or ``"agnostic-lazy"`` / ``"agnostic-plain"`` /
+            ``"agnostic-naive"``.
         evaluations: number of single-candidate marginal-gain evaluations (the initial pass over all candidates
             included); for ``"naive"`` the number of full log-determinants.
         proxies: ``(K, T, d)`` proxy trajectories of the picks, or ``None`` when not computed.
@@ -111,19 +113,6 @@ class GPKernel:
         if n <= chunk:
             return self(points)
         return torch.cat([self(points[i : i + chunk]) for i in range(0, n, chunk)])
-
-
-def logdet_identity_plus(cov: torch.Tensor, noise: float, what: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(log det(I + cov / noise), L)`` for ``cov (..., m, m)``, L the Cholesky factor of ``I + cov / noise``."""
-    m = cov.shape[-1]
-    A = cov / noise
-    A.diagonal(dim1=-2, dim2=-1).add_(1.0)
-    L, info = torch.linalg.cholesky_ex(A)
-    if bool((info != 0).any()):
-        L = cholesky_with_jitter(A, what=what)
-    if m == 0:
-        return cov.new_zeros(cov.shape[:-2]), L
-    return 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1), L
 
 
 # ---------------------------------------------------------------------------------------------------- input checks

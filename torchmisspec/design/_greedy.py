@@ -21,7 +21,7 @@ return the same picks:
   exact evaluation. The exact values decide every pick, so the picks are those of plain greedy. Features are built
   only when a modest rank (memory ``8 N T r`` bytes, at most 256 MiB by default) makes the bounds tight;
   otherwise the engine falls back to the plain lazy bounds by itself.
-* ``"greedy"`` (Algorithm 1, vectorised): keeps Sigma_{c|S} for every candidate ``(N, T, T)`` and downdates it
+* ``"plain"`` (Algorithm 1, vectorised): keeps Sigma_{c|S} for every candidate ``(N, T, T)`` and downdates it
   after each pick with the rows of the partial Cholesky factor, W_c = L_nn^-1 Sigma_{n,c|S}; all gains of a step are
   one batched Cholesky. Memory O(N T^2 K) (the factor rows of all candidates), so prefer ``"lazy"`` for large N.
 * ``"naive"``: Algorithm 1 literally, the reference: for every remaining candidate a fresh log-determinant of the
@@ -36,12 +36,14 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import torch
 
 from .._errors import InputError
+from .._linalg import cholesky
 from .._validation import progress_bar
-from ..gp import CorrectionGP, cholesky_with_jitter
+from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 from ._common import (
     DesignResult,
@@ -58,7 +60,7 @@ from ._proxy import proxy_trajectories
 
 __all__ = ["greedy"]
 
-METHODS = ("lazy", "greedy", "naive")
+METHODS = ("lazy", "plain", "naive")
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank)
 SLACK_NATS = 1e-4  # target slack of the feature bounds at the last pick (sets the pivot tolerance)
@@ -208,7 +210,7 @@ class _LowRank:
         if not self.useful:
             return
         Z = sub[piv]
-        LZ = cholesky_with_jitter(kern(Z), what="K(pivots)")
+        LZ = cholesky(kern(Z), what="K(pivots)")
         phi = P.new_empty(N * T, r)
         e_max = 0.0
         for s in range(0, N * T, chunk):
@@ -245,7 +247,7 @@ class _LowRank:
     def add(self, n: int) -> None:
         f = self.phi[n]  # (T, r)
         self.Lam += f.T @ f / self.prob.kern.noise
-        self.LLam = cholesky_with_jitter(self.Lam, what="I + Phi_S^T Phi_S / noise_variance")
+        self.LLam = cholesky(self.Lam, what="I + Phi_S^T Phi_S / noise_variance")
 
 
 def _lazy(
@@ -430,6 +432,23 @@ def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20) -> tup
 
 
 # ----------------------------------------------------------------------------------------------------- public
+def resolve_method(method: str, lazy: bool | None) -> str:
+    """The engine name from ``method`` and the deprecated ``lazy`` flag / ``"greedy"`` spelling (with a warning)."""
+    if lazy is not None:
+        warnings.warn(
+            "greedy(lazy=...) is deprecated; use method='lazy' (lazy=True) or method='plain' (lazy=False)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return "lazy" if lazy else "plain"
+    if method == "greedy":
+        warnings.warn(
+            "method='greedy' is deprecated; plain greedy is now method='plain'", DeprecationWarning, stacklevel=3
+        )
+        return "plain"
+    return method
+
+
 def greedy(
     candidates,
     budget: int,
@@ -437,12 +456,12 @@ def greedy(
     system: MisspecifiedSystem,
     times=None,
     gp: CorrectionGP,
-    lazy: bool = True,
+    method: str = "lazy",
     partition=None,
     capacities=None,
     proxies=None,
     progress: bool = False,
-    method: str | None = None,
+    lazy: bool | None = None,
     batch_size: int = 16,
     tie_tol: float = 1e-9,
     screen: bool | str = "auto",
@@ -461,7 +480,7 @@ def greedy(
       ``f(greedy) >= 1/2 f(optimum)`` (Fisher, Nemhauser, Wolsey 1978); the (1 - 1/e) algorithms for matroids
       (continuous greedy, Calinescu et al. 2007) are not implemented.
 
-    Lazy greedy (``lazy=True``, the default, Minoux 1978) returns exactly the set plain greedy returns (same picks,
+    Lazy greedy (``method="lazy"``, the default, Minoux 1978) returns exactly the set plain greedy returns (same picks,
     same order) while evaluating far fewer gains; ``method="naive"`` is the literal Algorithm 1 with fresh
     log-determinants, kept as the reference. Theorem 1 of the paper bounds how far the proxy criterion is from the
     true one (:func:`proxy_gap_bound`).
@@ -474,13 +493,14 @@ def greedy(
             May be omitted when ``proxies`` is given.
         gp: :class:`CorrectionGP` with a shared kernel whose hyperparameters are set (given, or fitted on earlier
             data); its kernel is evaluated on the proxy points restricted to ``system.correction_inputs``.
-        lazy: lazy greedy (Algorithm 2) if ``True``, vectorised plain greedy (Algorithm 1) if ``False``.
+        method: ``"lazy"`` (Algorithm 2, the default), ``"plain"`` (Algorithm 1, vectorised over candidates) or
+            ``"naive"`` (Algorithm 1 with fresh log-determinants, the reference); all three pick the same set.
         partition: optional ``(N,)`` integer region label per candidate; with ``capacities`` a partition matroid.
         capacities: most picks per region: a mapping label -> count, or a sequence indexed by label.
         proxies: optional ``(N, T, d)`` trajectories to use instead of :func:`proxy_trajectories` (e.g. the
             agnostic design passes the constant trajectories).
         progress: show a tqdm progress bar over the picks.
-        method: ``"lazy"``, ``"greedy"`` or ``"naive"``; overrides ``lazy`` when given.
+        lazy: deprecated; ``lazy=True`` is ``method="lazy"``, ``lazy=False`` is ``method="plain"``.
         batch_size: lazy greedy's first batch of re-evaluations per pick (doubling while needed; same picks for
             any value).
         tie_tol: relative tolerance under which two gains tie; ties go to the lowest candidate index.
@@ -489,7 +509,7 @@ def greedy(
             candidates on. The features' rank and residual are reported in ``result.diagnostics``.
         max_rank: most features for the screening (default: what fits in 256 MiB, at most 1024).
 
-    Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"greedy"`` O(N T^2 K), about
+    Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"plain"`` O(N T^2 K), about
     ``8 N K T^2`` bytes, so 1.6 GB for N = 10,000, K = 50, T = 20; ``"naive"`` O(N T^2 + chunk).
 
     Returns:
@@ -499,8 +519,7 @@ def greedy(
         BudgetError: budget < 1, > N, or more than the capacities allow.
         InputError / ShapeError: bad candidates, times, proxies, partition, or a GP without hyperparameters.
     """
-    if method is None:
-        method = "lazy" if lazy else "greedy"
+    method = resolve_method(method, lazy)
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
@@ -518,7 +537,7 @@ def greedy(
     with torch.no_grad():
         if method == "lazy":
             picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank))
-        elif method == "greedy":
+        elif method == "plain":
             picks, gains, evals, info = _plain(prob, progress)
         else:
             picks, gains, evals, info = _naive(prob, progress)

@@ -1,0 +1,564 @@
+"""The correction model: a Gaussian process for F with independent outputs sharing one kernel (paper §3.1).
+
+F ~ GP(0, k(y, y') I_{d_out}). Because the kernel is shared, the d_out outputs have the same covariance
+K + sigma^2 I, so **one** Cholesky factorization serves all of them, in the marginal likelihood as in the
+posterior. The hyperparameters and the training data live in a GPyTorch ``ExactGP`` (``gp.model``: a batch of
+d_out independent outputs, GPyTorch kernels, likelihood and constraints). Two choices depart from GPyTorch's
+defaults, on purpose:
+
+* Training maximises the exact log marginal likelihood with one Cholesky of the shared N x N covariance and an
+  analytic gradient (:mod:`torchmisspec.gp._mll`). GPyTorch's ``ExactMarginalLogLikelihood`` would factorize the
+  same matrix once per output and, above 800 points, switch to conjugate gradients and stochastic Lanczos.
+* The posterior solve alpha = (K + sigma^2 I)^-1 Y and the Cholesky factor are cached; ``predict_mean`` then costs
+  one kernel block k(x, X) @ alpha, which is what an ODE right-hand side needs. The cache is keyed by the values of
+  every parameter and buffer of ``gp.model`` and by the identity and version of its training tensors: a change of
+  hyperparameters or data through any public path (the properties, ``gp.model``, its GPyTorch modules,
+  ``set_train_data``) is detected at the next prediction, which refactorizes once.
+
+Positive hyperparameters are optimised in log space (as scikit-learn does), which keeps small output scales and
+noise variances (1e-5 .. 1e-4 in the paper) well conditioned for L-BFGS.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import gpytorch
+import torch
+
+from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError
+from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int
+from . import _mll
+from ._optim import maximise
+
+__all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
+
+KERNELS = ("rbf", "matern52", "polynomial")
+_MIN_VALUE = 1e-12  # floor of every positive hyperparameter
+
+
+def _log_positive() -> gpytorch.constraints.Interval:
+    """A positive constraint whose raw value is the log of the hyperparameter."""
+    return gpytorch.constraints.GreaterThan(_MIN_VALUE, transform=torch.exp, inv_transform=torch.log)
+
+
+@dataclass(frozen=True)
+class GPPosterior:
+    """Posterior of F at test inputs (no observation noise).
+
+    Attributes:
+        mean: ``(M, d_out)``.
+        variance: ``(M, d_out)``.
+    """
+
+    mean: torch.Tensor
+    variance: torch.Tensor
+
+    @property
+    def stddev(self) -> torch.Tensor:
+        return self.variance.clamp_min(0).sqrt()
+
+
+class _IndependentOutputsGP(gpytorch.models.ExactGP):
+    """GPyTorch ExactGP: d_out independent outputs (a batch) sharing one kernel (or one kernel per output)."""
+
+    def __init__(self, train_x, train_y, likelihood, covar_module, num_outputs: int) -> None:
+        super().__init__(train_x, train_y, likelihood)  # train_y: (d_out, N)
+        self.num_outputs = num_outputs
+        self.mean_module = gpytorch.means.ZeroMean(batch_shape=torch.Size([num_outputs]))
+        self.covar_module = covar_module
+
+    def forward(self, x):
+        mean = self.mean_module(x)
+        covar = self.covar_module(x)
+        if covar.dim() == 2:  # shared kernel: the same covariance for every output
+            covar = covar.expand(self.num_outputs, *covar.shape)
+        return gpytorch.distributions.MultivariateNormal(mean, covar)
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and a.device == b.device and torch.equal(a, b)
+
+
+class _Cache:
+    """The factorization of the training covariance and the posterior solve, with the state they were built from."""
+
+    def __init__(self, key: tuple, values: list[torch.Tensor], fac: _mll.Factorization, mll: float) -> None:
+        self.key, self.values, self.fac, self.mll = key, values, fac, mll
+
+
+class CorrectionGP:
+    """Gaussian-process model of the correction F, trained by exact marginal likelihood.
+
+    Args:
+        kernel: ``"rbf"`` (exp(-||y - y'||^2 / (2 l^2))), ``"matern52"``, or ``"polynomial"``
+            ((1 + <y, y'>)^degree, the paper's polynomial kernel); each scaled by ``outputscale``.
+        lengthscale, outputscale, noise_variance: a value passed here is held fixed; ``None`` means learned.
+            ``lengthscale`` is the RBF/Matern l (the paper's sigma_k^2 = l^2); it does not apply to the polynomial
+            kernel. ``noise_variance`` is the variance of the observation noise on the samples of F.
+        per_output: one set of hyperparameters per output (costs one factorization per output) instead of the
+            paper's shared kernel.
+        degree: the polynomial kernel's order m.
+        max_iter: most L-BFGS iterations when fitting.
+        dtype, device: of the model's tensors (float64 by default: recommended for GP maths).
+
+    After :meth:`fit`: ``lengthscale``, ``outputscale`` and ``noise_variance`` hold the values in use (floats, or
+    tensors ``(d_out,)`` when ``per_output``); ``log_marginal_likelihood_`` the exact log marginal likelihood
+    (nats, summed over outputs) at those values; ``n_iterations_`` and ``n_evaluations_`` the L-BFGS iterations
+    and likelihood evaluations of the final optimisation pass; ``model`` the GPyTorch ``ExactGP`` holding the
+    hyperparameters and the training data.
+    """
+
+    def __init__(
+        self,
+        *,
+        kernel: str = "rbf",
+        lengthscale: float | None = None,
+        outputscale: float | None = None,
+        noise_variance: float | None = None,
+        per_output: bool = False,
+        degree: int = 2,
+        max_iter: int = 200,
+        dtype: torch.dtype = DEFAULT_DTYPE,
+        device: torch.device | str | None = None,
+    ) -> None:
+        if kernel not in KERNELS:
+            raise InputError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
+        if kernel == "polynomial" and lengthscale is not None:
+            raise InputError("lengthscale: the polynomial kernel (1 + <y, y'>)^m has no lengthscale; pass None")
+        degree = check_positive_int(degree, "degree")
+        for name, value in (
+            ("lengthscale", lengthscale),
+            ("outputscale", outputscale),
+            ("noise_variance", noise_variance),
+        ):
+            if value is not None and (
+                isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0
+            ):
+                raise InputError(f"{name}: expected a positive finite number or None (learned), got {value!r}")
+        if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+            raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
+        self.kernel = kernel
+        self.fixed = {
+            "lengthscale": None if lengthscale is None else float(lengthscale),
+            "outputscale": None if outputscale is None else float(outputscale),
+            "noise_variance": None if noise_variance is None else float(noise_variance),
+        }
+        self.per_output = bool(per_output)
+        self.degree = degree
+        self.max_iter = check_positive_int(max_iter, "max_iter")
+        self.dtype = dtype
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.log_marginal_likelihood_: float | None = None
+        self.n_iterations_: int = 0
+        self.n_evaluations_: int = 0
+        self._cache: _Cache | None = None
+        covar, lik = self._modules(batch=1)
+        self.model: _IndependentOutputsGP = _IndependentOutputsGP(None, None, lik, covar, 1).eval()
+
+    # ------------------------------------------------------------------------------------------------ building
+    def _modules(self, batch: int):
+        """A fresh kernel and likelihood holding the fixed values (batch of ``batch`` when ``per_output``)."""
+        shape = torch.Size([batch]) if self.per_output else torch.Size([])
+        if self.kernel == "rbf":
+            base = gpytorch.kernels.RBFKernel(batch_shape=shape, lengthscale_constraint=_log_positive())
+        elif self.kernel == "matern52":
+            base = gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=shape, lengthscale_constraint=_log_positive())
+        else:
+            base = gpytorch.kernels.PolynomialKernel(power=self.degree, batch_shape=shape)
+            base.offset = 1.0
+            base.raw_offset.requires_grad_(False)
+        covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=_log_positive())
+        lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=_log_positive())
+        covar, lik = covar.to(self.device, self.dtype), lik.to(self.device, self.dtype)
+
+        # GPyTorch's setters would round a Python float through float32: pass tensors of the model's dtype
+        def value(name):
+            return torch.tensor(self.fixed[name], dtype=self.dtype, device=self.device)
+
+        if self.fixed["lengthscale"] is not None:
+            base.lengthscale = value("lengthscale")
+        if self.fixed["outputscale"] is not None:
+            covar.outputscale = value("outputscale")
+        if self.fixed["noise_variance"] is not None:
+            lik.noise = value("noise_variance")
+        return covar, lik
+
+    @property
+    def covar_module(self) -> gpytorch.kernels.ScaleKernel:
+        """The GPyTorch kernel in use (``gp.model.covar_module``), output scale included."""
+        return self.model.covar_module
+
+    @property
+    def likelihood(self) -> gpytorch.likelihoods.GaussianLikelihood:
+        """The GPyTorch Gaussian likelihood in use (``gp.model.likelihood``): the noise variance."""
+        return self.model.likelihood
+
+    @property
+    def train_inputs_(self) -> torch.Tensor | None:
+        """``(N, d_in)`` training inputs (``gp.model.train_inputs[0]``), ``None`` before fitting."""
+        inputs = self.model.train_inputs
+        return None if inputs is None else inputs[0]
+
+    @property
+    def train_targets_(self) -> torch.Tensor | None:
+        """``(N, d_out)`` training targets (``gp.model.train_targets`` is their transpose), ``None`` before fitting."""
+        targets = self.model.train_targets
+        return None if targets is None else targets.T
+
+    def _free_parameters(self) -> list[tuple[str, torch.nn.Parameter]]:
+        params = []
+        if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
+            params.append(("lengthscale", self.covar_module.base_kernel.raw_lengthscale))
+        if self.fixed["outputscale"] is None:
+            params.append(("outputscale", self.covar_module.raw_outputscale))
+        if self.fixed["noise_variance"] is None:
+            params.append(("noise_variance", self.likelihood.noise_covar.raw_noise))
+        return params
+
+    def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
+        """Data-driven starting values for the learned hyperparameters (the fixed ones are already set)."""
+        var = Y.var(dim=0, unbiased=False).clamp_min(1e-10)  # (d_out,); floored for constant targets
+        var = var if self.per_output else var.mean()
+        with torch.no_grad():
+            if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
+                sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
+                dist = torch.cdist(sub, sub)
+                positive = dist[dist > 0]
+                med = positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
+                base = self.covar_module.base_kernel
+                base.lengthscale = med.clamp_min(1e-6).expand(base.lengthscale.shape)
+            if self.fixed["outputscale"] is None:
+                self.covar_module.outputscale = var.expand(self.covar_module.outputscale.shape)
+            if self.fixed["noise_variance"] is None:
+                noise = (1e-2 * var).reshape(-1, 1) if self.per_output else (1e-2 * var).reshape(1)
+                self.likelihood.noise = noise
+
+    # ----------------------------------------------------------------------------------------------- the maths
+    def _kernel_parts(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """C = K + sigma^2 I as kernel part ``(B, N, N)`` and diagonal ``(B, 1)``; B = 1 shared, d_out per output."""
+        K = self.covar_module.forward(X, X)
+        return (K.unsqueeze(0) if K.dim() == 2 else K), self.likelihood.noise.reshape(-1, 1)
+
+    def _targets_batched(self, Y: torch.Tensor) -> torch.Tensor:
+        """Targets arranged to match ``(B, N, N)``: shared -> ``(1, N, d_out)``; per output -> ``(d_out, N, 1)``."""
+        return Y.T.unsqueeze(-1) if self.per_output else Y.unsqueeze(0)
+
+    # ------------------------------------------------------------------------------------------------- fitting
+    def _check_inputs(self, x, name: str) -> torch.Tensor:
+        x = as_tensor(x, name, dtype=self.dtype, device=self.device)
+        d_in = self.input_dim
+        if x.dim() == 1 and d_in == 1:
+            x = x.unsqueeze(-1)
+        check_ndim(x, 2, name, "(M, d_in)")
+        check_finite(x, name)
+        if d_in is not None and x.shape[1] != d_in:
+            raise ShapeError(f"{name}: expected {d_in} input columns (as in training), got shape {tuple(x.shape)}")
+        return x
+
+    def fit(
+        self, inputs, targets, *, progress: bool = False, max_iter: int | None = None, warm_start: int = 500
+    ) -> CorrectionGP:
+        """Fit to samples of F: ``inputs (N, d_in)``, ``targets (N, d_out)``. Returns ``self``.
+
+        The learned hyperparameters maximise the exact log marginal likelihood (L-BFGS with strong Wolfe line
+        search, in log space, from data-driven starting values; analytic gradients, see :mod:`torchmisspec.gp._mll`).
+        With a shared kernel and both the output scale and the noise learned, the output scale is maximised out in
+        closed form. When N > 2 * ``warm_start``, a first pass on an evenly spaced subsample of ``warm_start``
+        points provides the starting values (0 disables it). ``progress=True`` shows a progress bar.
+        """
+        X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
+        Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
+        if Y.dim() == 1:
+            Y = Y.unsqueeze(-1)
+        check_ndim(X, 2, "inputs", "(N, d_in)")
+        check_ndim(Y, 2, "targets", "(N, d_out)")
+        if X.shape[0] != Y.shape[0]:
+            raise ShapeError(
+                f"targets: expected {X.shape[0]} rows to match inputs {tuple(X.shape)}, got {tuple(Y.shape)}"
+            )
+        if X.shape[0] < 1:
+            raise FittingError("inputs: expected at least one sample, got 0")
+        check_finite(X, "inputs")
+        check_finite(Y, "targets")
+        max_iter = self.max_iter if max_iter is None else check_positive_int(max_iter, "max_iter")
+        warm_start = check_positive_int(warm_start, "warm_start", minimum=0)
+        d_out = Y.shape[1]
+        covar, lik = self.covar_module, self.likelihood
+        if self.per_output and covar.batch_shape != torch.Size([d_out]):
+            covar, lik = self._modules(batch=d_out)
+        self.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
+        self._cache = None
+        free = self._free_parameters()
+        if any(name in ("outputscale", "noise_variance") for name, _ in free) and not bool((Y != 0).any()):
+            raise FittingError(
+                "targets: expected some non-zero samples to learn the output scale and noise from, got all zeros "
+                "(the likelihood grows without bound as both shrink to 0); fix them: CorrectionGP(outputscale=..., "
+                "noise_variance=...)"
+            )
+        if free:
+            self._initialise(X, Y)
+            if warm_start and X.shape[0] > 2 * warm_start:
+                # a cheap first pass on an evenly spaced subsample puts L-BFGS near the optimum; the second pass
+                # on all the data then needs few O(N^3) evaluations (the result maximises the full likelihood)
+                sub = torch.linspace(0, X.shape[0] - 1, warm_start, device=X.device).round().long()
+                self._optimise(X[sub], Y[sub], progress=False, max_iter=max_iter)
+            result = self._optimise(X, Y, progress=progress, max_iter=max_iter)
+            self.n_iterations_, self.n_evaluations_ = result.iterations, result.evaluations
+        else:
+            self.n_iterations_, self.n_evaluations_ = 0, 0
+        self._posterior_cache()
+        return self
+
+    def _optimise(self, X: torch.Tensor, Y: torch.Tensor, *, progress: bool, max_iter: int):
+        """L-BFGS on the exact log marginal likelihood with the analytic gradient of :mod:`._mll`.
+
+        When the output scale and the noise are both learned with a shared kernel, the output scale s is profiled
+        out: C = s (R + g I), leaving the lengthscale and the noise ratio g for L-BFGS (the same optimum of the
+        same likelihood, in fewer iterations); s* and g s* are written back into the GPyTorch modules.
+        """
+        n, d_out = Y.shape
+        free = [p for _, p in self._free_parameters()]
+        profile = not self.per_output and self.fixed["outputscale"] is None and self.fixed["noise_variance"] is None
+        Yb = self._targets_batched(Y)
+        covar, lik = self.covar_module, self.likelihood
+        if profile:
+            ratio0 = (lik.noise.detach() / covar.outputscale.detach()).log().reshape(1)
+            log_ratio = ratio0.clone().requires_grad_(True)
+            params = [p for p in free if p is not covar.raw_outputscale and p is not lik.noise_covar.raw_noise]
+            params.append(log_ratio)
+
+            def matrices():
+                return covar.base_kernel.forward(X, X).unsqueeze(0), log_ratio.exp().reshape(1, 1)
+        else:
+            params = free
+
+            def matrices():
+                return self._kernel_parts(X)
+
+        def evaluate():
+            K, diag = matrices()
+            with torch.no_grad():
+                fac = _mll.factorize(K.detach(), diag.detach(), Yb, warn=False)
+                if profile:
+                    value, scale = _mll.profiled_mll(fac)
+                    Q = _mll.gradient_weights(fac, scale)
+                else:
+                    value = _mll.exact_mll(fac, n)
+                    Q = _mll.gradient_weights(fac)
+            return value, _mll.gradient_surrogate(Q, K, diag)
+
+        try:
+            result = maximise(
+                params,
+                evaluate,
+                max_iter=max_iter,
+                normaliser=float(n * d_out),
+                progress=progress,
+                desc=f"fit GP (N={n})",
+            )
+            if profile:  # write the profiled output scale and the noise back into the GPyTorch modules
+                with torch.no_grad():
+                    K, diag = matrices()
+                    _, scale = _mll.profiled_mll(_mll.factorize(K, diag, Yb, warn=False))
+                    covar.outputscale = scale.clamp_min(_MIN_VALUE)
+                    lik.noise = (scale * log_ratio.exp()).clamp_min(_MIN_VALUE).reshape(1)
+        except LinearAlgebraError as exc:
+            raise FittingError(f"fitting failed: {exc}") from exc
+        for p in params:
+            if not bool(torch.isfinite(p).all()):
+                raise FittingError(
+                    "fitting diverged: a hyperparameter became non-finite; fix some of them "
+                    "(lengthscale=..., outputscale=..., noise_variance=...) or rescale the data"
+                )
+        return result
+
+    # ------------------------------------------------------------------------------------------- the cache
+    def _state(self) -> tuple[tuple, list[torch.Tensor]]:
+        """What the posterior depends on: identities/versions of modules and data, and every parameter's value."""
+        m = self.model
+        X, Yt = m.train_inputs[0], m.train_targets
+        key = (id(m.covar_module), id(m.likelihood), id(X), X._version, id(Yt), Yt._version)
+        return key, [t.detach() for t in (*m.parameters(), *m.buffers())]
+
+    def _posterior_cache(self) -> _Cache:
+        """The cached factorization; rebuilt (one factorization) when anything it depends on has changed."""
+        self._require_fitted()
+        key, values = self._state()
+        c = self._cache
+        if (
+            c is not None
+            and c.key == key
+            and len(c.values) == len(values)
+            and all(_same(a, b) for a, b in zip(c.values, values, strict=True))
+        ):
+            return c
+        X, Y = self.train_inputs_, self.train_targets_
+        if self.per_output and self.covar_module.batch_shape != torch.Size([Y.shape[1]]):
+            raise ShapeError(
+                f"training targets: expected {self.covar_module.batch_shape[0]} outputs for the per-output kernels, "
+                f"got {Y.shape[1]}; refit with gp.fit(inputs, targets)"
+            )
+        self.model.num_outputs = Y.shape[1]
+        with torch.no_grad():
+            fac = _mll.factorize(*self._kernel_parts(X), self._targets_batched(Y))
+        self._cache = _Cache(key, [v.clone() for v in values], fac, float(_mll.exact_mll(fac, X.shape[0])))
+        self.log_marginal_likelihood_ = self._cache.mll
+        return self._cache
+
+    # ---------------------------------------------------------------------------------------------- prediction
+    @property
+    def is_fitted(self) -> bool:
+        return self.model.train_inputs is not None
+
+    def _require_fitted(self) -> None:
+        if not self.is_fitted:
+            raise NotFittedError("this CorrectionGP is not fitted yet; call .fit(inputs, targets) first")
+
+    @property
+    def input_dim(self) -> int | None:
+        X = self.train_inputs_
+        return None if X is None else X.shape[1]
+
+    @property
+    def output_dim(self) -> int | None:
+        Y = self.train_targets_
+        return None if Y is None else Y.shape[1]
+
+    @property
+    def n_iter_(self) -> int:
+        """Deprecated: it counted likelihood evaluations; use ``n_evaluations_`` (or ``n_iterations_``)."""
+        import warnings
+
+        warnings.warn(
+            "CorrectionGP.n_iter_ is deprecated (it counted likelihood evaluations, not iterations); use "
+            "n_evaluations_ or n_iterations_",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return self.n_evaluations_
+
+    def covariance(self, x1, x2=None) -> torch.Tensor:
+        """Prior covariance k(x1, x2) of F from the model's GPyTorch kernel (outputscale included).
+
+        Returns a dense ``(M1, M2)`` tensor (``(d_out, M1, M2)`` when ``per_output``). Works before fitting for a
+        shared kernel, with the hyperparameters given (or their defaults).
+        """
+        if self.per_output and not self.is_fitted:
+            raise NotFittedError("per-output kernels are built by fit(); call .fit(inputs, targets) first")
+        x1 = self._check_inputs(x1, "x1")
+        x2 = x1 if x2 is None else self._check_inputs(x2, "x2")
+        with torch.no_grad():
+            return self.covar_module.forward(x1, x2)
+
+    def _cross(self, x: torch.Tensor) -> torch.Tensor:
+        """k(x, X) as ``(B, M, N)``."""
+        K = self.covar_module.forward(x, self.train_inputs_)
+        return K.unsqueeze(0) if K.dim() == 2 else K
+
+    def predict_mean(self, x) -> torch.Tensor:
+        """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)``. One kernel block times the cached solve.
+
+        Differentiable with respect to ``x`` (autograd flows through the kernel), never refactorizes unless the
+        hyperparameters or the training data changed since the last prediction.
+        """
+        cache = self._posterior_cache()
+        x = self._check_inputs(x, "x")
+        return self._mean_from(cache, x)
+
+    def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
+        """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path)."""
+        mean = self._cross(x) @ cache.fac.alpha  # (1, M, d_out) or (d_out, M, 1)
+        return mean[0] if not self.per_output else mean.squeeze(-1).T
+
+    def predict(self, x) -> GPPosterior:
+        """Posterior mean and variance of F itself (no observation noise) at ``x (M, d_in)``, each ``(M, d_out)``."""
+        cache = self._posterior_cache()
+        x = self._check_inputs(x, "x")
+        with torch.no_grad():
+            Kxs = self._cross(x)  # (B, M, N)
+            mean = Kxs @ cache.fac.alpha
+            mean = mean[0] if not self.per_output else mean.squeeze(-1).T
+            v = torch.linalg.solve_triangular(cache.fac.chol, Kxs.transpose(-1, -2), upper=False)  # (B, N, M)
+            prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
+            var = (prior - v.pow(2).sum(-2).squeeze(0)).clamp_min(0.0)
+            var = var.T if self.per_output else var.unsqueeze(-1).expand(-1, mean.shape[-1])
+        return GPPosterior(mean=mean, variance=var.contiguous())
+
+    # ------------------------------------------------------------------------------------------ hyperparameters
+    def _value(self, name: str, t: torch.Tensor) -> float | torch.Tensor | None:
+        """The value in use; before fitting only a fixed (given) value is in use, otherwise ``None``."""
+        if not self.is_fitted:
+            return self.fixed[name]
+        t = t.detach().reshape(-1)
+        return float(t[0]) if (not self.per_output or t.numel() == 1) else t.clone()
+
+    @property
+    def lengthscale(self) -> float | torch.Tensor | None:
+        """The kernel lengthscale in use (``None`` for the polynomial kernel, or when unfitted and not given)."""
+        if self.kernel == "polynomial":
+            return None
+        return self._value("lengthscale", self.covar_module.base_kernel.lengthscale)
+
+    @property
+    def outputscale(self) -> float | torch.Tensor | None:
+        """The kernel output scale in use (``None`` when unfitted and not given)."""
+        return self._value("outputscale", self.covar_module.outputscale)
+
+    @property
+    def noise_variance(self) -> float | torch.Tensor | None:
+        """The observation-noise variance in use (``None`` when unfitted and not given)."""
+        return self._value("noise_variance", self.likelihood.noise)
+
+    def fixed_copy(self) -> CorrectionGP:
+        """A new, unfitted CorrectionGP with every hyperparameter fixed at this one's values in use.
+
+        ``gp.fixed_copy().fit(inputs, targets)`` conditions on new samples without re-learning anything (the paper's
+        studies fit every realization with the same prior). Needs every hyperparameter to be set (given or fitted).
+        """
+        values = {
+            "lengthscale": self.lengthscale,
+            "outputscale": self.outputscale,
+            "noise_variance": self.noise_variance,
+        }
+        if self.kernel == "polynomial":
+            values.pop("lengthscale")
+        missing = [k for k, v in values.items() if v is None]
+        if missing:
+            raise NotFittedError(
+                f"fixed_copy: expected every hyperparameter to be set, but {missing} are not; pass them to "
+                "CorrectionGP(...) or fit first"
+            )
+        if self.per_output:
+            raise InputError("fixed_copy: per-output hyperparameters cannot be fixed by value; use per_output=False")
+        return CorrectionGP(
+            kernel=self.kernel,
+            degree=self.degree,
+            max_iter=self.max_iter,
+            dtype=self.dtype,
+            device=self.device,
+            **{k: float(v) for k, v in values.items()},
+        )
+
+    def __repr__(self) -> str:
+        state = f"fitted on N={self.train_inputs_.shape[0]}" if self.is_fitted else "not fitted"
+        return (
+            f"CorrectionGP(kernel={self.kernel!r}, lengthscale={self.lengthscale}, outputscale={self.outputscale}, "
+            f"noise_variance={self.noise_variance}, per_output={self.per_output}; {state})"
+        )
+
+    # ------------------------------------------------------------------------------------------- persistence
+    def save(self, path: str | Path) -> Path:
+        """Save a fitted model (configuration, hyperparameters, training data); see :mod:`._persistence`."""
+        from ._persistence import save
+
+        return save(self, path)
+
+    @classmethod
+    def load(cls, path: str | Path, *, device: torch.device | str | None = None) -> CorrectionGP:
+        """Load a model written by :meth:`save` (no code is executed); the posterior cache is rebuilt."""
+        from ._persistence import load
+
+        return load(cls, path, device=device)

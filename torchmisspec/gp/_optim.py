@@ -1,0 +1,71 @@
+"""L-BFGS on an objective that supplies its own gradient through a surrogate (no closure state in the model)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+
+from .._validation import progress_bar
+
+__all__ = ["OptimResult", "maximise"]
+
+
+class OptimResult(NamedTuple):
+    """What one optimisation pass did.
+
+    Attributes:
+        iterations: L-BFGS iterations.
+        evaluations: objective evaluations (line-search steps included).
+        value: the objective at the last evaluation.
+    """
+
+    iterations: int
+    evaluations: int
+    value: float
+
+
+def maximise(
+    params: list[torch.Tensor],
+    evaluate: Callable[[], tuple[torch.Tensor, torch.Tensor]],
+    *,
+    max_iter: int,
+    normaliser: float = 1.0,
+    progress: bool = False,
+    desc: str = "fit",
+) -> OptimResult:
+    """Maximise an objective over ``params`` with L-BFGS (strong Wolfe line search).
+
+    Args:
+        params: leaf tensors with ``requires_grad``.
+        evaluate: returns ``(value, surrogate)``: the objective's value (no graph needed) and a scalar whose
+            gradient in ``params`` equals the objective's gradient (e.g. ``_mll.gradient_surrogate``).
+        max_iter: most L-BFGS iterations.
+        normaliser: the objective is divided by it for the optimiser (e.g. the number of samples: O(1) gradients).
+    """
+    opt = torch.optim.LBFGS(
+        params,
+        lr=1.0,
+        max_iter=max_iter,
+        history_size=20,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=1e-7,
+        tolerance_change=1e-12,
+    )
+    count = [0, float("nan")]
+    with progress_bar(progress, max_iter, desc, "eval") as bar:
+
+        def closure():
+            opt.zero_grad()
+            value, surrogate = evaluate()
+            (-surrogate / normaliser).backward()
+            count[0] += 1
+            count[1] = float(value)
+            bar.update(1)
+            bar.set_postfix(mll=f"{count[1]:.6g}")
+            return -value.detach() / normaliser
+
+        opt.step(closure)
+    state = opt.state[opt._params[0]]
+    return OptimResult(int(state.get("n_iter", 0)), count[0], count[1])

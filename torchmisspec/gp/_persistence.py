@@ -1,0 +1,121 @@
+"""Saving and loading a fitted :class:`~torchmisspec.gp.CorrectionGP` without pickled code.
+
+A file holds one dictionary of plain values: the configuration (strings, numbers, booleans, ``None``), the GPyTorch
+state dictionaries (tensors) and the training data (tensors). It is written with ``torch.save`` and read with
+``torch.load(weights_only=True)``, which refuses anything but tensors and plain containers, so a crafted file
+cannot run code on load. The dtype is read from an allow-list, never by ``getattr`` on a string from the file.
+"""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from .._errors import InputError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ._model import CorrectionGP
+
+__all__ = ["save", "load", "FORMAT_VERSION"]
+
+FORMAT_VERSION = 2
+_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+def save(gp: CorrectionGP, path: str | Path) -> Path:
+    """Write ``gp`` (fitted) to ``path``; the folder must exist."""
+    gp._require_fitted()
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(
+            f"path: expected a file in an existing folder, got {str(path)!r} (no folder {str(path.parent)!r})"
+        )
+    dtype = str(gp.dtype).removeprefix("torch.")
+    if dtype not in _DTYPES:
+        raise InputError(f"dtype: only {sorted(_DTYPES)} models can be saved, got {dtype}")
+    blob = {
+        "format": FORMAT_VERSION,
+        "config": {
+            "kernel": gp.kernel,
+            "per_output": gp.per_output,
+            "degree": gp.degree,
+            "max_iter": gp.max_iter,
+            "fixed": dict(gp.fixed),
+            "dtype": dtype,
+        },
+        "covar_module": {k: v.detach().cpu() for k, v in gp.covar_module.state_dict().items()},
+        "likelihood": {k: v.detach().cpu() for k, v in gp.likelihood.state_dict().items()},
+        "train_inputs": gp.train_inputs_.detach().cpu(),
+        "train_targets": gp.train_targets_.detach().cpu(),
+        "n_iterations": gp.n_iterations_,
+        "n_evaluations": gp.n_evaluations_,
+    }
+    torch.save(blob, path)
+    return path
+
+
+def _field(blob: dict, key: str, kind, path: Path):
+    if key not in blob:
+        raise InputError(f"{path}: expected a torchmisspec CorrectionGP file with field {key!r}, which is missing")
+    value = blob[key]
+    if not isinstance(value, kind):
+        raise InputError(f"{path}: field {key!r} expected {kind}, got {type(value).__name__}")
+    return value
+
+
+def load(cls, path: str | Path, *, device=None) -> CorrectionGP:
+    """Read a file written by :func:`save`; the posterior cache is rebuilt (one factorization)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"path: expected an existing CorrectionGP file, got {str(path)!r}")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, RuntimeError, ValueError, OSError) as exc:
+        raise InputError(
+            f"{path}: expected a CorrectionGP file written by CorrectionGP.save (tensors and plain values only), "
+            f"but it could not be read safely ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
+        ) from exc
+    if not isinstance(blob, dict):
+        raise InputError(f"{path}: expected a dictionary, got {type(blob).__name__}")
+    cfg = _field(blob, "config", dict, path)
+    dtype_name = cfg.get("dtype")
+    if dtype_name not in _DTYPES:
+        raise InputError(f"{path}: expected dtype one of {sorted(_DTYPES)}, got {dtype_name!r}")
+    fixed = cfg.get("fixed", {})
+    if not isinstance(fixed, dict) or set(fixed) - {"lengthscale", "outputscale", "noise_variance"}:
+        raise InputError(f"{path}: expected 'fixed' to map hyperparameter names to values, got {fixed!r}")
+    try:
+        gp = cls(
+            kernel=cfg.get("kernel"),
+            per_output=bool(cfg.get("per_output")),
+            degree=cfg.get("degree", 2),
+            max_iter=cfg.get("max_iter", 200),
+            dtype=_DTYPES[dtype_name],
+            device=device,
+            **fixed,
+        )
+    except TypeError as exc:
+        raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
+    X = _field(blob, "train_inputs", torch.Tensor, path).to(gp.device, gp.dtype)
+    Y = _field(blob, "train_targets", torch.Tensor, path).to(gp.device, gp.dtype)
+    if X.dim() != 2 or Y.dim() != 2 or X.shape[0] != Y.shape[0]:
+        raise InputError(
+            f"{path}: expected training data (N, d_in) and (N, d_out), got {tuple(X.shape)}, {tuple(Y.shape)}"
+        )
+    from ._model import _IndependentOutputsGP
+
+    covar, lik = gp._modules(batch=Y.shape[1])
+    try:
+        covar.load_state_dict(_field(blob, "covar_module", dict, path))
+        lik.load_state_dict(_field(blob, "likelihood", dict, path))
+    except RuntimeError as exc:
+        raise InputError(f"{path}: the saved hyperparameters do not match the kernel {gp.kernel!r} ({exc})") from exc
+    gp.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+    gp.n_iterations_ = int(blob.get("n_iterations", 0))
+    gp.n_evaluations_ = int(blob.get("n_evaluations", blob.get("n_iter", 0)))
+    gp._posterior_cache()
+    return gp
