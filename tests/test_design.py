@@ -148,7 +148,7 @@ def test_lazy_greedy_and_naive_pick_identical_sets(outputscale):
         prox = simulate(system, cand[ref], TIMES, known_only=True).states
         assert res["lazy"].information_gain == pytest.approx(set_gain(prox, range(9), outputscale), rel=1e-8)
         assert res["lazy"].evaluations < res["plain"].evaluations  # lazy skips evaluations
-    with pytest.warns(DeprecationWarning, match="lazy=... is deprecated"):
+    with pytest.warns(DeprecationWarning, match=r"greedy\(lazy=\.\.\.\) is deprecated"):
         old = design.greedy(cand, 9, system=system, times=TIMES, gp=gp, lazy=False)
     assert old.method == "plain" and old.indices.tolist() == ref
     with pytest.warns(DeprecationWarning, match="method='greedy' is deprecated"):

@@ -140,8 +140,9 @@ def _design(args: argparse.Namespace) -> int:
     elif args.method == "agnostic":
         plan = design.agnostic(candidates, args.budget, partition=partition, capacities=capacities, **common)
     else:
+        method = "plain" if args.method == "greedy" else args.method
         plan = design.greedy(
-            candidates, args.budget, method=args.method, partition=partition, capacities=capacities, **common
+            candidates, args.budget, method=method, partition=partition, capacities=capacities, **common
         )
     rows = [
         {"order": i, "index": int(c), "gain": float(g), **{f"y{j}": float(v) for j, v in enumerate(pt)}}
@@ -241,9 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument(
         "--method",
         default="lazy",
-        choices=["lazy", "greedy", "naive", "agnostic", "random"],
-        help="lazy greedy (default), plain greedy, naive greedy (reference), agnostic (ignores the "
-        "known model), or random",
+        choices=["lazy", "plain", "naive", "agnostic", "random", "greedy"],
+        help="lazy greedy (default), plain greedy ('greedy' is its old name), naive greedy (reference), agnostic "
+        "(ignores the known model), or random",
     )
     des.add_argument("--partition", help="optional file with one integer region label per candidate")
     des.add_argument(

@@ -1,15 +1,24 @@
-"""Matplotlib figures of the paper's §5: trajectories, error heat maps, designs and error-vs-K curves.
+"""Generic matplotlib figures: trajectories, error heat maps, designs and error-vs-K curves.
 
 Every function takes tensors or arrays (torch tensors are detached and moved to the CPU; a
 :class:`~torchmisspec.data.Trajectories` is accepted wherever states ``(K, T, d)`` are expected), optionally saves a
 PNG to ``path``, and returns the :class:`matplotlib.figure.Figure`. Figures are built as ``Figure`` objects, not
 through ``pyplot``, so nothing here touches pyplot's global state or needs a display; matplotlib is imported only when
-a function is called.
+a function is called. The one-panel functions draw into a given ``ax`` when asked, so a caller can compose them into
+its own layout (the paper's figures are composed that way in :mod:`torchmisspec.paper.figures`).
 
-Paper figures: :func:`plot_training_and_test` (Fig. 1 and the right panels of Figs. 3 and 6), :func:`plot_error_map`
-(Fig. 2), :func:`plot_component_error_maps` (Figs. 4 and 7), :func:`plot_design` (left panels of Figs. 3 and 6),
-:func:`plot_error_curves` (Figs. 5 and 8). :func:`correction_error_fn` builds the error callables the heat maps take
-from a system with a known F and a fitted GP.
+Figures: :func:`plot_trajectories` (phase plane: true, misspecified, corrected and further sets),
+:func:`plot_training_and_test` (training and test panels side by side), :func:`plot_error_map` (a scalar error over a
+box), :func:`plot_component_error_maps` (one error map per setting and output component), :func:`plot_design`
+(candidates and the picks of several designs), :func:`plot_error_curves` (error against the number of experiments).
+:func:`correction_error_fn` builds the error callables the heat maps take from a system with a known F and a fitted
+GP.
+
+Styles are explicit: a caller passes ``styles={name: {...}}`` for the names it draws; a name without a style gets
+the default for its *position* (:data:`DESIGN_STYLES` for the picks of :func:`plot_design`, :data:`SERIES_STYLES` for
+further trajectory sets, matplotlib's colour cycle and :data:`CURVE_MARKERS` for curves), never a style chosen from
+what the name says. ``legend`` places the legend: ``True`` / ``"axes"`` inside the axes, ``"right"`` outside on the
+right, ``"below"`` one legend for the figure under the panels, ``False`` none.
 
 Heat-map grids follow the image convention: ``grid[i, j]`` is the value at ``x = xs[j]``, ``y = ys[i]``, with ``xs``
 and ``ys`` evenly spaced from the domain's lower to upper bounds (both included).
@@ -17,6 +26,7 @@ and ``ys`` evenly spaced from the domain's lower to upper bounds (both included)
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,6 +35,7 @@ import numpy as np
 import torch
 
 from ._errors import InputError, ShapeError, TorchMisspecError
+from ._validation import check_domain, check_indices, check_positive_int
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
@@ -41,6 +52,10 @@ __all__ = [
     "plot_design",
     "plot_error_curves",
     "correction_error_fn",
+    "TRAJECTORY_STYLES",
+    "SERIES_STYLES",
+    "DESIGN_STYLES",
+    "CURVE_MARKERS",
 ]
 
 PANEL_SIZE = (5.0, 4.0)  # inches per panel
@@ -58,11 +73,35 @@ _TRAJ_COLORS = (
     "tab:cyan",
     "tab:gray",
 )
-_STYLE = {  # one legend entry per style
+#: Line styles of the three trajectory roles of :func:`plot_trajectories` (``label`` is the legend text). Without a
+#: ``color``, trajectory k has colour k of the tab10 cycle in every role; the corrected ones are black, on top.
+TRAJECTORY_STYLES = {
     "true": dict(linestyle="-", linewidth=1.3, label="true (G + F)"),
     "misspecified": dict(linestyle="--", linewidth=1.1, label="misspecified (G)"),
     "corrected": dict(linestyle=":", linewidth=1.8, label=r"corrected (G + $\hat F$)", color="black", zorder=2.5),
 }
+#: Default styles of further trajectory sets (``series=`` of :func:`plot_trajectories`), by position.
+SERIES_STYLES = (
+    dict(linestyle=(0, (1, 2)), linewidth=1.8, color="tab:red", zorder=2.6),
+    dict(linestyle="-.", linewidth=1.5, color="tab:blue", zorder=2.6),
+    dict(linestyle=(0, (5, 1)), linewidth=1.5, color="tab:green", zorder=2.6),
+    dict(linestyle=(0, (3, 1, 1, 1)), linewidth=1.5, color="tab:purple", zorder=2.6),
+)
+#: Default styles of the picks of :func:`plot_design`, by position: hollow markers (``size`` is the marker area in
+#: points^2) and the colour of the design's trajectories.
+DESIGN_STYLES = (
+    dict(marker="s", color="black", size=90.0),
+    dict(marker="o", color="tab:red", size=45.0),
+    dict(marker="D", color="tab:blue", size=55.0),
+    dict(marker="^", color="tab:green", size=60.0),
+    dict(marker="v", color="tab:purple", size=60.0),
+    dict(marker="P", color="tab:brown", size=60.0),
+    dict(marker="X", color="tab:pink", size=60.0),
+)
+_DESIGN_STYLE_KEYS = ("marker", "color", "size", "linestyle")
+#: Default markers of the curves of :func:`plot_error_curves`, by position (colours: matplotlib's cycle).
+CURVE_MARKERS = ("o", "s", "^", "D", "v", "P")
+_LEGENDS = (True, False, None, "axes", "right", "below")
 
 
 # --------------------------------------------------------------------------------------------------- helpers
@@ -92,30 +131,52 @@ def _states(x: Any, name: str) -> np.ndarray:
 
 
 def _check_dims(dims: Sequence[int], d: int, name: str = "dims") -> tuple[int, int]:
-    try:
-        out = tuple(int(i) for i in dims)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected two component indices, got {dims!r}") from exc
+    """Two distinct component indices in [0, d) (x axis, y axis)."""
+    if dims is None:
+        raise InputError(f"{name}: expected two component indices (x, y), got None")
+    out = check_indices(dims, d, name)
     if len(out) != 2:
         raise InputError(f"{name}: expected two component indices (x, y), got {len(out)}: {list(out)}")
-    for i in out:
-        if not 0 <= i < d:
-            raise InputError(f"{name}: expected indices in [0, {d - 1}] for states with d={d}, got {list(out)}")
-    if out[0] == out[1]:
-        raise InputError(f"{name}: expected two distinct components, got {list(out)}")
     return out  # type: ignore[return-value]
 
 
-def _check_domain(domain: Any, name: str = "domain") -> tuple[tuple[float, float], tuple[float, float]]:
-    try:
-        arr = np.asarray(domain, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected ((x_lo, x_hi), (y_lo, y_hi)), got {domain!r}") from exc
-    if arr.shape != (2, 2):
-        raise ShapeError(f"{name}: expected shape (2, 2) as ((x_lo, x_hi), (y_lo, y_hi)), got {arr.shape}")
-    if not np.isfinite(arr).all() or not (arr[:, 0] < arr[:, 1]).all():
-        raise InputError(f"{name}: expected finite bounds with lo < hi, got {arr.tolist()}")
-    return (float(arr[0, 0]), float(arr[0, 1])), (float(arr[1, 0]), float(arr[1, 1]))
+def _check_styles(styles: Any, allowed: Sequence[str], name: str = "styles") -> dict[str, dict]:
+    """``styles``: a dict name -> dict of keyword arguments, with names among ``allowed``."""
+    if styles is None:
+        return {}
+    if not isinstance(styles, Mapping):
+        raise InputError(f"{name}: expected a dict name -> style dict, got {type(styles).__name__}")
+    out = {}
+    for key, style in styles.items():
+        if str(key) not in allowed:
+            raise InputError(f"{name}: expected keys among {list(allowed)}, got unknown {key!r}")
+        if not isinstance(style, Mapping):
+            raise InputError(f"{name}[{key!r}]: expected a dict of style keywords, got {type(style).__name__}")
+        out[str(key)] = dict(style)
+    return out
+
+
+def _check_legend(legend: Any) -> str | None:
+    if not any(legend is option or (isinstance(legend, str) and legend == option) for option in _LEGENDS):
+        raise InputError(f"legend: expected one of {list(_LEGENDS)}, got {legend!r}")
+    if legend is True:
+        return "axes"
+    return legend or None
+
+
+def _place_legend(ax: Axes, handles: list, legend: str | None):
+    """Draw the legend of ``handles`` where ``legend`` says ("axes", "right", "below" or None); returns it."""
+    if legend is None or not handles:
+        return None
+    if legend == "axes":
+        return ax.legend(handles=handles, loc="best", fontsize="small", framealpha=0.85)
+    if legend == "right":
+        return ax.legend(
+            handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small", borderaxespad=0.0
+        )
+    return ax.figure.legend(
+        handles=handles, loc="outside lower center", ncol=len(handles), fontsize="small", frameon=False
+    )
 
 
 def _new_figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float] | None = None):
@@ -126,6 +187,16 @@ def _new_figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float] 
     fig = Figure(figsize=figsize, layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False)
     return fig, axes
+
+
+def _axes(ax: Axes | None, figsize: tuple[float, float] | None = None) -> tuple[Figure, Axes]:
+    """The given axes and its figure, or a new one-panel figure."""
+    if ax is None:
+        fig, axes = _new_figure(figsize=figsize)
+        return fig, axes[0, 0]
+    if not hasattr(ax, "figure") or not hasattr(ax, "plot"):
+        raise InputError(f"ax: expected a matplotlib Axes, got {type(ax).__name__}")
+    return ax.figure, ax
 
 
 def _finish(fig: Figure, path: str | Path | None, dpi: int) -> Figure:
@@ -148,66 +219,88 @@ def _draw_box(ax: Axes, box, *, label: str | None = None, color: str = "black") 
 
 
 # ------------------------------------------------------------------------------------------------ trajectories
+def _trajectory_styles(series_names: Sequence[str], styles: Any) -> dict[str, dict]:
+    """The style of every role and series: defaults (by role, or by position for series) updated by ``styles``."""
+    given = _check_styles(styles, [*TRAJECTORY_STYLES, *series_names])
+    out = {key: {**TRAJECTORY_STYLES[key], **given.get(key, {})} for key in TRAJECTORY_STYLES}
+    for i, name in enumerate(series_names):
+        out[name] = {**SERIES_STYLES[i % len(SERIES_STYLES)], "label": name, **given.get(name, {})}
+    return out
+
+
 def plot_trajectories(
     true_states,
     misspecified_states=None,
     corrected_states=None,
     *,
+    series: Mapping[str, Any] | None = None,
+    styles: Mapping[str, Mapping[str, Any]] | None = None,
     dims: Sequence[int] = (0, 1),
     ax: Axes | None = None,
     title: str | None = None,
     axis_labels: tuple[str, str] | None = None,
+    legend: bool | str = True,
     path: str | Path | None = None,
     dpi: int = DPI,
 ) -> Figure:
-    """Phase-plane plot of K trajectories: true solid, misspecified dashed, corrected dotted.
+    """Phase-plane plot of K trajectories: true solid, misspecified dashed, corrected dotted, and further sets.
 
-    Trajectory k has the same colour in every style; the initial conditions ``true_states[:, 0]`` are black dots.
-    The legend has one entry per style present, plus the initial conditions.
+    Trajectory k has the same colour in the true and misspecified styles; the corrected ones are black and on top;
+    each further set (``series``) has one colour. The initial conditions ``true_states[:, 0]`` are black dots. The
+    legend has one entry per style present, plus the initial conditions.
 
     Args:
         true_states: ``(K, T, d)`` states of the true system (or a Trajectories).
         misspecified_states, corrected_states: optional ``(K, T', d)`` predictions from the same K initial
             conditions (their time grids may differ from the true one).
+        series: optional further sets, name -> ``(K, T', d)`` (e.g. a second corrected model), drawn in order after
+            the corrected ones; the name is the legend text unless its style has a ``label``.
+        styles: optional overrides, key -> Line2D keywords (``label`` is the legend text): keys ``"true"``,
+            ``"misspecified"``, ``"corrected"`` (defaults :data:`TRAJECTORY_STYLES`) or a name of ``series``
+            (defaults :data:`SERIES_STYLES` by position).
         dims: the two state components to plot on the x and y axes.
         ax: draw into this Axes instead of a new figure.
         title: axes title (default ``"Trajectories (K=...)"``).
         axis_labels: x and y labels (default ``$y_{i+1}$``).
+        legend: ``True``/``"axes"``, ``"right"``, ``"below"`` (a figure legend) or ``False``.
         path: save the figure as PNG here.
     """
     true = _states(true_states, "true_states")
     K, _, d = true.shape
-    series = {"true": true}
-    for key, value in (("misspecified", misspecified_states), ("corrected", corrected_states)):
+    sets = {"true": true}
+    if series is not None and not isinstance(series, Mapping):
+        raise InputError(f"series: expected a dict name -> (K, T, d) states, got {type(series).__name__}")
+    extra = dict(series) if series is not None else {}
+    clash = set(map(str, extra)) & set(TRAJECTORY_STYLES)
+    if clash:
+        raise InputError(f"series: expected names other than {list(TRAJECTORY_STYLES)}, got {sorted(clash)}")
+    for key, value in (("misspecified", misspecified_states), ("corrected", corrected_states), *extra.items()):
         if value is None:
             continue
-        arr = _states(value, f"{key}_states")
+        name = f"{key}_states" if key in TRAJECTORY_STYLES else f"series[{key!r}]"
+        arr = _states(value, name)
         if arr.shape[0] != K or arr.shape[2] != d:
-            raise ShapeError(
-                f"{key}_states: expected shape ({K}, T, {d}) to match true_states {true.shape}, got {arr.shape}"
-            )
-        series[key] = arr
+            raise ShapeError(f"{name}: expected shape ({K}, T, {d}) to match true_states {true.shape}, got {arr.shape}")
+        sets[str(key)] = arr
     dims = _check_dims(dims, d)
-    if ax is None:
-        fig, axes = _new_figure()
-        ax = axes[0, 0]
-    else:
-        fig = ax.figure
+    style_of = _trajectory_styles([str(k) for k in extra], styles)
+    legend = _check_legend(legend)
+    fig, ax = _axes(ax)
     from matplotlib.lines import Line2D
 
-    for key, arr in series.items():
-        style = {k: v for k, v in _STYLE[key].items() if k != "label"}
-        fixed = style.pop("color", None)  # the corrected ones are black, on top, so they stay visible
-        for k in range(K):  # otherwise trajectory k has one colour in every style
+    for key, arr in sets.items():
+        style = {k: v for k, v in style_of[key].items() if k != "label"}
+        fixed = style.pop("color", None)
+        for k in range(K):  # without a fixed colour, trajectory k has colour k in every style
             ax.plot(arr[k, :, dims[0]], arr[k, :, dims[1]], color=fixed or _TRAJ_COLORS[k % len(_TRAJ_COLORS)], **style)
     ax.plot(
         true[:, 0, dims[0]], true[:, 0, dims[1]], linestyle="none", marker="o", markersize=4, color="black", zorder=3
     )
-    handles = [Line2D([], [], **{"color": "0.25", **_STYLE[key]}) for key in series]
+    handles = [Line2D([], [], **{"color": "0.25", **style_of[key]}) for key in sets]
     handles.append(
         Line2D([], [], linestyle="none", marker="o", markersize=4, color="black", label="initial conditions")
     )
-    ax.legend(handles=handles, loc="best", fontsize="small", framealpha=0.8)
+    _place_legend(ax, handles, legend)
     xl, yl = axis_labels if axis_labels is not None else (f"$y_{{{dims[0] + 1}}}$", f"$y_{{{dims[1] + 1}}}$")
     ax.set_xlabel(xl)
     ax.set_ylabel(yl)
@@ -226,27 +319,34 @@ def plot_training_and_test(
     dims: Sequence[int] = (0, 1),
     titles: tuple[str, str] | None = None,
     axis_labels: tuple[str, str] | None = None,
+    styles: Mapping[str, Mapping[str, Any]] | None = None,
+    legend: bool | str = True,
     path: str | Path | None = None,
     dpi: int = DPI,
 ) -> Figure:
-    """Paper Fig. 1: training set (left: true vs misspecified) and test set (right: true, misspecified, corrected).
+    """Training set (left: true vs misspecified) and test set (right: true, misspecified, corrected), side by side.
 
     Args:
         train_true, train_misspecified: ``(K, T, d)`` training trajectories of the true and the misspecified model.
         test_true, test_misspecified, test_corrected: ``(K', T, d)`` test trajectories, the last from the
             corrected model G + mu.
-        dims, axis_labels: as in :func:`plot_trajectories`.
+        dims, axis_labels, styles: as in :func:`plot_trajectories` (the styles apply to both panels).
         titles: the two panel titles.
+        legend: ``True``/``"axes"``: a legend in each panel; ``"below"``: one legend under both panels (every style
+            appears in the test panel); ``False``: none.
     """
+    legend = _check_legend(legend)
+    if legend == "right":
+        raise InputError("legend: expected True, 'axes', 'below' or False for two panels, got 'right'")
     fig, axes = _new_figure(1, 2)
     k_train = _states(train_true, "train_true").shape[0]
     k_test = _states(test_true, "test_true").shape[0]
     titles = titles if titles is not None else (f"Training set (K={k_train})", f"Test set (K={k_test})")
+    panel_legend = "axes" if legend == "axes" else False
+    common = dict(dims=dims, axis_labels=axis_labels, styles=styles, legend=panel_legend)
+    plot_trajectories(train_true, train_misspecified, ax=axes[0, 0], title=titles[0], **common)
     plot_trajectories(
-        train_true, train_misspecified, dims=dims, ax=axes[0, 0], title=titles[0], axis_labels=axis_labels
-    )
-    plot_trajectories(
-        test_true, test_misspecified, test_corrected, dims=dims, ax=axes[0, 1], title=titles[1], axis_labels=axis_labels
+        test_true, test_misspecified, test_corrected, ax=axes[0, 1], title=titles[1], **{**common, "legend": legend}
     )
     return _finish(fig, path, dpi)
 
@@ -259,12 +359,6 @@ def _grid_points(domain, resolution: int) -> tuple[np.ndarray, np.ndarray, torch
     X, Y = np.meshgrid(xs, ys, indexing="xy")  # (res_y, res_x): row i is y = ys[i]
     pts = torch.from_numpy(np.stack([X.ravel(), Y.ravel()], axis=-1))  # (M, 2) float64
     return xs, ys, pts
-
-
-def _check_resolution(resolution: Any) -> int:
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 2:
-        raise InputError(f"resolution: expected an integer >= 2, got {resolution!r}")
-    return int(resolution)
 
 
 def _evaluate(fn: Callable, pts: torch.Tensor, name: str) -> np.ndarray:
@@ -386,7 +480,7 @@ def plot_error_map(
     path: str | Path | None = None,
     dpi: int = DPI,
 ) -> Figure:
-    """Paper Fig. 2: heat map of a scalar error over the box ``domain``, training traces overlaid in white.
+    """Heat map of a scalar error over the box ``domain``, training traces overlaid in white.
 
     Args:
         error_fn_or_grid: a callable mapping points ``(M, 2)`` (float64 tensor) to values ``(M,)``, evaluated on a
@@ -398,20 +492,16 @@ def plot_error_map(
         vmin, vmax: colour-scale limits.
         dashed_box: optional ``((x_lo, x_hi), (y_lo, y_hi))`` drawn dashed, e.g. the region D inside a larger map.
     """
-    domain = _check_domain(domain)
-    resolution = _check_resolution(resolution)
+    domain = check_domain(domain, dim=2)
+    resolution = check_positive_int(resolution, "resolution", minimum=2)
     grid = _scalar_grid(error_fn_or_grid, domain, resolution, "error_fn_or_grid")
-    if ax is None:
-        fig, axes = _new_figure(figsize=(PANEL_SIZE[0] + 0.6, PANEL_SIZE[1]))
-        ax = axes[0, 0]
-    else:
-        fig = ax.figure
+    fig, ax = _axes(ax, figsize=(PANEL_SIZE[0] + 0.6, PANEL_SIZE[1]))
     im = _draw_heat(ax, grid, domain, vmin=vmin, vmax=vmax, log_scale=log_scale)
     fig.colorbar(im, ax=ax, label=cbar_label)
     if traces is not None:
         _overlay_traces(ax, traces, trace_dims, "traces")
     if dashed_box is not None:
-        _draw_box(ax, _check_domain(dashed_box, "dashed_box"), color="white")
+        _draw_box(ax, check_domain(dashed_box, "dashed_box", dim=2), color="white")
     ax.set_xlim(domain[0])
     ax.set_ylim(domain[1])
     ax.set_xlabel(axis_labels[0])
@@ -436,7 +526,7 @@ def plot_component_error_maps(
     path: str | Path | None = None,
     dpi: int = DPI,
 ) -> Figure:
-    """Paper Figs. 4 and 7: a grid of error heat maps, one row per setting and one column per output component.
+    """A grid of error heat maps, one row per setting and one column per output component.
 
     Each component (column) shares one colour scale across the settings, so the settings compare at a glance.
 
@@ -448,13 +538,13 @@ def plot_component_error_maps(
         domain: ``((x_lo, x_hi), (y_lo, y_hi))``.
         traces: optional setting name -> ``(K, T, d)`` training trajectories overlaid on that setting's panels.
         component_labels: the C column titles / colour-bar labels (default ``|F̂_i - F_i|``, i = 1..C).
-        settings_as_columns: transpose the layout (settings across, components down), as in paper Fig. 7.
+        settings_as_columns: transpose the layout (settings across, components down).
         log_scale, dashed_box: as in :func:`plot_error_map`.
     """
     if not isinstance(maps, Mapping) or len(maps) == 0:
         raise InputError(f"maps: expected a non-empty dict setting name -> errors, got {type(maps).__name__}")
-    domain = _check_domain(domain)
-    resolution = _check_resolution(resolution)
+    domain = check_domain(domain, dim=2)
+    resolution = check_positive_int(resolution, "resolution", minimum=2)
     grids = {name: _component_grids(src, domain, resolution, f"maps[{name!r}]") for name, src in maps.items()}
     counts = {name: len(g) for name, g in grids.items()}
     C = next(iter(counts.values()))
@@ -469,7 +559,7 @@ def plot_component_error_maps(
     elif len(component_labels) != C:
         raise ShapeError(f"component_labels: expected {C} labels (one per component), got {len(component_labels)}")
     if dashed_box is not None:
-        dashed_box = _check_domain(dashed_box, "dashed_box")
+        dashed_box = check_domain(dashed_box, "dashed_box", dim=2)
     S = len(grids)
     nrows, ncols = (C, S) if settings_as_columns else (S, C)
     fig, axes = _new_figure(nrows, ncols, figsize=(3.8 * ncols + 0.8, 3.1 * nrows))
@@ -540,19 +630,6 @@ def correction_error_fn(
 
 
 # ----------------------------------------------------------------------------------------------------- designs
-def _marker_for(name: str, i: int) -> tuple[str, str, float]:
-    low = name.lower()
-    if "random" in low:
-        return "o", "tab:red", 45.0
-    if "agnostic" in low:
-        return "D", "tab:blue", 55.0
-    if "design" in low or "misspec" in low:
-        return "s", "black", 90.0
-    others = (("^", "tab:green"), ("v", "tab:purple"), ("P", "tab:brown"), ("X", "tab:pink"))
-    m, c = others[i % len(others)]
-    return m, c, 60.0
-
-
 def _indices(idx, n: int, name: str) -> np.ndarray:
     if isinstance(idx, torch.Tensor):
         idx = idx.detach().cpu().numpy()
@@ -589,76 +666,108 @@ def _masses(masses) -> dict[str, np.ndarray]:
     return out
 
 
+def _design_styles(pick_names: Sequence[str], proxy_names: Sequence[str], styles: Any) -> dict[str, dict]:
+    """Marker and colour per pick (by position in :data:`DESIGN_STYLES`), trajectory colour and line per name."""
+    names = list(dict.fromkeys([*pick_names, *proxy_names]))
+    given = _check_styles(styles, names)
+    for name, style in given.items():
+        unknown = set(style) - set(_DESIGN_STYLE_KEYS)
+        if unknown:
+            raise InputError(f"styles[{name!r}]: expected keys among {list(_DESIGN_STYLE_KEYS)}, got {sorted(unknown)}")
+    out = {}
+    for i, name in enumerate(pick_names):
+        out[name] = {"linestyle": "-", **DESIGN_STYLES[i % len(DESIGN_STYLES)], **given.get(name, {})}
+    others = (dict(color="tab:gray", linestyle="-"), dict(color="tab:olive", linestyle="--"))
+    for j, name in enumerate(n for n in proxy_names if n not in out):  # trajectories of no pick: by position
+        out[name] = {**others[j % len(others)], **given.get(name, {})}
+    return out
+
+
 def plot_design(
     candidates_xy,
-    chosen: Mapping[str, Any],
+    picks: Mapping[str, Any] | None = None,
     *,
+    styles: Mapping[str, Mapping[str, Any]] | None = None,
     proxies: Mapping[str, Any] | None = None,
     proxy_dims: Sequence[int] = (0, 1),
     masses=None,
     domain=None,
     title: str | None = None,
     axis_labels: tuple[str, str] = ("$y_1$", "$y_2$"),
+    ax: Axes | None = None,
+    legend: bool | str = "right",
     path: str | Path | None = None,
     dpi: int = DPI,
+    chosen: Mapping[str, Any] | None = None,
 ) -> Figure:
-    """Paper Fig. 3 (left) and Fig. 6 (left): the candidate initial conditions and the designs picked among them.
+    """The candidate initial conditions and the picks of one or more designs among them.
 
     Args:
         candidates_xy: ``(N, 2)`` plotted coordinates of the candidates (for the gravity set-up, the positions).
-        chosen: design name -> integer indices (or a boolean mask) into the candidates. Names containing
-            ``"design"``/``"misspec"`` get black squares, ``"random"`` red circles, ``"agnostic"`` blue diamonds,
-            others further markers; markers are hollow so overlapping picks stay visible.
+        picks: design name -> integer indices (or a boolean mask ``(N,)``) into the candidates, drawn as hollow
+            markers so overlapping picks stay visible. Legend text ``"<name> (K=<picks>)"``.
+        styles: optional design name -> dict with any of ``marker``, ``color``, ``size`` (marker area, points^2)
+            and ``linestyle`` (of its trajectories). A pick without a style gets the one at its position in
+            ``picks`` from :data:`DESIGN_STYLES` (black squares, red circles, blue diamonds, ...).
         proxies: optional design name -> ``(K, T, d)`` trajectories (components ``proxy_dims``) drawn thin in the
-            design's colour, e.g. the misspecified model's proxy trajectories from the chosen conditions.
+            design's colour, e.g. the trajectories from the chosen conditions. Trajectories of a name that is not a
+            pick are grey (then olive dashed) unless ``styles`` says otherwise.
         masses: optional point masses, rows ``(x, y, m)`` (marker area ~ m), or a dict label -> rows to separate
             e.g. the known mass from the unknown ones.
         domain: optional box ``((x_lo, x_hi), (y_lo, y_hi))`` drawn dashed.
+        ax: draw into this Axes instead of a new figure.
+        legend: ``"right"`` (default, outside the axes), ``True``/``"axes"``, ``"below"`` or ``False``.
+        chosen: deprecated name of ``picks``.
     """
+    if chosen is not None:
+        warnings.warn("plot_design(chosen=...) is deprecated; use picks=...", DeprecationWarning, stacklevel=2)
+        if picks is not None:
+            raise InputError("picks: expected either picks or the deprecated chosen, got both")
+        picks = chosen
     cand = _as_array(candidates_xy, "candidates_xy")
     if cand.ndim != 2 or cand.shape[1] != 2:
         raise ShapeError(f"candidates_xy: expected shape (N, 2), got {cand.shape}")
     n = cand.shape[0]
-    if not isinstance(chosen, Mapping):
-        raise InputError(f"chosen: expected a dict design name -> indices, got {type(chosen).__name__}")
-    picks = {str(name): _indices(idx, n, f"chosen[{name!r}]") for name, idx in chosen.items()}
-    styles = {name: _marker_for(name, i) for i, name in enumerate(picks)}
+    if not isinstance(picks, Mapping):
+        raise InputError(f"picks: expected a dict design name -> indices, got {type(picks).__name__}")
+    picked = {str(name): _indices(idx, n, f"picks[{name!r}]") for name, idx in picks.items()}
     proxy_arrays = {}
     if proxies is not None:
+        if not isinstance(proxies, Mapping):
+            raise InputError(f"proxies: expected a dict name -> (K, T, d) trajectories, got {type(proxies).__name__}")
         for name, tr in proxies.items():
             arr = _states(tr, f"proxies[{name!r}]")
             proxy_dims = _check_dims(proxy_dims, arr.shape[2], "proxy_dims")
             proxy_arrays[str(name)] = arr
+    style_of = _design_styles(list(picked), list(proxy_arrays), styles)
     mass_groups = _masses(masses) if masses is not None else {}
-    box = _check_domain(domain) if domain is not None else None
+    box = check_domain(domain, dim=2) if domain is not None else None
+    legend = _check_legend(legend)
 
-    fig, axes = _new_figure(figsize=(PANEL_SIZE[0] + 1.9, PANEL_SIZE[1]))  # room for the legend on the right
-    ax = axes[0, 0]
+    fig, ax = _axes(ax, figsize=(PANEL_SIZE[0] + 1.9, PANEL_SIZE[1]))  # room for the legend on the right
     ax.scatter(cand[:, 0], cand[:, 1], s=8, color="0.7", label=f"candidates (N={n})", zorder=1)
-    extra = (("-", "tab:gray"), ("--", "tab:olive"))
-    for j, (name, arr) in enumerate(proxy_arrays.items()):
-        color = styles[name][1] if name in styles else extra[j % 2][1]
-        ls = "-" if name in styles else extra[j % 2][0]
+    for name, arr in proxy_arrays.items():
+        style = style_of[name]
         for k in range(arr.shape[0]):
             ax.plot(
                 arr[k, :, proxy_dims[0]],
                 arr[k, :, proxy_dims[1]],
-                color=color,
-                linestyle=ls,
+                color=style["color"],
+                linestyle=style["linestyle"],
                 linewidth=0.9,
                 alpha=0.7,
                 zorder=2,
                 label=f"{name} trajectories" if k == 0 else None,
             )
-    for name, idx in picks.items():
-        marker, color, size = styles[name]
+    for name, idx in picked.items():
+        style = style_of[name]
         ax.scatter(
             cand[idx, 0],
             cand[idx, 1],
-            s=size,
-            marker=marker,
+            s=style["size"],
+            marker=style["marker"],
             facecolors="none",
-            edgecolors=color,
+            edgecolors=style["color"],
             linewidths=1.6,
             zorder=4,
             label=f"{name} (K={idx.size})",
@@ -684,10 +793,11 @@ def plot_design(
     ax.set_ylabel(axis_labels[1])
     ax.set_title(title if title is not None else "Experimental design")
     ax.set_aspect("equal", adjustable="datalim")
-    legend = ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small", borderaxespad=0.0)
-    for handle, text in zip(legend.legend_handles, legend.get_texts(), strict=True):
-        if text.get_text() in mass_groups:
-            handle.set_sizes([70.0])  # mass markers scale with m on the map, not in the legend
+    drawn = _place_legend(ax, ax.get_legend_handles_labels()[0], legend)
+    if drawn is not None:
+        for handle, text in zip(drawn.legend_handles, drawn.get_texts(), strict=True):
+            if text.get_text() in mass_groups:
+                handle.set_sizes([70.0])  # mass markers scale with m on the map, not in the legend
     ax.grid(True, alpha=0.3)
     return _finish(fig, path, dpi)
 
@@ -712,21 +822,30 @@ def plot_error_curves(
     ks,
     curves: Mapping[str, Any],
     *,
+    styles: Mapping[str, Mapping[str, Any]] | None = None,
     reference_lines: Mapping[str, float] | None = None,
     ylabel: str = "estimation error",
     xlabel: str = "number of experiments $K$",
     logy: bool = True,
     title: str | None = None,
+    ax: Axes | None = None,
+    legend: bool | str = True,
     path: str | Path | None = None,
     dpi: int = DPI,
 ) -> Figure:
-    """Paper Figs. 5 and 8: error against the number of experiments, with error bars and reference levels.
+    """Error against the number of experiments, one curve per method with error bars, and reference levels.
 
     Args:
         ks: ``(n,)`` numbers of experiments.
-        curves: method name -> ``(mean, stderr)`` (each ``(n,)``; stderr may be None) or just a mean ``(n,)``.
+        curves: method name (the legend text) -> ``(mean, stderr)`` (each ``(n,)``; stderr may be None) or just a
+            mean ``(n,)``.
+        styles: optional method name -> keywords of ``Axes.errorbar`` (e.g. ``marker``, ``color``, ``linestyle``);
+            a curve without one gets marker i of :data:`CURVE_MARKERS` and colour i of matplotlib's cycle, i its
+            position in ``curves``.
         reference_lines: label -> level drawn as a horizontal dashed line (e.g. the energy of F, of G + F).
         logy: logarithmic y axis.
+        ax: draw into this Axes instead of a new figure.
+        legend: ``True``/``"axes"``, ``"right"``, ``"below"`` or ``False``.
     """
     k = _as_array(ks, "ks")
     if k.ndim != 1 or k.size == 0:
@@ -734,20 +853,26 @@ def plot_error_curves(
     if not isinstance(curves, Mapping) or len(curves) == 0:
         raise InputError(f"curves: expected a non-empty dict name -> (mean, stderr), got {type(curves).__name__}")
     data = {str(name): _curve(v, k.size, f"curves[{name!r}]") for name, v in curves.items()}
+    given = _check_styles(styles, list(data))
     refs = {}
     for label, level in (reference_lines or {}).items():
         try:
             refs[str(label)] = float(level)
         except (TypeError, ValueError) as exc:
             raise InputError(f"reference_lines[{label!r}]: expected a number, got {level!r}") from exc
+    legend = _check_legend(legend)
 
-    fig, axes = _new_figure()
-    ax = axes[0, 0]
-    markers = ("o", "s", "^", "D", "v", "P")
+    fig, ax = _axes(ax)
     for i, (name, (mean, err)) in enumerate(data.items()):
-        ax.errorbar(
-            k, mean, yerr=err, marker=markers[i % len(markers)], markersize=4, capsize=3, linewidth=1.3, label=name
-        )
+        style = {
+            "marker": CURVE_MARKERS[i % len(CURVE_MARKERS)],
+            "color": f"C{i % 10}",
+            "markersize": 4,
+            "capsize": 3,
+            "linewidth": 1.3,
+            **given.get(name, {}),
+        }
+        ax.errorbar(k, mean, yerr=err, label=name, **style)
     ref_colors = ("tab:red", "tab:gray", "tab:purple", "tab:brown")
     for i, (label, level) in enumerate(refs.items()):
         ax.axhline(level, linestyle="--", linewidth=1.2, color=ref_colors[i % len(ref_colors)], label=label)
@@ -756,6 +881,6 @@ def plot_error_curves(
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title if title is not None else "Estimation error vs. number of experiments")
-    ax.legend(loc="best", fontsize="small", framealpha=0.85)
+    _place_legend(ax, ax.get_legend_handles_labels()[0], legend)
     ax.grid(True, which="both", alpha=0.3)
     return _finish(fig, path, dpi)

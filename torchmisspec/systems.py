@@ -22,6 +22,7 @@ __all__ = [
     "PointMassGravity",
     "paper_linear",
     "paper_gravity",
+    "PAPER_GRAVITY_KNOWN_MASS",
     "gravity_candidates",
     "data_driven",
     "ZeroField",
@@ -221,15 +222,19 @@ def paper_linear() -> MisspecifiedSystem:
     )
 
 
+PAPER_GRAVITY_KNOWN_MASS = 0.2  #: the mass at the origin that the known model G of :func:`paper_gravity` has
+
+
 def paper_gravity() -> MisspecifiedSystem:
     """Paper §5.3: a unit mass in the plane, state (x1, x2, v1, v2).
 
-    G: one mass 0.2 at the origin. True F: masses 0.1 at (0, 4) and 0.4 at (0.5, 3.8), acting on the velocities
-    (outputs 2, 3) and depending on the positions (inputs 0, 1). The paper does not state its domain D; we use
-    the box [-2, 2]^2 around the central mass, where :func:`gravity_candidates` places the initial positions.
+    G: one mass :data:`PAPER_GRAVITY_KNOWN_MASS` at the origin. True F: masses 0.1 at (0, 4) and 0.4 at
+    (0.5, 3.8), acting on the velocities (outputs 2, 3) and depending on the positions (inputs 0, 1). The paper
+    does not state its domain D; we use the box [-2, 2]^2 around the central mass, where
+    :func:`torchmisspec.design.candidates.orbits` places the initial positions.
     """
     return MisspecifiedSystem(
-        PointMassGravity([0.2], [[0.0, 0.0]], first_order=True),
+        PointMassGravity([PAPER_GRAVITY_KNOWN_MASS], [[0.0, 0.0]], first_order=True),
         4,
         correction=PointMassGravity([0.1, 0.4], [[0.0, 4.0], [0.5, 3.8]]),
         correction_inputs=(0, 1),
@@ -247,28 +252,20 @@ def gravity_candidates(
     min_radius: float = 0.75,
     dtype=torch.float64,
 ) -> torch.Tensor:
-    """Candidate initial conditions ``(n, 4)`` for :func:`paper_gravity` (the paper does not list its set).
+    """Deprecated: use :func:`torchmisspec.design.candidates.orbits` (same arguments, same draws).
 
-    Positions uniform in the box [-half_width, half_width]^2 outside a disc of ``min_radius`` around the known
-    mass; velocities of a circular counter-clockwise orbit about the known mass (speed sqrt(m / r)), so every
-    experiment is a satellite released into orbit that the unknown masses perturb.
+    Candidate initial conditions ``(n, 4)`` on circular orbits about the known mass of :func:`paper_gravity`.
     """
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise InputError(f"n: expected a positive integer, got {n!r}")
-    if not 0 < min_radius < half_width:
-        raise InputError(f"min_radius: expected 0 < min_radius < half_width={half_width}, got {min_radius}")
-    points = []
-    count = 0
-    while count < n:
-        x = (torch.rand(2 * n, 2, generator=generator, dtype=dtype) * 2 - 1) * half_width
-        x = x[torch.linalg.vector_norm(x, dim=-1) >= min_radius]
-        points.append(x)
-        count += x.shape[0]
-    x = torch.cat(points)[:n]
-    r = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
-    speed = torch.sqrt(0.2 / r)
-    v = speed * torch.stack([-x[:, 1], x[:, 0]], -1) / r
-    return torch.cat([x, v], dim=-1)
+    import warnings
+
+    from .design.candidates import orbits
+
+    warnings.warn(
+        "torchmisspec.systems.gravity_candidates is deprecated; use torchmisspec.design.candidates.orbits",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return orbits(n, generator=generator, half_width=half_width, min_radius=min_radius, dtype=dtype)
 
 
 def data_driven(system: MisspecifiedSystem) -> MisspecifiedSystem:
