@@ -347,11 +347,11 @@ def test_agnostic_design_uses_constant_proxies():
 
 
 # --------------------------------------------------------------------------------------------- proxy vs truth
-def test_exact_information_gain_and_theorem1_bound():
+def test_true_information_gain_and_theorem1_bound():
     system, gp, cand = paper_linear(), make_gp(1e-2), grid13()
     res = design.greedy(cand, 4, system=system, times=TIMES, gp=gp)
     true = simulate(system, cand[res.indices], TIMES).states
-    exact = design.exact_information_gain(res, cand, system=system, times=TIMES, gp=gp)
+    exact = design.true_information_gain(res, cand, system=system, times=TIMES, gp=gp)
     assert exact == pytest.approx(brute_gain(true.reshape(-1, 2), 1e-2, 1.0), rel=1e-8)
     check = design.proxy_check(res.indices, cand, system=system, times=TIMES, gp=gp)
     assert check.proxy_gain == pytest.approx(res.information_gain, rel=1e-8)
@@ -369,8 +369,10 @@ def test_exact_information_gain_and_theorem1_bound():
     blockwise = design.proxy_gap_bound([84], cand, system=system, times=short, gp=make_gp(1e-4), blockwise=True)
     assert small.gap <= blockwise <= small.bound
     # observed states instead of a simulation
-    given = design.exact_information_gain(res, cand, system=system, times=TIMES, gp=gp, states=true)
+    given = design.true_information_gain(res, cand, system=system, times=TIMES, gp=gp, states=true)
     assert given == pytest.approx(exact, rel=1e-12)
+    with pytest.warns(DeprecationWarning, match="use design.true_information_gain"):
+        assert design.exact_information_gain(res, cand, system=system, times=TIMES, gp=gp) == exact
 
 
 # ------------------------------------------------------------------------------------------------ bad inputs
@@ -419,7 +421,7 @@ def test_bad_inputs_raise():
     with pytest.raises(InputError, match="times"):
         design.greedy(cand, 2, system=system, gp=gp)
     with pytest.raises(InputError, match="no true correction"):
-        design.exact_information_gain([0], cand, system=paper_linear_without_f(), times=TIMES, gp=gp)
+        design.true_information_gain([0], cand, system=paper_linear_without_f(), times=TIMES, gp=gp)
 
 
 def paper_linear_without_f():

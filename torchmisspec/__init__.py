@@ -15,16 +15,22 @@ Typical use::
     pred = tms.CorrectedODE(system, gp).predict(y0_new, times)
 """
 
-from . import design, metrics, studies, systems
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _version
+
+from . import design, metrics, systems
 from ._errors import (
     BudgetError,
     FittingError,
     InputError,
     IntegrationError,
+    LinearAlgebraError,
     NotFittedError,
     NotPositiveDefiniteError,
+    NumericalWarning,
     ShapeError,
     TorchMisspecError,
+    TorchMisspecWarning,
 )
 from .data import Trajectories, simulate
 from .dynamics import CorrectedODE
@@ -33,10 +39,17 @@ from .metrics import correction_error, integrated_error, integrated_norm, trajec
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
 from .systems import MisspecifiedSystem
 
-__version__ = "0.1.0"
+try:
+    __version__ = _version("torchmisspec")
+except _PackageNotFoundError:  # pragma: no cover - running from a source tree that was never installed
+    __version__ = "0+unknown"
 
 __all__ = [
     "BudgetError",
+    "LinearAlgebraError",
+    "NumericalWarning",
+    "TorchMisspecWarning",
+    "__version__",
     "CorrectedODE",
     "CorrectionGP",
     "CorrectionSamples",
@@ -59,7 +72,24 @@ __all__ = [
     "metrics",
     "simulate",
     "smoothed_derivative",
-    "studies",
     "systems",
     "trajectory_rmse",
 ]
+
+
+def __getattr__(name: str):
+    """Deprecated top-level names (the paper's studies moved to :mod:`torchmisspec.paper`)."""
+    if name == "studies":
+        import importlib
+        import warnings
+
+        warnings.warn(
+            "torchmisspec.studies is deprecated: the paper's studies live in torchmisspec.paper.studies and the "
+            "candidate generators in torchmisspec.design.candidates",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            return importlib.import_module("torchmisspec.studies")
+    raise AttributeError(f"module 'torchmisspec' has no attribute {name!r}")

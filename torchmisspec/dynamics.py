@@ -46,9 +46,14 @@ class CorrectedODE(nn.Module):
 
     def correction(self, y: torch.Tensor) -> torch.Tensor:
         """mu placed on the full state: ``(..., d)`` from states ``(..., d)``."""
+        return self._correction(y, None)
+
+    def _correction(self, y: torch.Tensor, cache) -> torch.Tensor:
         x = self.system.select_inputs(y)
         shape = x.shape[:-1]
-        mu = self.gp.predict_mean(x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype))
+        x = x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype)
+        # inside predict() the cache was validated once for the whole solve; a direct call checks everything
+        mu = self.gp.predict_mean(x) if cache is None else self.gp._mean_from(cache, x)
         return self.system.embed(mu.reshape(*shape, -1).to(y.device, y.dtype))
 
     def field(self, y: torch.Tensor) -> torch.Tensor:
@@ -80,8 +85,13 @@ class CorrectedODE(nn.Module):
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
+        cache = self.gp._posterior_cache()  # refreshed here if the GP changed since its last prediction
+
+        def field(y: torch.Tensor) -> torch.Tensor:
+            return self.system.known(y) + self._correction(y, cache)
+
         with torch.no_grad():
             states, self.nfe = solve(
-                self.field, y0, times, method=method, rtol=rtol, atol=atol, options=options, what="CorrectedODE.predict"
+                field, y0, times, method=method, rtol=rtol, atol=atol, options=options, what="CorrectedODE.predict"
             )
         return states

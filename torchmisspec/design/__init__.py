@@ -17,14 +17,21 @@ Public functions:
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
 * :func:`random`, :func:`agnostic` - baseline designs (random; ignore G, i.e. constant proxy trajectories).
 * :func:`marginal_gains` - gains of a given ordered design.
-* :func:`exact_information_gain`, :func:`proxy_gap_bound`, :func:`proxy_check` - the true criterion along the true
+* :func:`true_information_gain`, :func:`proxy_gap_bound`, :func:`proxy_check` - the true criterion along the true
   trajectories and the Theorem 1 bound on the proxy's error.
 """
 
 from . import candidates
 from ._baselines import agnostic, marginal_gains, random
 from ._common import DesignResult
-from ._gain import ProxyCheck, exact_information_gain, information_gain, proxy_check, proxy_gap_bound
+from ._gain import (
+    ProxyCheck,
+    exact_information_gain,
+    information_gain,
+    proxy_check,
+    proxy_gap_bound,
+    true_information_gain,
+)
 from ._greedy import greedy
 from ._proxy import proxy_trajectories
 
@@ -41,4 +48,5 @@ __all__ = [
     "proxy_gap_bound",
     "proxy_trajectories",
     "random",
+    "true_information_gain",
 ]

@@ -14,6 +14,7 @@ package reports are in the real-Gaussian nats above.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -34,7 +35,14 @@ from ._common import (
 )
 from ._proxy import proxy_trajectories
 
-__all__ = ["information_gain", "exact_information_gain", "proxy_gap_bound", "proxy_check", "ProxyCheck"]
+__all__ = [
+    "information_gain",
+    "true_information_gain",
+    "exact_information_gain",
+    "proxy_gap_bound",
+    "proxy_check",
+    "ProxyCheck",
+]
 
 
 def _d_out(d_out, gp: CorrectionGP) -> int:
@@ -133,10 +141,12 @@ def _design_points(indices, candidates, system, times, gp, proxies, states):
     return kern, system.select_inputs(prox).reshape(-1, d_in), system.select_inputs(true).reshape(-1, d_in), system
 
 
-def exact_information_gain(
+def true_information_gain(
     indices, candidates, *, system: MisspecifiedSystem, times, gp: CorrectionGP, states=None
 ) -> float:
-    """Information gain (nats) of samples along the TRUE trajectories (G + F) of the chosen experiments.
+    """Information gain (nats) of samples along the true trajectories (G + F) of the chosen experiments.
+
+    The design maximises the gain along the *proxy* trajectories (G alone); this is the quantity they stand in for.
 
     This is the quantity G(Y_0) the proxy stands in for (paper eq. accurate_cost_function). The true trajectories
     are simulated from ``candidates[indices]`` (the system must carry its true correction), or given as
@@ -172,7 +182,7 @@ def proxy_check(
 ) -> ProxyCheck:
     """Proxy gain, exact gain, their largest kernel discrepancy and the Theorem 1 bound, for one design.
 
-    See :func:`proxy_gap_bound` for the bound and :func:`exact_information_gain` for the arguments.
+    See :func:`proxy_gap_bound` for the bound and :func:`true_information_gain` for the arguments.
     """
     kern, prox_x, true_x, system = _design_points(indices, candidates, system, times, gp, proxies, states)
     Kp, Kt = kern(prox_x), kern(true_x)
@@ -227,3 +237,14 @@ def proxy_gap_bound(
     return proxy_check(
         indices, candidates, system=system, times=times, gp=gp, proxies=proxies, states=states, blockwise=blockwise
     ).bound
+
+
+def exact_information_gain(*args, **kwargs) -> float:
+    """Deprecated name of :func:`true_information_gain` (the gain along the true trajectories)."""
+    warnings.warn(
+        "design.exact_information_gain is deprecated; it is the information gain along the true trajectories: "
+        "use design.true_information_gain",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return true_information_gain(*args, **kwargs)
