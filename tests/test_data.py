@@ -140,7 +140,7 @@ def test_system_rejects_bad_indices_and_names():
         MisspecifiedSystem(field, 3, correction_inputs=[0, 3])
     with pytest.raises(tms.InputError, match="correction_outputs: expected distinct indices, got repeats"):
         MisspecifiedSystem(field, 3, correction_outputs=[1, 1])
-    with pytest.raises(tms.InputError, match="state_dim: expected a positive integer"):
+    with pytest.raises(tms.InputError, match="state_dim: expected an integer >= 1, got 0"):
         MisspecifiedSystem(field, 0)
     with pytest.raises(tms.InputError, match="unknown system name 'nope'"):
         tms.systems.get_system("nope")

@@ -49,7 +49,7 @@ def test_trajectory_rmse():
 
 
 def test_metric_bad_input(linear_system):
-    with pytest.raises(tms.InputError, match="domain: expected at least one interval with lo < hi"):
+    with pytest.raises(tms.InputError, match="domain: expected at least one interval with finite lo < hi"):
         tms.integrated_norm(linear_system.correction, ((1.0, -1.0),))
     with pytest.raises(tms.InputError, match="resolution: expected an integer >= 2"):
         box_grid(((0, 1),), 1)

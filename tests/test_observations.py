@@ -172,7 +172,7 @@ def test_smoother_bad_inputs():
         smoothed_derivative(states, t, degree=0)
     with pytest.raises(InputError, match=r"window=11 needs at least 11 samples per trajectory, got T=9"):
         smoothed_derivative(states, t, window=11)
-    with pytest.raises(InputError, match=r"window: expected an integer, got 7.0"):
+    with pytest.raises(InputError, match=r"window: expected an integer >= 1, got 7.0 \(float\)"):
         smoothed_derivative(states, t, window=7.0)
 
 

@@ -3,6 +3,17 @@
 Many initial conditions are integrated in one torchdiffeq call. Per-experiment time grids ``(B, T)`` are handled
 by integrating on the sorted union of all times and gathering each experiment's own times, so the batch still
 costs one solve. Non-finite states or a solver that gives up raise :class:`IntegrationError`.
+
+**Tolerance policy** (one rule for every solve in the package, dopri5 by default):
+
+* :data:`SIMULATION_TOLERANCES` ``rtol=1e-10, atol=1e-12`` for simulations of a *given* model - the true system
+  (:func:`~torchmisspec.simulate`), the known model's proxy trajectories (:mod:`torchmisspec.design`) and the true
+  trajectories of a design - so that solver error never limits an accuracy check or a comparison of designs;
+* :data:`PREDICTION_TOLERANCES` ``rtol=1e-7, atol=1e-9`` for the corrected model
+  (:meth:`~torchmisspec.CorrectedODE.predict`), whose own error (F_hat - F) is orders of magnitude larger: tighter
+  tolerances would cost steps without changing what is predicted.
+
+Every public function that solves takes ``rtol``/``atol`` keywords to override its default.
 """
 
 from __future__ import annotations
@@ -14,6 +25,11 @@ from torchdiffeq import odeint
 
 from ._errors import IntegrationError, ShapeError
 from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+
+#: (rtol, atol) of simulations of a given model: the truth, the proxies (see the module docstring)
+SIMULATION_TOLERANCES = (1e-10, 1e-12)
+#: (rtol, atol) of the corrected model's predictions (see the module docstring)
+PREDICTION_TOLERANCES = (1e-7, 1e-9)
 
 
 def initial_conditions_and_times(
@@ -54,8 +70,8 @@ def solve(
     times: torch.Tensor,
     *,
     method: str = "dopri5",
-    rtol: float = 1e-7,
-    atol: float = 1e-9,
+    rtol: float = PREDICTION_TOLERANCES[0],
+    atol: float = PREDICTION_TOLERANCES[1],
     options: dict | None = None,
     what: str = "ODE",
 ) -> tuple[torch.Tensor, int]:

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from ._errors import InputError, ShapeError
-from ._ode import initial_conditions_and_times, solve
-from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
+from ._validation import states_and_times
 from .systems import MisspecifiedSystem
 
 __all__ = ["Trajectories", "simulate"]
@@ -36,18 +36,7 @@ class Trajectories:
     states: torch.Tensor
 
     def __post_init__(self) -> None:
-        states = check_ndim(as_tensor(self.states, "states"), 3, "states", "(K, T, d)")
-        times = as_tensor(self.times, "times", dtype=states.dtype, device=states.device)
-        check_ndim(times, (1, 2), "times", "(T,) or (K, T)")
-        check_finite(states, "states")
-        check_finite(times, "times")
-        K, T, _ = states.shape
-        if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
-            expected = f"({T},) or ({K}, {T})"
-            raise ShapeError(
-                f"times: expected shape {expected} to match states {tuple(states.shape)}, got {tuple(times.shape)}"
-            )
-        check_increasing(times, "times")
+        states, times = states_and_times(self.states, self.times)
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
 
@@ -149,8 +138,8 @@ def simulate(
     *,
     known_only: bool = False,
     method: str = "dopri5",
-    rtol: float = 1e-10,
-    atol: float = 1e-12,
+    rtol: float = SIMULATION_TOLERANCES[0],
+    atol: float = SIMULATION_TOLERANCES[1],
 ) -> Trajectories:
     """Integrate the true dynamics G + F from every initial condition in one batched solve.
 
@@ -159,7 +148,8 @@ def simulate(
         y0: initial conditions ``(K, d)`` (or ``(d,)`` for one), the states at ``times[..., 0]``.
         times: ``(T,)`` shared, or ``(K, T)`` per experiment; strictly increasing.
         known_only: integrate the misspecified model G alone (the proxy / baseline trajectories).
-        method, rtol, atol: torchdiffeq options (tight tolerances by default: this is the ground truth).
+        method, rtol, atol: torchdiffeq options (the package's simulation tolerances by default, see
+            :mod:`torchmisspec._ode`: this is the ground truth).
 
     Returns:
         :class:`Trajectories` with ``states (K, T, d)``.

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from ._errors import InputError, NotFittedError, ShapeError
-from ._ode import initial_conditions_and_times, solve
+from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from .gp import CorrectionGP
 from .systems import MisspecifiedSystem
 
@@ -69,8 +69,8 @@ class CorrectedODE(nn.Module):
         times,
         *,
         method: str = "dopri5",
-        rtol: float = 1e-7,
-        atol: float = 1e-9,
+        rtol: float = PREDICTION_TOLERANCES[0],
+        atol: float = PREDICTION_TOLERANCES[1],
         options: dict | None = None,
     ) -> torch.Tensor:
         """Integrate the corrected model from every initial condition in one batched solve.
@@ -78,6 +78,8 @@ class CorrectedODE(nn.Module):
         Args:
             y0: ``(B, d)`` initial conditions at ``times[..., 0]`` (or ``(d,)`` for one).
             times: ``(T,)`` shared, or ``(B, T)`` per initial condition; strictly increasing.
+            method, rtol, atol, options: torchdiffeq options (the package's prediction tolerances by default: see
+                :mod:`torchmisspec._ode`).
 
         Returns:
             states ``(B, T, d)`` in the GP's dtype. Raises :class:`IntegrationError` if a trajectory blows up.

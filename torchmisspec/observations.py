@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+from ._validation import check_finite, check_positive_int, states_and_times
 from .data import Trajectories
 from .systems import MisspecifiedSystem
 
@@ -43,30 +43,10 @@ _FD_ORDERS = (2, 4)
 
 # ---------------------------------------------------------------------------------------------------------------
 # Shared helpers
-def _check_int(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise InputError(f"{name}: expected an integer, got {value!r} ({type(value).__name__})")
-    return value
-
-
 def _states_and_times(states, times) -> tuple[torch.Tensor, torch.Tensor]:
-    """Validate ``states (K, T, d)`` and ``times (T,) or (K, T)``; times follow the states' dtype and device.
-
-    Returns the states and the times as ``(1, T)`` (shared grid) or ``(K, T)``.
-    """
-    states = check_ndim(as_tensor(states, "states"), 3, "states", "(K, T, d)")
-    times = as_tensor(times, "times", dtype=states.dtype, device=states.device)
-    check_ndim(times, (1, 2), "times", "(T,) or (K, T)")
-    K, T, _ = states.shape
-    if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
-        raise ShapeError(
-            f"times: expected shape ({T},) or ({K}, {T}) to match states {tuple(states.shape)}, "
-            f"got {tuple(times.shape)}"
-        )
-    check_finite(states, "states")
-    check_finite(times, "times")
-    check_increasing(times, "times")
-    return states, times.reshape(-1, T)
+    """The shared states/times check; the times come back as ``(1, T)`` (shared grid) or ``(K, T)``."""
+    states, times = states_and_times(states, times)
+    return states, times.reshape(-1, states.shape[1])
 
 
 def _stencil_index(T: int, width: int, device) -> torch.Tensor:
@@ -134,7 +114,7 @@ def finite_difference(states, times, *, order: int = 2) -> torch.Tensor:
         ShapeError: ``states`` is not 3-D or ``times`` does not match it.
         InputError: NaN/inf values, non-increasing times, a bad ``order``, or fewer samples than the stencil needs.
     """
-    order = _check_int(order, "order")
+    order = check_positive_int(order, "order")
     if order not in _FD_ORDERS:
         raise InputError(f"order: expected one of {list(_FD_ORDERS)}, got {order}")
     states, times = _states_and_times(states, times)
@@ -171,8 +151,8 @@ def smoothed_derivative(states, times, *, window: int = 7, degree: int = 2) -> t
         ShapeError: ``states`` is not 3-D or ``times`` does not match it.
         InputError: NaN/inf values, non-increasing times, bad ``window`` / ``degree``, or ``T < window``.
     """
-    window = _check_int(window, "window")
-    degree = _check_int(degree, "degree")
+    window = check_positive_int(window, "window")
+    degree = check_positive_int(degree, "degree", minimum=0)
     if degree < 1:
         raise InputError(f"degree: expected an integer >= 1 (the derivative is the linear coefficient), got {degree}")
     if window % 2 == 0 or window < 3:

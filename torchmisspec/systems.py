@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ._errors import InputError, ShapeError
-from ._validation import check_indices
+from ._validation import check_domain, check_indices, check_positive_int
 
 __all__ = [
     "MisspecifiedSystem",
@@ -62,20 +62,14 @@ class MisspecifiedSystem:
             raise InputError(f"known: expected a callable G(y), got {type(known).__name__}")
         if correction is not None and not callable(correction):
             raise InputError(f"correction: expected a callable F or None, got {type(correction).__name__}")
-        if isinstance(state_dim, bool) or not isinstance(state_dim, int) or state_dim < 1:
-            raise InputError(f"state_dim: expected a positive integer, got {state_dim!r}")
+        state_dim = check_positive_int(state_dim, "state_dim")
         self.known = known
         self.state_dim = state_dim
         self.correction = correction
         self.correction_inputs = check_indices(correction_inputs, state_dim, "correction_inputs")
         self.correction_outputs = check_indices(correction_outputs, state_dim, "correction_outputs")
         if domain is not None:
-            domain = tuple((float(lo), float(hi)) for lo, hi in domain)
-            if len(domain) != len(self.correction_inputs) or any(not lo < hi for lo, hi in domain):
-                raise InputError(
-                    f"domain: expected {len(self.correction_inputs)} intervals (lo, hi) with lo < hi, one per "
-                    f"correction input, got {domain}"
-                )
+            domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=len(self.correction_inputs))
         self.domain = domain
         if known_matrix is not None:
             known_matrix = torch.as_tensor(known_matrix, dtype=torch.float64)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import as_tensor, check_finite, check_indices, check_ndim
+from .._validation import as_tensor, check_finite, check_indices, check_ndim, check_positive_int
 from ..data import simulate
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
@@ -53,9 +53,7 @@ def _d_out(d_out, gp: CorrectionGP) -> int:
                 "be read from an unfitted gp"
             )
         return int(gp.output_dim)
-    if isinstance(d_out, bool) or not isinstance(d_out, int) or d_out < 1:
-        raise InputError(f"d_out: expected a positive integer, got {d_out!r}")
-    return d_out
+    return check_positive_int(d_out, "d_out")
 
 
 def information_gain(points, gp: CorrectionGP, *, d_out: int | None = None) -> float:

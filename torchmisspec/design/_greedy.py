@@ -42,7 +42,7 @@ import torch
 
 from .._errors import InputError
 from .._linalg import cholesky
-from .._validation import progress_bar
+from .._validation import check_positive_int, progress_bar
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 from ._common import (
@@ -522,12 +522,11 @@ def greedy(
     method = resolve_method(method, lazy)
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-        raise InputError(f"batch_size: expected a positive integer, got {batch_size!r}")
+    batch_size = check_positive_int(batch_size, "batch_size")
     if screen not in ("auto", True, False):
         raise InputError(f"screen: expected 'auto', True or False, got {screen!r}")
-    if max_rank is not None and (isinstance(max_rank, bool) or not isinstance(max_rank, int) or max_rank < 1):
-        raise InputError(f"max_rank: expected a positive integer or None, got {max_rank!r}")
+    if max_rank is not None:
+        max_rank = check_positive_int(max_rank, "max_rank")
     prob = _Problem(candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol)
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES

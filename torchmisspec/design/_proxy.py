@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from .._errors import InputError
+from .._ode import SIMULATION_TOLERANCES
 from ..data import simulate
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
@@ -19,8 +20,8 @@ def proxy_trajectories(
     *,
     known_only: bool = True,
     method: str = "dopri5",
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
+    rtol: float = SIMULATION_TOLERANCES[0],
+    atol: float = SIMULATION_TOLERANCES[1],
 ) -> torch.Tensor:
     """The known model's trajectories y_G(t) from every candidate initial condition, in one batched computation.
 
@@ -34,7 +35,8 @@ def proxy_trajectories(
         times: ``(T,)`` strictly increasing observation times (the first is the time of the initial condition).
         known_only: ``True`` (the design proxy) integrates G alone; ``False`` integrates the true system G + F
             (needs a system with a true correction; used to assess the proxy).
-        method, rtol, atol: torchdiffeq options for the non-linear case.
+        method, rtol, atol: torchdiffeq options for the non-linear case (the package's simulation tolerances by
+            default: see :mod:`torchmisspec._ode`).
 
     Returns:
         ``(N, T, d)`` states, in the candidates' dtype and on their device.
