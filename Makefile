@@ -1,13 +1,15 @@
 # Set-up in one command each, on a fresh machine (Python 3.10+ with venv):
 #   make demo   creates .venv, installs torch==2.13.0 (CPU wheel) and the package, runs `torchmisspec demo`
-#   make test   creates .venv, installs the package with its test extras, runs the test suite
+#   make test   creates .venv, installs the package with its test extras, then runs everything CI checks:
+#               ruff check, ruff format --check, the whole test suite (slow tests included), the docs build
+#               (mkdocs build --strict) and the smoke reproduction of the paper's figures
 # torch is pinned and installed with pip *before* the package, so pip never pulls a CUDA build.
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install demo test test-all benchmark lint clean
+.PHONY: install demo test test-fast lint format docs reproduce-smoke benchmark clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -23,18 +25,28 @@ install: $(VENV)/.installed
 demo: install
 	$(BIN)/torchmisspec demo --out demo-output
 
-test: install
-	$(BIN)/python -m pytest -q
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
-test-all: install
+format: install
+	$(BIN)/ruff format .
+
+docs: install
+	$(BIN)/mkdocs build --strict --quiet
+
+reproduce-smoke: install
+	$(BIN)/python scripts/reproduce_paper.py --all --smoke --quiet --out reproduction-output/smoke
+
+test: lint
 	$(BIN)/python -m pytest -q -m "slow or not slow"
+	$(MAKE) docs reproduce-smoke
+
+test-fast: install
+	$(BIN)/python -m pytest -q
 
 benchmark: install
 	$(BIN)/python scripts/benchmark.py
 
-lint: install
-	$(BIN)/python -m pip install ruff
-	$(BIN)/ruff check torchmisspec tests scripts
-
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache
+	rm -rf $(VENV) demo-output site reproduction-output .pytest_cache

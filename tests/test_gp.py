@@ -147,6 +147,12 @@ def test_one_dimensional_targets_and_float32_inputs(generator):
     gp = tms.CorrectionGP(**HYPER).fit(X.float(), Y[:, 0].float())
     assert gp.train_inputs_.dtype == torch.float64 and gp.output_dim == 1
     assert gp.predict_mean(X[:3]).shape == (3, 1)
+    # float32 data are fitted in float64: the same fit as the same numbers given in float64
+    learned32 = tms.CorrectionGP().fit(X.float(), Y.float())
+    learned64 = tms.CorrectionGP().fit(X.float().double(), Y.float().double())
+    for name in ("lengthscale", "outputscale", "noise_variance", "log_marginal_likelihood_"):
+        assert getattr(learned32, name) == getattr(learned64, name)
+    torch.testing.assert_close(learned32.predict_mean(X.float()), learned64.predict_mean(X), rtol=0, atol=1e-7)
 
 
 def test_unfitted_model_reports_only_given_values():
