@@ -24,7 +24,7 @@ import torch
 from torchdiffeq import odeint
 
 from ._errors import IntegrationError, ShapeError
-from ._validation import as_tensor, check_finite, check_increasing, check_ndim
+from ._validation import as_tensor, check_finite, check_ndim, check_times
 
 #: (rtol, atol) of simulations of a given model: the truth, the proxies (see the module docstring)
 SIMULATION_TOLERANCES = (1e-10, 1e-12)
@@ -42,10 +42,7 @@ def initial_conditions_and_times(
     check_ndim(y0, 2, "y0", f"(B, {state_dim})")
     check_states(y0, "y0")
     check_finite(y0, "y0")
-    times = as_tensor(times, "times", dtype=y0.dtype, device=y0.device)
-    check_ndim(times, (1, 2), "times", "(T,) or (B, T)")
-    check_finite(times, "times")
-    check_increasing(times, "times")
+    times = check_times(times, "times", per_row=True, dtype=y0.dtype, device=y0.device)
     if times.dim() == 2 and times.shape[0] != y0.shape[0]:
         raise ShapeError(f"times: expected ({y0.shape[0]}, T) to match y0 {tuple(y0.shape)}, got {tuple(times.shape)}")
     return y0, times

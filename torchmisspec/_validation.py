@@ -109,6 +109,16 @@ def check_domain(domain, name: str = "domain", *, dim: int | None = None) -> tup
     return box
 
 
+def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None, device=None) -> torch.Tensor:
+    """Observation times: ``(T,)`` (or ``(K, T)`` with ``per_row``), at least one, finite, strictly increasing."""
+    t = as_tensor(times, name, dtype=dtype, device=device)
+    check_ndim(t, (1, 2) if per_row else 1, name, "(T,) or (K, T)" if per_row else "(T,)")
+    if t.shape[-1] < 1:
+        raise ShapeError(f"{name}: expected at least one time, got shape {tuple(t.shape)}")
+    check_finite(t, name)
+    return check_increasing(t, name)
+
+
 def states_and_times(states, times, *, states_name: str = "states", times_name: str = "times"):
     """Validate ``states (K, T, d)`` and ``times (T,)`` or ``(K, T)``: shapes agree, finite, strictly increasing.
 
@@ -116,8 +126,7 @@ def states_and_times(states, times, *, states_name: str = "states", times_name: 
     (K, T)).
     """
     states = check_ndim(as_tensor(states, states_name), 3, states_name, "(K, T, d)")
-    times = as_tensor(times, times_name, dtype=states.dtype, device=states.device)
-    check_ndim(times, (1, 2), times_name, "(T,) or (K, T)")
+    times = check_times(times, times_name, per_row=True, dtype=states.dtype, device=states.device)
     K, T, _ = states.shape
     if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
         raise ShapeError(
@@ -125,8 +134,6 @@ def states_and_times(states, times, *, states_name: str = "states", times_name: 
             f"got {tuple(times.shape)}"
         )
     check_finite(states, states_name)
-    check_finite(times, times_name)
-    check_increasing(times, times_name)
     return states, times
 
 

@@ -11,7 +11,8 @@ import torch
 
 from .._errors import BudgetError, InputError, ShapeError
 from .._linalg import logdet_identity_plus
-from .._validation import as_tensor, check_finite, check_increasing, check_ndim
+from .._validation import as_tensor, check_finite, check_ndim
+from .._validation import check_times as _check_times
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 
@@ -139,13 +140,7 @@ def check_candidates(candidates, system: MisspecifiedSystem, *, dtype=None, devi
 
 def check_times(times, *, dtype, device) -> torch.Tensor:
     """Observation times ``(T,)``: 1-D, at least one, finite, strictly increasing."""
-    t = as_tensor(times, "times", dtype=dtype, device=device)
-    check_ndim(t, 1, "times", "(T,)")
-    if t.shape[0] < 1:
-        raise ShapeError("times: expected at least one time, got shape (0,)")
-    check_finite(t, "times")
-    check_increasing(t, "times")
-    return t
+    return _check_times(times, "times", dtype=dtype, device=device)
 
 
 def check_proxies(
