@@ -214,6 +214,15 @@ def test_duplicate_inputs_with_tiny_noise_are_handled(generator):
     assert torch.isfinite(gp.predict(X).mean).all()
 
 
+def test_iteration_counts_and_the_deprecated_n_iter(generator):
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP().fit(X, Y)
+    assert 1 <= gp.n_iterations_ <= gp.n_evaluations_  # line searches evaluate more often than they iterate
+    with pytest.warns(DeprecationWarning, match="use n_evaluations_ or n_iterations_"):
+        assert gp.n_iter_ == gp.n_evaluations_
+    assert tms.CorrectionGP(**HYPER).fit(X, Y).n_evaluations_ == 0  # nothing to learn
+
+
 def test_warm_start_reaches_the_same_optimum(generator):
     X, Y = _data(generator, n=700)
     cold = tms.CorrectionGP().fit(X, Y, warm_start=0)

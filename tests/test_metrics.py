@@ -55,3 +55,31 @@ def test_metric_bad_input(linear_system):
         box_grid(((0, 1),), 1)
     with pytest.raises(tms.InputError, match="fn\\(points\\): expected finite"):
         integrate_over_box(lambda x: 1 / x[:, 0], ((0.0, 1.0),))
+
+
+def test_correction_error_metrics_and_the_deprecated_flag(linear_system):
+    """A GP fitted to zero targets predicts F_hat = 0: its errors are the energies of F, in both metrics."""
+    x = torch.rand(8, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-3, noise_variance=1e-4).fit(x, torch.zeros(8, 2))
+    energy = tms.integrated_norm(linear_system.correction, linear_system.domain)
+    assert tms.correction_error(gp, linear_system) == pytest.approx(energy, rel=1e-12)
+    mean_sq = tms.correction_error(gp, linear_system, metric="mean_squared", resolution=401)
+    assert mean_sq == pytest.approx(1e-4 * 2 * (2 / 5) * 2 / 4, rel=1e-4)
+    with pytest.warns(DeprecationWarning, match="use metric='mean_squared'"):
+        assert tms.correction_error(gp, linear_system, squared=True, resolution=401) == mean_sq
+    with pytest.raises(tms.InputError, match=r"metric: expected one of \('integrated', 'mean_squared'\), got 'l1'"):
+        tms.correction_error(gp, linear_system, metric="l1")
+
+
+def test_mean_and_standard_error():
+    from torchmisspec.metrics import mean_and_standard_error
+
+    values = torch.tensor([[1.0, 2.0], [3.0, 6.0], [5.0, 10.0]], dtype=torch.float64)
+    mean, se = mean_and_standard_error(values)
+    torch.testing.assert_close(mean, torch.tensor([3.0, 6.0], dtype=torch.float64))
+    # sample std (n - 1) of (1, 3, 5) is 2; of (2, 6, 10) is 4; divided by sqrt(3)
+    torch.testing.assert_close(se, torch.tensor([2.0, 4.0], dtype=torch.float64) / math.sqrt(3))
+    mean1, se1 = mean_and_standard_error([7.0])
+    assert float(mean1) == 7.0 and float(se1) == 0.0
+    with pytest.raises(tms.InputError, match="values: expected finite values"):
+        mean_and_standard_error([1.0, float("nan")])
