@@ -23,8 +23,8 @@ from collections.abc import Callable
 import torch
 from torchdiffeq import odeint
 
-from ._errors import IntegrationError, ShapeError
-from ._validation import as_tensor, check_finite, check_ndim, check_times
+from ._errors import InputError, IntegrationError, ShapeError
+from ._validation import as_tensor, check_finite, check_ndim, check_positive_int, check_times
 
 #: (rtol, atol) of simulations of a given model: the truth, the proxies (see the module docstring)
 SIMULATION_TOLERANCES = (1e-10, 1e-12)
@@ -40,6 +40,8 @@ def initial_conditions_and_times(
     if y0.dim() == 1:
         y0 = y0.unsqueeze(0)
     check_ndim(y0, 2, "y0", f"(B, {state_dim})")
+    if y0.shape[0] < 1:
+        raise ShapeError(f"y0: expected at least one initial condition, got shape {tuple(y0.shape)}")
     check_states(y0, "y0")
     check_finite(y0, "y0")
     times = check_times(times, "times", per_row=True, dtype=y0.dtype, device=y0.device)
@@ -48,17 +50,52 @@ def initial_conditions_and_times(
     return y0, times
 
 
-class _Autonomous(torch.nn.Module):
-    """Wrap an autonomous field f(y) as torchdiffeq's func(t, y), counting evaluations."""
+#: default most solver steps of one batched solve (raise it with ``max_steps=``); the paper's problems need < 100
+DEFAULT_MAX_STEPS = 10_000
+#: right-hand-side evaluations allowed per step (dopri5 uses 6 per accepted or rejected step, plus the start)
+_EVALS_PER_STEP = 7
+_FLOAT_DTYPES = (torch.float32, torch.float64)
 
-    def __init__(self, field: Callable[[torch.Tensor], torch.Tensor]) -> None:
+
+class _StepLimit(Exception):
+    """Raised inside the right-hand side when the evaluation budget is spent (stops torchdiffeq at once)."""
+
+
+class _Autonomous(torch.nn.Module):
+    """Wrap an autonomous field f(y) as torchdiffeq's func(t, y): counts evaluations, enforces the step budget,
+    checks the field's output shape and remembers the last state (for the error message)."""
+
+    def __init__(self, field: Callable[[torch.Tensor], torch.Tensor], max_evals: int, what: str) -> None:
         super().__init__()
         self.field = field
         self.nfe = 0
+        self.max_evals = max_evals
+        self.what = what
+        self.last_t = None
+        self.last_y = None
+        self.last_f = None
 
     def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         self.nfe += 1
-        return self.field(y)
+        if self.nfe > self.max_evals:
+            raise _StepLimit
+        f = self.field(y)
+        if not isinstance(f, torch.Tensor) or f.shape != y.shape:
+            shape = tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__
+            raise ShapeError(
+                f"{self.what}: the right-hand side must return one derivative per state, shape {tuple(y.shape)}, "
+                f"got {shape}; check that G (and F) map states (..., d) to (..., d)"
+            )
+        self.last_t, self.last_y, self.last_f = t, y, f
+        return f
+
+
+def _worst(y: torch.Tensor, f: torch.Tensor, k: int = 5) -> list[int]:
+    """Indices of the initial conditions whose state or derivative is non-finite or largest (most suspect first)."""
+    size = torch.linalg.vector_norm(f.detach().nan_to_num(float("inf"), float("inf"), float("inf")), dim=-1)
+    size = torch.maximum(size, torch.linalg.vector_norm(y.detach().nan_to_num(float("inf")), dim=-1))
+    order = torch.argsort(size, descending=True)
+    return order[: min(k, order.numel())].tolist()
 
 
 def solve(
@@ -70,6 +107,7 @@ def solve(
     rtol: float = PREDICTION_TOLERANCES[0],
     atol: float = PREDICTION_TOLERANCES[1],
     options: dict | None = None,
+    max_steps: int | None = None,
     what: str = "ODE",
 ) -> tuple[torch.Tensor, int]:
     """Integrate dy/dt = field(y) from ``y0 (B, d)`` given at ``times[..., 0]``.
@@ -77,11 +115,20 @@ def solve(
     Args:
         times: ``(T,)`` shared by all, or ``(B, T)`` one grid per initial condition; each row starts at the
             time of its initial condition. Rows may start at different times.
+        max_steps: most solver steps (default :data:`DEFAULT_MAX_STEPS`); the solve stops with
+            :class:`IntegrationError` beyond it (counted as right-hand-side evaluations, so it holds for every
+            method and under ``python -O``).
 
     Returns:
         states ``(B, T, d)`` and the number of right-hand-side evaluations.
     """
-    func = _Autonomous(field)
+    max_steps = DEFAULT_MAX_STEPS if max_steps is None else check_positive_int(max_steps, "max_steps")
+    if y0.dtype not in _FLOAT_DTYPES:
+        raise InputError(
+            f"{what}: expected float32 or float64 states, got {y0.dtype} (half precision cannot meet the solver's "
+            "tolerances); convert with .double()"
+        )
+    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what)
     if times.dim() == 1:
         grid, gather = times, None
     else:
@@ -90,13 +137,38 @@ def solve(
         rel = times - times[:, :1]
         grid, inverse = torch.unique(rel.reshape(-1), sorted=True, return_inverse=True)
         gather = inverse.reshape(times.shape)
+    span = f"[{float(grid[0]):.4g}, {float(grid[-1]):.4g}]"
+    with torch.no_grad():
+        f0 = field(y0)
+    if not isinstance(f0, torch.Tensor) or f0.shape != y0.shape:
+        func(grid[0], y0)  # raises the shape error
+    if not bool(torch.isfinite(f0).all()):
+        bad = (~torch.isfinite(f0).all(-1)).nonzero().flatten().tolist()
+        raise IntegrationError(
+            f"{what}: the right-hand side is not finite at {len(bad)} initial condition(s) (indices "
+            f"{bad[:10]}{' ...' if len(bad) > 10 else ''}); the model has a singularity there (check G and F)"
+        )
     try:
         sol = odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options)  # (T', B, d)
-    except AssertionError as exc:  # torchdiffeq signals step-size underflow with an assertion
+    except _StepLimit:
+        worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         raise IntegrationError(
-            f"{what}: the solver gave up ({exc}); the trajectory probably blows up. Shorten the time span, "
-            "start closer to the data, or check the model"
+            f"{what}: the solver took more than {max_steps} steps ({func.nfe - 1} right-hand-side evaluations) and "
+            f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
+            f"up; the initial conditions with the largest state or derivative at that point: {worst}. Check those "
+            "initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
+            "explicit steps)"
+        ) from None
+    except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
+        worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
+        t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
+        raise IntegrationError(
+            f"{what}: the solver gave up{t} ({str(exc)[:120]}); the initial conditions with the largest state or "
+            f"derivative there: {worst}. A trajectory probably blows up or reaches a singularity of the model: "
+            "shorten the time span, start closer to the data, or check the model"
         ) from exc
+    except ValueError as exc:  # an unknown method or option
+        raise InputError(f"{what}: torchdiffeq refused the solver settings: {exc}") from exc
     sol = sol.transpose(0, 1)  # (B, T', d)
     if gather is not None:
         sol = torch.gather(sol, 1, gather.unsqueeze(-1).expand(-1, -1, sol.shape[-1]))

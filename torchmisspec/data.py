@@ -140,6 +140,7 @@ def simulate(
     method: str = "dopri5",
     rtol: float = SIMULATION_TOLERANCES[0],
     atol: float = SIMULATION_TOLERANCES[1],
+    max_steps: int | None = None,
 ) -> Trajectories:
     """Integrate the true dynamics G + F from every initial condition in one batched solve.
 
@@ -150,6 +151,8 @@ def simulate(
         known_only: integrate the misspecified model G alone (the proxy / baseline trajectories).
         method, rtol, atol: torchdiffeq options (the package's simulation tolerances by default, see
             :mod:`torchmisspec._ode`: this is the ground truth).
+        max_steps: most solver steps (default 10,000); beyond it :class:`IntegrationError` names the initial
+            conditions that stalled the solve.
 
     Returns:
         :class:`Trajectories` with ``states (K, T, d)``.
@@ -157,5 +160,7 @@ def simulate(
     y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
     field = system.known if known_only else system.true_rhs
     with torch.no_grad():
-        states, _ = solve(field, y0, times, method=method, rtol=rtol, atol=atol, what=f"simulate({system.name})")
+        states, _ = solve(
+            field, y0, times, method=method, rtol=rtol, atol=atol, max_steps=max_steps, what=f"simulate({system.name})"
+        )
     return Trajectories(times, states)

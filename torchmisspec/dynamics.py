@@ -72,6 +72,7 @@ class CorrectedODE(nn.Module):
         rtol: float = PREDICTION_TOLERANCES[0],
         atol: float = PREDICTION_TOLERANCES[1],
         options: dict | None = None,
+        max_steps: int | None = None,
     ) -> torch.Tensor:
         """Integrate the corrected model from every initial condition in one batched solve.
 
@@ -80,6 +81,8 @@ class CorrectedODE(nn.Module):
             times: ``(T,)`` shared, or ``(B, T)`` per initial condition; strictly increasing.
             method, rtol, atol, options: torchdiffeq options (the package's prediction tolerances by default: see
                 :mod:`torchmisspec._ode`).
+            max_steps: most solver steps (default 10,000); beyond it :class:`IntegrationError` names the initial
+                conditions that stalled the solve.
 
         Returns:
             states ``(B, T, d)`` in the GP's dtype. Raises :class:`IntegrationError` if a trajectory blows up.
@@ -94,6 +97,14 @@ class CorrectedODE(nn.Module):
 
         with torch.no_grad():
             states, self.nfe = solve(
-                field, y0, times, method=method, rtol=rtol, atol=atol, options=options, what="CorrectedODE.predict"
+                field,
+                y0,
+                times,
+                method=method,
+                rtol=rtol,
+                atol=atol,
+                options=options,
+                max_steps=max_steps,
+                what="CorrectedODE.predict",
             )
         return states

@@ -22,6 +22,7 @@ def proxy_trajectories(
     method: str = "dopri5",
     rtol: float = SIMULATION_TOLERANCES[0],
     atol: float = SIMULATION_TOLERANCES[1],
+    max_steps: int | None = None,
 ) -> torch.Tensor:
     """The known model's trajectories y_G(t) from every candidate initial condition, in one batched computation.
 
@@ -36,7 +37,7 @@ def proxy_trajectories(
         known_only: ``True`` (the design proxy) integrates G alone; ``False`` integrates the true system G + F
             (needs a system with a true correction; used to assess the proxy).
         method, rtol, atol: torchdiffeq options for the non-linear case (the package's simulation tolerances by
-            default: see :mod:`torchmisspec._ode`).
+            default: see :mod:`torchmisspec._ode`); ``max_steps`` bounds the solver's steps (default 10,000).
 
     Returns:
         ``(N, T, d)`` states, in the candidates' dtype and on their device.
@@ -53,4 +54,6 @@ def proxy_trajectories(
         A = system.known_matrix.to(dtype=y0.dtype, device=y0.device)
         E = torch.linalg.matrix_exp(A.unsqueeze(0) * (t - t[0]).reshape(-1, 1, 1))  # (T, d, d)
         return torch.einsum("tij,nj->nti", E, y0)
-    return simulate(system, y0, t, known_only=known_only, method=method, rtol=rtol, atol=atol).states
+    return simulate(
+        system, y0, t, known_only=known_only, method=method, rtol=rtol, atol=atol, max_steps=max_steps
+    ).states
