@@ -117,7 +117,9 @@ def test_corrected_ode_follows_a_changed_gp():
     before = ode.predict(y0[:3], times)
     gp.model.covar_module.outputscale = torch.tensor(4e-3, dtype=DT)
     after = ode.predict(y0[:3], times)
-    fresh = tms.CorrectionGP(lengthscale=1.0, outputscale=4e-3, noise_variance=1e-4).fit(samples.inputs, samples.targets)
+    fresh = tms.CorrectionGP(lengthscale=1.0, outputscale=4e-3, noise_variance=1e-4).fit(
+        samples.inputs, samples.targets
+    )
     torch.testing.assert_close(after, tms.CorrectedODE(system, fresh).predict(y0[:3], times), rtol=1e-9, atol=1e-12)
     assert not torch.allclose(before, after, rtol=0, atol=1e-9)
     assert math.isfinite(gp.log_marginal_likelihood_)

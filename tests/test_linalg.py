@@ -24,8 +24,11 @@ def test_plain_factorization_is_exact_and_silent():
 
 def test_jitter_is_announced_with_its_size():
     x = torch.ones(4, 1, dtype=DT)
-    with pytest.warns(tms.NumericalWarning, match=r"rank-one: not numerically positive definite \(size 4\); added "
-                      r"jitter 1\.00e-10 \(1e-10 x its mean diagonal\)"):
+    with pytest.warns(
+        tms.NumericalWarning,
+        match=r"rank-one: not numerically positive definite \(size 4\); added "
+        r"jitter 1\.00e-10 \(1e-10 x its mean diagonal\)",
+    ):
         L = _linalg.cholesky(x @ x.T, what="rank-one")
     torch.testing.assert_close(L @ L.T, x @ x.T + 1e-10 * torch.eye(4, dtype=DT), rtol=0, atol=1e-15)
 

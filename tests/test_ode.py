@@ -1,0 +1,79 @@
+"""The one batched solve: step limits, and clear errors for models and inputs a solver cannot handle."""
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.systems import MisspecifiedSystem
+
+DT = torch.float64
+Y0 = torch.tensor([[0.5, 0.5], [0.1, -0.2]], dtype=DT)
+T01 = torch.tensor([0.0, 1.0], dtype=DT)
+
+
+def test_step_limit_stops_a_stiff_solve_and_names_the_place():
+    stiff = MisspecifiedSystem(lambda y: -1e4 * y, 1, name="stiff")
+    with pytest.raises(
+        tms.IntegrationError,
+        match=r"simulate\(stiff\): the solver took more than 50 steps .* "
+        r"stopped at t = .* of \[0, 10\].*raise max_steps",
+    ):
+        tms.simulate(stiff, torch.ones(1, 1, dtype=DT), torch.tensor([0.0, 10.0], dtype=DT), max_steps=50)
+
+
+def test_step_limit_holds_for_absurd_time_spans():
+    with pytest.raises(tms.IntegrationError, match="more than 30 steps"):
+        tms.simulate(tms.systems.paper_linear(), Y0, torch.tensor([0.0, 1e300], dtype=DT), max_steps=30)
+
+
+def test_step_limit_in_predict_and_proxies():
+    system = tms.systems.paper_linear()
+    times = torch.linspace(0, 6, 11, dtype=DT)
+    s = tms.correction_samples(tms.simulate(system, Y0, times), system, derivative="oracle")
+    ode = tms.CorrectedODE(
+        system, tms.CorrectionGP(lengthscale=1.0, outputscale=1e-4, noise_variance=1e-4).fit(s.inputs, s.targets)
+    )
+    with pytest.raises(tms.IntegrationError, match=r"CorrectedODE.predict: the solver took more than 2 steps"):
+        ode.predict(Y0, times, max_steps=2)
+    gravity = tms.systems.paper_gravity()
+    cand = torch.tensor([[1.0, 0.0, 0.0, 0.45]], dtype=DT)
+    with pytest.raises(tms.IntegrationError, match="more than 3 steps"):
+        tms.design.proxy_trajectories(gravity, cand, torch.linspace(0, 3, 5, dtype=DT), max_steps=3)
+
+
+def test_singularity_reached_during_the_solve():
+    pole = MisspecifiedSystem(lambda y: -1 / (1 + 3 * y), 1, correction=lambda y: -torch.ones_like(y), name="pole")
+    with pytest.raises(tms.IntegrationError, match=r"simulate\(pole\): the solver gave up at t = 0\.1"):
+        tms.simulate(pole, torch.zeros(2, 1, dtype=DT), T01)
+
+
+def test_callbacks_with_the_wrong_output_shape_or_nan():
+    narrow = MisspecifiedSystem(lambda y: y[..., :1], 2, name="narrow")
+    with pytest.raises(tms.ShapeError, match=r"must return one derivative per state, shape \(2, 2\), got \(2, 1\)"):
+        tms.simulate(narrow, Y0, T01)
+    nan = MisspecifiedSystem(lambda y: y * float("nan"), 2, name="nan")
+    with pytest.raises(tms.IntegrationError, match=r"not finite at 2 initial condition\(s\) \(indices \[0, 1\]\)"):
+        tms.simulate(nan, Y0, T01)
+
+
+def test_bad_states_times_and_options():
+    system = tms.systems.paper_linear()
+    with pytest.raises(tms.InputError, match="expected float32 or float64 states, got torch.bfloat16"):
+        tms.simulate(system, Y0.bfloat16(), T01)
+    with pytest.raises(tms.ShapeError, match=r"y0: expected at least one initial condition, got shape \(0, 2\)"):
+        tms.simulate(system, torch.zeros(0, 2, dtype=DT), T01)
+    with pytest.raises(tms.ShapeError, match=r"times: expected at least one time, got shape \(0,\)"):
+        tms.simulate(system, Y0, torch.zeros(0, dtype=DT))
+    with pytest.raises(tms.InputError, match='torchdiffeq refused the solver settings: Invalid method "bogus"'):
+        tms.simulate(system, Y0, T01, method="bogus")
+    with pytest.raises(tms.InputError, match="max_steps: expected an integer >= 1, got 0"):
+        tms.simulate(system, Y0, T01, max_steps=0)
+
+
+def test_float32_solves_stay_float32_and_agree():
+    system = tms.systems.paper_linear()
+    times = torch.linspace(0, 6, 7, dtype=DT)
+    ref = tms.simulate(system, Y0, times).states
+    got = tms.simulate(system, Y0.float(), times.float(), rtol=1e-6, atol=1e-7).states
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-5)
