@@ -1,4 +1,5 @@
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -7,6 +8,7 @@ import torch
 import torchmisspec as tms
 from torchmisspec.gp import cholesky_with_jitter
 
+DT = torch.float64
 HYPER = {"lengthscale": 0.7, "outputscale": 2e-3, "noise_variance": 1e-4}
 
 
@@ -208,11 +210,35 @@ def test_deprecated_cholesky_with_jitter_still_works():
     assert torch.isfinite(L).all()
 
 
-def test_duplicate_inputs_with_tiny_noise_are_handled(generator):
-    X = torch.rand(5, 2, generator=generator, dtype=torch.float64).repeat(3, 1)
-    Y = torch.randn(15, 2, generator=generator, dtype=torch.float64) * 1e-2
-    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1.0, noise_variance=1e-12).fit(X, Y)
-    assert torch.isfinite(gp.predict(X).mean).all()
+def test_duplicate_inputs_with_tiny_noise_warn_and_stay_close(generator):
+    """100 copies of 5 inputs, noise 1e-12: the posterior mean at an input is (almost exactly) the average of its
+    copies. The Cholesky succeeds but the solve is inaccurate: a warning says by how much."""
+    X = torch.rand(5, 2, generator=generator, dtype=torch.float64).repeat(100, 1)
+    Y = torch.sin(X.sum(-1, keepdim=True)).repeat(1, 2) + 0.01 * torch.randn(500, 2, generator=generator, dtype=DT)
+    with pytest.warns(tms.NumericalWarning, match=r"posterior solve is inaccurate \(relative residual (\S+) "):
+        gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1.0, noise_variance=1e-12).fit(X, Y)
+    average = Y.reshape(100, 5, 2).mean(0)
+    err = float((gp.predict_mean(X[:5]) - average).abs().max() / average.abs().max())
+    assert err < 1e-2
+    # with a sensible noise there is no warning and the mean is the shrunk average, to round-off
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tms.NumericalWarning)
+        tms.CorrectionGP(lengthscale=0.5, outputscale=1.0, noise_variance=1e-4).fit(X, Y)
+
+
+@pytest.mark.parametrize("scale", [1e-8, 1e-4, 1e6])
+def test_fit_is_equivariant_to_the_units_of_targets_and_inputs(scale, generator):
+    """Fitting c * Y predicts c * (the fit of Y); fitting c * X at c * x predicts the same (no absolute floors)."""
+    X, Y = _data(generator)
+    Xs = torch.rand(10, 2, generator=generator, dtype=DT)
+    base = tms.CorrectionGP().fit(X, Y)
+    ref = base.predict_mean(Xs).detach()
+    scaled_y = tms.CorrectionGP().fit(X, scale * Y)
+    torch.testing.assert_close(scaled_y.predict_mean(Xs).detach() / scale, ref, rtol=1e-9, atol=1e-12)
+    assert scaled_y.outputscale == pytest.approx(scale**2 * base.outputscale, rel=1e-8)
+    scaled_x = tms.CorrectionGP().fit(scale * X, Y)
+    torch.testing.assert_close(scaled_x.predict_mean(scale * Xs).detach(), ref, rtol=1e-9, atol=1e-12)
+    assert scaled_x.lengthscale == pytest.approx(scale * base.lengthscale, rel=1e-8)
 
 
 def test_iteration_counts_and_the_deprecated_n_iter(generator):

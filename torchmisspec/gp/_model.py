@@ -22,13 +22,14 @@ noise variances (1e-5 .. 1e-4 in the paper) well conditioned for L-BFGS.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import gpytorch
 import torch
 
-from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError
+from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, NumericalWarning, ShapeError
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int
 from . import _mll
 from ._optim import maximise
@@ -36,12 +37,20 @@ from ._optim import maximise
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial")
-_MIN_VALUE = 1e-12  # floor of every positive hyperparameter
+#: relative residual of the posterior solve above which a NumericalWarning is issued (about sqrt(float64 eps))
+_MAX_RESIDUAL = 1e-8
+#: smallest noise-to-output-scale ratio the profiled fit considers (relative, so the fit is scale-equivariant)
+_MIN_RATIO = 1e-12
 
 
 def _log_positive() -> gpytorch.constraints.Interval:
-    """A positive constraint whose raw value is the log of the hyperparameter."""
-    return gpytorch.constraints.GreaterThan(_MIN_VALUE, transform=torch.exp, inv_transform=torch.log)
+    """A positive constraint whose raw value is the log of the hyperparameter.
+
+    No absolute floor: an absolute floor (GPyTorch's default 1e-4 on the noise, or any fixed number) breaks the
+    scale-equivariance of the fit (targets of size 1e-6 would be fitted differently from the same targets in other
+    units). Optimising in log space keeps every value positive.
+    """
+    return gpytorch.constraints.GreaterThan(0.0, transform=torch.exp, inv_transform=torch.log)
 
 
 @dataclass(frozen=True)
@@ -220,8 +229,10 @@ class CorrectionGP:
 
     def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
         """Data-driven starting values for the learned hyperparameters (the fixed ones are already set)."""
-        var = Y.var(dim=0, unbiased=False).clamp_min(1e-10)  # (d_out,); floored for constant targets
-        var = var if self.per_output else var.mean()
+        # the second moment, not the variance: the prior mean is zero, and it stays positive for constant targets;
+        # every starting value scales with the data (the fit is equivariant to the units of inputs and targets)
+        var = Y.pow(2).mean(dim=0)  # (d_out,)
+        var = torch.where(var > 0, var, var.max()) if self.per_output else var.mean()
         with torch.no_grad():
             if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
                 sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
@@ -229,7 +240,7 @@ class CorrectionGP:
                 positive = dist[dist > 0]
                 med = positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
                 base = self.covar_module.base_kernel
-                base.lengthscale = med.clamp_min(1e-6).expand(base.lengthscale.shape)
+                base.lengthscale = med.expand(base.lengthscale.shape)
             if self.fixed["outputscale"] is None:
                 self.covar_module.outputscale = var.expand(self.covar_module.outputscale.shape)
             if self.fixed["noise_variance"] is None:
@@ -331,7 +342,7 @@ class CorrectionGP:
             params.append(log_ratio)
 
             def matrices():
-                return covar.base_kernel.forward(X, X).unsqueeze(0), log_ratio.exp().reshape(1, 1)
+                return covar.base_kernel.forward(X, X).unsqueeze(0), (log_ratio.exp() + _MIN_RATIO).reshape(1, 1)
         else:
             params = free
 
@@ -363,8 +374,8 @@ class CorrectionGP:
                 with torch.no_grad():
                     K, diag = matrices()
                     _, scale = _mll.profiled_mll(_mll.factorize(K, diag, Yb, warn=False))
-                    covar.outputscale = scale.clamp_min(_MIN_VALUE)
-                    lik.noise = (scale * log_ratio.exp()).clamp_min(_MIN_VALUE).reshape(1)
+                    covar.outputscale = scale
+                    lik.noise = (scale * (log_ratio.exp() + _MIN_RATIO)).reshape(1)
         except LinearAlgebraError as exc:
             raise FittingError(f"fitting failed: {exc}") from exc
         for p in params:
@@ -403,7 +414,22 @@ class CorrectionGP:
             )
         self.model.num_outputs = Y.shape[1]
         with torch.no_grad():
-            fac = _mll.factorize(*self._kernel_parts(X), self._targets_batched(Y))
+            K, diag = self._kernel_parts(X)
+            Yb = self._targets_batched(Y)
+            fac = _mll.factorize(K, diag, Yb)
+            # a Cholesky that "succeeds" on a nearly singular matrix can still solve badly (tiny noise with repeated
+            # inputs): check the residual of (K + noise I) alpha = Y, which costs one product
+            resid = K @ fac.alpha + diag.unsqueeze(-1) * fac.alpha - Yb
+            rel = float(resid.norm() / Yb.norm().clamp_min(torch.finfo(Yb.dtype).tiny))
+        if rel > _MAX_RESIDUAL:
+            warnings.warn(
+                f"CorrectionGP: the posterior solve is inaccurate (relative residual {rel:.1e} of (K + noise I) alpha "
+                f"= Y): the noise variance {float(self.likelihood.noise.detach().min()):.3g} is too small for these inputs (repeated or nearly "
+                "repeated points?); predictions may be off by about that fraction of the targets. Raise "
+                "noise_variance or remove duplicate inputs",
+                NumericalWarning,
+                stacklevel=3,
+            )
         self._cache = _Cache(key, [v.clone() for v in values], fac, float(_mll.exact_mll(fac, X.shape[0])))
         self.log_marginal_likelihood_ = self._cache.mll
         return self._cache
@@ -430,8 +456,6 @@ class CorrectionGP:
     @property
     def n_iter_(self) -> int:
         """Deprecated: it counted likelihood evaluations; use ``n_evaluations_`` (or ``n_iterations_``)."""
-        import warnings
-
         warnings.warn(
             "CorrectionGP.n_iter_ is deprecated (it counted likelihood evaluations, not iterations); use "
             "n_evaluations_ or n_iterations_",
@@ -461,12 +485,16 @@ class CorrectionGP:
     def predict_mean(self, x) -> torch.Tensor:
         """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)``. One kernel block times the cached solve.
 
-        Differentiable with respect to ``x`` (autograd flows through the kernel), never refactorizes unless the
+        Differentiable with respect to ``x`` when ``x`` requires grad (autograd flows through the kernel; the cached
+        solve is a constant, so no gradient reaches the hyperparameters). Never refactorizes unless the
         hyperparameters or the training data changed since the last prediction.
         """
         cache = self._posterior_cache()
         x = self._check_inputs(x, "x")
-        return self._mean_from(cache, x)
+        # a graph only when the inputs ask for one: the cached solve is constant, so this is d mean / d x, and
+        # results used as numbers carry no autograd history
+        with torch.set_grad_enabled(x.requires_grad and torch.is_grad_enabled()):
+            return self._mean_from(cache, x)
 
     def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
         """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path)."""
