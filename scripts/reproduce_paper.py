@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Regenerate the figures of the paper's §5 and the numbers behind them (logic: torchmisspec.reproduce).
+"""Regenerate the figures of the paper's §5 and the numbers behind them (logic: torchmisspec.paper.figures).
 
     python scripts/reproduce_paper.py --all                   # all eight figures into reproduction-output/
     python scripts/reproduce_paper.py --figure 1 --figure 2   # some figures
@@ -17,7 +17,7 @@ import argparse
 import sys
 import time
 
-from torchmisspec.reproduce import FIGURES, reproduce
+from torchmisspec.paper.figures import FIGURES, reproduce
 
 
 def _parser() -> argparse.ArgumentParser:

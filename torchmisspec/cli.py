@@ -10,7 +10,7 @@ __all__ = ["main"]
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from .experiments import linear_demo
+    from .paper.demo import linear_demo
 
     print(
         f"paper 5.1: {args.n_train} random experiments in [-1, 1]^2, T = 11 on [0, 6], oracle noise std "

@@ -422,9 +422,10 @@ class CorrectionGP:
             resid = K @ fac.alpha + diag.unsqueeze(-1) * fac.alpha - Yb
             rel = float(resid.norm() / Yb.norm().clamp_min(torch.finfo(Yb.dtype).tiny))
         if rel > _MAX_RESIDUAL:
+            noise = float(self.likelihood.noise.detach().min())
             warnings.warn(
                 f"CorrectionGP: the posterior solve is inaccurate (relative residual {rel:.1e} of (K + noise I) alpha "
-                f"= Y): the noise variance {float(self.likelihood.noise.detach().min()):.3g} is too small for these inputs (repeated or nearly "
+                f"= Y): the noise variance {noise:.3g} is too small for these inputs (repeated or nearly "
                 "repeated points?); predictions may be off by about that fraction of the targets. Raise "
                 "noise_variance or remove duplicate inputs",
                 NumericalWarning,
