@@ -6,6 +6,7 @@ import math
 import numbers
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 from ._errors import InputError, ShapeError
@@ -13,19 +14,43 @@ from ._errors import InputError, ShapeError
 DEFAULT_DTYPE = torch.float64
 
 
+_REAL_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+
+
 def as_tensor(x, name: str, *, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
-    """Convert ``x`` to a floating tensor (float64 unless it already is floating or ``dtype`` is given)."""
-    if isinstance(x, torch.Tensor):
-        t = x
-        if dtype is not None or not t.is_floating_point():
-            t = t.to(dtype=dtype or DEFAULT_DTYPE)
-        if device is not None:
-            t = t.to(device)
-        return t
-    try:
-        return torch.as_tensor(x, dtype=dtype or DEFAULT_DTYPE, device=device)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"{name}: expected an array of numbers, got {type(x).__name__} ({exc})") from exc
+    """Convert ``x`` to a real floating tensor (float64 unless it already is floating or ``dtype`` is given).
+
+    Integers are converted; complex numbers, booleans, strings and objects are refused with :class:`InputError`
+    (casting them would silently drop the imaginary part or invent numbers).
+    """
+    if not isinstance(x, torch.Tensor):
+        if isinstance(x, (str, bytes)) or (isinstance(x, bool)):
+            raise InputError(f"{name}: expected an array of real numbers, got {type(x).__name__} {x!r:.60}")
+        try:
+            arr = np.asarray(x)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise InputError(f"{name}: expected an array of real numbers, got {type(x).__name__} ({exc})") from exc
+        if arr.dtype.kind not in "iuf":
+            raise InputError(
+                f"{name}: expected an array of real numbers, got {type(x).__name__} of dtype {arr.dtype} "
+                f"(kind {arr.dtype.kind!r}: complex, boolean, text and object arrays are refused)"
+            )
+        try:
+            x = torch.as_tensor(arr.astype(np.float64) if arr.dtype.kind in "iu" or arr.dtype == np.float16 else arr)
+        except (TypeError, ValueError, RuntimeError) as exc:  # pragma: no cover - numpy numbers always convert
+            raise InputError(f"{name}: expected an array of real numbers ({exc})") from exc
+        if dtype is None and not x.is_floating_point():
+            x = x.to(DEFAULT_DTYPE)
+        if dtype is None and x.dtype == torch.float32 and arr.dtype != np.float32:
+            x = x.to(DEFAULT_DTYPE)
+    if x.is_complex() or x.dtype == torch.bool:
+        raise InputError(f"{name}: expected real numbers, got a tensor of dtype {x.dtype}")
+    t = x
+    if dtype is not None or not t.is_floating_point():
+        t = t.to(dtype=dtype or DEFAULT_DTYPE)
+    if device is not None:
+        t = t.to(device)
+    return t
 
 
 def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
@@ -70,9 +95,15 @@ def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
     if indices is None:
         return tuple(range(size))
     try:
-        out = tuple(int(i) for i in indices)
-    except (TypeError, ValueError) as exc:
+        items = list(indices.reshape(-1).tolist() if isinstance(indices, torch.Tensor) else indices)
+    except TypeError as exc:
         raise InputError(f"{name}: expected a sequence of integers, got {indices!r}") from exc
+    if any(isinstance(i, bool) or not isinstance(i, numbers.Integral) for i in items):
+        bad = next(i for i in items if isinstance(i, bool) or not isinstance(i, numbers.Integral))
+        raise InputError(
+            f"{name}: expected a sequence of integers, got {bad!r} ({type(bad).__name__}) in {items!r:.100}"
+        )
+    out = tuple(int(i) for i in items)
     if len(out) == 0:
         raise InputError(f"{name}: expected at least one index, got an empty sequence")
     for i in out:
