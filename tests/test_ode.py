@@ -49,7 +49,9 @@ def test_singularity_reached_during_the_solve():
 
 def test_callbacks_with_the_wrong_output_shape_or_nan():
     narrow = MisspecifiedSystem(lambda y: y[..., :1], 2, name="narrow")
-    with pytest.raises(tms.ShapeError, match=r"must return one derivative per state, shape \(2, 2\), got \(2, 1\)"):
+    with pytest.raises(
+        tms.ShapeError, match=r"system .narrow.: G returned shape \(2, 1\) for inputs of shape \(2, 2\)"
+    ):
         tms.simulate(narrow, Y0, T01)
     nan = MisspecifiedSystem(lambda y: y * float("nan"), 2, name="nan")
     with pytest.raises(tms.IntegrationError, match=r"not finite at 2 initial condition\(s\) \(indices \[0, 1\]\)"):

@@ -158,7 +158,7 @@ def simulate(
         :class:`Trajectories` with ``states (K, T, d)``.
     """
     y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
-    field = system.known if known_only else system.true_rhs
+    field = system.known_rhs if known_only else system.true_rhs
     with torch.no_grad():
         states, _ = solve(
             field, y0, times, method=method, rtol=rtol, atol=atol, max_steps=max_steps, what=f"simulate({system.name})"

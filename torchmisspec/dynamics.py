@@ -58,7 +58,7 @@ class CorrectedODE(nn.Module):
 
     def field(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) + mu(y) for states ``(..., d)``."""
-        return self.system.known(y) + self.correction(y)
+        return self.system.known_rhs(y) + self.correction(y)
 
     def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         return self.field(y)
@@ -93,7 +93,7 @@ class CorrectedODE(nn.Module):
         cache = self.gp._posterior_cache()  # refreshed here if the GP changed since its last prediction
 
         def field(y: torch.Tensor) -> torch.Tensor:
-            return self.system.known(y) + self._correction(y, cache)
+            return self.system.known_rhs(y) + self._correction(y, cache)
 
         with torch.no_grad():
             states, self.nfe = solve(

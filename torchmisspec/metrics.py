@@ -66,8 +66,21 @@ def integrate_over_box(
 def integrated_error(estimate: Field, truth: Field, domain, *, resolution: int = 101) -> float:
     """Integral over the box D of ||estimate(y) - truth(y)||_2 (paper §5.2); fields map ``(M, n) -> (M, m)``."""
     return integrate_over_box(
-        lambda x: torch.linalg.vector_norm(estimate(x) - truth(x), dim=-1), domain, resolution=resolution
+        lambda x: torch.linalg.vector_norm(_difference(estimate, truth, x), dim=-1), domain, resolution=resolution
     )
+
+
+def _difference(estimate: Field, truth: Field, x: torch.Tensor) -> torch.Tensor:
+    """estimate(x) - truth(x), refusing outputs of different shapes (broadcasting would hide a wrong field)."""
+    a, b = estimate(x), truth(x)
+    if not (isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor)) or a.shape != b.shape or a.dim() != 2:
+        sa = tuple(a.shape) if isinstance(a, torch.Tensor) else type(a).__name__
+        sb = tuple(b.shape) if isinstance(b, torch.Tensor) else type(b).__name__
+        raise ShapeError(
+            f"estimate: expected the estimate and the truth to return the same shape (M, m) at {x.shape[0]} points, "
+            f"got {sa} and {sb}"
+        )
+    return a - b
 
 
 def integrated_norm(field: Field, domain, *, resolution: int = 101) -> float:
@@ -81,7 +94,10 @@ def mean_squared_error(estimate: Field, truth: Field, domain, *, resolution: int
     volume = 1.0
     for lo, hi in box:
         volume *= hi - lo
-    return integrate_over_box(lambda x: (estimate(x) - truth(x)).pow(2).sum(-1), box, resolution=resolution) / volume
+    return (
+        integrate_over_box(lambda x: _difference(estimate, truth, x).pow(2).sum(-1), box, resolution=resolution)
+        / volume
+    )
 
 
 CORRECTION_METRICS = ("integrated", "mean_squared")
@@ -145,5 +161,9 @@ def trajectory_rmse(predicted, true, *, per_trajectory: bool = False) -> torch.T
     true = as_tensor(true, "true", dtype=predicted.dtype, device=predicted.device)
     if predicted.shape != true.shape:
         raise ShapeError(f"predicted: expected the shape of true {tuple(true.shape)}, got {tuple(predicted.shape)}")
+    if predicted.dim() != 3 or predicted.numel() == 0:
+        raise ShapeError(f"predicted: expected non-empty trajectories (B, T, d), got shape {tuple(predicted.shape)}")
+    check_finite(predicted, "predicted")
+    check_finite(true, "true")
     sq = (predicted - true).pow(2)
     return sq.flatten(1).mean(-1).sqrt() if per_trajectory else sq.mean().sqrt()

@@ -49,6 +49,16 @@ def _states_and_times(states, times) -> tuple[torch.Tensor, torch.Tensor]:
     return states, times.reshape(-1, states.shape[1])
 
 
+def _finite_derivative(dydt: torch.Tensor) -> torch.Tensor:
+    """Refuse derivative estimates that overflowed (times so close that the stencil weights are infinite)."""
+    if not bool(torch.isfinite(dydt).all()):
+        raise InputError(
+            "times: the derivative estimate is not finite: some samples are too close in time for this dtype (the "
+            "stencil weights overflow); drop near-duplicate times or use float64"
+        )
+    return dydt
+
+
 def _stencil_index(T: int, width: int, device) -> torch.Tensor:
     """``(T, width)`` sample indices of the stencil of every point: centred, shifted inward at the ends."""
     start = (torch.arange(T, device=device) - width // 2).clamp(0, T - width)
@@ -125,7 +135,7 @@ def finite_difference(states, times, *, order: int = 2) -> torch.Tensor:
     index = _stencil_index(T, width, states.device)  # (T, m)
     dt = times[:, index] - times.unsqueeze(-1)  # (1 or K, T, m)
     weights = _lagrange_derivative_weights(dt)
-    return _apply_stencil(states, index, weights)
+    return _finite_derivative(_apply_stencil(states, index, weights))
 
 
 def smoothed_derivative(states, times, *, window: int = 7, degree: int = 2) -> torch.Tensor:
@@ -177,7 +187,7 @@ def smoothed_derivative(states, times, *, window: int = 7, degree: int = 2) -> t
     e1[..., 1, 0] = 1.0
     z = torch.linalg.solve_triangular(R.transpose(-1, -2), e1, upper=False)  # (.., T, p+1, 1)
     weights = (Q @ z).squeeze(-1) / scale  # (.., T, w)
-    return _apply_stencil(states, index, weights)
+    return _finite_derivative(_apply_stencil(states, index, weights))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -295,11 +305,12 @@ def correction_samples(
         dydt = smoothed_derivative(states, trajectories.times, window=window, degree=degree)
 
     flat_states = states.reshape(K * T, d)
-    targets = system.select_outputs(dydt.reshape(K * T, d) - system.known(flat_states))
+    targets = system.select_outputs(dydt.reshape(K * T, d) - system.known_rhs(flat_states))
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     if noise > 0:
         eps = torch.randn(targets.shape, generator=generator, dtype=targets.dtype, device=targets.device)
         targets = targets + noise * eps
+        check_finite(targets, f"correction samples with noise_std={noise_std!r} added")
     experiment = torch.arange(K, device=states.device).repeat_interleave(T)
     return CorrectionSamples(
         inputs=system.select_inputs(flat_states),

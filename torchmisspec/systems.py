@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ._errors import InputError, ShapeError
-from ._validation import check_domain, check_indices, check_positive_int
+from ._validation import as_tensor, check_domain, check_finite, check_indices, check_positive_int
 
 __all__ = [
     "MisspecifiedSystem",
@@ -72,7 +72,7 @@ class MisspecifiedSystem:
             domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=len(self.correction_inputs))
         self.domain = domain
         if known_matrix is not None:
-            known_matrix = torch.as_tensor(known_matrix, dtype=torch.float64)
+            known_matrix = check_finite(as_tensor(known_matrix, "known_matrix", dtype=torch.float64), "known_matrix")
             if known_matrix.shape != (state_dim, state_dim):
                 raise ShapeError(
                     f"known_matrix: expected shape ({state_dim}, {state_dim}), got {tuple(known_matrix.shape)}"
@@ -129,14 +129,19 @@ class MisspecifiedSystem:
                 f"system '{self.name}' has no true correction F; pass correction=... to MisspecifiedSystem "
                 "(only simulation and benchmark systems have one)"
             )
-        return self.correction(x)
+        return _checked(self.correction(x), x.shape[:-1] + (self.output_dim,), f"system '{self.name}': F", x)
+
+    def known_rhs(self, y: torch.Tensor) -> torch.Tensor:
+        """G(y) for states ``(..., d)``, with its output shape checked (a G that returns the wrong shape would be
+        broadcast silently by the sums that follow)."""
+        return _checked(self.known(y), y.shape, f"system '{self.name}': G", y)
 
     def true_rhs(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) + F(y) (just G(y) when the system has no true correction)."""
-        g = self.known(y)
+        g = self.known_rhs(y)
         if self.correction is None:
             return g
-        return g + self.embed(self.correction(self.select_inputs(y)))
+        return g + self.embed(self.true_correction(self.select_inputs(y)))
 
     def __repr__(self) -> str:
         return (
@@ -144,6 +149,16 @@ class MisspecifiedSystem:
             f"correction_inputs={list(self.correction_inputs)}, correction_outputs={list(self.correction_outputs)}, "
             f"has_correction={self.has_correction})"
         )
+
+
+def _checked(out, shape: torch.Size, what: str, x: torch.Tensor) -> torch.Tensor:
+    if not isinstance(out, torch.Tensor) or out.shape != shape:
+        got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        raise ShapeError(
+            f"{what} returned shape {got} for inputs of shape {tuple(x.shape)}; expected {tuple(shape)} (check the "
+            "callable's output: one value per state component it acts on)"
+        )
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .._errors import InputError
+from .._errors import InputError, IntegrationError
 from .._ode import SIMULATION_TOLERANCES
 from ..data import simulate
 from ..systems import MisspecifiedSystem
@@ -53,7 +53,13 @@ def proxy_trajectories(
     if known_only and system.known_matrix is not None:
         A = system.known_matrix.to(dtype=y0.dtype, device=y0.device)
         E = torch.linalg.matrix_exp(A.unsqueeze(0) * (t - t[0]).reshape(-1, 1, 1))  # (T, d, d)
-        return torch.einsum("tij,nj->nti", E, y0)
+        out = torch.einsum("tij,nj->nti", E, y0)
+        if not bool(torch.isfinite(out).all()):
+            raise IntegrationError(
+                f"proxy_trajectories({system.name}): the known linear model's trajectories overflow within the time "
+                f"span [{float(t[0]):.4g}, {float(t[-1]):.4g}] (expm(A t) y0 is not finite); shorten the span"
+            )
+        return out
     return simulate(
         system, y0, t, known_only=known_only, method=method, rtol=rtol, atol=atol, max_steps=max_steps
     ).states

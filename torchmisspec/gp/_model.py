@@ -43,6 +43,14 @@ _MAX_RESIDUAL = 1e-8
 _MIN_RATIO = 1e-12
 
 
+def _positive_finite(value: int | float) -> bool:
+    try:
+        value = float(value)
+    except OverflowError:  # an int beyond the float range, e.g. 10**400
+        return False
+    return math.isfinite(value) and value > 0
+
+
 def _log_positive() -> gpytorch.constraints.Interval:
     """A positive constraint whose raw value is the log of the hyperparameter.
 
@@ -68,6 +76,16 @@ class GPPosterior:
     @property
     def stddev(self) -> torch.Tensor:
         return self.variance.clamp_min(0).sqrt()
+
+
+def _check_prediction(value: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Refuse a non-finite prediction at finite inputs (the kernel overflowed: inputs far too large)."""
+    if not bool(torch.isfinite(value).all()):
+        raise InputError(
+            f"x: the prediction is not finite at inputs of size up to {float(x.abs().max()):.3g} (the kernel "
+            "overflows there); rescale the inputs so that they are of the size of the training inputs"
+        )
+    return value
 
 
 class _IndependentOutputsGP(gpytorch.models.ExactGP):
@@ -144,9 +162,9 @@ class CorrectionGP:
             ("noise_variance", noise_variance),
         ):
             if value is not None and (
-                isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0
+                isinstance(value, bool) or not isinstance(value, (int, float)) or not _positive_finite(value)
             ):
-                raise InputError(f"{name}: expected a positive finite number or None (learned), got {value!r}")
+                raise InputError(f"{name}: expected a positive finite number or None (learned), got {value!r:.60}")
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
         self.kernel = kernel
@@ -495,7 +513,7 @@ class CorrectionGP:
         # a graph only when the inputs ask for one: the cached solve is constant, so this is d mean / d x, and
         # results used as numbers carry no autograd history
         with torch.set_grad_enabled(x.requires_grad and torch.is_grad_enabled()):
-            return self._mean_from(cache, x)
+            return _check_prediction(self._mean_from(cache, x), x)
 
     def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
         """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path)."""
@@ -514,6 +532,8 @@ class CorrectionGP:
             prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
             var = (prior - v.pow(2).sum(-2).squeeze(0)).clamp_min(0.0)
             var = var.T if self.per_output else var.unsqueeze(-1).expand(-1, mean.shape[-1])
+        _check_prediction(mean, x)
+        _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
 
     # ------------------------------------------------------------------------------------------ hyperparameters
