@@ -215,7 +215,7 @@ def test_duplicate_inputs_with_tiny_noise_warn_and_stay_close(generator):
     copies. The Cholesky succeeds but the solve is inaccurate: a warning says by how much."""
     X = torch.rand(5, 2, generator=generator, dtype=torch.float64).repeat(100, 1)
     Y = torch.sin(X.sum(-1, keepdim=True)).repeat(1, 2) + 0.01 * torch.randn(500, 2, generator=generator, dtype=DT)
-    with pytest.warns(tms.NumericalWarning, match=r"posterior solve is inaccurate \(relative residual (\S+) "):
+    with pytest.warns(tms.NumericalWarning, match=r"posterior solve is inaccurate: the posterior mean at the training"):
         gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1.0, noise_variance=1e-12).fit(X, Y)
     average = Y.reshape(100, 5, 2).mean(0)
     err = float((gp.predict_mean(X[:5]) - average).abs().max() / average.abs().max())

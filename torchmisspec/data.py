@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import numbers
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import torch
 
 from ._errors import InputError, ShapeError
 from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
-from ._validation import states_and_times
+from ._validation import as_tensor, states_and_times
 from .systems import MisspecifiedSystem
 
 __all__ = ["Trajectories", "simulate"]
@@ -97,38 +98,63 @@ class Trajectories:
 
     @classmethod
     def load(cls, path: str | Path) -> Trajectories:
-        """Read a file written by :meth:`save` (or a CSV with the same columns, rows in any order)."""
+        """Read a file written by :meth:`save` (or a CSV with the same columns, rows in any order).
+
+        ``.npz`` files are read without pickle (no code can run); a missing, corrupt or malformed file raises
+        :class:`InputError` naming the file and what was expected.
+        """
         path = Path(path)
+        if path.suffix not in (".npz", ".csv"):
+            raise InputError(f"path: expected a .npz or .csv file name, got {str(path)!r}")
+        if not path.is_file():
+            raise InputError(f"path: expected an existing file, got {str(path)!r}")
         if path.suffix == ".npz":
-            with np.load(path) as data:
-                missing = {"times", "states"} - set(data.files)
-                if missing:
-                    raise InputError(f"{path}: expected arrays 'times' and 'states', missing {sorted(missing)}")
-                return cls(torch.from_numpy(data["times"]), torch.from_numpy(data["states"]))
-        if path.suffix == ".csv":
-            with path.open(newline="") as fh:
-                rows = list(csv.reader(fh))
-            header, body = (rows[0], rows[1:]) if rows else ([], [])
-            if header[:2] != ["experiment", "time"] or len(header) < 3:
-                raise InputError(f"{path}: expected a header 'experiment,time,y0,...', got {','.join(header)!r}")
-            if not body:
-                raise InputError(f"{path}: expected at least one data row after the header, got none")
             try:
-                arr = np.asarray(body, dtype=np.float64)
-            except ValueError as exc:
-                raise InputError(f"{path}: expected {len(header)} numeric columns in every row ({exc})") from exc
-            exp_ids = np.unique(arr[:, 0])
-            per = [arr[arr[:, 0] == e] for e in exp_ids]
-            counts = {len(p) for p in per}
-            if len(counts) != 1:
-                raise ShapeError(f"{path}: expected the same number of rows per experiment, got {sorted(counts)}")
-            per = [p[np.argsort(p[:, 1], kind="stable")] for p in per]
-            times = np.stack([p[:, 1] for p in per])
-            states = np.stack([p[:, 2:] for p in per])
-            if np.all(times == times[:1]):
-                times = times[0]
-            return cls(torch.from_numpy(times), torch.from_numpy(states))
-        raise InputError(f"path: expected a .npz or .csv file name, got {str(path)!r}")
+                with np.load(path, allow_pickle=False) as data:
+                    missing = {"times", "states"} - set(data.files)
+                    if missing:
+                        raise InputError(f"{path}: expected arrays 'times' and 'states', missing {sorted(missing)}")
+                    times, states = data["times"], data["states"]
+            except InputError:
+                raise
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+                raise InputError(
+                    f"{path}: expected an .npz archive with numeric arrays 'times' and 'states' (no pickled objects), "
+                    f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
+                ) from exc
+            return cls(as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"))
+        try:
+            with path.open(newline="", encoding="utf-8") as fh:
+                rows = [row for row in csv.reader(fh) if row]
+        except (UnicodeDecodeError, csv.Error, OSError) as exc:
+            raise InputError(f"{path}: expected a UTF-8 text CSV file, but it could not be read ({exc})") from exc
+        header, body = (rows[0], rows[1:]) if rows else ([], [])
+        if header[:2] != ["experiment", "time"] or len(header) < 3:
+            raise InputError(f"{path}: expected a header 'experiment,time,y0,...', got {','.join(header)!r:.200}")
+        if not body:
+            raise InputError(f"{path}: expected at least one data row after the header, got none")
+        widths = {len(row) for row in body}
+        if widths != {len(header)}:
+            bad = next(i for i, row in enumerate(body) if len(row) != len(header))
+            raise ShapeError(
+                f"{path}: expected {len(header)} columns in every row (as in the header), got {len(body[bad])} in "
+                f"data row {bad + 1}"
+            )
+        try:
+            arr = np.asarray(body, dtype=np.float64)
+        except ValueError as exc:
+            raise InputError(f"{path}: expected {len(header)} numeric columns in every row ({exc})") from exc
+        exp_ids = np.unique(arr[:, 0])
+        per = [arr[arr[:, 0] == e] for e in exp_ids]
+        counts = {len(p) for p in per}
+        if len(counts) != 1:
+            raise ShapeError(f"{path}: expected the same number of rows per experiment, got {sorted(counts)}")
+        per = [p[np.argsort(p[:, 1], kind="stable")] for p in per]
+        times = np.stack([p[:, 1] for p in per])
+        states = np.stack([p[:, 2:] for p in per])
+        if np.all(times == times[:1]):
+            times = times[0]
+        return cls(torch.from_numpy(times), torch.from_numpy(states))
 
 
 def simulate(
