@@ -175,8 +175,10 @@ def simulate(
         y0: initial conditions ``(K, d)`` (or ``(d,)`` for one), the states at ``times[..., 0]``.
         times: ``(T,)`` shared, or ``(K, T)`` per experiment; strictly increasing.
         known_only: integrate the misspecified model G alone (the proxy / baseline trajectories).
-        method, rtol, atol: torchdiffeq options (the package's simulation tolerances by default, see
-            :mod:`torchmisspec._ode`: this is the ground truth).
+        method: torchdiffeq method (dopri5 by default).
+        rtol: relative tolerance (the package's simulation tolerance by default, see :mod:`torchmisspec._ode`:
+            this is the ground truth).
+        atol: absolute tolerance (likewise).
         max_steps: most solver steps (default 10,000); beyond it :class:`IntegrationError` names the initial
             conditions that stalled the solve.
 

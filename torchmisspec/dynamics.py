@@ -79,8 +79,10 @@ class CorrectedODE(nn.Module):
         Args:
             y0: ``(B, d)`` initial conditions at ``times[..., 0]`` (or ``(d,)`` for one).
             times: ``(T,)`` shared, or ``(B, T)`` per initial condition; strictly increasing.
-            method, rtol, atol, options: torchdiffeq options (the package's prediction tolerances by default: see
-                :mod:`torchmisspec._ode`).
+            method: torchdiffeq method (dopri5 by default).
+            rtol: relative tolerance (the package's prediction tolerance by default: see :mod:`torchmisspec._ode`).
+            atol: absolute tolerance (likewise).
+            options: further torchdiffeq solver options.
             max_steps: most solver steps (default 10,000); beyond it :class:`IntegrationError` names the initial
                 conditions that stalled the solve.
 

@@ -253,7 +253,8 @@ def correction_samples(
             finite number >= 0; with 0 no random numbers are drawn.
         generator: optional ``torch.Generator`` for the noise (on the states' device), for reproducibility.
         order: finite-difference order for ``"central"`` (2 or 4).
-        window, degree: local-fit parameters for ``"smooth"``.
+        window: samples per local fit for ``"smooth"``.
+        degree: polynomial degree of the local fits for ``"smooth"``.
 
     Returns:
         :class:`CorrectionSamples` with ``N = K * T`` samples, in the dtype and on the device of the states.

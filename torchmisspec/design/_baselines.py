@@ -98,8 +98,12 @@ def random(
         candidates: ``(N, d)``.
         budget: number of experiments, 1 <= budget <= N.
         generator: a ``torch.Generator`` for reproducible draws.
-        system, times, gp, proxies: as for :func:`greedy`; only needed for the gains.
-        partition, capacities: as for :func:`greedy`.
+        system: as for :func:`greedy`; only needed for the gains (likewise ``times``, ``gp``, ``proxies``).
+        times: as for :func:`greedy`.
+        gp: as for :func:`greedy`.
+        partition: as for :func:`greedy`.
+        capacities: as for :func:`greedy`.
+        proxies: as for :func:`greedy`.
         progress: accepted for a signature uniform with :func:`greedy`; a random draw has nothing to show.
     """
     start = time.perf_counter()

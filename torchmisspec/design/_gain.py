@@ -153,7 +153,10 @@ def true_information_gain(
     Args:
         indices: the chosen candidate indices (or a :class:`DesignResult`).
         candidates: ``(N, d)`` the candidate set the indices refer to.
-        system, times, gp: as for :func:`greedy`.
+        system: as for :func:`greedy`.
+        times: as for :func:`greedy`.
+        gp: as for :func:`greedy`.
+        states: optional ``(K, T, d)`` observed states of the chosen experiments (simulated when omitted).
     """
     kern, _, true_x, system = _design_points(indices, candidates, system, times, gp, None, states)
     logdet, _ = logdet_identity_plus(kern(true_x), kern.noise, "I + K(true) / noise_variance")
@@ -228,8 +231,12 @@ def proxy_gap_bound(
     Args:
         indices: the chosen candidate indices (or a :class:`DesignResult`).
         candidates: ``(N, d)``.
-        system, times, gp: as for :func:`greedy`; the true trajectories are simulated from the system's true
-            correction unless ``states (K, T, d)`` are given.
+        system: as for :func:`greedy`; the true trajectories are simulated from the system's true correction
+            unless ``states (K, T, d)`` are given.
+        times: as for :func:`greedy`.
+        gp: as for :func:`greedy`.
+        states: optional ``(K, T, d)`` observed states of the chosen experiments.
+        blockwise: apply the theorem per output block (tighter, see above).
         proxies: optional ``(N, T, d)`` proxy trajectories of all candidates (computed when omitted).
     """
     return proxy_check(

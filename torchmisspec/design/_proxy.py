@@ -36,8 +36,10 @@ def proxy_trajectories(
         times: ``(T,)`` strictly increasing observation times (the first is the time of the initial condition).
         known_only: ``True`` (the design proxy) integrates G alone; ``False`` integrates the true system G + F
             (needs a system with a true correction; used to assess the proxy).
-        method, rtol, atol: torchdiffeq options for the non-linear case (the package's simulation tolerances by
-            default: see :mod:`torchmisspec._ode`); ``max_steps`` bounds the solver's steps (default 10,000).
+        method: torchdiffeq method for the non-linear case (dopri5 by default).
+        rtol: relative tolerance (the package's simulation tolerance by default: see :mod:`torchmisspec._ode`).
+        atol: absolute tolerance (likewise).
+        max_steps: most solver steps (default 10,000).
 
     Returns:
         ``(N, T, d)`` states, in the candidates' dtype and on their device.

@@ -76,6 +76,15 @@ class GPPosterior:
         return self.variance.clamp_min(0).sqrt()
 
 
+def _show(module, name: str) -> str:
+    """A hyperparameter's current value(s) for an error message."""
+    value = getattr(module, name, None)
+    if not isinstance(value, torch.Tensor):
+        return "n/a"
+    flat = value.detach().reshape(-1).tolist()
+    return f"{flat[0]:.4g}" if len(flat) == 1 else "[" + ", ".join(f"{v:.4g}" for v in flat) + "]"
+
+
 def _check_prediction(value: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Refuse a non-finite prediction at finite inputs (the kernel overflowed: inputs far too large)."""
     if not bool(torch.isfinite(value).all()):
@@ -120,14 +129,16 @@ class CorrectionGP:
     Args:
         kernel: ``"rbf"`` (exp(-||y - y'||^2 / (2 l^2))), ``"matern52"``, or ``"polynomial"``
             ((1 + <y, y'>)^degree, the paper's polynomial kernel); each scaled by ``outputscale``.
-        lengthscale, outputscale, noise_variance: a value passed here is held fixed; ``None`` means learned.
-            ``lengthscale`` is the RBF/Matern l (the paper's sigma_k^2 = l^2); it does not apply to the polynomial
-            kernel. ``noise_variance`` is the variance of the observation noise on the samples of F.
+        lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
+            here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
+        outputscale: the kernel's variance factor.
+        noise_variance: the variance of the observation noise on the samples of F.
         per_output: one set of hyperparameters per output (costs one factorization per output) instead of the
             paper's shared kernel.
         degree: the polynomial kernel's order m.
         max_iter: most L-BFGS iterations when fitting.
-        dtype, device: of the model's tensors (float64 by default: recommended for GP maths).
+        dtype: of the model's tensors (float64 by default: recommended for GP maths).
+        device: of the model's tensors (the CPU by default).
 
     After :meth:`fit`: ``lengthscale``, ``outputscale`` and ``noise_variance`` hold the values in use (floats, or
     tensors ``(d_out,)`` when ``per_output``); ``log_marginal_likelihood_`` the exact log marginal likelihood
@@ -393,7 +404,10 @@ class CorrectionGP:
                     covar.outputscale = scale
                     lik.noise = (scale * (log_ratio.exp() + _MIN_RATIO)).reshape(1)
         except LinearAlgebraError as exc:
-            raise FittingError(f"fitting failed: {exc}") from exc
+            raise FittingError(
+                f"fitting failed at lengthscale={_show(self.covar_module.base_kernel, 'lengthscale')}, "
+                f"outputscale={_show(covar, 'outputscale')}, noise_variance={_show(lik, 'noise')}: {exc}"
+            ) from exc
         for p in params:
             if not bool(torch.isfinite(p).all()):
                 raise FittingError(

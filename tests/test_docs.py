@@ -1,0 +1,142 @@
+"""The documentation's Python code runs as written, and says what it shows.
+
+Each page's ```python blocks run in order in one namespace (later blocks reuse earlier names), as a reader would
+run them; then the claims the page's text makes about the results are checked, so neither the code nor the prose
+can rot. The API pages are checked to name importable public objects (the docs build itself, ``mkdocs build
+--strict``, runs in CI).
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
+
+
+def run_page(path: Path) -> dict:
+    namespace: dict = {"__name__": f"docs_{path.stem.replace('-', '_')}"}
+    blocks = BLOCK.findall(path.read_text())
+    assert blocks, f"{path.name}: no ```python blocks"
+    for block in blocks:
+        exec(compile(block, str(path), "exec"), namespace)
+    return namespace
+
+
+def check_index(ns: dict) -> None:
+    assert ns["pred"].shape == (20, 11, 2)
+    assert 0 < ns["tms"].correction_error(ns["gp"], ns["system"]) < float("inf")
+
+
+def check_learn_and_predict(ns: dict) -> None:
+    assert ns["trajs"].states.shape == (30, 11, 2)
+    assert ns["oracle"].inputs.shape == (330, 2)
+    # "noise_variance ... should come out close to the true noise variance 1e-4"
+    assert 0.5e-4 < ns["gp"].noise_variance < 2e-4
+    # "Both GPs cut the error of the uncorrected model; the one trained on finite differences ... does far better"
+    assert ns["error_oracle"] < ns["no_correction"]
+    assert ns["error_central"] < 0.1 * ns["error_oracle"]
+    assert ns["mse_oracle"] > 0
+    assert ns["posterior"].mean.shape == ns["posterior"].stddev.shape == (1, 2)
+    # "The corrected trajectories are closer to the truth than the misspecified ones, by a factor that grows with
+    # the quality of the samples"
+    assert ns["corrected"].shape == (10, 61, 2)
+    assert ns["rmse_central"] < ns["rmse_corrected"] < ns["rmse_misspecified"]
+
+
+def check_design(ns: dict) -> None:
+    plan, plain, constrained = ns["plan"], ns["plain"], ns["constrained"]
+    assert ns["candidates"].shape == (169, 2)
+    assert len(plan) == 9
+    # "the marginal gains in plan.gains never increase"
+    assert bool((plan.gains[1:] <= plan.gains[:-1] + 1e-9).all())
+    # "the first four picks are the corners of D and the fifth its centre"
+    first = plan.points[:5]
+    assert torch.allclose(first[:4].abs(), torch.ones(4, 2, dtype=first.dtype))
+    assert torch.allclose(first[4], torch.zeros(2, dtype=first.dtype), atol=1e-12)
+    # "pick the same set; lazy greedy needs fewer gain evaluations"
+    assert plain.indices.tolist() == plan.indices.tolist()
+    assert plan.evaluations < plain.evaluations
+    # "The unconstrained design puts more than 3 experiments on the left, so the capacity binds; the constrained
+    # design gives up a little information"
+    region = ns["region"]
+    assert int((region[plan.indices] == 0).sum()) > 3
+    assert int((region[constrained.indices] == 0).sum()) <= 3
+    assert constrained.information_gain < plan.information_gain
+    # "more information about F than the average random design, and more than the best of these 20 random ones"
+    random_gains = ns["random_gains"]
+    assert random_gains.shape == (20,)
+    assert plan.information_gain > float(random_gains.max()) > float(random_gains.mean())
+
+
+def check_own_system(ns: dict) -> None:
+    data, loaded = ns["data"], ns["loaded"]
+    assert data.times.shape == (4, 81) and data.states.shape == (4, 81, 2)
+    # "the loaded trajectories are identical"
+    assert torch.equal(loaded.states, data.states) and torch.equal(loaded.times, data.times)
+    errors, gps = ns["errors"], ns["gps"]
+    central, smooth = "central, order 4", "smooth, window 11, degree 3"
+    # "On precise states, fourth-order differences are nearly exact and beat the local fit"
+    assert errors[central, "precise"] < errors[smooth, "precise"]
+    # "On noisy states ... the local fit wins"
+    assert errors[smooth, "noisy"] < errors[central, "noisy"]
+    # "gp.noise_variance ... is larger for the noisy finite differences than for the local fit"
+    assert gps[central, "noisy"].noise_variance > gps[smooth, "noisy"].noise_variance
+    # "The corrected pendulum slows down as the real one does; the frictionless model does not"
+    assert ns["rmse_corrected"] < 0.2 * ns["rmse_frictionless"]
+
+
+PAGES = {
+    "index.md": check_index,
+    "tutorials/learn-and-predict.md": check_learn_and_predict,
+    "tutorials/design.md": check_design,
+    "tutorials/own-system.md": check_own_system,
+}
+
+
+@pytest.fixture
+def one_thread():
+    # the pages' problems are small (N of a few hundred): threads only add overhead, and on a busy CI machine
+    # oversubscribed OpenMP threads made a fit several times slower
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("page", sorted(PAGES))
+def test_page_runs_and_its_claims_hold(page, tmp_path, monkeypatch, one_thread):
+    monkeypatch.chdir(tmp_path)  # a page that writes files writes them here
+    namespace = run_page(DOCS / page)
+    PAGES[page](namespace)
+
+
+def test_every_tutorial_with_code_is_run():
+    pages = [DOCS / "index.md", *sorted((DOCS / "tutorials").glob("*.md"))]
+    with_code = {str(p.relative_to(DOCS)) for p in pages if BLOCK.search(p.read_text())}
+    assert with_code == set(PAGES), "add the page (and the claims its text makes) to PAGES"
+
+
+def test_api_pages_name_public_importable_objects():
+    identifiers = []
+    for page in sorted((DOCS / "api").glob("*.md")):
+        identifiers += re.findall(r"^::: ([\w.]+)", page.read_text(), re.M)
+    assert identifiers
+    for identifier in identifiers:
+        assert not any(part.startswith("_") for part in identifier.split(".")), identifier
+        parts = identifier.split(".")
+        for i in range(len(parts), 0, -1):  # the longest importable module prefix, then attributes
+            try:
+                obj = importlib.import_module(".".join(parts[:i]))
+            except ModuleNotFoundError:
+                continue
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+            break
+        else:
+            pytest.fail(f"{identifier}: not importable")
