@@ -166,7 +166,7 @@ def check_budget(budget, n: int) -> int:
             if isinstance(budget, bool) or int(budget) != budget:
                 raise TypeError
             budget = int(budget)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise BudgetError(f"budget: expected a positive integer, got {budget!r}") from None
     if budget < 1:
         raise BudgetError(f"budget: expected at least 1 experiment, got {budget}")
