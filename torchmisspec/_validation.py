@@ -114,25 +114,59 @@ def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
     return out
 
 
-def check_positive_int(value, name: str, *, minimum: int = 1) -> int:
-    """An integer >= ``minimum`` (bools, floats and other types are refused; numpy/torch integers are accepted)."""
+def check_positive_int(value, name: str, *, minimum: int = 1, maximum: int = 2**62) -> int:
+    """An integer in ``[minimum, maximum]`` (bools, floats and other types are refused; numpy/torch integers are
+    accepted). The default maximum keeps every count within torch's 64-bit sizes."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         if isinstance(value, torch.Tensor) and value.dim() == 0 and not value.is_floating_point():
             value = int(value)
         else:
-            raise InputError(f"{name}: expected an integer >= {minimum}, got {value!r} ({type(value).__name__})")
+            raise InputError(f"{name}: expected an integer >= {minimum}, got {value!r:.60} ({type(value).__name__})")
     value = int(value)
     if value < minimum:
         raise InputError(f"{name}: expected an integer >= {minimum}, got {value}")
+    if value > maximum:
+        digits = str(value)
+        shown = digits if len(digits) <= 24 else f"{digits[:6]}... ({len(digits)} digits)"
+        raise InputError(f"{name}: expected an integer <= {maximum}, got {shown}")
     return value
+
+
+def check_real(value, name: str, *, minimum: float | None = None, positive: bool = False) -> float:
+    """A finite real number (a Python/numpy number or a 0-d real tensor), ``> 0`` with ``positive`` (and at least
+    the smallest normal float64 then), ``>= minimum`` when given. Bools, strings and complex numbers are refused."""
+    what = (
+        "a positive finite number"
+        if positive
+        else "a finite number" + (f" >= {minimum}" if minimum is not None else "")
+    )
+    if isinstance(value, torch.Tensor) and value.dim() == 0 and not value.is_complex() and value.dtype != torch.bool:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f"{name}: expected {what}, got {value!r:.60} ({type(value).__name__})")
+    try:
+        out = float(value)
+    except OverflowError:  # an int beyond the float range
+        raise InputError(f"{name}: expected {what}, got an integer of {len(str(value))} digits") from None
+    if not math.isfinite(out) or (positive and out < _TINY) or (minimum is not None and out < minimum):
+        raise InputError(f"{name}: expected {what}, got {value!r:.60}")
+    return out
+
+
+_TINY = torch.finfo(torch.float64).tiny
 
 
 def check_domain(domain, name: str = "domain", *, dim: int | None = None) -> tuple[tuple[float, float], ...]:
     """A box as a tuple of ``(lo, hi)`` float pairs with finite ``lo < hi``; ``dim`` intervals when given."""
     try:
-        box = tuple((float(lo), float(hi)) for lo, hi in domain)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected a sequence of (lo, hi) pairs, got {domain!r}") from exc
+        arr = as_tensor(domain, name, dtype=torch.float64)
+    except InputError as exc:
+        raise InputError(f"{name}: expected a sequence of (lo, hi) pairs of real numbers, got {domain!r:.100}") from exc
+    if arr.dim() != 2 or arr.shape[-1] != 2:
+        raise InputError(
+            f"{name}: expected a sequence of (lo, hi) pairs, got shape {tuple(arr.shape)}: {domain!r:.100}"
+        )
+    box = tuple((float(lo), float(hi)) for lo, hi in arr.tolist())
     if not box or any(not (math.isfinite(lo) and math.isfinite(hi) and lo < hi) for lo, hi in box):
         raise InputError(f"{name}: expected at least one interval with finite lo < hi, got {box}")
     if dim is not None and len(box) != dim:

@@ -28,6 +28,9 @@ __all__ = [
     "mean_and_standard_error",
 ]
 
+#: most points of a quadrature grid (memory: 8 bytes x dimension each)
+MAX_GRID_POINTS = 10**8
+
 Field = Callable[[torch.Tensor], torch.Tensor]
 
 
@@ -35,6 +38,11 @@ def box_grid(domain, resolution: int = 101, *, dtype=DEFAULT_DTYPE, device=None)
     """Grid points ``(resolution**n, n)`` over the box and their trapezoidal weights ``(resolution**n,)``."""
     box = check_domain(domain)
     resolution = check_positive_int(resolution, "resolution", minimum=2)
+    if resolution ** len(box) > MAX_GRID_POINTS:
+        raise InputError(
+            f"resolution: a grid of {resolution} points per axis over {len(box)} dimensions has more than "
+            f"{MAX_GRID_POINTS:.0e} points; lower the resolution"
+        )
     axes, weights = [], []
     for lo, hi in box:
         axes.append(torch.linspace(lo, hi, resolution, dtype=dtype, device=device))

@@ -17,13 +17,12 @@ and raises :class:`~torchmisspec._errors.InputError` / :class:`~torchmisspec._er
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import check_finite, check_positive_int, states_and_times
+from ._validation import check_finite, check_positive_int, check_real, states_and_times
 from .data import Trajectories
 from .systems import MisspecifiedSystem
 
@@ -279,14 +278,7 @@ def correction_samples(
         )
     if not isinstance(derivative, str) or derivative not in DERIVATIVE_ESTIMATORS:
         raise InputError(f"derivative: expected one of {list(DERIVATIVE_ESTIMATORS)}, got {derivative!r}")
-    if isinstance(noise_std, bool):
-        raise InputError(f"noise_std: expected a finite number >= 0, got {noise_std!r}")
-    try:
-        noise = float(noise_std)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"noise_std: expected a finite number >= 0, got {noise_std!r}") from exc
-    if not math.isfinite(noise) or noise < 0:
-        raise InputError(f"noise_std: expected a finite number >= 0, got {noise_std!r}")
+    noise = check_real(noise_std, "noise_std", minimum=0.0)
     if generator is not None and not isinstance(generator, torch.Generator):
         raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
 

@@ -21,7 +21,6 @@ noise variances (1e-5 .. 1e-4 in the paper) well conditioned for L-BFGS.
 
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +29,7 @@ import gpytorch
 import torch
 
 from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, NumericalWarning, ShapeError
-from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int
+from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
 from ._optim import maximise
 
@@ -39,14 +38,6 @@ __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 KERNELS = ("rbf", "matern52", "polynomial")
 #: smallest noise-to-output-scale ratio the profiled fit considers (relative, so the fit is scale-equivariant)
 _MIN_RATIO = 1e-12
-
-
-def _positive_finite(value: int | float) -> bool:
-    try:
-        value = float(value)
-    except OverflowError:  # an int beyond the float range, e.g. 10**400
-        return False
-    return math.isfinite(value) and value > 0
 
 
 def _log_positive() -> gpytorch.constraints.Interval:
@@ -165,15 +156,14 @@ class CorrectionGP:
         if kernel == "polynomial" and lengthscale is not None:
             raise InputError("lengthscale: the polynomial kernel (1 + <y, y'>)^m has no lengthscale; pass None")
         degree = check_positive_int(degree, "degree")
-        for name, value in (
-            ("lengthscale", lengthscale),
-            ("outputscale", outputscale),
-            ("noise_variance", noise_variance),
-        ):
-            if value is not None and (
-                isinstance(value, bool) or not isinstance(value, (int, float)) or not _positive_finite(value)
-            ):
-                raise InputError(f"{name}: expected a positive finite number or None (learned), got {value!r:.60}")
+        lengthscale, outputscale, noise_variance = (
+            None if value is None else check_real(value, name, positive=True)
+            for name, value in (
+                ("lengthscale", lengthscale),
+                ("outputscale", outputscale),
+                ("noise_variance", noise_variance),
+            )
+        )
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
         self.kernel = kernel
