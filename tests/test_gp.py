@@ -267,3 +267,26 @@ def test_tiny_and_degenerate_data():
         tms.CorrectionGP().fit(torch.rand(10, 2, dtype=torch.float64), zeros)
     fixed = tms.CorrectionGP(outputscale=1e-3, noise_variance=1e-4).fit(torch.rand(10, 2, dtype=torch.float64), zeros)
     assert fixed.predict(X).mean.abs().max() == 0
+
+
+def test_a_failed_fit_leaves_the_model_as_it_was(generator, monkeypatch):
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP().fit(X, Y)
+    Xs = torch.rand(5, 2, generator=generator, dtype=DT)
+    before = gp.predict_mean(Xs).clone()
+    hyper = (gp.lengthscale, gp.outputscale, gp.noise_variance)
+
+    def broken(*args, **kwargs):
+        raise tms.FittingError("optimiser broke down")
+
+    monkeypatch.setattr(gp, "_optimise", broken)
+    with pytest.raises(tms.FittingError, match="optimiser broke down"):
+        gp.fit(X[:20] * 3, Y[:20])
+    assert (gp.lengthscale, gp.outputscale, gp.noise_variance) == hyper
+    assert gp.train_inputs_.shape == X.shape
+    torch.testing.assert_close(gp.predict_mean(Xs), before, rtol=0, atol=0)
+    unfitted = tms.CorrectionGP()
+    monkeypatch.setattr(unfitted, "_optimise", broken)
+    with pytest.raises(tms.FittingError):
+        unfitted.fit(X, Y)
+    assert not unfitted.is_fitted

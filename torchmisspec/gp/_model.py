@@ -314,19 +314,32 @@ class CorrectionGP:
         max_iter = self.max_iter if max_iter is None else check_positive_int(max_iter, "max_iter")
         warm_start = check_positive_int(warm_start, "warm_start", minimum=0)
         d_out = Y.shape[1]
-        covar, lik = self.covar_module, self.likelihood
-        if self.per_output and covar.batch_shape != torch.Size([d_out]):
-            covar, lik = self._modules(batch=d_out)
-        self.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
-        self._cache = None
-        free = self._free_parameters()
-        if any(name in ("outputscale", "noise_variance") for name, _ in free) and not bool((Y != 0).any()):
+        free = [name for name, _ in self._free_parameters()]
+        if any(name in ("outputscale", "noise_variance") for name in free) and not bool((Y != 0).any()):
             raise FittingError(
                 "targets: expected some non-zero samples to learn the output scale and noise from, got all zeros "
                 "(the likelihood grows without bound as both shrink to 0); fix them: CorrectionGP(outputscale=..., "
                 "noise_variance=...)"
             )
-        if free:
+        # a failed fit leaves the model as it was (not half-fitted on the new data)
+        before = (self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_)
+        saved = [{k: v.clone() for k, v in m.state_dict().items()} for m in (self.covar_module, self.likelihood)]
+        try:
+            self._fit(X, Y, d_out, bool(free), progress=progress, max_iter=max_iter, warm_start=warm_start)
+        except BaseException:
+            self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_ = before
+            self.covar_module.load_state_dict(saved[0])
+            self.likelihood.load_state_dict(saved[1])
+            raise
+        return self
+
+    def _fit(self, X, Y, d_out: int, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
+        covar, lik = self.covar_module, self.likelihood
+        if self.per_output and covar.batch_shape != torch.Size([d_out]):
+            covar, lik = self._modules(batch=d_out)
+        self.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
+        self._cache = None
+        if learn:
             self._initialise(X, Y)
             if warm_start and X.shape[0] > 2 * warm_start:
                 # a cheap first pass on an evenly spaced subsample puts L-BFGS near the optimum; the second pass
@@ -338,7 +351,6 @@ class CorrectionGP:
         else:
             self.n_iterations_, self.n_evaluations_ = 0, 0
         self._posterior_cache()
-        return self
 
     def _optimise(self, X: torch.Tensor, Y: torch.Tensor, *, progress: bool, max_iter: int):
         """L-BFGS on the exact log marginal likelihood with the analytic gradient of :mod:`._mll`.
