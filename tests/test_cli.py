@@ -4,15 +4,17 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
+import torchmisspec as tms
 from torchmisspec.cli import main
-from torchmisspec.studies import grid_candidates
+from torchmisspec.design.candidates import grid
 
 
 @pytest.fixture
 def candidates_csv(tmp_path):
     path = tmp_path / "cands.csv"
-    np.savetxt(path, grid_candidates(((-1, 1), (-1, 1)), 7).numpy(), delimiter=",", header="y0,y1", comments="")
+    np.savetxt(path, grid(((-1, 1), (-1, 1)), 7).numpy(), delimiter=",", header="y0,y1", comments="")
     return path
 
 
@@ -22,8 +24,15 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert "integrated error of the correction over D" in out and "trajectory RMSE" in out
     results = json.loads((tmp_path / "demo" / "results.json").read_text())
     assert results["rmse_corrected"] < results["rmse_misspecified"]
+    assert f"ratio {results['rmse_ratio']:.3f}" in out  # what it prints is what it saved
+    assert results["n_train"] == 15 and results["n_test"] == 5 and results["seed"] == 0
     for name in ("trajectories.png", "error_map.png"):
         assert (tmp_path / "demo" / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_demo_reports_bad_sizes_as_an_error(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--quiet", "--n-train", "0"]) == 2
+    assert "torchmisspec demo: error: n_train: expected an integer >= 1, got 0" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".json"])
@@ -44,12 +53,23 @@ def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
         "--quiet",
     ]
     assert main(argv) == 0
+    # the command's picks are those of the library call with the same candidates, times and prior
+    expected = tms.design.greedy(
+        grid(((-1, 1), (-1, 1)), 7),
+        4,
+        system=tms.systems.paper_linear(),
+        times=torch.linspace(0, 6, 11, dtype=torch.float64),
+        gp=tms.CorrectionGP(lengthscale=1.0, outputscale=4e-5, noise_variance=1e-4),
+    )
     if suffix == ".json":
         data = json.loads(out.read_text())
-        assert len(data["indices"]) == 4 and len(set(data["indices"])) == 4
-        assert data["information_gain"] == pytest.approx(sum(data["gains"]))
+        assert data["indices"] == expected.indices.tolist()
+        assert data["gains"] == pytest.approx(expected.gains.tolist(), rel=1e-12)
+        assert data["information_gain"] == pytest.approx(expected.information_gain, rel=1e-12)
     else:
-        assert out.read_text().splitlines()[0] == "order,index,gain,y0,y1"
+        lines = out.read_text().splitlines()
+        assert lines[0] == "order,index,gain,y0,y1"
+        assert [int(row.split(",")[1]) for row in lines[1:]] == expected.indices.tolist()
 
 
 def test_design_command_with_partition(tmp_path, candidates_csv):

@@ -19,7 +19,7 @@ def fitted(linear_system, paper_times, generator):
 
 def _rmse_ratio(seed, n_train=40, n_test=20):
     """Corrected / misspecified trajectory RMSE of one realization of paper 5.1 (the demo's set-up)."""
-    from torchmisspec.experiments import linear_demo
+    from torchmisspec.paper.demo import linear_demo
 
     result = linear_demo(None, n_train=n_train, n_test=n_test, seed=seed)
     return result.rmse_ratio

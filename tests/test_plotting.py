@@ -1,4 +1,5 @@
-"""Tests of torchmisspec.plotting: every figure writes a PNG, has the expected artists, and rejects bad shapes."""
+"""Tests of torchmisspec.plotting: every figure writes a PNG, draws the expected artists in the styles asked for (or
+the documented defaults by position), and rejects bad input."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from torchmisspec._errors import InputError, ShapeError
 from torchmisspec.data import Trajectories
 from torchmisspec.gp import CorrectionGP
 from torchmisspec.plotting import (
+    DESIGN_STYLES,
+    SERIES_STYLES,
     correction_error_fn,
     plot_component_error_maps,
     plot_design,
@@ -97,8 +100,10 @@ def test_plot_trajectories_rejects_bad_shapes():
         plot_trajectories(spirals(3), spirals(2))
     with pytest.raises(ShapeError, match=r"corrected_states: expected shape \(3, T, 2\).*got \(3, 15, 3\)"):
         plot_trajectories(spirals(3), corrected_states=spirals(3, d=3))
-    with pytest.raises(InputError, match=r"dims: expected indices in \[0, 1\].*got \[0, 2\]"):
+    with pytest.raises(InputError, match=r"dims: expected indices in \[0, 1\], got 2 in \[0, 2\]"):
         plot_trajectories(spirals(3), dims=(0, 2))
+    with pytest.raises(InputError, match=r"dims: expected two component indices \(x, y\), got 3"):
+        plot_trajectories(spirals(3, d=3), dims=(0, 1, 2))
     with pytest.raises(InputError, match="distinct"):
         plot_trajectories(spirals(3), dims=(1, 1))
     with pytest.raises(InputError, match=r"path: expected a \.png"):
@@ -169,7 +174,7 @@ def test_plot_error_map_rejects_bad_inputs():
         plot_error_map(lambda x: torch.zeros(x.shape[0], 3), DOMAIN, resolution=11)
     with pytest.raises(ShapeError, match=r"expected a callable or a 2-D grid.*got shape \(10,\)"):
         plot_error_map(np.zeros(10), DOMAIN)
-    with pytest.raises(ShapeError, match=r"domain: expected shape \(2, 2\).*got \(3, 2\)"):
+    with pytest.raises(ShapeError, match=r"domain: expected 2 intervals \(lo, hi\), got 3"):
         plot_error_map(np.zeros((5, 5)), ((0, 1), (0, 1), (0, 1)))
     with pytest.raises(InputError, match="lo < hi"):
         plot_error_map(np.zeros((5, 5)), ((1, 0), (0, 1)))
@@ -310,7 +315,7 @@ def test_plot_design_rejects_bad_inputs():
     cand = grid13()
     with pytest.raises(ShapeError, match=r"candidates_xy: expected shape \(N, 2\), got \(169, 3\)"):
         plot_design(torch.zeros(169, 3), {"design": [0]})
-    with pytest.raises(InputError, match=r"chosen\['design'\]: expected indices in \[0, 168\].*from 0 to 169"):
+    with pytest.raises(InputError, match=r"picks\['design'\]: expected indices in \[0, 168\].*from 0 to 169"):
         plot_design(cand, {"design": [0, 169]})
     with pytest.raises(InputError, match="integer indices"):
         plot_design(cand, {"design": [0.5, 1.0]})
@@ -356,3 +361,159 @@ def test_plot_error_curves_rejects_bad_inputs():
         plot_error_curves(np.arange(2), {"a": np.ones(2)}, reference_lines={"F": "high"})
     with pytest.raises(InputError, match=r"expected \(mean, stderr\)"):
         plot_error_curves(np.arange(2), {"a": (np.ones(2), np.ones(2), np.ones(2))})
+
+
+# ------------------------------------------------------------------------------------------ explicit styles
+def test_plot_trajectories_series_and_styles():
+    import matplotlib.colors as mcolors
+
+    K = 3
+    fig = plot_trajectories(
+        spirals(K),
+        spirals(K, shift=0.1),
+        spirals(K, shift=0.02),
+        series={"second model": spirals(K, shift=0.05), "third": spirals(K, shift=0.07)},
+        styles={"corrected": {"label": "mine", "color": "tab:green"}, "second model": {"linestyle": "-."}},
+    )
+    (ax,) = fig.axes
+    assert len(ax.lines) == 5 * K + 1
+    assert legend_labels(ax) == [
+        "true (G + F)",
+        "misspecified (G)",
+        "mine",
+        "second model",
+        "third",
+        "initial conditions",
+    ]
+    true, mis, cor, second, third = (ax.lines[i * K : (i + 1) * K] for i in range(5))
+    assert [ln.get_color() for ln in true] == ["tab:blue", "tab:orange", "tab:green"]  # trajectory k: colour k
+    assert [ln.get_color() for ln in mis] == [ln.get_color() for ln in true]
+    assert {ln.get_color() for ln in cor} == {"tab:green"}
+    assert {ln.get_color() for ln in second} == {SERIES_STYLES[0]["color"]}  # default colour of series 0 ...
+    assert {ln.get_linestyle() for ln in second} == {"-."}  # ... with the line style asked for
+    assert {ln.get_color() for ln in third} == {SERIES_STYLES[1]["color"]}
+    handle = ax.get_legend().legend_handles[2]
+    assert mcolors.same_color(handle.get_color(), "tab:green")
+
+
+@pytest.mark.parametrize("legend", [False, None])
+def test_plot_trajectories_without_legend(legend):
+    fig = plot_trajectories(spirals(2), legend=legend)
+    assert fig.axes[0].get_legend() is None and not fig.legends
+
+
+def test_legend_places():
+    right = plot_trajectories(spirals(2), legend="right").axes[0].get_legend()
+    assert right.get_bbox_to_anchor().x0 > right.axes.bbox.x1  # anchored outside, right of the axes
+    fig = plot_training_and_test(spirals(4), spirals(4), spirals(2), spirals(2), spirals(2), legend="below")
+    left, rightax = fig.axes
+    assert left.get_legend() is None and rightax.get_legend() is None
+    (below,) = fig.legends  # one legend for both panels, every style of the test panel
+    assert [t.get_text() for t in below.get_texts()] == [
+        "true (G + F)",
+        "misspecified (G)",
+        r"corrected (G + $\hat F$)",
+        "initial conditions",
+    ]
+
+
+def test_styles_and_legend_reject_bad_input():
+    with pytest.raises(InputError, match=r"styles: expected keys among \['true', 'misspecified', 'corrected'\]"):
+        plot_trajectories(spirals(2), styles={"model": {"color": "red"}})
+    with pytest.raises(InputError, match=r"styles\['true'\]: expected a dict of style keywords, got str"):
+        plot_trajectories(spirals(2), styles={"true": "red"})
+    with pytest.raises(InputError, match=r"series: expected names other than .*got \['true'\]"):
+        plot_trajectories(spirals(2), series={"true": spirals(2)})
+    with pytest.raises(ShapeError, match=r"series\['b'\]: expected shape \(2, T, 2\)"):
+        plot_trajectories(spirals(2), series={"b": spirals(3)})
+    with pytest.raises(InputError, match=r"legend: expected one of \[True, False, None, 'axes', 'right', 'below'\]"):
+        plot_trajectories(spirals(2), legend="top")
+    with pytest.raises(InputError, match="legend: expected True, 'axes', 'below' or False for two panels"):
+        plot_training_and_test(spirals(2), spirals(2), spirals(2), spirals(2), spirals(2), legend="right")
+
+
+def _marker_vertices(marker: str) -> np.ndarray:
+    from matplotlib.markers import MarkerStyle
+
+    style = MarkerStyle(marker)
+    return style.get_path().transformed(style.get_transform()).vertices
+
+
+def test_plot_design_styles_are_by_position_not_by_name():
+    """A pick named "random" first gets the first default style: names carry no meaning."""
+    import matplotlib.colors as mcolors
+
+    fig = plot_design(grid13(), {"random": [0, 1], "design": [2, 3], "other": [4]}, legend=False)
+    picks = {c.get_label(): c for c in fig.axes[0].collections}
+    for i, label in enumerate(["random (K=2)", "design (K=2)", "other (K=1)"]):
+        style = DESIGN_STYLES[i]
+        assert mcolors.same_color(picks[label].get_edgecolor()[0], style["color"]), label
+        assert picks[label].get_sizes()[0] == style["size"]
+        np.testing.assert_allclose(picks[label].get_paths()[0].vertices, _marker_vertices(style["marker"]))
+    assert fig.axes[0].get_legend() is None
+
+
+def test_plot_design_explicit_styles_picks_and_trajectory_colours():
+    import matplotlib.colors as mcolors
+    from matplotlib.figure import Figure
+
+    ax = Figure().add_subplot()
+    fig = plot_design(
+        grid13(),
+        picks={"a": [0, 5], "b": [7]},
+        styles={"b": {"marker": "^", "color": "tab:olive", "size": 30.0, "linestyle": ":"}},
+        proxies={"b": spirals(1), "seen from G": spirals(2)},
+        ax=ax,
+    )
+    assert fig is ax.figure
+    picks = {c.get_label(): c for c in ax.collections}
+    assert mcolors.same_color(picks["b (K=1)"].get_edgecolor()[0], "tab:olive")
+    assert picks["b (K=1)"].get_sizes()[0] == 30.0
+    np.testing.assert_allclose(picks["b (K=1)"].get_paths()[0].vertices, _marker_vertices("^"))
+    assert mcolors.same_color(picks["a (K=2)"].get_edgecolor()[0], DESIGN_STYLES[0]["color"])
+    b_line, *others = ax.lines  # b's trajectory in b's colour and line style; the others grey
+    assert mcolors.same_color(b_line.get_color(), "tab:olive") and b_line.get_linestyle() == ":"
+    assert len(others) == 2 and {ln.get_color() for ln in others} == {"tab:gray"}
+    assert "seen from G trajectories" in legend_labels(ax)
+
+
+def test_plot_design_rejects_bad_styles_and_accepts_the_old_chosen_argument():
+    with pytest.raises(
+        InputError, match=r"styles\['a'\]: expected keys among \['marker', 'color', 'size', 'linestyle'\]"
+    ):
+        plot_design(grid13(), {"a": [0]}, styles={"a": {"edgecolor": "red"}})
+    with pytest.raises(InputError, match=r"styles: expected keys among \['a'\], got unknown 'b'"):
+        plot_design(grid13(), {"a": [0]}, styles={"b": {"color": "red"}})
+    with pytest.warns(DeprecationWarning, match=r"plot_design\(chosen=\.\.\.\) is deprecated; use picks="):
+        fig = plot_design(grid13(), chosen={"a": [0, 1, 2]})
+    assert "a (K=3)" in legend_labels(fig.axes[0])
+    with pytest.warns(DeprecationWarning), pytest.raises(InputError, match="either picks or the deprecated chosen"):
+        plot_design(grid13(), {"a": [0]}, chosen={"a": [0]})
+    with pytest.raises(InputError, match=r"picks: expected a dict design name -> indices, got NoneType"):
+        plot_design(grid13())
+
+
+def test_plot_error_curves_styles_defaults_and_axes():
+    import matplotlib.colors as mcolors
+    from matplotlib.figure import Figure
+
+    from torchmisspec.plotting import CURVE_MARKERS
+
+    ax = Figure().add_subplot()
+    fig = plot_error_curves(
+        [1, 2, 3],
+        {"first": [3.0, 2.0, 1.0], "second": ([2.0, 1.0, 0.5], [0.1, 0.1, 0.1])},
+        styles={"second": {"color": "tab:pink", "marker": "x", "linestyle": "--"}},
+        ax=ax,
+        legend="right",
+        title="t",
+    )
+    assert fig is ax.figure and ax.get_title() == "t"
+    first, second = (container.lines[0] for container in ax.containers)
+    assert first.get_marker() == CURVE_MARKERS[0] and mcolors.same_color(first.get_color(), "C0")
+    assert second.get_marker() == "x" and mcolors.same_color(second.get_color(), "tab:pink")
+    assert second.get_linestyle() == "--"
+    np.testing.assert_allclose(second.get_ydata(), [2.0, 1.0, 0.5])
+    assert legend_labels(ax) == ["first", "second"]
+    with pytest.raises(InputError, match=r"styles: expected keys among \['first'\], got unknown 'x'"):
+        plot_error_curves([1], {"first": [1.0]}, styles={"x": {}})

@@ -3,16 +3,14 @@
 
 from __future__ import annotations
 
-import warnings
-
 from .design.candidates import uniform_box as uniform_in_box
+from .paper import _warn_moved
 from .paper.demo import DemoResult, linear_demo
 
-warnings.warn(
-    "torchmisspec.experiments is deprecated: use torchmisspec.paper.demo (DemoResult, linear_demo) and "
-    "torchmisspec.design.candidates.uniform_box (instead of uniform_in_box)",
-    DeprecationWarning,
-    stacklevel=2,
-)
-
 __all__ = ["DemoResult", "linear_demo", "uniform_in_box"]
+
+_warn_moved(
+    "torchmisspec.experiments",
+    "torchmisspec.paper.demo (DemoResult, linear_demo) and "
+    "torchmisspec.design.candidates.uniform_box (instead of uniform_in_box)",
+)

@@ -251,8 +251,9 @@ def plot_trajectories(
 
     Args:
         true_states: ``(K, T, d)`` states of the true system (or a Trajectories).
-        misspecified_states, corrected_states: optional ``(K, T', d)`` predictions from the same K initial
-            conditions (their time grids may differ from the true one).
+        misspecified_states: optional ``(K, T', d)`` predictions of the misspecified model from the same K initial
+            conditions (its time grid may differ from the true one).
+        corrected_states: optional ``(K, T', d)`` predictions of the corrected model, likewise.
         series: optional further sets, name -> ``(K, T', d)`` (e.g. a second corrected model), drawn in order after
             the corrected ones; the name is the legend text unless its style has a ``label``.
         styles: optional overrides, key -> Line2D keywords (``label`` is the legend text): keys ``"true"``,
@@ -327,10 +328,14 @@ def plot_training_and_test(
     """Training set (left: true vs misspecified) and test set (right: true, misspecified, corrected), side by side.
 
     Args:
-        train_true, train_misspecified: ``(K, T, d)`` training trajectories of the true and the misspecified model.
-        test_true, test_misspecified, test_corrected: ``(K', T, d)`` test trajectories, the last from the
-            corrected model G + mu.
-        dims, axis_labels, styles: as in :func:`plot_trajectories` (the styles apply to both panels).
+        train_true: ``(K, T, d)`` training trajectories of the true model.
+        train_misspecified: ``(K, T, d)`` the same from the misspecified model.
+        test_true: ``(K', T, d)`` test trajectories of the true model.
+        test_misspecified: ``(K', T, d)`` the same from the misspecified model.
+        test_corrected: ``(K', T, d)`` the same from the corrected model G + mu.
+        dims: as in :func:`plot_trajectories`.
+        axis_labels: as in :func:`plot_trajectories`.
+        styles: as in :func:`plot_trajectories` (they apply to both panels).
         titles: the two panel titles.
         legend: ``True``/``"axes"``: a legend in each panel; ``"below"``: one legend under both panels (every style
             appears in the test panel); ``False``: none.
@@ -489,7 +494,8 @@ def plot_error_map(
         domain: ``((x_lo, x_hi), (y_lo, y_hi))``, e.g. ``system.domain``.
         traces: optional ``(K, T, d)`` trajectories drawn as white lines with dots (components ``trace_dims``).
         log_scale: logarithmic colour scale (non-positive values are left blank).
-        vmin, vmax: colour-scale limits.
+        vmin: lower colour-scale limit (default: the smallest finite value).
+        vmax: upper colour-scale limit (default: the largest finite value).
         dashed_box: optional ``((x_lo, x_hi), (y_lo, y_hi))`` drawn dashed, e.g. the region D inside a larger map.
     """
     domain = check_domain(domain, dim=2)
@@ -539,7 +545,8 @@ def plot_component_error_maps(
         traces: optional setting name -> ``(K, T, d)`` training trajectories overlaid on that setting's panels.
         component_labels: the C column titles / colour-bar labels (default ``|F̂_i - F_i|``, i = 1..C).
         settings_as_columns: transpose the layout (settings across, components down).
-        log_scale, dashed_box: as in :func:`plot_error_map`.
+        log_scale: as in :func:`plot_error_map`.
+        dashed_box: as in :func:`plot_error_map`.
     """
     if not isinstance(maps, Mapping) or len(maps) == 0:
         raise InputError(f"maps: expected a non-empty dict setting name -> errors, got {type(maps).__name__}")

@@ -3,21 +3,19 @@
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 
 from .design.candidates import grid as _grid
+from .paper import _warn_moved
 from .paper.studies import StudyResult, gravity_study, linear_study
 
-warnings.warn(
-    "torchmisspec.studies is deprecated: use torchmisspec.paper.studies (StudyResult, linear_study, gravity_study) "
-    "and torchmisspec.design.candidates.grid (instead of grid_candidates)",
-    DeprecationWarning,
-    stacklevel=2,
-)
-
 __all__ = ["StudyResult", "grid_candidates", "linear_study", "gravity_study"]
+
+_warn_moved(
+    "torchmisspec.studies",
+    "torchmisspec.paper.studies (StudyResult, linear_study, gravity_study) and "
+    "torchmisspec.design.candidates.grid (instead of grid_candidates)",
+)
 
 
 def grid_candidates(domain, size: int = 13, *, dtype=torch.float64) -> torch.Tensor:

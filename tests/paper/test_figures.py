@@ -1,17 +1,19 @@
-"""The paper-reproduction command: smoke run of every figure, results.json contents, argument errors."""
+"""The paper's figures (torchmisspec.paper.figures) and their command line: smoke run of every figure,
+results.json contents, what the figures draw, the shared Session, argument errors."""
 
 import importlib.util
 import json
 import math
+import warnings
 from pathlib import Path
 
 import pytest
 import torch
 
-from torchmisspec import InputError
-from torchmisspec import reproduce as rep
+from torchmisspec import InputError, correction_error
+from torchmisspec.paper import figures as rep
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "reproduce_paper.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reproduce_paper.py"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 # figure -> paths (into its numbers) of the key numbers that must be finite
@@ -90,9 +92,14 @@ def _all_finite(value) -> bool:
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    """The smoke reproduction of every figure through the script's main (a few seconds)."""
+    """The smoke reproduction of every figure through the script's main (a few seconds).
+
+    A deprecated call in the paper's code (e.g. ``greedy(lazy=...)``, ``correction_error(squared=...)``) fails it.
+    """
     out = tmp_path_factory.mktemp("repro")
-    code = _load_script().main(["--all", "--smoke", "--quiet", "--out", str(out)])
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", category=DeprecationWarning, module=r"torchmisspec\.paper")
+        code = _load_script().main(["--all", "--smoke", "--quiet", "--out", str(out)])
     return code, out, json.loads((out / "results.json").read_text())
 
 
@@ -143,20 +150,80 @@ def test_smoke_numbers_tell_the_papers_story(smoke_run):
     assert designs["misspecified-aided"] == f["fig6"]["misspecified-aided"]["indices"]
 
 
-def test_a_figure_runs_alone(tmp_path):
-    numbers = rep.figure_2(tmp_path, smoke=True)
+def test_a_figure_runs_alone_and_its_session_holds_the_shared_fit(tmp_path):
+    session = rep.Session(0)
+    assert repr(session) == "Session(seed=0, built=[])"
+    numbers = rep.figure_2(tmp_path, smoke=True, session=session)
     assert (tmp_path / "fig2.png").read_bytes()[:8] == PNG_MAGIC
     assert numbers["files"] == ["fig2.png"]
     assert not (tmp_path / "results.json").exists()
     json.dumps(numbers)  # JSON-serialisable as returned
+    assert repr(session) == "Session(seed=0, built=['linear_fit'])"
+    fit = session.linear_fit
+    assert session.linear_fit is fit  # built once, reused by the next figure given this session
+    # the figure's number is the error of the fit the session holds (the one Fig 1 plots)
+    assert numbers["integrated_error"]["paper_prior"] == correction_error(fit.gp_paper, fit.system)
+    # no fitted model is cached in the module: no lru_cache, no module-level Session
+    caches = [n for n, v in vars(rep).items() if hasattr(v, "cache_info") or isinstance(v, rep.Session)]
+    assert caches == []
 
 
-def test_quiet_prints_nothing_and_selected_figures_only(tmp_path, capsys):
-    assert _load_script().main(["--figure", "2", "--figure", "4", "--smoke", "--quiet", "--out", str(tmp_path)]) == 0
+def test_session_seed_must_match(tmp_path):
+    with pytest.raises(InputError, match=r"session: expected a Session for seed=1 \(the seed argument\), got seed=0"):
+        rep.figure_2(tmp_path, smoke=True, seed=1, session=rep.Session(0))
+    with pytest.raises(InputError, match="session: expected a Session or None, got dict"):
+        rep.figure_2(tmp_path, smoke=True, session={})
+    with pytest.raises(InputError, match="seed: expected an integer, got 1.5"):
+        rep.Session(1.5)
+
+
+def test_figure_3_draws_both_designs_and_both_corrected_models(tmp_path, monkeypatch):
+    """Fig 3 is composed from the generic plotting functions with the paper's explicit styles."""
+    saved = {}
+    monkeypatch.setattr(
+        rep._layout, "save", lambda fig, path, files: (saved.__setitem__(path.name, fig), files.append(path.name))
+    )
+    numbers = rep.figure_3(tmp_path, smoke=True)
+    assert numbers["files"] == ["fig3_design.png", "fig3.png"]
+    left, right = saved["fig3.png"].axes
+    markers = {c.get_label(): c for c in left.collections}
+    design, random = markers["design (K=9)"], markers["random (K=9)"]
+    assert tuple(design.get_edgecolor()[0]) == (0.0, 0.0, 0.0, 1.0)  # black squares
+    assert design.get_sizes()[0] == 90.0 and random.get_sizes()[0] == 45.0
+    labels = [t.get_text() for t in right.get_legend().get_texts()]
+    assert labels == [
+        "true (G + F)",
+        "misspecified (G)",
+        "corrected, design-trained",
+        "corrected, random-trained",
+        "initial conditions",
+    ]
+    n_plot = numbers["setup"]["n_plotted"]
+    assert len(right.lines) == 4 * n_plot + 1  # four sets of trajectories and the initial conditions
+    assert saved["fig3_design.png"].axes[0].get_title() == left.get_title()
+
+
+def test_quiet_prints_nothing_selected_figures_only_and_threads_are_restored(tmp_path, capsys):
+    before = torch.get_num_threads()
+    argv = [
+        "--figure",
+        "2",
+        "--figure",
+        "4",
+        "--smoke",
+        "--quiet",
+        "--threads",
+        str(before + 1),
+        "--out",
+        str(tmp_path),
+    ]
+    assert _load_script().main(argv) == 0
     assert capsys.readouterr().out == ""
     results = json.loads((tmp_path / "results.json").read_text())
     assert set(results["figures"]) == {"fig2", "fig4"}
     assert not (tmp_path / "fig1.png").exists()
+    assert results["torch_threads"] == before + 1  # the run used the threads asked for ...
+    assert torch.get_num_threads() == before  # ... and gave the previous setting back
 
 
 @pytest.mark.parametrize(
@@ -191,12 +258,5 @@ def test_reproduce_rejects_bad_figure_lists(figures, tmp_path):
 
 @pytest.mark.parametrize("threads", [0, -2, 1.5, True])
 def test_reproduce_rejects_bad_threads(threads, tmp_path):
-    with pytest.raises(InputError, match="threads: expected a positive integer or None"):
+    with pytest.raises(InputError, match="threads: expected an integer >= 1"):
         rep.reproduce([2], tmp_path, threads=threads)
-
-
-def test_reproduce_restores_the_thread_count(tmp_path):
-    before = torch.get_num_threads()
-    results = rep.reproduce([2], tmp_path, smoke=True, threads=1)
-    assert results["torch_threads"] == 1
-    assert torch.get_num_threads() == before
