@@ -218,6 +218,7 @@ def test_every_valid_call_is_valid():
         _no_nan(call())
 
 
+@pytest.mark.filterwarnings("ignore::torchmisspec.NumericalWarning")  # extreme values: warnings are honest
 @settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
 @given(one_bad_argument())
 def test_one_bad_argument(case):
@@ -226,6 +227,7 @@ def test_one_bad_argument(case):
 
 
 @pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::torchmisspec.NumericalWarning")  # extreme values: warnings are honest
 @settings(max_examples=1500, deadline=None, suppress_health_check=list(HealthCheck))
 @given(one_bad_argument())
 def test_one_bad_argument_long(case):

@@ -59,3 +59,11 @@ def test_fit_warns_when_its_final_factorization_needs_jitter():
     Y = torch.sin(X.sum(-1, keepdim=True)).repeat(1, 2)
     with pytest.warns(tms.NumericalWarning, match=r"K \+ noise_variance \* I: not numerically positive definite"):
         tms.CorrectionGP(lengthscale=0.5, outputscale=1e4, noise_variance=2e-12).fit(X, Y)
+
+
+def test_warnings_point_at_the_callers_line():
+    X = torch.rand(5, 2, generator=torch.Generator().manual_seed(2), dtype=DT).repeat(20, 1)
+    Y = torch.sin(X.sum(-1, keepdim=True)).repeat(1, 2)
+    with pytest.warns(tms.NumericalWarning) as record:
+        tms.CorrectionGP(lengthscale=0.5, outputscale=1e4, noise_variance=2e-12).fit(X, Y)
+    assert {w.filename for w in record} == {__file__}

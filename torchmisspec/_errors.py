@@ -69,3 +69,17 @@ class TorchMisspecWarning(UserWarning):
 
 class NumericalWarning(TorchMisspecWarning):
     """A numerical fix was applied (jitter added to a covariance diagonal) or a result may be inaccurate."""
+
+
+def warn(message: str, category: type[Warning] = NumericalWarning) -> None:
+    """Issue a warning attributed to the first caller outside torchmisspec (the user's line, wherever inside the
+    package the problem was found)."""
+    import os
+    import sys
+    import warnings
+
+    package = os.path.dirname(os.path.abspath(__file__))
+    frame, level = sys._getframe(0), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package + os.sep):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level)

@@ -9,11 +9,10 @@
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 
-from ._errors import LinearAlgebraError, NotPositiveDefiniteError, NumericalWarning
+from ._errors import LinearAlgebraError, NotPositiveDefiniteError
+from ._errors import warn as warn_user
 
 __all__ = ["cholesky", "logdet_from_cholesky", "logdet_identity_plus", "JITTER_RANGE"]
 
@@ -21,7 +20,7 @@ __all__ = ["cholesky", "logdet_from_cholesky", "logdet_identity_plus", "JITTER_R
 JITTER_RANGE = (-10, -5)
 
 
-def cholesky(A: torch.Tensor, *, what: str = "covariance", warn: bool = True, stacklevel: int = 2) -> torch.Tensor:
+def cholesky(A: torch.Tensor, *, what: str = "covariance", warn: bool = True) -> torch.Tensor:
     """Lower Cholesky factor of ``A (..., n, n)``, with jitter only when needed.
 
     Args:
@@ -50,12 +49,10 @@ def cholesky(A: torch.Tensor, *, what: str = "covariance", warn: bool = True, st
         L, info = torch.linalg.cholesky_ex(A + jitter * eye)
         if not bool((info != 0).any()):
             if warn:
-                warnings.warn(
+                warn_user(
                     f"{what}: not numerically positive definite (size {A.shape[-1]}); added jitter "
                     f"{float(jitter):.2e} (1e{exponent} x its mean diagonal) to factorize it. Results are "
-                    "approximate: raise the noise variance or remove repeated inputs",
-                    NumericalWarning,
-                    stacklevel=stacklevel,
+                    "approximate: raise the noise variance or remove repeated inputs"
                 )
             return L
     raise NotPositiveDefiniteError(
@@ -77,7 +74,7 @@ def logdet_identity_plus(
     m = cov.shape[-1]
     A = cov / noise
     A.diagonal(dim1=-2, dim2=-1).add_(1.0)
-    L = cholesky(A, what=what, warn=warn, stacklevel=3)
+    L = cholesky(A, what=what, warn=warn)
     if m == 0:
         return cov.new_zeros(cov.shape[:-2]), L
     return logdet_from_cholesky(L), L

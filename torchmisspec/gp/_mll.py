@@ -59,7 +59,7 @@ def factorize(
         Y: ``(B, N, m)`` targets.
     """
     C = K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
-    L = cholesky(C, what=what, warn=warn, stacklevel=4)
+    L = cholesky(C, what=what, warn=warn)
     alpha = torch.cholesky_solve(Y, L)
     return Factorization(L, alpha, logdet_from_cholesky(L).sum(), (Y * alpha).sum())
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import gpytorch
 import torch
 
-from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, NumericalWarning, ShapeError
+from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError, warn
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
 from ._optim import maximise
@@ -457,13 +457,11 @@ class CorrectionGP:
             err = float(resid.abs().max())
             tol = 0.1 * float(diag.min().sqrt())
         if err > tol:
-            warnings.warn(
+            warn(
                 f"CorrectionGP: the posterior solve is inaccurate: the posterior mean at the training inputs is off "
                 f"by up to {err:.2e}, more than a tenth of the noise standard deviation ({10 * tol:.2e}). The noise "
                 "variance is too small for these inputs (repeated or nearly repeated points?); raise noise_variance "
                 "or remove duplicate inputs",
-                NumericalWarning,
-                stacklevel=3,
             )
         self._cache = _Cache(key, [v.clone() for v in values], fac, float(_mll.exact_mll(fac, X.shape[0])))
         self.log_marginal_likelihood_ = self._cache.mll
