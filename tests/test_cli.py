@@ -124,3 +124,60 @@ def test_console_script_help():
     )
     for option in ("--candidates", "--system", "--times", "--budget", "--partition", "--capacities", "--out"):
         assert option in proc.stdout
+
+
+def _design_args(candidates, out, *extra):
+    return [
+        "design",
+        "--candidates",
+        str(candidates),
+        "--system",
+        "paper_linear",
+        "--times",
+        "0:6:11",
+        "--budget",
+        "2",
+        "--out",
+        str(out),
+        "--quiet",
+        *extra,
+    ]
+
+
+@pytest.mark.parametrize(
+    ("content", "suffix", "message"),
+    [
+        (b"\xff\xfe\x00binary", ".csv", "UnicodeDecodeError"),
+        ("y\xe9\n1,2\n".encode("latin-1"), ".csv", "UnicodeDecodeError"),
+        (b"a,b\n1,x\n", ".csv", "could not be read"),
+        (b"", ".csv", "expected a non-empty array of real numbers"),
+        (b"\x93NUMPY garbage", ".npy", "could not be read"),
+    ],
+)
+def test_unreadable_candidate_files_exit_2_with_one_line(tmp_path, capsys, content, suffix, message):
+    path = tmp_path / f"cands{suffix}"
+    path.write_bytes(content)
+    assert main(_design_args(path, tmp_path / "out.csv")) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchmisspec design: error: candidates:") and message in err and "\n" not in err
+
+
+def test_object_arrays_are_not_unpickled(tmp_path, capsys):
+    np.save(tmp_path / "obj.npy", np.array([object()], dtype=object), allow_pickle=True)
+    assert main(_design_args(tmp_path / "obj.npy", tmp_path / "out.csv")) == 2
+    assert "Object arrays cannot be loaded when allow_pickle=False" in capsys.readouterr().err
+
+
+def test_bad_times_and_output_paths_fail_before_the_work(tmp_path, candidates_csv, capsys, monkeypatch):
+    def never(*args, **kwargs):
+        raise AssertionError("the design ran although its output cannot be written")
+
+    monkeypatch.setattr(tms.design, "greedy", never)
+    assert main(_design_args(candidates_csv, tmp_path / "no" / "folder" / "out.csv")) == 2
+    assert "--out: cannot write" in capsys.readouterr().err
+    assert main(_design_args(candidates_csv, tmp_path / "out.txt")) == 2
+    assert "--out: expected a .csv or .json file name" in capsys.readouterr().err
+    args = _design_args(candidates_csv, tmp_path / "out.csv")
+    args[args.index("0:6:11")] = "0:6:-1"
+    assert main(args) == 2
+    assert "--times: expected 'start:stop:count' with count >= 1" in capsys.readouterr().err

@@ -45,34 +45,52 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _read_table(path: str, what: str):
-    """A numeric array from .npz (array ``what`` or the only one), .npy, or CSV/TXT (an optional header row)."""
+    """A numeric array from .npz (array ``what`` or the only one), .npy, or CSV/TXT (an optional header row).
+
+    Nothing is unpickled; unreadable, non-UTF-8 or non-numeric files raise :class:`InputError`.
+    """
+    import zipfile
+
     import numpy as np
 
     from ._errors import InputError
 
     p = Path(path)
-    if not p.exists():
+    if not p.is_file():
         raise InputError(f"{what}: file {path!r} does not exist")
-    if p.suffix == ".npz":
-        with np.load(p) as data:
-            if what in data.files:
-                return data[what]
-            if len(data.files) == 1:
-                return data[data.files[0]]
-            raise InputError(f"{path}: expected an array named {what!r} (or a single array), got {data.files}")
-    if p.suffix == ".npy":
-        return np.load(p)
-    if p.suffix not in (".csv", ".txt"):
+    if p.suffix not in (".csv", ".txt", ".npz", ".npy"):
         raise InputError(f"{what}: expected a .csv, .txt, .npz or .npy file, got {path!r}")
-    lines = [ln for ln in p.read_text().splitlines() if ln.strip()]
     try:
-        float(lines[0].replace(",", " ").split()[0])
-    except (ValueError, IndexError):
-        lines = lines[1:]  # a header row
-    try:
-        return np.array([[float(v) for v in ln.replace(",", " ").split()] for ln in lines], dtype=np.float64)
-    except ValueError as exc:
-        raise InputError(f"{path}: expected numbers in every row ({exc})") from exc
+        if p.suffix == ".npz":
+            with np.load(p, allow_pickle=False) as data:
+                if what in data.files:
+                    arr = data[what]
+                elif len(data.files) == 1:
+                    arr = data[data.files[0]]
+                else:
+                    raise InputError(f"{path}: expected an array named {what!r} (or a single array), got {data.files}")
+        elif p.suffix == ".npy":
+            arr = np.load(p, allow_pickle=False)
+        else:
+            lines = [ln for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+            if lines:
+                try:
+                    float(lines[0].replace(",", " ").split()[0])
+                except ValueError:
+                    lines = lines[1:]  # a header row
+            arr = np.array([[float(v) for v in ln.replace(",", " ").split()] for ln in lines], dtype=np.float64)
+    except InputError:
+        raise
+    except (ValueError, OSError, EOFError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
+        raise InputError(
+            f"{what}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), but it "
+            f"could not be read ({type(exc).__name__}: {str(exc)[:160]})"
+        ) from exc
+    if arr.dtype.kind not in "iuf" or arr.size == 0:
+        raise InputError(
+            f"{what}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
+        )
+    return arr
 
 
 def _parse_times(text: str):
@@ -81,13 +99,32 @@ def _parse_times(text: str):
 
     from ._errors import InputError
 
+    message = f"--times: expected 'start:stop:count' with count >= 1 or a comma list of numbers, got {text!r}"
     try:
         if ":" in text:
             start, stop, count = text.split(":")
-            return torch.linspace(float(start), float(stop), int(count), dtype=torch.float64)
+            count = int(count)
+            if count < 1:
+                raise InputError(message)
+            return torch.linspace(float(start), float(stop), count, dtype=torch.float64)
         return torch.tensor([float(v) for v in text.split(",")], dtype=torch.float64)
     except ValueError as exc:
-        raise InputError(f"--times: expected 'start:stop:count' or a comma list of numbers, got {text!r}") from exc
+        raise InputError(message) from exc
+
+
+def _check_output(path: str, suffixes: tuple[str, ...]) -> Path:
+    """The output file: a known suffix, in a folder that exists and is writable (checked before any work)."""
+    import os
+
+    from ._errors import InputError
+
+    out = Path(path)
+    if out.suffix not in suffixes:
+        raise InputError(f"--out: expected a {' or '.join(suffixes)} file name, got {path!r}")
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir() or not os.access(folder, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+        raise InputError(f"--out: cannot write {path!r} (the folder must exist and be writable)")
+    return out
 
 
 def _design(args: argparse.Namespace) -> int:
@@ -100,6 +137,7 @@ def _design(args: argparse.Namespace) -> int:
     from .gp import CorrectionGP
     from .systems import get_system
 
+    out = _check_output(args.out, (".csv", ".json"))
     system = get_system(args.system)
     candidates = torch.as_tensor(_read_table(args.candidates, "candidates"), dtype=torch.float64)
     if candidates.dim() == 1:
@@ -114,7 +152,10 @@ def _design(args: argparse.Namespace) -> int:
     )
     partition = capacities = None
     if args.partition is not None:
-        partition = torch.as_tensor(_read_table(args.partition, "partition")).reshape(-1).round().long()
+        labels = torch.as_tensor(_read_table(args.partition, "partition")).reshape(-1)
+        if labels.is_floating_point() and not bool((labels == labels.round()).all()):
+            raise InputError(f"--partition: expected integer region labels, got fractional values in {args.partition}")
+        partition = labels.long()
         if args.capacities is None:
             raise InputError("--capacities: expected the most picks per region with --partition, got none")
     if args.capacities is not None:
@@ -150,7 +191,6 @@ def _design(args: argparse.Namespace) -> int:
             zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(), strict=True)
         )
     ]
-    out = Path(args.out)
     if out.suffix == ".json":
         out.write_text(
             json.dumps(
@@ -167,15 +207,13 @@ def _design(args: argparse.Namespace) -> int:
                 indent=2,
             )
         )
-    elif out.suffix == ".csv":
+    else:  # .csv (the suffix was checked before the work)
         import csv
 
         with out.open("w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
-    else:
-        raise InputError(f"--out: expected a .csv or .json file name, got {args.out!r}")
     print(
         f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on "
         f"{system.name}: information gain {plan.information_gain:.4f} nats; indices {plan.indices.tolist()}; "
