@@ -6,23 +6,20 @@ JSON-serialisable dict of what the package measured for that figure (nothing is 
 the run). :func:`reproduce` runs a list of figures and writes ``results.json`` (figure -> numbers, timings, the
 smoke flag and the realization counts). ``scripts/reproduce_paper.py`` is the command-line front end.
 
-===  ======================================================================================================
-Fig  What is reproduced
-===  ======================================================================================================
-1    §5.1: 40 random initial conditions in D = [-1, 1]^2, T = 11 on [0, 6], oracle samples of F with noise std
-     1e-2; the correction GP with the paper's fixed RBF prior (l = 1, output scale 4e-5, noise 1e-4; plotted)
-     and by marginal likelihood; training (left) and test (right) trajectories; test RMSE ratios over
-     realizations.
-2    §5.1: ||F_hat - F||_2 over D with the training traces; error near vs far from the traces.
-3    §5.2: 13 x 13 candidate grid, the K = 9 lazy-greedy design and 9 random picks with their trajectories;
-     predictions of both corrected models on a test set.
-4    §5.2: |F_hat_i - F_i| maps, random (top) vs design (bottom).
-5    §5.2: integrated error vs K for design / random / data-driven over realizations (:func:`linear_study`).
-6    §5.3: gravity; 300 candidates, the masses, the agnostic and misspecified-aided designs of size 7 with their
-     trajectories; predictions on a random test set.
-7    §5.3: ||F_hat_{3,4} - F_{3,4}||_2 maps of both designs over a box larger than D (D dashed).
-8    §5.3: mean squared error over D vs K over noise realizations (:func:`gravity_study`).
-===  ======================================================================================================
+What each figure reproduces:
+
+* Fig 1 (§5.1): 40 random initial conditions in D = [-1, 1]^2, T = 11 on [0, 6], oracle samples of F with noise std
+  1e-2; the correction GP with the paper's fixed RBF prior (l = 1, output scale 4e-5, noise 1e-4; plotted) and by
+  marginal likelihood; training (left) and test (right) trajectories; test RMSE ratios over realizations.
+* Fig 2 (§5.1): `||F_hat - F||_2` over D with the training traces; error near vs far from the traces.
+* Fig 3 (§5.2): 13 x 13 candidate grid, the K = 9 lazy-greedy design and 9 random picks with their trajectories;
+  predictions of both corrected models on a test set.
+* Fig 4 (§5.2): `|F_hat_i - F_i|` maps, random (top) vs design (bottom).
+* Fig 5 (§5.2): integrated error vs K for design / random / data-driven over realizations (:func:`linear_study`).
+* Fig 6 (§5.3): gravity; 300 candidates, the masses, the agnostic and misspecified-aided designs of size 7 with
+  their trajectories; predictions on a random test set.
+* Fig 7 (§5.3): `||F_hat_{3,4} - F_{3,4}||_2` maps of both designs over a box larger than D (D dashed).
+* Fig 8 (§5.3): mean squared error over D vs K over noise realizations (:func:`gravity_study`).
 
 Choices the paper leaves open are those of the package (see :func:`~torchmisspec.systems.paper_gravity` for the
 gravity domain D and :func:`~torchmisspec.design.candidates.orbits` for the candidate set). Trajectories are

@@ -287,7 +287,7 @@ def gravity_study(
 
     Returns:
         a :class:`StudyResult` with errors ``(realizations, len(ks))`` for ``misspecified-aided``, ``agnostic`` and
-        (with ``include_random``) ``random`` (a new random order of the candidates per realization).
+            (with ``include_random``) ``random`` (a new random order of the candidates per realization).
     """
     system = paper_gravity()
     realizations = check_positive_int(realizations, "realizations")
