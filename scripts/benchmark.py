@@ -590,34 +590,42 @@ def _hp(hp: dict) -> str:
     return f"lengthscale {hp['lengthscale']:.4g}, outputscale {hp['outputscale']:.4g}, noise {hp['noise_variance']:.4g}"
 
 
+def _nats(x: float) -> str:
+    return f"{x:+.3f}" if abs(x) >= 1e-3 else f"{x:+.1e}"
+
+
 def _load_line(load: list[float]) -> str:
     return " / ".join(f"{x:.2f}" for x in load) if load else "n/a"
 
 
-def render_markdown(r: dict, command: str) -> str:
+def render_markdown(r: dict) -> str:
     """BENCHMARKS.md from the results of a full run: every figure comes from ``r``, none is typed in."""
     m = r["machine"]
     f, g, p, d, n = r["fit"], r["gradient"], r["predict"], r["design"], r["naive"]
     ours, gd, gc, sk = f["ours"], f["gpytorch_default"], f["gpytorch_cholesky"], f["sklearn"]
     mem = f"{m['memory_gb']:.0f} GB RAM" if m["memory_gb"] else "RAM unknown"
     warm = ", after a warm start on a 500-point subsample" if f["N"] > 1000 else ""
-    machine = (
-        f"{m['cpu']}, {m['logical_cpus']} logical CPUs, {mem}, {'a' if m['gpu'] else 'no'} GPU; "
-        f"**{m['torch_threads']} torch threads**; python {m['python']}, torch {m['torch']}, gpytorch {m['gpytorch']}, "
-        f"scikit-learn {m['scikit-learn']}"
-    )
+    hardware = f"{m['cpu']}, {m['logical_cpus']} logical CPUs, {mem}, {'a' if m['gpu'] else 'no'} GPU"
+    software = f"python {m['python']}, torch {m['torch']}, gpytorch {m['gpytorch']}, scikit-learn {m['scikit-learn']}"
     lines = [
         f"""# Benchmarks
 
 All figures below come from one run of
 
 ```bash
-{command}
+{r["command"]}
 ```
 
-on {machine}. Load average (1 / 5 / 15 min) when the run started: {_load_line(r["load_before"])}; when it
-ended: {_load_line(r["load_after"])}. This page is written by that command (`--markdown`) from the measured
-numbers, also kept in [`benchmarks/results.json`](benchmarks/results.json) with every repeat. Each benchmark
+measured on:
+
+- machine: {hardware};
+- software: {software};
+- threads: **{m["torch_threads"]} torch thread{"s" if m["torch_threads"] != 1 else ""}** (`torch.get_num_threads()`; the design runs in child processes
+  with the same number);
+- load average (1 / 5 / 15 min) when the run started: **{_load_line(r["load_before"])}**; when it ended:
+  {_load_line(r["load_after"])} (the run's own threads count towards the load average).
+
+This page is written by that command (`--markdown`) from the measured numbers, also kept in [`benchmarks/results.json`](benchmarks/results.json) with every repeat. Each benchmark
 reports the median of {r["repeats"]} repeats (the gradient ablation: {g["evaluation_repeats"]} evaluations) and
 measures its peers in the same run, on the same data. `--smoke` runs tiny sizes (`tests/test_benchmark_script.py`
 checks that it runs); `--only fit|gradient|predict|design|naive` runs one benchmark.
@@ -659,8 +667,8 @@ Peers, measured in this run:
   Likelihood: ours minus scikit-learn's is {-sk["lml_relative_gap"] * 100:+.3f} % of scikit-learn's (target: at
   most 0.05 % below it, or higher: {_verdict(sk["lml_relative_gap"] <= 5e-4)}).
 - Time ratio ours / GPyTorch default: **{gd["time_ratio"]:.2f}**; ours / GPyTorch exact Cholesky:
-  **{gc["time_ratio"]:.2f}**. Likelihood, ours minus the peer's: {ours["lml"] - gd["lml"]:+.3f} nats (default),
-  {ours["lml"] - gc["lml"]:+.3f} nats (exact Cholesky); same 0.05 % target:
+  **{gc["time_ratio"]:.2f}**. Likelihood, ours minus the peer's: {_nats(ours["lml"] - gd["lml"])} nats (default),
+  {_nats(ours["lml"] - gc["lml"])} nats (exact Cholesky); same 0.05 % target:
   {_verdict(gd["lml_relative_gap"] <= 5e-4)} (default), {_verdict(gc["lml_relative_gap"] <= 5e-4)} (Cholesky).
   GPyTorch numerical warnings during the fits: {gd["numerical_warnings"]} (default), {gc["numerical_warnings"]}
   (Cholesky).
@@ -818,7 +826,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.markdown and args.only:
         parser.error("--markdown needs every benchmark; drop --only")
     repeats = args.repeats or (1 if args.smoke else 3)
-    results = {"machine": _machine(), "load_before": _load(), "smoke": args.smoke, "repeats": repeats}
+    command = "python scripts/benchmark.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    results = {
+        "command": command,
+        "machine": _machine(),
+        "load_before": _load(),
+        "smoke": args.smoke,
+        "repeats": repeats,
+    }
     for name in args.only or list(BENCHMARKS):
         print(f"--- {name}", flush=True)
         t0 = time.perf_counter()
@@ -831,9 +846,8 @@ def main(argv: list[str] | None = None) -> int:
             json.dump(results, fh, indent=2)
             fh.write("\n")
     if args.markdown:
-        command = "python scripts/benchmark.py " + " ".join(argv if argv is not None else sys.argv[1:])
         with open(args.markdown, "w") as fh:
-            fh.write(render_markdown(results, command))
+            fh.write(render_markdown(results))
     return 0
 
 
