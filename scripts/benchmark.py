@@ -133,17 +133,8 @@ def _exact_lml(X, Y, lengthscale: float, outputscale: float, noise_variance: flo
 
 
 def _start_values(X: torch.Tensor, Y: torch.Tensor) -> dict:
-    """The starting values CorrectionGP.fit uses (``gp/_model.py: _initialise``), so that the peers start there too:
-    median pairwise distance of an evenly spaced 500-point subsample, the targets' variance (mean over outputs),
-    and 1 % of it as noise."""
-    sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500)).long()]
-    dist = torch.cdist(sub, sub)
-    var = Y.var(dim=0, unbiased=False).clamp_min(1e-10).mean()
-    return {
-        "lengthscale": float(dist[dist > 0].median().clamp_min(1e-6)),
-        "outputscale": float(var),
-        "noise_variance": float(1e-2 * var),
-    }
+    """The starting values CorrectionGP.fit uses (its public ``starting_values`` hook), so the peers start there too."""
+    return {k: float(v) for k, v in tms.CorrectionGP().starting_values(X, Y).items()}
 
 
 def _modules(start: dict):

@@ -290,3 +290,15 @@ def test_a_failed_fit_leaves_the_model_as_it_was(generator, monkeypatch):
     with pytest.raises(tms.FittingError):
         unfitted.fit(X, Y)
     assert not unfitted.is_fitted
+
+
+def test_starting_values_are_the_documented_statistics_and_the_fit_starts_there(generator):
+    X, Y = _data(generator)
+    start = tms.CorrectionGP().starting_values(X, Y)
+    d = torch.cdist(X, X)
+    assert float(start["lengthscale"]) == pytest.approx(float(d[d > 0].median()), rel=1e-12)  # N < 500: all inputs
+    assert float(start["outputscale"]) == pytest.approx(float(Y.pow(2).mean()), rel=1e-12)
+    assert float(start["noise_variance"]) == pytest.approx(0.01 * float(Y.pow(2).mean()), rel=1e-12)
+    one_step = tms.CorrectionGP(max_iter=1).fit(X, Y, warm_start=0)
+    fixed_at_start = tms.CorrectionGP(**{k: float(v) for k, v in start.items()}).fit(X, Y)
+    assert one_step.log_marginal_likelihood_ > fixed_at_start.log_marginal_likelihood_  # one step uphill from there

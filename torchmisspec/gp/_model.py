@@ -244,25 +244,45 @@ class CorrectionGP:
             params.append(("noise_variance", self.likelihood.noise_covar.raw_noise))
         return params
 
-    def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
-        """Data-driven starting values for the learned hyperparameters (the fixed ones are already set)."""
-        # the second moment, not the variance: the prior mean is zero, and it stays positive for constant targets;
-        # every starting value scales with the data (the fit is equivariant to the units of inputs and targets)
+    def starting_values(self, inputs, targets) -> dict[str, torch.Tensor]:
+        """The data-driven values the fit starts the learned hyperparameters from (a public hook, so that peers in
+        benchmarks can start from the same point).
+
+        * ``lengthscale``: the median distance between distinct inputs of an evenly spaced subsample of 500;
+        * ``outputscale``: the targets' second moment (mean over outputs; per output with ``per_output``); the prior
+          mean is zero, and it stays positive for constant targets;
+        * ``noise_variance``: 1 % of it.
+
+        Every value scales with the data, so the fit is equivariant to the units of inputs and targets. Returns
+        tensors (``()``, or ``(d_out,)`` with ``per_output``) for the hyperparameters this kernel has.
+        """
+        X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
+        Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
+        Y = Y.unsqueeze(-1) if Y.dim() == 1 else Y
         var = Y.pow(2).mean(dim=0)  # (d_out,)
         var = torch.where(var > 0, var, var.max()) if self.per_output else var.mean()
+        out = {"outputscale": var, "noise_variance": 1e-2 * var}
+        if self.kernel != "polynomial":
+            sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
+            dist = torch.cdist(sub, sub)
+            positive = dist[dist > 0]
+            out["lengthscale"] = (
+                positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
+            )
+        return out
+
+    def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
+        """Set the learned hyperparameters to :meth:`starting_values` (the fixed ones are already set)."""
+        start = self.starting_values(X, Y)
         with torch.no_grad():
             if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
-                sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-                dist = torch.cdist(sub, sub)
-                positive = dist[dist > 0]
-                med = positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
                 base = self.covar_module.base_kernel
-                base.lengthscale = med.expand(base.lengthscale.shape)
+                base.lengthscale = start["lengthscale"].expand(base.lengthscale.shape)
             if self.fixed["outputscale"] is None:
-                self.covar_module.outputscale = var.expand(self.covar_module.outputscale.shape)
+                self.covar_module.outputscale = start["outputscale"].expand(self.covar_module.outputscale.shape)
             if self.fixed["noise_variance"] is None:
-                noise = (1e-2 * var).reshape(-1, 1) if self.per_output else (1e-2 * var).reshape(1)
-                self.likelihood.noise = noise
+                noise = start["noise_variance"]
+                self.likelihood.noise = noise.reshape(-1, 1) if self.per_output else noise.reshape(1)
 
     # ----------------------------------------------------------------------------------------------- the maths
     def _kernel_parts(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
