@@ -559,12 +559,68 @@ def bench_naive(smoke: bool, repeats: int) -> dict:
     return out
 
 
+# ---------------------------------------------------------------------------------------------- contention
+def _contention_worker(smoke: bool, repeats: int) -> dict:
+    """Fit, prediction and design timings in this process (run by bench_contention with and without a busy peer)."""
+    system = tms.systems.paper_linear()
+    gen = torch.Generator().manual_seed(0)
+    times = torch.linspace(0.0, 6.0, 11, dtype=torch.float64)
+    n_traj, n_ic, n_cand, K = (10, 50, 500, 5) if smoke else (40, 1000, 10_000, 50)
+    trajs = tms.simulate(system, uniform_box(n_traj, system.domain, generator=gen), times)
+    s = tms.correction_samples(trajs, system, derivative="oracle", noise_std=1e-2, generator=gen)
+    gp = tms.CorrectionGP().fit(s.inputs, s.targets)
+    ode = tms.CorrectedODE(system, gp)
+    y0 = uniform_box(n_ic, system.domain, generator=gen)
+    fine = torch.linspace(0.0, 6.0, 61, dtype=torch.float64)
+    cands = uniform_box(n_cand, system.domain, generator=gen)
+    t20 = torch.linspace(0.0, 6.0, 20, dtype=torch.float64)
+    prior = tms.CorrectionGP(lengthscale=1.0, outputscale=4e-5, noise_variance=1e-4)
+    tms.design.greedy(cands[:50], 3, system=system, times=t20, gp=prior)  # warm-up
+    out = {"threads": torch.get_num_threads()}
+    out["fit"] = _timed(lambda: tms.CorrectionGP().fit(s.inputs, s.targets), repeats)[1]
+    out["predict"] = _timed(lambda: ode.predict(y0, fine), repeats)[1]
+    out["design"] = _timed(lambda: tms.design.greedy(cands, K, system=system, times=t20, gp=prior), repeats)[1]
+    return out
+
+
+def bench_contention(smoke: bool, repeats: int) -> dict:
+    """Quiet vs beside one busy process (a pure-Python spin loop), with the package's adaptive thread count and
+    with torch's own thread setting (``TORCHMISSPEC_THREADS=torch``), each in a fresh process."""
+    import os
+    import subprocess
+
+    policies = {"adaptive (default)": {}, "torch's setting": {"TORCHMISSPEC_THREADS": "torch"}}
+    out = {"sizes": "smoke" if smoke else "fit N = 440, predict 1000 x 61, design 10,000 candidates K = 50"}
+    for busy in (False, True):
+        spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+        try:
+            if spinner is not None:
+                time.sleep(0.5)
+            for name, env in policies.items():
+                cmd = [
+                    sys.executable,
+                    __file__,
+                    "--threads",
+                    str(torch.get_num_threads()),
+                    "--contention-worker",
+                    json.dumps([smoke, repeats]),
+                ]
+                proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=dict(os.environ, **env))
+                out[f"{name}, {'busy' if busy else 'quiet'}"] = json.loads(proc.stdout.strip().splitlines()[-1])
+        finally:
+            if spinner is not None:
+                spinner.kill()
+                spinner.wait()
+    return out
+
+
 BENCHMARKS = {
     "fit": bench_fit,
     "gradient": bench_gradient,
     "predict": bench_predict,
     "design": bench_design,
     "naive": bench_naive,
+    "contention": bench_contention,
 }
 
 
@@ -793,6 +849,37 @@ repeats), so the ratio moves between full runs. At this small size the vectorise
 batched T x T Cholesky per step beats lazy greedy's bookkeeping) at O(N K T^2) memory; lazy greedy is the default
 because its memory stays O(N T^2 + (K T)^2), which is what makes 10,000 candidates fit in 1 GB.
 """)
+    c = r["contention"]
+    quiet_ref = c["torch's setting, quiet"]
+    lines.append(f"""
+## A busy machine: adaptive thread count (`--only contention`)
+
+The same work ({c["sizes"]}; median of the repeats) in a fresh process, on a quiet machine and beside one busy
+process (a pure-Python spin loop that keeps a core busy), with the package's adaptive thread count (the default:
+the heavy calls use no more torch threads than there are free cores, read from `/proc/loadavg` at each call; see
+`torchmisspec._threads`) and with torch's own setting (`TORCHMISSPEC_THREADS=torch`, {quiet_ref["threads"]} threads).
+Targets: quiet speed within 10 % of torch's setting; busy within 1.5x of quiet.
+
+| policy, machine | fit | predict | design | fit / quiet | predict / quiet | design / quiet |
+|---|---|---|---|---|---|---|""")
+    for key in (
+        "torch's setting, quiet",
+        "adaptive (default), quiet",
+        "torch's setting, busy",
+        "adaptive (default), busy",
+    ):
+        v = c[key]
+        ratios = " | ".join(f"{v[k] / quiet_ref[k]:.2f}x" for k in ("fit", "predict", "design"))
+        lines.append(f"| {key} | {v['fit']:.3f} s | {v['predict']:.3f} s | {v['design']:.2f} s | {ratios} |")
+    a_q, a_b = c["adaptive (default), quiet"], c["adaptive (default), busy"]
+    quiet_ok = all(a_q[k] <= 1.1 * quiet_ref[k] for k in ("fit", "predict", "design"))
+    busy_ok = all(a_b[k] <= 1.5 * a_q[k] for k in ("fit", "predict", "design"))
+    lines.append(f"""
+- Quiet, adaptive vs torch's setting: {_verdict(quiet_ok)} (within 10 % on every task).
+- Busy vs quiet with the adaptive count: {", ".join(f"{k} {a_b[k] / a_q[k]:.2f}x" for k in ("fit", "predict", "design"))}:
+  {_verdict(busy_ok)} (1.5x target). With one core taken, one thread on the free core is the best a process can do;
+  work that two threads speed up by more than 1.5x on a quiet machine cannot meet the target there.
+""")
     return "\n".join(lines)
 
 
@@ -808,11 +895,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", help="write the results to this JSON file")
     parser.add_argument("--markdown", help="write BENCHMARKS.md-style results here (needs every benchmark)")
     parser.add_argument("--design-worker", help=argparse.SUPPRESS)
+    parser.add_argument("--contention-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     if args.design_worker:
         print(json.dumps(_design_worker(*json.loads(args.design_worker))))
+        return 0
+    if args.contention_worker:
+        print(json.dumps(_contention_worker(*json.loads(args.contention_worker))))
         return 0
     if args.markdown and args.only:
         parser.error("--markdown needs every benchmark; drop --only")

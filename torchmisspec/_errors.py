@@ -78,8 +78,11 @@ def warn(message: str, category: type[Warning] = NumericalWarning) -> None:
     import sys
     import warnings
 
-    package = os.path.dirname(os.path.abspath(__file__))
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
     frame, level = sys._getframe(0), 1
-    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package + os.sep):
+    while frame is not None and (
+        os.path.abspath(frame.f_code.co_filename).startswith(package)
+        or os.path.basename(frame.f_code.co_filename) in ("contextlib.py", "functools.py")  # decorators' wrappers
+    ):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, category, stacklevel=level)

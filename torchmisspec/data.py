@@ -18,6 +18,7 @@ import torch
 
 from ._errors import InputError, ShapeError
 from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
+from ._threads import adaptive_threads
 from ._validation import as_tensor, states_and_times
 from .systems import MisspecifiedSystem
 
@@ -157,6 +158,7 @@ class Trajectories:
         return cls(torch.from_numpy(times), torch.from_numpy(states))
 
 
+@adaptive_threads()
 def simulate(
     system: MisspecifiedSystem,
     y0,

@@ -7,6 +7,7 @@ from torch import nn
 
 from ._errors import InputError, NotFittedError, ShapeError
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
+from ._threads import adaptive_threads
 from .gp import CorrectionGP
 from .systems import MisspecifiedSystem
 
@@ -63,6 +64,7 @@ class CorrectedODE(nn.Module):
     def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         return self.field(y)
 
+    @adaptive_threads()
     def predict(
         self,
         y0,

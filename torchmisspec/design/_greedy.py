@@ -36,12 +36,12 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
 import torch
 
-from .._errors import InputError
+from .._errors import InputError, warn
 from .._linalg import cholesky
+from .._threads import adaptive_threads
 from .._validation import check_positive_int, progress_bar
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
@@ -435,20 +435,18 @@ def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20) -> tup
 def resolve_method(method: str, lazy: bool | None) -> str:
     """The engine name from ``method`` and the deprecated ``lazy`` flag / ``"greedy"`` spelling (with a warning)."""
     if lazy is not None:
-        warnings.warn(
+        warn(
             "greedy(lazy=...) is deprecated; use method='lazy' (lazy=True) or method='plain' (lazy=False)",
             DeprecationWarning,
-            stacklevel=3,
         )
         return "lazy" if lazy else "plain"
     if method == "greedy":
-        warnings.warn(
-            "method='greedy' is deprecated; plain greedy is now method='plain'", DeprecationWarning, stacklevel=3
-        )
+        warn("method='greedy' is deprecated; plain greedy is now method='plain'", DeprecationWarning)
         return "plain"
     return method
 
 
+@adaptive_threads()
 def greedy(
     candidates,
     budget: int,

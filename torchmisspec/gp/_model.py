@@ -29,6 +29,7 @@ import gpytorch
 import torch
 
 from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError, warn
+from .._threads import adaptive_threads
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
 from ._optim import maximise
@@ -306,6 +307,7 @@ class CorrectionGP:
             raise ShapeError(f"{name}: expected {d_in} input columns (as in training), got shape {tuple(x.shape)}")
         return x
 
+    @adaptive_threads()
     def fit(
         self, inputs, targets, *, progress: bool = False, max_iter: int | None = None, warm_start: int = 500
     ) -> CorrectionGP:
