@@ -24,7 +24,7 @@ import torch
 from torchdiffeq import odeint
 
 from ._errors import InputError, IntegrationError, ShapeError
-from ._validation import as_tensor, check_finite, check_ndim, check_positive_int, check_times
+from ._validation import as_tensor, check_finite, check_ndim, check_positive_int, check_real, check_times
 
 #: (rtol, atol) of simulations of a given model: the truth, the proxies (see the module docstring)
 SIMULATION_TOLERANCES = (1e-10, 1e-12)
@@ -57,20 +57,31 @@ _EVALS_PER_STEP = 7
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
+#: a solve is stalled when 100 steps advance time by less than this fraction of the time span
+_STALL_FRACTION = 1e-6
+_STALL_WINDOW = 100 * _EVALS_PER_STEP
+
+
 class _StepLimit(Exception):
     """Raised inside the right-hand side when the evaluation budget is spent (stops torchdiffeq at once)."""
+
+
+class _Stalled(Exception):
+    """Raised inside the right-hand side when time has stopped advancing (a singularity or a chattering state)."""
 
 
 class _Autonomous(torch.nn.Module):
     """Wrap an autonomous field f(y) as torchdiffeq's func(t, y): counts evaluations, enforces the step budget,
     checks the field's output shape and remembers the last state (for the error message)."""
 
-    def __init__(self, field: Callable[[torch.Tensor], torch.Tensor], max_evals: int, what: str) -> None:
+    def __init__(self, field: Callable[[torch.Tensor], torch.Tensor], max_evals: int, what: str, span: float) -> None:
         super().__init__()
         self.field = field
         self.nfe = 0
         self.max_evals = max_evals
         self.what = what
+        self.min_advance = _STALL_FRACTION * span
+        self.window_t = None
         self.last_t = None
         self.last_y = None
         self.last_f = None
@@ -79,6 +90,11 @@ class _Autonomous(torch.nn.Module):
         self.nfe += 1
         if self.nfe > self.max_evals:
             raise _StepLimit
+        if self.nfe % _STALL_WINDOW == 0:  # progress check: has time advanced over the last 100 steps?
+            now = float(t)
+            if self.window_t is not None and now - self.window_t < self.min_advance:
+                raise _Stalled
+            self.window_t = now
         f = self.field(y)
         if not isinstance(f, torch.Tensor) or f.shape != y.shape:
             shape = tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__
@@ -123,12 +139,15 @@ def solve(
         states ``(B, T, d)`` and the number of right-hand-side evaluations.
     """
     max_steps = DEFAULT_MAX_STEPS if max_steps is None else check_positive_int(max_steps, "max_steps")
+    rtol, atol = check_real(rtol, "rtol", positive=True), check_real(atol, "atol", positive=True)
+    if not isinstance(method, str):
+        raise InputError(f"method: expected a torchdiffeq method name such as 'dopri5', got {method!r:.60}")
     if y0.dtype not in _FLOAT_DTYPES:
         raise InputError(
             f"{what}: expected float32 or float64 states, got {y0.dtype} (half precision cannot meet the solver's "
             "tolerances); convert with .double()"
         )
-    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what)
+    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0)
     if times.dim() == 1:
         grid, gather = times, None
     else:
@@ -138,6 +157,7 @@ def solve(
         grid, inverse = torch.unique(rel.reshape(-1), sorted=True, return_inverse=True)
         gather = inverse.reshape(times.shape)
     span = f"[{float(grid[0]):.4g}, {float(grid[-1]):.4g}]"
+    func.min_advance = _STALL_FRACTION * float(grid[-1] - grid[0])
     with torch.no_grad():
         f0 = field(y0)
     if not isinstance(f0, torch.Tensor) or f0.shape != y0.shape:
@@ -158,6 +178,14 @@ def solve(
             f"up; the initial conditions with the largest state or derivative at that point: {worst}. Check those "
             "initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
             "explicit steps)"
+        ) from None
+    except _Stalled:
+        worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
+        raise IntegrationError(
+            f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by less "
+            f"than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity of the "
+            f"model or a state where the field changes abruptly; the initial conditions with the largest state or derivative there: "
+            f"{worst}. Check the model near those states, or shorten the time span"
         ) from None
     except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
