@@ -184,8 +184,8 @@ def solve(
         raise IntegrationError(
             f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by less "
             f"than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity of the "
-            f"model or a state where the field changes abruptly; the initial conditions with the largest state or derivative there: "
-            f"{worst}. Check the model near those states, or shorten the time span"
+            f"model or a state where the field changes abruptly; the initial conditions with the largest state or "
+            f"derivative there: {worst}. Check the model near those states, or shorten the time span"
         ) from None
     except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
