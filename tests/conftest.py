@@ -1,3 +1,5 @@
+import contextlib
+
 import pytest
 import torch
 
@@ -17,3 +19,27 @@ def linear_system():
 @pytest.fixture
 def paper_times():
     return torch.linspace(0.0, 6.0, 11, dtype=torch.float64)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int):
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread for a module's small problems (threads only add overhead there, and oversubscribed OpenMP
+    threads on a busy machine made small fits several times slower); torch's setting is restored afterwards."""
+    with _torch_threads(1):
+        yield
+
+
+@pytest.fixture
+def two_threads():
+    with _torch_threads(2):
+        yield

@@ -99,16 +99,6 @@ PAGES = {
 }
 
 
-@pytest.fixture
-def one_thread():
-    # the pages' problems are small (N of a few hundred): threads only add overhead, and on a busy CI machine
-    # oversubscribed OpenMP threads made a fit several times slower
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.mark.parametrize("page", sorted(PAGES))
 def test_page_runs_and_its_claims_hold(page, tmp_path, monkeypatch, one_thread):
     monkeypatch.chdir(tmp_path)  # a page that writes files writes them here

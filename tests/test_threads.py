@@ -12,14 +12,6 @@ from torchmisspec import _threads
 
 
 @pytest.fixture
-def two_threads():
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture
 def busy_core():
     spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     time.sleep(0.3)

@@ -5,12 +5,8 @@ ten times slower (measured: 4 s with one thread, 35 s with two, under load).
 """
 
 import pytest
-import torch
 
 
 @pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _paper_threads(one_thread):  # the root conftest's fixture
     yield
-    torch.set_num_threads(previous)
