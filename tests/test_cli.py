@@ -18,6 +18,13 @@ def candidates_csv(tmp_path):
     return path
 
 
+def _design_args(candidates, out, *extra, budget=2):
+    return [
+        "design", "--candidates", str(candidates), "--system", "paper_linear", "--times", "0:6:11",
+        "--budget", str(budget), "--out", str(out), "--quiet", *extra,
+    ]  # fmt: skip
+
+
 def test_demo_runs_end_to_end(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "demo"), "--quiet", "--n-train", "15", "--n-test", "5"]) == 0
     out = capsys.readouterr().out
@@ -38,21 +45,7 @@ def test_demo_reports_bad_sizes_as_an_error(tmp_path, capsys):
 @pytest.mark.parametrize("suffix", [".csv", ".json"])
 def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
     out = tmp_path / f"picks{suffix}"
-    argv = [
-        "design",
-        "--candidates",
-        str(candidates_csv),
-        "--system",
-        "paper_linear",
-        "--times",
-        "0:6:11",
-        "--budget",
-        "4",
-        "--out",
-        str(out),
-        "--quiet",
-    ]
-    assert main(argv) == 0
+    assert main(_design_args(candidates_csv, out, budget=4)) == 0
     # the command's picks are those of the library call with the same candidates, times and prior
     expected = tms.design.greedy(
         grid(((-1, 1), (-1, 1)), 7),
@@ -76,25 +69,7 @@ def test_design_command_with_partition(tmp_path, candidates_csv):
     labels = tmp_path / "labels.csv"
     np.savetxt(labels, (np.arange(49) % 2)[:, None], fmt="%d")
     out = tmp_path / "p.json"
-    argv = [
-        "design",
-        "--candidates",
-        str(candidates_csv),
-        "--system",
-        "paper_linear",
-        "--times",
-        "0:6:11",
-        "--budget",
-        "3",
-        "--partition",
-        str(labels),
-        "--capacities",
-        "0=1,1=2",
-        "--out",
-        str(out),
-        "--quiet",
-    ]
-    assert main(argv) == 0
+    assert main(_design_args(candidates_csv, out, "--partition", str(labels), "--capacities", "0=1,1=2", budget=3)) == 0
     picks = json.loads(out.read_text())["indices"]
     assert sum(1 for i in picks if i % 2 == 0) <= 1
 
@@ -124,24 +99,6 @@ def test_console_script_help():
     )
     for option in ("--candidates", "--system", "--times", "--budget", "--partition", "--capacities", "--out"):
         assert option in proc.stdout
-
-
-def _design_args(candidates, out, *extra):
-    return [
-        "design",
-        "--candidates",
-        str(candidates),
-        "--system",
-        "paper_linear",
-        "--times",
-        "0:6:11",
-        "--budget",
-        "2",
-        "--out",
-        str(out),
-        "--quiet",
-        *extra,
-    ]
 
 
 @pytest.mark.parametrize(
