@@ -201,12 +201,15 @@ class CorrectionSamples:
         targets: ``(N, d_out)`` the samples ``F~ = select_outputs(dy/dt - G(y))`` (noise included).
         states: ``(N, d)`` the full observed states.
         experiment: ``(N,)`` long tensor, the experiment index k of each sample.
+        noise: known per-sample noise variances of the targets, ``(N, d_out)``, or ``None`` when unknown (the
+            correction GP then learns one noise variance).
     """
 
     inputs: torch.Tensor
     targets: torch.Tensor
     states: torch.Tensor
     experiment: torch.Tensor
+    noise: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return self.inputs.shape[0]
