@@ -38,6 +38,7 @@ from .gp import CorrectionGP, GPPosterior
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
 from .systems import MisspecifiedSystem
+from .trajectory_fit import fit_trajectories
 
 try:
     __version__ = _version("torchmisspec")
@@ -67,6 +68,7 @@ __all__ = [
     "correction_samples",
     "design",
     "finite_difference",
+    "fit_trajectories",
     "integrated_error",
     "integrated_norm",
     "metrics",
