@@ -138,3 +138,92 @@ def test_bad_times_and_output_paths_fail_before_the_work(tmp_path, candidates_cs
     args[args.index("0:6:11")] = "0:6:-1"
     assert main(args) == 2
     assert "--times: expected 'start:stop:count' with count >= 1" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------------------------ fit
+@pytest.fixture(scope="module")
+def observed_csv(tmp_path_factory):
+    """paper_linear, 5 experiments x 11 times on [0, 6], saved with named columns (t, x1, x2)."""
+    y0 = torch.rand(5, 2, generator=torch.Generator().manual_seed(7), dtype=torch.float64) * 2 - 1
+    trajs = tms.simulate(tms.systems.paper_linear(), y0, torch.linspace(0, 6, 11, dtype=torch.float64))
+    return trajs.save(tmp_path_factory.mktemp("obs") / "obs.csv", time_column="t", state_columns=["x1", "x2"])
+
+
+def _fit_args(data, out, *extra, system="paper_linear"):
+    return ["fit", "--data", str(data), "--system", system, "--time-column", "t", "--out", str(out), "--quiet", *extra]
+
+
+def test_fit_command_saves_the_model_a_direct_fit_gives(tmp_path, observed_csv, capsys):
+    out = tmp_path / "model.pt"
+    assert main(_fit_args(observed_csv, out, "--state-columns", "x1,x2")) == 0
+    line = capsys.readouterr().out.strip()
+    loaded = tms.CorrectionGP.load(out)
+    trajs = tms.Trajectories.load(observed_csv, time_column="t")
+    samples = tms.correction_samples(trajs, tms.systems.paper_linear(), derivative="central")
+    direct = tms.CorrectionGP().fit(samples.inputs, samples.targets)
+    x = torch.rand(20, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 2 - 1
+    torch.testing.assert_close(loaded.predict_mean(x), direct.predict_mean(x), rtol=1e-7, atol=1e-10)
+    assert "\n" not in line and "N = 55 samples (5 experiments x 11 times, derivative 'central')" in line
+    assert f"lengthscale {direct.lengthscale:.4g}" in line
+    assert f"log marginal likelihood {direct.log_marginal_likelihood_:.6g}" in line and str(out) in line
+
+
+def test_fit_command_with_a_user_system_and_fixed_hyperparameters(tmp_path, observed_csv, monkeypatch, capsys, request):
+    module = tmp_path / "my_lab_model.py"
+    module.write_text("import torchmisspec as tms\n\ndef known():\n    return tms.systems.paper_linear()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    request.addfinalizer(lambda: sys.modules.pop("my_lab_model", None))
+    out = tmp_path / "m.pt"
+    fixed = ("--lengthscale", "0.7", "--outputscale", "1e-4", "--noise-variance", "1e-6", "--derivative", "smooth")
+    assert main(_fit_args(observed_csv, out, *fixed, system="my_lab_model:known")) == 0
+    gp = tms.CorrectionGP.load(out)
+    assert (gp.lengthscale, gp.outputscale, gp.noise_variance) == pytest.approx((0.7, 1e-4, 1e-6), rel=1e-12)
+    assert "derivative 'smooth'" in capsys.readouterr().out
+    # design accepts the same spec
+    cands = tmp_path / "c.csv"
+    np.savetxt(cands, grid(((-1, 1), (-1, 1)), 4).numpy(), delimiter=",")
+    args = _design_args(cands, tmp_path / "picks.json")
+    args[args.index("paper_linear")] = str(module) + ":known"
+    assert main(args) == 0 and len(json.loads((tmp_path / "picks.json").read_text())["indices"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("extra", "replace", "message"),
+    [
+        ((), {"--system": "nope"}, "unknown system name 'nope'"),
+        ((), {"--system": "no_such_module_xyz:f"}, "expected an importable module 'no_such_module_xyz'"),
+        (("--state-columns", "x1,speed"), {}, "expected state columns ['x1', 'speed'], missing ['speed']"),
+        ((), {"--time-column": "time"}, "expected a time column 'time', got columns ['experiment', 't', 'x1', 'x2']"),
+        (("--experiment-column", "run"), {}, "expected an experiment column 'run'"),
+        (("--derivative", "psychic"), {}, "derivative: expected one of"),
+        (("--state-columns", "x1"), {}, "expected state dimension 2 of system 'paper_linear'"),
+        (("--lengthscale", "-1"), {}, "lengthscale"),
+        ((), {"--data": "missing.csv"}, "path: expected an existing file"),
+    ],
+)
+def test_fit_command_bad_inputs_exit_2_with_one_line(tmp_path, observed_csv, capsys, extra, replace, message):
+    args = _fit_args(observed_csv, tmp_path / "m.pt", *extra)
+    for option, value in replace.items():
+        args[args.index(option) + 1] = value
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchmisspec fit: error: ") and message in err and "\n" not in err
+    assert not (tmp_path / "m.pt").exists()
+
+
+def test_fit_command_checks_the_output_before_the_work(tmp_path, observed_csv, capsys, monkeypatch):
+    def never(*args, **kwargs):
+        raise AssertionError("the data were read although the model cannot be written")
+
+    monkeypatch.setattr(tms.Trajectories, "load", never)
+    assert main(_fit_args(observed_csv, tmp_path / "no" / "folder" / "m.pt")) == 2
+    assert "--out: cannot write" in capsys.readouterr().err
+    assert main(_fit_args(observed_csv, tmp_path / "m.json")) == 2
+    assert "--out: expected a .pt file name" in capsys.readouterr().err
+
+
+def test_fit_command_ragged_data_is_a_clear_error(tmp_path, capsys):
+    data = tmp_path / "ragged.tsv"
+    data.write_text("experiment\ttime\ta\tb\n0\t0\t1\t1\n0\t1\t2\t2\n1\t0\t1\t1\n", encoding="utf-8")
+    assert main(["fit", "--data", str(data), "--system", "paper_linear", "--out", str(tmp_path / "m.pt")]) == 2
+    assert "ragged data is not supported yet" in capsys.readouterr().err

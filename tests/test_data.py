@@ -115,9 +115,9 @@ def test_trajectories_reject_shape_mismatch():
 
 
 def test_load_rejects_bad_files(tmp_path):
-    bad = tmp_path / "x.txt"
+    bad = tmp_path / "x.dat"
     bad.write_text("1,2")
-    with pytest.raises(tms.InputError, match="expected a .npz or .csv"):
+    with pytest.raises(tms.InputError, match=r"expected a .npz, .csv, .tsv or .txt file name"):
         tms.Trajectories.load(bad)
     empty = tmp_path / "e.csv"
     empty.write_text("experiment,time,y0\n")
@@ -125,8 +125,115 @@ def test_load_rejects_bad_files(tmp_path):
         tms.Trajectories.load(empty)
     wrong = tmp_path / "w.csv"
     wrong.write_text("a,b,c\n1,2,3\n")
-    with pytest.raises(tms.InputError, match="expected a header 'experiment,time,y0"):
+    with pytest.raises(tms.InputError, match=r"expected a time column 'time', got columns \['a', 'b', 'c'\]"):
         tms.Trajectories.load(wrong)
+
+
+# ------------------------------------------------------------------------------------- text tables, named columns
+@pytest.mark.parametrize("suffix", [".csv", ".tsv", ".txt"])
+def test_named_columns_round_trip_with_per_experiment_grids(tmp_path, suffix, generator):
+    states = torch.randn(3, 6, 2, generator=generator, dtype=torch.float64)
+    times = torch.cumsum(torch.rand(3, 6, generator=generator, dtype=torch.float64) + 0.1, -1)
+    traj = tms.Trajectories(times, states)
+    path = traj.save(
+        tmp_path / f"obs{suffix}", time_column="t [s]" if suffix != ".txt" else "t", state_columns=["x", "v"]
+    )
+    header = path.read_text(encoding="utf-8").splitlines()[0]
+    assert header.split({".csv": ",", ".tsv": "\t", ".txt": None}[suffix]) == [
+        "experiment",
+        "t [s]" if suffix != ".txt" else "t",
+        "x",
+        "v",
+    ]
+    loaded = tms.Trajectories.load(path, time_column="t [s]" if suffix != ".txt" else "t")
+    assert torch.equal(loaded.states, traj.states) and torch.equal(loaded.times, traj.times)  # exactly
+    # state columns by name pick and order the components
+    swapped = tms.Trajectories.load(path, time_column="t [s]" if suffix != ".txt" else "t", state_columns=["v", "x"])
+    assert torch.equal(swapped.states, traj.states.flip(-1))
+
+
+def test_csv_any_column_order_row_order_and_no_experiment_column(tmp_path):
+    path = tmp_path / "lab.csv"
+    # columns in any order, rows shuffled, text experiment labels kept in order of first appearance
+    path.write_text(
+        "speed,run,position,clock,comment\n0.2,b,1.2,1.0,9\n0.1,a,1.1,1.0,9\n0.0,a,1.0,0.0,9\n0.3,b,1.3,0.0,9\n",
+        encoding="utf-8",
+    )
+    traj = tms.Trajectories.load(
+        path, time_column="clock", experiment_column="run", state_columns=["position", "speed"]
+    )
+    assert traj.times.tolist() == [0.0, 1.0]  # one shared grid
+    assert traj.states.tolist() == [[[1.3, 0.3], [1.2, 0.2]], [[1.0, 0.0], [1.1, 0.1]]]
+    single = tmp_path / "one.tsv"
+    single.write_text("time\tx\n2\t20\n0\t0\n1\t10\n", encoding="utf-8")
+    traj = tms.Trajectories.load(single)  # no experiment column: one experiment, rows sorted by time
+    assert traj.states.shape == (1, 3, 1) and traj.states[0, :, 0].tolist() == [0.0, 10.0, 20.0]
+    numeric = tmp_path / "n.txt"
+    numeric.write_text("experiment time y\n10 0 1\n2 0 2\n10.0 1 3\n2 1 4\n", encoding="utf-8")
+    # numeric labels are sorted as numbers, and 10 and 10.0 are the same experiment
+    assert tms.Trajectories.load(numeric).states[:, :, 0].tolist() == [[2.0, 4.0], [1.0, 3.0]]
+    excel = tmp_path / "excel.csv"
+    excel.write_bytes("\ufeffexperiment,time,x\n1,0,5\n2,0,6\n".encode())  # a byte-order mark, as Excel writes
+    assert tms.Trajectories.load(excel).states.shape == (2, 1, 1)
+
+
+def test_repr_is_short():
+    traj = tms.Trajectories(torch.linspace(0, 6, 11, dtype=torch.float64), torch.zeros(40, 11, 2, dtype=torch.float64))
+    assert repr(traj) == "Trajectories(K=40 experiments, T=11 times on [0, 6] (shared grid), d=2, float64)"
+    grids = torch.tensor([[0.0, 1.0], [0.5, 2.5]])
+    assert repr(tms.Trajectories(grids, torch.zeros(2, 2, 1))) == (
+        "Trajectories(K=2 experiments, T=2 times on [0, 2.5] (per-experiment grids), d=1, float32)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "kwargs", "error", "message"),
+    [
+        ("time,x\n0,1\n", {"state_columns": ["x", "y"]}, tms.InputError,
+         r"expected state columns \['x', 'y'\], missing \['y'\]; the file has \['time', 'x'\]"),
+        ("time,x\n0,1\n", {"experiment_column": "run"}, tms.InputError,
+         r"expected an experiment column 'run', got columns \['time', 'x'\]"),
+        ("time,x\n0,1\n", {"time_column": "t"}, tms.InputError, r"expected a time column 't'"),
+        ("time,x,x\n0,1,2\n", {}, tms.InputError, r"expected distinct column names in the header, got \['x'\]"),
+        ("time,x\n0,1\n1,abc\n", {}, tms.InputError, r"expected a number in column 'x' on line 3, got 'abc'"),
+        ("time,x\n0,1\n1,nan\n", {}, tms.InputError, r"expected a finite number in column 'x' on line 3, got 'nan'"),
+        ("time,x\n0,1\n1\n", {}, tms.ShapeError,
+         r"expected 2 columns in every row \(as in the header\), got 1 in data row 2 \(line 3"),
+        ("experiment,time,x\n0,0,1\n0,0,2\n", {}, tms.InputError,
+         r"expected one row per experiment and time, got time 0.0 more than once for experiment '0'"),
+        ("experiment,time,x\n0,0,1\n0,1,2\n1,0,3\n", {}, tms.ShapeError,
+         r"same number of rows for every experiment \(ragged data is not supported yet\), got 1 row for "
+         r"experiment 1; 2 rows for experiment 0"),
+        ("time\n0\n", {}, tms.InputError, r"expected at least one state column besides \['time'\]"),
+        ("time,x\n0,1\n", {"state_columns": ["time"]}, tms.InputError, r"got the time / experiment column"),
+        ("time,x\n0,1\n", {"state_columns": "x"}, tms.InputError, r"expected a list of column names"),
+        ("", {}, tms.InputError, r"expected a header row naming the columns, got an empty file"),
+    ],
+)  # fmt: skip
+def test_text_tables_reject_bad_columns_and_rows(tmp_path, text, kwargs, error, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(error, match=message):
+        tms.Trajectories.load(path, **kwargs)
+
+
+def test_text_tables_are_read_as_utf8_only(tmp_path):
+    path = tmp_path / "latin.tsv"
+    path.write_bytes("time\tx\xe9\n0\t1\n".encode("latin-1"))
+    with pytest.raises(tms.InputError, match=r"expected a UTF-8 text TSV file \(tab separated\)"):
+        tms.Trajectories.load(path)
+
+
+def test_save_rejects_bad_column_names(tmp_path):
+    traj = tms.Trajectories(torch.arange(3.0), torch.zeros(2, 3, 2))
+    with pytest.raises(tms.ShapeError, match=r"state_columns: expected 2 names"):
+        traj.save(tmp_path / "a.csv", state_columns=["x"])
+    with pytest.raises(tms.InputError, match=r"expected distinct column names, got \['x'\]"):
+        traj.save(tmp_path / "a.csv", state_columns=["x", "x"])
+    with pytest.raises(tms.InputError, match="names cannot hold spaces"):
+        traj.save(tmp_path / "a.txt", state_columns=["x", "y 2"])
+    with pytest.raises(tms.InputError, match=r"expected a .npz, .csv, .tsv or .txt file name"):
+        traj.save(tmp_path / "a.json")
 
 
 def test_simulate_rejects_wrong_state_dim(linear_system, paper_times):

@@ -30,8 +30,11 @@ def fitted():
 def test_round_trip_is_exact(fitted, tmp_path):
     loaded = tms.CorrectionGP.load(fitted.save(tmp_path / "gp.pt"))
     x = torch.rand(7, 2, generator=torch.Generator().manual_seed(1), dtype=DT)
-    torch.testing.assert_close(loaded.predict(x).mean, fitted.predict(x).mean, rtol=0, atol=0)
-    torch.testing.assert_close(loaded.predict(x).variance, fitted.predict(x).variance, rtol=0, atol=0)
+    # the stored state is exact; the recomputed solve may differ by round-off (thread counts change BLAS orders)
+    torch.testing.assert_close(loaded.train_inputs_, fitted.train_inputs_, rtol=0, atol=0)
+    torch.testing.assert_close(loaded.train_targets_, fitted.train_targets_, rtol=0, atol=0)
+    torch.testing.assert_close(loaded.predict(x).mean, fitted.predict(x).mean, rtol=1e-9, atol=1e-13)
+    torch.testing.assert_close(loaded.predict(x).variance, fitted.predict(x).variance, rtol=1e-9, atol=1e-15)
     assert (loaded.lengthscale, loaded.outputscale, loaded.noise_variance) == (
         fitted.lengthscale,
         fitted.outputscale,

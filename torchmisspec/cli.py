@@ -1,4 +1,5 @@
-"""The ``torchmisspec`` command: ``torchmisspec demo`` (paper §5.1 end to end) and ``torchmisspec design``."""
+"""The ``torchmisspec`` command: ``torchmisspec demo`` (paper §5.1 end to end), ``torchmisspec fit`` (learn the
+correction from observed trajectories) and ``torchmisspec design``."""
 
 from __future__ import annotations
 
@@ -135,10 +136,10 @@ def _design(args: argparse.Namespace) -> int:
     from . import design
     from ._errors import InputError
     from .gp import CorrectionGP
-    from .systems import get_system
+    from .systems import load_system
 
     out = _check_output(args.out, (".csv", ".json"))
-    system = get_system(args.system)
+    system = load_system(args.system)
     candidates = torch.as_tensor(_read_table(args.candidates, "candidates"), dtype=torch.float64)
     if candidates.dim() == 1:
         candidates = candidates.unsqueeze(-1)
@@ -222,6 +223,50 @@ def _design(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fit(args: argparse.Namespace) -> int:
+    from . import observations
+    from ._errors import InputError
+    from .data import Trajectories
+    from .gp import CorrectionGP
+    from .systems import load_system
+
+    out = _check_output(args.out, (".pt",))
+    state_columns = None
+    if args.state_columns is not None:
+        state_columns = [c.strip() for c in args.state_columns.split(",")]
+        if not all(state_columns):
+            raise InputError(f"--state-columns: expected comma separated column names, got {args.state_columns!r}")
+    experiment_column = args.experiment_column or None  # '' = no experiment column: one experiment
+    gp = CorrectionGP(
+        kernel=args.kernel,
+        lengthscale=args.lengthscale,
+        outputscale=args.outputscale,
+        noise_variance=args.noise_variance,
+        degree=args.degree,
+    )
+    system = load_system(args.system)
+    trajs = Trajectories.load(
+        args.data, time_column=args.time_column, experiment_column=experiment_column, state_columns=state_columns
+    )
+    samples = observations.correction_samples(trajs, system, derivative=args.derivative)
+    noise = getattr(samples, "noise", None)
+    known = {} if noise is None else {"noise": noise}  # known per-sample noise variances, when the estimator has them
+    gp.fit(samples.inputs, samples.targets, progress=not args.quiet, **known)
+    gp.save(out)
+
+    def show(value) -> str:
+        return "-" if value is None else (f"{value:.4g}" if isinstance(value, float) else str(value.tolist()))
+
+    scale = "" if gp.kernel == "polynomial" else f"lengthscale {show(gp.lengthscale)}, "
+    print(
+        f"fitted {gp.kernel} correction GP of '{system.name}' on N = {len(samples)} samples ({trajs.num_experiments} "
+        f"experiments x {trajs.num_times} times, derivative {args.derivative!r}): {scale}outputscale "
+        f"{show(gp.outputscale)}, noise variance {show(gp.noise_variance)}, log marginal likelihood "
+        f"{gp.log_marginal_likelihood_:.6g}; written to {out}"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchmisspec", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -241,6 +286,55 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(func=_demo)
 
+    fit = sub.add_parser(
+        "fit",
+        help="learn the correction F from observed trajectories and save the model",
+        description="Learn the missing term F of dy/dt = G(y) + F(y) from observed trajectories: estimate dy/dt from "
+        "the states, form the correction samples dy/dt - G(y), fit the correction GP by marginal likelihood and "
+        "save it (read it back with torchmisspec.CorrectionGP.load).",
+    )
+    fit.add_argument(
+        "--data",
+        required=True,
+        help="observed trajectories: a .csv, .tsv or .txt table with a header row (one row per experiment and "
+        "time, rows in any order) or an .npz written by Trajectories.save",
+    )
+    fit.add_argument(
+        "--system",
+        required=True,
+        help="the known model: a built-in name (paper_linear, paper_gravity) or 'module:function' / "
+        "'path/to/file.py:function', a function returning a torchmisspec.MisspecifiedSystem (its code is run)",
+    )
+    fit.add_argument("--time-column", default="time", help="name of the time column (default: %(default)s)")
+    fit.add_argument(
+        "--experiment-column",
+        default="experiment",
+        help="name of the column labelling the experiments (default: %(default)s; when the file has no such column, "
+        "or with '', all rows are one experiment)",
+    )
+    fit.add_argument(
+        "--state-columns", help="comma separated state column names, in order (default: every other column)"
+    )
+    fit.add_argument(
+        "--derivative",
+        default="central",
+        help="how dy/dt is estimated from the states: central (finite differences, default), smooth (local "
+        "polynomial fits), or another estimator of torchmisspec.correction_samples",
+    )
+    fit.add_argument(
+        "--kernel",
+        default="rbf",
+        choices=["rbf", "matern52", "polynomial"],
+        help="GP kernel of the correction (default: rbf)",
+    )
+    fit.add_argument("--lengthscale", type=float, help="fix the kernel lengthscale (default: learned)")
+    fit.add_argument("--outputscale", type=float, help="fix the kernel output scale (default: learned)")
+    fit.add_argument("--noise-variance", type=float, help="fix the samples' noise variance (default: learned)")
+    fit.add_argument("--degree", type=int, default=2, help="polynomial kernel order (default: 2)")
+    fit.add_argument("--out", default="model.pt", help="output model file, .pt (default: %(default)s)")
+    fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.set_defaults(func=_fit)
+
     des = sub.add_parser(
         "design",
         help="choose the initial conditions that teach the most about the correction",
@@ -255,7 +349,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="candidate initial conditions, one per row (N, d): CSV/TXT (optional header row), .npy, "
         "or .npz (array 'candidates' or a single array)",
     )
-    des.add_argument("--system", required=True, help="built-in system name: paper_linear or paper_gravity")
+    des.add_argument(
+        "--system",
+        required=True,
+        help="built-in system name (paper_linear, paper_gravity) or 'module:function' / 'path/to/file.py:function' "
+        "returning a torchmisspec.MisspecifiedSystem (its code is run)",
+    )
     des.add_argument(
         "--times",
         required=True,

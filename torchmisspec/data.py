@@ -2,7 +2,8 @@
 
 ``Trajectories(times, states)`` holds ``states (K, T, d)`` sampled at ``times (T,)`` shared by all experiments or
 ``(K, T)`` one grid per experiment (irregular spacing allowed, strictly increasing along each row). It wraps user
-data as well as simulations and saves to / loads from ``.npz`` and CSV.
+data as well as simulations and saves to / loads from ``.npz`` and text tables (``.csv``, ``.tsv``, ``.txt``) with
+any column names.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import csv
 import numbers
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,35 +80,104 @@ class Trajectories:
     def to(self, *args, **kwargs) -> Trajectories:
         return Trajectories(self.times.to(*args, **kwargs), self.states.to(*args, **kwargs))
 
+    def __repr__(self) -> str:
+        times = self.times.detach()
+        lo, hi = float(times[..., 0].min()), float(times[..., -1].max())
+        grid = "shared grid" if times.dim() == 1 else "per-experiment grids"
+        device = "" if self.states.device.type == "cpu" else f", {self.states.device}"
+        return (
+            f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
+            f"T={self.num_times} time{'s' * (self.num_times != 1)} on [{lo:.6g}, {hi:.6g}] ({grid}), "
+            f"d={self.state_dim}, {str(self.states.dtype).removeprefix('torch.')}{device})"
+        )
+
     # ----------------------------------------------------------------------------------------------------------
-    def save(self, path: str | Path) -> Path:
-        """Write to ``path``: ``.npz`` (times, states) or ``.csv`` (experiment, time, y0, ..., y{d-1})."""
+    def save(
+        self,
+        path: str | Path,
+        *,
+        time_column: str = "time",
+        experiment_column: str = "experiment",
+        state_columns: Sequence[str] | None = None,
+    ) -> Path:
+        """Write to ``path``: ``.npz`` (arrays times, states) or a text table with a header row.
+
+        Text tables: ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (space separated), one row
+        per experiment and time, columns ``experiment_column, time_column, *state_columns`` (state columns
+        ``y0, ..., y{d-1}`` by default; experiments numbered 0..K-1). Values are written with full precision, so
+        :meth:`load` with the same column names (or the defaults) reads back the same times and states (as float64).
+        The column names are ignored for ``.npz``.
+        """
         path = Path(path)
         if path.suffix == ".npz":
             np.savez(path, times=self.times.detach().cpu().numpy(), states=self.states.detach().cpu().numpy())
-        elif path.suffix == ".csv":
-            grid = self.time_grid.detach().cpu().numpy()
-            states = self.states.detach().cpu().numpy()
-            with path.open("w", newline="") as fh:
-                w = csv.writer(fh)
-                w.writerow(["experiment", "time"] + [f"y{i}" for i in range(self.state_dim)])
+            return path
+        if path.suffix not in _TEXT_FORMATS:
+            raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
+        names = [f"y{i}" for i in range(self.state_dim)] if state_columns is None else list(state_columns)
+        if len(names) != self.state_dim:
+            raise ShapeError(f"state_columns: expected {self.state_dim} names (one per state component), got {names}")
+        header = [experiment_column, time_column, *names]
+        for name in header:
+            if not isinstance(name, str) or not name.strip() or name != name.strip():
+                raise InputError(f"column names: expected non-empty strings without surrounding spaces, got {name!r}")
+            if path.suffix == ".txt" and len(name.split()) != 1:
+                raise InputError(
+                    f"column names: a .txt table is space separated, so names cannot hold spaces: {name!r}"
+                )
+        _check_distinct(header, "column names", str(path))
+        grid = self.time_grid.detach().cpu().numpy()
+        states = self.states.detach().cpu().numpy()
+        with path.open("w", newline="", encoding="utf-8") as fh:
+            if path.suffix == ".txt":
+                fh.write(" ".join(header) + "\n")
+                for k in range(self.num_experiments):
+                    for j in range(self.num_times):
+                        fh.write(" ".join([str(k), repr(float(grid[k, j]))] + [repr(float(v)) for v in states[k, j]]))
+                        fh.write("\n")
+            else:
+                w = csv.writer(fh, delimiter=_TEXT_FORMATS[path.suffix])
+                w.writerow(header)
                 for k in range(self.num_experiments):
                     for j in range(self.num_times):
                         w.writerow([k, repr(float(grid[k, j]))] + [repr(float(v)) for v in states[k, j]])
-        else:
-            raise InputError(f"path: expected a .npz or .csv file name, got {str(path)!r}")
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> Trajectories:
-        """Read a file written by :meth:`save` (or a CSV with the same columns, rows in any order).
+    def load(
+        cls,
+        path: str | Path,
+        *,
+        time_column: str = "time",
+        experiment_column: str | None = "experiment",
+        state_columns: Sequence[str] | None = None,
+    ) -> Trajectories:
+        """Read trajectories from ``.npz`` (arrays ``times`` and ``states``) or a text table with a header row.
 
-        ``.npz`` files are read without pickle (no code can run); a missing, corrupt or malformed file raises
-        :class:`InputError` naming the file and what was expected.
+        Text tables are UTF-8 ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (whitespace
+        separated), one row per experiment and time, columns in any order and rows in any order.
+
+        Args:
+            path: the file.
+            time_column: name of the time column.
+            experiment_column: name of the column labelling the experiments (numbers, sorted numerically, or any
+                text, in order of first appearance). When the file has no such column (or ``None``), all rows are
+                one experiment; a name other than the default that is not in the file is an error.
+            state_columns: names of the state columns, in the order of the state components (default: every
+                other column, in file order).
+
+        Each experiment's rows are sorted by time; every experiment must have the same number of rows (ragged
+        data is not supported yet). The times come back shared ``(T,)`` when every experiment has the same grid,
+        else ``(K, T)``. Column names are ignored for ``.npz``.
+
+        Nothing is unpickled and no code can run. Raises :class:`InputError` for a missing, unreadable, non-UTF-8
+        or malformed file, missing or duplicate columns, non-numeric cells or repeated (experiment, time) rows,
+        and :class:`ShapeError` for rows of the wrong width or experiments with different numbers of rows, each
+        naming what was expected and what the file holds.
         """
         path = Path(path)
-        if path.suffix not in (".npz", ".csv"):
-            raise InputError(f"path: expected a .npz or .csv file name, got {str(path)!r}")
+        if path.suffix != ".npz" and path.suffix not in _TEXT_FORMATS:
+            raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
         if not path.is_file():
             raise InputError(f"path: expected an existing file, got {str(path)!r}")
         if path.suffix == ".npz":
@@ -124,38 +195,156 @@ class Trajectories:
                     f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
                 ) from exc
             return cls(as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"))
-        try:
-            with path.open(newline="", encoding="utf-8") as fh:
-                rows = [row for row in csv.reader(fh) if row]
-        except (UnicodeDecodeError, csv.Error, OSError) as exc:
-            raise InputError(f"{path}: expected a UTF-8 text CSV file, but it could not be read ({exc})") from exc
-        header, body = (rows[0], rows[1:]) if rows else ([], [])
-        if header[:2] != ["experiment", "time"] or len(header) < 3:
-            raise InputError(f"{path}: expected a header 'experiment,time,y0,...', got {','.join(header)!r:.200}")
-        if not body:
-            raise InputError(f"{path}: expected at least one data row after the header, got none")
-        widths = {len(row) for row in body}
-        if widths != {len(header)}:
-            bad = next(i for i, row in enumerate(body) if len(row) != len(header))
-            raise ShapeError(
-                f"{path}: expected {len(header)} columns in every row (as in the header), got {len(body[bad])} in "
-                f"data row {bad + 1}"
+        header, body = _read_table(path)
+        columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
+        return cls(*_columns_to_arrays(path, header, body, **columns))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Text tables
+_TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
+_SUFFIXES = ".npz, .csv, .tsv or .txt"
+
+
+def _check_distinct(names: Sequence[str], what: str, where: str) -> None:
+    repeated = sorted({n for n in names if list(names).count(n) > 1})
+    if repeated:
+        raise InputError(f"{where}: expected distinct {what}, got {repeated} more than once (in {list(names)})")
+
+
+def _read_table(path: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """The header and the non-blank data rows (with their line numbers) of a UTF-8 text table."""
+    delimiter = _TEXT_FORMATS[path.suffix]
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # -sig: a byte-order mark (Excel) is dropped
+            if delimiter is None:
+                rows = [(i, line.split()) for i, line in enumerate(fh, start=1)]
+            else:
+                rows = [(reader.line_num, row) for reader in [csv.reader(fh, delimiter=delimiter)] for row in reader]
+    except (UnicodeDecodeError, csv.Error, OSError) as exc:
+        kind = {".csv": "CSV file", ".tsv": "TSV file (tab separated)", ".txt": "TXT file (whitespace separated)"}
+        raise InputError(
+            f"{path}: expected a UTF-8 text {kind[path.suffix]}, but it could not be read ({exc})"
+        ) from exc
+    rows = [(i, [cell.strip() for cell in row]) for i, row in rows if any(cell.strip() for cell in row)]
+    if not rows:
+        raise InputError(f"{path}: expected a header row naming the columns, got an empty file")
+    header, body = rows[0][1], rows[1:]
+    if not body:
+        raise InputError(f"{path}: expected at least one data row after the header, got none")
+    bad = next((r for r, (_, row) in enumerate(body) if len(row) != len(header)), None)
+    if bad is not None:
+        line, row = body[bad]
+        raise ShapeError(
+            f"{path}: expected {len(header)} columns in every row (as in the header), got {len(row)} in data row "
+            f"{bad + 1} (line {line}; header {header})"
+        )
+    return header, body
+
+
+def _columns_to_arrays(
+    path: Path,
+    header: list[str],
+    body: list[tuple[int, list[str]]],
+    *,
+    time_column: str,
+    experiment_column: str | None,
+    state_columns: Sequence[str] | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``times (T,) or (K, T)`` and ``states (K, T, d)`` from the named columns of a table."""
+    _check_distinct(header, "column names in the header", str(path))
+    if not isinstance(time_column, str):
+        raise InputError(f"time_column: expected a column name, got {type(time_column).__name__}")
+    if experiment_column is not None and not isinstance(experiment_column, str):
+        raise InputError(f"experiment_column: expected a column name or None, got {type(experiment_column).__name__}")
+    if time_column not in header:
+        raise InputError(f"{path}: expected a time column {time_column!r}, got columns {header}")
+    if experiment_column is not None and experiment_column not in header:
+        if experiment_column != "experiment":  # named by the caller: a typo must not merge all experiments
+            raise InputError(f"{path}: expected an experiment column {experiment_column!r}, got columns {header}")
+        experiment_column = None
+    if experiment_column == time_column:
+        raise InputError(f"experiment_column: expected a column other than the time column, got {time_column!r}")
+    index_columns = [time_column] + ([experiment_column] if experiment_column is not None else [])
+    if state_columns is None:
+        names = [c for c in header if c not in index_columns]
+    else:
+        if isinstance(state_columns, str):
+            raise InputError(f"state_columns: expected a list of column names, got the string {state_columns!r}")
+        names = list(state_columns)
+        _check_distinct(names, "state_columns", "state_columns")
+        clash = [c for c in names if c in index_columns]
+        if clash:
+            raise InputError(f"state_columns: expected state columns, got the time / experiment column {clash}")
+        missing = [c for c in names if c not in header]
+        if missing:
+            raise InputError(f"{path}: expected state columns {names}, missing {missing}; the file has {header}")
+    if not names:
+        raise InputError(f"{path}: expected at least one state column besides {index_columns}, got columns {header}")
+
+    value_columns = [time_column, *names]
+    where = [header.index(c) for c in value_columns]
+    values = np.empty((len(body), len(value_columns)), dtype=np.float64)
+    for r, (line, row) in enumerate(body):
+        for c, col in enumerate(where):
+            try:
+                values[r, c] = float(row[col])
+            except ValueError:
+                raise InputError(
+                    f"{path}: expected a number in column {header[col]!r} on line {line}, got {row[col]!r}"
+                ) from None
+            if not np.isfinite(values[r, c]):
+                raise InputError(
+                    f"{path}: expected a finite number in column {header[col]!r} on line {line}, got {row[col]!r}"
+                )
+    if experiment_column is None:
+        labels = [""] * len(body)
+        order = [""]
+    else:
+        labels = [row[header.index(experiment_column)] for _, row in body]
+        try:  # numeric labels: 1 and 1.0 are the same experiment, sorted by value
+            numbers = [float(label) for label in labels]
+            if all(np.isfinite(numbers)):
+                labels = [str(int(n)) if n == int(n) else repr(n) for n in numbers]
+                order = sorted(dict.fromkeys(labels), key=float)
+            else:
+                order = list(dict.fromkeys(labels))
+        except ValueError:
+            order = list(dict.fromkeys(labels))  # text labels keep the order in which they first appear
+    rows_of = {label: [] for label in order}
+    for r, label in enumerate(labels):
+        rows_of[label].append(r)
+    counts = {label: len(rows) for label, rows in rows_of.items()}
+    if len(set(counts.values())) != 1:
+        by_count: dict[int, list[str]] = {}
+        for label, n in counts.items():
+            by_count.setdefault(n, []).append(label)
+        detail = "; ".join(
+            f"{n} row{'s' * (n != 1)} for experiment{'s' * (len(ids) > 1)} "
+            f"{', '.join(ids[:5])}{' ...' * (len(ids) > 5)}"
+            for n, ids in sorted(by_count.items())
+        )
+        raise ShapeError(
+            f"{path}: expected the same number of rows for every experiment (ragged data is not supported yet), got "
+            f"{detail}"
+        )
+    per = []
+    for label in order:
+        block = values[rows_of[label]]
+        block = block[np.argsort(block[:, 0], kind="stable")]
+        repeated = np.flatnonzero(np.diff(block[:, 0]) == 0)
+        if repeated.size:
+            what = "" if experiment_column is None else f" for experiment {label!r}"
+            raise InputError(
+                f"{path}: expected one row per experiment and time, got time {float(block[repeated[0], 0])!r} "
+                f"more than once{what}"
             )
-        try:
-            arr = np.asarray(body, dtype=np.float64)
-        except ValueError as exc:
-            raise InputError(f"{path}: expected {len(header)} numeric columns in every row ({exc})") from exc
-        exp_ids = np.unique(arr[:, 0])
-        per = [arr[arr[:, 0] == e] for e in exp_ids]
-        counts = {len(p) for p in per}
-        if len(counts) != 1:
-            raise ShapeError(f"{path}: expected the same number of rows per experiment, got {sorted(counts)}")
-        per = [p[np.argsort(p[:, 1], kind="stable")] for p in per]
-        times = np.stack([p[:, 1] for p in per])
-        states = np.stack([p[:, 2:] for p in per])
-        if np.all(times == times[:1]):
-            times = times[0]
-        return cls(torch.from_numpy(times), torch.from_numpy(states))
+        per.append(block)
+    times = np.stack([p[:, 0] for p in per])
+    states = np.stack([p[:, 1:] for p in per])
+    if np.all(times == times[:1]):
+        times = times[0]
+    return torch.from_numpy(times), torch.from_numpy(states)
 
 
 @adaptive_threads()

@@ -27,6 +27,7 @@ __all__ = [
     "data_driven",
     "ZeroField",
     "get_system",
+    "load_system",
     "SYSTEMS",
 ]
 
@@ -318,3 +319,97 @@ def get_system(name: str) -> MisspecifiedSystem:
         return SYSTEMS[name]()
     except KeyError:
         raise InputError(f"unknown system name {name!r}; expected one of {sorted(SYSTEMS)}") from None
+
+
+def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
+    """A system from a command-line style spec: a built-in name, ``module:function`` or ``path/to/file.py:function``.
+
+    * a built-in name (see :data:`SYSTEMS`, e.g. ``"paper_linear"``) returns :func:`get_system` of it;
+    * ``"module:function"`` imports ``module`` (a dotted name importable from ``sys.path``) and calls
+      ``function()`` with no arguments; it must return a :class:`MisspecifiedSystem`;
+    * ``"path/to/file.py:function"`` does the same with the module loaded from that file.
+
+    Importing a user module runs its code, and so does calling the function: this is what a spec that names
+    them asks for, so only pass specs you trust (the package itself never imports anything named in a data file).
+    A :class:`MisspecifiedSystem` passed in is returned as it is.
+
+    Raises:
+        InputError: an unknown built-in name, a module that cannot be imported (with the import's error), a
+            missing or non-callable function, a function that raises (with its error), or one that returns
+            something other than a MisspecifiedSystem.
+    """
+    if isinstance(spec, MisspecifiedSystem):
+        return spec
+    if not isinstance(spec, str):
+        raise InputError(f"system: expected a name or 'module:function', got {type(spec).__name__}")
+    if ":" not in spec:
+        if spec not in SYSTEMS:
+            raise InputError(
+                f"unknown system name {spec!r}; expected one of {sorted(SYSTEMS)} or 'module:function' (a function "
+                "returning a MisspecifiedSystem)"
+            )
+        return get_system(spec)
+    module_name, _, function_name = spec.rpartition(":")
+    if not module_name or not function_name.isidentifier():
+        raise InputError(f"system: expected 'module:function' with a function name after the colon, got {spec!r}")
+    module = _import_module(module_name, spec)
+    if not hasattr(module, function_name):
+        public = sorted(n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n, None)))
+        raise InputError(
+            f"system {spec!r}: expected a function {function_name!r} in module {module_name!r}, got none (the "
+            f"module defines {public[:20]})"
+        )
+    function = getattr(module, function_name)
+    if not callable(function):
+        raise InputError(f"system {spec!r}: expected {function_name!r} to be a function, got {type(function).__name__}")
+    try:
+        system = function()
+    except Exception as exc:
+        raise InputError(f"system {spec!r}: calling {function_name}() raised {_one_line(exc)}") from exc
+    if not isinstance(system, MisspecifiedSystem):
+        raise InputError(
+            f"system {spec!r}: expected {function_name}() to return a torchmisspec MisspecifiedSystem, got "
+            f"{type(system).__name__}"
+        )
+    return system
+
+
+def _import_module(module_name: str, spec: str):
+    """Import a dotted module name, or a ``.py`` file by path (registered under a private name)."""
+    import hashlib
+    import importlib
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    try:
+        if module_name.endswith(".py"):
+            path = Path(module_name)
+            if not path.is_file():
+                raise InputError(f"system {spec!r}: expected an existing Python file, got {module_name!r}")
+            path = path.resolve()
+            name = "_torchmisspec_user_" + hashlib.sha1(str(path).encode()).hexdigest()[:12]
+            loader_spec = importlib.util.spec_from_file_location(name, path)
+            if loader_spec is None or loader_spec.loader is None:
+                raise InputError(f"system {spec!r}: expected a Python file, got {module_name!r}")
+            module = importlib.util.module_from_spec(loader_spec)
+            sys.modules[name] = module  # so dataclasses and pickling inside the module find it
+            try:
+                loader_spec.loader.exec_module(module)
+            except BaseException:
+                sys.modules.pop(name, None)
+                raise
+            return module
+        return importlib.import_module(module_name)
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(
+            f"system {spec!r}: expected an importable module {module_name!r}, but importing it raised {_one_line(exc)}"
+        ) from exc
+
+
+def _one_line(exc: BaseException) -> str:
+    """``Type: message`` on one line, at most 300 characters (for one-line command-line errors)."""
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    return text if len(text) <= 300 else text[:297] + "..."
