@@ -2,6 +2,9 @@
 
 Notation: C = K + diag(s) is an ``(B, N, N)`` batch of covariances (B = 1 for the shared kernel, B = d_out for
 per-output kernels), Y the targets arranged as ``(B, N, m)`` (m outputs share each covariance), alpha = C^-1 Y.
+The diagonal s is one noise variance per covariance ``(B, 1)``, or per sample ``(B, N)`` with known noise:
+s_i = known_i + floor (``(1, N)`` when the known noise is the same for every output, else B = d_out with the shared
+kernel expanded). Everything below holds for either diagonal, except the profiled output scale.
 
     log p(Y) = -1/2 sum(Y * alpha) - (m / 2) sum_b logdet C_b - (N B m / 2) log(2 pi)
 
@@ -10,8 +13,9 @@ Q = alpha alpha^T - m C^-1 (summed over the m outputs). Q comes from one Cholesk
 differentiate the cheap O(N^2) surrogate ``1/2 sum(Q.detach() * C(theta))`` (:func:`gradient_surrogate`), never the
 O(N^3) factorization.
 
-**Profiled output scale.** With C = s (R + g I) (unit-scale kernel R, noise ratio g) the likelihood is maximised
-over s in closed form, s* = sum(Y * alpha) / (N B m) with alpha = (R + g I)^-1 Y, leaving
+**Profiled output scale** (only without known noise: known variances do not scale with the output scale). With
+C = s (R + g I) (unit-scale kernel R, noise ratio g) the likelihood is maximised over s in closed form,
+s* = sum(Y * alpha) / (N B m) with alpha = (R + g I)^-1 Y, leaving
 
     log p_prof = -(N B m / 2) (log(2 pi s*) + 1) - (m / 2) sum_b logdet(R_b + g I),
 

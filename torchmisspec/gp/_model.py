@@ -17,6 +17,13 @@ defaults, on purpose:
 
 Positive hyperparameters are optimised in log space (as scikit-learn does), which keeps small output scales and
 noise variances (1e-5 .. 1e-4 in the paper) well conditioned for L-BFGS.
+
+**Known per-sample noise** (``fit(..., noise=...)``, heteroscedastic): the covariance of output j is
+K + diag(known_j + floor), the known variances plus the ``noise_variance`` hyperparameter (a learned or fixed floor).
+Noise the same for every output (``(N,)``) keeps one factorization for all outputs; noise that differs between
+outputs (``(N, d_out)``) needs one per output (the per-output batch layout ``(d_out, N, N)``, with the shared kernel
+expanded). ``gp.model`` then holds a GPyTorch ``FixedNoiseGaussianLikelihood`` (known noise plus a learned floor), so
+the ExactGP view and the cached posterior still agree.
 """
 
 from __future__ import annotations
@@ -104,6 +111,11 @@ class _IndependentOutputsGP(gpytorch.models.ExactGP):
         return gpytorch.distributions.MultivariateNormal(mean, covar)
 
 
+def _identical_columns(noise: torch.Tensor) -> bool:
+    """Known noise ``(N, d_out)`` the same for every output (then one factorization serves all outputs)."""
+    return bool((noise == noise[:, :1]).all())
+
+
 def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.device == b.device and torch.equal(a, b)
 
@@ -133,10 +145,11 @@ class CorrectionGP:
         device: of the model's tensors (the CPU by default).
 
     After :meth:`fit`: ``lengthscale``, ``outputscale`` and ``noise_variance`` hold the values in use (floats, or
-    tensors ``(d_out,)`` when ``per_output``); ``log_marginal_likelihood_`` the exact log marginal likelihood
-    (nats, summed over outputs) at those values; ``n_iterations_`` and ``n_evaluations_`` the L-BFGS iterations
-    and likelihood evaluations of the final optimisation pass; ``model`` the GPyTorch ``ExactGP`` holding the
-    hyperparameters and the training data.
+    tensors ``(d_out,)`` when ``per_output``; with known per-sample noise, ``noise_variance`` is the floor added to
+    it); ``train_noise_`` the known noise ``(N, d_out)`` or ``None``; ``log_marginal_likelihood_`` the exact log
+    marginal likelihood (nats, summed over outputs) at those values; ``n_iterations_`` and ``n_evaluations_`` the
+    L-BFGS iterations and likelihood evaluations of the final optimisation pass; ``model`` the GPyTorch ``ExactGP``
+    holding the hyperparameters and the training data.
     """
 
     def __init__(
@@ -186,8 +199,12 @@ class CorrectionGP:
         self.model: _IndependentOutputsGP = _IndependentOutputsGP(None, None, lik, covar, 1).eval()
 
     # ------------------------------------------------------------------------------------------------ building
-    def _modules(self, batch: int):
-        """A fresh kernel and likelihood holding the fixed values (batch of ``batch`` when ``per_output``)."""
+    def _modules(self, batch: int, noise: torch.Tensor | None = None):
+        """A fresh kernel and likelihood holding the fixed values (batch of ``batch`` when ``per_output``).
+
+        ``noise``: known per-sample noise ``(d_out, N)`` (model dtype and device), or ``None``. With it the likelihood
+        is a ``FixedNoiseGaussianLikelihood`` whose learned additional noise is the floor ``noise_variance``.
+        """
         shape = torch.Size([batch]) if self.per_output else torch.Size([])
         if self.kernel == "rbf":
             base = gpytorch.kernels.RBFKernel(batch_shape=shape, lengthscale_constraint=_log_positive())
@@ -198,7 +215,15 @@ class CorrectionGP:
             base.offset = 1.0
             base.raw_offset.requires_grad_(False)
         covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=_log_positive())
-        lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=_log_positive())
+        if noise is None:
+            lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=_log_positive())
+        else:
+            # min_fixed_noise 0: GPyTorch would otherwise round known variances below 1e-6 up (and warn), and the
+            # ExactGP view would no longer be the model that is fitted
+            with gpytorch.settings.min_fixed_noise(float_value=0.0, double_value=0.0, half_value=0.0):
+                lik = gpytorch.likelihoods.FixedNoiseGaussianLikelihood(
+                    noise=noise, learn_additional_noise=True, batch_shape=shape, noise_constraint=_log_positive()
+                )
         covar, lik = covar.to(self.device, self.dtype), lik.to(self.device, self.dtype)
 
         # GPyTorch's setters would round a Python float through float32: pass tensors of the model's dtype
@@ -210,8 +235,15 @@ class CorrectionGP:
         if self.fixed["outputscale"] is not None:
             covar.outputscale = value("outputscale")
         if self.fixed["noise_variance"] is not None:
-            lik.noise = value("noise_variance")
+            self._floor(lik).noise = value("noise_variance")
         return covar, lik
+
+    @staticmethod
+    def _floor(lik) -> gpytorch.likelihoods.noise_models.HomoskedasticNoise:
+        """The module of the learned (or fixed) noise variance: the whole noise, or the floor over known noise."""
+        if isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
+            return lik.second_noise_covar
+        return lik.noise_covar
 
     @property
     def covar_module(self) -> gpytorch.kernels.ScaleKernel:
@@ -219,9 +251,20 @@ class CorrectionGP:
         return self.model.covar_module
 
     @property
-    def likelihood(self) -> gpytorch.likelihoods.GaussianLikelihood:
-        """The GPyTorch Gaussian likelihood in use (``gp.model.likelihood``): the noise variance."""
+    def likelihood(self) -> gpytorch.likelihoods.GaussianLikelihood | gpytorch.likelihoods.FixedNoiseGaussianLikelihood:
+        """The GPyTorch likelihood in use (``gp.model.likelihood``): a ``GaussianLikelihood`` holding the noise
+        variance, or, when fitted with known noise, a ``FixedNoiseGaussianLikelihood`` holding the known noise
+        ``(d_out, N)`` and the floor (its ``second_noise``)."""
         return self.model.likelihood
+
+    @property
+    def train_noise_(self) -> torch.Tensor | None:
+        """``(N, d_out)`` known per-sample noise variances of the training targets (a view of the likelihood's
+        ``(d_out, N)`` tensor, like ``train_targets_``), ``None`` when fitted without (or not fitted)."""
+        lik = self.model.likelihood
+        if not isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood) or not self.is_fitted:
+            return None
+        return lik.noise_covar.noise.T
 
     @property
     def train_inputs_(self) -> torch.Tensor | None:
@@ -242,7 +285,7 @@ class CorrectionGP:
         if self.fixed["outputscale"] is None:
             params.append(("outputscale", self.covar_module.raw_outputscale))
         if self.fixed["noise_variance"] is None:
-            params.append(("noise_variance", self.likelihood.noise_covar.raw_noise))
+            params.append(("noise_variance", self._floor(self.likelihood).raw_noise))
         return params
 
     def starting_values(self, inputs, targets) -> dict[str, torch.Tensor]:
@@ -283,17 +326,33 @@ class CorrectionGP:
                 self.covar_module.outputscale = start["outputscale"].expand(self.covar_module.outputscale.shape)
             if self.fixed["noise_variance"] is None:
                 noise = start["noise_variance"]
-                self.likelihood.noise = noise.reshape(-1, 1) if self.per_output else noise.reshape(1)
+                self._floor(self.likelihood).noise = noise.reshape(-1, 1) if self.per_output else noise.reshape(1)
 
     # ----------------------------------------------------------------------------------------------- the maths
-    def _kernel_parts(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """C = K + sigma^2 I as kernel part ``(B, N, N)`` and diagonal ``(B, 1)``; B = 1 shared, d_out per output."""
-        K = self.covar_module.forward(X, X)
-        return (K.unsqueeze(0) if K.dim() == 2 else K), self.likelihood.noise.reshape(-1, 1)
+    def _batched(self, noise: torch.Tensor | None) -> bool:
+        """One covariance per output: per-output kernels, or known noise that differs between outputs."""
+        return self.per_output or (noise is not None and not _identical_columns(noise))
 
-    def _targets_batched(self, Y: torch.Tensor) -> torch.Tensor:
-        """Targets arranged to match ``(B, N, N)``: shared -> ``(1, N, d_out)``; per output -> ``(d_out, N, 1)``."""
-        return Y.T.unsqueeze(-1) if self.per_output else Y.unsqueeze(0)
+    def _kernel_parts(self, X: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """C = K + diag as kernel part ``(B, N, N)`` and diagonal; B = 1 shared, d_out per output.
+
+        Without known noise the diagonal is the noise variance ``(B, 1)``; with known noise ``(N, d_out)`` it is
+        known + floor, ``(1, N)`` when the noise is the same for every output (shared kernel), else ``(d_out, N)``
+        (the shared kernel expanded to ``(d_out, N, N)``).
+        """
+        K = self.covar_module.forward(X, X)
+        K = K.unsqueeze(0) if K.dim() == 2 else K
+        floor = self._floor(self.likelihood).noise.reshape(-1, 1)  # (1, 1) or (d_out, 1)
+        if noise is None:
+            return K, floor
+        if not self._batched(noise):
+            return K, noise[:, 0].unsqueeze(0) + floor
+        return K.expand(noise.shape[1], -1, -1), noise.T + floor
+
+    def _targets_batched(self, Y: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Targets arranged to match ``(B, N, N)``: one covariance -> ``(1, N, d_out)``; one per output (per-output
+        kernels, or known noise differing between outputs) -> ``(d_out, N, 1)``."""
+        return Y.T.unsqueeze(-1) if self._batched(noise) else Y.unsqueeze(0)
 
     # ------------------------------------------------------------------------------------------------- fitting
     def _check_inputs(self, x, name: str) -> torch.Tensor:
@@ -307,18 +366,77 @@ class CorrectionGP:
             raise ShapeError(f"{name}: expected {d_in} input columns (as in training), got shape {tuple(x.shape)}")
         return x
 
+    @staticmethod
+    def _unpack(inputs, targets, noise):
+        """``fit(samples)`` or ``fit(inputs, targets, noise=...)``: the three arrays."""
+        from ..observations import CorrectionSamples
+
+        if isinstance(inputs, CorrectionSamples):
+            if targets is not None or noise is not None:
+                given = [name for name, v in (("targets", targets), ("noise", noise)) if v is not None]
+                raise InputError(
+                    f"fit: expected either a CorrectionSamples object alone or inputs and targets (and noise), got a "
+                    f"CorrectionSamples object and {' and '.join(given)} (the samples already carry their targets "
+                    "and noise)"
+                )
+            return inputs.inputs, inputs.targets, inputs.noise
+        if targets is None:
+            raise InputError(
+                f"targets: expected (N, d_out) samples of F (or a CorrectionSamples object as the only argument), "
+                f"got None with inputs of type {type(inputs).__name__}"
+            )
+        return inputs, targets, noise
+
+    def _check_noise(self, noise, N: int, d_out: int) -> torch.Tensor | None:
+        """Known noise variances ``(N,)`` or ``(N, d_out)`` -> ``(N, d_out)`` (finite, >= 0), or ``None``."""
+        if noise is None:
+            return None
+        noise = as_tensor(noise, "noise", dtype=self.dtype, device=self.device)
+        if noise.dim() == 1 and noise.shape[0] == N:
+            noise = noise.unsqueeze(-1).expand(N, d_out)
+        if noise.shape != (N, d_out):
+            raise ShapeError(
+                f"noise: expected known noise variances ({N},) (the same for every output) or ({N}, {d_out}) (per "
+                f"sample and output), got shape {tuple(noise.shape)}"
+            )
+        check_finite(noise, "noise")
+        if bool((noise < 0).any()):
+            raise InputError(
+                f"noise: expected non-negative variances, got {int((noise < 0).sum())} negative values (smallest "
+                f"{float(noise.min()):.3g})"
+            )
+        return noise.contiguous()
+
     @adaptive_threads()
     def fit(
-        self, inputs, targets, *, progress: bool = False, max_iter: int | None = None, warm_start: int = 500
+        self,
+        inputs,
+        targets=None,
+        *,
+        noise=None,
+        progress: bool = False,
+        max_iter: int | None = None,
+        warm_start: int = 500,
     ) -> CorrectionGP:
         """Fit to samples of F: ``inputs (N, d_in)``, ``targets (N, d_out)``. Returns ``self``.
 
+        ``gp.fit(samples)`` takes a :class:`~torchmisspec.CorrectionSamples` object instead (its ``inputs``,
+        ``targets`` and ``noise``); then no other data argument is accepted.
+
+        ``noise``: known per-sample noise variances of the targets, ``(N,)`` (the same for every output) or
+        ``(N, d_out)`` (heteroscedastic, e.g. an estimator's variance), added to the ``noise_variance``
+        hyperparameter, which becomes a floor (learned, or fixed when given). The posterior (``predict``,
+        ``predict_mean``) is that of F itself, without observation noise, as without known noise.
+
         The learned hyperparameters maximise the exact log marginal likelihood (L-BFGS with strong Wolfe line
         search, in log space, from data-driven starting values; analytic gradients, see :mod:`torchmisspec.gp._mll`).
-        With a shared kernel and both the output scale and the noise learned, the output scale is maximised out in
-        closed form. When N > 2 * ``warm_start``, a first pass on an evenly spaced subsample of ``warm_start``
-        points provides the starting values (0 disables it). ``progress=True`` shows a progress bar.
+        With a shared kernel, both the output scale and the noise learned, and no known noise, the output scale is
+        maximised out in closed form; with known noise (which does not scale with the output scale) the output scale
+        and the floor are optimised directly. When N > 2 * ``warm_start``, a first pass on an evenly spaced
+        subsample of ``warm_start`` points provides the starting values (0 disables it). ``progress=True`` shows a
+        progress bar.
         """
+        inputs, targets, noise = self._unpack(inputs, targets, noise)
         X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
         Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
         if Y.dim() == 1:
@@ -333,9 +451,9 @@ class CorrectionGP:
             raise FittingError("inputs: expected at least one sample, got 0")
         check_finite(X, "inputs")
         check_finite(Y, "targets")
+        noise = self._check_noise(noise, Y.shape[0], Y.shape[1])
         max_iter = self.max_iter if max_iter is None else check_positive_int(max_iter, "max_iter")
         warm_start = check_positive_int(warm_start, "warm_start", minimum=0)
-        d_out = Y.shape[1]
         free = [name for name, _ in self._free_parameters()]
         if any(name in ("outputscale", "noise_variance") for name in free) and not bool((Y != 0).any()):
             raise FittingError(
@@ -347,7 +465,7 @@ class CorrectionGP:
         before = (self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_)
         saved = [{k: v.clone() for k, v in m.state_dict().items()} for m in (self.covar_module, self.likelihood)]
         try:
-            self._fit(X, Y, d_out, bool(free), progress=progress, max_iter=max_iter, warm_start=warm_start)
+            self._fit(X, Y, noise, bool(free), progress=progress, max_iter=max_iter, warm_start=warm_start)
         except BaseException:
             self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_ = before
             self.covar_module.load_state_dict(saved[0])
@@ -355,10 +473,16 @@ class CorrectionGP:
             raise
         return self
 
-    def _fit(self, X, Y, d_out: int, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
+    def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
+        d_out = Y.shape[1]
         covar, lik = self.covar_module, self.likelihood
         if self.per_output and covar.batch_shape != torch.Size([d_out]):
             covar, lik = self._modules(batch=d_out)
+        if noise is not None or isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
+            # the likelihood holds the known noise (or none): a fresh one for these data, fixed values included
+            # (a copy: the model never shares storage with the caller's tensor)
+            known = None if noise is None else noise.T.clone(memory_format=torch.contiguous_format)
+            lik = self._modules(batch=d_out, noise=known)[1]
         self.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
         self._cache = None
         if learn:
@@ -367,24 +491,38 @@ class CorrectionGP:
                 # a cheap first pass on an evenly spaced subsample puts L-BFGS near the optimum; the second pass
                 # on all the data then needs few O(N^3) evaluations (the result maximises the full likelihood)
                 sub = torch.linspace(0, X.shape[0] - 1, warm_start, device=X.device).round().long()
-                self._optimise(X[sub], Y[sub], progress=False, max_iter=max_iter)
-            result = self._optimise(X, Y, progress=progress, max_iter=max_iter)
+                sub_noise = None if noise is None else noise[sub]
+                self._optimise(X[sub], Y[sub], sub_noise, progress=False, max_iter=max_iter)
+                if noise is not None and self.fixed["noise_variance"] is None:
+                    # beside known noise a subsample often cannot identify the floor, which then collapses towards
+                    # 0, where its log-space gradient vanishes: the full pass starts it afresh
+                    start = self.starting_values(X, Y)["noise_variance"]
+                    with torch.no_grad():
+                        floor = self._floor(self.likelihood)
+                        floor.noise = start.reshape(-1, 1) if self.per_output else start.reshape(1)
+            result = self._optimise(X, Y, noise, progress=progress, max_iter=max_iter)
             self.n_iterations_, self.n_evaluations_ = result.iterations, result.evaluations
         else:
             self.n_iterations_, self.n_evaluations_ = 0, 0
         self._posterior_cache()
 
-    def _optimise(self, X: torch.Tensor, Y: torch.Tensor, *, progress: bool, max_iter: int):
+    def _optimise(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, progress: bool, max_iter: int):
         """L-BFGS on the exact log marginal likelihood with the analytic gradient of :mod:`._mll`.
 
-        When the output scale and the noise are both learned with a shared kernel, the output scale s is profiled
-        out: C = s (R + g I), leaving the lengthscale and the noise ratio g for L-BFGS (the same optimum of the
-        same likelihood, in fewer iterations); s* and g s* are written back into the GPyTorch modules.
+        When the output scale and the noise are both learned with a shared kernel and there is no known noise, the
+        output scale s is profiled out: C = s (R + g I), leaving the lengthscale and the noise ratio g for L-BFGS
+        (the same optimum of the same likelihood, in fewer iterations); s* and g s* are written back into the
+        GPyTorch modules. Known noise does not scale with s, so then every free hyperparameter is optimised directly.
         """
         n, d_out = Y.shape
         free = [p for _, p in self._free_parameters()]
-        profile = not self.per_output and self.fixed["outputscale"] is None and self.fixed["noise_variance"] is None
-        Yb = self._targets_batched(Y)
+        profile = (
+            not self.per_output
+            and noise is None
+            and self.fixed["outputscale"] is None
+            and self.fixed["noise_variance"] is None
+        )
+        Yb = self._targets_batched(Y, noise)
         covar, lik = self.covar_module, self.likelihood
         if profile:
             ratio0 = (lik.noise.detach() / covar.outputscale.detach()).log().reshape(1)
@@ -398,7 +536,7 @@ class CorrectionGP:
             params = free
 
             def matrices():
-                return self._kernel_parts(X)
+                return self._kernel_parts(X, noise)
 
         def evaluate():
             K, diag = matrices()
@@ -430,7 +568,7 @@ class CorrectionGP:
         except LinearAlgebraError as exc:
             raise FittingError(
                 f"fitting failed at lengthscale={_show(self.covar_module.base_kernel, 'lengthscale')}, "
-                f"outputscale={_show(covar, 'outputscale')}, noise_variance={_show(lik, 'noise')}: {exc}"
+                f"outputscale={_show(covar, 'outputscale')}, noise_variance={_show(self._floor(lik), 'noise')}: {exc}"
             ) from exc
         for p in params:
             if not bool(torch.isfinite(p).all()):
@@ -446,7 +584,12 @@ class CorrectionGP:
         m = self.model
         X, Yt = m.train_inputs[0], m.train_targets
         key = (id(m.covar_module), id(m.likelihood), id(X), X._version, id(Yt), Yt._version)
-        return key, [t.detach() for t in (*m.parameters(), *m.buffers())]
+        values = [t.detach() for t in (*m.parameters(), *m.buffers())]
+        if isinstance(m.likelihood, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
+            known = m.likelihood.noise_covar.noise  # a plain attribute in GPyTorch (not a buffer): keyed here
+            key += (id(known), known._version)
+            values.append(known.detach())
+        return key, values
 
     def _posterior_cache(self) -> _Cache:
         """The cached factorization; rebuilt (one factorization) when anything it depends on has changed."""
@@ -460,7 +603,12 @@ class CorrectionGP:
             and all(_same(a, b) for a, b in zip(c.values, values, strict=True))
         ):
             return c
-        X, Y = self.train_inputs_, self.train_targets_
+        X, Y, noise = self.train_inputs_, self.train_targets_, self.train_noise_
+        if noise is not None and noise.shape != Y.shape:
+            raise ShapeError(
+                f"known noise: expected {tuple(Y.shape)} (the training targets' shape) as gp.train_noise_, got "
+                f"{tuple(noise.shape)}; refit with gp.fit(inputs, targets, noise=...)"
+            )
         if self.per_output and self.covar_module.batch_shape != torch.Size([Y.shape[1]]):
             raise ShapeError(
                 f"training targets: expected {self.covar_module.batch_shape[0]} outputs for the per-output kernels, "
@@ -468,13 +616,13 @@ class CorrectionGP:
             )
         self.model.num_outputs = Y.shape[1]
         with torch.no_grad():
-            K, diag = self._kernel_parts(X)
-            Yb = self._targets_batched(Y)
+            K, diag = self._kernel_parts(X, noise)
+            Yb = self._targets_batched(Y, noise)
             fac = _mll.factorize(K, diag, Yb)
             # a Cholesky that "succeeds" on a nearly singular matrix can still solve badly (tiny noise with repeated
             # inputs). The residual r = (K + noise I) alpha - Y is, to first order, the error of the posterior mean
             # at the training inputs: warn when it exceeds a tenth of the noise standard deviation (then it is no
-            # longer negligible beside the uncertainty the model reports)
+            # longer negligible beside the uncertainty the model reports; the smallest one with per-sample noise)
             resid = K @ fac.alpha + diag.unsqueeze(-1) * fac.alpha - Yb
             err = float(resid.abs().max())
             tol = 0.1 * float(diag.min().sqrt())
@@ -551,23 +699,27 @@ class CorrectionGP:
         with torch.set_grad_enabled(x.requires_grad and torch.is_grad_enabled()):
             return _check_prediction(self._mean_from(cache, x), x)
 
+    @staticmethod
+    def _unbatch(mean: torch.Tensor) -> torch.Tensor:
+        """``(1, M, d_out)`` (one covariance) or ``(d_out, M, 1)`` (one per output) -> ``(M, d_out)``."""
+        return mean[0] if mean.shape[0] == 1 else mean.squeeze(-1).T
+
     def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
         """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path)."""
-        mean = self._cross(x) @ cache.fac.alpha  # (1, M, d_out) or (d_out, M, 1)
-        return mean[0] if not self.per_output else mean.squeeze(-1).T
+        return self._unbatch(self._cross(x) @ cache.fac.alpha)  # (1, M, d_out) or (d_out, M, 1) before
 
     def predict(self, x) -> GPPosterior:
         """Posterior mean and variance of F itself (no observation noise) at ``x (M, d_in)``, each ``(M, d_out)``."""
         cache = self._posterior_cache()
         x = self._check_inputs(x, "x")
         with torch.no_grad():
-            Kxs = self._cross(x)  # (B, M, N)
-            mean = Kxs @ cache.fac.alpha
-            mean = mean[0] if not self.per_output else mean.squeeze(-1).T
-            v = torch.linalg.solve_triangular(cache.fac.chol, Kxs.transpose(-1, -2), upper=False)  # (B, N, M)
+            Kxs = self._cross(x)  # (1, M, N) shared kernel, (d_out, M, N) per output
+            mean = self._unbatch(Kxs @ cache.fac.alpha)
+            chol = cache.fac.chol  # (1 or d_out, N, N)
+            v = torch.linalg.solve_triangular(chol, Kxs.transpose(-1, -2).expand(chol.shape[0], -1, -1), upper=False)
             prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
-            var = (prior - v.pow(2).sum(-2).squeeze(0)).clamp_min(0.0)
-            var = var.T if self.per_output else var.unsqueeze(-1).expand(-1, mean.shape[-1])
+            var = (prior - v.pow(2).sum(-2)).clamp_min(0.0)  # (1 or d_out, M)
+            var = var.T.expand(-1, mean.shape[-1])
         _check_prediction(mean, x)
         _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
@@ -594,14 +746,17 @@ class CorrectionGP:
 
     @property
     def noise_variance(self) -> float | torch.Tensor | None:
-        """The observation-noise variance in use (``None`` when unfitted and not given)."""
-        return self._value("noise_variance", self.likelihood.noise)
+        """The observation-noise variance in use (``None`` when unfitted and not given); with known per-sample
+        noise, the floor added to it."""
+        return self._value("noise_variance", self._floor(self.likelihood).noise)
 
     def fixed_copy(self) -> CorrectionGP:
         """A new, unfitted CorrectionGP with every hyperparameter fixed at this one's values in use.
 
         ``gp.fixed_copy().fit(inputs, targets)`` conditions on new samples without re-learning anything (the paper's
-        studies fit every realization with the same prior). Needs every hyperparameter to be set (given or fitted).
+        studies fit every realization with the same prior). Known per-sample noise is data, not a hyperparameter:
+        it is not copied (pass it again to ``fit``); the copy's ``noise_variance`` is this one's (floor). Needs every
+        hyperparameter to be set (given or fitted).
         """
         values = {
             "lengthscale": self.lengthscale,
@@ -629,6 +784,8 @@ class CorrectionGP:
 
     def __repr__(self) -> str:
         state = f"fitted on N={self.train_inputs_.shape[0]}" if self.is_fitted else "not fitted"
+        if self.train_noise_ is not None:
+            state += " with known noise"
         return (
             f"CorrectionGP(kernel={self.kernel!r}, lengthscale={self.lengthscale}, outputscale={self.outputscale}, "
             f"noise_variance={self.noise_variance}, per_output={self.per_output}; {state})"

@@ -1,7 +1,8 @@
 """Saving and loading a fitted :class:`~torchmisspec.gp.CorrectionGP` without pickled code.
 
 A file holds one dictionary of plain values: the configuration (strings, numbers, booleans, ``None``), the GPyTorch
-state dictionaries (tensors) and the training data (tensors). It is written with ``torch.save`` and read with
+state dictionaries (tensors) and the training data (tensors: inputs, targets and the known per-sample noise, or
+``None`` when the model was fitted without). It is written with ``torch.save`` and read with
 ``torch.load(weights_only=True)``, which refuses anything but tensors and plain containers, so a crafted file
 cannot run code on load. The dtype is read from an allow-list, never by ``getattr`` on a string from the file.
 """
@@ -22,7 +23,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["save", "load", "FORMAT_VERSION"]
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3  # 3: + "train_noise" (files of version 2 have none and load as before)
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -51,6 +52,7 @@ def save(gp: CorrectionGP, path: str | Path) -> Path:
         "likelihood": {k: v.detach().cpu() for k, v in gp.likelihood.state_dict().items()},
         "train_inputs": gp.train_inputs_.detach().cpu(),
         "train_targets": gp.train_targets_.detach().cpu(),
+        "train_noise": None if gp.train_noise_ is None else gp.train_noise_.detach().cpu().contiguous(),
         "n_iterations": gp.n_iterations_,
         "n_evaluations": gp.n_evaluations_,
     }
@@ -106,9 +108,20 @@ def load(cls, path: str | Path, *, device=None) -> CorrectionGP:
         raise InputError(
             f"{path}: expected training data (N, d_in) and (N, d_out), got {tuple(X.shape)}, {tuple(Y.shape)}"
         )
+    noise = blob.get("train_noise")
+    if noise is not None:
+        if not isinstance(noise, torch.Tensor) or noise.shape != Y.shape:
+            shape = tuple(noise.shape) if isinstance(noise, torch.Tensor) else type(noise).__name__
+            raise InputError(
+                f"{path}: expected known noise 'train_noise' of shape {tuple(Y.shape)} or None, got {shape}"
+            )
+        noise = noise.to(gp.device, gp.dtype)
+        if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
+            raise InputError(f"{path}: expected finite non-negative known noise variances in 'train_noise'")
+        noise = noise.T.contiguous()
     from ._model import _IndependentOutputsGP
 
-    covar, lik = gp._modules(batch=Y.shape[1])
+    covar, lik = gp._modules(batch=Y.shape[1], noise=noise)
     try:
         covar.load_state_dict(_field(blob, "covar_module", dict, path))
         lik.load_state_dict(_field(blob, "likelihood", dict, path))
