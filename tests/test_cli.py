@@ -155,7 +155,7 @@ def _fit_args(data, out, *extra, system="paper_linear"):
 
 def test_fit_command_saves_the_model_a_direct_fit_gives(tmp_path, observed_csv, capsys):
     out = tmp_path / "model.pt"
-    assert main(_fit_args(observed_csv, out, "--state-columns", "x1,x2")) == 0
+    assert main(_fit_args(observed_csv, out, "--state-columns", "x1,x2", "--derivative", "central")) == 0
     line = capsys.readouterr().out.strip()
     loaded = tms.CorrectionGP.load(out)
     trajs = tms.Trajectories.load(observed_csv, time_column="t")

@@ -287,22 +287,24 @@ def test_correction_samples_bad_inputs(linear_fine):
         correction_samples(traj, paper_gravity())
     short = Trajectories(torch.tensor([0.0, 1.0]), torch.zeros(1, 2, 2))
     with pytest.raises(InputError, match=r"order=2 needs at least 3 samples per trajectory, got T=2"):
+        correction_samples(short, system, derivative="central")
+    with pytest.raises(InputError, match=r"derivative='auto': every estimator needs at least 3 samples.*got T=2"):
         correction_samples(short, system)
     with pytest.raises(InputError, match=r"window=7 needs at least 7 samples per trajectory, got T=2"):
         correction_samples(short, system, derivative="smooth")
     no_f = MisspecifiedSystem(LinearField(torch.eye(2)), 2, name="known_only")
-    msg = r"oracle derivatives need a system with a true correction.*'central' or 'smooth'"
+    msg = r"oracle derivatives need a system with a true correction.*'auto', 'central', 'smooth' or 'gp'"
     with pytest.raises(InputError, match=msg):
         correction_samples(traj, no_f, derivative="oracle")
     correction_samples(traj, no_f, derivative="central")  # real-data estimators work without a true F
-    msg = r"derivative: expected one of \['oracle', 'central', 'smooth'\], got 'spline'"
+    msg = r"derivative: expected one of \['auto', 'oracle', 'central', 'smooth', 'gp'\], got 'spline'"
     with pytest.raises(InputError, match=msg):
         correction_samples(traj, system, derivative="spline")
     for bad in (-0.1, float("nan"), float("inf"), "x", True):
         with pytest.raises(InputError, match=r"noise_std: expected a finite number >= 0"):
-            correction_samples(traj, system, noise_std=bad)
+            correction_samples(traj, system, derivative="central", noise_std=bad)
     with pytest.raises(InputError, match=r"generator: expected a torch.Generator or None, got int"):
-        correction_samples(traj, system, noise_std=0.1, generator=0)
+        correction_samples(traj, system, derivative="central", noise_std=0.1, generator=0)
 
 
 def test_nan_states_surface():

@@ -317,9 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument(
         "--derivative",
-        default="central",
-        help="how dy/dt is estimated from the states: central (finite differences, default), smooth (local "
-        "polynomial fits), or another estimator of torchmisspec.correction_samples",
+        default="auto",
+        help="how dy/dt is estimated from the states: auto (default: the estimator whose self-check on the known "
+        "model is best), central, smooth, gp (a Gaussian process in time), or oracle",
     )
     fit.add_argument(
         "--kernel",
