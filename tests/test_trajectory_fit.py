@@ -54,7 +54,7 @@ def test_bad_input(problem):
     system, traj, gp = problem
     with pytest.raises(tms.NotFittedError, match="expected a fitted CorrectionGP"):
         tms.fit_trajectories(tms.CorrectionGP(), system, traj)
-    with pytest.raises(tms.InputError, match="trajectories: expected a Trajectories object, got Tensor"):
+    with pytest.raises(tms.InputError, match="trajectories: expected a torchmisspec Trajectories object, got Tensor"):
         tms.fit_trajectories(gp, system, traj.states)
     with pytest.raises(tms.InputError, match="at least 2 times per experiment"):
         tms.fit_trajectories(gp, system, tms.Trajectories(traj.times[:1], traj.states[:, :1]))

@@ -113,6 +113,19 @@ def _parse_times(text: str):
         raise InputError(message) from exc
 
 
+def _gp_from_args(args: argparse.Namespace):
+    """The CorrectionGP the --kernel, --lengthscale, --outputscale, --noise-variance and --degree options describe."""
+    from .gp import CorrectionGP
+
+    return CorrectionGP(
+        kernel=args.kernel,
+        lengthscale=args.lengthscale,
+        outputscale=args.outputscale,
+        noise_variance=args.noise_variance,
+        degree=args.degree,
+    )
+
+
 def _check_output(path: str, suffixes: tuple[str, ...]) -> Path:
     """The output file: a known suffix, in a folder that exists and is writable (checked before any work)."""
     import os
@@ -135,7 +148,6 @@ def _design(args: argparse.Namespace) -> int:
 
     from . import design
     from ._errors import InputError
-    from .gp import CorrectionGP
     from .systems import load_system
 
     out = _check_output(args.out, (".csv", ".json"))
@@ -144,13 +156,7 @@ def _design(args: argparse.Namespace) -> int:
     if candidates.dim() == 1:
         candidates = candidates.unsqueeze(-1)
     times = _parse_times(args.times)
-    gp = CorrectionGP(
-        kernel=args.kernel,
-        lengthscale=args.lengthscale,
-        outputscale=args.outputscale,
-        noise_variance=args.noise_variance,
-        degree=args.degree,
-    )
+    gp = _gp_from_args(args)
     partition = capacities = None
     if args.partition is not None:
         labels = torch.as_tensor(_read_table(args.partition, "partition")).reshape(-1)
@@ -227,7 +233,6 @@ def _fit(args: argparse.Namespace) -> int:
     from . import observations
     from ._errors import InputError
     from .data import Trajectories
-    from .gp import CorrectionGP
     from .systems import load_system
 
     out = _check_output(args.out, (".pt",))
@@ -237,13 +242,7 @@ def _fit(args: argparse.Namespace) -> int:
         if not all(state_columns):
             raise InputError(f"--state-columns: expected comma separated column names, got {args.state_columns!r}")
     experiment_column = args.experiment_column or None  # '' = no experiment column: one experiment
-    gp = CorrectionGP(
-        kernel=args.kernel,
-        lengthscale=args.lengthscale,
-        outputscale=args.outputscale,
-        noise_variance=args.noise_variance,
-        degree=args.degree,
-    )
+    gp = _gp_from_args(args)
     system = load_system(args.system)
     trajs = Trajectories.load(
         args.data, time_column=args.time_column, experiment_column=experiment_column, state_columns=state_columns

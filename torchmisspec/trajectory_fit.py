@@ -19,6 +19,7 @@ from ._threads import adaptive_threads
 from ._validation import check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp import CorrectionGP
+from .observations import _check_trajectories_and_system
 from .systems import MisspecifiedSystem
 
 __all__ = ["fit_trajectories", "shooting_misfit"]
@@ -72,15 +73,7 @@ def _check(gp, system, trajectories) -> None:
         raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
     if not gp.is_fitted:
         raise NotFittedError("gp: expected a fitted CorrectionGP (fit it on derivative-based samples first)")
-    if not isinstance(system, MisspecifiedSystem):
-        raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
-    if not isinstance(trajectories, Trajectories):
-        raise InputError(f"trajectories: expected a Trajectories object, got {type(trajectories).__name__}")
-    if trajectories.state_dim != system.state_dim:
-        raise ShapeError(
-            f"trajectories: expected state dimension {system.state_dim} of system '{system.name}', got "
-            f"{trajectories.state_dim}"
-        )
+    _check_trajectories_and_system(trajectories, system)
     if gp.input_dim != system.input_dim or gp.output_dim != system.output_dim:
         raise ShapeError(
             f"gp: expected {system.input_dim} inputs and {system.output_dim} outputs (the system's correction), got "
