@@ -60,3 +60,12 @@ def test_bad_input(problem):
         tms.fit_trajectories(gp, system, tms.Trajectories(traj.times[:1], traj.states[:, :1]))
     with pytest.raises(tms.InputError, match="state_noise: expected a positive finite number"):
         tms.fit_trajectories(gp, system, traj, state_noise=-1.0)
+
+
+def test_known_per_sample_noise_stays_part_of_the_prior(problem, one_thread):
+    system, traj, _ = problem
+    samples = tms.correction_samples(traj, system, derivative="gp")  # carries the GP-in-time variances
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=0.1, noise_variance=1e-6).fit(samples)
+    refined = tms.fit_trajectories(gp, system, traj, max_iter=5)
+    torch.testing.assert_close(refined.train_noise_, gp.train_noise_, rtol=0, atol=0)
+    assert shooting_misfit(refined, system, traj) <= shooting_misfit(gp, system, traj)

@@ -99,9 +99,10 @@ def fit_trajectories(
     """Refine a fitted correction so that the corrected ODE reproduces the observed states (multiple shooting, MAP).
 
     **What is optimised**: the GP's pseudo-targets Y_hat ``(N, d_out)`` at its training inputs X. The corrected
-    right-hand side is G(y) + k(x, X) C^-1 Y_hat with C = K(X, X) + noise_variance I, so Y_hat plays the role of the
-    correction samples. **What stays fixed**: the kernel hyperparameters (lengthscale, output scale, noise
-    variance), the training inputs X, and the known model G. **Objective** (a MAP estimate, minimised with L-BFGS,
+    right-hand side is G(y) + k(x, X) C^-1 Y_hat with C = K(X, X) + diag(s), s the GP's noise (its floor
+    ``noise_variance`` plus any known per-sample noise), so Y_hat plays the role of the correction samples.
+    **What stays fixed**: the kernel hyperparameters (lengthscale, output scale, noise variance, known per-sample
+    noise), the training inputs X, and the known model G. **Objective** (a MAP estimate, minimised with L-BFGS,
     gradients through torchdiffeq's solver):
 
         sum over intervals ||y_hat(t_{i+1}) - y(t_{i+1})||^2 / (2 s^2)  +  1/2 sum_j Y_hat_j^T C^-1 Y_hat_j
@@ -134,13 +135,15 @@ def fit_trajectories(
     trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
     starts, times, ends = _intervals(trajectories)
     X = gp.train_inputs_
-    L = gp._posterior_cache().fac.chol  # (1, N, N), C = K + noise I, fixed
+    L = gp._posterior_cache().fac.chol  # (B, N, N), C = K + diag(known noise + floor), fixed
     Y0 = gp.train_targets_.detach()
     scale = Y0.pow(2).mean().sqrt().clamp_min(torch.finfo(Y0.dtype).tiny)
     z = (Y0 / scale).contiguous().requires_grad_(True)  # optimised in units of the targets' RMS
 
+    noise = gp.train_noise_  # known per-sample noise, part of C (None when there is none)
+
     def misfit_and_prior(zv: torch.Tensor):
-        Yhat = (zv * scale).unsqueeze(0)  # (1, N, d_out)
+        Yhat = gp._targets_batched(zv * scale, noise)  # (1, N, d_out), or (d_out, N, 1) with per-output noise
         alpha = torch.cholesky_solve(Yhat, L)
         pred, nfe = solve(
             _mean_field(gp, system, alpha),
@@ -187,7 +190,7 @@ def fit_trajectories(
         opt.step(closure)
     if not bool(torch.isfinite(z).all()):
         raise FittingError("fit_trajectories diverged: the pseudo-targets became non-finite; give state_noise=...")
-    refined = gp.fixed_copy().fit(X, (z.detach() * scale))
+    refined = gp.fixed_copy().fit(X, z.detach() * scale, noise=noise)
     refined.n_iterations_ = int(opt.state[opt._params[0]].get("n_iter", 0))
     refined.n_evaluations_ = count[0]
     refined.state_noise_ = s2
