@@ -304,7 +304,7 @@ def test_gravity_system_uses_correction_inputs():
     assert res["lazy"].information_gain == pytest.approx(set_gain(prox, range(5), 1e-3), rel=1e-7)
 
 
-def test_progress_bar_shows_picks_and_changes_nothing(capsys):
+def test_progress_bar_shows_picks_and_changes_nothing(capsys, one_thread):
     quiet = design.greedy(grid13(), 3, system=paper_linear(), times=TIMES, gp=make_gp())
     shown = design.greedy(grid13(), 3, system=paper_linear(), times=TIMES, gp=make_gp(), progress=True)
     assert shown.indices.tolist() == quiet.indices.tolist()
