@@ -32,7 +32,7 @@ def smoke(tmp_path_factory):
 
 def test_every_benchmark_ran(smoke):
     results, page = smoke
-    for name in ("fit", "gradient", "predict", "design", "naive", "contention"):
+    for name in ("fit", "gradient", "predict", "design", "naive", "contention", "realdata"):
         assert name in results
         assert f"--only {name}" in page
     assert results["machine"]["torch_threads"] == 1
