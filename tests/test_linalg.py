@@ -67,3 +67,12 @@ def test_warnings_point_at_the_callers_line():
     with pytest.warns(tms.NumericalWarning) as record:
         tms.CorrectionGP(lengthscale=0.5, outputscale=1e4, noise_variance=2e-12).fit(X, Y)
     assert {w.filename for w in record} == {__file__}
+
+
+def test_cholesky_or_fail_marks_failures_and_keeps_solves_finite():
+    good = torch.eye(2, dtype=DT) * 2
+    bad = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=DT)
+    L, failed = _linalg.cholesky_or_fail(torch.stack([good, bad]))
+    assert failed.tolist() == [False, True]
+    torch.testing.assert_close(L[0], torch.linalg.cholesky(good), rtol=0, atol=0)
+    torch.testing.assert_close(L[1], torch.eye(2, dtype=DT), rtol=0, atol=0)

@@ -14,7 +14,7 @@ import torch
 from ._errors import LinearAlgebraError, NotPositiveDefiniteError
 from ._errors import warn as warn_user
 
-__all__ = ["cholesky", "logdet_from_cholesky", "logdet_identity_plus", "JITTER_RANGE"]
+__all__ = ["cholesky", "cholesky_or_fail", "logdet_from_cholesky", "logdet_identity_plus", "JITTER_RANGE"]
 
 #: jitter tried, relative to the mean absolute diagonal: 1e-10, 1e-9, ..., 1e-5
 JITTER_RANGE = (-10, -5)
@@ -60,6 +60,20 @@ def cholesky(A: torch.Tensor, *, what: str = "covariance", warn: bool = True) ->
         f"even with jitter {float(jitter):.1e} added to the diagonal (is the noise variance zero with repeated "
         "inputs?); use a larger noise_variance or remove duplicate inputs"
     )
+
+
+def cholesky_or_fail(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower factors of a batch ``A (..., n, n)`` without jitter, and which matrices failed ``(...)`` (bool).
+
+    For searches over hyperparameters where a failed candidate is simply discarded: the failed entries' factors are
+    the identity (so later solves stay finite), and the caller gives those candidates an infinite cost.
+    """
+    L, info = torch.linalg.cholesky_ex(A)
+    failed = info != 0
+    if bool(failed.any()):
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+        L = torch.where(failed[..., None, None], eye, L)
+    return L, failed
 
 
 def logdet_from_cholesky(L: torch.Tensor) -> torch.Tensor:

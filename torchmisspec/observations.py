@@ -35,6 +35,7 @@ from typing import NamedTuple
 import torch
 
 from ._errors import InputError, ShapeError, TorchMisspecWarning, warn
+from ._linalg import cholesky, cholesky_or_fail, logdet_from_cholesky
 from ._threads import adaptive_threads
 from ._validation import check_finite, check_positive_int, check_real, states_and_times
 from .data import Trajectories, simulate
@@ -256,13 +257,10 @@ def _gp_neg_mll(times: torch.Tensor, z: torch.Tensor, log_params: torch.Tensor) 
 
     A component whose factorization fails gets ``inf``."""
     Kn, _, _, _ = _rbf_parts(times, log_params)
-    L, info = torch.linalg.cholesky_ex(Kn)
-    failed = (info != 0).any(-1)  # (d,)
-    if bool(failed.any()):
-        eye = torch.eye(Kn.shape[-1], dtype=Kn.dtype, device=Kn.device)
-        L = torch.where(failed.view(-1, 1, 1, 1), eye, L)
+    L, failed = cholesky_or_fail(Kn)  # failed: (d, K)
+    failed = failed.any(-1)  # (d,)
     a = torch.cholesky_solve(z.unsqueeze(-1), L).squeeze(-1)
-    logdet = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)  # (d, K)
+    logdet = logdet_from_cholesky(L)  # (d, K)
     value = (0.5 * (z * a).sum(-1) + 0.5 * logdet).sum(-1)
     return torch.where(failed, torch.full_like(value, float("inf")), value)
 
@@ -345,7 +343,7 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
         if not bool(torch.isfinite(_gp_neg_mll(t, z, p)).all()):
             p = start  # the optimiser wandered into a singular corner: keep the grid's best point
         Kn, dK, ell2, os = _rbf_parts(t, p)
-        L = torch.linalg.cholesky(Kn)
+        L = cholesky(Kn, what="GP in time: K + noise I")
         a = torch.cholesky_solve(z.unsqueeze(-1), L)  # (d, K, T, 1)
         mean = (dK @ a).squeeze(-1)  # (d, K, T)
         V = torch.linalg.solve_triangular(L, dK.transpose(-1, -2), upper=False)  # L^-1 dk_i in column i

@@ -13,12 +13,13 @@ from types import SimpleNamespace
 
 import torch
 
-from ._errors import FittingError, InputError, NotFittedError, ShapeError
+from ._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError
 from ._ode import PREDICTION_TOLERANCES, solve
 from ._threads import adaptive_threads
-from ._validation import check_positive_int, check_real, progress_bar
+from ._validation import check_positive_int, check_real
 from .data import Trajectories
 from .gp import CorrectionGP
+from .gp._optim import maximise
 from .observations import _check_trajectories_and_system
 from .systems import MisspecifiedSystem
 
@@ -166,32 +167,26 @@ def fit_trajectories(
         s2 = max(s2, 1e-12 * float(ends.pow(2).mean()))
     else:
         s2 = check_real(state_noise, "state_noise", positive=True)
-    opt = torch.optim.LBFGS(
-        [z],
-        lr=1.0,
-        max_iter=max_iter,
-        history_size=10,
-        line_search_fn="strong_wolfe",
-        tolerance_grad=1e-9,
-        tolerance_change=1e-12,
-    )
-    count = [0]
-    with progress_bar(progress, max_iter, f"fit_trajectories ({starts.shape[0]} intervals)", "eval") as bar:
 
-        def closure():
-            opt.zero_grad()
-            sq, prior = misfit_and_prior(z)
-            loss = (sq / (2 * s2) + prior) / n_obs
-            loss.backward()
-            count[0] += 1
-            bar.update(1)
-            return loss
+    def evaluate():
+        sq, prior = misfit_and_prior(z)
+        objective = -(sq / (2 * s2) + prior)  # the log posterior, up to a constant
+        return objective.detach(), objective
 
-        opt.step(closure)
+    try:
+        result = maximise(
+            [z],
+            evaluate,
+            max_iter=max_iter,
+            normaliser=float(n_obs),
+            progress=progress,
+            desc=f"fit_trajectories ({starts.shape[0]} intervals)",
+        )
+    except LinearAlgebraError as exc:
+        raise FittingError(f"fit_trajectories failed: {exc}") from exc
     if not bool(torch.isfinite(z).all()):
         raise FittingError("fit_trajectories diverged: the pseudo-targets became non-finite; give state_noise=...")
     refined = gp.fixed_copy().fit(X, z.detach() * scale, noise=noise)
-    refined.n_iterations_ = int(opt.state[opt._params[0]].get("n_iter", 0))
-    refined.n_evaluations_ = count[0]
+    refined.n_iterations_, refined.n_evaluations_ = result.iterations, result.evaluations
     refined.state_noise_ = s2
     return refined
