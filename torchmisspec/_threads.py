@@ -1,9 +1,9 @@
 """Thread count under contention: use no more torch threads than there are free cores.
 
 On a machine where another process keeps a core busy, torch's OpenMP threads spin waiting for a core that is taken:
-small batched work (a 440-sample fit, a batched ODE solve, a design) then runs 2.5-5x slower with two threads than
-with one (measured on 2 cores; ``scripts/benchmark.py --only contention``). One thread on the free core is the
-fastest choice there, and the default thread count is the fastest on a quiet machine.
+small batched work (a 440-sample fit, a batched ODE solve, a design) then runs several times slower with two threads
+than with one (``scripts/benchmark.py --only contention`` measures it; the figures are in BENCHMARKS.md). One
+thread on the free core is the fastest choice there, and the default thread count is the fastest on a quiet machine.
 
 :func:`adaptive_threads` wraps the package's heavy calls (``CorrectionGP.fit``, ``CorrectedODE.predict``,
 ``simulate``, ``design.greedy``): at entry it counts the runnable threads of *other* processes (Linux
@@ -57,9 +57,8 @@ def free_cores(looks: int = 4, gap: float = 1e-3) -> int | None:
     """Cores not taken by other processes' runnable threads; ``None`` where this cannot be read.
 
     The smallest count of ``looks`` looks ``gap`` seconds apart (about 3 ms in all): a process that keeps a core busy
-    is runnable at every look, a transient one (a kernel thread, this process's own workers going to sleep) is not.
-    Measured after torch operations on a quiet 2-core machine: 11 false alarms in 300 with 3 looks and no gap, none
-    with 4 looks 1 ms apart.
+    is runnable at every look, a transient one (a kernel thread, this process's own workers going to sleep) is not
+    (a few quick looks without a gap gave false alarms right after torch operations on a quiet machine).
     """
     try:
         counts = []
