@@ -222,8 +222,14 @@ def test_fit_command_checks_the_output_before_the_work(tmp_path, observed_csv, c
     assert "--out: expected a .pt file name" in capsys.readouterr().err
 
 
-def test_fit_command_ragged_data_is_a_clear_error(tmp_path, capsys):
-    data = tmp_path / "ragged.tsv"
-    data.write_text("experiment\ttime\ta\tb\n0\t0\t1\t1\n0\t1\t2\t2\n1\t0\t1\t1\n", encoding="utf-8")
-    assert main(["fit", "--data", str(data), "--system", "paper_linear", "--out", str(tmp_path / "m.pt")]) == 2
-    assert "ragged data is not supported yet" in capsys.readouterr().err
+def test_fit_command_fits_ragged_data(tmp_path, capsys):
+    """Experiments of different lengths (ragged) are fitted as they come."""
+    system = tms.systems.paper_linear()
+    g = torch.Generator().manual_seed(0)
+    y0 = torch.rand(4, 2, generator=g, dtype=torch.float64) * 2 - 1
+    grids = [torch.linspace(0.0, 6.0, n, dtype=torch.float64) for n in (11, 15, 21, 11)]
+    data = tms.simulate(system, y0, grids).save(tmp_path / "ragged.tsv")
+    out = tmp_path / "m.pt"
+    assert main(["fit", "--data", str(data), "--system", "paper_linear", "--out", str(out), "--quiet"]) == 0
+    assert "N = 58 samples (4 experiments x 11-21 times" in capsys.readouterr().out
+    assert tms.CorrectionGP.load(out).is_fitted

@@ -201,9 +201,6 @@ def test_repr_is_short():
          r"expected 2 columns in every row \(as in the header\), got 1 in data row 2 \(line 3"),
         ("experiment,time,x\n0,0,1\n0,0,2\n", {}, tms.InputError,
          r"expected one row per experiment and time, got time 0.0 more than once for experiment '0'"),
-        ("experiment,time,x\n0,0,1\n0,1,2\n1,0,3\n", {}, tms.ShapeError,
-         r"same number of rows for every experiment \(ragged data is not supported yet\), got 1 row for "
-         r"experiment 1; 2 rows for experiment 0"),
         ("time\n0\n", {}, tms.InputError, r"expected at least one state column besides \['time'\]"),
         ("time,x\n0,1\n", {"state_columns": ["time"]}, tms.InputError, r"got the time / experiment column"),
         ("time,x\n0,1\n", {"state_columns": "x"}, tms.InputError, r"expected a list of column names"),

@@ -79,6 +79,8 @@ def check_own_system(ns: dict) -> None:
     assert data.times.shape == (4, 81) and data.states.shape == (4, 81, 2)
     # "the loaded trajectories are identical"
     assert torch.equal(loaded.states, data.states) and torch.equal(loaded.times, data.times)
+    # "Experiments of different lengths": T=51..81
+    assert ns["ragged"].is_ragged and ns["ragged"].lengths == (81, 71, 61, 51)
     errors, gps = ns["errors"], ns["gps"]
     central, smooth = "central, order 4", "smooth, window 11, degree 3"
     # "On precise states, fourth-order differences are nearly exact and beat the local fit"

@@ -257,9 +257,10 @@ def _fit(args: argparse.Namespace) -> int:
         return "-" if value is None else (f"{value:.4g}" if isinstance(value, float) else str(value.tolist()))
 
     scale = "" if gp.kernel == "polynomial" else f"lengthscale {show(gp.lengthscale)}, "
+    times = f"{min(trajs.lengths)}-{max(trajs.lengths)}" if trajs.is_ragged else str(trajs.num_times)
     print(
         f"fitted {gp.kernel} correction GP of '{system.name}' on N = {len(samples)} samples ({trajs.num_experiments} "
-        f"experiments x {trajs.num_times} times, derivative {args.derivative!r}): {scale}outputscale "
+        f"experiments x {times} times, derivative {args.derivative!r}): {scale}outputscale "
         f"{show(gp.outputscale)}, noise variance {show(gp.noise_variance)}, log marginal likelihood "
         f"{gp.log_marginal_likelihood_:.6g}; written to {out}"
     )

@@ -1,7 +1,8 @@
 """Trajectories: observed or simulated states of K experiments, and :func:`simulate`.
 
 ``Trajectories(times, states)`` holds ``states (K, T, d)`` sampled at ``times (T,)`` shared by all experiments or
-``(K, T)`` one grid per experiment (irregular spacing allowed, strictly increasing along each row). It wraps user
+``(K, T)`` one grid per experiment (irregular spacing allowed, strictly increasing along each row), or experiments
+of different lengths given as lists of per-experiment arrays (ragged data). It wraps user
 data as well as simulations and saves to / loads from ``.npz`` and text tables (``.csv``, ``.tsv``, ``.txt``) with
 any column names.
 """
@@ -29,43 +30,141 @@ __all__ = ["Trajectories", "simulate"]
 
 @dataclass(frozen=True)
 class Trajectories:
-    """States of K experiments observed at T times.
+    """States of K experiments, each observed at its own times.
+
+    ``Trajectories(times, states)`` takes either tensors (arrays) for experiments of equal length, or lists with one
+    array per experiment (*ragged* data: experiments of different lengths):
+
+    * equal lengths: ``states (K, T, d)`` and ``times (T,)`` shared by all experiments or ``(K, T)`` one grid per
+      experiment (irregular spacing allowed, strictly increasing along each row);
+    * lists: ``states = [y_1 (T_1, d), ..., y_K (T_K, d)]`` and ``times = [t_1 (T_1,), ..., t_K (T_K,)]`` (or one
+      shared ``(T,)`` array when the lengths agree). When every ``T_k`` is the same the lists are stacked into the
+      equal-length form; otherwise the object is ragged: :attr:`is_ragged` is true, :attr:`times` and
+      :attr:`states` are tuples of per-experiment tensors, :attr:`lengths` gives every ``T_k`` and
+      :attr:`num_times` / :attr:`time_grid` raise :class:`~torchmisspec.ShapeError` (use :meth:`experiments` or
+      :meth:`padded`). Everything in the package that takes trajectories accepts ragged ones.
 
     Attributes:
-        times: ``(T,)`` shared by all experiments, or ``(K, T)`` one strictly increasing grid per experiment.
-        states: ``(K, T, d)``.
+        times: ``(T,)``, ``(K, T)``, or a tuple of K ``(T_k,)`` tensors (ragged).
+        states: ``(K, T, d)``, or a tuple of K ``(T_k, d)`` tensors (ragged).
     """
 
-    times: torch.Tensor
-    states: torch.Tensor
+    times: torch.Tensor | tuple[torch.Tensor, ...]
+    states: torch.Tensor | tuple[torch.Tensor, ...]
 
     def __post_init__(self) -> None:
-        states, times = states_and_times(self.states, self.times)
+        if isinstance(self.states, (list, tuple)):
+            states, times = _per_experiment(self.states, self.times)
+        else:
+            if isinstance(self.times, (list, tuple)) and self.times and not _is_number(self.times[0]):
+                raise InputError(
+                    "times: a list of per-experiment time arrays needs a list of per-experiment state arrays, got "
+                    f"states as one {type(self.states).__name__}"
+                )
+            states, times = states_and_times(self.states, self.times)
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
 
     # ----------------------------------------------------------------------------------------------------------
     @property
+    def is_ragged(self) -> bool:
+        """Whether the experiments have different numbers of samples (then times and states are tuples)."""
+        return isinstance(self.states, tuple)
+
+    @property
+    def lengths(self) -> tuple[int, ...]:
+        """``(T_1, ..., T_K)``: the number of samples of every experiment."""
+        if self.is_ragged:
+            return tuple(s.shape[0] for s in self.states)
+        return (self.states.shape[1],) * self.states.shape[0]
+
+    @property
     def num_experiments(self) -> int:
-        return self.states.shape[0]
+        return len(self.states) if self.is_ragged else self.states.shape[0]
+
+    @property
+    def num_samples(self) -> int:
+        """Total number of observed states, ``sum_k T_k``."""
+        return sum(self.lengths)
 
     @property
     def num_times(self) -> int:
+        """T, the number of samples of every experiment (ragged data has none: see :attr:`lengths`)."""
+        if self.is_ragged:
+            raise ShapeError(
+                f"num_times: expected experiments of equal length, got ragged data with lengths "
+                f"{_describe_lengths(self.lengths)}; use .lengths"
+            )
         return self.states.shape[1]
 
     @property
     def state_dim(self) -> int:
-        return self.states.shape[2]
+        return self.states[0].shape[-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.states[0].dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.states[0].device
 
     @property
     def time_grid(self) -> torch.Tensor:
-        """Times as ``(K, T)``, expanded when shared."""
+        """Times as ``(K, T)``, expanded when shared (equal-length data only; see :meth:`padded`)."""
+        if self.is_ragged:
+            raise ShapeError(
+                f"time_grid: expected experiments of equal length, got ragged data with lengths "
+                f"{_describe_lengths(self.lengths)}; use .experiments() or .padded()"
+            )
         return self.times.expand(self.num_experiments, -1) if self.times.dim() == 1 else self.times
 
     @property
     def initial_conditions(self) -> torch.Tensor:
-        """``(K, d)``."""
+        """``(K, d)``: every experiment's first observed state."""
+        if self.is_ragged:
+            return torch.stack([s[0] for s in self.states])
         return self.states[:, 0]
+
+    def experiments(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """``[(t_k (T_k,), y_k (T_k, d)), ...]``: every experiment's times and states."""
+        if self.is_ragged:
+            return list(zip(self.times, self.states, strict=True))
+        grid = self.time_grid
+        return [(grid[k], self.states[k]) for k in range(self.num_experiments)]
+
+    def flat_states(self) -> torch.Tensor:
+        """``(N, d)``: all observed states, experiment after experiment (N = sum of the lengths)."""
+        if self.is_ragged:
+            return torch.cat(self.states)
+        return self.states.reshape(-1, self.state_dim)
+
+    def padded(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(times (K, T_max), states (K, T_max, d), mask (K, T_max))``, each experiment padded at its end.
+
+        Padded entries repeat the experiment's last time and state; ``mask`` is true on the observed samples.
+        """
+        if not self.is_ragged:
+            mask = torch.ones(self.states.shape[:2], dtype=torch.bool, device=self.device)
+            return self.time_grid, self.states, mask
+        T = max(self.lengths)
+        times = torch.stack([torch.cat([t, t[-1:].expand(T - len(t))]) for t in self.times])
+        states = torch.stack([torch.cat([s, s[-1:].expand(T - len(s), -1)]) for s in self.states])
+        lengths = torch.tensor(self.lengths, device=self.device)
+        mask = torch.arange(T, device=self.device) < lengths.unsqueeze(-1)
+        return times, states, mask
+
+    def by_length(self) -> list[tuple[list[int], Trajectories]]:
+        """The experiments grouped by length: ``[(indices, equal-length Trajectories), ...]``, shortest first."""
+        if not self.is_ragged:
+            return [(list(range(self.num_experiments)), self)]
+        groups: dict[int, list[int]] = {}
+        for k, n in enumerate(self.lengths):
+            groups.setdefault(n, []).append(k)
+        return [
+            (idx, Trajectories(torch.stack([self.times[k] for k in idx]), torch.stack([self.states[k] for k in idx])))
+            for _, idx in sorted(groups.items())
+        ]
 
     def __len__(self) -> int:
         return self.num_experiments
@@ -74,21 +173,34 @@ class Trajectories:
         """A subset of experiments (int, slice, index list or boolean mask)."""
         if isinstance(index, numbers.Integral) or (isinstance(index, torch.Tensor) and index.dim() == 0):
             index = [int(index)]
+        if self.is_ragged:
+            picked = torch.arange(self.num_experiments)[index].tolist()
+            return Trajectories([self.times[k] for k in picked], [self.states[k] for k in picked])
         times = self.times if self.times.dim() == 1 else self.times[index]
         return Trajectories(times, self.states[index])
 
     def to(self, *args, **kwargs) -> Trajectories:
+        if self.is_ragged:
+            return Trajectories(
+                [t.to(*args, **kwargs) for t in self.times], [s.to(*args, **kwargs) for s in self.states]
+            )
         return Trajectories(self.times.to(*args, **kwargs), self.states.to(*args, **kwargs))
 
     def __repr__(self) -> str:
-        times = self.times.detach()
-        lo, hi = float(times[..., 0].min()), float(times[..., -1].max())
-        grid = "shared grid" if times.dim() == 1 else "per-experiment grids"
-        device = "" if self.states.device.type == "cpu" else f", {self.states.device}"
+        if self.is_ragged:
+            lo = min(float(t[0]) for t in self.times)
+            hi = max(float(t[-1]) for t in self.times)
+            count, grid = f"T={_describe_lengths(self.lengths)} times", "ragged"
+        else:
+            times = self.times.detach()
+            lo, hi = float(times[..., 0].min()), float(times[..., -1].max())
+            grid = "shared grid" if times.dim() == 1 else "per-experiment grids"
+            count = f"T={self.num_times} time{'s' * (self.num_times != 1)}"
+        device = "" if self.device.type == "cpu" else f", {self.device}"
         return (
             f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
-            f"T={self.num_times} time{'s' * (self.num_times != 1)} on [{lo:.6g}, {hi:.6g}] ({grid}), "
-            f"d={self.state_dim}, {str(self.states.dtype).removeprefix('torch.')}{device})"
+            f"{count} on [{lo:.6g}, {hi:.6g}] ({grid}), "
+            f"d={self.state_dim}, {str(self.dtype).removeprefix('torch.')}{device})"
         )
 
     # ----------------------------------------------------------------------------------------------------------
@@ -110,7 +222,15 @@ class Trajectories:
         """
         path = Path(path)
         if path.suffix == ".npz":
-            np.savez(path, times=self.times.detach().cpu().numpy(), states=self.states.detach().cpu().numpy())
+            if self.is_ragged:  # no object arrays (they would need pickle): concatenated, with the lengths
+                np.savez(
+                    path,
+                    times=torch.cat(self.times).detach().cpu().numpy(),
+                    states=self.flat_states().detach().cpu().numpy(),
+                    lengths=np.asarray(self.lengths, dtype=np.int64),
+                )
+            else:
+                np.savez(path, times=self.times.detach().cpu().numpy(), states=self.states.detach().cpu().numpy())
             return path
         if path.suffix not in _TEXT_FORMATS:
             raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
@@ -126,21 +246,20 @@ class Trajectories:
                     f"column names: a .txt table is space separated, so names cannot hold spaces: {name!r}"
                 )
         _check_distinct(header, "column names", str(path))
-        grid = self.time_grid.detach().cpu().numpy()
-        states = self.states.detach().cpu().numpy()
+        rows = (
+            [str(k), repr(float(t_j))] + [repr(float(v)) for v in y_j]
+            for k, (t, y) in enumerate(self.experiments())
+            for t_j, y_j in zip(t.detach().cpu().tolist(), y.detach().cpu().tolist(), strict=True)
+        )
         with path.open("w", newline="", encoding="utf-8") as fh:
             if path.suffix == ".txt":
                 fh.write(" ".join(header) + "\n")
-                for k in range(self.num_experiments):
-                    for j in range(self.num_times):
-                        fh.write(" ".join([str(k), repr(float(grid[k, j]))] + [repr(float(v)) for v in states[k, j]]))
-                        fh.write("\n")
+                for row in rows:
+                    fh.write(" ".join(row) + "\n")
             else:
                 w = csv.writer(fh, delimiter=_TEXT_FORMATS[path.suffix])
                 w.writerow(header)
-                for k in range(self.num_experiments):
-                    for j in range(self.num_times):
-                        w.writerow([k, repr(float(grid[k, j]))] + [repr(float(v)) for v in states[k, j]])
+                w.writerows(rows)
         return path
 
     @classmethod
@@ -166,14 +285,14 @@ class Trajectories:
             state_columns: names of the state columns, in the order of the state components (default: every
                 other column, in file order).
 
-        Each experiment's rows are sorted by time; every experiment must have the same number of rows (ragged
-        data is not supported yet). The times come back shared ``(T,)`` when every experiment has the same grid,
-        else ``(K, T)``. Column names are ignored for ``.npz``.
+        Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every experiment has
+        the same grid, ``(K, T)`` when the experiments have equal lengths, and ragged (one tensor per experiment)
+        when their lengths differ. Column names are ignored for ``.npz`` (ragged ``.npz`` files, as :meth:`save`
+        writes them, hold the concatenated ``times (N,)``, ``states (N, d)`` and ``lengths (K,)``).
 
         Nothing is unpickled and no code can run. Raises :class:`InputError` for a missing, unreadable, non-UTF-8
         or malformed file, missing or duplicate columns, non-numeric cells or repeated (experiment, time) rows,
-        and :class:`ShapeError` for rows of the wrong width or experiments with different numbers of rows, each
-        naming what was expected and what the file holds.
+        and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
         """
         path = Path(path)
         if path.suffix != ".npz" and path.suffix not in _TEXT_FORMATS:
@@ -187,6 +306,7 @@ class Trajectories:
                     if missing:
                         raise InputError(f"{path}: expected arrays 'times' and 'states', missing {sorted(missing)}")
                     times, states = data["times"], data["states"]
+                    lengths = data["lengths"] if "lengths" in data.files else None
             except InputError:
                 raise
             except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
@@ -194,10 +314,75 @@ class Trajectories:
                     f"{path}: expected an .npz archive with numeric arrays 'times' and 'states' (no pickled objects), "
                     f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
                 ) from exc
+            if lengths is not None:
+                return cls(*_split_ragged(path, times, states, lengths))
             return cls(as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"))
         header, body = _read_table(path)
         columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
         return cls(*_columns_to_arrays(path, header, body, **columns))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Per-experiment (possibly ragged) input
+def _is_number(x) -> bool:
+    return isinstance(x, numbers.Number) or (isinstance(x, (torch.Tensor, np.ndarray)) and x.ndim == 0)
+
+
+def _describe_lengths(lengths: Sequence[int]) -> str:
+    lo, hi = min(lengths), max(lengths)
+    return f"{lo}" if lo == hi else f"{lo}..{hi}"
+
+
+def _per_experiment(states_list, times) -> tuple:
+    """Validate lists of per-experiment states (and times): stacked tensors when the lengths agree, else tuples."""
+    K = len(states_list)
+    if K == 0:
+        raise ShapeError("states: expected at least one experiment, got an empty list")
+    states = []
+    for k, y in enumerate(states_list):
+        y = as_tensor(y, f"states[{k}]")
+        if y.dim() != 2:
+            raise ShapeError(f"states[{k}]: expected a (T_k, d) array for experiment {k}, got shape {tuple(y.shape)}")
+        states.append(y)
+    dims = {y.shape[-1] for y in states}
+    if len(dims) != 1:
+        raise ShapeError(
+            f"states: expected the same state dimension d in every experiment, got {[y.shape[-1] for y in states]}"
+        )
+    devices = {y.device for y in states}
+    if len(devices) != 1:
+        raise InputError(f"states: expected every experiment on one device, got {sorted(map(str, devices))}")
+    dtype = states[0].dtype
+    for y in states[1:]:
+        dtype = torch.promote_types(dtype, y.dtype)
+    states = [y.to(dtype) for y in states]
+    lengths = [y.shape[0] for y in states]
+    per_times = isinstance(times, (list, tuple)) and len(times) > 0 and not _is_number(times[0])
+    if per_times:
+        if len(times) != K:
+            raise ShapeError(f"times: expected {K} time arrays (one per experiment in states), got {len(times)}")
+        checked = [
+            states_and_times(y.unsqueeze(0), t, states_name=f"states[{k}]", times_name=f"times[{k}]")
+            for k, (y, t) in enumerate(zip(states, times, strict=True))
+        ]
+        times_list = [t.reshape(-1) for _, t in checked]
+    else:
+        shared = as_tensor(times, "times", dtype=dtype, device=states[0].device)
+        if shared.dim() != 1:
+            raise ShapeError(
+                "times: with a list of per-experiment states, expected one (T,) array shared by all or a list of "
+                f"(T_k,) arrays, got shape {tuple(shared.shape)}"
+            )
+        if len(set(lengths)) != 1:
+            raise ShapeError(
+                f"times: one shared (T,) array needs experiments of equal length, got lengths {lengths}; pass a "
+                "list with one time array per experiment"
+            )
+        stacked, shared = states_and_times(torch.stack(states), shared)
+        return stacked, shared
+    if len(set(lengths)) == 1:
+        return torch.stack(states), torch.stack(times_list)
+    return tuple(states), tuple(times_list)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -314,20 +499,6 @@ def _columns_to_arrays(
     rows_of = {label: [] for label in order}
     for r, label in enumerate(labels):
         rows_of[label].append(r)
-    counts = {label: len(rows) for label, rows in rows_of.items()}
-    if len(set(counts.values())) != 1:
-        by_count: dict[int, list[str]] = {}
-        for label, n in counts.items():
-            by_count.setdefault(n, []).append(label)
-        detail = "; ".join(
-            f"{n} row{'s' * (n != 1)} for experiment{'s' * (len(ids) > 1)} "
-            f"{', '.join(ids[:5])}{' ...' * (len(ids) > 5)}"
-            for n, ids in sorted(by_count.items())
-        )
-        raise ShapeError(
-            f"{path}: expected the same number of rows for every experiment (ragged data is not supported yet), got "
-            f"{detail}"
-        )
     per = []
     for label in order:
         block = values[rows_of[label]]
@@ -340,11 +511,29 @@ def _columns_to_arrays(
                 f"more than once{what}"
             )
         per.append(block)
+    if len({len(p) for p in per}) > 1:  # ragged: one array per experiment
+        return [torch.from_numpy(p[:, 0].copy()) for p in per], [torch.from_numpy(p[:, 1:].copy()) for p in per]
     times = np.stack([p[:, 0] for p in per])
     states = np.stack([p[:, 1:] for p in per])
     if np.all(times == times[:1]):
         times = times[0]
     return torch.from_numpy(times), torch.from_numpy(states)
+
+
+def _split_ragged(path: Path, times: np.ndarray, states: np.ndarray, lengths: np.ndarray) -> tuple[list, list]:
+    """Per-experiment lists from a ragged ``.npz`` (concatenated times and states plus the lengths)."""
+    lengths = np.asarray(lengths)
+    if lengths.dtype.kind not in "iu" or lengths.ndim != 1 or lengths.size == 0 or (lengths < 1).any():
+        raise InputError(f"{path}: expected 'lengths' to be a 1-D array of positive integers, got {lengths!r:.80}")
+    if times.ndim != 1 or states.ndim != 2 or len(times) != len(states) or len(times) != int(lengths.sum()):
+        raise ShapeError(
+            f"{path}: expected ragged arrays times (N,) and states (N, d) with N = sum(lengths) = "
+            f"{int(lengths.sum())}, got times {times.shape} and states {states.shape}"
+        )
+    cuts = np.cumsum(lengths)[:-1]
+    times_list = [as_tensor(t, f"{path}: times") for t in np.split(times, cuts)]
+    states_list = [as_tensor(y, f"{path}: states") for y in np.split(states, cuts)]
+    return times_list, states_list
 
 
 @adaptive_threads()
@@ -364,7 +553,8 @@ def simulate(
     Args:
         system: the system; for one without a true correction the known model G alone is integrated.
         y0: initial conditions ``(K, d)`` (or ``(d,)`` for one), the states at ``times[..., 0]``.
-        times: ``(T,)`` shared, or ``(K, T)`` per experiment; strictly increasing.
+        times: ``(T,)`` shared, ``(K, T)`` per experiment, or a list of K ``(T_k,)`` arrays of different lengths
+            (ragged: one batched solve per distinct length); strictly increasing.
         known_only: integrate the misspecified model G alone (the proxy / baseline trajectories).
         method: torchdiffeq method (dopri5 by default).
         rtol: relative tolerance (the package's simulation tolerance by default, see :mod:`torchmisspec._ode`:
@@ -374,8 +564,33 @@ def simulate(
             conditions that stalled the solve.
 
     Returns:
-        :class:`Trajectories` with ``states (K, T, d)``.
+        :class:`Trajectories` with ``states (K, T, d)`` (ragged for ragged times).
     """
+    if isinstance(times, (list, tuple)) and len(times) > 0 and not _is_number(times[0]):
+        y0 = as_tensor(y0, "y0")
+        y0 = y0.unsqueeze(0) if y0.dim() == 1 else y0
+        if y0.dim() != 2 or y0.shape[0] != len(times):
+            raise ShapeError(
+                f"y0: expected ({len(times)}, {system.state_dim}) initial conditions, one per time array, got shape "
+                f"{tuple(y0.shape)}"
+            )
+        grids = [as_tensor(t, f"times[{k}]", dtype=y0.dtype, device=y0.device) for k, t in enumerate(times)]
+        if any(t.dim() != 1 for t in grids):
+            shapes = [tuple(t.shape) for t in grids]
+            raise ShapeError(f"times: expected a list of 1-D (T_k,) arrays, got shapes {shapes}")
+        if len({len(t) for t in grids}) == 1:
+            times = torch.stack(grids)
+        else:
+            options = dict(known_only=known_only, method=method, rtol=rtol, atol=atol, max_steps=max_steps)
+            groups: dict[int, list[int]] = {}
+            for k, t in enumerate(grids):
+                groups.setdefault(len(t), []).append(k)
+            states: list = [None] * len(grids)
+            for idx in groups.values():
+                part = simulate(system, y0[idx], torch.stack([grids[k] for k in idx]), **options)
+                for i, k in enumerate(idx):
+                    states[k] = part.states[i]
+            return Trajectories(grids, states)
     y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
     field = system.known_rhs if known_only else system.true_rhs
     with torch.no_grad():

@@ -238,10 +238,13 @@ GP_MIN_SAMPLES = 4
 _GP_NOISE_FLOOR = 1e-10
 
 
-def _rbf_parts(times: torch.Tensor, log_params: torch.Tensor):
+def _rbf_parts(times: torch.Tensor, log_params: torch.Tensor, pair: torch.Tensor | None = None):
     """Kernel pieces for times ``(K, T)`` and log-parameters ``(d, 3)`` [lengthscale, outputscale, noise].
 
     Returns ``(Kn, dK, ell2, os)``: ``Kn (d, K, T, T)`` = k(t, t') + s I, ``dK (d, K, T, T)`` = d/dt k(t, t').
+    ``pair (K, T, T)``, when given, marks the pairs of observed samples of padded (ragged) experiments: the padded
+    samples are decoupled (identity rows of ``Kn``, zero rows and columns of ``dK``), so with zero padded targets
+    they add nothing to the likelihood or the posterior.
     """
     ell2 = torch.exp(2 * log_params[:, 0]).view(-1, 1, 1, 1)
     os = torch.exp(log_params[:, 1]).view(-1, 1, 1, 1)
@@ -249,14 +252,20 @@ def _rbf_parts(times: torch.Tensor, log_params: torch.Tensor):
     diff = (times.unsqueeze(-1) - times.unsqueeze(-2)).unsqueeze(0)  # (1, K, T, T): t_i - t_j
     k = os * torch.exp(-0.5 * diff**2 / ell2)
     eye = torch.eye(times.shape[-1], dtype=times.dtype, device=times.device)
-    return k + noise * eye, -diff / ell2 * k, ell2, os
+    Kn, dK = k + noise * eye, -diff / ell2 * k
+    if pair is not None:
+        Kn = torch.where(pair, Kn, eye)
+        dK = torch.where(pair, dK, torch.zeros((), dtype=dK.dtype, device=dK.device))
+    return Kn, dK, ell2, os
 
 
-def _gp_neg_mll(times: torch.Tensor, z: torch.Tensor, log_params: torch.Tensor) -> torch.Tensor:
+def _gp_neg_mll(
+    times: torch.Tensor, z: torch.Tensor, log_params: torch.Tensor, pair: torch.Tensor | None = None
+) -> torch.Tensor:
     """Negative log marginal likelihood per component ``(d,)``, summed over the K experiments; ``z (d, K, T)``.
 
     A component whose factorization fails gets ``inf``."""
-    Kn, _, _, _ = _rbf_parts(times, log_params)
+    Kn, _, _, _ = _rbf_parts(times, log_params, pair)
     L, failed = cholesky_or_fail(Kn)  # failed: (d, K)
     failed = failed.any(-1)  # (d,)
     a = torch.cholesky_solve(z.unsqueeze(-1), L).squeeze(-1)
@@ -297,23 +306,38 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
     """
     max_iter = check_positive_int(max_iter, "max_iter")
     states, times = _states_and_times(states, times)
+    return _gp_time(states, times.expand(states.shape[0], -1), None, max_iter)
+
+
+def _gp_time(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | None, max_iter: int) -> GPDerivative:
+    """:func:`gp_derivative` on ``states (K, T, d)``, ``times (K, T)``; ``mask (K, T)`` marks the observed samples
+    of padded ragged experiments (``None``: all observed). Padded entries of the result are meaningless."""
     K, T, d = states.shape
-    if T < GP_MIN_SAMPLES:
-        raise InputError(f"derivative='gp' needs at least {GP_MIN_SAMPLES} samples per trajectory, got T={T}")
+    lengths = [T] * K if mask is None else mask.sum(-1).tolist()
+    if min(lengths) < GP_MIN_SAMPLES:
+        raise InputError(
+            f"derivative='gp' needs at least {GP_MIN_SAMPLES} samples per trajectory, got T={min(lengths)}"
+            + ("" if mask is None else f" (experiment {lengths.index(min(lengths))})")
+        )
     dtype, device = states.dtype, states.device
     y = states.to(torch.float64)
-    t = times.to(torch.float64).expand(K, T)
-    centred = y - y.mean(dim=1, keepdim=True)
-    scale = centred.pow(2).mean(dim=(0, 1)).sqrt()  # (d,)
-    constant = (scale <= 1e-12 * y.abs().amax(dim=(0, 1)).clamp_min(1.0)).nonzero().flatten().tolist()
+    t = times.to(torch.float64)
+    w = torch.ones(K, T, 1, dtype=torch.float64, device=device) if mask is None else mask.unsqueeze(-1).to(y)
+    pair = None if mask is None else mask.unsqueeze(-1) & mask.unsqueeze(-2)
+    n = w.sum()
+    centred = (y - (w * y).sum(dim=1, keepdim=True) / w.sum(dim=1, keepdim=True)) * w  # padded entries: 0
+    scale = (centred.pow(2).sum(dim=(0, 1)) / n).sqrt()  # (d,)
+    constant = (scale <= 1e-12 * (w * y).abs().amax(dim=(0, 1)).clamp_min(1.0)).nonzero().flatten().tolist()
     if constant:
         raise InputError(
             f"states: derivative='gp' needs state components that vary in time, got component(s) {constant} "
             "constant in every experiment; use derivative='central' for them or drop them"
         )
     z = (centred / scale).permute(2, 0, 1).contiguous()  # (d, K, T), unit variance
-    span = float((t[:, -1] - t[:, 0]).mean())
-    dt_min = float(t.diff(dim=-1).min())
+    last = torch.tensor([n_k - 1 for n_k in lengths], device=device)
+    span = float((t.gather(1, last.unsqueeze(-1)).squeeze(-1) - t[:, 0]).mean())
+    steps = t.diff(dim=-1)
+    dt_min = float(steps[mask[:, 1:]].min() if mask is not None else steps.min())
     # Start: the best of a grid of lengthscales x noise levels (per component, all in one batch).
     ells = torch.logspace(math.log10(dt_min), math.log10(2 * span), 10, dtype=torch.float64, device=device)
     noises = torch.tensor([1e-8, 1e-5, 1e-3, 1e-1], dtype=torch.float64, device=device)
@@ -321,7 +345,7 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
     with torch.no_grad():  # all G grid points x d components in one batch
         G = grid.shape[0]
         p = torch.cat([grid[:, :1], torch.zeros_like(grid[:, :1]), grid[:, 1:]], -1).repeat_interleave(d, 0)
-        values = _gp_neg_mll(t, z.repeat(G, 1, 1), p).view(G, d)  # inf where a factorization failed
+        values = _gp_neg_mll(t, z.repeat(G, 1, 1), p, pair).view(G, d)  # inf where a factorization failed
         start = p.view(G, d, 3)[values.argmin(0), torch.arange(d, device=device)]  # (d, 3)
     log_params = start.clone().requires_grad_(True)
     opt = torch.optim.LBFGS(
@@ -332,7 +356,7 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
 
     def closure():
         opt.zero_grad()
-        value = _gp_neg_mll(t, z, torch.maximum(torch.minimum(log_params, hi), lo)).sum() / (K * T)
+        value = _gp_neg_mll(t, z, torch.maximum(torch.minimum(log_params, hi), lo), pair).sum() / n
         if torch.isfinite(value):
             value.backward()
         return value
@@ -340,9 +364,9 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
     opt.step(closure)
     with torch.no_grad():
         p = torch.maximum(torch.minimum(log_params, hi), lo)
-        if not bool(torch.isfinite(_gp_neg_mll(t, z, p)).all()):
+        if not bool(torch.isfinite(_gp_neg_mll(t, z, p, pair)).all()):
             p = start  # the optimiser wandered into a singular corner: keep the grid's best point
-        Kn, dK, ell2, os = _rbf_parts(t, p)
+        Kn, dK, ell2, os = _rbf_parts(t, p, pair)
         L = cholesky(Kn, what="GP in time: K + noise I")
         a = torch.cholesky_solve(z.unsqueeze(-1), L)  # (d, K, T, 1)
         mean = (dK @ a).squeeze(-1)  # (d, K, T)
@@ -365,7 +389,8 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
 class CorrectionSamples:
     """Noisy samples F~ of the correction at the observed states, flattened over experiments and times.
 
-    Sample ``n = k * T + j`` is experiment k at its j-th time.
+    Samples run experiment after experiment (sample ``n = k * T + j`` is experiment k at its j-th time when every
+    experiment has T samples; ragged data concatenates its experiments likewise).
 
     Attributes:
         inputs: ``(N, d_in)`` the correction's inputs, ``system.select_inputs(states)``.
@@ -427,6 +452,31 @@ def _estimate(name: str, states: torch.Tensor, times: torch.Tensor, options: dic
     raise InputError(f"derivative: expected one of {list(_SELF_CHECKED)}, got {name!r}")
 
 
+def _estimate_flat(name: str, trajectories: Trajectories, options: dict):
+    """``(dy/dt (N, d), variance (N, d) or None)`` at every sample, experiment after experiment (ragged data too).
+
+    Stencil estimators run once per group of equal-length experiments; the GP in time runs on the padded batch,
+    so its hyperparameters stay shared by all experiments."""
+    if not trajectories.is_ragged:
+        dydt, var = _estimate(name, trajectories.states, trajectories.times, options)
+        d = trajectories.state_dim
+        return dydt.reshape(-1, d), None if var is None else var.reshape(-1, d)
+    if name == "gp":
+        max_iter = check_positive_int(options.get("max_iter", 50), "max_iter")
+        times, states, mask = trajectories.padded()
+        out = _gp_time(states, times, mask, max_iter)
+        return out.mean[mask], out.variance[mask]
+    per_experiment: list = [None] * trajectories.num_experiments
+    for idx, group in trajectories.by_length():
+        try:
+            dydt, _ = _estimate(name, group.states, group.times, options)
+        except InputError as exc:
+            raise InputError(f"{exc} (experiment{'s' * (len(idx) > 1)} {idx[:5]} of the ragged data)") from None
+        for i, k in enumerate(idx):
+            per_experiment[k] = dydt[i]
+    return torch.cat(per_experiment), None
+
+
 _SELF_CHECKED = ("central", "smooth", "gp")
 _OPTION_NAMES = {"central": ("order",), "smooth": ("window", "degree"), "gp": ("max_iter",)}
 
@@ -460,38 +510,48 @@ def _check_options(name: str, options: dict) -> dict:
     return dict(options)
 
 
+def _with_flat_states(trajectories: Trajectories, flat: torch.Tensor) -> Trajectories:
+    """``trajectories`` with its states replaced by ``flat (N, d)`` (same experiments, times and lengths)."""
+    if not trajectories.is_ragged:
+        return Trajectories(trajectories.times, flat.reshape(trajectories.states.shape))
+    return Trajectories(list(trajectories.times), list(flat.split(list(trajectories.lengths))))
+
+
 def _known_model_copy(trajectories: Trajectories, system: MisspecifiedSystem):
-    """The self-check data ``(noisy copy, noise-free states, GP fit of the real data or None)``: G alone from the
-    observed initial states on the observed grids, plus state noise of the level the GP in time finds in the real
-    data (a fixed seed, so the check is deterministic)."""
+    """The self-check data ``(noisy copy, noise-free flat states (N, d), GP-in-time dy/dt of the real data (N, d)
+    or None)``: G alone from the observed initial states on the observed grids, plus state noise of the level the
+    GP in time finds in the real data (a fixed seed, so the check is deterministic)."""
     # Tolerances 100x looser than the package's ground-truth simulations (2.5x faster): the copy's solver error
     # (~1e-8 relative) is far below any derivative estimator's error that the check has to rank.
-    sim = simulate(system, trajectories.initial_conditions, trajectories.times, known_only=True, rtol=1e-8, atol=1e-10)
-    states, real_gp = sim.states, None
-    if trajectories.num_times >= GP_MIN_SAMPLES:
+    times = list(trajectories.times) if trajectories.is_ragged else trajectories.times
+    sim = simulate(system, trajectories.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
+    clean = sim.flat_states()
+    states, real_gp = clean, None
+    if min(trajectories.lengths) >= GP_MIN_SAMPLES:
         try:
-            real_gp = gp_derivative(trajectories.states, trajectories.times)
+            times, padded, mask = trajectories.padded()
+            out = _gp_time(padded, times, None if not trajectories.is_ragged else mask, 50)
+            real_gp = out.mean[mask]
         except InputError:
             pass  # e.g. a constant component: the check then measures the bias only
         if real_gp is not None:
             gen = torch.Generator(device=states.device).manual_seed(0)
             eps = torch.randn(states.shape, generator=gen, dtype=states.dtype, device=states.device)
-            states = states + real_gp.noise.sqrt() * eps
-    return Trajectories(sim.times, states), sim.states, real_gp
+            states = states + out.noise.sqrt() * eps
+    return _with_flat_states(sim, states), clean, real_gp
 
 
 def _ratio(name, options, trajectories, known_copy, system) -> float:
-    K, T, d = trajectories.states.shape
     if name == "gp" and not options and known_copy[2] is not None:
-        dydt = known_copy[2].mean  # already computed for the noise level
+        dydt = known_copy[2]  # already computed for the noise level
     else:
-        dydt, _ = _estimate(name, trajectories.states, trajectories.times, options)
-    flat = trajectories.states.reshape(K * T, d)
-    targets = system.select_outputs(dydt.reshape(K * T, d) - system.known_rhs(flat))
+        dydt, _ = _estimate_flat(name, trajectories, options)
+    flat = trajectories.flat_states()
+    targets = system.select_outputs(dydt - system.known_rhs(flat))
     spread = float(targets.pow(2).mean().sqrt())
-    est, _ = _estimate(name, known_copy[0].states, known_copy[0].times, options)
-    exact = system.known_rhs(known_copy[1].reshape(K * T, d))  # dy/dt = G(y) on the noise-free copy
-    err = float(system.select_outputs(est.reshape(K * T, d) - exact).pow(2).mean().sqrt())
+    est, _ = _estimate_flat(name, known_copy[0], options)
+    exact = system.known_rhs(known_copy[1])  # dy/dt = G(y) on the noise-free copy
+    err = float(system.select_outputs(est - exact).pow(2).mean().sqrt())
     if not math.isfinite(err) or not math.isfinite(spread):
         return float("inf")
     if spread == 0.0:
@@ -528,7 +588,7 @@ def estimator_error(trajectories: Trajectories, system: MisspecifiedSystem, *, d
     _check_trajectories_and_system(trajectories, system)
     options = _check_options(derivative, options)
     if derivative != "gp":  # cheap: bad options or too few samples fail before the simulation
-        _estimate(derivative, trajectories.states, trajectories.times, options)
+        _estimate_flat(derivative, trajectories, options)
     return _ratio(derivative, options, trajectories, _known_model_copy(trajectories, system), system)
 
 
@@ -551,10 +611,13 @@ def choose_derivative(
         InputError: no candidate fits the number of samples (T < 3), or bad arguments.
     """
     _check_trajectories_and_system(trajectories, system)
-    T = trajectories.num_times
+    T = min(trajectories.lengths)
     candidates = [(n, o) for n, o, need in AUTO_CANDIDATES if T >= need]
     if not candidates:
-        raise InputError(f"derivative='auto': every estimator needs at least 3 samples per trajectory, got T={T}")
+        raise InputError(
+            f"derivative='auto': every estimator needs at least 3 samples per trajectory, got T={T}"
+            + (" (the shortest experiment)" if trajectories.is_ragged else "")
+        )
     known_copy = _known_model_copy(trajectories, system)
     errors: dict[tuple[str, tuple], float] = {}
     for name, options in candidates:
@@ -580,7 +643,7 @@ def correction_samples(
     """Samples F~ = dy/dt - G(y) of the missing term at every observed state.
 
     Args:
-        trajectories: the observations, ``states (K, T, d)``.
+        trajectories: the observations, ``states (K, T, d)`` or ragged (experiments of different lengths).
         system: the misspecified system; its ``state_dim`` must equal d.
         derivative: how dy/dt is obtained:
 
@@ -606,7 +669,8 @@ def correction_samples(
         degree: polynomial degree of the local fits for ``"smooth"``.
 
     Returns:
-        :class:`CorrectionSamples` with ``N = K * T`` samples, in the dtype and on the device of the states.
+        :class:`CorrectionSamples` with one sample per observed state (``N = K * T``, or the sum of the lengths),
+        in the dtype and on the device of the states.
 
     Raises:
         InputError: ``trajectories`` / ``system`` of the wrong type, an unknown ``derivative``, a bad
@@ -621,8 +685,7 @@ def correction_samples(
     if generator is not None and not isinstance(generator, torch.Generator):
         raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
 
-    states = trajectories.states  # (K, T, d), finite (checked by Trajectories)
-    K, T, d = states.shape
+    flat_states = trajectories.flat_states()  # (N, d), finite (checked by Trajectories)
     variance = None
     if derivative == "oracle":
         if not system.has_correction:
@@ -630,8 +693,8 @@ def correction_samples(
                 f"derivative='oracle': oracle derivatives need a system with a true correction F, and system "
                 f"'{system.name}' has none; use 'auto', 'central', 'smooth' or 'gp' for real data"
             )
-        check_finite(states, "trajectories.states")
-        dydt = system.true_rhs(states)
+        check_finite(flat_states, "trajectories.states")
+        dydt = system.true_rhs(flat_states)
     elif derivative == "auto":
         name, options, errors = choose_derivative(trajectories, system)
         ratio = errors[(name, tuple(sorted(options.items())))]
@@ -644,25 +707,25 @@ def correction_samples(
                 "best), or fit the correction through the ODE with tms.fit_trajectories",
                 TorchMisspecWarning,
             )
-        dydt, variance = _estimate(name, states, trajectories.times, options)
+        dydt, variance = _estimate_flat(name, trajectories, options)
     elif derivative == "central":
-        dydt = finite_difference(states, trajectories.times, order=order)
+        dydt, _ = _estimate_flat("central", trajectories, {"order": order})
     elif derivative == "smooth":
-        dydt = smoothed_derivative(states, trajectories.times, window=window, degree=degree)
+        dydt, _ = _estimate_flat("smooth", trajectories, {"window": window, "degree": degree})
     else:
-        dydt, variance = _estimate("gp", states, trajectories.times, {})
+        dydt, variance = _estimate_flat("gp", trajectories, {})
 
-    flat_states = states.reshape(K * T, d)
-    targets = system.select_outputs(dydt.reshape(K * T, d) - system.known_rhs(flat_states))
+    targets = system.select_outputs(dydt - system.known_rhs(flat_states))
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
-    sample_noise = None if variance is None else system.select_outputs(variance.reshape(K * T, d))
+    sample_noise = None if variance is None else system.select_outputs(variance)
     if noise > 0:
         eps = torch.randn(targets.shape, generator=generator, dtype=targets.dtype, device=targets.device)
         targets = targets + noise * eps
         check_finite(targets, f"correction samples with noise_std={noise_std!r} added")
         if sample_noise is not None:
             sample_noise = sample_noise + noise**2
-    experiment = torch.arange(K, device=states.device).repeat_interleave(T)
+    lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
+    experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
     return CorrectionSamples(
         inputs=system.select_inputs(flat_states),
         targets=targets,

@@ -108,7 +108,11 @@ _LEGENDS = (True, False, None, "axes", "right", "below")
 def _as_array(x: Any, name: str) -> np.ndarray:
     """A float64 numpy array from a tensor, array, nested sequence or Trajectories (its states)."""
     if hasattr(x, "states") and hasattr(x, "times"):  # Trajectories
-        x = x.states
+        if getattr(x, "is_ragged", False):  # NaN-padded: matplotlib leaves the padding out
+            _, states, mask = x.padded()
+            x = states.detach().to(torch.float64).masked_fill(~mask.unsqueeze(-1), float("nan"))
+        else:
+            x = x.states
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu()
         if x.is_complex():
@@ -250,7 +254,8 @@ def plot_trajectories(
     legend has one entry per style present, plus the initial conditions.
 
     Args:
-        true_states: ``(K, T, d)`` states of the true system (or a Trajectories).
+        true_states: ``(K, T, d)`` states of the true system (or a Trajectories, ragged ones included: the
+            experiments are NaN-padded to the longest, and the padding is not drawn).
         misspecified_states: optional ``(K, T', d)`` predictions of the misspecified model from the same K initial
             conditions (its time grid may differ from the true one).
         corrected_states: optional ``(K, T', d)`` predictions of the corrected model, likewise.

@@ -27,11 +27,18 @@ __all__ = ["fit_trajectories", "shooting_misfit"]
 
 
 def _intervals(trajectories: Trajectories) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Start states ``(B, d)``, interval grids ``(B, 2)`` and end states ``(B, d)`` of all K (T - 1) intervals."""
+    """Start states ``(B, d)``, interval grids ``(B, 2)`` and end states ``(B, d)`` of all sum_k (T_k - 1)
+    intervals (experiment after experiment; ragged data too)."""
+    if min(trajectories.lengths) < 2:
+        raise InputError(
+            f"trajectories: expected at least 2 times per experiment to shoot between, got T = "
+            f"{min(trajectories.lengths)}"
+        )
+    if trajectories.is_ragged:
+        parts = [(y[:-1], torch.stack([t[:-1], t[1:]], dim=-1), y[1:]) for t, y in trajectories.experiments()]
+        return tuple(torch.cat(p) for p in zip(*parts, strict=True))
     states, grid = trajectories.states, trajectories.time_grid  # (K, T, d), (K, T)
-    K, T, d = states.shape
-    if T < 2:
-        raise InputError(f"trajectories: expected at least 2 times per experiment to shoot between, got T = {T}")
+    d = states.shape[-1]
     starts = states[:, :-1].reshape(-1, d)
     ends = states[:, 1:].reshape(-1, d)
     times = torch.stack([grid[:, :-1], grid[:, 1:]], dim=-1).reshape(-1, 2)
@@ -118,7 +125,7 @@ def fit_trajectories(
         gp: a fitted shared-kernel :class:`CorrectionGP` (its training inputs should be the observed states'
             correction inputs, as from :func:`~torchmisspec.correction_samples`).
         system: the misspecified system.
-        trajectories: the observed states ``(K, T, d)``.
+        trajectories: the observed states ``(K, T, d)``, or ragged (experiments of different lengths).
         state_noise: variance of the state measurement noise (None: estimated as above).
         max_iter: most L-BFGS iterations.
         rtol: relative tolerance of the shooting solves.
