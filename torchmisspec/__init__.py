@@ -33,7 +33,7 @@ from ._errors import (
     TorchMisspecWarning,
 )
 from .data import Trajectories, simulate
-from .dynamics import CorrectedODE
+from .dynamics import CorrectedODE, TrajectoryPosterior
 from .gp import CorrectionGP, GPPosterior
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
@@ -52,6 +52,7 @@ __all__ = [
     "TorchMisspecWarning",
     "__version__",
     "CorrectedODE",
+    "TrajectoryPosterior",
     "CorrectionGP",
     "CorrectionSamples",
     "FittingError",

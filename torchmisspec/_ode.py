@@ -125,6 +125,7 @@ def solve(
     options: dict | None = None,
     max_steps: int | None = None,
     what: str = "ODE",
+    label: Callable[[int], str] | None = None,
 ) -> tuple[torch.Tensor, int]:
     """Integrate dy/dt = field(y) from ``y0 (B, d)`` given at ``times[..., 0]``.
 
@@ -134,6 +135,8 @@ def solve(
         max_steps: most solver steps (default :data:`DEFAULT_MAX_STEPS`); the solve stops with
             :class:`IntegrationError` beyond it (counted as right-hand-side evaluations, so it holds for every
             method and under ``python -O``).
+        label: names batch row i in error messages (e.g. ``"sample 3 of initial condition 7"``); default: the
+            row index.
 
     Returns:
         states ``(B, T, d)`` and the number of right-hand-side evaluations.
@@ -147,6 +150,13 @@ def solve(
             f"{what}: expected float32 or float64 states, got {y0.dtype} (half precision cannot meet the solver's "
             "tolerances); convert with .double()"
         )
+
+    def names(rows: list[int]) -> str:
+        more = " ..." if len(rows) > 10 else ""
+        if label is None:
+            return f"indices {rows[:10]}{more}"
+        return "; ".join(label(i) for i in rows[:10]) + more
+
     func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0)
     if times.dim() == 1:
         grid, gather = times, None
@@ -165,8 +175,8 @@ def solve(
     if not bool(torch.isfinite(f0).all()):
         bad = (~torch.isfinite(f0).all(-1)).nonzero().flatten().tolist()
         raise IntegrationError(
-            f"{what}: the right-hand side is not finite at {len(bad)} initial condition(s) (indices "
-            f"{bad[:10]}{' ...' if len(bad) > 10 else ''}); the model has a singularity there (check G and F)"
+            f"{what}: the right-hand side is not finite at {len(bad)} initial condition(s) ({names(bad)}); the "
+            "model has a singularity there (check G and F)"
         )
     try:
         sol = odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options)  # (T', B, d)
@@ -175,8 +185,8 @@ def solve(
         raise IntegrationError(
             f"{what}: the solver took more than {max_steps} steps ({func.nfe - 1} right-hand-side evaluations) and "
             f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
-            f"up; the initial conditions with the largest state or derivative at that point: {worst}. Check those "
-            "initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
+            f"up; the initial conditions with the largest state or derivative at that point: {names(worst)}. Check "
+            "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
             "explicit steps)"
         ) from None
     except _Stalled:
@@ -185,14 +195,14 @@ def solve(
             f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by less "
             f"than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity of the "
             f"model or a state where the field changes abruptly; the initial conditions with the largest state or "
-            f"derivative there: {worst}. Check the model near those states, or shorten the time span"
+            f"derivative there: {names(worst)}. Check the model near those states, or shorten the time span"
         ) from None
     except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
         raise IntegrationError(
             f"{what}: the solver gave up{t} ({str(exc)[:120]}); the initial conditions with the largest state or "
-            f"derivative there: {worst}. A trajectory probably blows up or reaches a singularity of the model: "
+            f"derivative there: {names(worst)}. A trajectory probably blows up or reaches a singularity of the model: "
             "shorten the time span, start closer to the data, or check the model"
         ) from exc
     except ValueError as exc:  # an unknown method or option
@@ -205,6 +215,6 @@ def solve(
         bad = (~finite).nonzero().flatten().tolist()
         raise IntegrationError(
             f"{what}: the solution is not finite for {len(bad)} of {sol.shape[0]} initial condition(s) "
-            f"(indices {bad[:10]}{' ...' if len(bad) > 10 else ''}); the trajectory blows up within the time span"
+            f"({names(bad)}); the trajectory blows up within the time span"
         )
     return sol, func.nfe

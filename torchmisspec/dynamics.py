@@ -1,17 +1,22 @@
-"""The corrected model dy/dt = G(y) + mu(y), mu the GP posterior mean of F, integrated with torchdiffeq."""
+"""The corrected model dy/dt = G(y) + mu(y), mu the GP posterior mean of F, integrated with torchdiffeq; and
+trajectories under posterior draws of F (:meth:`CorrectedODE.posterior`), with uncertainty bands."""
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from ._errors import InputError, NotFittedError, ShapeError
+from ._errors import InputError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
+from ._validation import as_tensor, check_positive_int, check_real
 from .gp import CorrectionGP
 from .systems import MisspecifiedSystem
 
-__all__ = ["CorrectedODE"]
+__all__ = ["SUPPORT_THRESHOLD", "CorrectedODE", "TrajectoryPosterior"]
 
 
 class CorrectedODE(nn.Module):
@@ -90,16 +95,25 @@ class CorrectedODE(nn.Module):
 
         Returns:
             states ``(B, T, d)`` in the GP's dtype. Raises :class:`IntegrationError` if a trajectory blows up.
+
+        Differentiable: when ``y0`` or ``times`` requires grad, or a hyperparameter of the GP does (set
+        ``requires_grad_(True)`` on its raw GPyTorch parameter, e.g. ``gp.covar_module.base_kernel.raw_lengthscale``;
+        the GP then recomputes its posterior solve with the graph), the result keeps the autograd graph through the
+        solver (torchdiffeq's direct backpropagation), so ``states.sum().backward()`` gives sensitivities.
+        Otherwise no graph is built.
         """
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
-        cache = self.gp._posterior_cache()  # refreshed here if the GP changed since its last prediction
+        hyper = torch.is_grad_enabled() and self.gp._hyperparameters_require_grad()
+        # refreshed here if the GP changed since its last prediction; with the graph to the hyperparameters when
+        # one of them requires grad
+        cache = self.gp._differentiable_cache() if hyper else self.gp._posterior_cache()
 
         def field(y: torch.Tensor) -> torch.Tensor:
             return self.system.known_rhs(y) + self._correction(y, cache)
 
-        with torch.no_grad():
+        with torch.set_grad_enabled(_wants_graph(y0, times) or hyper):
             states, self.nfe = solve(
                 field,
                 y0,
@@ -112,3 +126,193 @@ class CorrectedODE(nn.Module):
                 what="CorrectedODE.predict",
             )
         return states
+
+    @adaptive_threads()
+    def posterior(
+        self,
+        y0,
+        times,
+        *,
+        num_samples: int = 64,
+        generator: torch.Generator | None = None,
+        num_features: int | None = None,
+        feature_error: float | None = None,
+        method: str = "dopri5",
+        rtol: float = PREDICTION_TOLERANCES[0],
+        atol: float = PREDICTION_TOLERANCES[1],
+        options: dict | None = None,
+        max_steps: int | None = None,
+        support_threshold: float | None = None,
+    ) -> TrajectoryPosterior:
+        """Trajectories under posterior draws of F: uncertainty bands on the predicted paths.
+
+        ``num_samples`` functions F_s are drawn from the GP posterior by pathwise conditioning
+        (:meth:`CorrectionGP.sample_functions <torchmisspec.CorrectionGP.sample_functions>`): each is one function
+        that the solver evaluates wherever a path goes, so path s is the trajectory of dy/dt = G(y) + F_s(y). All
+        B x S paths are integrated in one batched solve; the trajectory of the posterior mean (:meth:`predict`) is
+        integrated too, for comparison and for the extrapolation check. The draws include the GP's noise model
+        (learned noise, or the known per-sample noise of the training samples) through the posterior itself.
+
+        Extrapolation check: along every posterior-mean path the posterior standard deviation of F is divided by the
+        prior's (the largest over the outputs); a path on which this ratio exceeds ``support_threshold`` (default
+        :data:`SUPPORT_THRESHOLD` = sqrt(1/2): the data have removed less than half of the prior variance there) is
+        flagged in ``extrapolating`` and one :class:`~torchmisspec.TorchMisspecWarning` per call names how many.
+
+        Args:
+            y0: ``(B, d)`` initial conditions (or ``(d,)``).
+            times: ``(T,)`` or ``(B, T)``, strictly increasing.
+            num_samples: S >= 1 posterior draws of F.
+            generator: ``torch.Generator`` on the GP's device, for reproducible draws.
+            num_features / feature_error: the prior features of the draws (see ``sample_functions``).
+            method, rtol, atol, options, max_steps: the solver settings, as for :meth:`predict`.
+            support_threshold: the extrapolation threshold in (0, 1].
+
+        Returns:
+            :class:`TrajectoryPosterior`.
+
+        Raises:
+            IntegrationError: a sampled path (or a mean path) blows up; the message names which draw and which
+                initial condition.
+
+        Paths are differentiable with respect to ``y0`` and ``times`` when they require grad (the draws
+        themselves are fixed functions: gradients in the hyperparameters go through :meth:`predict` only).
+        """
+        threshold = (
+            SUPPORT_THRESHOLD
+            if support_threshold is None
+            else check_real(support_threshold, "support_threshold", positive=True)
+        )
+        if threshold > 1.0:
+            raise InputError(f"support_threshold: expected a ratio of standard deviations in (0, 1], got {threshold!r}")
+        num_samples = check_positive_int(num_samples, "num_samples")
+        y0, times = initial_conditions_and_times(
+            y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
+        )
+        B, d = y0.shape
+        S = num_samples
+        draws = self.gp.sample_functions(S, num_features=num_features, feature_error=feature_error, generator=generator)
+        mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
+        system = self.system
+
+        def field(y: torch.Tensor) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
+            x = system.select_inputs(y).reshape(S, B, -1)
+            return system.known_rhs(y) + system.embed(draws(x).reshape(S * B, -1))
+
+        grid = times if times.dim() == 1 else times.repeat(S, 1)
+        with torch.set_grad_enabled(_wants_graph(y0, times)):
+            paths, nfe = solve(
+                field,
+                y0.repeat(S, 1),
+                grid,
+                method=method,
+                rtol=rtol,
+                atol=atol,
+                options=options,
+                max_steps=max_steps,
+                what="CorrectedODE.posterior",
+                label=lambda i: f"draw {i // B} of initial condition {i % B}",
+            )
+        self.nfe = nfe
+        support = self._support(mean_path.detach())
+        extrapolating = support.amax(dim=-1) > threshold
+        if bool(extrapolating.any()):
+            n = int(extrapolating.sum())
+            first = extrapolating.nonzero().flatten()[:10].tolist()
+            warn(
+                f"CorrectedODE.posterior: {n} of {B} predicted path(s) leave the data's support (the posterior "
+                f"standard deviation of F along the mean path exceeds {threshold:.3g} times the prior's; initial "
+                f"conditions {first}{' ...' if n > 10 else ''}): there the correction is the prior's guess and the "
+                "bands are as wide as the prior. Collect data nearer those states, or trust those paths less",
+                TorchMisspecWarning,
+            )
+        times_out = times if times.dim() == 2 else times.expand(B, -1)
+        return TrajectoryPosterior(
+            times=times_out,
+            samples=paths.reshape(S, B, *paths.shape[1:]),
+            mean_path=mean_path,
+            support=support,
+            extrapolating=extrapolating,
+            threshold=threshold,
+        )
+
+    def _support(self, states: torch.Tensor) -> torch.Tensor:
+        """``(B, T)``: posterior over prior standard deviation of F at the states ``(B, T, d)`` (largest output)."""
+        x = self.system.select_inputs(states)
+        flat = x.reshape(-1, x.shape[-1])
+        post = self.gp.predict(flat).variance  # (M, d_out)
+        with torch.no_grad():
+            prior = self.gp.covar_module.forward(flat, flat, diag=True)  # (M,) or (d_out, M)
+        prior = prior.unsqueeze(-1) if prior.dim() == 1 else prior.T
+        ratio = (post / prior.clamp_min(torch.finfo(post.dtype).tiny)).clamp(0.0, 1.0).sqrt()
+        return ratio.amax(dim=-1).reshape(states.shape[:-1])
+
+
+#: Default ``support_threshold`` of :meth:`CorrectedODE.posterior`: posterior / prior standard deviation of F above
+#: which a state is outside the data's support (the data have removed less than half of the prior variance).
+SUPPORT_THRESHOLD = math.sqrt(0.5)
+
+
+def _wants_graph(*tensors: torch.Tensor) -> bool:
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+@dataclass(frozen=True)
+class TrajectoryPosterior:
+    """Predicted trajectories under S posterior draws of the correction (:meth:`CorrectedODE.posterior`).
+
+    Attributes:
+        times: ``(B, T)`` output times of every initial condition.
+        samples: ``(S, B, T, d)`` the sampled paths.
+        mean_path: ``(B, T, d)`` the trajectory of the posterior mean of F (what :meth:`CorrectedODE.predict`
+            returns; not the same as :attr:`mean`, the mean over the sampled paths, when the dynamics are nonlinear).
+        support: ``(B, T)`` posterior / prior standard deviation of F along the mean paths (near 0: well inside the
+            data; near 1: the prior alone).
+        extrapolating: ``(B,)`` paths whose support ratio exceeds ``threshold`` somewhere.
+        threshold: the extrapolation threshold used.
+    """
+
+    times: torch.Tensor
+    samples: torch.Tensor
+    mean_path: torch.Tensor
+    support: torch.Tensor
+    extrapolating: torch.Tensor
+    threshold: float
+
+    @property
+    def num_samples(self) -> int:
+        return self.samples.shape[0]
+
+    @property
+    def mean(self) -> torch.Tensor:
+        """``(B, T, d)``: the mean over the sampled paths."""
+        return self.samples.mean(0)
+
+    @property
+    def stddev(self) -> torch.Tensor:
+        """``(B, T, d)``: the standard deviation over the sampled paths (0 with one draw)."""
+        if self.num_samples < 2:
+            return torch.zeros_like(self.samples[0])
+        return self.samples.std(0)
+
+    def quantile(self, q) -> torch.Tensor:
+        """Empirical quantile(s) over the sampled paths: ``(B, T, d)`` for a number, ``(Q, B, T, d)`` for Q of them."""
+        qs = as_tensor(q, "q", dtype=self.samples.dtype, device=self.samples.device)
+        if qs.dim() > 1 or not bool(((qs >= 0) & (qs <= 1)).all()):
+            raise InputError(f"q: expected a quantile or a 1-D list of quantiles in [0, 1], got {q!r:.80}")
+        return torch.quantile(self.samples, qs, dim=0)
+
+    def interval(self, level: float = 0.9) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(lower, upper)``, each ``(B, T, d)``: the central ``level`` band of the sampled paths."""
+        level = check_real(level, "level", minimum=0.0)
+        if level > 1.0:
+            raise InputError(f"level: expected a probability in [0, 1], got {level!r}")
+        lo_hi = self.quantile([(1 - level) / 2, (1 + level) / 2])
+        return lo_hi[0], lo_hi[1]
+
+    def covers(self, states, level: float = 0.9) -> torch.Tensor:
+        """``(B, T, d)`` booleans: whether ``states (B, T, d)`` (e.g. the true trajectories) lie in the band."""
+        lower, upper = self.interval(level)
+        states = as_tensor(states, "states", dtype=lower.dtype, device=lower.device)
+        if states.shape != lower.shape:
+            raise ShapeError(f"states: expected shape {tuple(lower.shape)} (B, T, d), got {tuple(states.shape)}")
+        return (states >= lower) & (states <= upper)

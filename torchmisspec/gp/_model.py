@@ -197,6 +197,30 @@ class CorrectionGP:
         self._cache: _Cache | None = None
         covar, lik = self._modules(batch=1)
         self.model: _IndependentOutputsGP = _IndependentOutputsGP(None, None, lik, covar, 1).eval()
+        self._freeze()
+
+    def _freeze(self) -> None:
+        """Outside fitting no hyperparameter requires grad, so predictions build no autograd graph through them.
+
+        To get sensitivities to a hyperparameter, set ``requires_grad_(True)`` on its raw GPyTorch parameter (e.g.
+        ``gp.covar_module.base_kernel.raw_lengthscale``): :class:`~torchmisspec.CorrectedODE` then keeps the graph.
+        The fit enables the parameters it optimises only while it runs. (To train ``gp.model`` with your own
+        GPyTorch loop, call ``gp.model.requires_grad_(True)`` first.)
+        """
+        self.model.requires_grad_(False)
+
+    def _hyperparameters_require_grad(self) -> bool:
+        return any(p.requires_grad for p in self.model.parameters())
+
+    def _differentiable_cache(self):
+        """The posterior solve recomputed with the autograd graph to the hyperparameters (one factorization, not
+        cached): for predictions whose gradient in the hyperparameters is wanted."""
+        from types import SimpleNamespace
+
+        self._posterior_cache()  # validates the training data and noise as for any prediction
+        X, Y, noise = self.train_inputs_, self.train_targets_, self.train_noise_
+        K, diag = self._kernel_parts(X, noise)
+        return SimpleNamespace(fac=_mll.factorize(K, diag, self._targets_batched(Y, noise)))
 
     # ------------------------------------------------------------------------------------------------ building
     def _modules(self, batch: int, noise: torch.Tensor | None = None):
@@ -504,6 +528,7 @@ class CorrectionGP:
             self.n_iterations_, self.n_evaluations_ = result.iterations, result.evaluations
         else:
             self.n_iterations_, self.n_evaluations_ = 0, 0
+        self._freeze()
         self._posterior_cache()
 
     def _optimise(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, progress: bool, max_iter: int):
@@ -723,6 +748,40 @@ class CorrectionGP:
         _check_prediction(mean, x)
         _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
+
+    def sample_functions(
+        self,
+        num_samples: int,
+        *,
+        num_features: int | None = None,
+        feature_error: float | None = None,
+        generator: torch.Generator | None = None,
+    ):
+        """``S`` posterior draws of F as whole functions (pathwise conditioning), consistent wherever evaluated.
+
+        Each draw is a prior draw from features plus the exact posterior update through the cached factorization
+        (see :mod:`torchmisspec.gp._paths`): evaluate it at any inputs, any number of times (an ODE solver calling
+        it at every step sees one function). Their mean is the posterior mean; their covariance is the posterior
+        covariance up to the prior features' error, at most ``feature_error`` (default 0.05) times the prior
+        variance in root mean square at every pair of points for RBF and Matern 5/2, none for the polynomial kernel.
+
+        Args:
+            num_samples: S >= 1.
+            num_features: number of random Fourier features (even), instead of the bound ``feature_error``.
+            feature_error: relative RMS bound on the prior-covariance error that chooses the features.
+            generator: ``torch.Generator`` on the GP's device, for reproducible draws.
+
+        Returns:
+            :class:`~torchmisspec.gp._paths.FunctionSamples`: ``samples(x)`` maps ``(M, d_in)`` or ``(S, M, d_in)``
+            inputs to ``(S, M, d_out)``.
+        """
+        from ._paths import FunctionSamples, _check_generator, feature_map
+
+        self._require_fitted()
+        num_samples = check_positive_int(num_samples, "num_samples")
+        generator = _check_generator(generator, self.device)
+        features = feature_map(self, num_features=num_features, feature_error=feature_error, generator=generator)
+        return FunctionSamples(self, num_samples, features, generator)
 
     # ------------------------------------------------------------------------------------------ hyperparameters
     def _value(self, name: str, t: torch.Tensor) -> float | torch.Tensor | None:

@@ -54,6 +54,17 @@ def maximise(
         tolerance_change=1e-12,
     )
     count = [0, float("nan")]
+    flags = [p.requires_grad for p in params]
+    for p in params:  # the model's parameters are frozen outside fitting (see CorrectionGP._freeze)
+        p.requires_grad_(True)
+    try:
+        return _run(opt, evaluate, normaliser, progress, max_iter, desc, count)
+    finally:
+        for p, flag in zip(params, flags, strict=True):
+            p.requires_grad_(flag)
+
+
+def _run(opt, evaluate, normaliser, progress, max_iter, desc, count) -> OptimResult:
     with progress_bar(progress, max_iter, desc, "eval") as bar:
 
         def closure():

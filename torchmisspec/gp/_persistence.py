@@ -128,6 +128,7 @@ def load(cls, path: str | Path, *, device=None) -> CorrectionGP:
     except RuntimeError as exc:
         raise InputError(f"{path}: the saved hyperparameters do not match the kernel {gp.kernel!r} ({exc})") from exc
     gp.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+    gp._freeze()
     gp.n_iterations_ = int(blob.get("n_iterations", 0))
     gp.n_evaluations_ = int(blob.get("n_evaluations", blob.get("n_iter", 0)))
     gp._posterior_cache()
