@@ -35,6 +35,7 @@ from ._errors import (
 from .data import Trajectories, simulate
 from .dynamics import CorrectedODE, TrajectoryPosterior
 from .gp import CorrectionGP, GPPosterior
+from .learning import fit_correction
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
 from .systems import MisspecifiedSystem
@@ -69,6 +70,7 @@ __all__ = [
     "correction_samples",
     "design",
     "finite_difference",
+    "fit_correction",
     "fit_trajectories",
     "integrated_error",
     "integrated_norm",

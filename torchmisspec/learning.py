@@ -1,0 +1,267 @@
+"""From observed trajectories to a fitted correction in one call: :func:`fit_correction`.
+
+The steps a user would otherwise chain by hand: correction samples from the states (:func:`~torchmisspec.
+correction_samples`, ``derivative="auto"`` by default), a :class:`~torchmisspec.CorrectionGP` on them with its
+lengthscale chosen by **cross-validation on trajectories**, and optionally the trajectory-matching refinement
+(:func:`~torchmisspec.fit_trajectories`).
+
+Why not maximise the marginal likelihood of the samples for the lengthscale too? The samples come from a derivative
+estimator whose errors are correlated along each trajectory (the stencil or the GP in time uses neighbouring states,
+and its bias follows the trajectory). Consecutive states are close in state space, so the marginal likelihood reads
+the correlated error as signal on a short lengthscale: on paper_linear with 1 % state noise it picks lengthscales
+near 0.2 where the correction is a smooth quadratic, and the corrected model is barely better than none
+(``scripts/study_observations.py``). Modelling the correlation with the GP in time's posterior covariance did not
+fix it (its bias is not in that covariance). The held-out prediction error needs no noise model: experiments are
+split into folds; for each candidate lengthscale the GP is fitted on the other folds (output scale and noise still by
+marginal likelihood), the corrected model is integrated from each held-out experiment's first observed state over its
+own times, and the squared differences from its observed states are summed. The known model alone (no correction)
+is scored the same way: when no candidate beats it, :func:`fit_correction` warns that the data do not support a
+correction.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from ._errors import (
+    FittingError,
+    InputError,
+    IntegrationError,
+    LinearAlgebraError,
+    NumericalWarning,
+    TorchMisspecWarning,
+    warn,
+)
+from ._ode import FITTING_TOLERANCES
+from ._threads import adaptive_threads
+from ._validation import check_positive_int
+from .data import Trajectories, simulate
+from .dynamics import CorrectedODE
+from .gp import CorrectionGP
+from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
+from .systems import MisspecifiedSystem
+from .trajectory_fit import fit_trajectories
+
+__all__ = ["LENGTHSCALE_GRID", "CrossValidation", "cross_validate_lengthscale", "fit_correction"]
+
+#: Candidate lengthscales of the cross-validation, as multiples of the median distance between the samples' inputs
+#: (the marginal-likelihood lengthscale is always added to them).
+LENGTHSCALE_GRID = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
+#: Solver steps allowed for one held-out prediction (a candidate whose prediction blows up scores infinity).
+_CV_MAX_STEPS = 2000
+
+
+@dataclass(frozen=True)
+class CrossValidation:
+    """The scores of :func:`cross_validate_lengthscale`.
+
+    Attributes:
+        lengthscales: the candidates, in increasing order.
+        scores: held-out sum of squared state errors of each candidate (``inf`` when a fit or a prediction failed).
+        baseline: the same score of the known model alone (no correction).
+        best: the chosen lengthscale (smallest score).
+        folds: the number of folds.
+    """
+
+    lengthscales: tuple[float, ...]
+    scores: tuple[float, ...]
+    baseline: float
+    best: float
+    folds: int
+
+    @property
+    def improves(self) -> bool:
+        """Whether the best candidate predicts held-out experiments better than the known model alone."""
+        return min(self.scores) < self.baseline
+
+
+def _held_out_error(system: MisspecifiedSystem, gp: CorrectionGP | None, trajectories: Trajectories) -> float:
+    """Sum of squared errors of the (corrected) model from each experiment's first observed state."""
+    rtol, atol = FITTING_TOLERANCES
+    total = 0.0
+    for _, group in trajectories.by_length():
+        if gp is None:
+            pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
+            pred = pred.states
+        else:
+            ode = CorrectedODE(system, gp)
+            pred = ode.predict(group.initial_conditions, group.times, rtol=rtol, atol=atol, max_steps=_CV_MAX_STEPS)
+        total += float((pred - group.states).pow(2).sum())
+    return total
+
+
+@adaptive_threads()
+def cross_validate_lengthscale(
+    system: MisspecifiedSystem,
+    trajectories: Trajectories,
+    samples: CorrectionSamples,
+    *,
+    gp: CorrectionGP | None = None,
+    lengthscales=None,
+    folds: int = 5,
+) -> CrossValidation:
+    """Score candidate lengthscales by how well the corrected model predicts held-out experiments.
+
+    Args:
+        system: the misspecified system.
+        trajectories: the observations the samples came from (experiment k of the samples is experiment k here).
+        samples: the correction samples (:func:`~torchmisspec.correction_samples`).
+        gp: a template :class:`CorrectionGP` (kernel, fixed values; default ``CorrectionGP()``); its lengthscale
+            must not be fixed, and the polynomial kernel has none.
+        lengthscales: the candidates (default: :data:`LENGTHSCALE_GRID` times the median distance between the
+            samples' inputs, plus the marginal-likelihood lengthscale on all samples).
+        folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
+
+    Returns:
+        :class:`CrossValidation`.
+    """
+    _check_trajectories_and_system(trajectories, system)
+    if not isinstance(samples, CorrectionSamples):
+        raise InputError(f"samples: expected CorrectionSamples, got {type(samples).__name__}")
+    template = CorrectionGP() if gp is None else gp
+    if not isinstance(template, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
+    if template.kernel == "polynomial" or template.fixed["lengthscale"] is not None or template.per_output:
+        raise InputError(
+            "gp: cross-validation chooses the lengthscale of a shared RBF or Matern kernel; got kernel "
+            f"{template.kernel!r}, lengthscale={template.fixed['lengthscale']}, per_output={template.per_output}"
+        )
+    K = trajectories.num_experiments
+    folds = check_positive_int(folds, "folds")
+    if K < 2 or folds < 2:
+        raise InputError(f"folds: cross-validation needs at least 2 experiments and 2 folds, got K={K}, folds={folds}")
+    folds = min(folds, K)
+    if int(samples.experiment.max()) != K - 1 or len(samples) != trajectories.num_samples:
+        raise InputError(
+            f"samples: expected the correction samples of these {K} experiments ({trajectories.num_samples} samples), "
+            f"got {len(samples)} samples of {int(samples.experiment.max()) + 1} experiments"
+        )
+    options = dict(
+        kernel=template.kernel,
+        outputscale=template.fixed["outputscale"],
+        noise_variance=template.fixed["noise_variance"],
+        max_iter=template.max_iter,
+        dtype=template.dtype,
+        device=template.device,
+    )
+    if lengthscales is None:
+        X = samples.inputs
+        sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
+        dist = torch.cdist(sub, sub)
+        scale = float(dist[dist > 0].median()) if bool((dist > 0).any()) else 1.0
+        candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
+        try:
+            candidates.add(round(float(CorrectionGP(**options).fit(samples).lengthscale), 12))
+        except (FittingError, LinearAlgebraError):
+            pass
+        lengthscales = sorted(candidates)
+    else:
+        lengthscales = sorted(float(v) for v in lengthscales)
+        if not lengthscales or not all(math.isfinite(v) and v > 0 for v in lengthscales):
+            raise InputError(f"lengthscales: expected positive numbers, got {lengthscales}")
+    experiment = samples.experiment
+    scores = []
+    for ell in lengthscales:
+        total = 0.0
+        for f in range(folds):
+            held = [k for k in range(K) if k % folds == f]
+            keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
+            noise = None if samples.noise is None else samples.noise[keep]
+            try:
+                with warnings.catch_warnings():  # scoring: a candidate's numerical warnings are not the user's
+                    warnings.simplefilter("ignore", NumericalWarning)
+                    fold_gp = CorrectionGP(lengthscale=ell, **options).fit(
+                        samples.inputs[keep], samples.targets[keep], noise=noise
+                    )
+                    total += _held_out_error(system, fold_gp, trajectories[held])
+            except (IntegrationError, FittingError, LinearAlgebraError):
+                total = math.inf
+                break
+        scores.append(total)
+    baseline = sum(
+        _held_out_error(system, None, trajectories[[k for k in range(K) if k % folds == f]]) for f in range(folds)
+    )
+    best = lengthscales[min(range(len(scores)), key=scores.__getitem__)]
+    return CrossValidation(tuple(lengthscales), tuple(scores), baseline, best, folds)
+
+
+@adaptive_threads()
+def fit_correction(
+    trajectories: Trajectories,
+    system: MisspecifiedSystem,
+    *,
+    gp: CorrectionGP | None = None,
+    derivative: str = "auto",
+    lengthscale: str | float = "cv",
+    folds: int = 5,
+    refine: bool = False,
+    **estimator,
+) -> CorrectionGP:
+    """Learn the correction from observed states: samples, a GP with a cross-validated lengthscale, optionally refined.
+
+    1. ``samples = correction_samples(trajectories, system, derivative=derivative, **estimator)`` (its warning
+       when the derivative estimator is unreliable applies);
+    2. the GP (``gp`` as a template: kernel and fixed values; default ``CorrectionGP()``) is fitted on the samples
+       with its lengthscale chosen by :func:`cross_validate_lengthscale` (``lengthscale="cv"``, default), by
+       marginal likelihood (``"ml"``), or given (a number); the output scale and the noise by marginal likelihood;
+    3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE.
+
+    With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
+    experiments better than the known model alone: the data do not support a correction (too few experiments, or
+    a correction smaller than the measurement noise can reveal). Cross-validation falls back to the marginal
+    likelihood when there are fewer than 2 experiments or the kernel has no lengthscale.
+
+    Returns:
+        the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
+        :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
+    """
+    _check_trajectories_and_system(trajectories, system)
+    template = CorrectionGP() if gp is None else gp
+    if not isinstance(template, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
+    number = isinstance(lengthscale, (int, float)) and not isinstance(lengthscale, bool)
+    if not (number or lengthscale in ("cv", "ml")) or (number and not (math.isfinite(lengthscale) and lengthscale > 0)):
+        raise InputError(f"lengthscale: expected 'cv', 'ml' or a positive number, got {lengthscale!r}")
+    samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
+    options = dict(
+        kernel=template.kernel,
+        degree=template.degree,
+        per_output=template.per_output,
+        outputscale=template.fixed["outputscale"],
+        noise_variance=template.fixed["noise_variance"],
+        max_iter=template.max_iter,
+        dtype=template.dtype,
+        device=template.device,
+    )
+    cv = None
+    chosen = template.fixed["lengthscale"]
+    can_cv = (
+        template.kernel != "polynomial"
+        and chosen is None
+        and not template.per_output
+        and trajectories.num_experiments >= 2
+    )
+    if lengthscale == "cv" and can_cv:
+        cv = cross_validate_lengthscale(system, trajectories, samples, gp=template, folds=folds)
+        chosen = cv.best if math.isfinite(min(cv.scores)) else None
+        if not cv.improves:
+            warn(
+                f"fit_correction: no corrected model predicts held-out experiments better than the known model alone "
+                f"(best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a correction, {cv.folds} "
+                "folds): the data do not support a correction. Collect more experiments, sample the states more "
+                "densely or with less noise, or check the known model",
+                TorchMisspecWarning,
+            )
+    elif number:
+        chosen = float(lengthscale)
+    given = {} if template.kernel == "polynomial" else {"lengthscale": chosen}
+    result = CorrectionGP(**given, **options).fit(samples)
+    if refine:
+        result = fit_trajectories(result, system, trajectories)
+    result.cross_validation_ = cv
+    result.samples_ = samples
+    return result
