@@ -19,7 +19,9 @@ def noisy(system, K: int, T: int, t_end: float, noise: float, seed: int) -> tms.
     y0 = torch.rand(K, system.state_dim, generator=g, dtype=DT) * 2 - 1
     clean = tms.simulate(system, y0, torch.linspace(0, t_end, T, dtype=DT))
     rms = clean.states.pow(2).mean(dim=(0, 1)).sqrt()
-    return tms.Trajectories(clean.times, clean.states + noise * rms * torch.randn(clean.states.shape, generator=g, dtype=DT))
+    return tms.Trajectories(
+        clean.times, clean.states + noise * rms * torch.randn(clean.states.shape, generator=g, dtype=DT)
+    )
 
 
 @pytest.fixture(scope="module")
