@@ -159,13 +159,36 @@ def test_fit_command_saves_the_model_a_direct_fit_gives(tmp_path, observed_csv, 
     line = capsys.readouterr().out.strip()
     loaded = tms.CorrectionGP.load(out)
     trajs = tms.Trajectories.load(observed_csv, time_column="t")
-    samples = tms.correction_samples(trajs, tms.systems.paper_linear(), derivative="central")
-    direct = tms.CorrectionGP().fit(samples.inputs, samples.targets)
+    direct = tms.fit_correction(trajs, tms.systems.paper_linear(), derivative="central")  # cv lengthscale
+    assert direct.cross_validation_ is not None
     x = torch.rand(20, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 2 - 1
     torch.testing.assert_close(loaded.predict_mean(x), direct.predict_mean(x), rtol=1e-7, atol=1e-10)
     assert "\n" not in line and "N = 55 samples (5 experiments x 11 times, derivative 'central')" in line
     assert f"lengthscale {direct.lengthscale:.4g}" in line
     assert f"log marginal likelihood {direct.log_marginal_likelihood_:.6g}" in line and str(out) in line
+
+
+def test_fit_command_lengthscale_options(tmp_path, observed_csv, capsys):
+    trajs = tms.Trajectories.load(observed_csv, time_column="t")
+    system = tms.systems.paper_linear()
+    for option, expected in (
+        ("ml", tms.fit_correction(trajs, system, derivative="central", lengthscale="ml")),
+        ("1.5", None),
+    ):
+        out = tmp_path / f"m{option}.pt"
+        assert main(_fit_args(observed_csv, out, "--derivative", "central", "--lengthscale", option)) == 0
+        loaded = tms.CorrectionGP.load(out)
+        want = 1.5 if expected is None else float(expected.lengthscale)
+        assert float(loaded.lengthscale) == pytest.approx(want, rel=1e-9)
+    refined = tmp_path / "refined.pt"
+    assert main(_fit_args(observed_csv, refined, "--derivative", "central", "--lengthscale", "1.5", "--refine")) == 0
+    capsys.readouterr()
+    # the refinement changes the training targets (the pseudo-targets), not the inputs or the hyperparameters
+    plain, refit = tms.CorrectionGP.load(tmp_path / "m1.5.pt"), tms.CorrectionGP.load(refined)
+    assert torch.equal(plain.train_inputs_, refit.train_inputs_)
+    assert not torch.equal(plain.train_targets_, refit.train_targets_)
+    assert main(_fit_args(observed_csv, tmp_path / "x.pt", "--lengthscale", "long")) == 2
+    assert "--lengthscale: expected cv, ml or a positive number, got 'long'" in capsys.readouterr().err
 
 
 def test_fit_command_with_a_user_system_and_fixed_hyperparameters(tmp_path, observed_csv, monkeypatch, capsys, request):

@@ -113,13 +113,13 @@ def _parse_times(text: str):
         raise InputError(message) from exc
 
 
-def _gp_from_args(args: argparse.Namespace):
+def _gp_from_args(args: argparse.Namespace, **override):
     """The CorrectionGP the --kernel, --lengthscale, --outputscale, --noise-variance and --degree options describe."""
     from .gp import CorrectionGP
 
     return CorrectionGP(
         kernel=args.kernel,
-        lengthscale=args.lengthscale,
+        lengthscale=override.get("lengthscale", args.lengthscale),
         outputscale=args.outputscale,
         noise_variance=args.noise_variance,
         degree=args.degree,
@@ -230,9 +230,9 @@ def _design(args: argparse.Namespace) -> int:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from . import observations
     from ._errors import InputError
     from .data import Trajectories
+    from .learning import fit_correction
     from .systems import load_system
 
     out = _check_output(args.out, (".pt",))
@@ -242,15 +242,23 @@ def _fit(args: argparse.Namespace) -> int:
         if not all(state_columns):
             raise InputError(f"--state-columns: expected comma separated column names, got {args.state_columns!r}")
     experiment_column = args.experiment_column or None  # '' = no experiment column: one experiment
-    gp = _gp_from_args(args)
+    lengthscale = args.lengthscale.strip().lower()
+    if lengthscale not in ("cv", "ml"):
+        try:
+            lengthscale = float(lengthscale)
+        except ValueError:
+            raise InputError(f"--lengthscale: expected cv, ml or a positive number, got {args.lengthscale!r}") from None
+    template = _gp_from_args(args, lengthscale=None)
     system = load_system(args.system)
     trajs = Trajectories.load(
         args.data, time_column=args.time_column, experiment_column=experiment_column, state_columns=state_columns
     )
-    samples = observations.correction_samples(trajs, system, derivative=args.derivative)
-    noise = getattr(samples, "noise", None)
-    known = {} if noise is None else {"noise": noise}  # known per-sample noise variances, when the estimator has them
-    gp.fit(samples.inputs, samples.targets, progress=not args.quiet, **known)
+    if template.kernel == "polynomial" and lengthscale != "cv":
+        raise InputError("--lengthscale: the polynomial kernel has no lengthscale; leave the default")
+    gp = fit_correction(
+        trajs, system, gp=template, derivative=args.derivative, lengthscale=lengthscale, refine=args.refine
+    )
+    samples = gp.samples_
     gp.save(out)
 
     def show(value) -> str:
@@ -290,8 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
         "fit",
         help="learn the correction F from observed trajectories and save the model",
         description="Learn the missing term F of dy/dt = G(y) + F(y) from observed trajectories: estimate dy/dt from "
-        "the states, form the correction samples dy/dt - G(y), fit the correction GP by marginal likelihood and "
-        "save it (read it back with torchmisspec.CorrectionGP.load).",
+        "the states, form the correction samples dy/dt - G(y), fit the correction GP (lengthscale by "
+        "cross-validation on held-out experiments, the rest by marginal likelihood; torchmisspec.fit_correction) "
+        "and save it (read it back with torchmisspec.CorrectionGP.load).",
     )
     fit.add_argument(
         "--data",
@@ -327,7 +336,17 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["rbf", "matern52", "polynomial"],
         help="GP kernel of the correction (default: rbf)",
     )
-    fit.add_argument("--lengthscale", type=float, help="fix the kernel lengthscale (default: learned)")
+    fit.add_argument(
+        "--lengthscale",
+        default="cv",
+        help="the kernel lengthscale: cv (default: chosen by how well the corrected model predicts held-out "
+        "experiments), ml (marginal likelihood), or a number (fixed)",
+    )
+    fit.add_argument(
+        "--refine",
+        action="store_true",
+        help="refine the correction through the ODE (fit_trajectories: single shooting) after the fit",
+    )
     fit.add_argument("--outputscale", type=float, help="fix the kernel output scale (default: learned)")
     fit.add_argument("--noise-variance", type=float, help="fix the samples' noise variance (default: learned)")
     fit.add_argument("--degree", type=int, default=2, help="polynomial kernel order (default: 2)")
