@@ -91,6 +91,8 @@ def check_own_system(ns: dict) -> None:
     assert gps[central, "noisy"].noise_variance > gps[smooth, "noisy"].noise_variance
     # "The corrected pendulum slows down as the real one does; the frictionless model does not"
     assert ns["rmse_corrected"] < 0.2 * ns["rmse_frictionless"]
+    # "One call does all of this": a cross-validated lengthscale that improves on the known model
+    assert ns["auto"].cross_validation_.improves
 
 
 PAGES = {
