@@ -190,3 +190,34 @@ def test_posterior_paths_are_differentiable_in_the_initial_conditions(linear):
     )
     post.samples[:, :, -1].sum().backward()
     assert y0.grad is not None and bool(torch.isfinite(y0.grad).all()) and float(y0.grad.abs().sum()) > 0
+
+
+def test_band_and_calibration_figures(linear, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from torchmisspec.plotting import plot_calibration, plot_prediction_bands
+
+    system, gp = linear
+    y0 = torch.tensor([[0.3, -0.2], [-0.5, 0.4]], dtype=DT)
+    times = torch.linspace(0, 3, 7, dtype=DT)
+    post = tms.CorrectedODE(system, gp).posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(0))
+    true = tms.simulate(system, y0, times).states
+    fig = plot_prediction_bands(
+        post, index=1, true_states=true, misspecified_states=true * 0.9, path=tmp_path / "b.png"
+    )
+    assert len(fig.axes) == 2 and (tmp_path / "b.png").stat().st_size > 0
+    lo, hi = post.interval(0.9)
+    shaded = fig.axes[0].collections[0].get_paths()[0].vertices[:, 1]  # the 90 % band of component 0
+    assert shaded.min() == pytest.approx(float(lo[1, :, 0].min()))
+    assert shaded.max() == pytest.approx(float(hi[1, :, 0].max()))
+    with pytest.raises(tms.InputError, match=r"index: expected an initial condition in \[0, 1\], got 2"):
+        plot_prediction_bands(post, index=2)
+    with pytest.raises(tms.ShapeError, match=r"true_states: expected shape \(2, 7, 2\) as the posterior"):
+        plot_prediction_bands(post, true_states=true[:1])
+    with pytest.raises(tms.InputError, match=r"posterior: expected a TrajectoryPosterior, got Tensor"):
+        plot_prediction_bands(true)
+    fig = plot_calibration([0.5, 0.9], {"K = 10": ([0.45, 0.88], [0.01, 0.01]), "K = 40": [0.5, 0.91]})
+    assert len(fig.axes[0].get_legend().get_texts()) == 3
+    with pytest.raises(tms.InputError, match=r"nominal: expected \(n,\) probabilities in \(0, 1\)"):
+        plot_calibration([0.5, 1.5], {"a": [0.5, 0.9]})
