@@ -1,0 +1,254 @@
+"""Study of issue 10: are the predicted uncertainty bands of ``CorrectedODE.posterior`` calibrated?
+
+Settings (hyperparameters always fitted by marginal likelihood, ``CorrectionGP().fit``, as a user would):
+
+* paper_linear (paper 5.1): K = 5, 10, 40 experiments from initial conditions uniform in D = [-1, 1]^2, observed
+  at T = 11 times on [0, 6] with the paper's observation model (exact derivatives plus noise of std 1e-2);
+* paper_gravity (paper 5.3): K = 7 experiments on circular orbits of the known mass (``design.candidates.orbits``),
+  T = 20 times on [0, 3], the same observation model.
+
+For each of R realizations: fit the GP, draw S posterior functions, integrate the paths from N new initial
+conditions (drawn like the training ones) on the output times (the training span, t = 0 excluded: every draw starts
+at the initial condition), and count how often the true trajectory lies in the central 50 %, 90 % and 95 % bands of
+the sampled paths (every output time and component). Reported: mean coverage over realizations with its standard
+error, the fraction of paths flagged as extrapolating, and the lengthscale ML-II chose.
+
+Usage::
+
+    python scripts/study_calibration.py --markdown          # full: JSON, docs/studies/calibration.md, BENCHMARKS.md
+    python scripts/study_calibration.py --smoke --json /tmp/c.json   # tiny, never writes docs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import subprocess
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+import torchmisspec as tms
+from torchmisspec.design.candidates import orbits
+from torchmisspec.metrics import mean_and_standard_error
+from torchmisspec.paper import _setup as paper
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_JSON = ROOT / "benchmarks" / "study_calibration.json"
+DOC_PAGE = ROOT / "docs" / "studies" / "calibration.md"
+FIGURE = ROOT / "docs" / "figures" / "calibration.png"
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
+MARK_START = "<!-- study:calibration:start -->"
+MARK_END = "<!-- study:calibration:end -->"
+DT = torch.float64
+LEVELS = (0.5, 0.9, 0.95)
+GOAL = (0.85, 0.95)  # the 90 % band's coverage
+SEED = 31_000
+SETTINGS = (("paper_linear", 5), ("paper_linear", 10), ("paper_linear", 40), ("paper_gravity", 7))
+FULL = {"realizations": 10, "n_test": 200, "num_samples": 64, "output_times": 31}
+SMOKE = {"realizations": 2, "n_test": 10, "num_samples": 16, "output_times": 7}
+
+
+def _initial_conditions(name: str, n: int, gen: torch.Generator) -> torch.Tensor:
+    if name == "paper_linear":
+        return torch.rand(n, 2, generator=gen, dtype=DT) * 2 - 1
+    return orbits(n, generator=gen)
+
+
+def _times(name: str) -> torch.Tensor:
+    return paper.linear_times() if name == "paper_linear" else paper.gravity_times()
+
+
+def run_one(name: str, K: int, seed: int, cfg: dict) -> dict:
+    system = getattr(tms.systems, name)()
+    gen = torch.Generator().manual_seed(seed)
+    train = tms.simulate(system, _initial_conditions(name, K, gen), _times(name))
+    samples = tms.correction_samples(train, system, derivative="oracle", noise_std=paper.NOISE_STD, generator=gen)
+    gp = tms.CorrectionGP().fit(samples)
+    y0 = _initial_conditions(name, cfg["n_test"], gen)
+    span = _times(name)
+    times = torch.linspace(float(span[0]), float(span[-1]), cfg["output_times"], dtype=DT)
+    truth = tms.simulate(system, y0, times).states
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        post = tms.CorrectedODE(system, gp).posterior(
+            y0, times, num_samples=cfg["num_samples"], generator=torch.Generator().manual_seed(seed + 1)
+        )
+    seconds = time.perf_counter() - t0
+    coverage = {f"{level:g}": float(post.covers(truth, level)[:, 1:].double().mean()) for level in LEVELS}
+    mean_rmse = float(tms.trajectory_rmse(post.mean_path, truth))
+    return {
+        "seed": seed,
+        "coverage": coverage,
+        "extrapolating": float(post.extrapolating.double().mean()),
+        "warned": any(issubclass(w.category, tms.TorchMisspecWarning) for w in caught),
+        "lengthscale": float(gp.lengthscale),
+        "outputscale": float(gp.outputscale),
+        "noise_variance": float(gp.noise_variance),
+        "mean_path_rmse": mean_rmse,
+        "band_width_90": float((lambda lo_hi: (lo_hi[1] - lo_hi[0])[:, 1:].mean())(post.interval(0.9))),
+        "posterior_seconds": seconds,
+    }
+
+
+def study(cfg: dict, log=print) -> dict:
+    out = []
+    for i, (name, K) in enumerate(SETTINGS):
+        runs = []
+        for r in range(cfg["realizations"]):
+            rec = run_one(name, K, SEED + 1000 * i + r, cfg)
+            runs.append(rec)
+            log(
+                f"  {name:14s} K={K:3d} r={r}: coverage "
+                + " ".join(f"{k}:{v:.3f}" for k, v in rec["coverage"].items())
+                + f"  lengthscale {rec['lengthscale']:.3g}  extrapolating {rec['extrapolating']:.2f}"
+            )
+        summary = {}
+        for level in LEVELS:
+            m, se = mean_and_standard_error([rec["coverage"][f"{level:g}"] for rec in runs])
+            summary[f"{level:g}"] = (float(m), float(se))
+        out.append({"system": name, "K": K, "runs": runs, "coverage": summary})
+    return {"settings": out, "config": cfg}
+
+
+# ------------------------------------------------------------------------------------------------- reporting
+def _git(*args) -> str | None:
+    try:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "git_commit": _git("rev-parse", "--short", "HEAD"),
+        "cpu": cpu,
+        "logical_cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+    }
+
+
+def table(result: dict) -> str:
+    rows = [
+        "| system | K | 50 % band | 90 % band | 95 % band | 90 % goal [0.85, 0.95] | paths flagged extrapolating | "
+        "ML-II lengthscale (median) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for s in result["settings"]:
+        cov = s["coverage"]
+        m90, se90 = cov["0.9"]
+        ok = "met" if GOAL[0] <= m90 <= GOAL[1] else ("over-covers" if m90 > GOAL[1] else "under-covers")
+        lengths = sorted(r["lengthscale"] for r in s["runs"])
+        extrap = sum(r["extrapolating"] for r in s["runs"]) / len(s["runs"])
+        rows.append(
+            f"| {s['system']} | {s['K']} | "
+            + " | ".join(f"{cov[f'{lv:g}'][0]:.3f} ± {cov[f'{lv:g}'][1]:.3f}" for lv in LEVELS)
+            + f" | {ok} | {extrap:.2f} | {lengths[len(lengths) // 2]:.3g} |"
+        )
+    return "\n".join(rows) + "\n"
+
+
+def render_block(result: dict, wall: float) -> str:
+    cfg = result["config"]
+    return f"""{MARK_START}
+## Calibration of the predicted bands (`scripts/study_calibration.py`)
+
+Written by `python scripts/study_calibration.py --markdown` ({wall / 60:.1f} min): coverage of the true
+trajectories by the central bands of `CorrectedODE.posterior` ({cfg["num_samples"]} draws), over {cfg["n_test"]} new
+initial conditions x {cfg["realizations"]} realizations per setting (mean ± standard error over realizations); see
+[docs/studies/calibration.md](docs/studies/calibration.md).
+
+{table(result)}{MARK_END}
+"""
+
+
+def render_page(result: dict, wall: float, info: dict) -> str:
+    cfg = result["config"]
+    return f"""# Study: calibration of the predicted uncertainty bands
+
+This page is written by `python scripts/study_calibration.py --markdown`; every number on it comes from that run
+(raw numbers: `benchmarks/study_calibration.json`). Machine: {info["cpu"]}, {info["logical_cpus"]} logical CPUs,
+torch {info["torch"]}, commit {info["git_commit"]}; wall time {wall / 60:.1f} min.
+
+Each realization fits `CorrectionGP()` by marginal likelihood on K experiments with the paper's observation model
+(exact derivatives plus noise of std {paper.NOISE_STD}), draws {cfg["num_samples"]} posterior functions of F by
+pathwise conditioning, integrates them from {cfg["n_test"]} new initial conditions on {cfg["output_times"]} output
+times over the training span, and counts how often the true trajectory lies in the central bands (every output time
+after t = 0 and every component). {cfg["realizations"]} realizations per setting.
+
+{table(result)}
+![calibration](../figures/calibration.png)
+
+Reading the table: a coverage above the nominal level means bands wider than the errors (conservative), below it
+bands too narrow (overconfident). The uncertainty comes from the GP posterior with hyperparameters fixed at their
+ML-II values, so no allowance is made for their own uncertainty: where ML-II is overconfident (small K) the bands
+are too narrow. Paths the posterior flags as leaving the data's support are counted like any other.
+"""
+
+
+def figure(result: dict, path: Path) -> None:
+    from torchmisspec.plotting import plot_calibration
+
+    curves = {}
+    for s in result["settings"]:
+        cov = s["coverage"]
+        curves[f"{s['system']} K={s['K']}"] = (
+            [cov[f"{lv:g}"][0] for lv in LEVELS],
+            [cov[f"{lv:g}"][1] for lv in LEVELS],
+        )
+    plot_calibration(list(LEVELS), curves, legend="right", path=path)
+
+
+def replace_block(text: str, block: str) -> str:
+    pattern = re.compile(re.escape(MARK_START) + r".*?" + re.escape(MARK_END) + r"\n?", re.S)
+    if pattern.search(text):
+        return pattern.sub(lambda _: block, text, count=1)
+    return text.rstrip("\n") + "\n\n" + block
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
+    parser.add_argument("--json", help=f"raw results (default {DEFAULT_JSON.relative_to(ROOT)}; smoke: only if given)")
+    parser.add_argument("--markdown", action="store_true", help="write the docs page, figure and BENCHMARKS block")
+    args = parser.parse_args(argv)
+    if args.smoke and args.markdown:
+        parser.error("--smoke never writes the docs; drop --markdown")
+    cfg = SMOKE if args.smoke else FULL
+    t0 = time.perf_counter()
+    result = study(cfg)
+    wall = time.perf_counter() - t0
+    info = machine()
+    result["machine"], result["wall_seconds"], result["smoke"] = info, wall, args.smoke
+    json_path = Path(args.json) if args.json else (None if args.smoke else DEFAULT_JSON)
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=1))
+    print(table(result))
+    if args.markdown:
+        DOC_PAGE.parent.mkdir(parents=True, exist_ok=True)
+        DOC_PAGE.write_text(render_page(result, wall, info))
+        figure(result, FIGURE)
+        text = BENCHMARKS_MD.read_text() if BENCHMARKS_MD.exists() else ""
+        BENCHMARKS_MD.write_text(replace_block(text, render_block(result, wall)))
+        print(f"wrote {DOC_PAGE}, {FIGURE} and the calibration block of {BENCHMARKS_MD}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,27 @@
+"""The calibration study script (issue 10) runs in its smoke mode and reports coverages in [0, 1]."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_smoke_run_writes_coverages(tmp_path):
+    out = tmp_path / "c.json"
+    subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "study_calibration.py"), "--smoke", "--json", str(out)],
+        check=True,
+        capture_output=True,
+        timeout=600,
+    )
+    result = json.loads(out.read_text())
+    assert result["smoke"] is True and len(result["settings"]) == 4
+    for setting in result["settings"]:
+        assert len(setting["runs"]) == result["config"]["realizations"]
+        means = [setting["coverage"][k][0] for k in ("0.5", "0.9", "0.95")]
+        assert all(0.0 <= m <= 1.0 for m in means) and means == sorted(means)  # wider bands cover more
