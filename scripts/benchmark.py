@@ -32,6 +32,7 @@ import json
 import math
 import os
 import platform
+import re
 import statistics
 import sys
 import time
@@ -147,6 +148,8 @@ def _modules(start: dict):
         covar.base_kernel.lengthscale = torch.full_like(covar.base_kernel.lengthscale, start["lengthscale"])
         covar.outputscale = torch.full_like(covar.outputscale, start["outputscale"])
         lik.noise = torch.full_like(lik.noise, start["noise_variance"])
+    covar.requires_grad_(True)  # CorrectionGP keeps its parameters frozen outside its own fit; a peer trains them
+    lik.requires_grad_(True)
     return covar, lik
 
 
@@ -987,8 +990,16 @@ def main(argv: list[str] | None = None) -> int:
             json.dump(results, fh, indent=2)
             fh.write("\n")
     if args.markdown:
+        page = render_markdown(results)
+        if os.path.exists(args.markdown):  # keep the blocks that other scripts maintain (scripts/study_*.py)
+            with open(args.markdown) as fh:
+                old = fh.read()
+            blocks = [
+                m.group(0) for m in re.finditer(r"<!-- study:([\w-]+):start -->.*?<!-- study:\1:end -->", old, re.S)
+            ]
+            page = page.rstrip("\n") + "".join(f"\n\n{block}" for block in blocks) + "\n"
         with open(args.markdown, "w") as fh:
-            fh.write(render_markdown(results))
+            fh.write(page)
     return 0
 
 
