@@ -10,13 +10,15 @@ estimator whose errors are correlated along each trajectory (the stencil or the 
 and its bias follows the trajectory). Consecutive states are close in state space, so the marginal likelihood reads
 the correlated error as signal on a short lengthscale: on paper_linear with 1 % state noise it picks lengthscales
 near 0.2 where the correction is a smooth quadratic, and the corrected model is barely better than none
-(``scripts/study_observations.py``). Modelling the correlation with the GP in time's posterior covariance did not
-fix it (its bias is not in that covariance). The held-out prediction error needs no noise model: experiments are
-split into folds; for each candidate lengthscale the GP is fitted on the other folds (output scale and noise still by
-marginal likelihood), the corrected model is integrated from each held-out experiment's first observed state over its
-own times, and the squared differences from its observed states are summed. The known model alone (no correction)
-is scored the same way: when no candidate beats it, :func:`fit_correction` warns that the data do not support a
-correction.
+(``scripts/study_observations.py``). Modelling the correlation with the GP in time's posterior covariance did not fix
+it (its bias is not in that covariance). The held-out prediction error needs no noise model: experiments are split
+into folds; for each candidate lengthscale the GP is fitted on the other folds, the corrected model is integrated
+from each held-out experiment's first observed state over its own times, and the squared differences from its
+observed states are summed. The known model alone (no correction) is scored the same way: when the best candidate
+does not beat it by :data:`SIGNIFICANCE` standard errors (paired, per experiment, on log error ratios),
+:func:`fit_correction` warns
+that the data do not support a correction. To keep the cost at one marginal-likelihood fit per candidate, each
+candidate's output scale and noise are fitted once on all samples and the folds only refit the posterior.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from .observations import CorrectionSamples, _check_trajectories_and_system, cor
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
 
-__all__ = ["LENGTHSCALE_GRID", "CrossValidation", "cross_validate_lengthscale", "fit_correction"]
+__all__ = ["LENGTHSCALE_GRID", "SIGNIFICANCE", "CrossValidation", "cross_validate_lengthscale", "fit_correction"]
 
 #: Candidate lengthscales of the cross-validation, as multiples of the median distance between the samples' inputs
 #: (the marginal-likelihood lengthscale is always added to them).
@@ -65,6 +67,8 @@ class CrossValidation:
         baseline: the same score of the known model alone (no correction).
         best: the chosen lengthscale (smallest score).
         folds: the number of folds.
+        gains: ``(K,)`` per held-out experiment, ``log`` of the known model's squared error over the best
+            candidate's (positive: the correction helps on that experiment).
     """
 
     lengthscales: tuple[float, ...]
@@ -72,26 +76,44 @@ class CrossValidation:
     baseline: float
     best: float
     folds: int
+    gains: tuple[float, ...] = ()
 
     @property
     def improves(self) -> bool:
         """Whether the best candidate predicts held-out experiments better than the known model alone."""
         return min(self.scores) < self.baseline
 
+    @property
+    def significant(self) -> bool:
+        """Whether the best candidate beats the known model by more than :data:`SIGNIFICANCE` standard errors, in a
+        paired comparison over the held-out experiments of the log ratio of their errors (log ratios, because the
+        experiments' errors differ by orders of magnitude): the evidence that the correction helps at all."""
+        n = len(self.gains)
+        if n < 2 or not self.improves:
+            return False
+        mean = sum(self.gains) / n
+        var = sum((g - mean) ** 2 for g in self.gains) / (n - 1)
+        return mean > SIGNIFICANCE * math.sqrt(var / n)
 
-def _held_out_error(system: MisspecifiedSystem, gp: CorrectionGP | None, trajectories: Trajectories) -> float:
-    """Sum of squared errors of the (corrected) model from each experiment's first observed state."""
+
+#: Standard errors by which the cross-validated correction must beat the known model for :func:`fit_correction`
+#: not to warn.
+SIGNIFICANCE = 2.0
+
+
+def _held_out_errors(system: MisspecifiedSystem, gp: CorrectionGP | None, trajectories: Trajectories) -> torch.Tensor:
+    """``(K,)`` sums of squared errors of the (corrected) model from each experiment's first observed state."""
     rtol, atol = FITTING_TOLERANCES
-    total = 0.0
-    for _, group in trajectories.by_length():
+    out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
+    for idx, group in trajectories.by_length():
         if gp is None:
             pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
             pred = pred.states
         else:
             ode = CorrectedODE(system, gp)
             pred = ode.predict(group.initial_conditions, group.times, rtol=rtol, atol=atol, max_steps=_CV_MAX_STEPS)
-        total += float((pred - group.states).pow(2).sum())
-    return total
+        out[idx] = (pred - group.states).pow(2).sum(dim=(1, 2)).detach().cpu().to(torch.float64)
+    return out
 
 
 @adaptive_threads()
@@ -164,29 +186,38 @@ def cross_validate_lengthscale(
         if not lengthscales or not all(math.isfinite(v) and v > 0 for v in lengthscales):
             raise InputError(f"lengthscales: expected positive numbers, got {lengthscales}")
     experiment = samples.experiment
-    scores = []
+    fold_of = [k % folds for k in range(K)]
+    scores, per_experiment = [], []
     for ell in lengthscales:
-        total = 0.0
-        for f in range(folds):
-            held = [k for k in range(K) if k % folds == f]
-            keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
-            noise = None if samples.noise is None else samples.noise[keep]
-            try:
-                with warnings.catch_warnings():  # scoring: a candidate's numerical warnings are not the user's
-                    warnings.simplefilter("ignore", NumericalWarning)
-                    fold_gp = CorrectionGP(lengthscale=ell, **options).fit(
+        errors = torch.full((K,), math.inf, dtype=torch.float64)
+        try:
+            with warnings.catch_warnings():  # scoring: a candidate's numerical warnings are not the user's
+                warnings.simplefilter("ignore", NumericalWarning)
+                # the output scale and noise by marginal likelihood once on all samples; the folds refit only the
+                # posterior (one factorization each)
+                full = CorrectionGP(lengthscale=ell, **options).fit(samples)
+                fixed = dict(options, outputscale=float(full.outputscale), noise_variance=float(full.noise_variance))
+                for f in range(folds):
+                    held = [k for k in range(K) if fold_of[k] == f]
+                    keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
+                    noise = None if samples.noise is None else samples.noise[keep]
+                    fold_gp = CorrectionGP(lengthscale=ell, **fixed).fit(
                         samples.inputs[keep], samples.targets[keep], noise=noise
                     )
-                    total += _held_out_error(system, fold_gp, trajectories[held])
-            except (IntegrationError, FittingError, LinearAlgebraError):
-                total = math.inf
-                break
-        scores.append(total)
-    baseline = sum(
-        _held_out_error(system, None, trajectories[[k for k in range(K) if k % folds == f]]) for f in range(folds)
-    )
-    best = lengthscales[min(range(len(scores)), key=scores.__getitem__)]
-    return CrossValidation(tuple(lengthscales), tuple(scores), baseline, best, folds)
+                    errors[held] = _held_out_errors(system, fold_gp, trajectories[held])
+        except (IntegrationError, FittingError, LinearAlgebraError):
+            errors.fill_(math.inf)
+        scores.append(float(errors.sum()))
+        per_experiment.append(errors)
+    base = torch.empty(K, dtype=torch.float64)
+    for f in range(folds):
+        held = [k for k in range(K) if fold_of[k] == f]
+        base[held] = _held_out_errors(system, None, trajectories[held])
+    i = min(range(len(scores)), key=scores.__getitem__)
+    tiny = torch.finfo(torch.float64).tiny
+    ratio = base.clamp_min(tiny) / per_experiment[i].clamp_min(tiny)
+    gains = tuple(ratio.log().tolist()) if math.isfinite(scores[i]) else ()
+    return CrossValidation(tuple(lengthscales), tuple(scores), float(base.sum()), lengthscales[i], folds, gains)
 
 
 @adaptive_threads()
@@ -211,9 +242,10 @@ def fit_correction(
     3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE.
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
-    experiments better than the known model alone: the data do not support a correction (too few experiments, or
-    a correction smaller than the measurement noise can reveal). Cross-validation falls back to the marginal
-    likelihood when there are fewer than 2 experiments or the kernel has no lengthscale.
+    experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
+    not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).
+    Cross-validation falls back to the marginal likelihood when there are fewer than 2 experiments or the kernel has
+    no lengthscale.
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
@@ -248,12 +280,13 @@ def fit_correction(
     if lengthscale == "cv" and can_cv:
         cv = cross_validate_lengthscale(system, trajectories, samples, gp=template, folds=folds)
         chosen = cv.best if math.isfinite(min(cv.scores)) else None
-        if not cv.improves:
+        if not cv.significant:
             warn(
-                f"fit_correction: no corrected model predicts held-out experiments better than the known model alone "
-                f"(best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a correction, {cv.folds} "
-                "folds): the data do not support a correction. Collect more experiments, sample the states more "
-                "densely or with less noise, or check the known model",
+                f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
+                f"known model alone (best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a "
+                f"correction, {cv.folds} folds; required: a gain of {SIGNIFICANCE:g} standard errors over the "
+                f"{len(cv.gains) or trajectories.num_experiments} experiments): the data do not support a correction. "
+                "Collect more experiments, sample the states more densely or with less noise, or check the known model",
                 TorchMisspecWarning,
             )
     elif number:
