@@ -40,7 +40,10 @@ import warnings
 
 import torch
 
-import torchmisspec as tms
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _machine import cpu_model  # noqa: E402 (the scripts' shared helper)
+
+import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import uniform_box
 from torchmisspec.gp import _mll
 
@@ -57,17 +60,6 @@ EXACT_CHOLESKY_SIZE = 10**5
 
 
 # --------------------------------------------------------------------------------------------------- helpers
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _memory_gb() -> float | None:
     try:
         with open("/proc/meminfo") as fh:
@@ -88,7 +80,7 @@ def _load() -> list[float]:
 
 def _machine() -> dict:
     return {
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "logical_cpus": os.cpu_count(),
         "memory_gb": _memory_gb(),
         "torch_threads": torch.get_num_threads(),

@@ -26,14 +26,17 @@ import json
 import os
 import platform
 import re
-import subprocess
+import sys
 import time
 import warnings
 from pathlib import Path
 
 import torch
 
-import torchmisspec as tms
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import cpu_model, git  # noqa: E402 (the scripts' shared helper)
+
+import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import orbits
 from torchmisspec.metrics import mean_and_standard_error
 from torchmisspec.paper import _setup as paper
@@ -118,25 +121,10 @@ def study(cfg: dict, log=print) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------- reporting
-def _git(*args) -> str | None:
-    try:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     return {
-        "git_commit": _git("rev-parse", "--short", "HEAD"),
-        "cpu": cpu,
+        "git_commit": git("rev-parse", "--short", "HEAD"),
+        "cpu": cpu_model(),
         "logical_cpus": os.cpu_count(),
         "python": platform.python_version(),
         "torch": torch.__version__,

@@ -39,7 +39,10 @@ from pathlib import Path
 
 import torch
 
-import torchmisspec as tms
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import cpu_model, git  # noqa: E402 (the scripts' shared helper)
+
+import torchmisspec as tms  # noqa: E402
 from torchmisspec.metrics import mean_and_standard_error
 from torchmisspec.observations import ESTIMATOR_ERROR_THRESHOLD, choose_derivative
 from torchmisspec.paper import _setup as paper_setup
@@ -564,34 +567,12 @@ def _pct(level: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- markdown
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _git(*args: str) -> str | None:
-    """Read-only git query (the library version the run used), None outside a checkout."""
-    import subprocess
-
-    try:
-        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10, check=True)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip()
-
-
 def machine() -> dict:
-    status = _git("status", "--porcelain", "--", "torchmisspec")
+    status = git("status", "--porcelain", "--", "torchmisspec")
     return {
-        "git_commit": _git("rev-parse", "--short", "HEAD"),
+        "git_commit": git("rev-parse", "--short", "HEAD"),
         "library_modified": None if status is None else bool(status),
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "logical_cpus": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),

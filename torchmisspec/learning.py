@@ -116,6 +116,20 @@ def _held_out_errors(system: MisspecifiedSystem, gp: CorrectionGP | None, trajec
     return out
 
 
+def _settings(template: CorrectionGP) -> dict:
+    """The constructor arguments of ``template`` except the lengthscale (the kernel, fixed values, dtype...)."""
+    return dict(
+        kernel=template.kernel,
+        degree=template.degree,
+        per_output=template.per_output,
+        outputscale=template.fixed["outputscale"],
+        noise_variance=template.fixed["noise_variance"],
+        max_iter=template.max_iter,
+        dtype=template.dtype,
+        device=template.device,
+    )
+
+
 @adaptive_threads()
 def cross_validate_lengthscale(
     system: MisspecifiedSystem,
@@ -162,14 +176,7 @@ def cross_validate_lengthscale(
             f"samples: expected the correction samples of these {K} experiments ({trajectories.num_samples} samples), "
             f"got {len(samples)} samples of {int(samples.experiment.max()) + 1} experiments"
         )
-    options = dict(
-        kernel=template.kernel,
-        outputscale=template.fixed["outputscale"],
-        noise_variance=template.fixed["noise_variance"],
-        max_iter=template.max_iter,
-        dtype=template.dtype,
-        device=template.device,
-    )
+    options = _settings(template)
     if lengthscales is None:
         X = samples.inputs
         sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
@@ -259,16 +266,7 @@ def fit_correction(
     if not (number or lengthscale in ("cv", "ml")) or (number and not (math.isfinite(lengthscale) and lengthscale > 0)):
         raise InputError(f"lengthscale: expected 'cv', 'ml' or a positive number, got {lengthscale!r}")
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
-    options = dict(
-        kernel=template.kernel,
-        degree=template.degree,
-        per_output=template.per_output,
-        outputscale=template.fixed["outputscale"],
-        noise_variance=template.fixed["noise_variance"],
-        max_iter=template.max_iter,
-        dtype=template.dtype,
-        device=template.device,
-    )
+    options = _settings(template)
     cv = None
     chosen = template.fixed["lengthscale"]
     can_cv = (
