@@ -46,8 +46,20 @@ def test_a_blowing_up_fit_stops_with_an_integration_error(problem):
     system, traj, _ = problem
     x = system.select_inputs(traj.states).reshape(-1, 2)
     wild = tms.CorrectionGP(lengthscale=1.0, outputscale=1e6, noise_variance=1e-4).fit(x, 1e4 * x.pow(2))
-    with pytest.raises(tms.IntegrationError):
-        tms.fit_trajectories(wild, system, traj, max_steps=200)
+    for shooting in ("single", "multiple"):  # the starting correction blows up: nothing to fall back on
+        with pytest.raises(tms.IntegrationError):
+            tms.fit_trajectories(wild, system, traj, max_steps=20, shooting=shooting)
+
+
+def test_a_trial_step_that_blows_up_keeps_the_best_iterate(problem):
+    """The start integrates (200 steps are enough), a line-search trial does not: the fit stops with a warning and
+    returns the best correction found instead of failing."""
+    system, traj, _ = problem
+    x = system.select_inputs(traj.states).reshape(-1, 2)
+    wild = tms.CorrectionGP(lengthscale=1.0, outputscale=1e6, noise_variance=1e-4).fit(x, 1e4 * x.pow(2))
+    with pytest.warns(tms.TorchMisspecWarning, match=r"a trial step of the optimiser made the corrected ODE blow up"):
+        refined = tms.fit_trajectories(wild, system, traj, max_steps=200)
+    assert refined.is_fitted and bool(torch.isfinite(refined.train_targets_).all())
 
 
 def test_bad_input(problem):

@@ -9,17 +9,27 @@ result is again a :class:`CorrectionGP` that :class:`~torchmisspec.CorrectedODE`
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import torch
 
-from ._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError
+from ._errors import (
+    FittingError,
+    InputError,
+    IntegrationError,
+    LinearAlgebraError,
+    NotFittedError,
+    ShapeError,
+    TorchMisspecWarning,
+    warn,
+)
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
 from .data import Trajectories
 from .gp import CorrectionGP
-from .gp._optim import maximise
+from .gp._optim import OptimResult, maximise
 from .observations import GP_MIN_SAMPLES, _check_trajectories_and_system, _gp_time
 from .systems import MisspecifiedSystem
 
@@ -218,9 +228,20 @@ def fit_trajectories(
         s2 = (sq0.reshape(-1, d).mean(0)).clamp_min(1e-12 * float(trajectories.flat_states().pow(2).mean()))
     sd = s2.sqrt()
 
+    best = {"value": -math.inf, "params": None, "evaluations": 0}
+
     def evaluate():
-        sq, prior = squares(z, offsets)
+        try:
+            sq, prior = squares(z, offsets)
+        except IntegrationError:
+            if best["params"] is None:  # the starting correction itself blows up: nothing to fall back on
+                raise
+            raise _TrialDiverged from None
         objective = -((sq.reshape(-1, d) / s2).sum() / 2 + prior)  # the log posterior, up to a constant
+        value = float(objective.detach())
+        best["evaluations"] += 1
+        if math.isfinite(value) and value > best["value"]:
+            best["value"], best["params"] = value, [p.detach().clone() for p in params]
         return objective.detach(), objective
 
     try:
@@ -234,6 +255,18 @@ def fit_trajectories(
         )
     except LinearAlgebraError as exc:
         raise FittingError(f"fit_trajectories failed: {exc}") from exc
+    except _TrialDiverged:
+        # a line-search trial drove the corrected ODE into a blow-up or a stiff region: keep the best iterate
+        with torch.no_grad():
+            for p, value in zip(params, best["params"], strict=True):
+                p.copy_(value)
+        result = OptimResult(0, best["evaluations"], best["value"])
+        warn(
+            "fit_trajectories: a trial step of the optimiser made the corrected ODE blow up (or stall); the fit "
+            f"stopped there and returns the best correction found ({best['evaluations']} evaluations). Give "
+            "state_noise=... (a larger noise weakens the pull of the data) or fewer max_iter",
+            TorchMisspecWarning,
+        )
     if not all(bool(torch.isfinite(p).all()) for p in params):
         raise FittingError("fit_trajectories diverged: the pseudo-targets became non-finite; give state_noise=...")
     refined = gp.fixed_copy().fit(X, z.detach() * scale, noise=noise)
@@ -242,6 +275,10 @@ def fit_trajectories(
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
     return refined
+
+
+class _TrialDiverged(Exception):
+    """A line-search trial of the trajectory fit made the ODE blow up (caught inside fit_trajectories)."""
 
 
 def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> torch.Tensor | None:
