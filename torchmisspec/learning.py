@@ -38,12 +38,12 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
-from ._ode import FITTING_TOLERANCES
+from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._validation import check_positive_int
 from .data import Trajectories, simulate
-from .dynamics import CorrectedODE
 from .gp import CorrectionGP
+from .gp._paths import kernel_hyperparameters, kernel_matrix
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
@@ -101,19 +101,48 @@ class CrossValidation:
 SIGNIFICANCE = 2.0
 
 
-def _held_out_errors(system: MisspecifiedSystem, gp: CorrectionGP | None, trajectories: Trajectories) -> torch.Tensor:
-    """``(K,)`` sums of squared errors of the (corrected) model from each experiment's first observed state."""
+def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, field=None) -> torch.Tensor:
+    """``(K,)`` sums of squared errors of a model from each experiment's first observed state over its own times.
+
+    ``field(y, rows)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each experiment may
+    have its own model: the folds of the cross-validation); ``None``: the known model G alone. One batched solve per
+    group of equal-length experiments."""
     rtol, atol = FITTING_TOLERANCES
     out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
     for idx, group in trajectories.by_length():
-        if gp is None:
+        if field is None:
             pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
             pred = pred.states
         else:
-            ode = CorrectedODE(system, gp)
-            pred = ode.predict(group.initial_conditions, group.times, rtol=rtol, atol=atol, max_steps=_CV_MAX_STEPS)
+            rows = torch.tensor(idx, device=group.device)
+            pred, _ = solve(
+                lambda y, rows=rows: field(y, rows),
+                group.initial_conditions,
+                group.times,
+                rtol=rtol,
+                atol=atol,
+                max_steps=_CV_MAX_STEPS,
+                what="cross-validation",
+            )
         out[idx] = (pred - group.states).pow(2).sum(dim=(1, 2)).detach().cpu().to(torch.float64)
     return out
+
+
+def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tensor, fold_of: torch.Tensor):
+    """G(y) + the posterior mean of the GP fitted without experiment k's fold, for the rows of experiments k.
+
+    The fold models share the kernel and the training inputs X (a held-out sample enters with weight 0), so each
+    is ``k(x, X) alpha_f``: ``alphas (folds, N, d_out)``, ``fold_of (K,)``."""
+    params = {k: v.detach() for k, v in kernel_hyperparameters(gp).items()}
+    X = gp.train_inputs_
+
+    def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        x = system.select_inputs(y)
+        Kx = kernel_matrix(gp.kernel, x, X, params, gp.degree)[0]  # (B, N)
+        mu = (Kx.unsqueeze(1) @ alphas[fold_of[rows]]).squeeze(1)  # (B, d_out)
+        return system.known_rhs(y) + system.embed(mu)
+
+    return field
 
 
 def _settings(template: CorrectionGP) -> dict:
@@ -204,6 +233,7 @@ def cross_validate_lengthscale(
                 # posterior (one factorization each)
                 full = CorrectionGP(lengthscale=ell, **options).fit(samples)
                 fixed = dict(options, outputscale=float(full.outputscale), noise_variance=float(full.noise_variance))
+                alphas = torch.zeros((folds, *samples.targets.shape), dtype=full.dtype, device=full.device)
                 for f in range(folds):
                     held = [k for k in range(K) if fold_of[k] == f]
                     keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
@@ -211,15 +241,16 @@ def cross_validate_lengthscale(
                     fold_gp = CorrectionGP(lengthscale=ell, **fixed).fit(
                         samples.inputs[keep], samples.targets[keep], noise=noise
                     )
-                    errors[held] = _held_out_errors(system, fold_gp, trajectories[held])
+                    alpha = fold_gp._posterior_cache().fac.alpha  # (1, N_f, d_out) or (d_out, N_f, 1)
+                    alphas[f, keep] = alpha[0] if alpha.shape[0] == 1 else alpha[..., 0].T
+                # every fold's held-out experiments in one batched solve
+                folds_t = torch.tensor(fold_of, device=full.device)
+                errors = _held_out_errors(system, trajectories, _fold_field(system, full, alphas, folds_t))
         except (IntegrationError, FittingError, LinearAlgebraError):
             errors.fill_(math.inf)
         scores.append(float(errors.sum()))
         per_experiment.append(errors)
-    base = torch.empty(K, dtype=torch.float64)
-    for f in range(folds):
-        held = [k for k in range(K) if fold_of[k] == f]
-        base[held] = _held_out_errors(system, None, trajectories[held])
+    base = _held_out_errors(system, trajectories)
     i = min(range(len(scores)), key=scores.__getitem__)
     tiny = torch.finfo(torch.float64).tiny
     ratio = base.clamp_min(tiny) / per_experiment[i].clamp_min(tiny)
