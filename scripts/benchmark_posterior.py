@@ -1,0 +1,186 @@
+"""Costs of issues 9 and 10 measured in one run, written as a block of BENCHMARKS.md.
+
+* Issue 10: ``CorrectedODE.posterior`` with 1,000 initial conditions x 64 draws x 61 times on paper_linear (GP on 440
+  samples: 40 trajectories x 11 times, oracle noise std 1e-2) against the mean-only ``predict`` on the same 1,000
+  initial conditions (target: at most 20x its time); both timed in this process, medians of ``--repeats``.
+* Issue 9: ``derivative="gp"`` on 40 experiments x 21 times (target < 1 s), ``fit_trajectories`` (single shooting,
+  the default) and ``fit_correction`` (cross-validated lengthscale) on the same data with 1 % state noise (target
+  for fit_trajectories < 30 s).
+
+Usage::
+
+    python scripts/benchmark_posterior.py --markdown      # writes the block of BENCHMARKS.md
+    python scripts/benchmark_posterior.py --smoke         # tiny sizes, prints only
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import cpu_model, git  # noqa: E402 (the scripts' shared helper)
+
+import torchmisspec as tms  # noqa: E402
+from torchmisspec.design.candidates import uniform_box  # noqa: E402
+from torchmisspec.observations import gp_derivative  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
+MARK_START = "<!-- study:costs:start -->"
+MARK_END = "<!-- study:costs:end -->"
+DT = torch.float64
+
+
+def timed(fn, repeats: int):
+    out, times = None, []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return out, statistics.median(times), times
+
+
+def posterior_cost(smoke: bool, repeats: int) -> dict:
+    system = tms.systems.paper_linear()
+    gen = torch.Generator().manual_seed(0)
+    train = tms.simulate(system, uniform_box(40, system.domain, generator=gen), torch.linspace(0, 6, 11, dtype=DT))
+    samples = tms.correction_samples(train, system, derivative="oracle", noise_std=1e-2, generator=gen)
+    gp = tms.CorrectionGP().fit(samples)
+    n_ic, S = (50, 8) if smoke else (1000, 64)
+    y0 = uniform_box(n_ic, system.domain, generator=gen)
+    times = torch.linspace(0, 6, 61, dtype=DT)
+    ode = tms.CorrectedODE(system, gp)
+    ode.predict(y0[:2], times)  # warm-up
+    _, t_mean, all_mean = timed(lambda: ode.predict(y0, times), repeats)
+    nfe_mean = ode.nfe
+    post, t_post, all_post = timed(
+        lambda: ode.posterior(y0, times, num_samples=S, generator=torch.Generator().manual_seed(1)), repeats
+    )
+    return {
+        "initial_conditions": n_ic,
+        "draws": S,
+        "times": times.numel(),
+        "train_samples": samples.inputs.shape[0],
+        "features": gp.sample_functions(1).features.num_features,
+        "mean_seconds": t_mean,
+        "mean_all": all_mean,
+        "mean_rhs_evaluations": nfe_mean,
+        "posterior_seconds": t_post,
+        "posterior_all": all_post,
+        "posterior_rhs_evaluations": ode.nfe,
+        "ratio": t_post / t_mean,
+    }
+
+
+def realdata_cost(smoke: bool, repeats: int) -> dict:
+    system = tms.systems.paper_linear()
+    gen = torch.Generator().manual_seed(0)
+    K, T = (8, 11) if smoke else (40, 21)
+    times = torch.linspace(0.0, 6.0, T, dtype=DT)
+    clean = tms.simulate(system, uniform_box(K, system.domain, generator=gen), times)
+    rms = clean.states.pow(2).mean(dim=(0, 1)).sqrt()
+    noisy = tms.Trajectories(
+        times, clean.states + 0.01 * rms * torch.randn(clean.states.shape, generator=gen, dtype=DT)
+    )
+    gp_derivative(noisy.states[:2], times)  # warm-up
+    _, t_gp, all_gp = timed(lambda: gp_derivative(noisy.states, times), repeats)
+    fitted, t_cv, all_cv = timed(lambda: tms.fit_correction(noisy, system), 1 if smoke else repeats)
+    refined, t_fit, all_fit = timed(lambda: tms.fit_trajectories(fitted, system, noisy), 1 if smoke else repeats)
+    return {
+        "experiments": K,
+        "times": T,
+        "gp_seconds": t_gp,
+        "gp_all": all_gp,
+        "fit_correction_seconds": t_cv,
+        "fit_correction_all": all_cv,
+        "fit_trajectories_seconds": t_fit,
+        "fit_trajectories_all": all_fit,
+        "iterations": refined.n_iterations_,
+        "evaluations": refined.n_evaluations_,
+    }
+
+
+def block(r: dict, p: dict, info: dict, command: str) -> str:
+    ok = "met" if p["ratio"] <= 20 else "**not met**"
+    lines = [
+        MARK_START,
+        "## Costs of predictions with bands (issue 10) and of learning from states (issue 9)",
+        "",
+        f"Written by `{command}` on {info['cpu']}, {info['cpus']} logical CPUs, torch {info['torch']}, "
+        f"{info['threads']} torch threads, commit {info['commit']}; load average before the run {info['load']}. "
+        "Medians of the repeats listed.",
+        "",
+        "| what | wall time (median) | repeats (s) | right-hand-side evaluations |",
+        "|---|---|---|---|",
+        f"| `predict`, {p['initial_conditions']} initial conditions x {p['times']} times (GP on {p['train_samples']} "
+        f"samples) | {p['mean_seconds']:.3f} s | {', '.join(f'{x:.3f}' for x in p['mean_all'])} | "
+        f"{p['mean_rhs_evaluations']} |",
+        f"| `posterior`, the same x {p['draws']} draws ({p['features']} features per draw) | "
+        f"{p['posterior_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in p['posterior_all'])} | "
+        f"{p['posterior_rhs_evaluations']} |",
+        f"| `gp_derivative`, {r['experiments']} experiments x {r['times']} times | {r['gp_seconds']:.3f} s | "
+        f"{', '.join(f'{x:.3f}' for x in r['gp_all'])} | |",
+        f"| `fit_correction` (cross-validated lengthscale), same data, 1 % state noise | "
+        f"{r['fit_correction_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in r['fit_correction_all'])} | |",
+        f"| `fit_trajectories` (single shooting) from it | {r['fit_trajectories_seconds']:.2f} s | "
+        f"{', '.join(f'{x:.2f}' for x in r['fit_trajectories_all'])} | {r['evaluations']} objective evaluations, "
+        f"{r['iterations']} L-BFGS iterations |",
+        "",
+        f"- posterior / predict: **{p['ratio']:.1f}x** (target: at most 20x: {ok}). Each draw is evaluated exactly "
+        f"at every state of its path: the posterior mean's kernel row against all {p['train_samples']} training "
+        f"inputs plus {p['features']} prior features, for {p['draws']} times as many states as `predict`.",
+        f"- `gp_derivative` target < 1 s: {'met' if r['gp_seconds'] < 1 else '**not met**'}; `fit_trajectories` "
+        f"target < 30 s: {'met' if r['fit_trajectories_seconds'] < 30 else '**not met**'}.",
+        MARK_END,
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def replace_block(text: str, new: str) -> str:
+    pattern = re.compile(re.escape(MARK_START) + r".*?" + re.escape(MARK_END) + r"\n?", re.S)
+    if pattern.search(text):
+        return pattern.sub(lambda _: new, text, count=1)
+    return text.rstrip("\n") + "\n\n" + new
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes BENCHMARKS.md")
+    parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    if args.smoke and args.markdown:
+        parser.error("--smoke never writes BENCHMARKS.md")
+    load = os.getloadavg() if hasattr(os, "getloadavg") else ()
+    repeats = 1 if args.smoke else args.repeats
+    p = posterior_cost(args.smoke, repeats)
+    r = realdata_cost(args.smoke, repeats)
+    info = {
+        "cpu": cpu_model(),
+        "cpus": os.cpu_count(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "commit": git("rev-parse", "--short", "HEAD"),
+        "load": " / ".join(f"{x:.2f}" for x in load),
+        "python": platform.python_version(),
+    }
+    command = "python scripts/benchmark_posterior.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = block(r, p, info, command.strip())
+    print(text)
+    if args.markdown:
+        BENCHMARKS_MD.write_text(replace_block(BENCHMARKS_MD.read_text(), text))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
