@@ -148,3 +148,33 @@ def test_bad_arguments(data):
     samples = gp.sample_functions(3, num_features=8)
     with pytest.raises(tms.ShapeError, match=r"x: expected \(M, 2\) or \(3, M, 2\) inputs, got \(4, 5, 2\)"):
         samples(torch.zeros(4, 5, 2, dtype=DT))
+
+
+@pytest.mark.parametrize("kernel", ["rbf", "matern52"])
+def test_compressed_update_stays_within_its_certified_bound(data, kernel):
+    _, _, Xs = data
+    g = torch.Generator().manual_seed(9)
+    X = torch.rand(300, 2, generator=g, dtype=DT) * 2 - 1  # dense: far fewer basis points are needed
+    Y = torch.stack([torch.sin(2 * X[:, 0]) * X[:, 1], X[:, 0] ** 2], -1) + 0.05 * torch.randn(
+        300, 2, generator=g, dtype=DT
+    )
+    gp = tms.CorrectionGP(kernel=kernel).fit(X, Y)
+    exact = gp.sample_functions(64, num_features=64, generator=torch.Generator().manual_seed(4))
+    points = torch.cat([Xs, X[:5], 3 * Xs])  # at the data, between, and far away
+    sd = float(gp.outputscale) ** 0.5
+    compressed = 0
+    for target in (1e-1, 1e-2, 1e-3, 1e-5):
+        small = gp.sample_functions(
+            64, num_features=64, generator=torch.Generator().manual_seed(4), update_error=target
+        )
+        diff = float((small(points) - exact(points)).abs().max())
+        if small.update_error > 0:  # compressed: within the requested bound, and the bound holds
+            compressed += 1
+            assert small.update_error <= target * sd and small._X.shape[0] < X.shape[0]
+            assert diff <= small.update_error
+        else:  # the bound cannot be certified with fewer points: the exact basis is kept
+            assert small._X.shape[0] == X.shape[0] and diff == 0.0
+    # the RBF's eigenvalues decay fast: 56 of 300 points certify 1e-2 (measured); Matern 5/2's decay slowly
+    assert compressed >= (2 if kernel == "rbf" else 1)
+    with pytest.raises(tms.InputError, match="update_error"):
+        gp.sample_functions(2, update_error=-1.0)

@@ -16,7 +16,12 @@ from ._validation import as_tensor, check_positive_int, check_real
 from .gp import CorrectionGP
 from .systems import MisspecifiedSystem
 
-__all__ = ["SUPPORT_THRESHOLD", "CorrectedODE", "TrajectoryPosterior"]
+__all__ = ["SUPPORT_THRESHOLD", "UPDATE_ERROR", "CorrectedODE", "TrajectoryPosterior"]
+
+
+#: Default ``update_error`` of :meth:`CorrectedODE.posterior`: a certified bound of 0.1 % of the prior standard
+#: deviation on the compression of the draws' update (far below any posterior standard deviation it is added to).
+UPDATE_ERROR = 1e-3
 
 
 class CorrectedODE(nn.Module):
@@ -137,6 +142,7 @@ class CorrectedODE(nn.Module):
         generator: torch.Generator | None = None,
         num_features: int | None = None,
         feature_error: float | None = None,
+        update_error: float | None = UPDATE_ERROR,
         method: str = "dopri5",
         rtol: float = PREDICTION_TOLERANCES[0],
         atol: float = PREDICTION_TOLERANCES[1],
@@ -164,6 +170,9 @@ class CorrectedODE(nn.Module):
             num_samples: S >= 1 posterior draws of F.
             generator: ``torch.Generator`` on the GP's device, for reproducible draws.
             num_features / feature_error: the prior features of the draws (see ``sample_functions``).
+            update_error: the draws' update is compressed onto a subset of the training inputs with a certified bound
+                of ``update_error`` times the prior standard deviation on the change (default :data:`UPDATE_ERROR`;
+                ``None``: exact); ``posterior.update_error`` is the bound reached.
             method, rtol, atol, options, max_steps: the solver settings, as for :meth:`predict`.
             support_threshold: the extrapolation threshold in (0, 1].
 
@@ -190,7 +199,9 @@ class CorrectedODE(nn.Module):
         )
         B, d = y0.shape
         S = num_samples
-        draws = self.gp.sample_functions(S, num_features=num_features, feature_error=feature_error, generator=generator)
+        draws = self.gp.sample_functions(
+            S, num_features=num_features, feature_error=feature_error, generator=generator, update_error=update_error
+        )
         mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         system = self.system
 
@@ -233,6 +244,7 @@ class CorrectedODE(nn.Module):
             support=support,
             extrapolating=extrapolating,
             threshold=threshold,
+            update_error=draws.update_error,
         )
 
     def _support(self, states: torch.Tensor) -> torch.Tensor:
@@ -269,6 +281,7 @@ class TrajectoryPosterior:
             data; near 1: the prior alone).
         extrapolating: ``(B,)`` paths whose support ratio exceeds ``threshold`` somewhere.
         threshold: the extrapolation threshold used.
+        update_error: the certified bound on the compression of the draws' update (0: exact).
     """
 
     times: torch.Tensor
@@ -277,6 +290,7 @@ class TrajectoryPosterior:
     support: torch.Tensor
     extrapolating: torch.Tensor
     threshold: float
+    update_error: float = 0.0
 
     @property
     def num_samples(self) -> int:

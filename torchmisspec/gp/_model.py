@@ -756,6 +756,7 @@ class CorrectionGP:
         num_features: int | None = None,
         feature_error: float | None = None,
         generator: torch.Generator | None = None,
+        update_error: float | None = None,
     ):
         """``S`` posterior draws of F as whole functions (pathwise conditioning), consistent wherever evaluated.
 
@@ -770,6 +771,9 @@ class CorrectionGP:
             num_features: number of random Fourier features (even), instead of the bound ``feature_error``.
             feature_error: relative RMS bound on the prior-covariance error that chooses the features.
             generator: ``torch.Generator`` on the GP's device, for reproducible draws.
+            update_error: compress the update onto the fewest training inputs that keep a certified bound of
+                ``update_error`` times the prior standard deviation on the change of every draw at any point
+                (shared RBF / Matern kernels; ``None``: the exact canonical basis). Makes long paths cheaper.
 
         Returns:
             :class:`~torchmisspec.gp._paths.FunctionSamples`: ``samples(x)`` maps ``(M, d_in)`` or ``(S, M, d_in)``
@@ -781,7 +785,9 @@ class CorrectionGP:
         num_samples = check_positive_int(num_samples, "num_samples")
         generator = _check_generator(generator, self.device)
         features = feature_map(self, num_features=num_features, feature_error=feature_error, generator=generator)
-        return FunctionSamples(self, num_samples, features, generator)
+        if update_error is not None:
+            update_error = check_real(update_error, "update_error", positive=True)
+        return FunctionSamples(self, num_samples, features, generator, update_error)
 
     # ------------------------------------------------------------------------------------------ hyperparameters
     def _value(self, name: str, t: torch.Tensor) -> float | torch.Tensor | None:

@@ -209,12 +209,19 @@ class FunctionSamples:
     factorization is reused (one triangular solve pair for all draws). The draws are frozen: later changes to the
     GP do not affect them.
 
+    With ``update_error`` (a fraction of the prior standard deviation), the update ``k(x, X) v_s`` is replaced by its
+    projection on the fewest training inputs that keep a *certified* bound ``update_error * s`` on the change at any
+    point (see :meth:`_compress`); ``samples.update_error`` holds the bound reached (0: exact basis).
+
     Attributes:
         num_samples: S.
         features: the :class:`FeatureMap` of the prior draws.
+        update_error: the certified bound on the compression's error in F (0 when not compressed).
     """
 
-    def __init__(self, gp, num_samples: int, features: FeatureMap, generator=None) -> None:
+    def __init__(
+        self, gp, num_samples: int, features: FeatureMap, generator=None, update_error: float | None = None
+    ) -> None:
         cache = gp._posterior_cache()
         X, Y, noise = gp.train_inputs_, gp.train_targets_, gp.train_noise_
         S = num_samples
@@ -242,10 +249,81 @@ class FunctionSamples:
         self._v = v.contiguous()
         self._per_output = gp.per_output
         self._d_out = d_out
+        #: certified bound on |update - exact update| at any point (0: the exact canonical basis is used)
+        self.update_error = 0.0
+        if update_error is not None and chol.shape[0] == 1 and gp.kernel != "polynomial":
+            with torch.no_grad():
+                self._compress(float(update_error) * math.sqrt(float(self._params["outputscale"].reshape(-1)[0])))
+
+    def _compress(self, target: float) -> None:
+        """Replace the update ``k(x, X) v_s`` by its RKHS projection ``k(x, Z) u_s`` on a subset Z of X.
+
+        Z grows by greedy pivoted Cholesky of K(X, X) (the point with the largest residual variance next) until the
+        bound holds for every draw and output: ``|k(x, X) v - k(x, Z) u| <= k(x, x)^(1/2) ||r||_H`` (Cauchy-Schwarz
+        in the RKHS), with ``||r||_H^2 = v^T (K - K_XZ K_ZZ^-1 K_ZX) v`` computed from the explicit residual (no
+        cancellation). ``u = K_ZZ^-1 K_ZX v`` is the orthogonal projection. For stationary kernels
+        ``k(x, x)^(1/2)`` is the prior standard deviation, so ``target`` is an absolute bound on F.
+        """
+        X, v = self._X, self._v  # (N, d_in), (S, N, d_out)
+        N = X.shape[0]
+        K = kernel_matrix(self._kind, X, X, self._params, self._degree)[0]
+        scale = math.sqrt(float(self._params["outputscale"].reshape(-1)[0]))
+        V = v.permute(1, 0, 2).reshape(N, -1)  # (N, S d_out)
+        resid = K.diagonal().clone()
+        L = torch.zeros((N, 0), dtype=K.dtype, device=K.device)
+        pivots: list[int] = []
+        bound = math.inf
+        step = 8
+        while len(pivots) < N:
+            new_cols = []
+            for _ in range(min(step, N - len(pivots))):
+                i = int(resid.argmax())
+                if float(resid[i]) <= 0.0:
+                    break
+                col = K[:, i] - L @ L[i] if L.shape[1] else K[:, i].clone()
+                if new_cols:
+                    prev = torch.stack(new_cols, -1)
+                    col = col - prev @ prev[i]
+                col = col / math.sqrt(float(resid[i]))
+                new_cols.append(col)
+                resid = (resid - col.pow(2)).clamp_min(0.0)
+                resid[i] = 0.0
+                pivots.append(i)
+            if not new_cols:
+                break
+            L = torch.cat([L, torch.stack(new_cols, -1)], -1)
+            R = K - L @ L.T  # the Nystrom residual, small entries: no cancellation in v^T R v
+            # plus the rounding of R itself (|delta R_ij| <= N eps max K), so that a tiny residual is not over-trusted
+            rounding = N * torch.finfo(K.dtype).eps * float(K.abs().max()) * V.pow(2).sum(0)
+            bound = scale * float(((V * (R @ V)).sum(0).clamp_min(0.0) + rounding).max().sqrt())
+            if bound <= target:
+                break
+            step = min(2 * step, 64)
+        if len(pivots) >= N or not math.isfinite(bound) or bound > target:
+            return  # no compression pays off: keep the exact canonical basis
+        # u = K_ZZ^-1 K_ZX v with K_ZZ = L_Z L_Z^T and K_ZX = L_Z L^T (the pivoted factor reproduces both), so
+        # u = L_Z^-T L^T v: one triangular solve with L_Z (condition number the square root of K_ZZ's)
+        LZ = L[pivots].tril()
+        u = torch.linalg.solve_triangular(LZ.T, L.T @ V, upper=True)  # (M, S d_out)
+        # a posteriori check at the training inputs: rounding in u must not break the bound
+        seen = float((K[:, pivots] @ u - K @ V).abs().max())
+        if not seen <= bound:
+            return
+        u = u.reshape(len(pivots), v.shape[0], v.shape[2]).permute(1, 0, 2)
+        self._X, self._v, self.update_error = X[pivots], u.contiguous(), bound
 
     @staticmethod
     def _prior(features: FeatureMap, weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """Prior draws ``phi(x)^T w`` at ``x (S, M, d_in)``: ``(S, M, d_out)``."""
+        if features.kind == "fourier" and features._t["omega"].shape[0] == 1:
+            # the hot path of sampled trajectories: no concatenated feature matrix, the scale folded into w
+            omega, scale = features._t["omega"][0], features._t["scale"].reshape(())
+            D = omega.shape[-1]
+            proj = x @ omega  # (S, M, D)
+            w = weights[:, 0] * scale  # (S, 2D, d_out)
+            out = torch.bmm(proj.cos(), w[:, :D])
+            sin = proj.sin() if proj.requires_grad else proj.sin_()  # in place unless autograd needs proj
+            return torch.baddbmm(out, sin, w[:, D:])
         phi = features(x)  # (B, S, M, F)
         if phi.shape[0] == 1:
             return phi[0] @ weights[:, 0]  # (S, M, F) @ (S, F, d_out)
