@@ -820,10 +820,51 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--systems", nargs="+", choices=[c.name for c in CASES], help="only these systems")
     parser.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="JSON",
+        help="do not run: join the JSONs of full runs on disjoint --systems (run in parallel processes) into one "
+        "result, written to --json (default the study's JSON) and, with --markdown, to the pages",
+    )
+    parser.add_argument(
         "--from-json",
         help="do not run: recompute the summary from this JSON of a full run and rewrite the pages (with --markdown)",
     )
     args = parser.parse_args(argv)
+    if args.merge:
+        parts = [_from_json(json.loads(Path(f).read_text())) for f in args.merge]
+        if any(p["smoke"] for p in parts):
+            parser.error("--merge: the JSONs must come from full runs, not --smoke")
+        names = [c["name"] for p in parts for c in p["config"]["systems"]]
+        if len(set(names)) != len(names):
+            parser.error(f"--merge: expected runs on disjoint systems, got {names}")
+        keys = [k for k in parts[0]["config"] if k != "systems"]
+        if any(p["config"][k] != parts[0]["config"][k] for p in parts for k in keys):
+            parser.error("--merge: the runs used different settings (config differs besides the systems)")
+        order = [c.name for c in CASES]
+        systems = sorted((c for p in parts for c in p["config"]["systems"]), key=lambda c: order.index(c["name"]))
+        raw = {
+            "runs": [r for p in parts for r in p["raw"]["runs"]],
+            "oracle_runs": [r for p in parts for r in p["raw"]["oracle_runs"]],
+            "test_sets": {k: v for p in parts for k, v in p["raw"]["test_sets"].items()},
+        }
+        result = dict(parts[0], raw=raw, config=dict(parts[0]["config"], systems=systems))
+        result["command"] = (
+            " ; ".join(p["command"] for p in parts)
+            + " (in parallel), then "
+            + ("python scripts/study_observations.py --merge " + " ".join(args.merge))
+        )
+        result["wall_seconds"] = max(p["wall_seconds"] for p in parts)
+        cfg = result["config"]
+        cases = [c for c in CASES if c.name in {x["name"] for x in systems}]
+        result["summary"] = summarise(raw, cases, cfg["ks"], cfg["noise_levels"], cfg["oracle_k"])
+        print(summary_table(result))
+        print(goal_lines(result))
+        json_path = Path(args.json) if args.json else DEFAULT_JSON
+        json_path.write_text(json.dumps(_finite_json(result), indent=1, allow_nan=False) + "\n")
+        if args.markdown:
+            write_markdown(result)
+        return 0
     if args.from_json:
         result = _from_json(json.loads(Path(args.from_json).read_text()))
         if result["smoke"]:
