@@ -47,6 +47,9 @@ def check_learn_and_predict(ns: dict) -> None:
     # the quality of the samples"
     assert ns["corrected"].shape == (10, 61, 2)
     assert ns["rmse_central"] < ns["rmse_corrected"] < ns["rmse_misspecified"]
+    # "Uncertainty bands": shapes as stated, and the band covers a fraction of the true states
+    assert ns["bands"].samples.shape == (64, 10, 61, 2) and ns["lower"].shape == (10, 61, 2)
+    assert 0.0 <= float(ns["inside"]) <= 1.0
 
 
 def check_design(ns: dict) -> None:
