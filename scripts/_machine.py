@@ -28,3 +28,14 @@ def git(*args: str) -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip()
+
+
+def replace_marked(text: str, block: str, start: str, end: str) -> str:
+    """``text`` with the block between the markers ``start`` ... ``end`` (markers included) replaced by ``block``,
+    or ``block`` appended when the markers are absent (how the scripts keep their sections of BENCHMARKS.md)."""
+    import re
+
+    pattern = re.compile(re.escape(start) + r".*?" + re.escape(end) + r"\n?", re.S)
+    if pattern.search(text):
+        return pattern.sub(lambda _: block, text, count=1)
+    return text.rstrip("\n") + "\n\n" + block

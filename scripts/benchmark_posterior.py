@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import statistics
 import sys
 import time
@@ -27,7 +26,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_model, git  # noqa: E402 (the scripts' shared helper)
+from _machine import cpu_model, git, replace_marked  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import uniform_box  # noqa: E402
@@ -149,11 +148,9 @@ def block(r: dict, p: dict, info: dict, command: str) -> str:
     return "\n".join(lines)
 
 
-def replace_block(text: str, new: str) -> str:
-    pattern = re.compile(re.escape(MARK_START) + r".*?" + re.escape(MARK_END) + r"\n?", re.S)
-    if pattern.search(text):
-        return pattern.sub(lambda _: new, text, count=1)
-    return text.rstrip("\n") + "\n\n" + new
+def replace_block(text: str, block: str) -> str:
+    """Replace this script's block of BENCHMARKS.md (markers included), or append it."""
+    return replace_marked(text, block, MARK_START, MARK_END)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import platform
-import re
 import sys
 import time
 import warnings
@@ -34,7 +33,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_model, git  # noqa: E402 (the scripts' shared helper)
+from _machine import cpu_model, git, replace_marked  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import orbits
@@ -208,10 +207,8 @@ def figure(result: dict, path: Path) -> None:
 
 
 def replace_block(text: str, block: str) -> str:
-    pattern = re.compile(re.escape(MARK_START) + r".*?" + re.escape(MARK_END) + r"\n?", re.S)
-    if pattern.search(text):
-        return pattern.sub(lambda _: block, text, count=1)
-    return text.rstrip("\n") + "\n\n" + block
+    """Replace this script's block of BENCHMARKS.md (markers included), or append it."""
+    return replace_marked(text, block, MARK_START, MARK_END)
 
 
 def main(argv: list[str] | None = None) -> int:

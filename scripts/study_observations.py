@@ -30,7 +30,6 @@ import json
 import math
 import os
 import platform
-import re
 import sys
 import time
 import warnings
@@ -40,7 +39,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_model, git  # noqa: E402 (the scripts' shared helper)
+from _machine import cpu_model, git, replace_marked  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.metrics import mean_and_standard_error
@@ -759,11 +758,8 @@ Integrated error of F_hat on paper_linear:
 
 
 def replace_block(text: str, block: str) -> str:
-    """Replace what is between the study markers (markers included) or append the block."""
-    pattern = re.compile(re.escape(MARK_START) + r".*?" + re.escape(MARK_END) + r"\n?", re.S)
-    if pattern.search(text):
-        return pattern.sub(lambda _: block, text, count=1)
-    return text.rstrip("\n") + "\n\n" + block
+    """Replace this script's block of BENCHMARKS.md (markers included), or append it."""
+    return replace_marked(text, block, MARK_START, MARK_END)
 
 
 # ------------------------------------------------------------------------------------------------- main
