@@ -196,7 +196,7 @@ def fit_trajectories(
         starts, times, ends = _intervals(trajectories)
         n_obs = ends.numel()
 
-        def squares(zv, _):
+        def squares(zv, off, sd):  # noqa: ARG001 - the same signature as single shooting's
             field, prior = field_and_prior(zv)
             pred, _ = solve(field, starts, times, **solver)
             return (pred[:, -1] - ends).pow(2), prior
@@ -209,11 +209,11 @@ def fit_trajectories(
         n_obs = trajectories.num_samples * d
         offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
 
-        def squares(zv, off):
+        def squares(zv, off, sd):
             field, prior = field_and_prior(zv)
             parts = []
             for idx, group in groups:
-                y0 = first[idx] + off[idx] * sd
+                y0 = first[idx] if off is None else first[idx] + off[idx] * sd
                 pred, _ = solve(field, y0, group.times, **solver)
                 parts.append((pred - group.states).pow(2).reshape(-1, d))
             return torch.cat(parts), prior
@@ -222,9 +222,8 @@ def fit_trajectories(
 
     s2 = _state_noise(state_noise, trajectories, d, kd)
     if s2 is None:  # too few samples for the GP in time: balance the terms at the start
-        sd = torch.ones(d, **kd)  # (placeholder for the offsets' units while the start is measured)
         with torch.no_grad():
-            sq0, _ = squares(z.detach(), None if offsets is None else offsets.detach())
+            sq0, _ = squares(z.detach(), None, None)  # the start: the observed initial states
         s2 = (sq0.reshape(-1, d).mean(0)).clamp_min(1e-12 * float(trajectories.flat_states().pow(2).mean()))
     sd = s2.sqrt()
 
@@ -232,7 +231,7 @@ def fit_trajectories(
 
     def evaluate():
         try:
-            sq, prior = squares(z, offsets)
+            sq, prior = squares(z, offsets, sd)
         except IntegrationError:
             if best["params"] is None:  # the starting correction itself blows up: nothing to fall back on
                 raise

@@ -187,13 +187,11 @@ def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, deg
     if kind == "polynomial":
         return s2 * (params["offset"] + x @ X.T).pow(degree)
     ell = params["lengthscale"]
-    if kind == "rbf" and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
+    if kind == "rbf" and ell.numel() == 1 and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
         # the hot path of sampled trajectories: one fused pass per operation, in place (no temporaries)
-        a = x / ell.reshape(-1)[0] if ell.numel() == 1 else None
-        if a is not None:
-            b = X / ell.reshape(-1)[0]
-            sq = torch.addmm(a.pow(2).sum(-1, keepdim=True) + b.pow(2).sum(-1), a, b.T, alpha=-2.0)
-            return sq.clamp_min_(0.0).mul_(-0.5).exp_().mul_(s2.reshape(-1)[0]).unsqueeze(0)
+        a, b = x / ell.reshape(()), X / ell.reshape(())
+        sq = torch.addmm(a.pow(2).sum(-1, keepdim=True) + b.pow(2).sum(-1), a, b.T, alpha=-2.0)
+        return sq.clamp_min_(0.0).mul_(-0.5).exp_().mul_(s2.reshape(())).unsqueeze(0)
     sq = (x.pow(2).sum(-1, keepdim=True) + X.pow(2).sum(-1) - 2.0 * (x @ X.T)).clamp_min(0.0) / ell.pow(2)
     if kind == "rbf":
         return s2 * torch.exp(-0.5 * sq)
