@@ -35,7 +35,7 @@ from ._errors import (
 from .data import Trajectories, simulate
 from .dynamics import CorrectedODE, TrajectoryPosterior
 from .gp import CorrectionGP, GPPosterior
-from .learning import fit_correction
+from .learning import cross_validate, fit_correction
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
 from .systems import MisspecifiedSystem
@@ -68,6 +68,7 @@ __all__ = [
     "Trajectories",
     "correction_error",
     "correction_samples",
+    "cross_validate",
     "design",
     "finite_difference",
     "fit_correction",

@@ -333,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument(
         "--kernel",
         default="rbf",
-        choices=["rbf", "matern52", "polynomial"],
+        choices=["rbf", "matern52", "polynomial", "features"],
         help="GP kernel of the correction (default: rbf)",
     )
     fit.add_argument(
@@ -349,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--outputscale", type=float, help="fix the kernel output scale (default: learned)")
     fit.add_argument("--noise-variance", type=float, help="fix the samples' noise variance (default: learned)")
-    fit.add_argument("--degree", type=int, default=2, help="polynomial kernel order (default: 2)")
+    fit.add_argument("--degree", type=int, default=2, help="polynomial order or feature degree (default: 2)")
     fit.add_argument("--out", default="model.pt", help="output model file, .pt (default: %(default)s)")
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
     fit.set_defaults(func=_fit)
@@ -383,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument(
         "--kernel",
         default="rbf",
-        choices=["rbf", "matern52", "polynomial"],
+        choices=["rbf", "matern52", "polynomial", "features"],
         help="GP kernel of the correction (default: rbf)",
     )
     des.add_argument("--lengthscale", type=float, default=1.0, help="kernel lengthscale l (default: 1.0)")
@@ -394,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=1e-4,
         help="variance of the noise on the correction samples (default: 1e-4)",
     )
-    des.add_argument("--degree", type=int, default=2, help="polynomial kernel order (default: 2)")
+    des.add_argument("--degree", type=int, default=2, help="polynomial order or feature degree (default: 2)")
     des.add_argument(
         "--method",
         default="lazy",

@@ -23,6 +23,7 @@ candidate's output scale and noise are fitted once on all samples and the folds 
 
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 from dataclasses import dataclass
@@ -48,35 +49,56 @@ from .observations import CorrectionSamples, _check_trajectories_and_system, cor
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
 
-__all__ = ["LENGTHSCALE_GRID", "SIGNIFICANCE", "CrossValidation", "cross_validate_lengthscale", "fit_correction"]
+__all__ = [
+    "FEATURE_DEGREE",
+    "LENGTHSCALE_GRID",
+    "SIGNIFICANCE",
+    "CrossValidation",
+    "cross_validate",
+    "cross_validate_lengthscale",
+    "default_candidates",
+    "fit_correction",
+    "lengthscale_candidates",
+]
 
 #: Candidate lengthscales of the cross-validation, as multiples of the median distance between the samples' inputs
 #: (the marginal-likelihood lengthscale is always added to them).
 LENGTHSCALE_GRID = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
+#: Highest degree of the monomials of the feature-kernel candidate of :func:`fit_correction`.
+FEATURE_DEGREE = 3
 #: Solver steps allowed for one held-out prediction (a candidate whose prediction blows up scores infinity).
 _CV_MAX_STEPS = 2000
 
 
 @dataclass(frozen=True)
 class CrossValidation:
-    """The scores of :func:`cross_validate_lengthscale`.
+    """The scores of :func:`cross_validate` (and :func:`cross_validate_lengthscale`).
 
     Attributes:
-        lengthscales: the candidates, in increasing order.
+        candidates: a label per candidate model (e.g. ``"rbf lengthscale=0.35"``, ``"features degree=3"``).
+        lengthscales: each candidate's lengthscale (``None`` for kernels without one).
         scores: held-out sum of squared state errors of each candidate (``inf`` when a fit or a prediction failed).
         baseline: the same score of the known model alone (no correction).
-        best: the chosen lengthscale (smallest score).
+        best: the label of the chosen candidate (smallest score).
         folds: the number of folds.
         gains: ``(K,)`` per held-out experiment, ``log`` of the known model's squared error over the best
             candidate's (positive: the correction helps on that experiment).
+        index: the position of the chosen candidate.
     """
 
-    lengthscales: tuple[float, ...]
+    candidates: tuple[str, ...]
+    lengthscales: tuple[float | None, ...]
     scores: tuple[float, ...]
     baseline: float
-    best: float
+    best: str
     folds: int
     gains: tuple[float, ...] = ()
+    index: int = 0
+
+    @property
+    def best_lengthscale(self) -> float | None:
+        """The chosen candidate's lengthscale (``None`` for a kernel without one)."""
+        return self.lengthscales[self.index]
 
     @property
     def improves(self) -> bool:
@@ -132,14 +154,18 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
     """G(y) + the posterior mean of the GP fitted without experiment k's fold, for the rows of experiments k.
 
     The fold models share the kernel and the training inputs X (a held-out sample enters with weight 0), so each
-    is ``k(x, X) alpha_f``: ``alphas (folds, N, d_out)``, ``fold_of (K,)``."""
+    is ``k(x, X) alpha_f``: ``alphas (folds, N, d_out)``, ``fold_of (K,)``; one kernel or one per output."""
     params = {k: v.detach() for k, v in kernel_hyperparameters(gp).items()}
     X = gp.train_inputs_
 
     def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         x = system.select_inputs(y)
-        Kx = kernel_matrix(gp.kernel, x, X, params, gp.degree)[0]  # (B, N)
-        mu = (Kx.unsqueeze(1) @ alphas[fold_of[rows]]).squeeze(1)  # (B, d_out)
+        Kx = kernel_matrix(gp.kernel, x, X, params, gp.degree)  # (1 or d_out, B, N)
+        a = alphas[fold_of[rows]]  # (B, N, d_out)
+        if Kx.shape[0] == 1:
+            mu = (Kx[0].unsqueeze(1) @ a).squeeze(1)  # (B, d_out)
+        else:
+            mu = torch.einsum("obn,bno->bo", Kx, a)
         return system.known_rhs(y) + system.embed(mu)
 
     return field
@@ -159,7 +185,118 @@ def _settings(template: CorrectionGP) -> dict:
     )
 
 
+def _label(gp: CorrectionGP) -> str:
+    """A candidate's label: its kernel and what distinguishes it."""
+    if gp.kernel in ("rbf", "matern52"):
+        ell = gp.fixed["lengthscale"]
+        label = gp.kernel + ("" if ell is None else f" lengthscale={ell:.4g}")
+    else:
+        label = f"{gp.kernel} degree={gp.degree}"
+    return label + (" per_output" if gp.per_output else "")
+
+
+def _check_cv_inputs(system, trajectories, samples, folds) -> int:
+    _check_trajectories_and_system(trajectories, system)
+    if not isinstance(samples, CorrectionSamples):
+        raise InputError(f"samples: expected CorrectionSamples, got {type(samples).__name__}")
+    K = trajectories.num_experiments
+    folds = check_positive_int(folds, "folds")
+    if K < 2 or folds < 2:
+        raise InputError(f"folds: cross-validation needs at least 2 experiments and 2 folds, got K={K}, folds={folds}")
+    if int(samples.experiment.max()) != K - 1 or len(samples) != trajectories.num_samples:
+        raise InputError(
+            f"samples: expected the correction samples of these {K} experiments ({trajectories.num_samples} samples), "
+            f"got {len(samples)} samples of {int(samples.experiment.max()) + 1} experiments"
+        )
+    return min(folds, K)
+
+
 @adaptive_threads()
+def cross_validate(
+    system: MisspecifiedSystem,
+    trajectories: Trajectories,
+    samples: CorrectionSamples,
+    candidates,
+    *,
+    folds: int = 5,
+) -> tuple[CrossValidation, list[CorrectionGP | None]]:
+    """Score candidate correction models by how well the corrected model predicts held-out experiments.
+
+    Each candidate (an unfitted :class:`CorrectionGP` template: any kernel, fixed values or not) is fitted once on
+    all samples (its hyperparameters by marginal likelihood); for each fold it is then conditioned
+    (:meth:`CorrectionGP.condition`, nothing re-learned) on the other folds' samples, and the corrected model is
+    integrated from each held-out experiment's first observed state over its own times (all folds' experiments in
+    one batched solve). The score is the sum of squared differences from the observed states.
+
+    Args:
+        system: the misspecified system.
+        trajectories: the observations the samples came from (experiment k of the samples is experiment k here).
+        samples: the correction samples (:func:`~torchmisspec.correction_samples`).
+        candidates: unfitted :class:`CorrectionGP` templates.
+        folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
+
+    Returns:
+        ``(CrossValidation, models)``: the scores, and each candidate fitted on all samples (``None`` where the fit
+        failed).
+    """
+    folds = _check_cv_inputs(system, trajectories, samples, folds)
+    candidates = list(candidates)
+    if not candidates or not all(isinstance(c, CorrectionGP) for c in candidates):
+        got = [type(c).__name__ for c in candidates]
+        raise InputError(f"candidates: expected a non-empty list of CorrectionGP templates, got {got}")
+    K = trajectories.num_experiments
+    experiment = samples.experiment
+    fold_of = [k % folds for k in range(K)]
+    folds_t = torch.tensor(fold_of, device=samples.inputs.device)
+    scores, per_experiment, models = [], [], []
+    for template in candidates:
+        errors = torch.full((K,), math.inf, dtype=torch.float64)
+        full = None
+        try:
+            with warnings.catch_warnings():  # scoring: a candidate's numerical warnings are not the user's
+                warnings.simplefilter("ignore", NumericalWarning)
+                full = copy.deepcopy(template).fit(samples)
+                alphas = torch.zeros((folds, *samples.targets.shape), dtype=full.dtype, device=full.device)
+                for f in range(folds):
+                    held = [k for k in range(K) if fold_of[k] == f]
+                    keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
+                    noise = None if samples.noise is None else samples.noise[keep]
+                    fold_gp = full.condition(samples.inputs[keep], samples.targets[keep], noise=noise)
+                    alpha = fold_gp._posterior_cache().fac.alpha  # (1, N_f, d_out) or (d_out, N_f, 1)
+                    alphas[f, keep] = alpha[0] if alpha.shape[0] == 1 else alpha[..., 0].T
+                errors = _held_out_errors(system, trajectories, _fold_field(system, full, alphas, folds_t))
+        except (IntegrationError, FittingError, LinearAlgebraError):
+            errors.fill_(math.inf)
+        scores.append(float(errors.sum()))
+        per_experiment.append(errors)
+        models.append(full)
+    base = _held_out_errors(system, trajectories)
+    i = min(range(len(scores)), key=scores.__getitem__)
+    tiny = torch.finfo(torch.float64).tiny
+    ratio = base.clamp_min(tiny) / per_experiment[i].clamp_min(tiny)
+    gains = tuple(ratio.log().tolist()) if math.isfinite(scores[i]) else ()
+    labels = tuple(_label(c) for c in candidates)
+    ells = tuple(c.fixed["lengthscale"] if c.kernel in ("rbf", "matern52") else None for c in candidates)
+    result = CrossValidation(labels, ells, tuple(scores), float(base.sum()), labels[i], folds, gains, i)
+    return result, models
+
+
+def lengthscale_candidates(samples: CorrectionSamples, template: CorrectionGP | None = None) -> list[float]:
+    """The default candidate lengthscales: :data:`LENGTHSCALE_GRID` times the median distance between the samples'
+    inputs, plus the marginal-likelihood lengthscale of ``template`` (default ``CorrectionGP()``) on all samples."""
+    template = CorrectionGP() if template is None else template
+    X = samples.inputs
+    sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
+    dist = torch.cdist(sub, sub)
+    scale = float(dist[dist > 0].median()) if bool((dist > 0).any()) else 1.0
+    candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
+    try:
+        candidates.add(round(float(CorrectionGP(**_settings(template)).fit(samples).lengthscale), 12))
+    except (FittingError, LinearAlgebraError):
+        pass
+    return sorted(candidates)
+
+
 def cross_validate_lengthscale(
     system: MisspecifiedSystem,
     trajectories: Trajectories,
@@ -169,93 +306,47 @@ def cross_validate_lengthscale(
     lengthscales=None,
     folds: int = 5,
 ) -> CrossValidation:
-    """Score candidate lengthscales by how well the corrected model predicts held-out experiments.
+    """Score candidate lengthscales of one kernel by how well the corrected model predicts held-out experiments
+    (:func:`cross_validate` over ``gp`` with each lengthscale fixed).
 
     Args:
         system: the misspecified system.
         trajectories: the observations the samples came from (experiment k of the samples is experiment k here).
         samples: the correction samples (:func:`~torchmisspec.correction_samples`).
-        gp: a template :class:`CorrectionGP` (kernel, fixed values; default ``CorrectionGP()``); its lengthscale
-            must not be fixed, and the polynomial kernel has none.
-        lengthscales: the candidates (default: :data:`LENGTHSCALE_GRID` times the median distance between the
-            samples' inputs, plus the marginal-likelihood lengthscale on all samples).
+        gp: a template :class:`CorrectionGP` (kernel, fixed values; default ``CorrectionGP()``): a shared RBF or
+            Matern kernel whose lengthscale is not fixed.
+        lengthscales: the candidates (default: :func:`lengthscale_candidates`).
         folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
 
     Returns:
         :class:`CrossValidation`.
     """
-    _check_trajectories_and_system(trajectories, system)
-    if not isinstance(samples, CorrectionSamples):
-        raise InputError(f"samples: expected CorrectionSamples, got {type(samples).__name__}")
+    folds = _check_cv_inputs(system, trajectories, samples, folds)
     template = CorrectionGP() if gp is None else gp
     if not isinstance(template, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
-    if template.kernel == "polynomial" or template.fixed["lengthscale"] is not None or template.per_output:
+    if template.kernel not in ("rbf", "matern52") or template.fixed["lengthscale"] is not None or template.per_output:
         raise InputError(
             "gp: cross-validation chooses the lengthscale of a shared RBF or Matern kernel; got kernel "
             f"{template.kernel!r}, lengthscale={template.fixed['lengthscale']}, per_output={template.per_output}"
         )
-    K = trajectories.num_experiments
-    folds = check_positive_int(folds, "folds")
-    if K < 2 or folds < 2:
-        raise InputError(f"folds: cross-validation needs at least 2 experiments and 2 folds, got K={K}, folds={folds}")
-    folds = min(folds, K)
-    if int(samples.experiment.max()) != K - 1 or len(samples) != trajectories.num_samples:
-        raise InputError(
-            f"samples: expected the correction samples of these {K} experiments ({trajectories.num_samples} samples), "
-            f"got {len(samples)} samples of {int(samples.experiment.max()) + 1} experiments"
-        )
-    options = _settings(template)
     if lengthscales is None:
-        X = samples.inputs
-        sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-        dist = torch.cdist(sub, sub)
-        scale = float(dist[dist > 0].median()) if bool((dist > 0).any()) else 1.0
-        candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
-        try:
-            candidates.add(round(float(CorrectionGP(**options).fit(samples).lengthscale), 12))
-        except (FittingError, LinearAlgebraError):
-            pass
-        lengthscales = sorted(candidates)
+        lengthscales = lengthscale_candidates(samples, template)
     else:
         lengthscales = sorted(float(v) for v in lengthscales)
         if not lengthscales or not all(math.isfinite(v) and v > 0 for v in lengthscales):
             raise InputError(f"lengthscales: expected positive numbers, got {lengthscales}")
-    experiment = samples.experiment
-    fold_of = [k % folds for k in range(K)]
-    scores, per_experiment = [], []
-    for ell in lengthscales:
-        errors = torch.full((K,), math.inf, dtype=torch.float64)
-        try:
-            with warnings.catch_warnings():  # scoring: a candidate's numerical warnings are not the user's
-                warnings.simplefilter("ignore", NumericalWarning)
-                # the output scale and noise by marginal likelihood once on all samples; the folds refit only the
-                # posterior (one factorization each)
-                full = CorrectionGP(lengthscale=ell, **options).fit(samples)
-                fixed = dict(options, outputscale=float(full.outputscale), noise_variance=float(full.noise_variance))
-                alphas = torch.zeros((folds, *samples.targets.shape), dtype=full.dtype, device=full.device)
-                for f in range(folds):
-                    held = [k for k in range(K) if fold_of[k] == f]
-                    keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
-                    noise = None if samples.noise is None else samples.noise[keep]
-                    fold_gp = CorrectionGP(lengthscale=ell, **fixed).fit(
-                        samples.inputs[keep], samples.targets[keep], noise=noise
-                    )
-                    alpha = fold_gp._posterior_cache().fac.alpha  # (1, N_f, d_out) or (d_out, N_f, 1)
-                    alphas[f, keep] = alpha[0] if alpha.shape[0] == 1 else alpha[..., 0].T
-                # every fold's held-out experiments in one batched solve
-                folds_t = torch.tensor(fold_of, device=full.device)
-                errors = _held_out_errors(system, trajectories, _fold_field(system, full, alphas, folds_t))
-        except (IntegrationError, FittingError, LinearAlgebraError):
-            errors.fill_(math.inf)
-        scores.append(float(errors.sum()))
-        per_experiment.append(errors)
-    base = _held_out_errors(system, trajectories)
-    i = min(range(len(scores)), key=scores.__getitem__)
-    tiny = torch.finfo(torch.float64).tiny
-    ratio = base.clamp_min(tiny) / per_experiment[i].clamp_min(tiny)
-    gains = tuple(ratio.log().tolist()) if math.isfinite(scores[i]) else ()
-    return CrossValidation(tuple(lengthscales), tuple(scores), float(base.sum()), lengthscales[i], folds, gains)
+    options = _settings(template)
+    candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscales]
+    return cross_validate(system, trajectories, samples, candidates, folds=folds)[0]
+
+
+def default_candidates(samples: CorrectionSamples) -> list[CorrectionGP]:
+    """The models :func:`fit_correction` chooses from by default: an RBF GP at each of
+    :func:`lengthscale_candidates`, and a feature kernel (monomials up to :data:`FEATURE_DEGREE`, one set of
+    relevance weights per output) whose evidence removes the terms the samples do not support."""
+    rbf = [CorrectionGP(lengthscale=ell) for ell in lengthscale_candidates(samples)]
+    return [*rbf, CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True)]
 
 
 @adaptive_threads()
@@ -264,26 +355,41 @@ def fit_correction(
     system: MisspecifiedSystem,
     *,
     gp: CorrectionGP | None = None,
+    candidates=None,
     derivative: str = "auto",
     lengthscale: str | float = "cv",
     folds: int = 5,
-    refine: bool = False,
+    refine: bool | None = None,
     **estimator,
 ) -> CorrectionGP:
-    """Learn the correction from observed states: samples, a GP with a cross-validated lengthscale, optionally refined.
+    """Learn the correction from observed states: samples, a GP chosen by cross-validation, optionally refined.
 
     1. ``samples = correction_samples(trajectories, system, derivative=derivative, **estimator)`` (its warning
        when the derivative estimator is unreliable applies);
-    2. the GP (``gp`` as a template: kernel and fixed values; default ``CorrectionGP()``) is fitted on the samples
-       with its lengthscale chosen by :func:`cross_validate_lengthscale` (``lengthscale="cv"``, default), by
-       marginal likelihood (``"ml"``), or given (a number); the output scale and the noise by marginal likelihood;
-    3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE.
+    2. a GP is fitted on the samples and chosen by :func:`cross_validate` on held-out experiments
+       (``lengthscale="cv"``, default) among
+
+       * with neither ``gp`` nor ``candidates`` given: :func:`default_candidates`, RBF kernels over a grid of
+         lengthscales and a feature kernel with automatic relevance (a sparse polynomial correction, which
+         extrapolates where a polynomial F is right);
+       * with a ``gp`` template of an RBF or Matern kernel with a free lengthscale: that kernel at each of
+         :func:`lengthscale_candidates`; any other template: that model alone (scored, for the warning below);
+       * ``candidates``: the given unfitted templates;
+
+       each candidate's other hyperparameters by marginal likelihood. With ``lengthscale="ml"`` the template
+       (default ``CorrectionGP()``) is fitted by marginal likelihood alone, with a number its lengthscale is fixed;
+    3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE; by default
+       (``refine=None``) exactly when the chosen model is a feature kernel, whose term weights are then re-learned
+       from the trajectories (the derivative estimator's bias shows up in the samples as spurious terms, which
+       the trajectories do not support).
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
     not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).
-    Cross-validation falls back to the marginal likelihood when there are fewer than 2 experiments or the kernel has
-    no lengthscale.
+    Cross-validation falls back to the marginal likelihood when there are fewer than 2 experiments.
+
+    Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and one batched solve of the
+    held-out experiments per candidate; about 13 candidates by default.
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
@@ -293,22 +399,30 @@ def fit_correction(
     template = CorrectionGP() if gp is None else gp
     if not isinstance(template, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
+    if candidates is not None and gp is not None:
+        raise InputError("candidates: pass either a gp template or a list of candidates, not both")
     number = isinstance(lengthscale, (int, float)) and not isinstance(lengthscale, bool)
     if not (number or lengthscale in ("cv", "ml")) or (number and not (math.isfinite(lengthscale) and lengthscale > 0)):
         raise InputError(f"lengthscale: expected 'cv', 'ml' or a positive number, got {lengthscale!r}")
+    if candidates is not None:
+        candidates = list(candidates)
+        if lengthscale != "cv":
+            raise InputError(f"candidates: are chosen by cross-validation (lengthscale='cv'), got {lengthscale!r}")
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
     options = _settings(template)
     cv = None
-    chosen = template.fixed["lengthscale"]
-    can_cv = (
-        template.kernel != "polynomial"
-        and chosen is None
-        and not template.per_output
-        and trajectories.num_experiments >= 2
-    )
-    if lengthscale == "cv" and can_cv:
-        cv = cross_validate_lengthscale(system, trajectories, samples, gp=template, folds=folds)
-        chosen = cv.best if math.isfinite(min(cv.scores)) else None
+    result = None
+    if lengthscale == "cv" and trajectories.num_experiments >= 2:
+        if candidates is None and gp is None:
+            candidates = default_candidates(samples)
+        elif candidates is None:
+            free = template.kernel in ("rbf", "matern52") and template.fixed["lengthscale"] is None
+            if free and not template.per_output:
+                candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscale_candidates(samples, gp)]
+            else:
+                candidates = [template]
+        cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds)
+        result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
@@ -318,10 +432,15 @@ def fit_correction(
                 "Collect more experiments, sample the states more densely or with less noise, or check the known model",
                 TorchMisspecWarning,
             )
-    elif number:
-        chosen = float(lengthscale)
-    given = {} if template.kernel == "polynomial" else {"lengthscale": chosen}
-    result = CorrectionGP(**given, **options).fit(samples)
+    if result is None:
+        given = {"lengthscale": float(lengthscale)} if number else {}
+        if given and template.kernel not in ("rbf", "matern52"):
+            raise InputError(f"lengthscale: the {template.kernel} kernel has no lengthscale, got {lengthscale!r}")
+        result = CorrectionGP(**{**options, **given}).fit(samples) if given else copy.deepcopy(template).fit(samples)
+        if gp is None and not given:
+            result = CorrectionGP(**options).fit(samples)
+    if refine is None:
+        refine = result.kernel == "features"
     if refine:
         result = fit_trajectories(result, system, trajectories)
     result.cross_validation_ = cv

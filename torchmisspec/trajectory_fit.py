@@ -97,8 +97,6 @@ def _check(gp, system, trajectories) -> None:
             f"gp: expected {system.input_dim} inputs and {system.output_dim} outputs (the system's correction), got "
             f"{gp.input_dim} and {gp.output_dim}"
         )
-    if gp.per_output:
-        raise InputError("gp: fit_trajectories supports the shared kernel only (per_output=False)")
 
 
 #: Names accepted by ``fit_trajectories(shooting=...)``.
@@ -118,6 +116,7 @@ def fit_trajectories(
     atol: float = FITTING_TOLERANCES[1],
     max_steps: int | None = None,
     progress: bool = False,
+    relevance: bool | None = None,
 ) -> CorrectionGP:
     """Refine a fitted correction so that the corrected ODE reproduces the observed states (shooting, MAP).
 
@@ -147,8 +146,8 @@ def fit_trajectories(
     The optimisation starts from the GP's own targets (e.g. a derivative-based fit).
 
     Args:
-        gp: a fitted shared-kernel :class:`CorrectionGP` (its training inputs should be the observed states'
-            correction inputs, as from :func:`~torchmisspec.correction_samples`).
+        gp: a fitted :class:`CorrectionGP`, any kernel, shared or per output (its training inputs should be the
+            observed states' correction inputs, as from :func:`~torchmisspec.correction_samples`).
         system: the misspecified system.
         trajectories: the observed states ``(K, T, d)``, or ragged (experiments of different lengths).
         shooting: ``"single"`` or ``"multiple"``.
@@ -159,6 +158,10 @@ def fit_trajectories(
         atol: absolute tolerance of the shooting solves.
         max_steps: step limit of each solve (an :class:`IntegrationError` stops a fit whose ODE blows up).
         progress: show a progress bar over the likelihood evaluations.
+        relevance: for the feature kernel (default ``True`` there): also re-estimate its term weights from the
+            trajectories (sparse Bayesian learning through the ODE, see :func:`_fit_relevance`): the terms the
+            observed states do not support are removed. What is then optimised are the coefficients of the terms
+            (and the initial states); the result's pseudo-targets reproduce the fitted coefficients exactly.
 
     Returns:
         a new fitted :class:`CorrectionGP` (hyperparameters fixed at ``gp``'s values) whose training targets are the
@@ -171,6 +174,9 @@ def fit_trajectories(
     if not isinstance(shooting, str) or shooting not in SHOOTING:
         raise InputError(f"shooting: expected one of {list(SHOOTING)}, got {shooting!r}")
     max_iter = check_positive_int(max_iter, "max_iter")
+    relevance = gp.kernel == "features" if relevance is None else bool(relevance)
+    if relevance and gp.kernel != "features":
+        raise InputError(f"relevance: re-estimating term weights needs the feature kernel, got kernel {gp.kernel!r}")
     trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
     d = trajectories.state_dim
     if min(trajectories.lengths) < 2:
@@ -178,60 +184,89 @@ def fit_trajectories(
             f"trajectories: expected at least 2 times per experiment to shoot between, got T = "
             f"{min(trajectories.lengths)}"
         )
+    solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="fit_trajectories")
+    residuals, n_obs, offsets = _shooting(trajectories, shooting, solver)
+    kd = dict(dtype=gp.dtype, device=gp.device)
+    s2 = _state_noise(state_noise, trajectories, d, kd)
+    if relevance:
+        return _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter)
     L = gp._posterior_cache().fac.chol  # (B, N, N), C = K + diag(known noise + floor), fixed
     X = gp.train_inputs_
     Y0 = gp.train_targets_.detach()
     scale = Y0.pow(2).mean().sqrt().clamp_min(torch.finfo(Y0.dtype).tiny)
     z = (Y0 / scale).contiguous().requires_grad_(True)  # optimised in units of the targets' RMS
     noise = gp.train_noise_  # known per-sample noise, part of C (None when there is none)
-    kd = dict(dtype=gp.dtype, device=gp.device)
 
     def field_and_prior(zv: torch.Tensor):
         Yhat = gp._targets_batched(zv * scale, noise)  # (1, N, d_out), or (d_out, N, 1) with per-output noise
         alpha = torch.cholesky_solve(Yhat, L)
         return _mean_field(gp, system, alpha), 0.5 * (Yhat * alpha).sum()
 
-    solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="fit_trajectories")
+    if s2 is None:  # too few samples for the GP in time: balance the terms at the start
+        s2 = _balanced_noise(residuals, field_and_prior(z.detach())[0], trajectories, d)
+    result = _maximise_posterior(
+        [z], offsets, field_and_prior, residuals, s2, n_obs, max_iter=max_iter, progress=progress, shooting=shooting
+    )
+    refined = gp.condition(X, z.detach() * scale, noise=noise)
+    refined.n_iterations_, refined.n_evaluations_ = result.iterations, result.evaluations
+    refined.state_noise_ = s2
+    if offsets is not None:
+        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2.sqrt()
+    return refined
+
+
+def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
+    """``residuals(field, off, sd)``: the state errors (prediction - observation) ``(n, d)`` of a right-hand side
+    ``field`` (single shooting: from the observed first states moved by ``off * sd``, its rows experiment after
+    experiment within each length group, ``residuals.experiment (n,)`` naming each row's experiment); the number of
+    observations compared; the initial-state offsets to optimise (single shooting) or ``None``."""
+    d = trajectories.state_dim
     if shooting == "multiple":
         starts, times, ends = _intervals(trajectories)
-        n_obs = ends.numel()
 
-        def squares(zv, off, sd):  # noqa: ARG001 - the same signature as single shooting's
-            field, prior = field_and_prior(zv)
+        def residuals(field, off, sd):  # noqa: ARG001 - the same signature as single shooting's
             pred, _ = solve(field, starts, times, **solver)
-            return (pred[:, -1] - ends).pow(2), prior
+            return pred[:, -1] - ends
 
-        params: list[torch.Tensor] = [z]
-        offsets = None
-    else:
-        groups = trajectories.by_length()
-        first = trajectories.initial_conditions  # (K, d)
-        n_obs = trajectories.num_samples * d
-        offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
+        residuals.experiment = None
+        return residuals, ends.numel(), None
+    groups = trajectories.by_length()
+    first = trajectories.initial_conditions  # (K, d)
+    offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
 
-        def squares(zv, off, sd):
-            field, prior = field_and_prior(zv)
-            parts = []
-            for idx, group in groups:
-                y0 = first[idx] if off is None else first[idx] + off[idx] * sd
-                pred, _ = solve(field, y0, group.times, **solver)
-                parts.append((pred - group.states).pow(2).reshape(-1, d))
-            return torch.cat(parts), prior
+    def residuals(field, off, sd):
+        parts = []
+        for idx, group in groups:
+            y0 = first[idx] if off is None else first[idx] + off[idx] * sd
+            pred, _ = solve(field, y0, group.times, **solver)
+            parts.append((pred - group.states).reshape(-1, d))
+        return torch.cat(parts)
 
-        params = [z, offsets]
+    residuals.experiment = torch.cat(
+        [torch.tensor(idx, device=first.device).repeat_interleave(group.num_times) for idx, group in groups]
+    )
+    return residuals, trajectories.num_samples * d, offsets
 
-    s2 = _state_noise(state_noise, trajectories, d, kd)
-    if s2 is None:  # too few samples for the GP in time: balance the terms at the start
-        with torch.no_grad():
-            sq0, _ = squares(z.detach(), None, None)  # the start: the observed initial states
-        s2 = (sq0.reshape(-1, d).mean(0)).clamp_min(1e-12 * float(trajectories.flat_states().pow(2).mean()))
+
+def _balanced_noise(residuals, field, trajectories: Trajectories, d: int) -> torch.Tensor:
+    """State-noise variances that balance data and prior at the start: the mean squared misfit per component."""
+    with torch.no_grad():
+        sq0 = residuals(field, None, None).pow(2)  # the start: the observed initial states
+    return sq0.reshape(-1, d).mean(0).clamp_min(1e-12 * float(trajectories.flat_states().pow(2).mean()))
+
+
+def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, *, max_iter, progress, shooting):
+    """L-BFGS on the log posterior ``-(sum squares / (2 s2) + prior)`` over ``params`` (and the offsets); a trial
+    step that blows up the ODE ends the fit at the best iterate, with a warning. The parameters hold the optimum."""
+    d = s2.shape[0]
     sd = s2.sqrt()
-
+    every = [*params] + ([] if offsets is None else [offsets])
     best = {"value": -math.inf, "params": None, "evaluations": 0}
 
     def evaluate():
         try:
-            sq, prior = squares(z, offsets, sd)
+            field, prior = field_and_prior(params[0])
+            sq = residuals(field, offsets, sd).pow(2)
         except IntegrationError:
             if best["params"] is None:  # the starting correction itself blows up: nothing to fall back on
                 raise
@@ -240,12 +275,12 @@ def fit_trajectories(
         value = float(objective.detach())
         best["evaluations"] += 1
         if math.isfinite(value) and value > best["value"]:
-            best["value"], best["params"] = value, [p.detach().clone() for p in params]
+            best["value"], best["params"] = value, [p.detach().clone() for p in every]
         return objective.detach(), objective
 
     try:
         result = maximise(
-            params,
+            every,
             evaluate,
             max_iter=max_iter,
             normaliser=float(n_obs),
@@ -257,7 +292,7 @@ def fit_trajectories(
     except _TrialDiverged:
         # a line-search trial drove the corrected ODE into a blow-up or a stiff region: keep the best iterate
         with torch.no_grad():
-            for p, value in zip(params, best["params"], strict=True):
+            for p, value in zip(every, best["params"], strict=True):
                 p.copy_(value)
         result = OptimResult(0, best["evaluations"], best["value"])
         warn(
@@ -266,14 +301,187 @@ def fit_trajectories(
             "state_noise=... (a larger noise weakens the pull of the data) or fewer max_iter",
             TorchMisspecWarning,
         )
-    if not all(bool(torch.isfinite(p).all()) for p in params):
-        raise FittingError("fit_trajectories diverged: the pseudo-targets became non-finite; give state_noise=...")
-    refined = gp.fixed_copy().fit(X, z.detach() * scale, noise=noise)
-    refined.n_iterations_, refined.n_evaluations_ = result.iterations, result.evaluations
+    if not all(bool(torch.isfinite(p).all()) for p in every):
+        raise FittingError("fit_trajectories diverged: the parameters became non-finite; give state_noise=...")
+    return result
+
+
+#: Most outer iterations (MAP, then a relevance update of the weights) of the feature kernel's trajectory fit.
+RELEVANCE_ROUNDS = 10
+#: L-BFGS iterations of the MAP in the rounds after the first (each starts from the previous optimum).
+_LATER_ITERATIONS = 10
+
+
+def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int):
+    """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
+
+    F(x) = sum_j beta_j phi_j(x) with beta_j ~ N(0, w_j). Each round (i) finds the MAP coefficients (and initial
+    states) under the current weights by L-BFGS, (ii) approximates their posterior by Laplace with the Gauss-Newton
+    Hessian of the state misfit (its Jacobian by central differences: every coefficient, and each state component
+    of all initial states at once, since experiments are independent), and (iii) updates the weights by MacKay's
+    rule w_j = sum_o beta_oj^2 / sum_o gamma_oj, gamma_oj = 1 - Sigma_oj / w_j (removing terms that fall below
+    :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle.
+    """
+    from .gp._features import PRUNE, monomials
+
+    d = trajectories.state_dim
+    base = gp.covar_module.base_kernel
+    powers = base.powers
+    X = gp.train_inputs_
+    Phi = monomials(X, powers)  # (N, p)
+    p = Phi.shape[1]
+    d_out = gp.output_dim
+    kd = dict(dtype=gp.dtype, device=gp.device)
+    scale = gp.covar_module.outputscale.detach().reshape(-1, 1)  # (B, 1)
+    W = (base.weights.detach().reshape(-1, p) * scale).T.expand(p, d_out).clone()  # (p, d_out) prior variances
+    shared = W.shape[1] > 1 and not gp.per_output
+    # the starting coefficients: the posterior mean of the current fit, beta = W Phi^T alpha
+    alpha = gp._posterior_cache().fac.alpha
+    alpha = alpha[0] if alpha.shape[0] == 1 else alpha[..., 0].T  # (N, d_out)
+    beta = W * (Phi.T @ alpha)
+    second = float(gp.train_targets_.pow(2).mean()) or 1.0
+    phi2 = Phi.pow(2).mean(0).unsqueeze(-1).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p, 1)
+    # every term starts active: the derivative samples may have removed a term the trajectories support (their
+    # estimator's bias is not the trajectories'); a removed term starts with an equal share of the samples' size
+    W = torch.where(W > 0, W, (second / (p * phi2)).expand_as(W))
+
+    def make_field(b):
+        def field(y):
+            x = system.select_inputs(y)
+            return system.known_rhs(y) + system.embed(monomials(x, powers) @ b)
+
+        return field
+
+    if s2 is None:
+        s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
+    sd = s2.sqrt()
+    iterations = evaluations = 0
+    for round_ in range(RELEVANCE_ROUNDS):
+        active = W > 0
+        if not bool(active.any()):
+            beta = torch.zeros_like(W)
+            break
+        root = W[active].sqrt()
+        u = (beta[active] / root).clone().requires_grad_(True)  # coefficients in units of their prior std
+
+        def field_and_prior(uv, active=active, root=root):
+            b = torch.zeros((p, d_out), **kd).index_put((active.nonzero(as_tuple=True)), uv * root)
+            return make_field(b), 0.5 * uv.pow(2).sum()
+
+        result = _maximise_posterior(
+            [u],
+            offsets,
+            field_and_prior,
+            residuals,
+            s2,
+            n_obs,
+            max_iter=max_iter if round_ == 0 else min(max_iter, _LATER_ITERATIONS),
+            progress=False,
+            shooting="relevance",
+        )
+        iterations += result.iterations
+        evaluations += result.evaluations
+        b_act = (u.detach() * root).clone()
+        beta = torch.zeros((p, d_out), **kd)
+        beta[active] = b_act
+        # Laplace: Gauss-Newton Hessian of the scaled misfit in (coefficients, initial-state offsets)
+        off = None if offsets is None else offsets.detach()
+        with torch.no_grad():
+            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd)
+            H = J_b.T @ J_b + torch.diag(1.0 / W[active])
+            if off is not None:  # the offsets' block: column j moves component j of every initial state
+                Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
+                Kx, dd = off.shape
+                Hbo = J_b.T @ Jo
+                Hoo = Jo.T @ Jo + torch.eye(Kx * dd, **kd)  # the offsets' prior N(0, 1) in units of sd
+                H = H - Hbo @ torch.linalg.solve(Hoo, Hbo.T)  # marginal over the offsets (Schur complement)
+            try:
+                Sigma = torch.linalg.inv(H).diagonal()
+            except torch.linalg.LinAlgError:
+                break
+            new = torch.zeros_like(W)
+            gam = (1.0 - Sigma / W[active]).clamp(1e-12, 1.0)
+            num = torch.zeros_like(W)
+            num[active] = b_act.pow(2)
+            den = torch.zeros_like(W)
+            den[active] = gam
+            if shared:  # one weight per term shared by the outputs
+                num = num.sum(1, keepdim=True).expand_as(W)
+                den = den.sum(1, keepdim=True).expand_as(W)
+            new[active] = num[active] / den[active].clamp_min(1e-12)
+            new[new * phi2 < PRUNE * second] = 0.0
+            both = (new > 0) & active
+            change = float((new[both].log() - W[both].log()).abs().max()) if bool(both.any()) else 0.0
+            settled = bool(((new > 0) == active).all()) and change < 1e-2
+            beta = beta * (new > 0)
+            W = new
+        if settled:
+            break
+    # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta
+    tmp = gp.condition(X, gp.train_targets_, noise=gp.train_noise_)
+    with torch.no_grad():
+        wt = (W.T / scale) if gp.per_output else (W[:, :1].T / scale)
+        tmp.covar_module.base_kernel.weights.copy_(wt.reshape(tmp.covar_module.base_kernel.weights.shape))
+        Yhat = _pseudo_targets(tmp, Phi, W, beta)
+    refined = tmp.condition(X, Yhat, noise=gp.train_noise_)
+    refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations
     refined.state_noise_ = s2
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
     return refined
+
+
+def _step(value: float, typical: float) -> float:
+    """A central-difference step for a parameter of size ``value`` among parameters of size ``typical``."""
+    return 1e-5 * max(abs(value), typical, 1e-12)
+
+
+def _coefficient_columns(residuals, make_field, beta, active, off, sd) -> torch.Tensor:
+    """``(n d, q)``: d (residual / s) / d beta over the active coefficients, by central differences."""
+    cols = []
+    typical = float(beta.abs().max()) * 1e-3
+    for i, o in active.nonzero(as_tuple=False).tolist():
+        h = _step(float(beta[i, o]), typical)
+        plus, minus = beta.clone(), beta.clone()
+        plus[i, o] += h
+        minus[i, o] -= h
+        diff = residuals(make_field(plus), off, sd) - residuals(make_field(minus), off, sd)
+        cols.append((diff / (2 * h) / sd).reshape(-1))
+    return torch.stack(cols, dim=-1)
+
+
+def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
+    """``(n d, K d)``: d (residual / s) / d offsets by central differences; experiments are independent, so moving
+    component j of every initial state at once gives each experiment's own column."""
+    rows = residuals.experiment  # (n,)
+    K, d = off.shape
+    n = rows.shape[0]
+    J = torch.zeros((n, d, K, d), dtype=off.dtype, device=off.device)
+    h = 1e-5
+    for j in range(d):
+        plus, minus = off.clone(), off.clone()
+        plus[:, j] += h
+        minus[:, j] -= h
+        delta = (residuals(field, plus, sd) - residuals(field, minus, sd)) / (2 * h) / sd  # (n, d)
+        J[torch.arange(n, device=off.device), :, rows, j] = delta
+    return J.reshape(n * d, K * d)
+
+
+def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
+    """Targets ``Y (N, d_out)`` whose posterior mean under ``gp`` (a feature kernel with prior variances ``W``) is
+    ``phi(x)^T beta``: with C the training covariance, ``Y_o = C Phi_a (Phi_a^T Phi_a)^-1 W_a^-1 beta_a`` over the
+    active terms a of output o (then ``W_a Phi_a^T C^-1 Y_o = beta_a``)."""
+    X = gp.train_inputs_
+    K, diag = gp._kernel_parts(X, gp.train_noise_)  # (B, N, N), (B, 1 or N)
+    C = K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
+    Y = torch.zeros((X.shape[0], beta.shape[1]), dtype=beta.dtype, device=beta.device)
+    for o in range(beta.shape[1]):
+        act = W[:, o] > 0
+        if not bool(act.any()):
+            continue
+        P = Phi[:, act]
+        Y[:, o] = C[o if C.shape[0] > 1 else 0] @ (P @ torch.linalg.solve(P.T @ P, beta[act, o] / W[act, o]))
+    return Y
 
 
 class _TrialDiverged(Exception):

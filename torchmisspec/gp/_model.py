@@ -28,6 +28,8 @@ the ExactGP view and the cached posterior still agree.
 
 from __future__ import annotations
 
+import copy
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,11 +41,14 @@ from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedErr
 from .._threads import adaptive_threads
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
+from ._features import FeatureKernel, Term, coefficient_posterior, fit_relevance, monomial_names
 from ._optim import maximise
 
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
-KERNELS = ("rbf", "matern52", "polynomial")
+KERNELS = ("rbf", "matern52", "polynomial", "features")
+#: Kernels without a lengthscale.
+_NO_LENGTHSCALE = ("polynomial", "features")
 #: smallest noise-to-output-scale ratio the profiled fit considers (relative, so the fit is scale-equivariant)
 _MIN_RATIO = 1e-12
 
@@ -131,15 +136,18 @@ class CorrectionGP:
     """Gaussian-process model of the correction F, trained by exact marginal likelihood.
 
     Args:
-        kernel: ``"rbf"`` (exp(-||y - y'||^2 / (2 l^2))), ``"matern52"``, or ``"polynomial"``
-            ((1 + <y, y'>)^degree, the paper's polynomial kernel); each scaled by ``outputscale``.
+        kernel: ``"rbf"`` (exp(-||y - y'||^2 / (2 l^2))), ``"matern52"``, ``"polynomial"``
+            ((1 + <y, y'>)^degree, the paper's polynomial kernel), or ``"features"`` (sum_j w_j y^a_j y'^a_j over
+            the monomials up to ``degree``, one learned weight per term: automatic relevance, see
+            :mod:`torchmisspec.gp._features`); each scaled by ``outputscale`` (fixed at 1 for ``"features"``,
+            whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
             here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
         outputscale: the kernel's variance factor.
         noise_variance: the variance of the observation noise on the samples of F.
         per_output: one set of hyperparameters per output (costs one factorization per output) instead of the
             paper's shared kernel.
-        degree: the polynomial kernel's order m.
+        degree: the polynomial kernel's order m; the highest total degree of the feature kernel's monomials.
         max_iter: most L-BFGS iterations when fitting.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
@@ -167,8 +175,10 @@ class CorrectionGP:
     ) -> None:
         if kernel not in KERNELS:
             raise InputError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
-        if kernel == "polynomial" and lengthscale is not None:
-            raise InputError("lengthscale: the polynomial kernel (1 + <y, y'>)^m has no lengthscale; pass None")
+        if kernel in _NO_LENGTHSCALE and lengthscale is not None:
+            raise InputError(f"lengthscale: the {kernel} kernel has no lengthscale; pass None")
+        if kernel == "features" and outputscale is None:
+            outputscale = 1.0  # the weights carry the scale
         degree = check_positive_int(degree, "degree")
         lengthscale, outputscale, noise_variance = (
             None if value is None else check_real(value, name, positive=True)
@@ -181,6 +191,7 @@ class CorrectionGP:
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
         self.kernel = kernel
+        self._d_in = 1  # the feature kernel's input dimension (set by fit)
         self.fixed = {
             "lengthscale": None if lengthscale is None else float(lengthscale),
             "outputscale": None if outputscale is None else float(outputscale),
@@ -234,6 +245,8 @@ class CorrectionGP:
             base = gpytorch.kernels.RBFKernel(batch_shape=shape, lengthscale_constraint=_log_positive())
         elif self.kernel == "matern52":
             base = gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=shape, lengthscale_constraint=_log_positive())
+        elif self.kernel == "features":
+            base = FeatureKernel(self._d_in, self.degree, batch_shape=shape)
         else:
             base = gpytorch.kernels.PolynomialKernel(power=self.degree, batch_shape=shape)
             base.offset = 1.0
@@ -304,7 +317,9 @@ class CorrectionGP:
 
     def _free_parameters(self) -> list[tuple[str, torch.nn.Parameter]]:
         params = []
-        if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
+        if self.kernel == "features":
+            params.append(("weights", self.covar_module.base_kernel.weights))
+        elif self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
             params.append(("lengthscale", self.covar_module.base_kernel.raw_lengthscale))
         if self.fixed["outputscale"] is None:
             params.append(("outputscale", self.covar_module.raw_outputscale))
@@ -330,7 +345,7 @@ class CorrectionGP:
         var = Y.pow(2).mean(dim=0)  # (d_out,)
         var = torch.where(var > 0, var, var.max()) if self.per_output else var.mean()
         out = {"outputscale": var, "noise_variance": 1e-2 * var}
-        if self.kernel != "polynomial":
+        if self.kernel not in _NO_LENGTHSCALE:
             sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
             dist = torch.cdist(sub, sub)
             positive = dist[dist > 0]
@@ -343,7 +358,7 @@ class CorrectionGP:
         """Set the learned hyperparameters to :meth:`starting_values` (the fixed ones are already set)."""
         start = self.starting_values(X, Y)
         with torch.no_grad():
-            if self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
+            if self.kernel not in _NO_LENGTHSCALE and self.fixed["lengthscale"] is None:
                 base = self.covar_module.base_kernel
                 base.lengthscale = start["lengthscale"].expand(base.lengthscale.shape)
             if self.fixed["outputscale"] is None:
@@ -500,6 +515,9 @@ class CorrectionGP:
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
         d_out = Y.shape[1]
         covar, lik = self.covar_module, self.likelihood
+        if self.kernel == "features" and covar.base_kernel.powers.shape[1] != X.shape[1]:
+            self._d_in = X.shape[1]  # the library of monomials of these inputs
+            covar, lik = self._modules(batch=d_out)
         if self.per_output and covar.batch_shape != torch.Size([d_out]):
             covar, lik = self._modules(batch=d_out)
         if noise is not None or isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
@@ -509,7 +527,10 @@ class CorrectionGP:
             lik = self._modules(batch=d_out, noise=known)[1]
         self.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
         self._cache = None
-        if learn:
+        if learn and self.kernel == "features":
+            self.n_iterations_ = self._fit_features(X, Y, noise, max_iter=max_iter)
+            self.n_evaluations_ = self.n_iterations_
+        elif learn:
             self._initialise(X, Y)
             if warm_start and X.shape[0] > 2 * warm_start:
                 # a cheap first pass on an evenly spaced subsample puts L-BFGS near the optimum; the second pass
@@ -530,6 +551,30 @@ class CorrectionGP:
             self.n_iterations_, self.n_evaluations_ = 0, 0
         self._freeze()
         self._posterior_cache()
+
+    def _fit_features(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, max_iter: int) -> int:
+        """The feature kernel's weights (and the noise floor unless fixed) by sparse Bayesian learning in feature
+        space (:func:`~torchmisspec.gp._features.fit_relevance`): one set of weights shared by the outputs, or one
+        per output with ``per_output``. Returns the number of fixed-point iterations (the most over the outputs)."""
+        covar, lik = self.covar_module, self.likelihood
+        base = covar.base_kernel
+        scale = float(self.fixed["outputscale"])
+        Phi = base.features(X) * math.sqrt(scale)  # the output scale folded into the features
+        floor = self.fixed["noise_variance"]
+        groups = [[o] for o in range(Y.shape[1])] if self.per_output else [list(range(Y.shape[1]))]
+        weights, floors, iterations = [], [], 0
+        for cols in groups:
+            known = None if noise is None else noise[:, cols]
+            w, s, it = fit_relevance(Phi, Y[:, cols], known, floor=floor, max_iter=10 * max_iter)
+            weights.append(w)
+            floors.append(s)
+            iterations = max(iterations, it)
+        with torch.no_grad():
+            base.weights.copy_(torch.stack(weights).reshape(base.weights.shape))
+            if floor is None:
+                value = torch.tensor(floors, dtype=self.dtype, device=self.device)
+                self._floor(lik).noise = value.reshape(-1, 1) if self.per_output else value.reshape(1)
+        return iterations
 
     def _optimise(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, progress: bool, max_iter: int):
         """L-BFGS on the exact log marginal likelihood with the analytic gradient of :mod:`._mll`.
@@ -698,8 +743,8 @@ class CorrectionGP:
         Returns a dense ``(M1, M2)`` tensor (``(d_out, M1, M2)`` when ``per_output``). Works before fitting for a
         shared kernel, with the hyperparameters given (or their defaults).
         """
-        if self.per_output and not self.is_fitted:
-            raise NotFittedError("per-output kernels are built by fit(); call .fit(inputs, targets) first")
+        if (self.per_output or self.kernel == "features") and not self.is_fitted:
+            raise NotFittedError("per-output and feature kernels are built by fit(); call .fit(inputs, targets) first")
         x1 = self._check_inputs(x1, "x1")
         x2 = x1 if x2 is None else self._check_inputs(x2, "x2")
         with torch.no_grad():
@@ -799,8 +844,9 @@ class CorrectionGP:
 
     @property
     def lengthscale(self) -> float | torch.Tensor | None:
-        """The kernel lengthscale in use (``None`` for the polynomial kernel, or when unfitted and not given)."""
-        if self.kernel == "polynomial":
+        """The kernel lengthscale in use (``None`` for the polynomial and feature kernels, or when unfitted and not
+        given)."""
+        if self.kernel in _NO_LENGTHSCALE:
             return None
         return self._value("lengthscale", self.covar_module.base_kernel.lengthscale)
 
@@ -828,6 +874,11 @@ class CorrectionGP:
             "outputscale": self.outputscale,
             "noise_variance": self.noise_variance,
         }
+        if self.kernel == "features":
+            raise InputError(
+                "fixed_copy: the feature kernel's weights cannot be fixed by value; use gp.condition(inputs, targets) "
+                "to condition these hyperparameters on other samples"
+            )
         if self.kernel == "polynomial":
             values.pop("lengthscale")
         missing = [k for k, v in values.items() if v is None]
@@ -846,6 +897,83 @@ class CorrectionGP:
             device=self.device,
             **{k: float(v) for k, v in values.items()},
         )
+
+    def condition(self, inputs, targets=None, *, noise=None) -> CorrectionGP:
+        """A new CorrectionGP with exactly this one's hyperparameters (every kind of kernel, per-output ones too)
+        conditioned on other samples: nothing is re-learned. ``condition(samples)`` takes a
+        :class:`~torchmisspec.CorrectionSamples` object; ``noise`` is known per-sample noise as in :meth:`fit` (the
+        floor ``noise_variance`` is this one's)."""
+        self._require_fitted()
+        inputs, targets, noise = self._unpack(inputs, targets, noise)
+        X = self._check_inputs(inputs, "inputs")
+        Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
+        Y = Y.unsqueeze(-1) if Y.dim() == 1 else Y
+        check_ndim(Y, 2, "targets", "(N, d_out)")
+        check_finite(Y, "targets")
+        if Y.shape != (X.shape[0], self.output_dim):
+            raise ShapeError(
+                f"targets: expected ({X.shape[0]}, {self.output_dim}) (one row per input, this GP's outputs), got "
+                f"{tuple(Y.shape)}"
+            )
+        noise = self._check_noise(noise, Y.shape[0], Y.shape[1])
+        new = copy.copy(self)
+        new._cache = None
+        covar = copy.deepcopy(self.covar_module)
+        lik = copy.deepcopy(self.likelihood)
+        if noise is not None or isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
+            known = None if noise is None else noise.T.clone(memory_format=torch.contiguous_format)
+            lik = new._modules(batch=Y.shape[1], noise=known)[1]
+            with torch.no_grad():
+                new._floor(lik).noise = self._floor(self.likelihood).noise.detach().clone()
+        new.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+        new.n_iterations_, new.n_evaluations_ = 0, 0
+        new._freeze()
+        new._posterior_cache()
+        return new
+
+    @property
+    def weights(self) -> torch.Tensor | None:
+        """The feature kernel's term weights ``(p,)`` (``(d_out, p)`` with ``per_output``); ``None`` for other
+        kernels or before fitting. A weight of 0 removes its term."""
+        if self.kernel != "features" or not self.is_fitted:
+            return None
+        return self.covar_module.base_kernel.weights.detach().clone()
+
+    def feature_names(self, names=None) -> list[str]:
+        """The feature kernel's monomials, e.g. ``["1", "x1", "x2", "x1^2", ...]`` (``names``: one per input)."""
+        if self.kernel != "features":
+            raise InputError(
+                f"feature_names: only the feature kernel has named terms, this GP's kernel is {self.kernel!r}"
+            )
+        self._require_fitted()
+        powers = self.covar_module.base_kernel.powers
+        if names is not None and len(names) != powers.shape[1]:
+            raise InputError(f"names: expected {powers.shape[1]} input names, got {len(names)}")
+        return monomial_names(powers, names)
+
+    def terms(self, names=None, *, all_terms: bool = False) -> list[Term]:
+        """The learned terms of a feature kernel, with their coefficients' posterior means and standard deviations.
+
+        The posterior of F = sum_j beta_j phi_j(x) given the training samples (and their noise): for each output and
+        each term whose weight is not 0 (``all_terms=True``: every term), a :class:`~torchmisspec.gp._features.Term`
+        whose ``str`` reads like ``"+0.01 +- 0.0003 * y1^2"``. ``names``: the inputs' names (default x1, x2, ...).
+        """
+        labels = self.feature_names(names)
+        base = self.covar_module.base_kernel
+        X, Y, known = self.train_inputs_, self.train_targets_, self.train_noise_
+        Phi = base.features(X).detach()
+        W = base.weights.detach().reshape(-1, Phi.shape[1]) * self.covar_module.outputscale.detach().reshape(-1, 1)
+        floor = self._floor(self.likelihood).noise.detach().reshape(-1)
+        out = []
+        for o in range(Y.shape[1]):
+            b = o if W.shape[0] > 1 else 0
+            D = floor[o if floor.numel() > 1 else 0] + (0.0 if known is None else known[:, o])
+            D = torch.as_tensor(D, dtype=self.dtype, device=self.device).expand(Y.shape[0])
+            mean, std = coefficient_posterior(Phi, Y[:, o], D, W[b])
+            for j, label in enumerate(labels):
+                if all_terms or float(W[b, j]) > 0:
+                    out.append(Term(o, label, float(mean[j]), float(std[j]), float(W[b, j])))
+        return out
 
     def __repr__(self) -> str:
         state = f"fitted on N={self.train_inputs_.shape[0]}" if self.is_fitted else "not fitted"

@@ -39,6 +39,7 @@ import torch
 
 from .._errors import InputError, ShapeError
 from .._validation import check_positive_int, check_real
+from ._features import monomial_powers, monomials
 
 __all__ = [
     "DEFAULT_FEATURE_ERROR",
@@ -145,9 +146,16 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
         P = torch.tensor(powers, **kd)
         c = torch.tensor(coef, **kd) * offset ** torch.tensor(rest, **kd)  # (B, P)
         return FeatureMap("polynomial", len(coef), powers=P, coef=(outputscale * c).sqrt())
+    if gp.kernel == "features":  # exact: the monomials weighted by sqrt(outputscale w_j)
+        if num_features is not None or feature_error is not None:
+            raise InputError("num_features / feature_error: the feature kernel has exact finite features; pass neither")
+        base = covar.base_kernel
+        w = base.weights.detach().reshape(B, -1).to(**kd)
+        return FeatureMap("polynomial", w.shape[-1], powers=base.powers.to(**kd), coef=(outputscale * w).sqrt())
     if gp.kernel not in ("rbf", "matern52"):
         raise InputError(
-            f"kernel: expected a kernel with a feature representation (rbf, matern52, polynomial), got {gp.kernel!r}"
+            "kernel: expected a kernel with a feature representation (rbf, matern52, polynomial, features), got "
+            f"{gp.kernel!r}"
         )
     if num_features is None:
         D = frequencies_for(DEFAULT_FEATURE_ERROR if feature_error is None else feature_error)
@@ -168,12 +176,15 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
 
 
 def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
-    """The GP's kernel hyperparameters as ``(B, 1, 1)`` tensors (``outputscale``, ``lengthscale`` unless
-    polynomial), keeping the autograd graph to the GPyTorch parameters."""
+    """The GP's kernel hyperparameters as ``(B, 1, 1)`` tensors (``outputscale``; ``lengthscale``, or ``offset``
+    for the polynomial kernel, or ``weights (B, 1, p)`` for the feature kernel), keeping the autograd graph to the
+    GPyTorch parameters."""
     covar = gp.covar_module
     out = {"outputscale": covar.outputscale.reshape(-1, 1, 1)}
     if gp.kernel == "polynomial":  # GPyTorch's offset c of (c + <x, x'>)^m: 1 up to its constraint's rounding
         out["offset"] = covar.base_kernel.offset.reshape(-1, 1, 1)
+    elif gp.kernel == "features":
+        out["weights"] = covar.base_kernel.weights.reshape(out["outputscale"].shape[0], 1, -1)
     else:
         out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
     return out
@@ -186,6 +197,9 @@ def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, deg
     s2 = params["outputscale"]
     if kind == "polynomial":
         return s2 * (params["offset"] + x @ X.T).pow(degree)
+    if kind == "features":
+        powers = monomial_powers(x.shape[-1], degree, device=x.device)
+        return s2 * (monomials(x, powers) * params["weights"]) @ monomials(X, powers).T
     ell = params["lengthscale"]
     if kind == "rbf" and ell.numel() == 1 and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
         # the hot path of sampled trajectories: one fused pass per operation, in place (no temporaries)
@@ -249,7 +263,7 @@ class FunctionSamples:
         self._d_out = d_out
         #: certified bound on |update - exact update| at any point (0: the exact canonical basis is used)
         self.update_error = 0.0
-        if update_error is not None and chol.shape[0] == 1 and gp.kernel != "polynomial":
+        if update_error is not None and chol.shape[0] == 1 and gp.kernel in ("rbf", "matern52"):
             with torch.no_grad():
                 self._compress(float(update_error) * math.sqrt(float(self._params["outputscale"].reshape(-1)[0])))
 

@@ -121,6 +121,7 @@ def load(cls, path: str | Path, *, device=None) -> CorrectionGP:
         noise = noise.T.contiguous()
     from ._model import _IndependentOutputsGP
 
+    gp._d_in = X.shape[1]  # the feature kernel's library depends on the number of inputs
     covar, lik = gp._modules(batch=Y.shape[1], noise=noise)
     try:
         covar.load_state_dict(_field(blob, "covar_module", dict, path))
