@@ -164,7 +164,8 @@ def test_fit_command_saves_the_model_a_direct_fit_gives(tmp_path, observed_csv, 
     x = torch.rand(20, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 2 - 1
     torch.testing.assert_close(loaded.predict_mean(x), direct.predict_mean(x), rtol=1e-7, atol=1e-10)
     assert "\n" not in line and "N = 55 samples (5 experiments x 11 times, derivative 'central')" in line
-    assert f"lengthscale {direct.lengthscale:.4g}" in line
+    assert direct.lengthscale is None or f"lengthscale {direct.lengthscale:.4g}" in line
+    assert f"fitted {direct.kernel} correction GP" in line
     assert f"log marginal likelihood {direct.log_marginal_likelihood_:.6g}" in line and str(out) in line
 
 

@@ -96,6 +96,9 @@ def check_own_system(ns: dict) -> None:
     assert ns["rmse_corrected"] < 0.2 * ns["rmse_frictionless"]
     # "One call does all of this": a cross-validated lengthscale that improves on the known model
     assert ns["auto"].cross_validation_.improves
+    # "a single term omega" when the feature kernel is chosen
+    if ns["auto"].kernel == "features":
+        assert [t.name for t in ns["auto"].terms(["omega"])] == ["omega"]
 
 
 PAGES = {

@@ -46,15 +46,16 @@ def test_cross_validation_beats_the_marginal_likelihood_on_noisy_states(linear_n
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)  # the estimator self-check warns at 1 % noise
         ml = tms.fit_correction(traj, system, lengthscale="ml")
-        cv = tms.fit_correction(traj, system)
+        cv = tms.fit_correction(traj, system, gp=tms.CorrectionGP())  # the RBF kernel's lengthscale by CV
     assert ml.cross_validation_ is None and cv.cross_validation_ is not None
     # measured: marginal likelihood lengthscale 0.20, ratio 0.77; cross-validated 2.9, ratio 0.18
     assert float(cv.lengthscale) > 5 * float(ml.lengthscale)
     assert ratio(system, cv, test) < 0.3 < ratio(system, ml, test)
     result = cv.cross_validation_
-    assert result.improves and result.best == pytest.approx(float(cv.lengthscale), rel=1e-12)
-    assert len(result.scores) == len(result.lengthscales) >= len(LENGTHSCALE_GRID)
-    assert min(result.scores) == result.scores[result.lengthscales.index(result.best)] < result.baseline
+    assert result.improves and result.best_lengthscale == pytest.approx(float(cv.lengthscale), rel=1e-12)
+    assert result.best == f"rbf lengthscale={result.best_lengthscale:.4g}"
+    assert len(result.scores) == len(result.lengthscales) == len(result.candidates) >= len(LENGTHSCALE_GRID)
+    assert min(result.scores) == result.scores[result.index] < result.baseline
     assert list(result.lengthscales) == sorted(result.lengthscales) and result.folds == 5
     assert len(cv.samples_) == 110
 
@@ -63,7 +64,7 @@ def test_single_shooting_is_not_biased_by_noisy_start_states(linear_noisy, one_t
     system, traj, test = linear_noisy
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
-        gp = tms.fit_correction(traj, system)
+        gp = tms.fit_correction(traj, system, gp=tms.CorrectionGP())
     single = tms.fit_trajectories(gp, system, traj)  # the default
     multiple = tms.fit_trajectories(gp, system, traj, shooting="multiple")
     # measured: single 0.24, multiple 0.37 (errors in variables: noisy start states teach a spurious damping)
@@ -95,7 +96,8 @@ def test_fallbacks_and_bad_input(linear_noisy):
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
         assert tms.fit_correction(one, system).cross_validation_ is None  # one experiment: marginal likelihood
         poly = tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="polynomial"))
-        assert poly.kernel == "polynomial" and poly.cross_validation_ is None
+        # a template without a lengthscale is still scored on held-out experiments (for the warning)
+        assert poly.kernel == "polynomial" and poly.cross_validation_.candidates == ("polynomial degree=2",)
         fixed = tms.fit_correction(traj, system, lengthscale=2.0)
         assert fixed.lengthscale == pytest.approx(2.0) and fixed.cross_validation_ is None
     for bad in ("foo", -1.0, 0.0, float("nan"), True):

@@ -23,5 +23,6 @@ def test_smoke_run_writes_coverages(tmp_path):
     assert result["smoke"] is True and len(result["settings"]) == 4
     for setting in result["settings"]:
         assert len(setting["runs"]) == result["config"]["realizations"]
-        means = [setting["coverage"][k][0] for k in ("0.5", "0.9", "0.95")]
-        assert all(0.0 <= m <= 1.0 for m in means) and means == sorted(means)  # wider bands cover more
+        for method in ("fixed", "laplace"):
+            means = [setting["coverage"][method][k][0] for k in ("0.5", "0.9", "0.95")]
+            assert all(0.0 <= m <= 1.0 for m in means) and means == sorted(means)  # wider bands cover more

@@ -248,15 +248,18 @@ def _fit(args: argparse.Namespace) -> int:
             lengthscale = float(lengthscale)
         except ValueError:
             raise InputError(f"--lengthscale: expected cv, ml or a positive number, got {args.lengthscale!r}") from None
-    template = _gp_from_args(args, lengthscale=None)
+    fixed = any(v is not None for v in (args.outputscale, args.noise_variance))
+    if args.kernel == "auto" and (fixed or args.lengthscale.strip().lower() != "cv"):
+        args.kernel = "rbf"  # fixed hyperparameters or a lengthscale not cross-validated: the RBF kernel, as before
+    template = None if args.kernel == "auto" else _gp_from_args(args, lengthscale=None)
     system = load_system(args.system)
     trajs = Trajectories.load(
         args.data, time_column=args.time_column, experiment_column=experiment_column, state_columns=state_columns
     )
-    if template.kernel == "polynomial" and lengthscale != "cv":
-        raise InputError("--lengthscale: the polynomial kernel has no lengthscale; leave the default")
+    if template is not None and template.kernel in ("polynomial", "features") and lengthscale != "cv":
+        raise InputError(f"--lengthscale: the {template.kernel} kernel has no lengthscale; leave the default")
     gp = fit_correction(
-        trajs, system, gp=template, derivative=args.derivative, lengthscale=lengthscale, refine=args.refine
+        trajs, system, gp=template, derivative=args.derivative, lengthscale=lengthscale, refine=args.refine or None
     )
     samples = gp.samples_
     gp.save(out)
@@ -264,7 +267,7 @@ def _fit(args: argparse.Namespace) -> int:
     def show(value) -> str:
         return "-" if value is None else (f"{value:.4g}" if isinstance(value, float) else str(value.tolist()))
 
-    scale = "" if gp.kernel == "polynomial" else f"lengthscale {show(gp.lengthscale)}, "
+    scale = "" if gp.lengthscale is None else f"lengthscale {show(gp.lengthscale)}, "
     times = f"{min(trajs.lengths)}-{max(trajs.lengths)}" if trajs.is_ragged else str(trajs.num_times)
     print(
         f"fitted {gp.kernel} correction GP of '{system.name}' on N = {len(samples)} samples ({trajs.num_experiments} "
@@ -332,9 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument(
         "--kernel",
-        default="rbf",
-        choices=["rbf", "matern52", "polynomial", "features"],
-        help="GP kernel of the correction (default: rbf)",
+        default="auto",
+        choices=["auto", "rbf", "matern52", "polynomial", "features"],
+        help="GP kernel of the correction (default: auto, chosen by cross-validation among RBF lengthscales and a "
+        "feature kernel with automatic relevance, as fit_correction does)",
     )
     fit.add_argument(
         "--lengthscale",
@@ -383,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument(
         "--kernel",
         default="rbf",
-        choices=["rbf", "matern52", "polynomial", "features"],
+        choices=["rbf", "matern52", "polynomial"],
         help="GP kernel of the correction (default: rbf)",
     )
     des.add_argument("--lengthscale", type=float, default=1.0, help="kernel lengthscale l (default: 1.0)")

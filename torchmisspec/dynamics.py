@@ -149,6 +149,8 @@ class CorrectedODE(nn.Module):
         options: dict | None = None,
         max_steps: int | None = None,
         support_threshold: float | None = None,
+        hyperparameters: str = "fixed",
+        hyperparameter_samples: int = 8,
     ) -> TrajectoryPosterior:
         """Trajectories under posterior draws of F: uncertainty bands on the predicted paths.
 
@@ -175,6 +177,11 @@ class CorrectedODE(nn.Module):
                 ``None``: exact); ``posterior.update_error`` is the bound reached.
             method, rtol, atol, options, max_steps: the solver settings, as for :meth:`predict`.
             support_threshold: the extrapolation threshold in (0, 1].
+            hyperparameters: ``"fixed"`` (default: the fitted values) or ``"laplace"``: the draws are split among
+                ``hyperparameter_samples`` sets of hyperparameters drawn from the Laplace approximation of their
+                posterior (``CorrectionGP.hyperparameter_samples``), so the bands allow for the hyperparameters'
+                own uncertainty (ML-II alone is overconfident with few experiments; ``docs/studies/calibration.md``).
+            hyperparameter_samples: the number of hyperparameter sets with ``"laplace"`` (at most ``num_samples``).
 
         Returns:
             :class:`TrajectoryPosterior`.
@@ -199,9 +206,18 @@ class CorrectedODE(nn.Module):
         )
         B, d = y0.shape
         S = num_samples
-        draws = self.gp.sample_functions(
-            S, num_features=num_features, feature_error=feature_error, generator=generator, update_error=update_error
-        )
+        if hyperparameters not in ("fixed", "laplace"):
+            raise InputError(f"hyperparameters: expected 'fixed' or 'laplace', got {hyperparameters!r}")
+        options_f = dict(num_features=num_features, feature_error=feature_error, generator=generator)
+        if hyperparameters == "fixed":
+            draws = self.gp.sample_functions(S, update_error=update_error, **options_f)
+        else:
+            M = min(check_positive_int(hyperparameter_samples, "hyperparameter_samples"), S)
+            gps = self.gp.hyperparameter_samples(M, generator=generator)
+            sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
+            draws = _Mixture(
+                [g.sample_functions(n, update_error=update_error, **options_f) for g, n in zip(gps, sizes, strict=True)]
+            )
         mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         system = self.system
 
@@ -262,6 +278,21 @@ class CorrectedODE(nn.Module):
 #: Default ``support_threshold`` of :meth:`CorrectedODE.posterior`: posterior / prior standard deviation of F above
 #: which a state is outside the data's support (the data have removed less than half of the prior variance).
 SUPPORT_THRESHOLD = math.sqrt(0.5)
+
+
+class _Mixture:
+    """Function draws from several GPs (one per hyperparameter set), concatenated along the draws."""
+
+    def __init__(self, parts) -> None:
+        self.parts = parts
+        self.update_error = max(p.update_error for p in parts)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:  # x (S, M, d_in)
+        out, start = [], 0
+        for p in self.parts:
+            out.append(p(x[start : start + p.num_samples]))
+            start += p.num_samples
+        return torch.cat(out)
 
 
 def _wants_graph(*tensors: torch.Tensor) -> bool:

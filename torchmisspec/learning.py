@@ -1,9 +1,10 @@
 """From observed trajectories to a fitted correction in one call: :func:`fit_correction`.
 
 The steps a user would otherwise chain by hand: correction samples from the states (:func:`~torchmisspec.
-correction_samples`, ``derivative="auto"`` by default), a :class:`~torchmisspec.CorrectionGP` on them with its
-lengthscale chosen by **cross-validation on trajectories**, and optionally the trajectory-matching refinement
-(:func:`~torchmisspec.fit_trajectories`).
+correction_samples`, ``derivative="auto"`` by default), a :class:`~torchmisspec.CorrectionGP` on them chosen by
+**cross-validation on trajectories** (by default among RBF kernels over a grid of lengthscales and a feature kernel
+with automatic relevance, a sparse polynomial correction), and the trajectory-matching refinement
+(:func:`~torchmisspec.fit_trajectories`) when a feature kernel is chosen or on request.
 
 Why not maximise the marginal likelihood of the samples for the lengthscale too? The samples come from a derivative
 estimator whose errors are correlated along each trajectory (the stencil or the GP in time uses neighbouring states,

@@ -159,9 +159,10 @@ def fit_trajectories(
         max_steps: step limit of each solve (an :class:`IntegrationError` stops a fit whose ODE blows up).
         progress: show a progress bar over the likelihood evaluations.
         relevance: for the feature kernel (default ``True`` there): also re-estimate its term weights from the
-            trajectories (sparse Bayesian learning through the ODE, see :func:`_fit_relevance`): the terms the
-            observed states do not support are removed. What is then optimised are the coefficients of the terms
-            (and the initial states); the result's pseudo-targets reproduce the fitted coefficients exactly.
+            trajectories (sparse Bayesian learning through the ODE: MAP coefficients, a Laplace posterior,
+            MacKay's update, repeated): the terms the observed states do not support are removed. What is then
+            optimised are the coefficients of the terms (and the initial states); the result's pseudo-targets
+            reproduce the fitted coefficients exactly.
 
     Returns:
         a new fitted :class:`CorrectionGP` (hyperparameters fixed at ``gp``'s values) whose training targets are the

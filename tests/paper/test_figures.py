@@ -25,6 +25,8 @@ KEY_NUMBERS = {
         ("fits", "marginal_likelihood", "hyperparameters", "lengthscale"),
         ("rmse_ratio_over_realizations", "paper_prior", "mean"),
         ("rmse_ratio_over_realizations", "paper_prior", "stderr"),
+        ("bands", "coverage_of_true_paths", "0.9"),
+        ("bands", "mean_band_width_90"),
     ],
     "fig2": [
         ("integrated_error", "paper_prior"),
@@ -59,6 +61,8 @@ KEY_NUMBERS = {
         ("misspecified_test_rmse",),
         ("agnostic", "gains_nats_own_criterion"),
         ("misspecified-aided", "exact_information_gain_nats"),
+        ("bands", "coverage_of_true_paths", "0.9"),
+        ("bands", "mean_band_width_90"),
     ],
     "fig7": [("agnostic", "mse_over_D"), ("misspecified-aided", "mse_over_D"), ("mean_energy_of_F_over_D",)],
     "fig8": [
@@ -110,7 +114,7 @@ def test_smoke_writes_every_figure(smoke_run):
         png = out / f"fig{n}.png"
         assert png.is_file(), f"missing {png.name}"
         assert png.read_bytes()[:8] == PNG_MAGIC
-    for extra in ("fig3_design.png", "fig6_design.png"):
+    for extra in ("fig3_design.png", "fig6_design.png", "fig1_bands.png", "fig6_bands.png"):
         assert (out / extra).read_bytes()[:8] == PNG_MAGIC
 
 
@@ -144,6 +148,9 @@ def test_smoke_numbers_tell_the_papers_story(smoke_run):
     assert f["fig5"]["ratios"]["data-driven/design"]["mean"][0] > 1  # data-driven worst at K = 1
     assert len(f["fig6"]["agnostic"]["indices"]) == len(f["fig6"]["misspecified-aided"]["indices"]) == 7
     assert not set(f["fig6"]["test_indices"]) & set(f["fig6"]["agnostic"]["indices"])
+    for fig in ("fig1", "fig6"):  # the bands: nested, and wider bands cover more
+        cover = f[fig]["bands"]["coverage_of_true_paths"]
+        assert 0 <= cover["0.5"] <= cover["0.9"] <= cover["0.95"] <= 1 and f[fig]["bands"]["mean_band_width_90"] > 0
     # Fig 6/7 use the candidates and designs of the Fig 8 study (same seed)
     designs = f["fig8"]["meta"]["designs"]
     assert designs["agnostic"] == f["fig6"]["agnostic"]["indices"]

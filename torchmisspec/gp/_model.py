@@ -47,6 +47,9 @@ from ._optim import maximise
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial", "features")
+#: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
+#: (centred at the fitted value: a factor of about 7 either way).
+LOG_PRIOR_SD = 2.0
 #: Kernels without a lengthscale.
 _NO_LENGTHSCALE = ("polynomial", "features")
 #: smallest noise-to-output-scale ratio the profiled fit considers (relative, so the fit is scale-equivariant)
@@ -176,7 +179,8 @@ class CorrectionGP:
         if kernel not in KERNELS:
             raise InputError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
         if kernel in _NO_LENGTHSCALE and lengthscale is not None:
-            raise InputError(f"lengthscale: the {kernel} kernel has no lengthscale; pass None")
+            formula = "(1 + <y, y'>)^m" if kernel == "polynomial" else "sum_j w_j y^a_j y'^a_j"
+            raise InputError(f"lengthscale: the {kernel} kernel {formula} has no lengthscale; pass None")
         if kernel == "features" and outputscale is None:
             outputscale = 1.0  # the weights carry the scale
         degree = check_positive_int(degree, "degree")
@@ -576,6 +580,18 @@ class CorrectionGP:
                 self._floor(lik).noise = value.reshape(-1, 1) if self.per_output else value.reshape(1)
         return iterations
 
+    def _lengthscale_box(self, X: torch.Tensor):
+        """``(raw lengthscale, lo, hi)``: the learned lengthscale is kept within [1e-4, 1e4] times the median distance
+        between the inputs (log space), or ``None`` when it is not learned. Without the box a line-search trial can
+        take log l to -1000, where every kernel entry is 0/0."""
+        if self.kernel in _NO_LENGTHSCALE or self.fixed["lengthscale"] is not None:
+            return None
+        sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
+        dist = torch.cdist(sub, sub)
+        positive = dist[dist > 0]
+        scale = float(positive.median()) if positive.numel() else 1.0
+        return self.covar_module.base_kernel.raw_lengthscale, math.log(1e-4 * scale), math.log(1e4 * scale)
+
     def _optimise(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, progress: bool, max_iter: int):
         """L-BFGS on the exact log marginal likelihood with the analytic gradient of :mod:`._mll`.
 
@@ -608,7 +624,12 @@ class CorrectionGP:
             def matrices():
                 return self._kernel_parts(X, noise)
 
+        box = self._lengthscale_box(X)
+
         def evaluate():
+            if box is not None:  # a line-search trial far out in log space (l -> 0 makes K all NaN): project back
+                with torch.no_grad():
+                    box[0].clamp_(box[1], box[2])
             K, diag = matrices()
             with torch.no_grad():
                 fac = _mll.factorize(K.detach(), diag.detach(), Yb, warn=False)
@@ -835,6 +856,99 @@ class CorrectionGP:
         return FunctionSamples(self, num_samples, features, generator, update_error)
 
     # ------------------------------------------------------------------------------------------ hyperparameters
+    def laplace_covariance(self) -> tuple[list[str], torch.Tensor, torch.Tensor]:
+        """A Laplace approximation of the posterior of the learned hyperparameters, in log space.
+
+        At the fitted (ML-II) values, ``-H`` with H the Hessian of the exact log marginal likelihood in the log
+        hyperparameters (autograd through one Cholesky factorization) is the precision of a Gaussian around them;
+        a weakly informative prior N(log value, :data:`LOG_PRIOR_SD`^2) on each log hyperparameter is added, which
+        keeps the covariance finite where the likelihood is flat (the data barely constrain a hyperparameter, as at
+        small K) and clips directions of negative curvature (an optimum on a boundary) to the prior alone.
+
+        Returns:
+            ``(names, mean, covariance)``: a name per entry (``"lengthscale"``, ``"outputscale"``,
+            ``"noise_variance"``, with an output index for per-output values), the log values ``(P,)`` and the
+            ``(P, P)`` covariance. Only the RBF, Matern and polynomial kernels (the feature kernel's weights have
+            their own posterior: :meth:`terms`).
+        """
+        self._require_fitted()
+        if self.kernel == "features":
+            raise InputError(
+                "laplace_covariance: the feature kernel's weights are not log hyperparameters; its uncertainty is "
+                "the coefficients' posterior (gp.terms())"
+            )
+        free = self._free_parameters()
+        if not free:
+            raise InputError("laplace_covariance: every hyperparameter is fixed; nothing is uncertain")
+        params = [p for _, p in free]
+        names = []
+        for name, p in free:
+            n = p.numel()
+            names += [name] if n == 1 else [f"{name}[{i}]" for i in range(n)]
+        X, Y, noise = self.train_inputs_, self.train_targets_, self.train_noise_
+        Yb = self._targets_batched(Y, noise)
+        for p in params:
+            p.requires_grad_(True)
+        try:
+            with torch.enable_grad():
+                # the kernel written out in torch (GPyTorch's RBF has a custom backward without a second derivative)
+                from ._paths import kernel_hyperparameters, kernel_matrix
+
+                K = kernel_matrix(self.kernel, X, X, kernel_hyperparameters(self), self.degree)
+                floor = self._floor(self.likelihood).noise.reshape(-1, 1)
+                if noise is None:
+                    diag = floor
+                else:
+                    diag = (noise.T if self._batched(noise) else noise[:, 0].unsqueeze(0)) + floor
+                if diag.shape[0] != K.shape[0]:
+                    K = K.expand(diag.shape[0], -1, -1)
+                C = K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
+                L = torch.linalg.cholesky(C)
+                alpha = torch.cholesky_solve(Yb, L)
+                m = Yb.shape[-1]
+                mll = -0.5 * (Yb * alpha).sum() - m * L.diagonal(dim1=-2, dim2=-1).log().sum()
+                grads = torch.autograd.grad(mll, params, create_graph=True)
+                g = torch.cat([t.reshape(-1) for t in grads])
+                rows = [
+                    torch.cat([t.reshape(-1) for t in torch.autograd.grad(g[i], params, retain_graph=True)])
+                    for i in range(g.numel())
+                ]
+        except torch.linalg.LinAlgError as exc:
+            raise LinearAlgebraError(
+                f"laplace_covariance: the training covariance is not positive definite ({exc})"
+            ) from exc
+        finally:
+            self._freeze()
+        H = torch.stack(rows).detach()
+        H = 0.5 * (H + H.T)
+        evals, evecs = torch.linalg.eigh(-H)
+        precision = (evecs * evals.clamp_min(0.0)) @ evecs.T + torch.eye(len(names), dtype=H.dtype, device=H.device) / (
+            LOG_PRIOR_SD**2
+        )
+        mean = torch.cat([p.detach().reshape(-1) for p in params])
+        return names, mean, torch.linalg.inv(precision)
+
+    def hyperparameter_samples(self, num_samples: int, *, generator: torch.Generator | None = None) -> list:
+        """``num_samples`` copies of this GP, each conditioned on the same data with hyperparameters drawn from the
+        Laplace approximation of their posterior (:meth:`laplace_covariance`); for predictions that allow for the
+        hyperparameters' own uncertainty (ML-II alone is overconfident when the data are few)."""
+        num_samples = check_positive_int(num_samples, "num_samples")
+        _, mean, cov = self.laplace_covariance()
+        root = torch.linalg.cholesky(cov)
+        z = torch.randn((num_samples, mean.numel()), generator=generator, dtype=mean.dtype, device=mean.device)
+        draws = mean + z @ root.T
+        out = []
+        for theta in draws:
+            copy_ = self.condition(self.train_inputs_, self.train_targets_, noise=self.train_noise_)
+            start = 0
+            with torch.no_grad():
+                for _, p in copy_._free_parameters():
+                    p.copy_(theta[start : start + p.numel()].reshape(p.shape))
+                    start += p.numel()
+            copy_._posterior_cache()
+            out.append(copy_)
+        return out
+
     def _value(self, name: str, t: torch.Tensor) -> float | torch.Tensor | None:
         """The value in use; before fitting only a fixed (given) value is in use, otherwise ``None``."""
         if not self.is_fitted:

@@ -38,6 +38,7 @@ import functools
 import json
 import numbers
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +49,7 @@ import torch
 
 from .. import design as _design
 from .. import plotting
-from .._errors import InputError
+from .._errors import InputError, TorchMisspecWarning
 from .._validation import check_positive_int, progress_bar
 from ..data import Trajectories, simulate
 from ..design import candidates as _candidates
@@ -98,6 +99,10 @@ FINE_TIMES = 61  # plotting / scoring grid
 
 # Sizes: (full, smoke).
 _FIG1_REALIZATIONS = (20, 3)
+#: Posterior draws of F for the bands of Figs 1 and 6 (full run, smoke run).
+_BAND_SAMPLES = (128, 16)
+#: Central band probabilities whose empirical coverage of the true test trajectories Figs 1 and 6 report.
+_BAND_LEVELS = (0.5, 0.9, 0.95)
 _FIG3_RANDOM_DRAWS = (200, 10)
 _FIG5_KS = ((1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20), (1, 2, 4, 9))
 _FIG5_REALIZATIONS = (10, 2)
@@ -261,6 +266,18 @@ def figure_1(
     )
     fig.suptitle(r"Paper Fig 1 (§5.1): $G(y) = Ay$, $F(y) = 0.01\,[y_1^2, y_2^2]$, $t \in [0, 6]$")
     _layout.save(fig, out / "fig1.png", files)
+    bands = _bands(
+        CorrectedODE(run.system, run.gp_paper),
+        run.y_test,
+        run.fine,
+        run.test_true,
+        run.test_mis,
+        samples=_pick(_BAND_SAMPLES, smoke),
+        generator=_generator(seed, 901),
+        title="Paper Fig 1 with bands: test initial condition 1, paper prior (beyond the paper: posterior draws of F)",
+        path=out / "fig1_bands.png",
+        files=files,
+    )
 
     n_real = _pick(_FIG1_REALIZATIONS, smoke)
     ratios = {"paper_prior": [], "marginal_likelihood": []}
@@ -283,9 +300,28 @@ def figure_1(
         },
         "plotted_fit": "paper_prior",
         "fits": _fit_numbers(run),
+        "bands": bands,
         "rmse_ratio_over_realizations": {name: _mean_se(v) for name, v in ratios.items()},
         "realizations": n_real,
         "files": files,
+    }
+
+
+def _bands(model, y0, times, true, mis, *, samples, generator, title, path, files) -> dict:
+    """Posterior draws of F integrated from the test initial conditions (``CorrectedODE.posterior``): a figure of the
+    bands of the first one, and the empirical coverage of the true test trajectories by the central bands."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TorchMisspecWarning)
+        post = model.posterior(y0, times, num_samples=samples, generator=generator)
+    fig = plotting.plot_prediction_bands(post, index=0, true_states=true, misspecified_states=mis, title=title)
+    _layout.save(fig, path, files)
+    lower, upper = post.interval(0.9)
+    return {
+        "num_samples": samples,
+        "coverage_of_true_paths": {f"{v:g}": float(post.covers(true, v).double().mean()) for v in _BAND_LEVELS},
+        "mean_band_width_90": float((upper - lower).mean()),
+        "extrapolating_paths": int(post.extrapolating.sum()),
+        "warnings": [str(w.message) for w in caught if issubclass(w.category, TorchMisspecWarning)],
     }
 
 
@@ -711,9 +747,21 @@ def figure_6(
     right.set_aspect("equal", adjustable="datalim")
     fig.suptitle("Paper Fig 6 (§5.3): misspecified gravitational field")
     _layout.save(fig, out / "fig6.png", files)
+    bands = _bands(
+        CorrectedODE(system, g.gps["misspecified-aided"]),
+        g.y_test,
+        g.fine,
+        g.test_true,
+        g.test_mis,
+        samples=_pick(_BAND_SAMPLES, smoke),
+        generator=_generator(seed, 906),
+        title="Paper Fig 6 with bands: test candidate 1, aided design (beyond the paper: posterior draws of F)",
+        path=out / "fig6_bands.png",
+        files=files,
+    )
 
     mis = _rmse(g.test_mis, g.test_true)
-    res = {"misspecified_test_rmse": mis, "test_indices": g.test_idx}
+    res = {"misspecified_test_rmse": mis, "test_indices": g.test_idx, "bands": bands}
     for name in _GRAVITY_NAMES:
         plan = g.plans[name]
         cor = _rmse(g.corrected[name], g.test_true)

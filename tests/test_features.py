@@ -1,0 +1,213 @@
+"""The feature kernel with automatic relevance (sparse Bayesian learning), and its trajectory fit."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.gp._features import _evidence, fit_relevance, monomial_names, monomial_powers, monomials
+from torchmisspec.systems import LinearField, MisspecifiedSystem
+from torchmisspec.trajectory_fit import shooting_misfit
+
+DT = torch.float64
+
+
+def data(n=150, noise=0.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    X = torch.rand(n, 2, generator=g, dtype=DT) * 2 - 1
+    F = torch.stack([0.5 * X[:, 0] ** 2 - 0.3 * X[:, 1], 2.0 * X[:, 0] * X[:, 1]], -1)
+    return X, F, F + noise * torch.randn(F.shape, generator=g, dtype=DT)
+
+
+def test_monomials_and_names():
+    P = monomial_powers(2, 3)
+    assert P.tolist()[:6] == [[0, 0], [1, 0], [0, 1], [2, 0], [1, 1], [0, 2]] and P.shape == (10, 2)
+    assert monomial_names(P, ["y", "w"])[:6] == ["1", "y", "w", "y^2", "y w", "w^2"]
+    x = torch.tensor([[2.0, 3.0]], dtype=DT)
+    assert monomials(x, P)[0].tolist() == [1, 2, 3, 4, 6, 9, 8, 12, 18, 27]
+
+
+@pytest.mark.parametrize("per_output", [False, True])
+def test_posterior_is_bayesian_linear_regression(per_output):
+    """Predictions equal the closed-form Bayesian linear regression with the learned weights and noise; the N x N
+    log marginal likelihood equals the feature-space evidence."""
+    X, _, Y = data(noise=0.05)
+    gp = tms.CorrectionGP(kernel="features", degree=2, per_output=per_output).fit(X, Y)
+    P = monomial_powers(2, 2)
+    Phi = monomials(X, P)
+    xs = torch.rand(7, 2, generator=torch.Generator().manual_seed(3), dtype=DT) * 3 - 1.5
+    phis = monomials(xs, P)
+    post = gp.predict(xs)
+    W = gp.weights.reshape(-1, P.shape[0])
+    s = torch.as_tensor(gp.noise_variance, dtype=DT).reshape(-1)
+    total = 0.0
+    for o in range(2):
+        w, noise = W[o if per_output else 0], s[o if per_output else 0]
+        act = w > 0
+        A = Phi[:, act].T @ Phi[:, act] / noise + torch.diag(1 / w[act])
+        Sigma = torch.linalg.inv(A)
+        mu = Sigma @ Phi[:, act].T @ Y[:, o] / noise
+        torch.testing.assert_close(post.mean[:, o], phis[:, act] @ mu, rtol=1e-7, atol=1e-9)
+        var = ((phis[:, act] @ Sigma) * phis[:, act]).sum(-1)
+        torch.testing.assert_close(post.variance[:, o], var, rtol=1e-6, atol=1e-10)
+        total += _evidence(Phi, Y[:, o : o + 1], noise.expand(len(X), 1), w)
+    assert gp.log_marginal_likelihood_ == pytest.approx(total, rel=1e-9)
+
+
+def test_relevance_removes_absent_terms_and_recovers_present_ones():
+    X, F, _ = data()
+    gp = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(X, F)  # noiseless
+    W = gp.weights
+    names = gp.feature_names(["y1", "y2"])
+    present = {0: {"y2", "y1^2"}, 1: {"y1 y2"}}
+    for o in range(2):
+        kept = {names[j] for j in range(len(names)) if W[o, j] > 0}
+        assert kept == present[o]  # every absent monomial's weight is exactly 0
+    terms = {(t.output, t.name): t for t in gp.terms(["y1", "y2"])}
+    assert terms[0, "y1^2"].mean == pytest.approx(0.5, abs=1e-8)
+    assert terms[0, "y2"].mean == pytest.approx(-0.3, abs=1e-8)
+    assert terms[1, "y1 y2"].mean == pytest.approx(2.0, abs=1e-8)
+    assert str(terms[0, "y1^2"]).startswith("+0.5 +- ") and str(terms[0, "y1^2"]).endswith("* y1^2")
+    assert len(gp.terms(all_terms=True)) == 2 * len(names)
+
+
+def test_weights_are_a_stationary_point_of_the_evidence():
+    """The fixed point maximises the exact evidence: moving any kept weight by 1 % lowers it (brute force)."""
+    X, _, Y = data(noise=0.05, seed=2)
+    y = Y[:, :1]
+    Phi = monomials(X, monomial_powers(2, 2))
+    w, s, _ = fit_relevance(Phi, y, None, floor=None, max_iter=5000)
+    best = _evidence(Phi, y, torch.full_like(y, s), w)
+    for j in torch.nonzero(w > 0).reshape(-1).tolist():
+        for f in (0.99, 1.01):
+            v = w.clone()
+            v[j] *= f
+            assert _evidence(Phi, y, torch.full_like(y, s), v) < best
+    for f in (0.99, 1.01):
+        assert _evidence(Phi, y, torch.full_like(y, s * f), w) < best
+
+
+def test_known_noise_and_a_fixed_floor():
+    X, _, Y = data(noise=0.05, seed=4)
+    known = torch.linspace(1e-4, 4e-3, len(X), dtype=DT)
+    gp = tms.CorrectionGP(kernel="features", degree=2, noise_variance=1e-3).fit(X, Y, noise=known)
+    assert gp.noise_variance == pytest.approx(1e-3)
+    Phi = monomials(X, monomial_powers(2, 2))
+    w = gp.weights
+    act = w > 0
+    D = known + 1e-3
+    Sigma = torch.linalg.inv(Phi[:, act].T @ (Phi[:, act] / D[:, None]) + torch.diag(1 / w[act]))
+    mu = Sigma @ Phi[:, act].T @ (Y / D[:, None])
+    xs = X[:5] + 0.1
+    torch.testing.assert_close(gp.predict_mean(xs), monomials(xs, monomial_powers(2, 2))[:, act] @ mu)
+
+
+def test_paths_persistence_and_conditioning(tmp_path):
+    X, _, Y = data(noise=0.05, seed=5)
+    gp = tms.CorrectionGP(kernel="features", degree=2, per_output=True).fit(X, Y)
+    xs = torch.rand(4, 2, generator=torch.Generator().manual_seed(9), dtype=DT)
+    draws = gp.sample_functions(4000, generator=torch.Generator().manual_seed(0))(xs)  # (S, 4, 2)
+    post = gp.predict(xs)
+    sd = post.stddev
+    assert float(((draws.mean(0) - post.mean).abs() / sd).max()) < 5 / math.sqrt(4000) * 1.5
+    ratio = draws.var(0) / post.variance
+    assert float((ratio - 1).abs().max()) < 0.1
+    path = gp.save(tmp_path / "features.pt")
+    loaded = tms.CorrectionGP.load(path)
+    assert torch.equal(loaded.weights, gp.weights) and loaded.kernel == "features"
+    torch.testing.assert_close(loaded.predict_mean(xs), gp.predict_mean(xs), rtol=1e-12, atol=1e-14)
+    part = gp.condition(X[:40], Y[:40])  # the same hyperparameters on other data, nothing re-learned
+    assert torch.equal(part.weights, gp.weights) and len(part.train_inputs_) == 40
+    again = tms.CorrectionGP(kernel="features", degree=2, per_output=True).fit(X[:40], Y[:40])
+    assert not torch.equal(again.weights, gp.weights)  # a fit would have re-learned them
+    rbf = tms.CorrectionGP().fit(X, Y)
+    fixed = tms.CorrectionGP(
+        lengthscale=rbf.lengthscale, outputscale=rbf.outputscale, noise_variance=rbf.noise_variance
+    ).fit(X[:40], Y[:40])
+    torch.testing.assert_close(rbf.condition(X[:40], Y[:40]).predict_mean(xs), fixed.predict_mean(xs))
+
+
+def test_bad_input():
+    X, _, Y = data()
+    with pytest.raises(tms.InputError, match=r"lengthscale: the features kernel .* has no lengthscale"):
+        tms.CorrectionGP(kernel="features", lengthscale=1.0)
+    with pytest.raises(tms.InputError, match=r"degree: expected"):
+        tms.CorrectionGP(kernel="features", degree=0)
+    with pytest.raises(tms.InputError, match=r"kernel: expected one of"):
+        tms.CorrectionGP(kernel="sindy")
+    with pytest.raises(tms.NotFittedError, match=r"feature kernels are built by fit"):
+        tms.CorrectionGP(kernel="features").covariance(X)
+    with pytest.raises(tms.FittingError, match=r"expected some non-zero samples"):
+        tms.CorrectionGP(kernel="features", noise_variance=1e-3).fit(X, torch.zeros_like(Y))
+    gp = tms.CorrectionGP(kernel="features").fit(X, Y)
+    with pytest.raises(tms.InputError, match=r"fixed_copy: the feature kernel's weights cannot be fixed"):
+        gp.fixed_copy()
+    with pytest.raises(tms.InputError, match=r"only the feature kernel has named terms"):
+        tms.CorrectionGP().fit(X, Y).terms()
+    with pytest.raises(tms.ShapeError, match=r"targets: expected \(10, 2\)"):
+        gp.condition(X[:10], Y[:10, :1])
+    with pytest.raises(tms.InputError, match=r"the feature kernel's weights are learned from data"):
+        tms.design.greedy(
+            torch.zeros(3, 2, dtype=DT),
+            1,
+            system=tms.systems.paper_linear(),
+            times=torch.linspace(0, 1, 3, dtype=DT),
+            gp=tms.CorrectionGP(kernel="features"),
+        )
+
+
+def linear_problem():
+    """y' = A y + F(y), F = [0.05 y1^2, 0] unknown; states observed without noise at T = 21."""
+    A = torch.tensor([[-0.1, 1.0], [-1.0, -0.1]], dtype=DT)
+    system = MisspecifiedSystem(
+        LinearField(A),
+        2,
+        correction=lambda y: 0.05 * y[..., :1] ** 2,
+        correction_outputs=[0],
+        known_matrix=A,
+        name="linear_square",
+    )
+    y0 = torch.tensor([[1.0, 0.0], [-0.5, 0.8], [0.3, -1.0], [-1.0, -0.4]], dtype=DT)
+    return system, tms.simulate(system, y0, torch.linspace(0, 6, 21, dtype=DT))
+
+
+def test_trajectory_relevance_recovers_the_term(one_thread):
+    system, traj = linear_problem()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        samples = tms.correction_samples(traj, system, derivative="smooth", window=7, degree=2)  # biased samples
+    gp = tms.CorrectionGP(kernel="features", degree=2).fit(samples)
+    refined = tms.fit_trajectories(gp, system, traj, state_noise=1e-8)
+    terms = {t.name: t.mean for t in refined.terms(["y1", "y2"])}
+    assert terms["y1^2"] == pytest.approx(0.05, rel=1e-3)
+    assert all(abs(v) < 1e-4 for k, v in terms.items() if k != "y1^2")
+    # the pseudo-targets reproduce the fitted coefficients exactly: the posterior mean is phi(x)^T beta
+    xs = torch.rand(6, 2, generator=torch.Generator().manual_seed(1), dtype=DT) * 2 - 1
+    beta = torch.zeros(6, dtype=DT)
+    for j, t in enumerate(refined.terms(all_terms=True)):
+        beta[j] = t.mean
+    torch.testing.assert_close(refined.predict_mean(xs)[:, 0], monomials(xs, monomial_powers(2, 2)) @ beta)
+    assert shooting_misfit(refined, system, traj) < 0.1 * shooting_misfit(gp, system, traj)
+    with pytest.raises(tms.InputError, match=r"relevance: re-estimating term weights needs the feature kernel"):
+        tms.fit_trajectories(tms.CorrectionGP().fit(samples), system, traj, relevance=True)
+
+
+def test_fit_correction_chooses_the_feature_kernel_for_a_polynomial_correction(one_thread):
+    system, traj = linear_problem()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(traj, system)
+    cv = gp.cross_validation_
+    assert cv.best == "features degree=3 per_output" and gp.kernel == "features"
+    assert cv.candidates[-1] == cv.best and cv.lengthscales[-1] is None and cv.best_lengthscale is None
+    assert {t.name for t in gp.terms(["y1", "y2"])} >= {"y1^2"}
+    y0 = torch.tensor([[0.7, 0.7], [-0.8, 0.2]], dtype=DT)
+    times = torch.linspace(0, 6, 31, dtype=DT)
+    true = tms.simulate(system, y0, times).states
+    pred = tms.CorrectedODE(system, gp).predict(y0, times)
+    known = tms.simulate(system, y0, times, known_only=True).states
+    assert tms.trajectory_rmse(pred, true) < 0.05 * tms.trajectory_rmse(known, true)
