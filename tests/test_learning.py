@@ -127,3 +127,16 @@ def test_fit_trajectories_bad_shooting_and_state_noise(linear_noisy):
         tms.fit_trajectories(gp, system, traj, state_noise=[1e-4, -1.0])
     refined = tms.fit_trajectories(gp, system, traj, state_noise=[1e-4, 2e-4], max_iter=2)
     assert refined.state_noise_.tolist() == pytest.approx([1e-4, 2e-4])
+
+
+def test_student_t_quantiles_and_the_critical_value():
+    from torchmisspec.learning import CrossValidation, student_t_quantile
+
+    # reference values of the 97.5 % quantile (standard tables)
+    for df, value in ((1, 12.706), (2, 4.303), (3, 3.182), (4, 2.776), (9, 2.262), (29, 2.045), (1000, 1.962)):
+        assert student_t_quantile(0.975, df) == pytest.approx(value, rel=2e-3)
+    assert student_t_quantile(0.5, 7) == pytest.approx(0.0, abs=1e-12)
+    gains = (0.0, -0.02, 2.1, 1.7, 1.48)  # mean 1.05, 2.37 standard errors: not enough with 5 experiments
+    cv = CrossValidation(("a",), (None,), (1.0,), 2.0, "a", 5, gains, 0)
+    assert cv.improves and cv.critical == pytest.approx(2.776, rel=1e-3) and not cv.significant
+    assert CrossValidation(("a",), (None,), (1.0,), 2.0, "a", 5, gains * 4, 0).significant  # 20 experiments

@@ -274,7 +274,7 @@ def figure_1(
         run.test_mis,
         samples=_pick(_BAND_SAMPLES, smoke),
         generator=_generator(seed, 901),
-        title="Paper Fig 1 with bands: test initial condition 1, paper prior (beyond the paper: posterior draws of F)",
+        title="Fig 1 with bands: test initial condition 1, paper prior",
         path=out / "fig1_bands.png",
         files=files,
     )
@@ -755,7 +755,7 @@ def figure_6(
         g.test_mis,
         samples=_pick(_BAND_SAMPLES, smoke),
         generator=_generator(seed, 906),
-        title="Paper Fig 6 with bands: test candidate 1, aided design (beyond the paper: posterior draws of F)",
+        title="Fig 6 with bands: test candidate 1, aided design",
         path=out / "fig6_bands.png",
         files=files,
     )
