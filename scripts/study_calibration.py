@@ -189,7 +189,8 @@ def render_page(result: dict, wall: float, info: dict) -> str:
     cfg = result["config"]
     return f"""# Study: calibration of the predicted uncertainty bands
 
-This page is written by `python scripts/study_calibration.py --markdown`; every number on it comes from that run
+This page is written by `python scripts/study_calibration.py --markdown` (or from a saved run's JSON with
+`--from-json FILE --markdown`); every number on it comes from that run
 (raw numbers: `benchmarks/study_calibration.json`). Machine: {info["cpu"]}, {info["logical_cpus"]} logical CPUs,
 torch {info["torch"]}, commit {info["git_commit"]}; wall time {wall / 60:.1f} min.
 
@@ -236,16 +237,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
     parser.add_argument("--json", help=f"raw results (default {DEFAULT_JSON.relative_to(ROOT)}; smoke: only if given)")
     parser.add_argument("--markdown", action="store_true", help="write the docs page, figure and BENCHMARKS block")
+    parser.add_argument("--from-json", help="render a saved full run (its JSON) instead of running the study")
     args = parser.parse_args(argv)
     if args.smoke and args.markdown:
         parser.error("--smoke never writes the docs; drop --markdown")
-    cfg = SMOKE if args.smoke else FULL
-    t0 = time.perf_counter()
-    result = study(cfg)
-    wall = time.perf_counter() - t0
-    info = machine()
-    result["machine"], result["wall_seconds"], result["smoke"] = info, wall, args.smoke
-    json_path = Path(args.json) if args.json else (None if args.smoke else DEFAULT_JSON)
+    if args.from_json:
+        result = json.loads(Path(args.from_json).read_text())
+        if result.get("smoke"):
+            parser.error("--from-json: that run is a smoke run; its numbers never go into the docs")
+        wall, info = result["wall_seconds"], result["machine"]
+        json_path = DEFAULT_JSON if args.markdown else None
+    else:
+        cfg = SMOKE if args.smoke else FULL
+        t0 = time.perf_counter()
+        result = study(cfg)
+        wall = time.perf_counter() - t0
+        info = machine()
+        result["machine"], result["wall_seconds"], result["smoke"] = info, wall, args.smoke
+        json_path = Path(args.json) if args.json else (None if args.smoke else DEFAULT_JSON)
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=1))
