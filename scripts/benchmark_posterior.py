@@ -21,6 +21,7 @@ import platform
 import statistics
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -94,7 +95,13 @@ def realdata_cost(smoke: bool, repeats: int) -> dict:
     gp_derivative(noisy.states[:2], times)  # warm-up
     _, t_gp, all_gp = timed(lambda: gp_derivative(noisy.states, times), repeats)
     fitted, t_cv, all_cv = timed(lambda: tms.fit_correction(noisy, system), 1 if smoke else repeats)
-    refined, t_fit, all_fit = timed(lambda: tms.fit_trajectories(fitted, system, noisy), 1 if smoke else repeats)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)  # the estimator self-check at 1 % noise
+        rbf = tms.fit_correction(noisy, system, gp=tms.CorrectionGP())  # the starting point of the RBF refit
+        samples = tms.correction_samples(noisy, system)
+    refined, t_fit, all_fit = timed(lambda: tms.fit_trajectories(rbf, system, noisy), 1 if smoke else repeats)
+    features = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(samples)
+    relevant, t_rel, all_rel = timed(lambda: tms.fit_trajectories(features, system, noisy), 1 if smoke else repeats)
     return {
         "experiments": K,
         "times": T,
@@ -106,6 +113,11 @@ def realdata_cost(smoke: bool, repeats: int) -> dict:
         "fit_trajectories_all": all_fit,
         "iterations": refined.n_iterations_,
         "evaluations": refined.n_evaluations_,
+        "chosen": fitted.cross_validation_.best if fitted.cross_validation_ is not None else fitted.kernel,
+        "relevance_seconds": t_rel,
+        "relevance_all": all_rel,
+        "relevance_iterations": relevant.n_iterations_,
+        "relevance_evaluations": relevant.n_evaluations_,
     }
 
 
@@ -129,11 +141,16 @@ def block(r: dict, p: dict, info: dict, command: str) -> str:
         f"{p['posterior_rhs_evaluations']} |",
         f"| `gp_derivative`, {r['experiments']} experiments x {r['times']} times | {r['gp_seconds']:.3f} s | "
         f"{', '.join(f'{x:.3f}' for x in r['gp_all'])} | |",
-        f"| `fit_correction` (cross-validated lengthscale), same data, 1 % state noise | "
+        f"| `fit_correction` (defaults: model chosen by cross-validation, here {r.get('chosen', '?')}; a chosen "
+        f"feature kernel refined through the ODE), same data, 1 % state noise | "
         f"{r['fit_correction_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in r['fit_correction_all'])} | |",
-        f"| `fit_trajectories` (single shooting) from it | {r['fit_trajectories_seconds']:.2f} s | "
+        f"| `fit_trajectories` (single shooting) from an RBF fit with a cross-validated lengthscale | "
+        f"{r['fit_trajectories_seconds']:.2f} s | "
         f"{', '.join(f'{x:.2f}' for x in r['fit_trajectories_all'])} | {r['evaluations']} objective evaluations, "
         f"{r['iterations']} L-BFGS iterations |",
+        f"| `fit_trajectories` of a feature kernel (degree 3, per output: relevance re-learned through the ODE) | "
+        f"{r['relevance_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in r['relevance_all'])} | "
+        f"{r['relevance_evaluations']} objective evaluations, {r['relevance_iterations']} L-BFGS iterations |",
         "",
         f"- posterior / predict: **{p['ratio']:.1f}x** (target: at most 20x: {ok}). Each draw is evaluated at every "
         f"state of its path: {p['features']} prior features plus the update on {p['basis']} of the "
@@ -141,7 +158,8 @@ def block(r: dict, p: dict, info: dict, command: str) -> str:
         f"`predict`, whose one kernel row has {p['train_samples']} entries; the prior features dominate "
         "(`feature_error=0.1` gives 200).",
         f"- `gp_derivative` target < 1 s: {'met' if r['gp_seconds'] < 1 else '**not met**'}; `fit_trajectories` "
-        f"target < 30 s: {'met' if r['fit_trajectories_seconds'] < 30 else '**not met**'}.",
+        f"target < 30 s: RBF {'met' if r['fit_trajectories_seconds'] < 30 else '**not met**'}, feature kernel "
+        f"{'met' if r['relevance_seconds'] < 30 else '**not met**'}.",
         MARK_END,
         "",
     ]
