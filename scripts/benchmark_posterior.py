@@ -113,6 +113,8 @@ def realdata_cost(smoke: bool, repeats: int) -> dict:
         "fit_trajectories_all": all_fit,
         "iterations": refined.n_iterations_,
         "evaluations": refined.n_evaluations_,
+        "rhs_evaluations": refined.n_rhs_evaluations_,
+        "relevance_rhs_evaluations": relevant.n_rhs_evaluations_,
         "chosen": fitted.cross_validation_.best if fitted.cross_validation_ is not None else fitted.kernel,
         "relevance_seconds": t_rel,
         "relevance_all": all_rel,
@@ -146,11 +148,12 @@ def block(r: dict, p: dict, info: dict, command: str) -> str:
         f"{r['fit_correction_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in r['fit_correction_all'])} | |",
         f"| `fit_trajectories` (single shooting) from an RBF fit with a cross-validated lengthscale | "
         f"{r['fit_trajectories_seconds']:.2f} s | "
-        f"{', '.join(f'{x:.2f}' for x in r['fit_trajectories_all'])} | {r['evaluations']} objective evaluations, "
-        f"{r['iterations']} L-BFGS iterations |",
+        f"{', '.join(f'{x:.2f}' for x in r['fit_trajectories_all'])} | {r['rhs_evaluations']} "
+        f"({r['evaluations']} objective evaluations, {r['iterations']} L-BFGS iterations) |",
         f"| `fit_trajectories` of a feature kernel (degree 3, per output: relevance re-learned through the ODE) | "
         f"{r['relevance_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in r['relevance_all'])} | "
-        f"{r['relevance_evaluations']} objective evaluations, {r['relevance_iterations']} L-BFGS iterations |",
+        f"{r['relevance_rhs_evaluations']} ({r['relevance_evaluations']} objective evaluations, "
+        f"{r['relevance_iterations']} L-BFGS iterations) |",
         "",
         f"- posterior / predict: **{p['ratio']:.1f}x** (target: at most 20x: {ok}). Each draw is evaluated at every "
         f"state of its path: {p['features']} prior features plus the update on {p['basis']} of the "

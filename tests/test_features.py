@@ -182,6 +182,7 @@ def test_trajectory_relevance_recovers_the_term(one_thread):
         samples = tms.correction_samples(traj, system, derivative="smooth", window=7, degree=2)  # biased samples
     gp = tms.CorrectionGP(kernel="features", degree=2).fit(samples)
     refined = tms.fit_trajectories(gp, system, traj, state_noise=1e-8)
+    assert refined.n_rhs_evaluations_ > refined.n_evaluations_ >= refined.n_iterations_ >= 1
     terms = {t.name: t.mean for t in refined.terms(["y1", "y2"])}
     assert terms["y1^2"] == pytest.approx(0.05, rel=1e-3)
     assert all(abs(v) < 1e-4 for k, v in terms.items() if k != "y1^2")

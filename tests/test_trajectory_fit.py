@@ -36,6 +36,7 @@ def test_misfit_falls_and_the_correction_improves(problem, one_thread):
     assert (refined.lengthscale, refined.outputscale, refined.noise_variance) == pytest.approx((1.0, 0.1, 1e-4))
     assert shooting_misfit(gp, system, traj) == before[0]
     assert 1 <= refined.n_iterations_ <= refined.n_evaluations_
+    assert refined.n_rhs_evaluations_ >= 6 * refined.n_evaluations_  # dopri5: at least one step per solve
     pred = tms.CorrectedODE(system, refined).predict(traj.initial_conditions, traj.times)
     assert tms.trajectory_rmse(pred, traj.states) < tms.trajectory_rmse(
         tms.CorrectedODE(system, gp).predict(traj.initial_conditions, traj.times), traj.states

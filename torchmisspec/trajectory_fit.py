@@ -167,7 +167,9 @@ def fit_trajectories(
     Returns:
         a new fitted :class:`CorrectionGP` (hyperparameters fixed at ``gp``'s values) whose training targets are the
         optimised Y_hat. ``gp`` itself is not modified. ``result.n_iterations_``/``n_evaluations_`` count the
-        L-BFGS iterations and objective evaluations (one batched solve each); ``result.state_noise_`` is the
+        L-BFGS iterations and objective evaluations (one batched solve each), ``result.n_rhs_evaluations_`` the
+        right-hand-side evaluations of all its solves (each a batched call; gradients and finite differences
+        included); ``result.state_noise_`` is the
         ``(d,)`` state-noise variance used; with single shooting ``result.initial_states_`` holds the estimated
         ``(K, d)`` initial states.
     """
@@ -210,6 +212,7 @@ def fit_trajectories(
     )
     refined = gp.condition(X, z.detach() * scale, noise=noise)
     refined.n_iterations_, refined.n_evaluations_ = result.iterations, result.evaluations
+    refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2.sqrt()
@@ -226,10 +229,12 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
         starts, times, ends = _intervals(trajectories)
 
         def residuals(field, off, sd):  # noqa: ARG001 - the same signature as single shooting's
-            pred, _ = solve(field, starts, times, **solver)
+            pred, nfe = solve(field, starts, times, **solver)
+            residuals.nfe += nfe
             return pred[:, -1] - ends
 
         residuals.experiment = None
+        residuals.nfe = 0
         return residuals, ends.numel(), None
     groups = trajectories.by_length()
     first = trajectories.initial_conditions  # (K, d)
@@ -239,9 +244,12 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
         parts = []
         for idx, group in groups:
             y0 = first[idx] if off is None else first[idx] + off[idx] * sd
-            pred, _ = solve(field, y0, group.times, **solver)
+            pred, nfe = solve(field, y0, group.times, **solver)
+            residuals.nfe += nfe
             parts.append((pred - group.states).reshape(-1, d))
         return torch.cat(parts)
+
+    residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
 
     residuals.experiment = torch.cat(
         [torch.tensor(idx, device=first.device).repeat_interleave(group.num_times) for idx, group in groups]
@@ -426,6 +434,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
         Yhat = _pseudo_targets(tmp, Phi, W, beta)
     refined = tmp.condition(X, Yhat, noise=gp.train_noise_)
     refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations
+    refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
