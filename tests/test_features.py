@@ -120,7 +120,10 @@ def test_paths_persistence_and_conditioning(tmp_path):
     loaded = tms.CorrectionGP.load(path)
     assert torch.equal(loaded.weights, gp.weights) and loaded.kernel == "features"
     torch.testing.assert_close(loaded.predict_mean(xs), gp.predict_mean(xs), rtol=1e-12, atol=1e-14)
+    gp.samples_ = "the samples of this fit"  # a record of the fit (as fit_correction leaves): not carried over
     part = gp.condition(X[:40], Y[:40])  # the same hyperparameters on other data, nothing re-learned
+    assert not hasattr(part, "samples_") and part.n_iterations_ == 0 and part.fixed is not gp.fixed
+    assert part.log_marginal_likelihood_ is not None  # recomputed for the new data by the cache
     assert torch.equal(part.weights, gp.weights) and len(part.train_inputs_) == 40
     again = tms.CorrectionGP(kernel="features", degree=2, per_output=True).fit(X[:40], Y[:40])
     assert not torch.equal(again.weights, gp.weights)  # a fit would have re-learned them

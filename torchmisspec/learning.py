@@ -46,6 +46,7 @@ from ._threads import adaptive_threads
 from ._validation import check_positive_int
 from .data import Trajectories, simulate
 from .gp import CorrectionGP
+from .gp._model import median_distance
 from .gp._paths import kernel_hyperparameters, kernel_matrix
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .systems import MisspecifiedSystem
@@ -311,10 +312,7 @@ def lengthscale_candidates(samples: CorrectionSamples, template: CorrectionGP | 
     """The default candidate lengthscales: :data:`LENGTHSCALE_GRID` times the median distance between the samples'
     inputs, plus the marginal-likelihood lengthscale of ``template`` (default ``CorrectionGP()``) on all samples."""
     template = CorrectionGP() if template is None else template
-    X = samples.inputs
-    sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-    dist = torch.cdist(sub, sub)
-    scale = float(dist[dist > 0].median()) if bool((dist > 0).any()) else 1.0
+    scale = median_distance(samples.inputs)
     candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
     try:
         candidates.add(round(float(CorrectionGP(**_settings(template)).fit(samples).lengthscale), 12))
@@ -463,8 +461,6 @@ def fit_correction(
         if given and template.kernel not in ("rbf", "matern52"):
             raise InputError(f"lengthscale: the {template.kernel} kernel has no lengthscale, got {lengthscale!r}")
         result = CorrectionGP(**{**options, **given}).fit(samples) if given else copy.deepcopy(template).fit(samples)
-        if gp is None and not given:
-            result = CorrectionGP(**options).fit(samples)
     if refine is None:
         refine = result.kernel == "features"
     if refine:

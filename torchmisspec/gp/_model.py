@@ -119,6 +119,15 @@ class _IndependentOutputsGP(gpytorch.models.ExactGP):
         return gpytorch.distributions.MultivariateNormal(mean, covar)
 
 
+def median_distance(X: torch.Tensor) -> float:
+    """The median distance between distinct inputs of an evenly spaced subsample of at most 500 (1.0 when all the
+    inputs coincide): the length scale of the data, for starting values, bounds and candidate grids."""
+    sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
+    dist = torch.cdist(sub, sub)
+    positive = dist[dist > 0]
+    return float(positive.median()) if positive.numel() else 1.0
+
+
 def _identical_columns(noise: torch.Tensor) -> bool:
     """Known noise ``(N, d_out)`` the same for every output (then one factorization serves all outputs)."""
     return bool((noise == noise[:, :1]).all())
@@ -350,12 +359,7 @@ class CorrectionGP:
         var = torch.where(var > 0, var, var.max()) if self.per_output else var.mean()
         out = {"outputscale": var, "noise_variance": 1e-2 * var}
         if self.kernel not in _NO_LENGTHSCALE:
-            sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-            dist = torch.cdist(sub, sub)
-            positive = dist[dist > 0]
-            out["lengthscale"] = (
-                positive.median() if positive.numel() else torch.ones((), dtype=X.dtype, device=X.device)
-            )
+            out["lengthscale"] = torch.tensor(median_distance(X), dtype=X.dtype, device=X.device)
         return out
 
     def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
@@ -586,10 +590,7 @@ class CorrectionGP:
         take log l to -1000, where every kernel entry is 0/0."""
         if self.kernel in _NO_LENGTHSCALE or self.fixed["lengthscale"] is not None:
             return None
-        sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-        dist = torch.cdist(sub, sub)
-        positive = dist[dist > 0]
-        scale = float(positive.median()) if positive.numel() else 1.0
+        scale = median_distance(X)
         return self.covar_module.base_kernel.raw_lengthscale, math.log(1e-4 * scale), math.log(1e4 * scale)
 
     def _optimise(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, progress: bool, max_iter: int):
@@ -1031,6 +1032,9 @@ class CorrectionGP:
             )
         noise = self._check_noise(noise, Y.shape[0], Y.shape[1])
         new = copy.copy(self)
+        new.fixed = dict(self.fixed)
+        for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:
+            delattr(new, name)  # records of this model's fit (cross_validation_, samples_, state_noise_, ...)
         new._cache = None
         covar = copy.deepcopy(self.covar_module)
         lik = copy.deepcopy(self.likelihood)
@@ -1040,7 +1044,7 @@ class CorrectionGP:
             with torch.no_grad():
                 new._floor(lik).noise = self._floor(self.likelihood).noise.detach().clone()
         new.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
-        new.n_iterations_, new.n_evaluations_ = 0, 0
+        new.n_iterations_, new.n_evaluations_, new.log_marginal_likelihood_ = 0, 0, None
         new._freeze()
         new._posterior_cache()
         return new

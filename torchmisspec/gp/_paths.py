@@ -39,7 +39,7 @@ import torch
 
 from .._errors import InputError, ShapeError
 from .._validation import check_positive_int, check_real
-from ._features import monomial_powers, monomials
+from ._features import monomials
 
 __all__ = [
     "DEFAULT_FEATURE_ERROR",
@@ -185,6 +185,7 @@ def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
         out["offset"] = covar.base_kernel.offset.reshape(-1, 1, 1)
     elif gp.kernel == "features":
         out["weights"] = covar.base_kernel.weights.reshape(out["outputscale"].shape[0], 1, -1)
+        out["powers"] = covar.base_kernel.powers  # the exponents, not rebuilt at every call of kernel_matrix
     else:
         out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
     return out
@@ -198,7 +199,7 @@ def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, deg
     if kind == "polynomial":
         return s2 * (params["offset"] + x @ X.T).pow(degree)
     if kind == "features":
-        powers = monomial_powers(x.shape[-1], degree, device=x.device)
+        powers = params["powers"]
         return s2 * (monomials(x, powers) * params["weights"]) @ monomials(X, powers).T
     ell = params["lengthscale"]
     if kind == "rbf" and ell.numel() == 1 and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
