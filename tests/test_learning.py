@@ -114,6 +114,14 @@ def test_fallbacks_and_bad_input(linear_noisy):
         cross_validate_lengthscale(system, traj, samples, gp=tms.CorrectionGP(lengthscale=1.0))
     with pytest.raises(tms.InputError, match=r"lengthscales: expected positive numbers"):
         cross_validate_lengthscale(system, traj, samples, lengthscales=[1.0, -2.0])
+    with pytest.raises(tms.InputError, match=r"candidates: pass either a gp template or a list of candidates"):
+        tms.fit_correction(traj, system, gp=tms.CorrectionGP(), candidates=[tms.CorrectionGP()])
+    with pytest.raises(tms.InputError, match=r"candidates: are chosen by cross-validation .* got 'ml'"):
+        tms.fit_correction(traj, system, candidates=[tms.CorrectionGP()], lengthscale="ml")
+    with pytest.raises(tms.InputError, match=r"candidates: expected a non-empty list of CorrectionGP templates"):
+        tms.cross_validate(system, traj, samples, [])
+    with pytest.raises(tms.InputError, match=r"candidates: expected a non-empty list of CorrectionGP templates"):
+        tms.cross_validate(system, traj, samples, ["rbf"])
 
 
 def test_fit_trajectories_bad_shooting_and_state_noise(linear_noisy):
