@@ -2,7 +2,9 @@
 
 * Issue 10: ``CorrectedODE.posterior`` with 1,000 initial conditions x 64 draws x 61 times on paper_linear (GP on 440
   samples: 40 trajectories x 11 times, oracle noise std 1e-2) against the mean-only ``predict`` on the same 1,000
-  initial conditions (target: at most 20x its time); both timed in this process, medians of ``--repeats``.
+  initial conditions (target: at most 20x its time); both timed in this process, medians of ``--repeats``. Also
+  timed: the posterior with the previous default prior features (800 random Fourier features, ``num_features=800``)
+  and two parts of the default posterior (building the draws; the support check along the mean paths).
 * Issue 9: ``derivative="gp"`` on 40 experiments x 21 times (target < 1 s), ``fit_trajectories`` (single shooting,
   the default) and ``fit_correction`` (cross-validated lengthscale) on the same data with 1 % state noise (target
   for fit_trajectories < 30 s).
@@ -11,6 +13,7 @@ Usage::
 
     python scripts/benchmark_posterior.py --markdown      # writes the block of BENCHMARKS.md
     python scripts/benchmark_posterior.py --smoke         # tiny sizes, prints only
+    python scripts/benchmark_posterior.py --posterior-only  # issue 10 only, prints only
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_model, git, replace_marked  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
+from torchmisspec._threads import adaptive_threads  # noqa: E402
 from torchmisspec.design.candidates import uniform_box  # noqa: E402
 from torchmisspec.observations import gp_derivative  # noqa: E402
 
@@ -38,6 +42,8 @@ BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 MARK_START = "<!-- study:costs:start -->"
 MARK_END = "<!-- study:costs:end -->"
 DT = torch.float64
+#: The previous default prior features of the draws, timed for comparison: 400 random frequency pairs.
+RANDOM_FEATURES = 800
 
 
 def timed(fn, repeats: int):
@@ -65,20 +71,48 @@ def posterior_cost(smoke: bool, repeats: int) -> dict:
     post, t_post, all_post = timed(
         lambda: ode.posterior(y0, times, num_samples=S, generator=torch.Generator().manual_seed(1)), repeats
     )
+    nfe_post = ode.nfe
+    _, t_random, all_random = timed(
+        lambda: ode.posterior(
+            y0, times, num_samples=S, num_features=RANDOM_FEATURES, generator=torch.Generator().manual_seed(1)
+        ),
+        repeats,
+    )
+    nfe_random = ode.nfe
+    # parts of the default posterior: the draws (features, update, compression) and the support check (the exact
+    # posterior variance at every state of the mean paths); the rest is the mean paths (predict) and the sampled solve.
+    # Under the thread count posterior() itself would use (adaptive_threads: one thread when another process is busy)
+    with adaptive_threads():
+        _, t_draws, _ = timed(
+            lambda: gp.sample_functions(
+                S, update_error=tms.dynamics.UPDATE_ERROR, generator=torch.Generator().manual_seed(1)
+            ),
+            repeats,
+        )
+        _, t_support, _ = timed(lambda: ode._support(post.mean_path), repeats)
+    features = gp.sample_functions(1).features
     return {
         "initial_conditions": n_ic,
         "draws": S,
         "times": times.numel(),
         "train_samples": samples.inputs.shape[0],
-        "features": gp.sample_functions(1).features.num_features,
+        "features": features.num_features,
+        "feature_kind": features.kind,
+        "feature_bound": features.error_bound,
         "basis": gp.sample_functions(S, update_error=tms.dynamics.UPDATE_ERROR)._X.shape[0],
         "mean_seconds": t_mean,
         "mean_all": all_mean,
         "mean_rhs_evaluations": nfe_mean,
         "posterior_seconds": t_post,
         "posterior_all": all_post,
-        "posterior_rhs_evaluations": ode.nfe,
+        "posterior_rhs_evaluations": nfe_post,
         "ratio": t_post / t_mean,
+        "random_seconds": t_random,
+        "random_all": all_random,
+        "random_rhs_evaluations": nfe_random,
+        "random_ratio": t_random / t_mean,
+        "draws_seconds": t_draws,
+        "support_seconds": t_support,
     }
 
 
@@ -123,7 +157,8 @@ def realdata_cost(smoke: bool, repeats: int) -> dict:
     }
 
 
-def block(r: dict, p: dict, info: dict, command: str) -> str:
+def block(r: dict | None, p: dict, info: dict, command: str) -> str:
+    """The markdown block (``r`` None: issue 10 only, ``--posterior-only``)."""
     ok = "met" if p["ratio"] <= 20 else "**not met**"
     lines = [
         MARK_START,
@@ -138,9 +173,33 @@ def block(r: dict, p: dict, info: dict, command: str) -> str:
         f"| `predict`, {p['initial_conditions']} initial conditions x {p['times']} times (GP on {p['train_samples']} "
         f"samples) | {p['mean_seconds']:.3f} s | {', '.join(f'{x:.3f}' for x in p['mean_all'])} | "
         f"{p['mean_rhs_evaluations']} |",
-        f"| `posterior`, the same x {p['draws']} draws ({p['features']} features per draw) | "
-        f"{p['posterior_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in p['posterior_all'])} | "
-        f"{p['posterior_rhs_evaluations']} |",
+        f"| `posterior`, the same x {p['draws']} draws (defaults: {p['features']} {p['feature_kind']} Fourier "
+        f"features per draw) | {p['posterior_seconds']:.2f} s | "
+        f"{', '.join(f'{x:.2f}' for x in p['posterior_all'])} | {p['posterior_rhs_evaluations']} |",
+        f"| `posterior`, the same, {RANDOM_FEATURES} random Fourier features per draw (`num_features="
+        f"{RANDOM_FEATURES}`, the previous default) | {p['random_seconds']:.2f} s | "
+        f"{', '.join(f'{x:.2f}' for x in p['random_all'])} | {p['random_rhs_evaluations']} |",
+        *(_issue9_rows(r) if r is not None else []),
+        "",
+        f"- posterior / predict: **{p['ratio']:.1f}x** (target: at most 20x: {ok}); with {RANDOM_FEATURES} random "
+        f"features: {p['random_ratio']:.1f}x. Each draw is evaluated at every state of its path: {p['features']} prior "
+        f"features ({p['feature_kind']}: certified uniform prior-covariance error {p['feature_bound']:.2g} of the "
+        "prior variance over the data's box widened by its width on each side) plus the update on "
+        f"{p['basis']} of the {p['train_samples']} training inputs (certified compression), for {p['draws']} times "
+        f"as many states as `predict`, whose one kernel row has {p['train_samples']} entries. Of the default "
+        f"posterior's {p['posterior_seconds']:.2f} s: building the draws {p['draws_seconds']:.3f} s, the support "
+        f"check (exact posterior variance at the {p['initial_conditions'] * p['times']} states of the mean paths) "
+        f"{p['support_seconds']:.2f} s ({p['support_seconds'] / p['mean_seconds']:.1f}x `predict`), the mean paths "
+        "one `predict`, the rest the sampled solve.",
+        *(_issue9_bullet(r) if r is not None else []),
+        MARK_END,
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _issue9_rows(r: dict) -> list[str]:
+    return [
         f"| `gp_derivative`, {r['experiments']} experiments x {r['times']} times | {r['gp_seconds']:.3f} s | "
         f"{', '.join(f'{x:.3f}' for x in r['gp_all'])} | |",
         f"| `fit_correction` (defaults: model chosen by cross-validation, here {r.get('chosen', '?')}; a chosen "
@@ -154,19 +213,15 @@ def block(r: dict, p: dict, info: dict, command: str) -> str:
         f"{r['relevance_seconds']:.2f} s | {', '.join(f'{x:.2f}' for x in r['relevance_all'])} | "
         f"{r['relevance_rhs_evaluations']} ({r['relevance_evaluations']} objective evaluations, "
         f"{r['relevance_iterations']} L-BFGS iterations) |",
-        "",
-        f"- posterior / predict: **{p['ratio']:.1f}x** (target: at most 20x: {ok}). Each draw is evaluated at every "
-        f"state of its path: {p['features']} prior features plus the update on {p['basis']} of the "
-        f"{p['train_samples']} training inputs (certified compression), for {p['draws']} times as many states as "
-        f"`predict`, whose one kernel row has {p['train_samples']} entries; the prior features dominate "
-        "(`feature_error=0.1` gives 200).",
+    ]
+
+
+def _issue9_bullet(r: dict) -> list[str]:
+    return [
         f"- `gp_derivative` target < 1 s: {'met' if r['gp_seconds'] < 1 else '**not met**'}; `fit_trajectories` "
         f"target < 30 s: RBF {'met' if r['fit_trajectories_seconds'] < 30 else '**not met**'}, feature kernel "
         f"{'met' if r['relevance_seconds'] < 30 else '**not met**'}.",
-        MARK_END,
-        "",
     ]
-    return "\n".join(lines)
 
 
 def replace_block(text: str, block: str) -> str:
@@ -179,13 +234,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes BENCHMARKS.md")
     parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--posterior-only", action="store_true", help="time issue 10 only (prints; never writes BENCHMARKS.md)"
+    )
     args = parser.parse_args(argv)
     if args.smoke and args.markdown:
         parser.error("--smoke never writes BENCHMARKS.md")
+    if args.posterior_only and args.markdown:
+        parser.error("--posterior-only never writes BENCHMARKS.md (the block needs issue 9's rows too)")
     load = os.getloadavg() if hasattr(os, "getloadavg") else ()
     repeats = 1 if args.smoke else args.repeats
     p = posterior_cost(args.smoke, repeats)
-    r = realdata_cost(args.smoke, repeats)
+    r = None if args.posterior_only else realdata_cost(args.smoke, repeats)
     info = {
         "cpu": cpu_model(),
         "cpus": os.cpu_count(),

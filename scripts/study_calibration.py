@@ -53,8 +53,9 @@ GOAL = (0.85, 0.95)  # the 90 % band's coverage
 SEED = 31_000
 SETTINGS = (("paper_linear", 5), ("paper_linear", 10), ("paper_linear", 40), ("paper_gravity", 7))
 #: How the bands are made: the RBF GP with its hyperparameters fixed at their ML-II values, or drawn from their
-#: Laplace posterior; the feature kernel (monomials up to degree 3, weights per output by evidence, i.e. ML-II).
-METHODS = ("fixed", "laplace", "features")
+#: Laplace posterior, or fixed with the band's spread calibrated on held-out experiments (``CorrectedODE.calibrate``);
+#: the feature kernel (monomials up to degree 3, weights per output by evidence, i.e. ML-II), alone or calibrated.
+METHODS = ("fixed", "laplace", "calibrated", "features", "features calibrated")
 FULL = {"realizations": 10, "n_test": 200, "num_samples": 64, "output_times": 31}
 SMOKE = {"realizations": 2, "n_test": 10, "num_samples": 16, "output_times": 7}
 
@@ -91,12 +92,15 @@ def run_one(name: str, K: int, seed: int, cfg: dict) -> dict:
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            post = tms.CorrectedODE(system, features if method == "features" else gp).posterior(
+            model = tms.CorrectedODE(system, features if method.startswith("features") else gp)
+            if method.endswith("calibrated"):
+                cal = model.calibrate(train, samples, generator=torch.Generator().manual_seed(seed + 2))
+            post = model.posterior(
                 y0,
                 times,
                 num_samples=cfg["num_samples"],
                 generator=torch.Generator().manual_seed(seed + 1),
-                hyperparameters="fixed" if method == "features" else method,
+                hyperparameters="laplace" if method == "laplace" else "fixed",
             )
         seconds = time.perf_counter() - t0
         lower, upper = post.interval(0.9)
@@ -108,6 +112,10 @@ def run_one(name: str, K: int, seed: int, cfg: dict) -> dict:
             "band_width_90": float((upper - lower)[:, 1:].mean()),
             "posterior_seconds": seconds,
         }
+        if method.endswith("calibrated"):
+            rec[method]["scale"] = cal.scale
+            rec[method]["held_out_coverage"] = cal.coverage
+            rec[method]["scale_reached"] = cal.reached
     return rec
 
 
@@ -212,10 +220,43 @@ which makes no allowance for their own uncertainty, so where ML-II is overconfid
 narrow. Rows "laplace": `posterior(..., hyperparameters="laplace")`, the same number of draws split among 8 sets of
 hyperparameters drawn from the Laplace approximation of their posterior in log space (with a weak N(fitted value,
 2^2) prior on each log hyperparameter, `CorrectionGP.laplace_covariance`), the same data and the same seeds. Rows
-"features": the feature kernel `CorrectionGP(kernel="features", degree=3, per_output=True)` on the same samples, its
-term weights by evidence (the marginal likelihood); its columns "ML-II lengthscale" repeat the RBF fit's. Paths
-the posterior flags as leaving the data's support are counted like any other.
+"calibrated": the "fixed" GP after `CorrectedODE.calibrate(train, samples)` (`torchmisspec.calibration`): each of
+min(K, 10) folds of the training experiments is held out, the GP refitted by marginal likelihood on the others, and
+the factor c on the draws' deviation from the posterior mean is the smallest under which the held-out observed
+states lie in the central 90 % band 90 % of the time; no test data are used. Rows "features": the feature kernel
+`CorrectionGP(kernel="features", degree=3, per_output=True)` on the same samples, its term weights by evidence (the
+marginal likelihood); "features calibrated" the same after `calibrate`. The column "ML-II lengthscale" repeats the
+RBF fit's. Paths the posterior flags as leaving the data's support are counted like any other.
+
+{why(result)}
 """
+
+
+def why(result: dict) -> str:
+    """What the run shows, from its numbers: the scales the calibration chose and where it could not reach."""
+    lines = ["Calibration scales chosen (median and range over realizations; c > 1 widens the GP's own bands):", ""]
+    for s in result["settings"]:
+        for method in METHODS:
+            if not method.endswith("calibrated"):
+                continue
+            scales = sorted(r[method]["scale"] for r in s["runs"])
+            missed = sum(1 for r in s["runs"] if not r[method]["scale_reached"])
+            lines.append(
+                f"- {s['system']} K = {s['K']}, {method}: c = {scales[len(scales) // 2]:.3g} "
+                f"({scales[0]:.3g} to {scales[-1]:.3g}); level out of reach on held-out data in {missed} of "
+                f"{len(scales)} realizations"
+            )
+    lines += [
+        "",
+        "Why the GP's own bands under-cover at small K: ML-II is confident on few noisy samples (in some realizations "
+        "the lengthscale runs to hundreds, a nearly linear F, or the output scale collapses), and a stationary prior "
+        "fitted near the data does not know that F = 0.01 y^2 grows toward the corners of D. Hyperparameter "
+        "uncertainty (Laplace) widens the bands a little but cannot change the prior's shape; the held-out "
+        "calibration measures the shortfall on trajectories and widens the bands by it. Where the level is out of "
+        "reach (a fold whose refit explains the signal away as noise has bands of zero width), `calibrate` warns and "
+        "keeps the scale at which the held-out coverage stops growing.",
+    ]
+    return "\n".join(lines)
 
 
 def figure(result: dict, path: Path) -> None:

@@ -32,6 +32,7 @@ from ._errors import (
     TorchMisspecError,
     TorchMisspecWarning,
 )
+from .calibration import BandCalibration, calibrate_bands
 from .data import Trajectories, simulate
 from .dynamics import CorrectedODE, TrajectoryPosterior
 from .gp import CorrectionGP, GPPosterior
@@ -47,6 +48,7 @@ except _PackageNotFoundError:  # pragma: no cover - running from a source tree t
     __version__ = "0+unknown"
 
 __all__ = [
+    "BandCalibration",
     "BudgetError",
     "LinearAlgebraError",
     "NumericalWarning",
@@ -66,6 +68,7 @@ __all__ = [
     "ShapeError",
     "TorchMisspecError",
     "Trajectories",
+    "calibrate_bands",
     "correction_error",
     "correction_samples",
     "cross_validate",

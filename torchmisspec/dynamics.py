@@ -54,6 +54,8 @@ class CorrectedODE(nn.Module):
         self.system = system
         self.gp = gp
         self.nfe = 0  # right-hand-side evaluations of the last predict()
+        #: the :class:`~torchmisspec.calibration.BandCalibration` of the last :meth:`calibrate` (None before)
+        self.calibration_ = None
 
     def correction(self, y: torch.Tensor) -> torch.Tensor:
         """mu placed on the full state: ``(..., d)`` from states ``(..., d)``."""
@@ -151,6 +153,7 @@ class CorrectedODE(nn.Module):
         support_threshold: float | None = None,
         hyperparameters: str = "fixed",
         hyperparameter_samples: int = 8,
+        scale: float | None = None,
     ) -> TrajectoryPosterior:
         """Trajectories under posterior draws of F: uncertainty bands on the predicted paths.
 
@@ -182,6 +185,9 @@ class CorrectedODE(nn.Module):
                 posterior (``CorrectionGP.hyperparameter_samples``), so the bands allow for the hyperparameters'
                 own uncertainty (ML-II alone is overconfident with few experiments; ``docs/studies/calibration.md``).
             hyperparameter_samples: the number of hyperparameter sets with ``"laplace"`` (at most ``num_samples``).
+            scale: a factor c > 0 on every draw's deviation from the posterior mean, F_c = mu + c (F_s - mu) (the
+                posterior covariance of F times c^2); default: the scale found by :meth:`calibrate`, or 1 (the GP's
+                own bands) before any calibration.
 
         Returns:
             :class:`TrajectoryPosterior`.
@@ -201,6 +207,9 @@ class CorrectedODE(nn.Module):
         if threshold > 1.0:
             raise InputError(f"support_threshold: expected a ratio of standard deviations in (0, 1], got {threshold!r}")
         num_samples = check_positive_int(num_samples, "num_samples")
+        if scale is None:
+            scale = 1.0 if self.calibration_ is None else self.calibration_.scale
+        scale = check_real(scale, "scale", positive=True)
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
@@ -208,16 +217,16 @@ class CorrectedODE(nn.Module):
         S = num_samples
         if hyperparameters not in ("fixed", "laplace"):
             raise InputError(f"hyperparameters: expected 'fixed' or 'laplace', got {hyperparameters!r}")
-        options_f = dict(num_features=num_features, feature_error=feature_error, generator=generator)
+        options_f = dict(
+            num_features=num_features, feature_error=feature_error, generator=generator, update_error=update_error
+        )
         if hyperparameters == "fixed":
-            draws = self.gp.sample_functions(S, update_error=update_error, **options_f)
+            draws = self.gp.sample_functions(S, scale=scale, **options_f)
         else:
             M = min(check_positive_int(hyperparameter_samples, "hyperparameter_samples"), S)
             gps = self.gp.hyperparameter_samples(M, generator=generator)
             sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
-            draws = _Mixture(
-                [g.sample_functions(n, update_error=update_error, **options_f) for g, n in zip(gps, sizes, strict=True)]
-            )
+            draws = _Mixture([g.sample_functions(n, scale=scale, **options_f) for g, n in zip(gps, sizes, strict=True)])
         mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         system = self.system
 
@@ -263,16 +272,29 @@ class CorrectedODE(nn.Module):
             update_error=draws.update_error,
         )
 
+    def calibrate(self, trajectories, samples, **options):
+        """Calibrate the bands of :meth:`posterior` on held-out experiments and make the result its default scale.
+
+        See :func:`torchmisspec.calibration.calibrate_bands` (the arguments after ``samples`` are its keywords:
+        ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator`` and options for
+        :meth:`posterior`, e.g. ``hyperparameters="laplace"``, which later calls should then use too). Costs one
+        GP fit per fold plus about ten held-out posteriors per fold.
+
+        Returns:
+            the :class:`~torchmisspec.calibration.BandCalibration`, also kept as ``calibration_``; later
+            ``posterior`` calls use its ``scale`` unless given another.
+        """
+        from .calibration import calibrate_bands
+
+        self.calibration_ = None  # the held-out bands are the GP's own
+        self.calibration_ = calibrate_bands(self, trajectories, samples, **options)
+        return self.calibration_
+
     def _support(self, states: torch.Tensor) -> torch.Tensor:
         """``(B, T)``: posterior over prior standard deviation of F at the states ``(B, T, d)`` (largest output)."""
         x = self.system.select_inputs(states)
-        flat = x.reshape(-1, x.shape[-1])
-        post = self.gp.predict(flat).variance  # (M, d_out)
-        with torch.no_grad():
-            prior = self.gp.covar_module.forward(flat, flat, diag=True)  # (M,) or (d_out, M)
-        prior = prior.unsqueeze(-1) if prior.dim() == 1 else prior.T
-        ratio = (post / prior.clamp_min(torch.finfo(post.dtype).tiny)).clamp(0.0, 1.0).sqrt()
-        return ratio.amax(dim=-1).reshape(states.shape[:-1])
+        flat = x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype)
+        return self.gp._sd_ratio(flat).reshape(states.shape[:-1])
 
 
 #: Default ``support_threshold`` of :meth:`CorrectedODE.posterior`: posterior / prior standard deviation of F above

@@ -137,6 +137,11 @@ def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.device == b.device and torch.equal(a, b)
 
 
+#: Certified bound on the error of the posterior / prior variance ratio in the extrapolation check
+#: (:meth:`CorrectionGP._sd_ratio`): 1e-3, far below the threshold's scale (a ratio of 1/2).
+SUPPORT_TOLERANCE = 1e-3
+
+
 class _Cache:
     """The factorization of the training covariance and the posterior solve, with the state they were built from."""
 
@@ -816,6 +821,52 @@ class CorrectionGP:
         _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
 
+    def _sd_ratio(self, x: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
+        """``(M,)``: posterior over prior standard deviation of F at inputs ``x (M, d_in)``, the largest over the
+        outputs (1: the prior alone, 0: F known). The extrapolation check of every predicted path calls this.
+
+        With one noise variance per output (no known per-sample noise), the posterior variance is computed in the
+        eigenbasis of K(X, X) = sum_i lam_i u_i u_i^T, keeping the r largest eigenpairs: k_x^T C^-1 k_x =
+        sum_i (u_i^T k_x)^2 / (lam_i + s2n), and since k_x^T K^+ k_x <= k(x, x) every term i is at most
+        lam_i / (lam_i + s2n) k(x, x), so the dropped terms change the variance ratio by at most
+        sum_{i > r} lam_i / (lam_i + s2n) <= :data:`SUPPORT_TOLERANCE`, always upward (the ratio is never
+        understated). The rank r is the smallest with that certificate; otherwise (known per-sample noise, or no
+        saving) the exact triangular solve is used, in row chunks.
+        """
+        from ._paths import kernel_hyperparameters, kernel_matrix
+
+        cache = self._posterior_cache()
+        chol = cache.fac.chol  # (1 or d_out, N, N)
+        X = self.train_inputs_
+        N = X.shape[0]
+        with torch.no_grad():
+            params = {k: v.detach() for k, v in kernel_hyperparameters(self).items()}
+            prior = self.covar_module.forward(x, x, diag=True).reshape(-1, x.shape[0])  # (1 or d_out, M)
+            basis = None
+            if self.train_noise_ is None:
+                K = kernel_matrix(self.kernel, X, X, params, self.degree)  # (B, N, N)
+                lam, U = torch.linalg.eigh(K)  # ascending
+                lam = lam.clamp_min(0.0)
+                s2n = self._floor(self.likelihood).noise.detach().reshape(-1, 1)  # (B, 1)
+                share = lam / (lam + s2n)
+                # the tail sums of the shares from the smallest: drop as many of the smallest as the budget allows
+                tail = share.cumsum(-1)
+                drop = int((tail <= SUPPORT_TOLERANCE).sum(-1).min())
+                if N - drop <= N // 2:  # worth it: at most half the rank
+                    basis = U[..., drop:] / (lam[..., drop:] + s2n).sqrt().unsqueeze(-2)  # (B, N, r)
+            explained = []
+            for start in range(0, x.shape[0], chunk):
+                K = kernel_matrix(self.kernel, x[start : start + chunk], X, params, self.degree)  # (B, m, N)
+                if basis is not None:
+                    V = K @ basis  # (B, m, r): (u_i^T k_x) / sqrt(lam_i + s2n)
+                else:
+                    K = K.expand(chol.shape[0], -1, -1)
+                    V = torch.linalg.solve_triangular(chol.transpose(-1, -2), K, upper=True, left=False)  # K L^-T
+                explained.append(V.pow(2).sum(-1))
+            post = (prior - torch.cat(explained, -1)).clamp_min(0.0)
+            ratio = (post / prior.clamp_min(torch.finfo(prior.dtype).tiny)).clamp(0.0, 1.0).sqrt()
+        return ratio.amax(0)
+
     def sample_functions(
         self,
         num_samples: int,
@@ -824,23 +875,31 @@ class CorrectionGP:
         feature_error: float | None = None,
         generator: torch.Generator | None = None,
         update_error: float | None = None,
+        scale: float = 1.0,
     ):
         """``S`` posterior draws of F as whole functions (pathwise conditioning), consistent wherever evaluated.
 
         Each draw is a prior draw from features plus the exact posterior update through the cached factorization
         (see :mod:`torchmisspec.gp._paths`): evaluate it at any inputs, any number of times (an ODE solver calling
         it at every step sees one function). Their mean is the posterior mean; their covariance is the posterior
-        covariance up to the prior features' error, at most ``feature_error`` (default 0.05) times the prior
-        variance in root mean square at every pair of points for RBF and Matern 5/2, none for the polynomial kernel.
+        covariance up to the prior features' error: for the RBF kernel in low input dimension, deterministic
+        quadrature Fourier features with a certified uniform bound of ``feature_error`` (default 1e-2) times the
+        prior variance over the training inputs' box widened by its width on each side; otherwise (Matern 5/2, high
+        input dimension, or ``num_features`` given) random Fourier features with a root-mean-square bound (default
+        0.05) at every pair of points; none for the polynomial and feature kernels (exact features). See
+        :mod:`torchmisspec.gp._paths`.
 
         Args:
             num_samples: S >= 1.
             num_features: number of random Fourier features (even), instead of the bound ``feature_error``.
-            feature_error: relative RMS bound on the prior-covariance error that chooses the features.
+            feature_error: relative bound on the prior-covariance error that chooses the features.
             generator: ``torch.Generator`` on the GP's device, for reproducible draws.
             update_error: compress the update onto the fewest training inputs that keep a certified bound of
                 ``update_error`` times the prior standard deviation on the change of every draw at any point
                 (shared RBF / Matern kernels; ``None``: the exact canonical basis). Makes long paths cheaper.
+            scale: a factor c > 0 on every draw's deviation from the posterior mean, ``mu + c (F_s - mu)``: draws
+                from the posterior with its covariance times c^2 (a calibrated spread, see
+                :mod:`torchmisspec.calibration`); 1 by default.
 
         Returns:
             :class:`~torchmisspec.gp._paths.FunctionSamples`: ``samples(x)`` maps ``(M, d_in)`` or ``(S, M, d_in)``
@@ -854,7 +913,8 @@ class CorrectionGP:
         features = feature_map(self, num_features=num_features, feature_error=feature_error, generator=generator)
         if update_error is not None:
             update_error = check_real(update_error, "update_error", positive=True)
-        return FunctionSamples(self, num_samples, features, generator, update_error)
+        scale = check_real(scale, "scale", positive=True)
+        return FunctionSamples(self, num_samples, features, generator, update_error, scale=scale)
 
     # ------------------------------------------------------------------------------------------ hyperparameters
     def laplace_covariance(self) -> tuple[list[str], torch.Tensor, torch.Tensor]:

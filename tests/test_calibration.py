@@ -1,0 +1,143 @@
+"""Calibration of the predicted bands on held-out experiments (issue 10: ``torchmisspec.calibration``)."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.calibration import BISECTION_STEPS
+
+DT = torch.float64
+
+
+@pytest.fixture(scope="module")
+def data():
+    """paper 5.1's system, 6 experiments with oracle derivatives plus noise of std 1e-3."""
+    system = tms.systems.paper_linear()
+    g = torch.Generator().manual_seed(3)
+    y0 = torch.rand(6, 2, generator=g, dtype=DT) * 2 - 1
+    traj = tms.simulate(system, y0, torch.linspace(0, 6, 11, dtype=DT))
+    samples = tms.correction_samples(traj, system, derivative="oracle", noise_std=1e-3, generator=g)
+    return system, traj, samples
+
+
+def _model(data, **gp_kwargs):
+    system, _, samples = data
+    return tms.CorrectedODE(system, tms.CorrectionGP(**gp_kwargs).fit(samples))
+
+
+def test_scaled_draws_are_the_mean_plus_scaled_deviations(data):
+    gp = _model(data).gp
+    x = torch.rand(40, 2, generator=torch.Generator().manual_seed(0), dtype=DT) * 2 - 1
+    mu = gp.predict_mean(x)
+    one = gp.sample_functions(8, generator=torch.Generator().manual_seed(5))(x)
+    for c in (0.3, 2.5):
+        scaled = gp.sample_functions(8, generator=torch.Generator().manual_seed(5), scale=c)(x)
+        torch.testing.assert_close(scaled - mu, c * (one - mu), rtol=1e-9, atol=1e-12)
+    with pytest.raises(tms.InputError, match="scale"):
+        gp.sample_functions(8, scale=0.0)
+
+
+def _check_bisection(cal, level):
+    """``scale`` is where the held-out coverage first reaches ``level``: it does there, and not at the largest scale
+    tried below it (up to the bisection's precision)."""
+    tried = dict(zip(cal.scales, cal.coverages, strict=True))
+    assert tried[cal.scale] == cal.coverage >= level
+    below = [c for c in cal.scales if c < cal.scale]
+    if below:
+        assert tried[max(below)] < level
+        assert cal.scale / max(below) < 2 ** (12 / 2**BISECTION_STEPS) + 1e-9
+
+
+def test_an_overconfident_gp_is_widened(data):
+    system, traj, samples = data
+    # the output scale fixed far below the correction's size: F is shrunk to ~0 and the bands are far too narrow
+    model = _model(data, outputscale=1e-9)
+    cal = model.calibrate(traj, samples, num_samples=16, generator=torch.Generator().manual_seed(1))
+    assert isinstance(cal, tms.BandCalibration) and model.calibration_ is cal
+    assert cal.coverage_at_one < 0.5 and cal.scale > 4 and cal.reached and cal.folds == 6 and cal.refit
+    assert cal.num_points == 6 * 10 * 2  # every held-out time after the first, both components
+    _check_bisection(cal, 0.9)
+    assert "scale=" in str(cal)
+    # later posteriors use the calibrated scale by default
+    y0, times = traj.states[:2, 0], torch.linspace(0, 6, 7, dtype=DT)
+    default = model.posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(2))
+    explicit = model.posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(2), scale=cal.scale)
+    assert torch.equal(default.samples, explicit.samples)
+    own = model.posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(2), scale=1.0)
+    assert float(default.stddev[:, 1:].mean()) > 4 * float(own.stddev[:, 1:].mean())
+
+
+def test_an_overcautious_gp_is_narrowed(data):
+    system, traj, samples = data
+    # an output scale far above the correction's size (F ~ 1e-2), a short lengthscale and a noise variance 10^4
+    # times the samples': bands far too wide
+    model = _model(data, outputscale=1.0, lengthscale=0.3, noise_variance=1e-2)
+    cal = model.calibrate(
+        traj, samples, num_samples=8, folds=3, refit=False, generator=torch.Generator().manual_seed(1)
+    )
+    assert cal.coverage_at_one == 1.0 and cal.scale < 0.5 and not cal.refit
+    _check_bisection(cal, 0.9)
+
+
+def test_state_noise_is_not_mistaken_for_missing_spread(data):
+    system, traj, samples = data
+    # noise of std 0.05 on every observed state but the first (where the held-out paths start)
+    noise = 0.05 * torch.randn(traj.states.shape, dtype=DT, generator=torch.Generator().manual_seed(4))
+    noise[:, 0] = 0.0
+    noisy = tms.Trajectories(traj.times, traj.states + noise)
+    model = _model(data)
+    kw = dict(num_samples=16, folds=3, refit=False, generator=torch.Generator().manual_seed(1))
+    ignored = model.calibrate(noisy, samples, **kw)
+    allowed = model.calibrate(noisy, samples, state_noise=0.05, **kw)
+    exact = model.calibrate(traj, samples, **kw)
+    # ignoring the noise, the bands miss most noisy states and must be widened a lot to cover them; allowing for it,
+    # the GP's own bands (plus the noise) already cover about as often as on exact states
+    assert ignored.coverage_at_one < 0.5 < 0.85 < allowed.coverage_at_one
+    assert abs(allowed.coverage_at_one - exact.coverage_at_one) < 0.1
+    assert ignored.scale > 5 * allowed.scale
+
+
+def test_out_of_reach_is_warned_and_kept_finite(data):
+    system, traj, samples = data
+    # states observed with an offset far beyond anything the draws reach even at the widest scale
+    shifted = tms.Trajectories(traj.times, traj.states + 1e3)
+    model = _model(data)
+    with pytest.warns(tms.TorchMisspecWarning, match="no scale up to"):
+        cal = model.calibrate(
+            shifted, samples, num_samples=4, folds=2, refit=False, generator=torch.Generator().manual_seed(1)
+        )
+    assert not cal.reached and cal.coverage < 0.9 and cal.scale <= 256
+
+
+def test_bad_input(data):
+    system, traj, samples = data
+    model = _model(data)
+    for level in (0.0, 1.0, 1.5, float("nan")):
+        with pytest.raises(tms.InputError, match="level"):
+            tms.calibrate_bands(model, traj, samples, level=level)
+    with pytest.raises(tms.InputError, match="folds"):
+        tms.calibrate_bands(model, traj, samples, folds=1)
+    with pytest.raises(tms.InputError, match="num_samples"):
+        tms.calibrate_bands(model, traj, samples, num_samples=0)
+    with pytest.raises(tms.InputError, match="state_noise"):
+        tms.calibrate_bands(model, traj, samples, state_noise=-1.0)
+    with pytest.raises(tms.ShapeError, match="state_noise: expected a standard deviation or 2"):
+        tms.calibrate_bands(model, traj, samples, state_noise=[0.1, 0.1, 0.1])
+    with pytest.raises(tms.InputError, match="scale and num_samples are set by calibrate_bands"):
+        tms.calibrate_bands(model, traj, samples, scale=2.0)
+    with pytest.raises(tms.InputError, match="model: expected a CorrectedODE, got CorrectionGP"):
+        tms.calibrate_bands(model.gp, traj, samples)
+    fewer = tms.Trajectories(traj.times, traj.states[:4])
+    with pytest.raises(tms.InputError, match="samples: expected the correction samples of these 4 experiments"):
+        tms.calibrate_bands(model, fewer, samples)
+    y0, times = traj.states[:1, 0], torch.linspace(0, 1, 3, dtype=DT)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(tms.InputError, match="scale"):
+            model.posterior(y0, times, num_samples=2, scale=bad)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        assert model.calibration_ is None  # nothing above calibrated the model

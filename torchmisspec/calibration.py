@@ -1,0 +1,292 @@
+"""Calibrating the predicted uncertainty bands on held-out experiments.
+
+The bands of :meth:`CorrectedODE.posterior <torchmisspec.CorrectedODE.posterior>` are exact for the GP model, but
+the GP model is not the truth: with few experiments the marginal likelihood picks hyperparameters that are too
+sure of themselves (long lengthscales, small output scales), and a stationary prior fitted near the data does not
+know that F grows away from it. The bands then cover the true trajectories less often than they claim
+(``docs/studies/calibration.md``). Hyperparameter uncertainty (``hyperparameters="laplace"``) helps but does not
+repair a prior of the wrong shape.
+
+:func:`calibrate_bands` measures the miscalibration where it matters, on trajectories, with the data already in
+hand: each fold of experiments is held out, the correction GP is refitted (or conditioned) on the rest, and the
+corrected model's posterior paths are started from each held-out experiment's first observed state and compared
+with its observed states. The band's spread is widened (or narrowed) by one factor ``c`` on the deviation of every
+posterior draw of F from the posterior mean,
+
+    F_c(x) = mu(x) + c (F_s(x) - mu(x)),
+
+that is, the posterior covariance of F times ``c^2`` (the posterior mean is unchanged). The calibrated ``c`` is the
+smallest one under which the held-out observed states lie in the central ``level`` band at least a fraction
+``level`` of the time (pooled over every held-out time after the first and every component; found by bisection in
+log c, the draws being the same functions at every c, so coverage grows with c). This is the recalibration of
+Kuleshov et al. (2018, "Accurate uncertainties for deep learning using calibrated regression") with the held-out
+experiments as the calibration set; like any such rule it assumes new initial conditions resemble the experiments'.
+
+Observation noise on the states (``state_noise``) is added to the held-out paths before they are compared with the
+observed states, so that noisy observations do not inflate ``c``; the calibrated bands are for the states
+themselves. The uncertainty of a noisy first observed state is not propagated: it is absorbed into ``c``.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from ._errors import (
+    FittingError,
+    InputError,
+    IntegrationError,
+    LinearAlgebraError,
+    ShapeError,
+    TorchMisspecWarning,
+    warn,
+)
+from ._validation import as_tensor, check_positive_int, check_real
+from .data import Trajectories
+from .observations import CorrectionSamples, _check_trajectories_and_system
+
+__all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
+
+#: The bisection's bracket of log2 c: c from 1/16 to 256.
+MIN_LOG2_SCALE, MAX_LOG2_SCALE = -4.0, 8.0
+#: Observation-noise draws added to each held-out path when ``state_noise`` is given (so that the band of path plus
+#: noise is estimated from num_samples x NOISE_DRAWS values, not from num_samples alone).
+NOISE_DRAWS = 16
+#: Bisection steps: the bracket of 12 in log2 c shrinks to 12 / 2^7 < 0.1, a relative precision of ~7 % on c.
+BISECTION_STEPS = 7
+
+
+@dataclass(frozen=True)
+class BandCalibration:
+    """The result of :func:`calibrate_bands`.
+
+    Attributes:
+        scale: the calibrated factor ``c`` on the posterior draws' deviation from the posterior mean (1: the GP's
+            own bands were right; above 1: they were too narrow).
+        level: the band's nominal coverage it was calibrated for.
+        coverage_at_one: the held-out coverage of the uncalibrated bands (c = 1).
+        coverage: the held-out coverage at ``scale``.
+        scales / coverages: every scale the bisection tried, in order, with its held-out coverage.
+        folds: the number of folds held out; ``refit``: whether the GP's hyperparameters were re-learned in every
+            fold.
+        reached: whether some scale reaches the level (when not, ``scale`` is the smallest one at which the held-out
+            coverage stops growing, and a warning was issued).
+        num_points: the held-out (time, component) entries compared at each scale.
+    """
+
+    scale: float
+    level: float
+    coverage_at_one: float
+    coverage: float
+    scales: tuple[float, ...]
+    coverages: tuple[float, ...]
+    folds: int
+    refit: bool
+    num_points: int
+    reached: bool = True
+
+    def __str__(self) -> str:
+        return (
+            f"BandCalibration(scale={self.scale:.3g}: the central {self.level:.0%} band covers {self.coverage:.3f} "
+            f"of the held-out states (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds, "
+            f"{'refitted' if self.refit else 'conditioned'} GP"
+            + ("" if self.reached else "; the level is out of reach")
+            + f", {self.num_points} points)"
+        )
+
+
+def _check_level(level) -> float:
+    level = check_real(level, "level", positive=True)
+    if level >= 1.0:
+        raise InputError(f"level: expected a band's coverage in (0, 1), got {level!r}")
+    return level
+
+
+def _state_noise(state_noise, d: int, dtype, device) -> torch.Tensor:
+    if state_noise is None:
+        return torch.zeros(d, dtype=dtype, device=device)
+    noise = as_tensor(state_noise, "state_noise", dtype=dtype, device=device)
+    if noise.dim() == 0:
+        noise = noise.expand(d)
+    if noise.shape != (d,):
+        raise ShapeError(
+            f"state_noise: expected a standard deviation or {d} of them (one per state), got {noise.shape}"
+        )
+    if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
+        raise InputError(f"state_noise: expected finite standard deviations >= 0, got {noise.tolist()}")
+    return noise
+
+
+def calibrate_bands(
+    model,
+    trajectories: Trajectories,
+    samples: CorrectionSamples,
+    *,
+    level: float = 0.9,
+    folds: int = 10,
+    num_samples: int = 32,
+    refit: bool = True,
+    state_noise=None,
+    generator: torch.Generator | None = None,
+    **posterior_options,
+) -> BandCalibration:
+    """Calibrate the spread of ``model.posterior``'s bands on held-out experiments (see the module docstring).
+
+    Args:
+        model: a :class:`~torchmisspec.CorrectedODE` whose GP was fitted on ``samples``.
+        trajectories: the observed experiments the samples came from (experiment k of the samples is experiment k
+            here); the held-out paths start at each experiment's first observed state and are compared at its other
+            observed times.
+        samples: the correction samples (:func:`~torchmisspec.correction_samples`).
+        level: the band to calibrate, in (0, 1) (default the central 90 %).
+        folds: experiment k is held out in fold ``k % folds``; at most the number of experiments (>= 2).
+        num_samples: posterior draws per held-out path.
+        refit: re-learn the GP's hyperparameters in every fold (default: the honest choice, since the
+            hyperparameters' own error is part of what the bands miss); ``False`` conditions the fitted GP on the
+            other folds (cheaper, keeps the hyperparameters).
+        state_noise: standard deviation(s) of the observation noise on the states, a number or one per state
+            component (default none: exact states, the paper's setting).
+        generator: ``torch.Generator`` for the draws (the same draws are reused at every scale).
+        **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, solver settings).
+
+    Returns:
+        :class:`BandCalibration`; ``model.posterior(..., scale=result.scale)`` uses it, and
+        :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` makes it the model's default.
+
+    Raises:
+        FittingError: no fold could be fitted and integrated, or the uncalibrated bands' paths already fail.
+    """
+    from .dynamics import CorrectedODE
+    from .learning import _check_cv_inputs, _settings
+
+    if not isinstance(model, CorrectedODE):
+        raise InputError(f"model: expected a CorrectedODE, got {type(model).__name__}")
+    system, gp = model.system, model.gp
+    level = _check_level(level)
+    num_samples = check_positive_int(num_samples, "num_samples")
+    if "scale" in posterior_options or "num_samples" in posterior_options:
+        raise InputError("posterior_options: scale and num_samples are set by calibrate_bands itself")
+    _check_trajectories_and_system(trajectories, system)
+    folds = _check_cv_inputs(system, trajectories, samples, folds)
+    noise = _state_noise(state_noise, system.state_dim, gp.dtype, gp.device)
+    seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
+    K = trajectories.num_experiments
+    experiments = trajectories.experiments()
+    held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d))])
+    for f in range(folds):
+        ks = [k for k in range(K) if k % folds == f]
+        keep = ~torch.isin(samples.experiment, torch.tensor(ks, device=samples.experiment.device))
+        sample_noise = None if samples.noise is None else samples.noise[keep]
+        try:
+            if refit:
+                fold_gp = type(gp)(**_settings(gp), lengthscale=gp.fixed["lengthscale"])
+                fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            else:
+                fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+        except (FittingError, LinearAlgebraError):
+            continue  # this fold cannot be held out (too few samples left); the others still calibrate
+        by_length: dict[int, list[int]] = {}
+        for k in ks:  # experiments of one length are integrated together
+            by_length.setdefault(experiments[k][0].shape[0], []).append(k)
+        batches = []
+        for group in by_length.values():
+            kd = dict(dtype=gp.dtype, device=gp.device)
+            times = torch.stack([experiments[k][0] for k in group]).to(**kd)
+            states = torch.stack([experiments[k][1] for k in group]).to(**kd)
+            batches.append((states[:, 0], times, states))
+        held_out.append((CorrectedODE(system, fold_gp), batches))
+    if not held_out:
+        raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
+    quantiles = torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=gp.dtype, device=gp.device)
+
+    def coverage(c: float) -> tuple[float, int]:
+        """Held-out coverage of the band at scale c (the same draws at every c: the same seeds)."""
+        hits = total = 0
+        for i, (fold_model, batches) in enumerate(held_out):
+            for j, (y0, times, observed) in enumerate(batches):
+                gen = torch.Generator(device=gp.device).manual_seed(seed + 7919 * i + j)
+                with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
+                    warnings.simplefilter("ignore", TorchMisspecWarning)
+                    post = fold_model.posterior(
+                        y0, times, num_samples=num_samples, generator=gen, scale=c, **posterior_options
+                    )
+                draws = post.samples[:, :, 1:]  # (S, B, T - 1, d): every path starts at the first observed state
+                if bool(noise.any()):  # NOISE_DRAWS noise draws per path: the band's quantiles of path + noise
+                    draws = draws.unsqueeze(1) + noise * torch.randn(
+                        (draws.shape[0], NOISE_DRAWS, *draws.shape[1:]),
+                        generator=gen,
+                        dtype=draws.dtype,
+                        device=draws.device,
+                    )
+                    draws = draws.flatten(0, 1)
+                lo, hi = torch.quantile(draws, quantiles, dim=0)
+                obs = observed[:, 1:]
+                hits += int(((obs >= lo) & (obs <= hi)).sum())
+                total += obs.numel()
+        return hits / max(total, 1), total
+
+    tried: list[tuple[float, float]] = []
+
+    def covers_at(log2c: float) -> bool:
+        try:
+            value, _ = coverage(2.0**log2c)
+        except IntegrationError:
+            value = math.nan  # the widened draws blow up: treated as too wide
+        tried.append((2.0**log2c, value))
+        return value >= level  # False for NaN
+
+    try:
+        at_one, total = coverage(1.0)
+    except IntegrationError as exc:
+        raise FittingError(f"calibrate_bands: the held-out posterior paths fail at scale 1 ({exc})") from exc
+    tried.append((1.0, at_one))
+    # bracket [lo, hi] in log2 c with coverage below the level at lo and at least the level at hi
+    reached = True
+    if at_one >= level:
+        lo, hi = MIN_LOG2_SCALE, 0.0
+        if covers_at(lo):
+            lo = hi = MIN_LOG2_SCALE  # even the narrowest scale covers
+    else:
+        lo, hi = 0.0, MAX_LOG2_SCALE
+        if not covers_at(hi):
+            # out of reach (held-out bands with no spread: e.g. a fold whose refit explained the signal away as
+            # noise, or draws that blow up when widened): keep the smallest doubling at which coverage stops growing
+            reached = False
+            for step in range(1, int(MAX_LOG2_SCALE)):
+                covers_at(float(step))
+            finite = [(c, v) for c, v in tried if not math.isnan(v)]
+            best = max(v for _, v in finite)
+            hi = lo = math.log2(min(c for c, v in finite if v >= best - 1.0 / total))
+    for _ in range(BISECTION_STEPS):
+        if hi - lo <= 0:
+            break
+        mid = 0.5 * (lo + hi)
+        if covers_at(mid):
+            hi = mid
+        else:
+            lo = mid
+    scale = 2.0**hi
+    final = next(v for c, v in reversed(tried) if c == scale)
+    if not reached:
+        warn(
+            f"calibrate_bands: no scale up to {2.0**MAX_LOG2_SCALE:g} makes the central {level:g} band cover the "
+            f"held-out states (at best {final:.3f}, from scale {scale:.3g}, which is kept): some held-out bands have "
+            "no spread to widen (a fold whose refit explained the signal away as noise) or the widened draws blow up; "
+            "these bands stay unreliable",
+            TorchMisspecWarning,
+        )
+    return BandCalibration(
+        scale=scale,
+        level=level,
+        coverage_at_one=at_one,
+        coverage=final,
+        scales=tuple(c for c, _ in tried),
+        coverages=tuple(v for _, v in tried),
+        folds=len(held_out),
+        refit=bool(refit),
+        num_points=total,
+        reached=reached,
+    )
