@@ -252,14 +252,18 @@ def calibrate_bands(
     else:
         lo, hi = 0.0, MAX_LOG2_SCALE
         if not covers_at(hi):
-            # out of reach (held-out bands with no spread: e.g. a fold whose refit explained the signal away as
-            # noise, or draws that blow up when widened): keep the smallest doubling at which coverage stops growing
-            reached = False
+            # the widest scale fails (its draws may blow up): walk up the doublings to the first that covers
             for step in range(1, int(MAX_LOG2_SCALE)):
-                covers_at(float(step))
-            finite = [(c, v) for c, v in tried if not math.isnan(v)]
-            best = max(v for _, v in finite)
-            hi = lo = math.log2(min(c for c, v in finite if v >= best - 1.0 / total))
+                if covers_at(float(step)):
+                    lo, hi = step - 1.0, float(step)
+                    break
+            else:
+                # out of reach (held-out bands with no spread: e.g. a fold whose refit explained the signal away as
+                # noise): keep the smallest doubling at which the coverage stops growing
+                reached = False
+                finite = [(c, v) for c, v in tried if not math.isnan(v)]
+                best = max(v for _, v in finite)
+                hi = lo = math.log2(min(c for c, v in finite if v >= best - 1.0 / total))
     for _ in range(BISECTION_STEPS):
         if hi - lo <= 0:
             break
@@ -274,8 +278,8 @@ def calibrate_bands(
         warn(
             f"calibrate_bands: no scale up to {2.0**MAX_LOG2_SCALE:g} makes the central {level:g} band cover the "
             f"held-out states (at best {final:.3f}, from scale {scale:.3g}, which is kept): some held-out bands have "
-            "no spread to widen (a fold whose refit explained the signal away as noise) or the widened draws blow up; "
-            "these bands stay unreliable",
+            "no spread to widen (a fold whose refit explained the signal away as noise, or observations far from "
+            "every draw); these bands stay unreliable",
             TorchMisspecWarning,
         )
     return BandCalibration(
