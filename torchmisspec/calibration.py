@@ -72,8 +72,8 @@ class BandCalibration:
         scales / coverages: every scale the bisection tried, in order, with its held-out coverage.
         folds: the number of folds held out; ``refit``: whether the GP's hyperparameters were re-learned in every
             fold.
-        reached: whether some scale reaches the level (when not, ``scale`` is the smallest one at which the held-out
-            coverage stops growing, and a warning was issued).
+        reached: whether some scale reaches the level (when not, ``scale`` is the smallest doubling whose held-out
+            coverage is within one standard error of the best one tried, and a warning was issued).
         num_points: the held-out (time, component) entries compared at each scale.
     """
 
@@ -259,11 +259,13 @@ def calibrate_bands(
                     break
             else:
                 # out of reach (held-out bands with no spread: e.g. a fold whose refit explained the signal away as
-                # noise): keep the smallest doubling at which the coverage stops growing
+                # noise): keep the smallest doubling within one standard error of the best coverage (where widening
+                # stops helping; wider draws only risk blowing up)
                 reached = False
                 finite = [(c, v) for c, v in tried if not math.isnan(v)]
                 best = max(v for _, v in finite)
-                hi = lo = math.log2(min(c for c, v in finite if v >= best - 1.0 / total))
+                slack = max(1.0 / total, math.sqrt(best * (1.0 - best) / total))
+                hi = lo = math.log2(min(c for c, v in finite if v >= best - slack))
     for _ in range(BISECTION_STEPS):
         if hi - lo <= 0:
             break
