@@ -65,9 +65,13 @@ class GPKernel:
     Calls the GP's own GPyTorch kernel module, so the design uses exactly the covariance the GP will use; inputs
     may carry batch dimensions (``(..., M1, d_in)`` with ``(..., M2, d_in)``). Only the shared kernel is
     supported: the design criterion is then ``d_out`` times the single-output one.
+
+    With ``condition`` (default: when the GP is fitted) the kernel is the *posterior* covariance of F given the GP's
+    training samples (with their noise, per sample where known), k(x, x') - k(x, X) C^-1 k(X, x') with
+    C = K(X, X) + noise: every information gain is then the information given the data already collected.
     """
 
-    def __init__(self, gp: CorrectionGP, *, input_dim: int | None = None) -> None:
+    def __init__(self, gp: CorrectionGP, *, input_dim: int | None = None, condition: bool | None = None) -> None:
         if not isinstance(gp, CorrectionGP):
             raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
         if gp.per_output:
@@ -103,15 +107,52 @@ class GPKernel:
         self.noise = float(noise)
         self.dtype = gp.dtype
         self.device = gp.device
+        if condition is None:
+            condition = gp.is_fitted
+        if condition and not gp.is_fitted:
+            raise InputError("condition: an unfitted gp holds no data to condition on; fit it first or pass False")
+        #: the lower Cholesky factor of K(X, X) + noise of the GP's training samples X when conditioning, else None
+        self.chol: torch.Tensor | None = None
+        self.data: torch.Tensor | None = None
+        if condition:
+            chol = gp._posterior_cache().fac.chol  # (1, N, N); (d_out, N, N) with per-output known noise
+            if chol.shape[0] != 1 and not all(torch.equal(chol[0], c) for c in chol[1:]):
+                raise InputError(
+                    "gp: its known per-sample noise differs between outputs, so the data inform each output of F "
+                    "differently; the design criterion conditions one shared kernel. Fit the GP with the same noise "
+                    "for every output, or pass condition=False"
+                )
+            self.chol = chol[0].detach()
+            self.data = gp.train_inputs_.detach()
+
+    @property
+    def num_conditioned(self) -> int:
+        """Training samples the kernel is conditioned on (0: the prior)."""
+        return 0 if self.data is None else self.data.shape[0]
+
+    def _explained(self, x: torch.Tensor) -> torch.Tensor:
+        """``L^-1 k(X, x)``: ``(..., N, M)`` for ``x (..., M, d_in)``."""
+        with torch.no_grad():
+            K = self.module.forward(x, self.data)  # (..., M, N)
+            return torch.linalg.solve_triangular(self.chol, K.transpose(-1, -2), upper=False)
 
     def __call__(self, x1: torch.Tensor, x2: torch.Tensor | None = None) -> torch.Tensor:
+        """The kernel block ``(..., M1, M2)``; conditioned on the GP's data: k(x1, x2) - k(x1, X) C^-1 k(X, x2)."""
         with torch.no_grad():
-            return self.module.forward(x1, x1 if x2 is None else x2)
+            K = self.module.forward(x1, x1 if x2 is None else x2)
+            if self.chol is None:
+                return K
+            V1 = self._explained(x1)
+            V2 = V1 if x2 is None else self._explained(x2)
+            return K - V1.transpose(-1, -2) @ V2
 
     def diag(self, x: torch.Tensor) -> torch.Tensor:
-        """k(x_i, x_i) for ``x (M, d_in)``: ``(M,)``."""
+        """k(x_i, x_i) for ``x (M, d_in)``: ``(M,)`` (conditioned like the blocks)."""
         with torch.no_grad():
-            return self.module.forward(x, x, diag=True)
+            d = self.module.forward(x, x, diag=True)
+            if self.chol is None:
+                return d
+            return (d - self._explained(x).pow(2).sum(-2)).clamp_min(0.0)
 
     def block_diagonal(self, points: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
         """k(P_c, P_c) for every candidate: ``points (N, T, d_in)`` -> ``(N, T, T)`` (chunked over N)."""

@@ -56,7 +56,7 @@ def _d_out(d_out, gp: CorrectionGP) -> int:
     return check_positive_int(d_out, "d_out")
 
 
-def information_gain(points, gp: CorrectionGP, *, d_out: int | None = None) -> float:
+def information_gain(points, gp: CorrectionGP, *, d_out: int | None = None, condition: bool | None = None) -> float:
     """Information gain (nats) about F of noisy correction samples at ``points``.
 
     ``(d_out / 2) * logdet(I + K / sigma^2)`` with ``K = k(points, points)`` the GP's prior covariance and
@@ -68,8 +68,10 @@ def information_gain(points, gp: CorrectionGP, *, d_out: int | None = None) -> f
         points: ``(M, d_in)`` sample locations, already restricted to the correction inputs.
         gp: a :class:`CorrectionGP` with a shared kernel whose hyperparameters are set (given or fitted).
         d_out: number of outputs of F (``system.output_dim``); defaults to the fitted GP's output dimension.
+        condition: the information *given the GP's training samples* (K its posterior covariance, as
+            :func:`greedy` uses); default: when the GP is fitted. ``False``: the prior's.
     """
-    kern = GPKernel(gp)
+    kern = GPKernel(gp, condition=condition)
     d_out = _d_out(d_out, gp)
     x = as_tensor(points, "points", dtype=kern.dtype, device=kern.device)
     check_ndim(x, 2, "points", "(M, d_in)")
@@ -107,7 +109,7 @@ class ProxyCheck:
 def _design_points(indices, candidates, system, times, gp, proxies, states):
     """Chosen indices, proxy inputs and true inputs ``(K T, d_in)`` of a design, and the kernel view."""
     system = check_system(system)
-    kern = GPKernel(gp, input_dim=system.input_dim)
+    kern = GPKernel(gp, input_dim=system.input_dim, condition=False)  # Theorem 1 is about the prior's criterion
     cand = check_candidates(candidates, system, dtype=kern.dtype, device=kern.device)
     if isinstance(indices, DesignResult):
         indices = indices.indices

@@ -1,0 +1,115 @@
+"""Designs conditioned on the data a fitted GP already holds (issue 11, point 1)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec import design
+from torchmisspec.design.candidates import grid
+from torchmisspec.paper._setup import LINEAR_PRIOR, NOISE_STD
+
+DT = torch.float64
+TIMES = torch.linspace(0, 6, 11, dtype=DT)
+
+
+@pytest.fixture(scope="module")
+def corners():
+    """paper 5.2's 13 x 13 grid; a GP with the paper's prior fitted on the experiments from the four corners."""
+    system = tms.systems.paper_linear()
+    cand = grid(system.domain, 13)
+    corner_idx = [0, 12, 156, 168]
+    assert torch.equal(cand[corner_idx].abs(), torch.ones(4, 2, dtype=DT))
+    traj = tms.simulate(system, cand[corner_idx], TIMES)
+    samples = tms.correction_samples(
+        traj, system, derivative="oracle", noise_std=NOISE_STD, generator=torch.Generator().manual_seed(0)
+    )
+    fitted = tms.CorrectionGP(**LINEAR_PRIOR).fit(samples)
+    return system, cand, corner_idx, fitted
+
+
+def _joint_logdet(gp, data_x, data_noise, new_x, noise):
+    """Brute force: logdet of the joint covariance of (data, new) samples minus the data's."""
+    x = torch.cat([data_x, new_x])
+    C = gp.covariance(x) + torch.diag(torch.cat([data_noise, torch.full((new_x.shape[0],), noise, dtype=DT)]))
+    Cd = gp.covariance(data_x) + torch.diag(data_noise)
+    return float(torch.linalg.slogdet(C)[1] - torch.linalg.slogdet(Cd)[1])
+
+
+def test_conditioned_gains_are_brute_force_log_determinants(corners):
+    system, cand, corner_idx, fitted = corners
+    plan = design.greedy(cand, 5, system=system, times=TIMES, gp=fitted)
+    assert plan.diagnostics["conditioned"] == 44
+    proxies = system.select_inputs(plan.proxies)  # (5, T, d_in)
+    data_noise = torch.full((44,), fitted.noise_variance, dtype=DT)
+    sigma2 = fitted.noise_variance
+    previous = 0.0
+    for j in range(5):
+        new_x = proxies[: j + 1].reshape(-1, 2)
+        total = (
+            0.5
+            * system.output_dim
+            * (
+                _joint_logdet(fitted, fitted.train_inputs_, data_noise, new_x, sigma2)
+                - new_x.shape[0] * math.log(sigma2)
+            )
+        )
+        assert float(plan.gains[: j + 1].sum()) == pytest.approx(total, rel=1e-8)
+        assert float(plan.gains[j]) == pytest.approx(total - previous, rel=1e-6, abs=1e-9)
+        previous = total
+    # information_gain conditions the same way
+    assert design.information_gain(proxies.reshape(-1, 2), fitted) == pytest.approx(previous, rel=1e-8)
+    prior = design.information_gain(proxies.reshape(-1, 2), fitted, condition=False)
+    assert prior > previous  # data already collected make new samples less informative
+
+
+def test_known_per_sample_noise_is_conditioned_on(corners):
+    system, cand, _, fitted = corners
+    X, Y = fitted.train_inputs_, fitted.train_targets_
+    noise = torch.linspace(1e-5, 1e-3, X.shape[0], dtype=DT).unsqueeze(-1).expand(-1, 2).contiguous()
+    gp = tms.CorrectionGP(**LINEAR_PRIOR).fit(X, Y, noise=noise)
+    plan = design.greedy(cand, 2, system=system, times=TIMES, gp=gp)
+    new_x = system.select_inputs(plan.proxies).reshape(-1, 2)
+    sigma2 = gp.noise_variance
+    data_noise = noise[:, 0] + sigma2  # known noise plus the learned (here fixed) floor
+    total = 0.5 * 2 * (_joint_logdet(gp, X, data_noise, new_x, sigma2) - new_x.shape[0] * math.log(sigma2))
+    assert float(plan.gains.sum()) == pytest.approx(total, rel=1e-8)
+
+
+def test_conditioning_on_the_corners_removes_them_from_the_top_picks(corners):
+    system, cand, corner_idx, fitted = corners
+    unconditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted, condition=False)
+    assert sorted(unconditioned.indices.tolist()) == corner_idx  # what the prior picks (the issue's report)
+    conditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted)
+    # the measured corners fall behind (the centre first); with noise variance 2.5 x the prior's, repeating a
+    # measured trajectory still informs, so a corner may come back later
+    assert not set(conditioned.indices[:3].tolist()) & set(corner_idx)
+    assert float(conditioned.gains[0]) < float(unconditioned.gains[0])
+    # an unfitted GP with the same hyperparameters picks like the unconditioned design
+    prior = design.greedy(cand, 4, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR))
+    assert prior.indices.tolist() == unconditioned.indices.tolist()
+    assert prior.diagnostics["conditioned"] == 0
+
+
+def test_lazy_plain_and_naive_agree_when_conditioned(corners):
+    system, cand, _, fitted = corners
+    picks = {
+        m: design.greedy(cand[::3], 6, system=system, times=TIMES, gp=fitted, method=m)
+        for m in ("lazy", "plain", "naive")
+    }
+    assert picks["lazy"].indices.tolist() == picks["plain"].indices.tolist() == picks["naive"].indices.tolist()
+    torch.testing.assert_close(picks["lazy"].gains, picks["naive"].gains, rtol=1e-7, atol=1e-10)
+    screened = design.greedy(cand, 6, system=system, times=TIMES, gp=fitted, screen=True)
+    plain = design.greedy(cand, 6, system=system, times=TIMES, gp=fitted, method="plain")
+    assert screened.indices.tolist() == plain.indices.tolist()
+
+
+def test_condition_on_an_unfitted_gp_is_refused():
+    system = tms.systems.paper_linear()
+    with pytest.raises(tms.InputError, match="condition: an unfitted gp holds no data"):
+        design.greedy(
+            grid(system.domain, 3), 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), condition=True
+        )
