@@ -81,7 +81,7 @@ def test_known_per_sample_noise_is_conditioned_on(corners):
 
 def test_conditioning_on_the_corners_removes_them_from_the_top_picks(corners):
     system, cand, corner_idx, fitted = corners
-    unconditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted, condition=False)
+    unconditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted, condition=False, proxy="known")
     assert sorted(unconditioned.indices.tolist()) == corner_idx  # what the prior picks (the report)
     conditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted)
     # the measured corners fall behind (the centre first); with noise variance 2.5 x the prior's, repeating a
@@ -113,3 +113,38 @@ def test_condition_on_an_unfitted_gp_is_refused():
         design.greedy(
             grid(system.domain, 3), 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), condition=True
         )
+
+
+def test_corrected_proxies_follow_the_corrected_model(corners):
+    system, cand, corner_idx, fitted = corners
+    plan = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted)
+    assert plan.diagnostics["proxy"] == "corrected"
+    expected = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES)
+    torch.testing.assert_close(plan.proxies, expected)
+    known = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted, proxy="known")
+    assert known.diagnostics["proxy"] == "known"
+    torch.testing.assert_close(known.proxies, design.proxy_trajectories(system, known.points, TIMES))
+    # closer to the truth than G alone, over all candidates, once data cover D (13 experiments across the grid,
+    # sample noise 1e-3: at the paper's 1e-2, as large as F itself, 13 experiments barely move the mean)
+    spread = tms.simulate(system, cand[::13], TIMES)
+    samples = tms.correction_samples(
+        spread, system, derivative="oracle", noise_std=1e-3, generator=torch.Generator().manual_seed(1)
+    )
+    truth = tms.simulate(system, cand, TIMES).states
+    gp = tms.CorrectionGP(**{**LINEAR_PRIOR, "noise_variance": 1e-6}).fit(samples)
+    corrected = tms.CorrectedODE(system, gp).predict(cand, TIMES)
+    g_only = design.proxy_trajectories(system, cand, TIMES)
+    assert tms.trajectory_rmse(corrected, truth) < 0.8 * tms.trajectory_rmse(g_only, truth)
+    assert (
+        design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR)).diagnostics["proxy"]
+        == "known"
+    )
+
+
+def test_bad_proxy_names_and_an_unfitted_correction():
+    system = tms.systems.paper_linear()
+    cand = grid(system.domain, 3)
+    with pytest.raises(tms.InputError, match=r"proxy: expected one of \('known', 'corrected'\), got 'true'"):
+        design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), proxy="true")
+    with pytest.raises(tms.InputError, match="proxy='corrected': an unfitted gp"):
+        design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), proxy="corrected")

@@ -61,6 +61,7 @@ from ._proxy import proxy_trajectories
 __all__ = ["greedy"]
 
 METHODS = ("lazy", "plain", "naive")
+PROXIES = ("known", "corrected")  # the proxy trajectories: G alone (the paper's), or G + the GP's posterior mean
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank)
 SLACK_NATS = 1e-4  # target slack of the feature bounds at the last pick (sets the pivot tolerance)
@@ -72,7 +73,7 @@ class _Problem:
     """Validated inputs shared by the engines: proxy points, kernel, budget, partition."""
 
     def __init__(
-        self, candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol, condition=None
+        self, candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol, condition=None, proxy=None
     ) -> None:
         if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
             raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
@@ -84,6 +85,13 @@ class _Problem:
         self.budget = check_budget(budget, n)
         self.partition = check_partition(partition, capacities, n, self.budget, self.kern.device)
         kd = {"dtype": self.kern.dtype, "device": self.kern.device}
+        if proxy is None:
+            proxy = "corrected" if gp.is_fitted else "known"
+        if proxy not in PROXIES:
+            raise InputError(f"proxy: expected one of {PROXIES}, got {proxy!r}")
+        if proxy == "corrected" and not gp.is_fitted:
+            raise InputError("proxy='corrected': an unfitted gp has no correction to add to G; fit it or pass 'known'")
+        self.proxy = proxy if proxies is None else "given"
         if proxies is None:
             if times is None:
                 raise InputError(
@@ -91,7 +99,12 @@ class _Problem:
                     "None (pass times=..., or proxies=(N, T, d))"
                 )
             self.times = check_times(times, **kd)
-            self.proxies = proxy_trajectories(self.system, self.candidates.to(**kd), self.times)
+            if proxy == "known":
+                self.proxies = proxy_trajectories(self.system, self.candidates.to(**kd), self.times)
+            else:  # G + the posterior mean of F: closer to the truth than G alone once data are in
+                from ..dynamics import CorrectedODE
+
+                self.proxies = CorrectedODE(self.system, gp).predict(self.candidates.to(**kd), self.times)
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)
@@ -467,6 +480,7 @@ def greedy(
     screen: bool | str = "auto",
     max_rank: int | None = None,
     condition: bool | None = None,
+    proxy: str | None = None,
 ) -> DesignResult:
     """Choose ``budget`` initial conditions among ``candidates`` maximising the proxy information gain.
 
@@ -514,6 +528,10 @@ def greedy(
             picks so far, and candidates whose trajectories revisit measured states gain little. Default: when the
             GP is fitted (an unfitted prior holds no data: nothing changes). ``result.diagnostics["conditioned"]``
             is the number of samples conditioned on.
+        proxy: the trajectories the samples are predicted along: ``"known"`` (G alone, the paper's proxy) or
+            ``"corrected"`` (G + the GP's posterior mean, :class:`~torchmisspec.CorrectedODE`, closer to the truth
+            once data are in). Default: ``"corrected"`` for a fitted GP, ``"known"`` otherwise; ignored when
+            ``proxies`` are given. ``result.diagnostics["proxy"]`` says which.
 
     Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"plain"`` O(N T^2 K), about
     ``8 N K T^2`` bytes, so 1.6 GB for N = 10,000, K = 50, T = 20; ``"naive"`` O(N T^2 + chunk).
@@ -533,7 +551,7 @@ def greedy(
         raise InputError(f"screen: expected 'auto', True or False, got {screen!r}")
     if max_rank is not None:
         max_rank = check_positive_int(max_rank, "max_rank")
-    prob = _Problem(candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol, condition)
+    prob = _Problem(candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol, condition, proxy)
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES
     if max_rank is None:
@@ -546,5 +564,5 @@ def greedy(
             picks, gains, evals, info = _plain(prob, progress)
         else:
             picks, gains, evals, info = _naive(prob, progress)
-    info = {**info, "conditioned": prob.kern.num_conditioned}
+    info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy}
     return prob.result(picks, gains, method, evals, time.perf_counter() - start, info)
