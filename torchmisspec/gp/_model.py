@@ -228,6 +228,93 @@ class CorrectionGP:
         self.model: _IndependentOutputsGP = _IndependentOutputsGP(None, None, lik, covar, 1).eval()
         self._freeze()
 
+    @classmethod
+    def prior(
+        cls,
+        system,
+        *,
+        noise_variance: float,
+        relative_size: float = 0.1,
+        lengthscale_fraction: float = 0.5,
+        kernel: str = "rbf",
+        states=None,
+        grid_size: int = 33,
+        **kwargs,
+    ) -> CorrectionGP:
+        """A GP with hyperparameters set before any data, from the known model and the domain of interest D.
+
+        The rule (documented, so that a design can start from it): the correction is expected to be a fraction
+        ``relative_size`` of what the known model G already explains, and to vary on the scale of D:
+
+        * ``outputscale = (relative_size * g)^2`` with ``g`` the median over D of ``||G_out(y)|| / sqrt(d_out)``,
+          the known model's size on the correction's outputs (the median, not the mean: G may be singular in D,
+          as a point mass is at its own position);
+        * ``lengthscale = lengthscale_fraction *`` the mean side length of D (``system.domain``);
+        * ``noise_variance``: the variance of the samples' noise, which only the experimenter knows (required).
+
+        On the paper's §5.1 system (G(y) = A y on D = [-1, 1]^2) the defaults give lengthscale 1 and an output
+        scale within a factor 2 of the paper's 4e-5. Hyperparameters are fixed: refit by marginal likelihood once
+        data are in (``CorrectionGP(kernel=...).fit``).
+
+        Args:
+            system: a :class:`~torchmisspec.MisspecifiedSystem` with a ``domain``.
+            noise_variance: the samples' noise variance.
+            relative_size: the expected size of F relative to G's, > 0.
+            lengthscale_fraction: the lengthscale as a fraction of D's mean side length, > 0.
+            kernel: ``"rbf"`` or ``"matern52"``.
+            states: ``(M, d)`` full states at which G is evaluated; default: a ``grid_size`` per axis grid over D
+                in the correction inputs, the other state components at 0.
+            grid_size: points per axis of the default grid (at least 2).
+            **kwargs: other constructor arguments (``dtype``, ``device``, ``max_iter``).
+        """
+        from ..systems import MisspecifiedSystem
+
+        if not isinstance(system, MisspecifiedSystem):
+            raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
+        if kernel not in ("rbf", "matern52"):
+            raise InputError(f"kernel: expected 'rbf' or 'matern52' (kernels with a lengthscale), got {kernel!r}")
+        if system.domain is None:
+            raise InputError(
+                f"system: '{system.name}' has no domain D; build it with MisspecifiedSystem(..., domain=((lo, hi), "
+                "...)) (one box side per correction input)"
+            )
+        relative_size = check_real(relative_size, "relative_size", positive=True)
+        fraction = check_real(lengthscale_fraction, "lengthscale_fraction", positive=True)
+        noise_variance = check_real(noise_variance, "noise_variance", positive=True)
+        dtype = kwargs.get("dtype", DEFAULT_DTYPE)
+        kd = dict(dtype=dtype, device=kwargs.get("device"))
+        box = torch.as_tensor(system.domain, **kd)  # (d_in, 2)
+        if states is None:
+            n = check_positive_int(grid_size, "grid_size")
+            if n < 2:
+                raise InputError(f"grid_size: expected at least 2 points per axis, got {n}")
+            axes = [torch.linspace(float(lo), float(hi), n, **kd) for lo, hi in box]
+            inputs = torch.cartesian_prod(*axes).reshape(-1, len(axes))
+            states = torch.zeros((inputs.shape[0], system.state_dim), **kd)
+            states[:, list(system.correction_inputs)] = inputs
+        else:
+            states = as_tensor(states, "states", **kd)
+            if states.dim() != 2 or states.shape[1] != system.state_dim:
+                raise ShapeError(f"states: expected (M, {system.state_dim}) full states, got {tuple(states.shape)}")
+        with torch.no_grad():
+            g = system.select_outputs(system.known_rhs(states))
+        size = g.norm(dim=-1) / math.sqrt(g.shape[-1])
+        size = size[torch.isfinite(size)]
+        if size.numel() == 0 or not float(size.median()) > 0:
+            raise InputError(
+                "system: the known model G is zero or not finite on D's correction outputs, so it gives no scale "
+                "for F; pass CorrectionGP(outputscale=...) yourself"
+            )
+        outputscale = (relative_size * float(size.median())) ** 2
+        lengthscale = fraction * float((box[:, 1] - box[:, 0]).mean())
+        return cls(
+            kernel=kernel,
+            lengthscale=lengthscale,
+            outputscale=outputscale,
+            noise_variance=noise_variance,
+            **kwargs,
+        )
+
     def _freeze(self) -> None:
         """Outside fitting no hyperparameter requires grad, so predictions build no autograd graph through them.
 
