@@ -46,6 +46,9 @@ def check_learn_and_predict(ns: dict) -> None:
     # "The corrected trajectories are closer to the truth than the misspecified ones, by a factor that grows with
     # the quality of the samples"
     assert ns["corrected"].shape == (10, 61, 2)
+    # "scaled by the smallest factor c under which the held-out observed states lie in the band 90 % of the time"
+    assert ns["calibration"].coverage >= 0.9 and ns["calibration"].folds == 5
+    assert ns["calibrated"].samples.shape == (64, 10, 61, 2)
     assert ns["rmse_central"] < ns["rmse_corrected"] < ns["rmse_misspecified"]
     # "Uncertainty bands": shapes as stated, and the band covers a fraction of the true states
     assert ns["bands"].samples.shape == (64, 10, 61, 2) and ns["lower"].shape == (10, 61, 2)
