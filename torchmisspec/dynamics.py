@@ -286,9 +286,9 @@ class CorrectedODE(nn.Module):
         """
         from .calibration import calibrate_bands
 
-        self.calibration_ = None  # the held-out bands are the GP's own
-        self.calibration_ = calibrate_bands(self, trajectories, samples, **options)
-        return self.calibration_
+        result = calibrate_bands(self, trajectories, samples, **options)  # a failure keeps the previous one
+        self.calibration_ = result
+        return result
 
     def _support(self, states: torch.Tensor) -> torch.Tensor:
         """``(B, T)``: posterior over prior standard deviation of F at the states ``(B, T, d)`` (largest output)."""
