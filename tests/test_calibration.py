@@ -62,6 +62,9 @@ def test_an_overconfident_gp_is_widened(data):
     assert cal.num_points == 6 * 10 * 2  # every held-out time after the first, both components
     _check_bisection(cal, 0.9)
     assert "scale=" in str(cal)
+    with pytest.raises(tms.InputError, match="level"):
+        model.calibrate(traj, samples, level=2.0)
+    assert model.calibration_ is cal  # a failed calibration loses nothing
     # later posteriors use the calibrated scale by default
     y0, times = traj.states[:2, 0], torch.linspace(0, 6, 7, dtype=DT)
     default = model.posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(2))
