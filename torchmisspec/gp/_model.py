@@ -285,11 +285,9 @@ class CorrectionGP:
         kd = dict(dtype=dtype, device=kwargs.get("device"))
         box = torch.as_tensor(system.domain, **kd)  # (d_in, 2)
         if states is None:
-            n = check_positive_int(grid_size, "grid_size")
-            if n < 2:
-                raise InputError(f"grid_size: expected at least 2 points per axis, got {n}")
-            axes = [torch.linspace(float(lo), float(hi), n, **kd) for lo, hi in box]
-            inputs = torch.cartesian_prod(*axes).reshape(-1, len(axes))
+            from ..design.candidates import grid  # the package's one grid over a box (checks grid_size >= 2)
+
+            inputs = grid(system.domain, grid_size, **kd)
             states = torch.zeros((inputs.shape[0], system.state_dim), **kd)
             states[:, list(system.correction_inputs)] = inputs
         else:
