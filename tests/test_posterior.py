@@ -221,3 +221,25 @@ def test_band_and_calibration_figures(linear, tmp_path):
     assert len(fig.axes[0].get_legend().get_texts()) == 3
     with pytest.raises(tms.InputError, match=r"nominal: expected \(n,\) probabilities in \(0, 1\)"):
         plot_calibration([0.5, 1.5], {"a": [0.5, 0.9]})
+
+
+@pytest.mark.parametrize("kw", [{}, {"kernel": "matern52", "per_output": True}, {"known_noise": True}])
+def test_the_support_ratio_matches_the_exact_posterior_variance(linear, kw):
+    """The extrapolation check's truncated eigenbasis (or exact solve): within its certified 1e-3 of the variance
+    ratio from predict(), never below it; the basis is kept with the cached factorization."""
+    system, gp = linear
+    X, Y = gp.train_inputs_, gp.train_targets_
+    if kw.pop("known_noise", False):
+        gp = tms.CorrectionGP().fit(X, Y, noise=torch.full_like(Y, 1e-6))
+    elif kw:
+        gp = tms.CorrectionGP(**kw).fit(X, Y)
+    x = torch.rand(500, 2, generator=torch.Generator().manual_seed(0), dtype=DT) * 4 - 2
+    post = gp.predict(x).variance
+    prior = gp.covar_module.forward(x, x, diag=True)
+    prior = prior.unsqueeze(-1) if prior.dim() == 1 else prior.T
+    exact = (post / prior).clamp(0, 1)
+    got = gp._sd_ratio(x).pow(2)
+    assert float((got - exact.amax(-1)).min()) > -1e-9  # never understated
+    assert float((got - exact.amax(-1)).max()) < 1.001e-3
+    cache = gp._posterior_cache()
+    assert cache.support_basis is not None and gp._posterior_cache() is cache

@@ -147,6 +147,9 @@ class _Cache:
 
     def __init__(self, key: tuple, values: list[torch.Tensor], fac: _mll.Factorization, mll: float) -> None:
         self.key, self.values, self.fac, self.mll = key, values, fac, mll
+        #: the extrapolation check's truncated eigenbasis (``CorrectionGP._sd_ratio``), built on first use
+        #: (a 1-tuple, since the basis itself may be None: the exact solve)
+        self.support_basis: tuple[torch.Tensor | None] | None = None
 
 
 class CorrectionGP:
@@ -906,6 +909,23 @@ class CorrectionGP:
         _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
 
+    def _support_basis(self, X: torch.Tensor, params: dict) -> torch.Tensor | None:
+        """``U_r / sqrt(lam_r + s2n)`` ``(B, N, r)`` for :meth:`_sd_ratio` (see there), or ``None`` for the exact
+        solve (known per-sample noise, or no saving)."""
+        from ._paths import kernel_matrix
+
+        if self.train_noise_ is not None:
+            return None
+        K = kernel_matrix(self.kernel, X, X, params, self.degree)  # (B, N, N)
+        lam, U = torch.linalg.eigh(K)  # ascending
+        lam = lam.clamp_min(0.0)
+        s2n = self._floor(self.likelihood).noise.detach().reshape(-1, 1)  # (B, 1)
+        # the tail sums of the shares lam / (lam + s2n) from the smallest: drop as many as the budget allows
+        drop = int((((lam / (lam + s2n)).cumsum(-1)) <= SUPPORT_TOLERANCE).sum(-1).min())
+        if X.shape[0] - drop > X.shape[0] // 2:  # not worth it: more than half the rank
+            return None
+        return U[..., drop:] / (lam[..., drop:] + s2n).sqrt().unsqueeze(-2)
+
     def _sd_ratio(self, x: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
         """``(M,)``: posterior over prior standard deviation of F at inputs ``x (M, d_in)``, the largest over the
         outputs (1: the prior alone, 0: F known). The extrapolation check of every predicted path calls this.
@@ -923,22 +943,12 @@ class CorrectionGP:
         cache = self._posterior_cache()
         chol = cache.fac.chol  # (1 or d_out, N, N)
         X = self.train_inputs_
-        N = X.shape[0]
         with torch.no_grad():
             params = {k: v.detach() for k, v in kernel_hyperparameters(self).items()}
             prior = self.covar_module.forward(x, x, diag=True).reshape(-1, x.shape[0])  # (1 or d_out, M)
-            basis = None
-            if self.train_noise_ is None:
-                K = kernel_matrix(self.kernel, X, X, params, self.degree)  # (B, N, N)
-                lam, U = torch.linalg.eigh(K)  # ascending
-                lam = lam.clamp_min(0.0)
-                s2n = self._floor(self.likelihood).noise.detach().reshape(-1, 1)  # (B, 1)
-                share = lam / (lam + s2n)
-                # the tail sums of the shares from the smallest: drop as many of the smallest as the budget allows
-                tail = share.cumsum(-1)
-                drop = int((tail <= SUPPORT_TOLERANCE).sum(-1).min())
-                if N - drop <= N // 2:  # worth it: at most half the rank
-                    basis = U[..., drop:] / (lam[..., drop:] + s2n).sqrt().unsqueeze(-2)  # (B, N, r)
+            if cache.support_basis is None:  # once per factorization, not at every extrapolation check
+                cache.support_basis = (self._support_basis(X, params),)
+            (basis,) = cache.support_basis
             explained = []
             for start in range(0, x.shape[0], chunk):
                 K = kernel_matrix(self.kernel, x[start : start + chunk], X, params, self.degree)  # (B, m, N)
