@@ -14,6 +14,8 @@ Public functions:
 
 * :func:`proxy_trajectories` - known-model trajectories of all candidates (closed form for linear G).
 * :func:`information_gain` - f of a set of sample points.
+* :func:`variance_reduction` - the domain criterion (``greedy(..., criterion="domain")``): the mean posterior variance
+  of F over the domain D that a set of samples removes.
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
 * :func:`random`, :func:`agnostic` - baseline designs (random; ignore G, i.e. constant proxy trajectories).
 * :func:`marginal_gains` - gains of a given ordered design.
@@ -24,6 +26,7 @@ Public functions:
 from . import candidates
 from ._baselines import agnostic, marginal_gains, random
 from ._common import DesignResult
+from ._domain import CRITERIA, variance_reduction
 from ._gain import (
     ProxyCheck,
     exact_information_gain,
@@ -36,6 +39,7 @@ from ._greedy import greedy
 from ._proxy import proxy_trajectories
 
 __all__ = [
+    "CRITERIA",
     "DesignResult",
     "ProxyCheck",
     "agnostic",
@@ -49,4 +53,5 @@ __all__ = [
     "proxy_trajectories",
     "random",
     "true_information_gain",
+    "variance_reduction",
 ]

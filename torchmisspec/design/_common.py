@@ -29,7 +29,8 @@ class DesignResult:
 
     Attributes:
         indices: ``(K,)`` long, the chosen candidates in pick order.
-        gains: ``(K,)`` marginal information gain of each pick given the earlier ones (nats); NaN when not computed
+        gains: ``(K,)`` marginal gain of each pick given the earlier ones: information (nats), or with
+            ``criterion="domain"`` the mean variance of F over D removed (units of F squared); NaN when not computed
             (a random design without ``system``/``times``/``gp``).
         information_gain: sum of ``gains`` = information gain of the whole chosen proxy set (nats; NaN when not
             computed).
@@ -160,6 +161,30 @@ class GPKernel:
         if n <= chunk:
             return self(points)
         return torch.cat([self(points[i : i + chunk]) for i in range(0, n, chunk)])
+
+
+def pivots(kern: GPKernel, X: torch.Tensor, max_rank: int, tol: float) -> tuple[torch.Tensor, float]:
+    """Greedy pivoted Cholesky of k on the points ``X (M, d_in)``: up to ``max_rank`` pivot indices.
+
+    Stops when the largest residual variance is at most ``tol``. Returns the pivots and that largest residual.
+    """
+    M = X.shape[0]
+    resid = kern.diag(X).clone()
+    R = X.new_empty(min(max_rank, M), M)
+    piv = []
+    for i in range(R.shape[0]):
+        j = int(torch.argmax(resid))
+        dj = float(resid[j])
+        if dj <= tol:
+            break
+        col = kern(X[j : j + 1], X)[0]
+        if i:
+            col = col - R[:i, j] @ R[:i]
+        R[i] = col / math.sqrt(dj)
+        resid -= R[i] ** 2
+        resid[j] = 0.0
+        piv.append(j)
+    return torch.tensor(piv, dtype=torch.long, device=X.device), float(resid.max())
 
 
 # ---------------------------------------------------------------------------------------------------- input checks

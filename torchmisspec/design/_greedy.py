@@ -55,7 +55,9 @@ from ._common import (
     check_system,
     check_times,
     logdet_identity_plus,
+    pivots,
 )
+from ._domain import CRITERIA, DomainModel, domain_greedy
 from ._proxy import proxy_trajectories
 
 __all__ = ["greedy"]
@@ -73,13 +75,35 @@ class _Problem:
     """Validated inputs shared by the engines: proxy points, kernel, budget, partition."""
 
     def __init__(
-        self, candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol, condition=None, proxy=None
+        self,
+        candidates,
+        budget,
+        system,
+        times,
+        gp,
+        partition,
+        capacities,
+        proxies,
+        tie_tol,
+        condition=None,
+        proxy=None,
+        criterion="information",
+        domain=None,
+        domain_size=None,
     ) -> None:
         if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
             raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
         self.tie_tol = float(tie_tol)
         self.system = check_system(system)
+        self.criterion = criterion
+        if criterion not in CRITERIA:
+            raise InputError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
         self.kern = GPKernel(gp, input_dim=self.system.input_dim, condition=condition)
+        self.domain = None
+        if criterion == "domain":
+            self.domain = DomainModel(self.kern, self.system, domain, domain_size)
+        elif domain is not None or domain_size is not None:
+            raise InputError("domain / domain_size: only used by criterion='domain', got criterion='information'")
         self.candidates = check_candidates(candidates, self.system)
         n = self.candidates.shape[0]
         self.budget = check_budget(budget, n)
@@ -169,30 +193,6 @@ def _first_at_least(values: torch.Tensor, mask: torch.Tensor, thr: float) -> int
 
 
 # ------------------------------------------------------------------------------------------------ lazy greedy
-def _pivots(kern: GPKernel, X: torch.Tensor, max_rank: int, tol: float) -> tuple[torch.Tensor, float]:
-    """Greedy pivoted Cholesky of k on the points ``X (M, d_in)``: up to ``max_rank`` pivot indices.
-
-    Stops when the largest residual variance is at most ``tol``. Returns the pivots and that largest residual.
-    """
-    M = X.shape[0]
-    resid = kern.diag(X).clone()
-    R = X.new_empty(min(max_rank, M), M)
-    piv = []
-    for i in range(R.shape[0]):
-        j = int(torch.argmax(resid))
-        dj = float(resid[j])
-        if dj <= tol:
-            break
-        col = kern(X[j : j + 1], X)[0]
-        if i:
-            col = col - R[:i, j] @ R[:i]
-        R[i] = col / math.sqrt(dj)
-        resid -= R[i] ** 2
-        resid[j] = 0.0
-        piv.append(j)
-    return torch.tensor(piv, dtype=torch.long, device=X.device), float(resid.max())
-
-
 class _LowRank:
     """Nystrom features of the kernel on all proxy points: cheap, rigorous upper bounds on the marginal gains.
 
@@ -218,7 +218,7 @@ class _LowRank:
         k0 = float(kern.diag(sub).max())
         # pivot tolerance: the bound slack stays around SLACK_NATS up to the last pick
         tol = max(SLACK_NATS * kern.noise / (0.5 * prob.d_out * (prob.budget + 1) * T), 1e-13 * k0)
-        piv, e_sub = _pivots(kern, sub, max_rank, tol)
+        piv, e_sub = pivots(kern, sub, max_rank, tol)
         self.rank = r = piv.shape[0]
         # a rough kernel needs more features than max_rank allows: bounds that loose would only cost time
         self.useful = 0.5 * prob.d_out * prob.budget * T * e_sub / kern.noise <= SLACK_USELESS
@@ -481,6 +481,9 @@ def greedy(
     max_rank: int | None = None,
     condition: bool | None = None,
     proxy: str | None = None,
+    criterion: str = "information",
+    domain=None,
+    domain_size: int | None = None,
 ) -> DesignResult:
     """Choose ``budget`` initial conditions among ``candidates`` maximising the proxy information gain.
 
@@ -532,6 +535,15 @@ def greedy(
             ``"corrected"`` (G + the GP's posterior mean, :class:`~torchmisspec.CorrectedODE`, closer to the truth
             once data are in). Default: ``"corrected"`` for a fitted GP, ``"known"`` otherwise; ignored when
             ``proxies`` are given. ``result.diagnostics["proxy"]`` says which.
+        criterion: ``"information"`` (the paper's: information about F anywhere, monotone submodular, the
+            guarantees above) or ``"domain"``: the mean posterior variance of F over the domain D that the samples
+            remove (:func:`variance_reduction`; gains in units of F squared, not nats). It aims the design at D but
+            is not submodular in general, so it has no (1 - 1/e) guarantee and lazy bounds do not apply:
+            ``method="lazy"`` then evaluates every remaining gain (the same picks as ``"plain"``). Conditioning,
+            both proxies and partition budgets work with both. See :mod:`torchmisspec.design._domain`.
+        domain: ``criterion="domain"`` only: the box D, one ``(lo, hi)`` per correction input (default
+            ``system.domain``).
+        domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all).
 
     Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"plain"`` O(N T^2 K), about
     ``8 N K T^2`` bytes, so 1.6 GB for N = 10,000, K = 50, T = 20; ``"naive"`` O(N T^2 + chunk).
@@ -551,18 +563,35 @@ def greedy(
         raise InputError(f"screen: expected 'auto', True or False, got {screen!r}")
     if max_rank is not None:
         max_rank = check_positive_int(max_rank, "max_rank")
-    prob = _Problem(candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol, condition, proxy)
+    prob = _Problem(
+        candidates,
+        budget,
+        system,
+        times,
+        gp,
+        partition,
+        capacities,
+        proxies,
+        tie_tol,
+        condition,
+        proxy,
+        criterion,
+        domain,
+        domain_size,
+    )
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES
     if max_rank is None:
         max_rank = int(min(1024, max(16, SCREEN_MEMORY // (8 * prob.n * prob.T))))
     start = time.perf_counter()
     with torch.no_grad():
-        if method == "lazy":
+        if prob.domain is not None:
+            picks, gains, evals, info = domain_greedy(prob, method, progress, _Feasible)
+        elif method == "lazy":
             picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank))
         elif method == "plain":
             picks, gains, evals, info = _plain(prob, progress)
         else:
             picks, gains, evals, info = _naive(prob, progress)
-    info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy}
+    info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy, "criterion": prob.criterion}
     return prob.result(picks, gains, method, evals, time.perf_counter() - start, info)
