@@ -17,6 +17,8 @@ Public functions:
 * :func:`variance_reduction` - the domain criterion (``greedy(..., criterion="domain")``): the mean posterior variance
   of F over the domain D that a set of samples removes.
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
+* :class:`Campaign` - the sequential loop: ``ask`` for experiments designed given the data so far, ``tell`` the
+  measured trajectories (refit), ``history``, ``save`` / ``load``.
 * :func:`random`, :func:`agnostic` - baseline designs (random; ignore G, i.e. constant proxy trajectories).
 * :func:`marginal_gains` - gains of a given ordered design.
 * :func:`true_information_gain`, :func:`proxy_gap_bound`, :func:`proxy_check` - the true criterion along the true
@@ -25,6 +27,7 @@ Public functions:
 
 from . import candidates
 from ._baselines import agnostic, marginal_gains, random
+from ._campaign import Campaign
 from ._common import DesignResult
 from ._domain import CRITERIA, variance_reduction
 from ._gain import (
@@ -40,6 +43,7 @@ from ._proxy import proxy_trajectories
 
 __all__ = [
     "CRITERIA",
+    "Campaign",
     "DesignResult",
     "ProxyCheck",
     "agnostic",

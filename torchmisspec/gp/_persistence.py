@@ -21,7 +21,7 @@ from .._errors import InputError
 if TYPE_CHECKING:  # pragma: no cover
     from ._model import CorrectionGP
 
-__all__ = ["save", "load", "FORMAT_VERSION"]
+__all__ = ["save", "load", "to_blob", "from_blob", "read_safely", "FORMAT_VERSION"]
 
 FORMAT_VERSION = 3  # 3: + "train_noise" (files of version 2 have none and load as before)
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -29,12 +29,18 @@ _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 def save(gp: CorrectionGP, path: str | Path) -> Path:
     """Write ``gp`` (fitted) to ``path``; the folder must exist."""
-    gp._require_fitted()
     path = Path(path)
     if not path.parent.is_dir():
         raise InputError(
             f"path: expected a file in an existing folder, got {str(path)!r} (no folder {str(path.parent)!r})"
         )
+    torch.save(to_blob(gp), path)
+    return path
+
+
+def to_blob(gp: CorrectionGP) -> dict:
+    """The fitted ``gp`` as a dictionary of plain values and tensors (what :func:`save` writes)."""
+    gp._require_fitted()
     dtype = str(gp.dtype).removeprefix("torch.")
     if dtype not in _DTYPES:
         raise InputError(f"dtype: only {sorted(_DTYPES)} models can be saved, got {dtype}")
@@ -56,8 +62,7 @@ def save(gp: CorrectionGP, path: str | Path) -> Path:
         "n_iterations": gp.n_iterations_,
         "n_evaluations": gp.n_evaluations_,
     }
-    torch.save(blob, path)
-    return path
+    return blob
 
 
 def _field(blob: dict, key: str, kind, path: Path):
@@ -69,18 +74,29 @@ def _field(blob: dict, key: str, kind, path: Path):
     return value
 
 
+def read_safely(path: str | Path, what: str, writer: str):
+    """``torch.load(weights_only=True)`` of ``path`` (tensors and plain containers only), with a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"path: expected an existing {what} file, got {str(path)!r}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, RuntimeError, ValueError, OSError) as exc:
+        raise InputError(
+            f"{path}: expected a {what} file written by {writer} (tensors and plain values only), "
+            f"but it could not be read safely ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
+        ) from exc
+
+
 def load(cls, path: str | Path, *, device=None) -> CorrectionGP:
     """Read a file written by :func:`save`; the posterior cache is rebuilt (one factorization)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"path: expected an existing CorrectionGP file, got {str(path)!r}")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, RuntimeError, ValueError, OSError) as exc:
-        raise InputError(
-            f"{path}: expected a CorrectionGP file written by CorrectionGP.save (tensors and plain values only), "
-            f"but it could not be read safely ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
-        ) from exc
+    blob = read_safely(path, "CorrectionGP", "CorrectionGP.save")
+    return from_blob(cls, blob, path, device=device)
+
+
+def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
+    """The CorrectionGP of a dictionary written by :func:`to_blob`; ``path`` names the source in errors."""
     if not isinstance(blob, dict):
         raise InputError(f"{path}: expected a dictionary, got {type(blob).__name__}")
     cfg = _field(blob, "config", dict, path)

@@ -1,0 +1,426 @@
+"""The design loop: ask for the next experiments, tell what was measured, refit, repeat (sequential design).
+
+A :class:`Campaign` holds the candidate initial conditions, the observation times, the prior and everything measured
+so far. ``ask(k)`` designs the next batch greedily *given the data* (the gains are conditioned on every sample
+collected, and with data the proxies are the corrected model's trajectories by default); ``tell(trajectories)``
+turns measured trajectories into correction samples and refits the GP (hyperparameters by marginal likelihood once
+the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every round; ``save`` /
+``load`` write and read the whole campaign (tensors and plain values only, never code).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import torch
+
+from .._errors import InputError, ShapeError, TorchMisspecError
+from .._validation import check_domain, check_positive_int, check_real
+from ..data import Trajectories
+from ..gp import CorrectionGP, _persistence
+from ..metrics import correction_error
+from ..observations import correction_samples
+from ..systems import MisspecifiedSystem
+from ._common import check_candidates, check_system, check_times
+from ._domain import CRITERIA
+from ._greedy import PROXIES, greedy
+
+__all__ = ["Campaign"]
+
+FORMAT = "torchmisspec.Campaign"
+VERSION = 1
+MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to an asked candidate
+
+
+def _hyperparameters(gp: CorrectionGP) -> dict:
+    out = {}
+    for name in ("lengthscale", "outputscale", "noise_variance"):
+        value = getattr(gp, name)
+        if value is None:
+            continue
+        out[name] = float(value) if not isinstance(value, torch.Tensor) or value.numel() == 1 else value.tolist()
+    if gp.is_fitted:
+        out["log_marginal_likelihood"] = float(gp.log_marginal_likelihood_)
+    return out
+
+
+class Campaign:
+    """Sequential experimental design: ``ask`` for experiments, run them, ``tell`` the results, repeat.
+
+    Args:
+        system: the misspecified system (known model, correction inputs/outputs, domain).
+        candidates: ``(N, d)`` candidate initial conditions.
+        times: ``(T,)`` observation times of every experiment (the first is the initial condition's).
+        gp: the prior: a :class:`~torchmisspec.CorrectionGP` with a shared kernel whose hyperparameters are set (e.g.
+            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`); it is not modified.
+        criterion: ``"information"`` (the paper's) or ``"domain"`` (variance of F over D), see
+            :func:`~torchmisspec.design.greedy`.
+        proxy: ``"known"`` or ``"corrected"``; default ``"corrected"`` once there are data, ``"known"`` before.
+        domain, domain_size: for ``criterion="domain"``.
+        derivative: how ``tell`` turns states into correction samples (:func:`~torchmisspec.correction_samples`):
+            ``"auto"`` for measured states; ``"oracle"`` (exact derivatives + ``noise_std``) for simulations.
+        noise_std: noise added to the samples (``"oracle"``: the observation model's noise).
+        refit_after: learn the hyperparameters by marginal likelihood once the data hold at least this many samples
+            (default ``4 T``); before, the prior's values are kept and the GP is only conditioned. ``0`` disables
+            learning (the prior is kept throughout).
+        pilot: the first ``pilot`` experiments are drawn at random among the candidates (a pilot batch to learn
+            hyperparameters from before designing); 0 designs from the first ask on.
+        seed: seeds the pilot draws and the sample noise of ``tell``.
+
+    Attributes:
+        gp: the current model: the prior before any data, then the GP fitted on every sample.
+        history: one dictionary per ``ask`` and per ``tell`` (plain values: picks, gains, hyperparameters, the error of
+            the correction over the domain when the system carries its true F, notes).
+    """
+
+    def __init__(
+        self,
+        system: MisspecifiedSystem,
+        candidates,
+        times,
+        gp: CorrectionGP,
+        *,
+        criterion: str = "information",
+        proxy: str | None = None,
+        domain=None,
+        domain_size: int | None = None,
+        derivative: str = "auto",
+        noise_std: float = 0.0,
+        refit_after: int | None = None,
+        pilot: int = 0,
+        seed: int = 0,
+    ) -> None:
+        self.system = check_system(system)
+        if not isinstance(gp, CorrectionGP):
+            raise InputError(f"gp: expected a CorrectionGP (the prior), got {type(gp).__name__}")
+        if criterion not in CRITERIA:
+            raise InputError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
+        if proxy is not None and proxy not in PROXIES:
+            raise InputError(f"proxy: expected one of {PROXIES} or None, got {proxy!r}")
+        self.candidates = check_candidates(candidates, self.system, dtype=gp.dtype, device=gp.device)
+        self.times = check_times(times, dtype=gp.dtype, device=gp.device)
+        self.prior = gp.fixed_copy() if gp.is_fitted else gp
+        if domain is not None:
+            domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=self.system.input_dim)
+        self.config = {
+            "criterion": criterion,
+            "proxy": proxy,
+            "domain": None if domain is None else [list(map(float, b)) for b in domain],
+            "domain_size": domain_size,
+            "derivative": derivative,
+            "noise_std": check_real(noise_std, "noise_std", minimum=0.0),
+            "refit_after": 4 * self.times.numel()
+            if refit_after is None
+            else check_positive_int(refit_after, "refit_after", minimum=0),
+            "pilot": check_positive_int(pilot, "pilot", minimum=0),
+            "seed": check_positive_int(seed, "seed", minimum=0),
+        }
+        if self.config["pilot"] > self.candidates.shape[0]:
+            raise InputError(f"pilot: expected at most the {self.candidates.shape[0]} candidates, got {pilot}")
+        self.generator = torch.Generator().manual_seed(self.config["seed"])
+        self.gp = self.prior
+        self.history: list[dict] = []
+        self.asked: list[int] = []  # every candidate index handed out, in order
+        self.pending: list[int] = []  # asked, not yet told
+        self.measured: list[int] = []  # candidate index per told experiment (-1: not a candidate)
+        self._inputs: list[torch.Tensor] = []
+        self._targets: list[torch.Tensor] = []
+        self._noise: list[torch.Tensor | None] = []
+
+    # --------------------------------------------------------------------------------------------- state
+    @property
+    def num_samples(self) -> int:
+        return sum(x.shape[0] for x in self._inputs)
+
+    @property
+    def num_experiments(self) -> int:
+        return len(self.measured)
+
+    @property
+    def remaining(self) -> torch.Tensor:
+        """Indices of the candidates not asked for yet."""
+        mask = torch.ones(self.candidates.shape[0], dtype=torch.bool)
+        mask[self.asked] = False
+        return torch.nonzero(mask).flatten()
+
+    def __repr__(self) -> str:
+        return (
+            f"Campaign(system='{self.system.name}', candidates={self.candidates.shape[0]}, "
+            f"experiments={self.num_experiments}, samples={self.num_samples}, pending={len(self.pending)}, "
+            f"criterion='{self.config['criterion']}')"
+        )
+
+    # --------------------------------------------------------------------------------------------- ask
+    def ask(self, k: int = 1) -> torch.Tensor:
+        """The next ``k`` initial conditions ``(k, d)``, designed greedily given everything measured so far.
+
+        While fewer than ``pilot`` experiments were asked for, the batch (or its first part) is drawn at random.
+        The picks are recorded in ``history`` and stay pending until told.
+        """
+        remaining = self.remaining
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise InputError(f"k: expected a positive integer number of experiments, got {k!r}")
+        if k > remaining.numel():
+            raise InputError(f"k: expected at most the {remaining.numel()} candidates not asked for yet, got {k}")
+        start = time.perf_counter()
+        n_pilot = min(k, max(0, self.config["pilot"] - len(self.asked)))
+        picks: list[int] = []
+        gains: list[float | None] = []
+        if n_pilot:
+            order = torch.randperm(remaining.numel(), generator=self.generator)[:n_pilot]
+            picks = remaining[order].tolist()
+            gains = [None] * n_pilot  # drawn, not designed
+        info: dict = {}
+        if k > n_pilot:
+            mask = torch.ones(remaining.numel(), dtype=torch.bool)
+            mask[[int((remaining == p).nonzero()[0, 0]) for p in picks]] = False
+            pool = remaining[mask]
+            proxy = self.config["proxy"] or ("corrected" if self.gp.is_fitted else "known")
+            plan = greedy(
+                self.candidates[pool],
+                k - n_pilot,
+                system=self.system,
+                times=self.times,
+                gp=self.gp,
+                criterion=self.config["criterion"],
+                proxy=proxy,
+                domain=self.config["domain"],
+                domain_size=self.config["domain_size"],
+            )
+            picks += pool[plan.indices.cpu()].tolist()
+            gains += plan.gains.tolist()
+            info = {key: v for key, v in plan.diagnostics.items() if isinstance(v, (int, float, str, bool))}
+        self.asked += picks
+        self.pending += picks
+        self.history.append(
+            {
+                "event": "ask",
+                "round": sum(h["event"] == "ask" for h in self.history) + 1,
+                "indices": picks,
+                "points": self.candidates[picks].tolist(),
+                "gains": gains,
+                "pilot": n_pilot,
+                "design": info,
+                "seconds": time.perf_counter() - start,
+            }
+        )
+        return self.candidates[picks].clone()
+
+    # --------------------------------------------------------------------------------------------- tell
+    def _match(self, y0: torch.Tensor) -> int:
+        """The pending candidate index whose initial condition is ``y0`` (-1: none)."""
+        if not self.pending:
+            return -1
+        pend = self.candidates[self.pending]
+        scale = 1.0 + pend.abs().amax(-1)
+        hit = ((pend - y0).abs().amax(-1) <= MATCH_TOL * scale).nonzero()
+        return self.pending[int(hit[0, 0])] if hit.numel() else -1
+
+    def tell(self, trajectories: Trajectories) -> CorrectionGP:
+        """Add measured experiments; returns the refitted GP (also ``self.gp``).
+
+        The initial condition of each experiment is matched to a pending ask; experiments nobody asked for are
+        accepted and noted as such in the history. Samples come from :func:`~torchmisspec.correction_samples` with the
+        campaign's ``derivative`` and ``noise_std``. Nothing changes if anything fails (bad input, a failed fit).
+        """
+        if not isinstance(trajectories, Trajectories):
+            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
+        if trajectories.state_dim != self.system.state_dim:
+            raise ShapeError(
+                f"trajectories: expected states of dimension {self.system.state_dim} (system "
+                f"'{self.system.name}'), got {trajectories.state_dim}"
+            )
+        traj = trajectories.to(dtype=self.candidates.dtype, device=self.candidates.device)
+        start = time.perf_counter()
+        y0 = traj.initial_conditions
+        matched, pending = [], list(self.pending)
+        for row in y0:
+            idx = self._match(row) if pending else -1
+            if idx >= 0 and idx in pending:
+                pending.remove(idx)
+            else:
+                idx = -1
+            matched.append(idx)
+        samples = correction_samples(
+            traj,
+            self.system,
+            derivative=self.config["derivative"],
+            noise_std=self.config["noise_std"],
+            generator=self.generator,
+        )
+        inputs = self._inputs + [samples.inputs]
+        targets = self._targets + [samples.targets]
+        noise = self._noise + [samples.noise]
+        gp, note = self._fit(inputs, targets, noise)
+        # every check passed and the fit worked: commit
+        self._inputs, self._targets, self._noise = inputs, targets, noise
+        self.pending = pending
+        self.measured += matched
+        self.gp = gp
+        entry = {
+            "event": "tell",
+            "experiments": len(matched),
+            "indices": matched,
+            "unrequested": sum(i < 0 for i in matched),
+            "samples": self.num_samples,
+            "hyperparameters": _hyperparameters(gp),
+            "learned": note == "learned",
+            "note": note,
+            "seconds": time.perf_counter() - start,
+        }
+        if entry["unrequested"]:
+            entry["note"] += f"; {entry['unrequested']} experiment(s) not asked for (initial conditions not pending)"
+        if self.system.has_correction and (self.config["domain"] is not None or self.system.domain is not None):
+            entry["error"] = correction_error(gp, self.system, domain=self.config["domain"], resolution=51)
+        self.history.append(entry)
+        return gp
+
+    def _fit(self, inputs, targets, noise) -> tuple[CorrectionGP, str]:
+        X, Y = torch.cat(inputs), torch.cat(targets)
+        known = None
+        if any(n is not None for n in noise):
+            known = torch.cat([torch.zeros_like(t) if n is None else n for n, t in zip(noise, targets, strict=True)])
+        refit = self.config["refit_after"]
+        if refit and X.shape[0] >= refit:
+            p = self.prior
+            learner = CorrectionGP(
+                kernel=p.kernel, per_output=p.per_output, degree=p.degree, dtype=p.dtype, device=p.device
+            )
+            try:
+                return learner.fit(X, Y, noise=known), "learned"
+            except TorchMisspecError as exc:
+                note = f"hyperparameters not learned ({type(exc).__name__}: {exc}); kept the prior's"
+        else:
+            note = "prior hyperparameters (fewer samples than refit_after)" if refit else "prior hyperparameters"
+        return self.prior.fixed_copy().fit(X, Y, noise=known), note
+
+    # --------------------------------------------------------------------------------------------- files
+    def save(self, path: str | Path) -> Path:
+        """Write the campaign (configuration, candidates, data, pending asks, history, model, random state) to
+        ``path``, atomically. The system is not saved (it is code): pass it again to :meth:`load`."""
+        path = Path(path)
+        if not path.parent.is_dir():
+            raise InputError(f"path: expected a file in an existing folder, got {str(path)!r}")
+        blob = {
+            "format": FORMAT,
+            "version": VERSION,
+            "system": {"name": self.system.name, "state_dim": self.system.state_dim},
+            "config": dict(self.config),
+            "candidates": self.candidates.cpu(),
+            "times": self.times.cpu(),
+            "prior": {
+                "kernel": self.prior.kernel,
+                "per_output": self.prior.per_output,
+                "degree": self.prior.degree,
+                "fixed": dict(self.prior.fixed),
+                "dtype": str(self.prior.dtype).removeprefix("torch."),
+            },
+            "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
+            "inputs": [x.cpu() for x in self._inputs],
+            "targets": [y.cpu() for y in self._targets],
+            "noise": [None if n is None else n.cpu() for n in self._noise],
+            "asked": list(self.asked),
+            "pending": list(self.pending),
+            "measured": list(self.measured),
+            "history": self.history,
+            "generator": self.generator.get_state(),
+        }
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(blob, tmp)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, system: MisspecifiedSystem) -> Campaign:
+        """Resume a campaign written by :meth:`save`; ``system`` must be the one it was run with (checked by name
+        and dimension). A file that is not a campaign, or is damaged, raises an InputError naming what is wrong."""
+        path = Path(path)
+        blob = _persistence.read_safely(path, "Campaign", "Campaign.save")
+        system = check_system(system)
+
+        def field(key, kind):
+            if not isinstance(blob, dict) or key not in blob:
+                raise InputError(f"{path}: expected a torchmisspec Campaign file with field {key!r}, which is missing")
+            if not isinstance(blob[key], kind):
+                raise InputError(f"{path}: field {key!r} expected {kind}, got {type(blob[key]).__name__}")
+            return blob[key]
+
+        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+            raise InputError(f"{path}: expected a torchmisspec Campaign file (format {FORMAT!r}), it is not one")
+        if blob.get("version") != VERSION:
+            raise InputError(f"{path}: expected Campaign file version {VERSION}, got {blob.get('version')!r}")
+        saved = field("system", dict)
+        if saved.get("name") != system.name or saved.get("state_dim") != system.state_dim:
+            raise InputError(
+                f"system: the campaign was run with system '{saved.get('name')}' (state_dim "
+                f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
+            )
+        pri = field("prior", dict)
+        dtypes = {"float64": torch.float64, "float32": torch.float32}
+        if pri.get("dtype") not in dtypes or not isinstance(pri.get("fixed"), dict):
+            raise InputError(f"{path}: field 'prior' is damaged: {pri!r:.200}")
+        try:
+            prior = CorrectionGP(
+                kernel=pri.get("kernel"),
+                per_output=bool(pri.get("per_output")),
+                degree=pri.get("degree", 2),
+                dtype=dtypes[pri["dtype"]],
+                **pri["fixed"],
+            )
+        except (TypeError, TorchMisspecError) as exc:
+            raise InputError(f"{path}: field 'prior' is damaged ({exc})") from exc
+        cfg = field("config", dict)
+        try:
+            camp = cls(
+                system,
+                field("candidates", torch.Tensor),
+                field("times", torch.Tensor),
+                prior,
+                **{k: cfg[k] for k in ("criterion", "proxy", "domain", "domain_size", "derivative")},
+                noise_std=cfg["noise_std"],
+                refit_after=cfg["refit_after"],
+                pilot=cfg["pilot"],
+                seed=cfg["seed"],
+            )
+        except (KeyError, TypeError) as exc:
+            raise InputError(f"{path}: field 'config' is damaged ({type(exc).__name__}: {exc})") from exc
+        n, d_in = camp.candidates.shape[0], system.input_dim
+        inputs, targets, noise = field("inputs", list), field("targets", list), field("noise", list)
+        if not (len(inputs) == len(targets) == len(noise)):
+            raise InputError(
+                f"{path}: expected as many input, target and noise blocks, got {len(inputs)}, "
+                f"{len(targets)}, {len(noise)}"
+            )
+        for x, y, e in zip(inputs, targets, noise, strict=True):
+            ok = isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor) and x.dim() == 2 and y.dim() == 2
+            ok = ok and x.shape == (y.shape[0], d_in) and y.shape[1] == system.output_dim
+            ok = ok and (e is None or (isinstance(e, torch.Tensor) and e.shape == y.shape))
+            if not ok or not bool(torch.isfinite(x).all() and torch.isfinite(y).all()):
+                raise InputError(f"{path}: the saved samples are damaged (shapes or values)")
+        lists = {key: field(key, list) for key in ("asked", "pending", "measured")}
+        for key, values in lists.items():
+            low = -1 if key == "measured" else 0
+            if not all(isinstance(i, int) and low <= i < n for i in values):
+                raise InputError(f"{path}: field {key!r} expected candidate indices in [0, {n}), it is damaged")
+        history = field("history", list)
+        if not all(isinstance(h, dict) and h.get("event") in ("ask", "tell") for h in history):
+            raise InputError(f"{path}: field 'history' is damaged")
+        dd = {"dtype": camp.candidates.dtype, "device": camp.candidates.device}
+        camp._inputs = [x.to(**dd) for x in inputs]
+        camp._targets = [y.to(**dd) for y in targets]
+        camp._noise = [None if e is None else e.to(**dd) for e in noise]
+        camp.asked, camp.pending, camp.measured = lists["asked"], lists["pending"], lists["measured"]
+        camp.history = history
+        state = field("generator", torch.Tensor)
+        try:
+            camp.generator.set_state(state)
+        except RuntimeError as exc:
+            raise InputError(f"{path}: field 'generator' is damaged ({exc})") from exc
+        model = blob.get("model")
+        if model is not None:
+            camp.gp = _persistence.from_blob(CorrectionGP, model, path)
+        elif camp._inputs:
+            raise InputError(f"{path}: the campaign holds samples but no fitted model; the file is damaged")
+        return camp
