@@ -39,3 +39,24 @@ def replace_marked(text: str, block: str, start: str, end: str) -> str:
     if pattern.search(text):
         return pattern.sub(lambda _: block, text, count=1)
     return text.rstrip("\n") + "\n\n" + block
+
+
+def machine() -> dict:
+    """The machine, the library's commit (and whether the library has uncommitted changes) and versions."""
+    import os
+
+    import torch
+
+    import torchmisspec
+
+    status = git("status", "--porcelain", "--", "torchmisspec")
+    return {
+        "git_commit": git("rev-parse", "--short", "HEAD"),
+        "library_modified": None if status is None else bool(status),
+        "cpu": cpu_model(),
+        "logical_cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torchmisspec": torchmisspec.__version__,
+    }

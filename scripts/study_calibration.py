@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 import warnings
@@ -33,7 +31,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_model, git, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import orbits
@@ -165,16 +163,6 @@ def _ok(runs: list[dict], method: str) -> list[dict]:
 
 
 # ------------------------------------------------------------------------------------------------- reporting
-def machine() -> dict:
-    return {
-        "git_commit": git("rev-parse", "--short", "HEAD"),
-        "cpu": cpu_model(),
-        "logical_cpus": os.cpu_count(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-    }
-
-
 def table(result: dict) -> str:
     rows = [
         "| system | K | hyperparameters | 50 % band | 90 % band | 95 % band | 90 % goal [0.85, 0.95] | "

@@ -30,8 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 import time
 import warnings
@@ -41,7 +39,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_model, git, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.metrics import mean_and_standard_error
@@ -584,20 +582,6 @@ def _pct(level: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- markdown
-def machine() -> dict:
-    status = git("status", "--porcelain", "--", "torchmisspec")
-    return {
-        "git_commit": git("rev-parse", "--short", "HEAD"),
-        "library_modified": None if status is None else bool(status),
-        "cpu": cpu_model(),
-        "logical_cpus": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torchmisspec": tms.__version__,
-    }
-
-
 def _pm(mean, se) -> str:
     return "n/a" if mean is None else f"{_fmt(mean)} ± {_fmt(se, '.2g')}"
 

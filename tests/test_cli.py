@@ -74,6 +74,35 @@ def test_design_command_with_partition(tmp_path, candidates_csv):
     assert sum(1 for i in picks if i % 2 == 0) <= 1
 
 
+def test_design_command_conditions_on_data(tmp_path, candidates_csv):
+    """``design --data``: the picks are the library's greedy design conditioned on the measured experiments."""
+    system = tms.systems.paper_linear()
+    times = torch.linspace(0, 6, 11, dtype=torch.float64)
+    measured = tms.simulate(system, grid(((-1, 1), (-1, 1)), 7)[[0, 6, 42, 48]], times)
+    data = tmp_path / "observed.npz"
+    measured.save(data)
+    out = tmp_path / "next.json"
+    extra = ("--data", str(data), "--derivative", "central", "--criterion", "domain")
+    assert main(_design_args(candidates_csv, out, *extra, budget=3)) == 0
+    got = json.loads(out.read_text())
+    samples = tms.correction_samples(measured, system, derivative="central")
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=4e-5, noise_variance=1e-4).fit(samples)
+    expected = tms.design.greedy(grid(((-1, 1), (-1, 1)), 7), 3, system=system, times=times, gp=gp, criterion="domain")
+    assert got["indices"] == expected.indices.tolist()
+    assert got["conditioned_on_samples"] == 44 and got["proxy"] == "corrected" and got["criterion"] == "domain"
+    assert not {0, 6, 42, 48} & set(got["indices"])
+
+
+def test_design_command_data_errors(tmp_path, candidates_csv, capsys):
+    out = tmp_path / "x.json"
+    assert main(_design_args(candidates_csv, out, "--learn-hyperparameters")) == 2
+    assert "learning needs data" in capsys.readouterr().err
+    assert main(_design_args(candidates_csv, out, "--data", str(tmp_path / "missing.csv"))) == 2
+    assert "missing.csv" in capsys.readouterr().err
+    assert main(_design_args(candidates_csv, out, "--criterion", "domain", "--method", "random")) == 2
+    assert "only the greedy methods" in capsys.readouterr().err
+
+
 def test_design_command_errors(tmp_path, candidates_csv, capsys):
     base = [
         "design",

@@ -175,6 +175,22 @@ def _design(args: argparse.Namespace) -> int:
             raise InputError(
                 f"--capacities: expected 'label=count,...' or 'count,count,...', got {args.capacities!r}"
             ) from exc
+    conditioned = 0
+    if args.data is not None:  # condition the design on the experiments already run
+        from .data import Trajectories
+        from .gp import CorrectionGP
+        from .observations import correction_samples
+
+        samples = correction_samples(Trajectories.load(args.data), system, derivative=args.derivative)
+        if args.learn_hyperparameters:
+            gp = CorrectionGP(kernel=args.kernel, degree=args.degree).fit(samples)
+        else:
+            gp = gp.fit(samples)
+        conditioned = len(samples)
+    elif args.learn_hyperparameters:
+        raise InputError("--learn-hyperparameters: learning needs data; pass --data observed.csv")
+    if args.criterion != "information" and args.method not in ("lazy", "plain", "naive", "greedy"):
+        raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")
     common = dict(system=system, times=times, gp=gp, progress=not args.quiet)
     if args.method == "random":
         plan = design.random(
@@ -190,8 +206,16 @@ def _design(args: argparse.Namespace) -> int:
     else:
         method = "plain" if args.method == "greedy" else args.method
         plan = design.greedy(
-            candidates, args.budget, method=method, partition=partition, capacities=capacities, **common
+            candidates,
+            args.budget,
+            method=method,
+            partition=partition,
+            capacities=capacities,
+            criterion=args.criterion,
+            proxy=args.proxy,
+            **common,
         )
+    units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
     rows = [
         {"order": i, "index": int(c), "gain": float(g), **{f"y{j}": float(v) for j, v in enumerate(pt)}}
         for i, (c, g, pt) in enumerate(
@@ -209,7 +233,10 @@ def _design(args: argparse.Namespace) -> int:
                     "gains": plan.gains.tolist(),
                     "information_gain": plan.information_gain,
                     "points": plan.points.tolist(),
-                    "units": "nats (real-Gaussian convention)",
+                    "criterion": args.criterion,
+                    "conditioned_on_samples": conditioned,
+                    "proxy": plan.diagnostics.get("proxy"),
+                    "units": units,
                 },
                 indent=2,
             )
@@ -223,7 +250,9 @@ def _design(args: argparse.Namespace) -> int:
             writer.writerows(rows)
     print(
         f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on "
-        f"{system.name}: information gain {plan.information_gain:.4f} nats; indices {plan.indices.tolist()}; "
+        f"{system.name}"
+        + (f", conditioned on {conditioned} samples of {args.data}" if conditioned else "")
+        + f": criterion {args.criterion} {plan.information_gain:.4g} ({units}); indices {plan.indices.tolist()}; "
         f"written to {out}"
     )
     return 0
@@ -405,6 +434,32 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["lazy", "plain", "naive", "agnostic", "random", "greedy"],
         help="lazy greedy (default), plain greedy ('greedy' is its old name), naive greedy (reference), agnostic "
         "(ignores the known model), or random",
+    )
+    des.add_argument(
+        "--criterion",
+        default="information",
+        choices=["information", "domain"],
+        help="information about F (the paper's, default) or domain: the variance of F over the system's domain D",
+    )
+    des.add_argument(
+        "--data",
+        help="experiments already run (a table or .npz as for 'fit'): the design is conditioned on their samples "
+        "and, by default, follows the corrected model's trajectories",
+    )
+    des.add_argument(
+        "--derivative", default="auto", help="with --data: how dy/dt is estimated from the states (default: auto)"
+    )
+    des.add_argument(
+        "--learn-hyperparameters",
+        action="store_true",
+        help="with --data: learn the kernel hyperparameters from the data by marginal likelihood instead of using "
+        "--lengthscale/--outputscale/--noise-variance",
+    )
+    des.add_argument(
+        "--proxy",
+        choices=["known", "corrected"],
+        help="trajectories the samples are predicted along: G alone or G + the GP's mean (default: corrected with "
+        "--data, known without)",
     )
     des.add_argument("--partition", help="optional file with one integer region label per candidate")
     des.add_argument(

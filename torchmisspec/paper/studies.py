@@ -31,7 +31,7 @@ from ..metrics import box_grid, integrated_norm, mean_and_standard_error
 from ..systems import MisspecifiedSystem, paper_gravity, paper_linear
 from . import _setup
 
-__all__ = ["StudyResult", "linear_study", "gravity_study"]
+__all__ = ["StudyResult", "linear_study", "gravity_study", "sequential_study"]
 
 
 @dataclass
@@ -352,3 +352,148 @@ def gravity_study(
         "quadrature": f"trapezoid, {resolution} x {resolution}",
     }
     return StudyResult("gravity_study", ks, errors, references, "mean over D of ||F_hat - F||_2^2", meta)
+
+
+# ------------------------------------------------------------------------------------ sequential design (issue 11)
+SEQUENTIAL_SETUPS = ("linear", "gravity")
+
+
+def _sequential_setup(setup: str, seed: int, n_candidates: int | None):
+    if setup == "linear":
+        system = paper_linear()
+        size = _setup.LINEAR_GRID_SIZE
+        candidates = _candidates.grid(system.domain, size)
+        desc = f"{size} x {size} grid on {system.domain}"
+        return system, candidates, _setup.linear_times(), dict(_setup.LINEAR_PRIOR), "integrated", 101, desc
+    if setup == "gravity":
+        system = paper_gravity()
+        n = _setup.GRAVITY_CANDIDATES if n_candidates is None else check_positive_int(n_candidates, "n_candidates")
+        candidates = _candidates.orbits(n, generator=torch.Generator().manual_seed(seed))
+        desc = f"{n} from design.candidates.orbits(seed={seed})"
+        return system, candidates, _setup.gravity_times(), dict(_setup.GRAVITY_PRIOR), "mean_squared", 81, desc
+    raise InputError(f"setup: expected one of {SEQUENTIAL_SETUPS}, got {setup!r}")
+
+
+def sequential_study(
+    setup: str = "linear",
+    ks=None,
+    realizations: int = 20,
+    *,
+    seed: int = 0,
+    sequential=(("information", 1), ("information", 3), ("domain", 1)),
+    noise_std: float = _setup.NOISE_STD,
+    n_candidates: int | None = None,
+    progress: bool = False,
+) -> StudyResult:
+    """Error vs K of one-shot and sequential designs (issue 11): what designing in rounds, given the data, buys.
+
+    Strategies (every one on the same candidates, times and observation model: exact derivatives + noise):
+
+    * ``paper design``: the paper's one-shot greedy design of the information about F, from the prior;
+    * ``domain design``: one-shot, ``criterion="domain"`` (variance of F over D), from the prior;
+    * ``sequential <criterion> (rounds of b)``: a :class:`~torchmisspec.design.Campaign` from the same prior, ``b``
+      experiments per round, each round designed with ``criterion`` given every sample so far (conditioned gains,
+      corrected proxies) with the hyperparameters learned by marginal likelihood once the data hold 4 T samples;
+    * ``random``: a random order of the candidates per realization.
+
+    The estimate compared at each K is the same for every strategy: the prior's GP (its fixed hyperparameters, as
+    in the paper's studies) conditioned on the samples of the first K experiments, so differences come from the
+    choice of experiments alone. ``... learned GP`` is the first sequential strategy's own model (learned
+    hyperparameters) on the same experiments. Sequential strategies draw their sample noise in the campaign (a seed
+    per realization), the one-shot strategies share one draw per realization.
+
+    Args:
+        setup: ``"linear"`` (paper 5.2: 13 x 13 grid, T = 11, the integral over D of ``||F_hat - F||``) or
+            ``"gravity"`` (paper 5.3: 300 orbits, T = 20, the mean over D of ``||F_hat - F||^2``).
+        ks: numbers of experiments (default 1..20 for linear, 1..10 for gravity).
+        realizations: noise realizations (and random orders, campaigns).
+        sequential: ``(criterion, batch size)`` of each sequential strategy.
+    """
+    system, candidates, times, prior_kw, metric, resolution, desc = _sequential_setup(setup, seed, n_candidates)
+    prior_kw["noise_variance"] = noise_std**2
+    realizations = check_positive_int(realizations, "realizations")
+    ks = _check_ks(range(1, 21 if setup == "linear" else 11) if ks is None else ks, candidates.shape[0])
+    sequential = [(c, check_positive_int(b, "batch size")) for c, b in sequential]
+    kmax = ks[-1]
+    prior = CorrectionGP(**prior_kw)
+    estimator = prior.fixed_copy()
+    plans = {
+        "paper design": _design.greedy(candidates, kmax, system=system, times=times, gp=prior),
+        "domain design": _design.greedy(candidates, kmax, system=system, times=times, gp=prior, criterion="domain"),
+    }
+    states = simulate(system, candidates, times).states
+    inputs = system.select_inputs(states)
+    clean = system.select_outputs(system.true_rhs(states) - system.known(states))
+    points, weights = box_grid(system.domain, resolution)
+    squared = metric == "mean_squared"
+    if squared:
+        weights = weights / weights.sum()
+    truth = system.true_correction(points)
+
+    def error(gp) -> float:
+        return _grid_error(gp, truth, points, weights, squared=squared)
+
+    seq = [f"sequential {c} (rounds of {b})" for c, b in sequential]
+    learned = f"{seq[0]}, learned GP"
+    names = list(plans) + seq + [learned, "random"]
+    errors = {n: torch.empty(realizations, len(ks), dtype=torch.float64) for n in names}
+    picks: dict[str, list] = {n: [] for n in seq}
+    hyper: list[dict] = []
+    with progress_bar(progress, realizations, f"sequential study ({setup})") as bar:
+        for r in range(realizations):
+            gen = torch.Generator().manual_seed(seed * 100_003 + r)
+            targets = clean + noise_std * torch.randn(clean.shape, generator=gen, dtype=clean.dtype)
+            order = {name: plan.indices for name, plan in plans.items()}
+            order["random"] = torch.randperm(candidates.shape[0], generator=gen)
+            for name, idx in order.items():
+                for j, k in enumerate(ks):
+                    x = inputs[idx[:k]].reshape(-1, inputs.shape[-1])
+                    y = targets[idx[:k]].reshape(-1, targets.shape[-1])
+                    errors[name][r, j] = error(estimator.fit(x, y))
+            for name, (crit, b) in zip(seq, sequential, strict=True):
+                camp = _design.Campaign(
+                    system,
+                    candidates,
+                    times,
+                    prior,
+                    criterion=crit,
+                    derivative="oracle",
+                    noise_std=noise_std,
+                    seed=seed * 1000 + r,
+                )
+                own = {}
+                while camp.num_experiments < kmax:
+                    y0 = camp.ask(min(b, kmax - camp.num_experiments))
+                    camp.tell(simulate(system, y0, times))
+                    if name == seq[0]:
+                        own[camp.num_experiments] = error(camp.gp)
+                X, Y = torch.cat(camp._inputs), torch.cat(camp._targets)
+                T = times.numel()
+                for j, k in enumerate(ks):
+                    errors[name][r, j] = error(estimator.fit(X[: k * T], Y[: k * T]))
+                    if name == seq[0]:
+                        errors[learned][r, j] = own[k]
+                picks[name].append(camp.asked[:kmax])
+                if name == seq[0]:
+                    hyper.append(camp.history[-1]["hyperparameters"])
+            bar.update(1)
+    references = (
+        {"mean energy of F": float((truth.pow(2).sum(-1) * weights).sum())}
+        if squared
+        else {"energy of F": integrated_norm(system.true_correction, system.domain, resolution=resolution)}
+    )
+    meta = {
+        "system": system.name,
+        "setup": setup,
+        "candidates": desc,
+        "times": _times_text(times),
+        "noise_std": noise_std,
+        "seed": seed,
+        "prior": prior_kw,
+        "designs": {name: plan.indices.tolist() for name, plan in plans.items()},
+        "sequential_picks": picks,
+        "learned_hyperparameters_at_kmax": hyper,
+        "quadrature": f"trapezoid, {resolution} x {resolution}",
+    }
+    what = "mean over D of ||F_hat - F||_2^2" if squared else "integral over D of ||F_hat - F||_2"
+    return StudyResult(f"sequential_{setup}", ks, errors, references, what, meta)
