@@ -179,3 +179,27 @@ def test_low_rank_data_term_is_within_its_certified_error():
     assert err <= kern.data_error
     assert kern.data_error < 1e-4 * 1e-3  # certified to 1e-4 of the prior variance
     torch.testing.assert_close(kern.diag(x), exact.diagonal().clamp_min(0), rtol=0, atol=kern.data_error)
+
+
+def test_data_term_stays_finite_at_round_off():
+    """Data from a campaign whose pivoted data factor once got a zero diagonal entry at round-off (NaN gains)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from torchmisspec.design._common import GPKernel
+
+    table = torch.as_tensor(
+        np.loadtxt(Path(__file__).parent / "data" / "pivot_roundoff.csv", delimiter=",", skiprows=2)
+    )
+    X, Y = table[:, :2], table[:, 2:]
+    noise = 0.0001181655721146965
+    gp = tms.CorrectionGP(lengthscale=1.2124344436602665, outputscale=0.00014628282013504575, noise_variance=noise)
+    gp.fit(X, Y)
+    kern = GPKernel(gp, input_dim=2)
+    x = torch.rand(100, 2, dtype=DT, generator=torch.Generator().manual_seed(3)) * 4 - 2
+    C = gp.covariance(X) + noise * torch.eye(X.shape[0], dtype=DT)
+    exact = gp.covariance(x) - gp.covariance(x, X) @ torch.linalg.solve(C, gp.covariance(X, x))
+    got = kern(x)
+    assert bool(torch.isfinite(got).all())
+    assert float((got - exact).abs().max()) <= kern.data_error

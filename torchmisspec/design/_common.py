@@ -171,6 +171,8 @@ class GPKernel:
             piv, e_X, A = pivots(prior, X, N, DATA_PIVOT_TOL * k0, factor=True)  # A = L_Z^-1 K(Z, X): (r, N)
             if piv.numel() == N:
                 e_X = 0.0
+            else:  # the residuals are known to round-off of the accumulated factor at best
+                e_X = max(e_X, piv.numel() * torch.finfo(X.dtype).eps * k0)
             Z = X[piv]
             LZ = A[:, piv].T.contiguous()  # lower triangular, L_Z L_Z^T = K(Z, Z)
             W = torch.linalg.solve_triangular(L, A.T, upper=False)  # L^-1 A^T: M = W^T W
@@ -181,6 +183,10 @@ class GPKernel:
             c_min = float(torch.linalg.eigvalsh(L @ L.T)[0].clamp_min(0.0)) if e_X > 0 else 1.0
             self.data_rank = piv.numel()
             self.data_error = 0.0
+            if not bool(torch.isfinite(self._G).all()):  # never a silent NaN: the exact term, psi = L^-1 k(X, x)
+                eye = torch.eye(N, dtype=L.dtype, device=L.device)
+                self._Z, self._G = X, torch.linalg.solve_triangular(L.T, eye, upper=True)
+                self.data_rank, e_X = N, 0.0
             if e_X > 0:
                 q = k0 * N * max(e_X, 0.0) / max(c_min, 1e-300)
                 self.data_error = 2 * math.sqrt(q * k0) + q
@@ -253,7 +259,10 @@ def pivots(kern, X: torch.Tensor, max_rank: int, tol: float, *, factor: bool = F
         col = kern(X[j : j + 1], X)[0]
         if i:
             col = col - R[:i, j] @ R[:i]
+        if float(col[j]) < 0.5 * dj:  # the residual is round-off: further pivots would only add noise
+            break
         R[i] = col / math.sqrt(dj)
+        R[i, j] = math.sqrt(dj)  # consistent with the residual the pivot was chosen by
         resid -= R[i] ** 2
         resid[j] = 0.0
         piv.append(j)
