@@ -203,3 +203,36 @@ def test_data_term_stays_finite_at_round_off():
     got = kern(x)
     assert bool(torch.isfinite(got).all())
     assert float((got - exact).abs().max()) <= kern.data_error
+
+
+def test_proxy_check_for_both_proxies():
+    """Theorem 1's quantities for the known and the corrected proxies: with a GP fitted on 16 experiments the
+    corrected model's trajectories sit closer to the truth (smaller kernel discrepancy and gain gap)."""
+    system = tms.systems.paper_linear()
+    cand = grid(system.domain, 13)
+    samples = tms.correction_samples(
+        tms.simulate(system, grid(system.domain, 4), TIMES),
+        system,
+        derivative="oracle",
+        noise_std=NOISE_STD,
+        generator=torch.Generator().manual_seed(0),
+    )
+    fitted = tms.CorrectionGP(**LINEAR_PRIOR).fit(samples)
+    for idx in ([20, 84, 130], [0, 168, 12]):
+        known, corrected = (
+            design.proxy_check(idx, cand, system=system, times=TIMES, gp=fitted, proxy=p)
+            for p in ("known", "corrected")
+        )
+        assert corrected.delta < 0.5 * known.delta
+        assert corrected.gap < 0.3 * known.gap
+    conditioned = design.proxy_check(
+        idx, cand, system=system, times=TIMES, gp=fitted, proxy="corrected", condition=True
+    )
+    assert conditioned.proxy_gain < corrected.proxy_gain  # the data already explain part of it
+    # the proxy gain of the corrected check is the criterion along the corrected model's trajectories
+    rtol, atol = PROXY_TOLERANCES
+    paths = tms.CorrectedODE(system, fitted).predict(cand[idx], TIMES, rtol=rtol, atol=atol)
+    pts = system.select_inputs(paths).reshape(-1, 2)
+    assert corrected.proxy_gain == pytest.approx(design.information_gain(pts, fitted, condition=False), rel=1e-10)
+    with pytest.raises(tms.InputError, match="proxy: expected"):
+        design.proxy_check(idx, cand, system=system, times=TIMES, gp=fitted, proxy="true")

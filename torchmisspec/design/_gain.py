@@ -106,10 +106,15 @@ class ProxyCheck:
         return abs(self.proxy_gain - self.exact_gain)
 
 
-def _design_points(indices, candidates, system, times, gp, proxies, states):
+def _design_points(indices, candidates, system, times, gp, proxies, states, proxy="known", condition=False):
     """Chosen indices, proxy inputs and true inputs ``(K T, d_in)`` of a design, and the kernel view."""
     system = check_system(system)
-    kern = GPKernel(gp, input_dim=system.input_dim, condition=False)  # Theorem 1 is about the prior's criterion
+    if proxy not in ("known", "corrected"):
+        raise InputError(f"proxy: expected 'known' or 'corrected', got {proxy!r}")
+    if proxy == "corrected" and not gp.is_fitted:
+        raise InputError("proxy='corrected': an unfitted gp has no correction to add to G; fit it or pass 'known'")
+    # Theorem 1 holds for any kernel: the prior's (the paper's criterion) or the one conditioned on the GP's data
+    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition)
     cand = check_candidates(candidates, system, dtype=kern.dtype, device=kern.device)
     if isinstance(indices, DesignResult):
         indices = indices.indices
@@ -118,7 +123,13 @@ def _design_points(indices, candidates, system, times, gp, proxies, states):
     idx = list(check_indices(indices, cand.shape[0], "indices"))
     t = check_times(times, dtype=kern.dtype, device=kern.device)
     chosen = cand[idx]
-    if proxies is None:
+    if proxies is None and proxy == "corrected":
+        from ..dynamics import CorrectedODE
+        from ._greedy import PROXY_TOLERANCES
+
+        rtol, atol = PROXY_TOLERANCES
+        prox = CorrectedODE(system, gp).predict(chosen, t, rtol=rtol, atol=atol)
+    elif proxies is None:
         prox = proxy_trajectories(system, chosen, t)
     else:
         prox = check_proxies(proxies, cand.shape[0], system, t, dtype=kern.dtype, device=kern.device)[idx]
@@ -182,12 +193,19 @@ def proxy_check(
     proxies=None,
     states=None,
     blockwise: bool = False,
+    proxy: str = "known",
+    condition: bool = False,
 ) -> ProxyCheck:
     """Proxy gain, exact gain, their largest kernel discrepancy and the Theorem 1 bound, for one design.
 
-    See :func:`proxy_gap_bound` for the bound and :func:`true_information_gain` for the arguments.
+    See :func:`proxy_gap_bound` for the bound and :func:`true_information_gain` for the arguments. ``proxy``:
+    the proxies checked, ``"known"`` (G alone, the paper's) or ``"corrected"`` (G + the fitted GP's posterior
+    mean, as :func:`greedy` uses with data); ``condition=True`` measures both gains with the kernel conditioned on
+    the GP's data (the criterion a conditioned design maximises; Theorem 1 holds for any kernel).
     """
-    kern, prox_x, true_x, system = _design_points(indices, candidates, system, times, gp, proxies, states)
+    kern, prox_x, true_x, system = _design_points(
+        indices, candidates, system, times, gp, proxies, states, proxy, condition
+    )
     Kp, Kt = kern(prox_x), kern(true_x)
     delta = float((Kt - Kp).abs().max())
     d_out = system.output_dim
