@@ -192,6 +192,7 @@ class Campaign:
             picks += pool[plan.indices.cpu()].tolist()
             gains += plan.gains.tolist()
             info = {key: v for key, v in plan.diagnostics.items() if isinstance(v, (int, float, str, bool))}
+            info["selection_seconds"] = plan.elapsed
         self.asked += picks
         self.pending += picks
         self.history.append(

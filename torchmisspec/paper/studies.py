@@ -399,8 +399,8 @@ def sequential_study(
     The estimate compared at each K is the same for every strategy: the prior's GP (its fixed hyperparameters, as
     in the paper's studies) conditioned on the samples of the first K experiments, so differences come from the
     choice of experiments alone. ``... learned GP`` is the first sequential strategy's own model (learned
-    hyperparameters) on the same experiments. Sequential strategies draw their sample noise in the campaign (a seed
-    per realization), the one-shot strategies share one draw per realization.
+    hyperparameters) on the same experiments (when it runs in rounds of 1). Sequential strategies draw their
+    sample noise in the campaign (a seed per realization), the one-shot strategies share one draw per realization.
 
     Args:
         setup: ``"linear"`` (paper 5.2: 13 x 13 grid, T = 11, the integral over D of ``||F_hat - F||``) or
@@ -434,8 +434,8 @@ def sequential_study(
         return _grid_error(gp, truth, points, weights, squared=squared)
 
     seq = [f"sequential {c} (rounds of {b})" for c, b in sequential]
-    learned = f"{seq[0]}, learned GP"
-    names = list(plans) + seq + [learned, "random"]
+    learned = f"{seq[0]}, learned GP" if sequential[0][1] == 1 else None  # its model after every experiment
+    names = list(plans) + seq + ([learned] if learned else []) + ["random"]
     errors = {n: torch.empty(realizations, len(ks), dtype=torch.float64) for n in names}
     picks: dict[str, list] = {n: [] for n in seq}
     hyper: list[dict] = []
@@ -471,7 +471,7 @@ def sequential_study(
                 T = times.numel()
                 for j, k in enumerate(ks):
                     errors[name][r, j] = error(estimator.fit(X[: k * T], Y[: k * T]))
-                    if name == seq[0]:
+                    if learned and name == seq[0]:
                         errors[learned][r, j] = own[k]
                 picks[name].append(camp.asked[:kmax])
                 if name == seq[0]:

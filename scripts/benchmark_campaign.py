@@ -1,0 +1,146 @@
+"""Cost of one round of the design loop (issue 11): refit on 500 samples + design 3 from 10,000 candidates, T = 20.
+
+Set-up: paper_gravity (paper 5.3), 10,000 candidates from ``design.candidates.orbits`` (seed 0), observation times
+T = 20 on [0, 3]; 25 experiments already run (500 correction samples, oracle derivatives with noise std 1e-2).
+One round is ``Campaign.tell`` of those experiments (correction samples + hyperparameters learned by marginal
+likelihood on the 500 samples) followed by ``Campaign.ask(3)`` (corrected proxies of all 10,000 candidates, gains
+conditioned on the 500 samples). Target: under 5 s. Timed in the same run: the same round with the exact data term
+(``GPKernel(exact_data=True)``, every kernel block solving against the 500 x 500 factor, the previous
+implementation) as the reference, and the domain criterion. Medians of ``--repeats``.
+
+Usage::
+
+    python scripts/benchmark_campaign.py --markdown     # writes the block of BENCHMARKS.md
+    python scripts/benchmark_campaign.py --smoke        # tiny sizes, prints only
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
+
+import torchmisspec as tms  # noqa: E402
+from torchmisspec import design  # noqa: E402
+from torchmisspec.design import _common, _greedy  # noqa: E402
+from torchmisspec.paper import _setup  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
+MARK_START = "<!-- bench:campaign:start -->"
+MARK_END = "<!-- bench:campaign:end -->"
+FULL = {"candidates": 10_000, "experiments": 25, "batch": 3}
+SMOKE = {"candidates": 300, "experiments": 4, "batch": 2}
+
+
+class _ExactKernel(_common.GPKernel):
+    """The reference: the data term solved exactly in every kernel block."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, exact_data=True, **kwargs)
+
+
+def one_round(cfg: dict, criterion: str, exact: bool) -> dict:
+    system = tms.systems.paper_gravity()
+    times = _setup.gravity_times()
+    cand = design.candidates.orbits(cfg["candidates"], generator=torch.Generator().manual_seed(0))
+    ran = torch.randperm(cfg["candidates"], generator=torch.Generator().manual_seed(1))[: cfg["experiments"]]
+    measured = tms.simulate(system, cand[ran], times)  # the experiments already run (not timed)
+    prior = tms.CorrectionGP(**_setup.GRAVITY_PRIOR)
+    camp = design.Campaign(
+        system, cand, times, prior, criterion=criterion, derivative="oracle", noise_std=_setup.NOISE_STD, refit_after=40
+    )
+    original = _greedy.GPKernel
+    if exact:
+        _greedy.GPKernel = _ExactKernel
+    try:
+        t0 = time.perf_counter()
+        camp.tell(measured)
+        t1 = time.perf_counter()
+        camp.ask(cfg["batch"])
+        t2 = time.perf_counter()
+    finally:
+        _greedy.GPKernel = original
+    ask = camp.history[-1]
+    return {
+        "tell": t1 - t0,
+        "ask": t2 - t1,
+        "selection": ask["design"]["selection_seconds"],
+        "round": t2 - t0,
+        "samples": camp.num_samples,
+        "learned": camp.history[-2]["learned"],
+        "picks": ask["indices"],
+    }
+
+
+def median_of(runs: list[dict]) -> dict:
+    out = dict(runs[-1])
+    for key in ("tell", "ask", "selection", "round"):
+        out[key] = statistics.median(r[key] for r in runs)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes BENCHMARKS.md")
+    parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    if args.smoke and args.markdown:
+        parser.error("--smoke never writes BENCHMARKS.md")
+    cfg = SMOKE if args.smoke else FULL
+    repeats = 1 if args.smoke else args.repeats
+    load = " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    one_round(SMOKE, "information", False)  # warm-up (first calls pay for imports and allocations): not recorded
+    rows = {}
+    for label, criterion, exact, n in (
+        ("information (default)", "information", False, repeats),
+        ("domain", "domain", False, repeats),
+        ("information, exact data term (reference)", "information", True, 1),
+    ):
+        rows[label] = median_of([one_round(cfg, criterion, exact) for _ in range(n)])
+        print(label, rows[label])
+    same = rows["information (default)"]["picks"] == rows["information, exact data term (reference)"]["picks"]
+    info = machine()
+    command = "python scripts/benchmark_campaign.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    lines = [
+        MARK_START,
+        "## One round of the design loop (`scripts/benchmark_campaign.py`)",
+        "",
+        f"Command `{command.strip()}`; {info['cpu']}, {info['logical_cpus']} logical CPUs, torch {info['torch']} "
+        f"({info['torch_threads']} threads), commit {info['git_commit']}, load average before the run {load}. "
+        f"paper_gravity, {cfg['candidates']} candidate orbits, T = 20, {rows['domain']['samples']} samples from "
+        f"{cfg['experiments']} experiments; a round = `tell` (samples + hyperparameters learned by marginal "
+        f"likelihood) + `ask({cfg['batch']})` (corrected proxies of every candidate, gains conditioned on the data). "
+        f"Medians of {repeats} (the reference: 1 run). Target: a round under 5 s.",
+        "",
+        "| round | tell (refit) s | ask s | of which selection s | round s |",
+        "|---|---|---|---|---|",
+    ]
+    for label, r in rows.items():
+        lines.append(f"| {label} | {r['tell']:.2f} | {r['ask']:.2f} | {r['selection']:.2f} | {r['round']:.2f} |")
+    ref = rows["information, exact data term (reference)"]["selection"]
+    new = rows["information (default)"]["selection"]
+    lines += [
+        "",
+        f"Selection {ref / new:.1f}x faster than with the exact data term; same picks as the reference: {same}.",
+        MARK_END,
+        "",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if args.markdown:
+        BENCHMARKS_MD.write_text(replace_marked(BENCHMARKS_MD.read_text(), text, MARK_START, MARK_END))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
