@@ -104,11 +104,33 @@ def check_own_system(ns: dict) -> None:
         assert [t.name for t in ns["auto"].terms(["omega"])] == ["omega"]
 
 
+def check_sequential(ns: dict) -> None:
+    # "the lengthscale to a fraction of D's width": half of [-1, 1]
+    assert ns["prior"].lengthscale == pytest.approx(1.0)
+    tells = [h for h in ns["campaign"].history if h["event"] == "tell"]
+    assert len(tells) == 4 and [h["samples"] for h in tells] == [33, 66, 99, 132]
+    # "learning its hyperparameters ... once the data hold refit_after samples (default 4 T)": 44 samples
+    assert [h["learned"] for h in tells] == [False, True, True, True]
+    # "It falls from the first round to the last"
+    assert tells[-1]["error"] < tells[0]["error"]
+    # "pilot=2 makes the first two experiments random"
+    assert ns["campaign"].history[0]["pilot"] == 2 and ns["campaign"].history[0]["gains"][:2] == [None, None]
+    # "the resumed campaign picks what the uninterrupted one would"
+    assert ns["resumed"].asked == ns["campaign"].asked
+    # "its first picks are the corners"; the domain design: "the centre first, then no corner"
+    corners = {(-1.0, -1.0), (-1.0, 1.0), (1.0, -1.0), (1.0, 1.0)}
+    assert {tuple(p) for p in ns["information"].points.tolist()} == corners
+    dom = ns["domain"].points
+    assert torch.allclose(dom[0], torch.zeros(2, dtype=dom.dtype), atol=1e-12)
+    assert not {tuple(p) for p in dom.tolist()} & corners
+
+
 PAGES = {
     "index.md": check_index,
     "tutorials/learn-and-predict.md": check_learn_and_predict,
     "tutorials/design.md": check_design,
     "tutorials/own-system.md": check_own_system,
+    "tutorials/sequential.md": check_sequential,
 }
 
 
