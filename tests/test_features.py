@@ -149,7 +149,7 @@ def test_bad_input():
     gp = tms.CorrectionGP(kernel="features").fit(X, Y)
     with pytest.raises(tms.InputError, match=r"fixed_copy: the feature kernel's weights cannot be fixed"):
         gp.fixed_copy()
-    with pytest.raises(tms.InputError, match=r"only the feature kernel has named terms"):
+    with pytest.raises(tms.InputError, match=r"only the feature kernels have named terms"):
         tms.CorrectionGP().fit(X, Y).terms()
     with pytest.raises(tms.ShapeError, match=r"targets: expected \(10, 2\)"):
         gp.condition(X[:10], Y[:10, :1])

@@ -98,7 +98,7 @@ class GPKernel:
                 "gp: experimental design supports the shared kernel only (the paper's model, one kernel for all "
                 "outputs); got a CorrectionGP with per_output=True. Build the design GP with per_output=False"
             )
-        if not gp.is_fitted and gp.kernel == "features":
+        if not gp.is_fitted and gp.kernel in ("features", "features+rbf"):
             raise InputError(
                 "gp: the feature kernel's weights are learned from data; fit the GP on earlier samples before "
                 "designing with it (or design with an RBF, Matern or polynomial prior)"

@@ -43,10 +43,15 @@ from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, ch
 from . import _mll
 from ._features import FeatureKernel, Term, coefficient_posterior, fit_relevance, monomial_names
 from ._optim import maximise
+from ._sum import FeaturesPlusRBF, fit_sum
 
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
-KERNELS = ("rbf", "matern52", "polynomial", "features")
+KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
+#: the kernels with a library of monomials and one learned weight per term (terms(), weights)
+FEATURE_KERNELS = ("features", "features+rbf")
+#: the candidates of kernel="auto", fitted in this order; the highest log marginal likelihood wins
+AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
 #: (centred at the fitted value: a factor of about 7 either way).
 LOG_PRIOR_SD = 2.0
@@ -201,8 +206,15 @@ class CorrectionGP:
         if kernel in _NO_LENGTHSCALE and lengthscale is not None:
             formula = "(1 + <y, y'>)^m" if kernel == "polynomial" else "sum_j w_j y^a_j y'^a_j"
             raise InputError(f"lengthscale: the {kernel} kernel {formula} has no lengthscale; pass None")
-        if kernel == "features" and outputscale is None:
+        if kernel in FEATURE_KERNELS and outputscale is None:
             outputscale = 1.0  # the weights carry the scale
+        if kernel == "features+rbf" and per_output:
+            raise InputError("per_output: the features+rbf kernel is shared by the outputs; pass per_output=False")
+        if kernel == "auto" and (lengthscale is not None or outputscale is not None):
+            raise InputError(
+                "kernel='auto': the candidates' hyperparameters are learned (only noise_variance may be fixed); got "
+                f"lengthscale={lengthscale!r}, outputscale={outputscale!r}"
+            )
         degree = check_positive_int(degree, "degree")
         lengthscale, outputscale, noise_variance = (
             None if value is None else check_real(value, name, positive=True)
@@ -214,7 +226,9 @@ class CorrectionGP:
         )
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
-        self.kernel = kernel
+        #: kernel="auto": every fit chooses among AUTO_KERNELS by evidence (self.kernel is then the one chosen)
+        self.auto = kernel == "auto"
+        self.kernel = "rbf" if self.auto else kernel  # the unfitted auto model holds an RBF until its first fit
         self._d_in = 1  # the feature kernel's input dimension (set by fit)
         self.fixed = {
             "lengthscale": None if lengthscale is None else float(lengthscale),
@@ -356,6 +370,8 @@ class CorrectionGP:
             base = gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=shape, lengthscale_constraint=_log_positive())
         elif self.kernel == "features":
             base = FeatureKernel(self._d_in, self.degree, batch_shape=shape)
+        elif self.kernel == "features+rbf":
+            base = FeaturesPlusRBF(self._d_in, self.degree)
         else:
             base = gpytorch.kernels.PolynomialKernel(power=self.degree, batch_shape=shape)
             base.offset = 1.0
@@ -426,9 +442,13 @@ class CorrectionGP:
 
     def _free_parameters(self) -> list[tuple[str, torch.nn.Parameter]]:
         params = []
-        if self.kernel == "features":
+        if self.kernel in FEATURE_KERNELS:
             params.append(("weights", self.covar_module.base_kernel.weights))
-        elif self.kernel != "polynomial" and self.fixed["lengthscale"] is None:
+        if self.kernel == "features+rbf":
+            params.append(("rbf_scale", self.covar_module.base_kernel.raw_rbf_scale))
+            if self.fixed["lengthscale"] is None:
+                params.append(("lengthscale", self.covar_module.base_kernel.raw_lengthscale))
+        elif self.kernel not in _NO_LENGTHSCALE and self.fixed["lengthscale"] is None:
             params.append(("lengthscale", self.covar_module.base_kernel.raw_lengthscale))
         if self.fixed["outputscale"] is None:
             params.append(("outputscale", self.covar_module.raw_outputscale))
@@ -579,6 +599,8 @@ class CorrectionGP:
         subsample of ``warm_start`` points provides the starting values (0 disables it). ``progress=True`` shows a
         progress bar.
         """
+        if self.auto:
+            return self._fit_auto(inputs, targets, noise, progress=progress, max_iter=max_iter, warm_start=warm_start)
         inputs, targets, noise = self._unpack(inputs, targets, noise)
         X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
         Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
@@ -619,7 +641,7 @@ class CorrectionGP:
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
         d_out = Y.shape[1]
         covar, lik = self.covar_module, self.likelihood
-        if self.kernel == "features" and covar.base_kernel.powers.shape[1] != X.shape[1]:
+        if self.kernel in FEATURE_KERNELS and covar.base_kernel.powers.shape[1] != X.shape[1]:
             self._d_in = X.shape[1]  # the library of monomials of these inputs
             covar, lik = self._modules(batch=d_out)
         if self.per_output and covar.batch_shape != torch.Size([d_out]):
@@ -634,6 +656,20 @@ class CorrectionGP:
         if learn and self.kernel == "features":
             self.n_iterations_ = self._fit_features(X, Y, noise, max_iter=max_iter)
             self.n_evaluations_ = self.n_iterations_
+        elif learn and self.kernel == "features+rbf":
+            floor, _, self.n_iterations_ = fit_sum(
+                self.covar_module.base_kernel,
+                X,
+                Y,
+                noise,
+                floor=self.fixed["noise_variance"],
+                lengthscale=self.fixed["lengthscale"],
+                max_iter=max_iter,
+            )
+            self.n_evaluations_ = self.n_iterations_
+            if self.fixed["noise_variance"] is None:
+                with torch.no_grad():
+                    self._floor(self.likelihood).noise = torch.tensor([floor], dtype=self.dtype, device=self.device)
         elif learn:
             self._initialise(X, Y)
             if warm_start and X.shape[0] > 2 * warm_start:
@@ -655,6 +691,64 @@ class CorrectionGP:
             self.n_iterations_, self.n_evaluations_ = 0, 0
         self._freeze()
         self._posterior_cache()
+
+    def _fit_auto(self, inputs, targets, noise, **options) -> CorrectionGP:
+        """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood and keep the one of
+        highest log marginal likelihood (its evidence given its own ML-II hyperparameters). ``model_selection_``
+        records each candidate: kernel, log marginal likelihood, seconds, and the error of a candidate that failed.
+        Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
+        import time
+
+        records, best = [], None
+        for kernel in AUTO_KERNELS:
+            if self.per_output and kernel == "features+rbf":
+                continue
+            cand = CorrectionGP(
+                kernel=kernel,
+                per_output=self.per_output,
+                degree=self.degree,
+                max_iter=self.max_iter,
+                noise_variance=self.fixed["noise_variance"],
+                dtype=self.dtype,
+                device=self.device,
+            )
+            start = time.perf_counter()
+            try:
+                cand.fit(inputs, targets, noise=noise, **options)
+            except (FittingError, LinearAlgebraError) as exc:
+                records.append(
+                    {
+                        "kernel": kernel,
+                        "log_marginal_likelihood": None,
+                        "seconds": time.perf_counter() - start,
+                        "error": f"{type(exc).__name__}: {exc}",
+                    }
+                )
+                continue
+            lml = float(cand.log_marginal_likelihood_)
+            records.append(
+                {
+                    "kernel": kernel,
+                    "log_marginal_likelihood": lml,
+                    "seconds": time.perf_counter() - start,
+                    "error": None,
+                }
+            )
+            if best is None or lml > best.log_marginal_likelihood_:
+                best = cand
+        if best is None:
+            raise FittingError(
+                "kernel='auto': every candidate kernel failed to fit: "
+                + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
+            )
+        for r in records:
+            r["chosen"] = r["kernel"] == best.kernel
+        self.kernel, self._d_in, self.fixed = best.kernel, best._d_in, dict(best.fixed)
+        self.model, self._cache = best.model, best._cache
+        self.n_iterations_, self.n_evaluations_ = best.n_iterations_, best.n_evaluations_
+        self.log_marginal_likelihood_ = best.log_marginal_likelihood_
+        self.model_selection_ = records
+        return self
 
     def _fit_features(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, max_iter: int) -> int:
         """The feature kernel's weights (and the noise floor unless fixed) by sparse Bayesian learning in feature
@@ -861,7 +955,7 @@ class CorrectionGP:
         Returns a dense ``(M1, M2)`` tensor (``(d_out, M1, M2)`` when ``per_output``). Works before fitting for a
         shared kernel, with the hyperparameters given (or their defaults).
         """
-        if (self.per_output or self.kernel == "features") and not self.is_fitted:
+        if (self.per_output or self.kernel in FEATURE_KERNELS) and not self.is_fitted:
             raise NotFittedError("per-output and feature kernels are built by fit(); call .fit(inputs, targets) first")
         x1 = self._check_inputs(x1, "x1")
         x2 = x1 if x2 is None else self._check_inputs(x2, "x2")
@@ -1038,7 +1132,7 @@ class CorrectionGP:
             their own posterior: :meth:`terms`).
         """
         self._require_fitted()
-        if self.kernel == "features":
+        if self.kernel in FEATURE_KERNELS:
             raise InputError(
                 "laplace_covariance: the feature kernel's weights are not log hyperparameters; its uncertainty is "
                 "the coefficients' posterior (gp.terms())"
@@ -1154,7 +1248,7 @@ class CorrectionGP:
             "outputscale": self.outputscale,
             "noise_variance": self.noise_variance,
         }
-        if self.kernel == "features":
+        if self.kernel in FEATURE_KERNELS:
             raise InputError(
                 "fixed_copy: the feature kernel's weights cannot be fixed by value; use gp.condition(inputs, targets) "
                 "to condition these hyperparameters on other samples"
@@ -1218,15 +1312,15 @@ class CorrectionGP:
     def weights(self) -> torch.Tensor | None:
         """The feature kernel's term weights ``(p,)`` (``(d_out, p)`` with ``per_output``); ``None`` for other
         kernels or before fitting. A weight of 0 removes its term."""
-        if self.kernel != "features" or not self.is_fitted:
+        if self.kernel not in FEATURE_KERNELS or not self.is_fitted:
             return None
         return self.covar_module.base_kernel.weights.detach().clone()
 
     def feature_names(self, names=None) -> list[str]:
         """The feature kernel's monomials, e.g. ``["1", "x1", "x2", "x1^2", ...]`` (``names``: one per input)."""
-        if self.kernel != "features":
+        if self.kernel not in FEATURE_KERNELS:
             raise InputError(
-                f"feature_names: only the feature kernel has named terms, this GP's kernel is {self.kernel!r}"
+                f"feature_names: only the feature kernels have named terms, this GP's kernel is {self.kernel!r}"
             )
         self._require_fitted()
         powers = self.covar_module.base_kernel.powers

@@ -260,8 +260,8 @@ class FeatureMap:
     ``b`` (B = 1 for a shared kernel, d_out for per-output kernels); output scale included.
 
     Attributes:
-        kind: ``"quadrature"`` (deterministic, certified uniform bound over :attr:`box`), ``"fourier"`` (random) or
-            ``"polynomial"`` (exact).
+        kind: ``"quadrature"`` (deterministic, certified uniform bound over :attr:`box`), ``"fourier"`` (random),
+            ``"polynomial"`` (exact) or ``"sum"`` (the features of a sum of kernels side by side, ``parts``).
         num_features: F (for Fourier kinds, twice the number of frequency pairs).
         error_bound: the bound reached on ``|k_hat - k|`` relative to the prior variance: uniform over ``box`` for
             ``"quadrature"``, the root-mean-square bound ``1 / sqrt(D)`` at every pair of points for ``"fourier"``,
@@ -294,6 +294,8 @@ class FeatureMap:
             proj = torch.einsum("...i,bid->b...d", x, omega)
             scale = scale.reshape((omega.shape[0],) + (1,) * (proj.dim() - 2) + (scale.shape[-1],))
             return torch.cat([proj.cos() * scale, proj.sin() * scale], dim=-1)
+        if self.kind == "sum":
+            return torch.cat([part(x) for part in t["parts"]], dim=-1)
         powers, coef = t["powers"], t["coef"]  # (P, d_in) integer exponents, (B, P) sqrt(s^2 c_a)
         mono = (x.unsqueeze(-2) ** powers).prod(-1)  # (..., P)
         shape = (coef.shape[0],) + (1,) * (mono.dim() - 1) + (coef.shape[-1],)
@@ -359,13 +361,36 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
         base = covar.base_kernel
         w = base.weights.detach().reshape(B, -1).to(**kd)
         return FeatureMap("polynomial", w.shape[-1], powers=base.powers.to(**kd), coef=(outputscale * w).sqrt())
+    if gp.kernel == "features+rbf":  # the exact monomials beside the RBF term's features
+        base = covar.base_kernel
+        w = base.weights.detach().reshape(B, -1).to(**kd)
+        poly = FeatureMap("polynomial", w.shape[-1], powers=base.powers.to(**kd), coef=(outputscale * w).sqrt())
+        rbf = _rbf_features(
+            gp,
+            base.lengthscale.detach().to(**kd).reshape(B, -1).expand(B, d_in),
+            outputscale * base.rbf_scale.detach().to(**kd).reshape(B, 1),
+            num_features,
+            feature_error,
+            generator,
+        )
+        return FeatureMap(
+            "sum", poly.num_features + rbf.num_features, error_bound=rbf.error_bound, box=rbf.box, parts=(poly, rbf)
+        )
     if gp.kernel not in ("rbf", "matern52"):
         raise InputError(
-            "kernel: expected a kernel with a feature representation (rbf, matern52, polynomial, features), got "
-            f"{gp.kernel!r}"
+            "kernel: expected a kernel with a feature representation (rbf, matern52, polynomial, features, "
+            f"features+rbf), got {gp.kernel!r}"
         )
     lengthscale = covar.base_kernel.lengthscale.detach().to(**kd).reshape(B, -1).expand(B, d_in)  # (B, d_in)
-    if num_features is None and gp.kernel == "rbf":
+    return _rbf_features(gp, lengthscale, outputscale, num_features, feature_error, generator, kind=gp.kernel)
+
+
+def _rbf_features(gp, lengthscale, outputscale, num_features, feature_error, generator, *, kind: str = "rbf"):
+    """Features of the stationary kernel ``kind`` (RBF: quadrature when they pay, else random; Matern: random)
+    with ``lengthscale (B, d_in)`` and ``outputscale (B, 1)``."""
+    kd = dict(dtype=gp.dtype, device=gp.device)
+    B, d_in = lengthscale.shape
+    if num_features is None and kind == "rbf":
         quadrature = _quadrature_features(gp.train_inputs_.detach().to(**kd), lengthscale, outputscale, feature_error)
         if quadrature is not None:
             return quadrature
@@ -379,7 +404,7 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
             raise InputError(f"num_features: expected an even number (cos and sin per frequency), got {F}")
         D = F // 2
     z = torch.randn((B, d_in, D), generator=generator, **kd)
-    if gp.kernel == "matern52":  # Student t with 2 nu = 5 degrees of freedom: z sqrt(5 / chi2_5)
+    if kind == "matern52":  # Student t with 2 nu = 5 degrees of freedom: z sqrt(5 / chi2_5)
         chi2 = torch.randn((B, 5, D), generator=generator, **kd).pow(2).sum(1, keepdim=True)
         z = z * (5.0 / chi2).sqrt()
     omega = z / lengthscale.unsqueeze(-1)
@@ -427,9 +452,12 @@ def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
     out = {"outputscale": covar.outputscale.reshape(-1, 1, 1)}
     if gp.kernel == "polynomial":  # GPyTorch's offset c of (c + <x, x'>)^m: 1 up to its constraint's rounding
         out["offset"] = covar.base_kernel.offset.reshape(-1, 1, 1)
-    elif gp.kernel == "features":
+    elif gp.kernel in ("features", "features+rbf"):
         out["weights"] = covar.base_kernel.weights.reshape(out["outputscale"].shape[0], 1, -1)
         out["powers"] = covar.base_kernel.powers  # the exponents, not rebuilt at every call of kernel_matrix
+        if gp.kernel == "features+rbf":
+            out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
+            out["rbf_scale"] = covar.base_kernel.rbf_scale.reshape(-1, 1, 1)
     else:
         out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
     return out
@@ -442,9 +470,13 @@ def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, deg
     s2 = params["outputscale"]
     if kind == "polynomial":
         return s2 * (params["offset"] + x @ X.T).pow(degree)
-    if kind == "features":
+    if kind in ("features", "features+rbf"):
         powers = params["powers"]
-        return s2 * (monomials(x, powers) * params["weights"]) @ monomials(X, powers).T
+        poly = s2 * (monomials(x, powers) * params["weights"]) @ monomials(X, powers).T
+        if kind == "features":
+            return poly
+        rbf = {"outputscale": s2 * params["rbf_scale"], "lengthscale": params["lengthscale"]}
+        return poly + kernel_matrix("rbf", x, X, rbf)
     ell = params["lengthscale"]
     if kind == "rbf" and ell.numel() == 1 and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
         # the hot path of sampled trajectories: one fused pass per operation, in place (no temporaries)

@@ -1,0 +1,152 @@
+"""The features+rbf sum kernel and kernel="auto" (choice by evidence), issue 12 points 2-3."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec import design
+from torchmisspec.design.candidates import orbits, uniform_box
+
+DT = torch.float64
+
+
+@pytest.fixture(scope="module")
+def linear_samples():
+    system = tms.systems.paper_linear()
+    times = torch.linspace(0, 6, 11, dtype=DT)
+    y0 = uniform_box(12, system.domain, generator=torch.Generator().manual_seed(0))
+    traj = tms.simulate(system, y0, times)
+    samples = tms.correction_samples(
+        traj, system, derivative="oracle", noise_std=1e-2, generator=torch.Generator().manual_seed(1)
+    )
+    return system, times, samples
+
+
+@pytest.fixture(scope="module")
+def gravity_samples():
+    system = tms.systems.paper_gravity()
+    times = torch.linspace(0, 3, 20, dtype=DT)
+    traj = tms.simulate(system, orbits(8, generator=torch.Generator().manual_seed(0)), times)
+    samples = tms.correction_samples(
+        traj, system, derivative="oracle", noise_std=1e-2, generator=torch.Generator().manual_seed(1)
+    )
+    return system, times, samples
+
+
+@pytest.fixture(scope="module")
+def summed(linear_samples):
+    _, _, samples = linear_samples
+    return tms.CorrectionGP(kernel="features+rbf").fit(samples)
+
+
+def _sum_kernel(gp, a, b):
+    """k = sum_j w_j phi_j phi_j' + c exp(-|a - b|^2 / (2 l^2)), written out."""
+    base = gp.covar_module.base_kernel
+    w = base.weights.detach()
+    pa, pb = base.features(a), base.features(b)
+    rbf = torch.exp(-0.5 * torch.cdist(a, b).pow(2) / float(gp.lengthscale) ** 2)
+    return (pa * w) @ pb.T + float(base.rbf_scale) * rbf
+
+
+def test_sum_posterior_is_the_hand_written_gp(summed):
+    gp = summed
+    X, Y = gp.train_inputs_, gp.train_targets_
+    x = torch.rand(30, 2, dtype=DT, generator=torch.Generator().manual_seed(2)) * 3 - 1.5
+    C = _sum_kernel(gp, X, X) + gp.noise_variance * torch.eye(X.shape[0], dtype=DT)
+    L = torch.linalg.cholesky(C)
+    k = _sum_kernel(gp, x, X)
+    mean = k @ torch.cholesky_solve(Y, L)
+    var = _sum_kernel(gp, x, x).diagonal() - (torch.linalg.solve_triangular(L, k.T, upper=False) ** 2).sum(0)
+    post = gp.predict(x)
+    torch.testing.assert_close(post.mean, mean, rtol=1e-8, atol=1e-12)
+    torch.testing.assert_close(post.variance[:, 0], var, rtol=1e-6, atol=1e-14)
+    # the log marginal likelihood it reports is that of the written-out covariance
+    alpha = torch.cholesky_solve(Y, L)
+    lml = -0.5 * (Y * alpha).sum() - 2 * L.diagonal().log().sum() - Y.numel() / 2 * math.log(2 * math.pi)
+    assert gp.log_marginal_likelihood_ == pytest.approx(float(lml), rel=1e-9)
+
+
+def test_sum_is_at_least_as_likely_as_the_feature_kernel_alone(linear_samples, summed):
+    _, _, samples = linear_samples
+    alone = tms.CorrectionGP(kernel="features").fit(samples)
+    assert summed.log_marginal_likelihood_ >= alone.log_marginal_likelihood_ - 1e-6 * abs(
+        alone.log_marginal_likelihood_
+    )
+    names = {t.name for t in summed.terms(["y1", "y2"]) if t.output == 0}
+    assert "y1^2" in names  # F_1 = 0.01 y1^2 is found
+
+
+def test_sum_kernel_paths_design_and_persistence(linear_samples, summed, tmp_path):
+    system, times, _ = linear_samples
+    gp = summed
+    draws = gp.sample_functions(64, generator=torch.Generator().manual_seed(0))
+    x = torch.rand(5, 2, dtype=DT, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    values = draws(x)  # (64, 5, 2)
+    assert values.shape == (64, 5, 2) and bool(torch.isfinite(values).all())
+    # the draws scatter about the posterior mean with about the posterior spread
+    post = gp.predict(x)
+    z = (values.mean(0) - post.mean) / (post.variance / 64).sqrt()
+    assert float(z.abs().max()) < 5
+    cand = uniform_box(40, system.domain, generator=torch.Generator().manual_seed(4))
+    plans = [design.greedy(cand, 3, system=system, times=times, gp=gp, method=m) for m in ("lazy", "naive")]
+    assert plans[0].indices.tolist() == plans[1].indices.tolist()
+    loaded = tms.CorrectionGP.load(gp.save(tmp_path / "sum.pt"))
+    assert loaded.kernel == "features+rbf"
+    torch.testing.assert_close(loaded.predict_mean(x), gp.predict_mean(x))
+
+
+def test_auto_chooses_the_feature_kernel_for_a_polynomial_correction(linear_samples):
+    _, _, samples = linear_samples
+    gp = tms.CorrectionGP(kernel="auto").fit(samples)
+    table = {r["kernel"]: r for r in gp.model_selection_}
+    assert set(table) == {"rbf", "matern52", "features", "features+rbf"}
+    best = max(table.values(), key=lambda r: r["log_marginal_likelihood"])
+    assert best["chosen"] and gp.kernel == best["kernel"]
+    assert gp.kernel in ("features", "features+rbf")
+    assert gp.log_marginal_likelihood_ == pytest.approx(best["log_marginal_likelihood"])
+    assert gp.auto  # a refit chooses again
+
+
+def test_auto_chooses_a_stationary_kernel_for_an_inverse_square_field(gravity_samples):
+    _, _, samples = gravity_samples
+    gp = tms.CorrectionGP(kernel="auto").fit(samples)
+    assert gp.kernel in ("rbf", "matern52", "features+rbf")
+    if gp.kernel == "features+rbf":  # then the RBF term must carry the field
+        assert float(gp.covar_module.base_kernel.rbf_scale) > 0
+    lml = {r["kernel"]: r["log_marginal_likelihood"] for r in gp.model_selection_}
+    assert lml["features"] < max(lml["rbf"], lml["matern52"])
+
+
+def test_auto_records_failures_and_says_when_all_fail(linear_samples, monkeypatch):
+    _, _, samples = linear_samples
+    from torchmisspec.gp import _model
+
+    def broken(self, *args, **kwargs):
+        raise tms.FittingError("made to fail")
+
+    monkeypatch.setattr(_model.CorrectionGP, "_fit_features", broken)
+    gp = tms.CorrectionGP(kernel="auto").fit(samples)
+    failed = [r for r in gp.model_selection_ if r["error"]]
+    assert [r["kernel"] for r in failed] == ["features"]  # the others still compete
+    assert "made to fail" in failed[0]["error"]
+    monkeypatch.setattr(_model.CorrectionGP, "_optimise", broken)
+    monkeypatch.setattr(_model, "fit_sum", broken)
+    with pytest.raises(tms.FittingError, match="every candidate kernel failed.*rbf: FittingError: made to fail"):
+        tms.CorrectionGP(kernel="auto").fit(samples)
+
+
+def test_bad_input():
+    with pytest.raises(tms.InputError, match="kernel: expected one of"):
+        tms.CorrectionGP(kernel="poly")
+    with pytest.raises(tms.InputError, match="per_output"):
+        tms.CorrectionGP(kernel="features+rbf", per_output=True)
+    with pytest.raises(tms.InputError, match="only noise_variance may be fixed"):
+        tms.CorrectionGP(kernel="auto", lengthscale=1.0)
+    with pytest.raises(tms.InputError, match="degree"):
+        tms.CorrectionGP(kernel="features+rbf", degree=0)
+    with pytest.raises(tms.ShapeError):
+        tms.CorrectionGP(kernel="auto").fit(torch.zeros(5, 2, dtype=DT), torch.zeros(4, 2, dtype=DT))

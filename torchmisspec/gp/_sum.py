@@ -1,0 +1,168 @@
+"""The sum of a feature library and an RBF kernel: a sparse polynomial correction plus a smooth remainder.
+
+    k(x, x') = sum_j w_j phi_j(x) phi_j(x') + a exp(-||x - x'||^2 / (2 l^2))
+
+The monomials ``phi_j`` (up to ``degree``, one weight ``w_j >= 0`` each: automatic relevance) capture what a low-degree
+polynomial explains, and the RBF term (output scale ``a``, lengthscale ``l``) what the library misses. With ``a -> 0``
+it is the feature kernel, with every ``w_j -> 0`` the RBF kernel, so the marginal likelihood decides between them.
+
+Fitting (:func:`fit_sum`): every hyperparameter (the weights, ``a``, ``l`` and the noise floor unless fixed) maximises
+the exact log marginal likelihood, by L-BFGS in log space with autograd through one Cholesky factorization per
+evaluation (O(N^3): the RBF term has no finite features). It starts from the feature kernel's sparse Bayesian fit
+(:func:`~torchmisspec.gp._features.fit_relevance`); weights whose share of the prior variance falls below
+:data:`PRUNE_SUM` of the targets' second moment are then set to exactly 0 (the term removed) and the rest refitted.
+"""
+
+from __future__ import annotations
+
+import math
+
+import gpytorch
+import torch
+
+from .._errors import FittingError
+from ._features import FeatureKernel, fit_relevance
+
+__all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]
+
+#: A monomial is removed when ``w_j mean(phi_j^2)`` falls below this fraction of the targets' second moment. Log-space
+#: gradients shrink irrelevant weights only slowly towards 0, so the threshold is larger than the feature kernel's.
+PRUNE_SUM = 1e-8
+_LOG_FLOOR = math.log(1e-14)  # weights below this share (relative, log) stop moving: they are pruned anyway
+
+
+class FeaturesPlusRBF(gpytorch.kernels.Kernel):
+    """``sum_j w_j x^a_j x'^a_j + a exp(-||x - x'||^2 / (2 l^2))``; shared by the outputs (no batch)."""
+
+    is_stationary = False
+
+    def __init__(self, d_in: int, degree: int, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.features_kernel = FeatureKernel(d_in, degree)
+        positive = gpytorch.constraints.GreaterThan(0.0, transform=torch.exp, inv_transform=torch.log)
+        self.rbf = gpytorch.kernels.RBFKernel(lengthscale_constraint=positive)
+        self.register_parameter("raw_rbf_scale", torch.nn.Parameter(torch.zeros(1)))
+
+    # the feature part, as the feature kernel exposes it (terms(), path sampling)
+    @property
+    def powers(self) -> torch.Tensor:
+        return self.features_kernel.powers
+
+    @property
+    def weights(self) -> torch.nn.Parameter:
+        return self.features_kernel.weights
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        return self.features_kernel.features(x)
+
+    # the RBF part
+    @property
+    def lengthscale(self) -> torch.Tensor:
+        return self.rbf.lengthscale
+
+    @lengthscale.setter
+    def lengthscale(self, value) -> None:
+        self.rbf.lengthscale = value
+
+    @property
+    def raw_lengthscale(self) -> torch.nn.Parameter:
+        return self.rbf.raw_lengthscale
+
+    @property
+    def rbf_scale(self) -> torch.Tensor:
+        return self.raw_rbf_scale.exp()
+
+    def forward(self, x1, x2, diag: bool = False, last_dim_is_batch: bool = False, **params):
+        if last_dim_is_batch:
+            raise NotImplementedError("FeaturesPlusRBF: last_dim_is_batch is not supported")
+        poly = self.features_kernel.forward(x1, x2, diag=diag)
+        return poly + self.rbf_scale * self.rbf.forward(x1, x2, diag=diag)
+
+
+def _exact_mll(K: torch.Tensor, Y: torch.Tensor, D: torch.Tensor) -> torch.Tensor:
+    """Sum over outputs of log N(y_o; 0, K + diag(D_o)) for ``Y (N, m)``, noise variances ``D (N, m)``."""
+    n = Y.shape[0]
+    total = Y.new_zeros(())
+    same = bool((D == D[:, :1]).all())
+    columns = [list(range(Y.shape[1]))] if same else [[o] for o in range(Y.shape[1])]
+    for cols in columns:
+        L = torch.linalg.cholesky(K + torch.diag(D[:, cols[0]]))
+        a = torch.cholesky_solve(Y[:, cols], L)
+        total = total - 0.5 * (Y[:, cols] * a).sum() - len(cols) * L.diagonal().log().sum()
+        total = total - 0.5 * len(cols) * n * math.log(2 * math.pi)
+    return total
+
+
+def fit_sum(
+    kernel: FeaturesPlusRBF,
+    X: torch.Tensor,
+    Y: torch.Tensor,
+    known: torch.Tensor | None,
+    *,
+    floor: float | None,
+    lengthscale: float | None,
+    max_iter: int,
+) -> tuple[float, float, int]:
+    """Fit the weights, the RBF scale and lengthscale (unless ``lengthscale`` is given) and the noise floor (unless
+    ``floor`` is given) by exact marginal likelihood; write them into ``kernel``. Returns ``(floor, lml, iterations)``.
+    """
+    from ._model import median_distance
+
+    second = float(Y.pow(2).mean())
+    if not second > 0:
+        raise FittingError("targets: expected some non-zero samples to learn the kernel from, got all zeros")
+    Phi = kernel.features(X).detach()
+    scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)
+    known0 = torch.zeros_like(Y) if known is None else known
+    w0, s0, _ = fit_relevance(Phi, Y, known, floor=floor, max_iter=10 * max_iter)
+    kd = {"dtype": X.dtype, "device": X.device}
+    # start: the feature fit's weights (removed ones small, not 0: the RBF term may change what is relevant),
+    # the RBF term at a tenth of the targets' second moment, the lengthscale at the median distance
+    lower = _LOG_FLOOR + torch.log(second / scale_phi)
+    log_w = torch.maximum(torch.log(w0.clamp_min(1e-300)), lower + 2.0).clone().requires_grad_(True)
+    log_a = torch.tensor(math.log(0.1 * second), **kd, requires_grad=True)
+    dist = median_distance(X)
+    log_l = torch.tensor(
+        math.log(dist if lengthscale is None else lengthscale), **kd, requires_grad=lengthscale is None
+    )
+    log_s = torch.tensor(math.log(max(s0, 1e-12 * second)), **kd, requires_grad=floor is None)
+    params = [log_w, log_a] + ([log_l] if lengthscale is None else []) + ([log_s] if floor is None else [])
+    l_box = (math.log(1e-3 * dist), math.log(1e3 * dist))
+    s_box = (math.log(1e-12 * second), math.log(10 * second))
+
+    def kernel_matrix(wts: torch.Tensor) -> torch.Tensor:
+        sq = torch.cdist(X, X).pow(2)
+        return (Phi * wts) @ Phi.T + log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
+
+    def objective() -> torch.Tensor:
+        with torch.no_grad():
+            log_w.clamp_(min=lower)
+            log_l.clamp_(*l_box)
+            log_s.clamp_(*s_box)
+            log_a.clamp_(math.log(1e-12 * second), math.log(1e3 * second))
+        D = known0 + log_s.exp()
+        return -_exact_mll(kernel_matrix(log_w.exp()), Y, D) / Y.numel()
+
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9)
+
+    def closure():
+        opt.zero_grad()
+        value = objective()
+        value.backward()
+        return value
+
+    try:
+        opt.step(closure)
+    except torch.linalg.LinAlgError as exc:
+        raise FittingError(f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})") from exc
+    iterations = int(opt.state[opt._params[0]].get("n_iter", 0))
+    with torch.no_grad():
+        w = log_w.exp()
+        w[w * scale_phi < PRUNE_SUM * second] = 0.0
+        lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
+        kernel.features_kernel.weights.copy_(w)
+        kernel.raw_rbf_scale.copy_(log_a.reshape(1))
+        kernel.lengthscale = log_l.exp().reshape(1, 1)
+    if not all(bool(torch.isfinite(p).all()) for p in params):
+        raise FittingError("the features+rbf fit diverged: a hyperparameter became non-finite; rescale the data")
+    return float(log_s.detach().exp()), lml, iterations
