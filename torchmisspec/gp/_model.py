@@ -167,8 +167,11 @@ class CorrectionGP:
         kernel: ``"rbf"`` (exp(-||y - y'||^2 / (2 l^2))), ``"matern52"``, ``"polynomial"``
             ((1 + <y, y'>)^degree, the paper's polynomial kernel), or ``"features"`` (sum_j w_j y^a_j y'^a_j over
             the monomials up to ``degree``, one learned weight per term: automatic relevance, see
-            :mod:`torchmisspec.gp._features`); each scaled by ``outputscale`` (fixed at 1 for ``"features"``,
-            whose weights carry the scale).
+            :mod:`torchmisspec.gp._features`), ``"features+rbf"`` (that library plus an RBF term for what it misses,
+            :mod:`torchmisspec.gp._sum`), or ``"auto"``: every fit fits rbf, matern52, features and features+rbf
+            by marginal likelihood and keeps the kernel of highest log marginal likelihood (``model_selection_``
+            lists them all; the cost of about four fits). Each is scaled by ``outputscale`` (fixed at 1 for the
+            feature kernels, whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
             here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
         outputscale: the kernel's variance factor.
@@ -185,7 +188,9 @@ class CorrectionGP:
     it); ``train_noise_`` the known noise ``(N, d_out)`` or ``None``; ``log_marginal_likelihood_`` the exact log
     marginal likelihood (nats, summed over outputs) at those values; ``n_iterations_`` and ``n_evaluations_`` the
     L-BFGS iterations and likelihood evaluations of the final optimisation pass; ``model`` the GPyTorch ``ExactGP``
-    holding the hyperparameters and the training data.
+    holding the hyperparameters and the training data. With ``kernel="auto"``, ``kernel`` is the kernel chosen and
+    ``model_selection_`` a list of dictionaries (``kernel``, ``log_marginal_likelihood``, ``seconds``, ``error``
+    of a candidate that failed, ``chosen``).
     """
 
     def __init__(
@@ -694,8 +699,11 @@ class CorrectionGP:
 
     def _fit_auto(self, inputs, targets, noise, **options) -> CorrectionGP:
         """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood and keep the one of
-        highest log marginal likelihood (its evidence given its own ML-II hyperparameters). ``model_selection_``
-        records each candidate: kernel, log marginal likelihood, seconds, and the error of a candidate that failed.
+        highest log marginal likelihood (its evidence given its own ML-II hyperparameters). The feature kernel is
+        fitted with one weight per term and output (``per_output=True``); features+rbf is skipped when
+        ``per_output`` (it is shared by the outputs). Cost: the sum of the candidates' fits, about 4 fits.
+        ``model_selection_`` records each candidate: kernel, log marginal likelihood, seconds, and the error of a
+        candidate that failed.
         Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
         import time
 
@@ -705,7 +713,9 @@ class CorrectionGP:
                 continue
             cand = CorrectionGP(
                 kernel=kernel,
-                per_output=self.per_output,
+                # the feature kernel: one weight per term and output, each output its own sparse equation (as
+                # SINDy); its evidence is higher than with weights shared by the outputs whenever they differ
+                per_output=self.per_output or kernel == "features",
                 degree=self.degree,
                 max_iter=self.max_iter,
                 noise_variance=self.fixed["noise_variance"],
