@@ -1,4 +1,4 @@
-"""The sequential-design study (issue 11) and the design-loop benchmark run in their smoke modes."""
+"""The study and benchmark scripts of issues 11 and 12 run in their smoke modes."""
 
 import json
 import subprocess
@@ -53,3 +53,23 @@ def test_benchmark_campaign_smoke():
         timeout=600,
     )
     assert "same picks as the reference: True" in proc.stdout
+
+
+@pytest.mark.slow
+def test_kernel_study_smoke(tmp_path):
+    pytest.importorskip("pysindy")
+    out = tmp_path / "k.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "study_kernels.py"), "--smoke", "--json", str(out)],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    result = json.loads(out.read_text())
+    for section in ("linear", "gravity"):
+        for runs in result[section].values():
+            for run in runs:
+                assert set(run) == {"GP rbf", "GP features", "GP features+rbf", "GP auto", "SINDy", "MLP"}
+                assert all(v["error"] is None or v["error"] > 0 for v in run.values())
+    assert "auto / SINDy" in proc.stdout
