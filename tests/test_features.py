@@ -215,3 +215,45 @@ def test_fit_correction_chooses_the_feature_kernel_for_a_polynomial_correction(o
     pred = tms.CorrectedODE(system, gp).predict(y0, times)
     known = tms.simulate(system, y0, times, known_only=True).states
     assert tms.trajectory_rmse(pred, true) < 0.05 * tms.trajectory_rmse(known, true)
+
+
+@pytest.mark.parametrize(("per_output", "known"), [(False, False), (True, False), (False, True), (True, True)])
+def test_feature_space_posterior_equals_the_dense_one(per_output, known):
+    """The feature kernel's posterior is computed in feature space (Woodbury, never N x N); it equals the dense GP
+    algebra (a hand-written Cholesky of K + D) in mean, variance, likelihood, alpha and the on-demand factor."""
+    gen = torch.Generator().manual_seed(5)
+    X = torch.rand(60, 2, dtype=DT, generator=gen) * 2 - 1
+    Y = torch.stack([0.5 * X[:, 0] ** 2, X[:, 1] - X[:, 0] * X[:, 1]], -1) + 0.05 * torch.randn(
+        60, 2, dtype=DT, generator=gen
+    )
+    noise = (0.001 + 0.002 * torch.rand(60, 2, dtype=DT, generator=gen)) if known else None
+    gp = tms.CorrectionGP(kernel="features", degree=2, per_output=per_output).fit(X, Y, noise=noise)
+    base = gp.covar_module.base_kernel
+    W = base.weights.detach().reshape(-1, 6) * gp.covar_module.outputscale.detach().reshape(-1, 1)
+    floor = gp._floor(gp.likelihood).noise.detach().reshape(-1)
+    x = torch.rand(15, 2, dtype=DT, generator=gen) * 3 - 1.5
+    post = gp.predict(x)
+    lml = 0.0
+    for o in range(2):
+        w = W[o if W.shape[0] > 1 else 0]
+        d = floor[o if floor.numel() > 1 else 0] + (noise[:, o] if known else 0.0)
+
+        def k(a, b, w=w):
+            return (base.features(a) * w) @ base.features(b).T
+
+        C = k(X, X) + torch.diag(torch.as_tensor(d, dtype=DT).expand(60))
+        L = torch.linalg.cholesky(C)
+        alpha = torch.cholesky_solve(Y[:, o : o + 1], L)
+        mean = k(x, X) @ alpha
+        var = k(x, x).diagonal() - (torch.linalg.solve_triangular(L, k(X, x), upper=False) ** 2).sum(0)
+        torch.testing.assert_close(post.mean[:, o], mean[:, 0], rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(post.variance[:, o], var, rtol=1e-7, atol=1e-12)
+        lml += float(-0.5 * Y[:, o] @ alpha[:, 0] - L.diagonal().log().sum() - 30 * math.log(2 * math.pi))
+    assert gp.log_marginal_likelihood_ == pytest.approx(lml, rel=1e-10)
+    fac = gp._posterior_cache().fac
+    C0 = fac.chol[0] @ fac.chol[0].T  # the dense factor, on request
+    d0 = floor[0] + (noise[:, 0] if known else 0.0)
+    w0 = W[0]
+    torch.testing.assert_close(
+        C0, (base.features(X) * w0) @ base.features(X).T + torch.diag(torch.as_tensor(d0).expand(60))
+    )

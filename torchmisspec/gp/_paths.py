@@ -537,12 +537,14 @@ class FunctionSamples:
             phi = features(X)  # (B, N, F)
             prior = phi[0] @ weights[:, 0] if B == 1 else torch.einsum("bnf,sbf->snb", phi, weights[..., 0])
             residual = Y - prior - eps  # (S, N, d_out)
-            chol = cache.fac.chol  # (1 or d_out, N, N)
-            if chol.shape[0] == 1:
-                rhs = residual.permute(1, 0, 2).reshape(N, S * d_out)
-                v = torch.cholesky_solve(rhs, chol[0]).reshape(N, S, d_out).permute(1, 0, 2)
+            fac = cache.fac
+            batches = fac.alpha.shape[0]  # 1: one covariance for every output, else one per output
+            solve = fac.solve if hasattr(fac, "solve") else (lambda V: torch.cholesky_solve(V, fac.chol))
+            if batches == 1:
+                rhs = residual.permute(1, 0, 2).reshape(1, N, S * d_out)
+                v = solve(rhs)[0].reshape(N, S, d_out).permute(1, 0, 2)
             else:
-                v = torch.cholesky_solve(residual.permute(2, 1, 0), chol).permute(2, 1, 0)  # (S, N, d_out)
+                v = solve(residual.permute(2, 1, 0)).permute(2, 1, 0)  # (S, N, d_out)
             scale = float(scale)
             if scale != 1.0:  # mu + c (F_s - mu): c w_s and c v_s + (1 - c) alpha
                 alpha = cache.fac.alpha  # (1, N, d_out) or (d_out, N, 1)
@@ -564,7 +566,7 @@ class FunctionSamples:
         self._buffers: dict = {}
         #: certified bound on |update - exact update| at any point (0: the exact canonical basis is used)
         self.update_error = 0.0
-        if update_error is not None and chol.shape[0] == 1 and gp.kernel in ("rbf", "matern52"):
+        if update_error is not None and batches == 1 and gp.kernel in ("rbf", "matern52"):
             with torch.no_grad():
                 self._compress(float(update_error) * math.sqrt(float(self._params["outputscale"].reshape(-1)[0])))
 
