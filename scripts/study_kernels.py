@@ -248,7 +248,8 @@ def goals(result: dict) -> list[str]:
         if _ratio(runs, "GP auto", "GP rbf")[0] - _ratio(runs, "GP auto", "GP rbf")[1] <= 1.0
     ]
     out.append(
-        f"- paper_gravity: auto no worse than the RBF GP within one s.e. in **{len(no_worse)} of {len(grav)}** values of K"
+        f"- paper_gravity: auto no worse than the RBF GP within one s.e. in **{len(no_worse)} of {len(grav)}** "
+        "values of K"
     )
     for other in ("SINDy", "MLP"):
         better = [s for s, runs in grav.items() if sum(_ratio(runs, "GP auto", other)) < 1.0]

@@ -125,12 +125,34 @@ def check_sequential(ns: dict) -> None:
     assert not {tuple(p) for p in dom.tolist()} & corners
 
 
+def check_kernels(ns: dict) -> None:
+    gp, g_gp = ns["gp"], ns["g_gp"]
+    lml = {r["kernel"]: r["log_marginal_likelihood"] for r in gp.model_selection_}
+    # "The feature kernel wins: its evidence is several nats above the stationary kernels'"
+    assert gp.kernel == "features"
+    assert lml["features"] > max(lml["rbf"], lml["matern52"]) + 3
+    terms = gp.terms(["y1", "y2"])
+    # "Each output keeps the term it needs ... within two standard deviations of 0.01"
+    for output, name in ((0, "y1^2"), (1, "y2^2")):
+        (t,) = [t for t in terms if t.output == output and t.name == name]
+        assert abs(t.mean - 0.01) < 2 * t.std
+    # "Weak spurious terms may survive beside them, with error bars that include 0"
+    for t in terms:
+        if (t.output, t.name) not in ((0, "y1^2"), (1, "y2^2")):
+            assert abs(t.mean) < 2 * t.std
+    # "Here the polynomial library alone loses to a kernel with a smooth stationary part"
+    assert g_gp.kernel in ("rbf", "matern52", "features+rbf")
+    g_lml = {r["kernel"]: r["log_marginal_likelihood"] for r in g_gp.model_selection_}
+    assert g_lml["features"] < g_lml[g_gp.kernel]
+
+
 PAGES = {
     "index.md": check_index,
     "tutorials/learn-and-predict.md": check_learn_and_predict,
     "tutorials/design.md": check_design,
     "tutorials/own-system.md": check_own_system,
     "tutorials/sequential.md": check_sequential,
+    "tutorials/kernels.md": check_kernels,
 }
 
 
