@@ -41,6 +41,9 @@ __all__ = ["FeatureKernel", "PRUNE", "Term", "monomial_names", "monomial_powers"
 PRUNE = 1e-12
 #: Relative change of the log weights (and noise) below which the fixed-point iteration has converged.
 _TOLERANCE = 1e-9
+#: Removed terms are tested for re-entry only above this noise (a fraction of the targets' second moment): below it
+#: the test's residual correlations are round-off, and nearly noiseless fits keep every term they need anyway.
+_READD_NOISE = 1e-8
 #: The learned noise floor is kept above this fraction of the targets' second moment (noiseless data stay solvable).
 _MIN_NOISE = 1e-12
 
@@ -250,8 +253,18 @@ def fit_relevance(
                 r2 = float(yy[o] - 2.0 * mu @ B0[act, o] + mu @ Ga @ mu)
                 resid += max(r2, 0.0)
                 dof += N - float(gam.sum())
+                var = Sigma.diagonal()
         new = torch.zeros_like(w)
         new[act] = num / gam_sum.clamp_min(torch.finfo(w.dtype).tiny)
+        if homoscedastic:
+            # Tipping & Faul (2003): with the term left out of C, its sparsity and quality factors are
+            # s_j = 1 / Sigma_jj - 1 / w_j and q_oj = mu_oj / Sigma_jj, and its evidence-optimal weight given the
+            # others is exactly 0 iff sum_o q_oj^2 <= m s_j, i.e. sum_o mu_oj^2 <= m Sigma_jj gamma_j (no
+            # cancellation, whatever the noise): such a term is removed at once instead of shrinking geometrically
+            # over hundreds of fixed-point iterations
+            irrelevant = torch.zeros_like(w, dtype=torch.bool)
+            irrelevant[act] = num <= gam_sum * var
+            new[irrelevant] = 0.0
         new[new * scale_phi < PRUNE * second] = 0.0
         new_s = s
         if learn_floor:
@@ -265,8 +278,37 @@ def fit_relevance(
         pruned = bool(((new == 0) & (w > 0)).any())
         w, s = new, new_s
         if change < _TOLERANCE and not pruned:
+            if homoscedastic and s >= _READD_NOISE * second and _readd(w, s, G0, B0, m, scale_phi, second):
+                continue  # a removed term is relevant given the final others: back in, iterate again
             break
     return w, s, iterations
+
+
+def _readd(w: torch.Tensor, s: float, G0: torch.Tensor, B0: torch.Tensor, m: int, scale_phi, second: float) -> bool:
+    """Put back (in place) the removed terms whose evidence-optimal weight given the kept ones is positive:
+    ``sum_o q_oj^2 > m s_j`` with ``s_j = phi_j^T C^-1 phi_j``, ``q_oj = phi_j^T C^-1 y_o``, at the weight
+    ``w_j = (sum_o q_oj^2 - m s_j) / (m s_j^2)`` (Tipping & Faul 2003). Returns whether any came back."""
+    act, off = w > 0, w == 0
+    if not bool(off.any()):
+        return False
+    G, B = G0 / s, B0 / s
+    if bool(act.any()):
+        Sigma, _, _ = _posterior(G[act][:, act], B[act, 0], w[act])
+        mus = torch.stack([_posterior(G[act][:, act], B[act, o], w[act])[1] for o in range(m)], -1)  # (q, m)
+        cross = G[off][:, act]  # (r, q)
+        S = G[off][:, off].diagonal() - ((cross @ Sigma) * cross).sum(-1)
+        Q = B[off] - cross @ mus  # (r, m)
+    else:
+        S, Q = G[off][:, off].diagonal(), B[off]
+    q2 = Q.pow(2).sum(-1)
+    back = (q2 > m * S) & (S > 0)
+    weight = (q2 - m * S) / (m * S.pow(2)).clamp_min(torch.finfo(w.dtype).tiny)
+    back &= weight * scale_phi[off] >= PRUNE * second
+    if not bool(back.any()):
+        return False
+    idx = off.nonzero().flatten()[back]
+    w[idx] = weight[back]
+    return True
 
 
 def _golden_floor(Phi, Y, known, w, lo: float, hi: float, steps: int = 40) -> float:
