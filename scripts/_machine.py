@@ -60,3 +60,28 @@ def machine() -> dict:
         "torch": torch.__version__,
         "torchmisspec": torchmisspec.__version__,
     }
+
+
+def study_arguments(doc: str, argv, default_json: Path, extra=None):
+    """The study scripts' command line: ``--smoke``, ``--json``, ``--markdown``, ``--from-json`` (plus what ``extra``
+    adds to the parser), checked; ``args.saved`` is the run read from ``--from-json`` (never a smoke run) or None."""
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
+    parser.add_argument("--json", help=f"raw results (default {default_json.relative_to(ROOT)}; smoke: only if given)")
+    parser.add_argument("--markdown", action="store_true", help="write the docs page and the BENCHMARKS block")
+    parser.add_argument("--from-json", help="render a saved full run (its JSON) instead of running the study")
+    if extra is not None:
+        extra(parser)
+    args = parser.parse_args(argv)
+    if args.smoke and args.markdown:
+        parser.error("--smoke never writes the docs; drop --markdown")
+    args.saved = None
+    if args.from_json:
+        args.saved = json.loads(Path(args.from_json).read_text())
+        if args.saved.get("smoke"):
+            parser.error("--from-json: that run is a smoke run; its numbers never go into the docs")
+    args.parser = parser
+    return args

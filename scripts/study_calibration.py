@@ -21,7 +21,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -31,7 +30,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, replace_marked, study_arguments  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import orbits
@@ -323,18 +322,9 @@ def replace_block(text: str, block: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
-    parser.add_argument("--json", help=f"raw results (default {DEFAULT_JSON.relative_to(ROOT)}; smoke: only if given)")
-    parser.add_argument("--markdown", action="store_true", help="write the docs page, figure and BENCHMARKS block")
-    parser.add_argument("--from-json", help="render a saved full run (its JSON) instead of running the study")
-    args = parser.parse_args(argv)
-    if args.smoke and args.markdown:
-        parser.error("--smoke never writes the docs; drop --markdown")
-    if args.from_json:
-        result = json.loads(Path(args.from_json).read_text())
-        if result.get("smoke"):
-            parser.error("--from-json: that run is a smoke run; its numbers never go into the docs")
+    args = study_arguments(__doc__, argv, DEFAULT_JSON)
+    if args.saved is not None:
+        result = args.saved
         wall, info = result["wall_seconds"], result["machine"]
         json_path = DEFAULT_JSON if args.markdown else None
     else:

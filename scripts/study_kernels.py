@@ -29,7 +29,6 @@ pysindy is an optional benchmark dependency: ``pip install -e ".[bench]"``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -40,7 +39,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, replace_marked, study_arguments  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec import design  # noqa: E402
@@ -282,23 +281,13 @@ Every method sees the same correction samples (the paper's observation model: ex
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
-    parser.add_argument("--json", help=f"raw results (default {DEFAULT_JSON.relative_to(ROOT)}; smoke: only if given)")
-    parser.add_argument("--markdown", action="store_true", help="write the docs page and the BENCHMARKS block")
-    parser.add_argument("--from-json", help="render a saved full run (its JSON) instead of running the study")
-    args = parser.parse_args(argv)
-    if args.smoke and args.markdown:
-        parser.error("--smoke never writes the docs; drop --markdown")
+    args = study_arguments(__doc__, argv, DEFAULT_JSON)
     try:
         import pysindy  # noqa: F401
     except ImportError:
-        parser.error('pysindy is needed for the SINDy baseline: pip install -e ".[bench]"')
-    if args.from_json:
-        result = json.loads(Path(args.from_json).read_text())
-        if result.get("smoke"):
-            parser.error("--from-json: that run is a smoke run; its numbers never go into the docs")
-        json_path = None
+        args.parser.error('pysindy is needed for the SINDy baseline: pip install -e ".[bench]"')
+    if args.saved is not None:
+        result, json_path = args.saved, None
     else:
         t0 = time.perf_counter()
         result = study(SMOKE if args.smoke else FULL)

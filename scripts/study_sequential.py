@@ -17,14 +17,13 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, replace_marked, study_arguments  # noqa: E402 (the scripts' shared helper)
 
 from torchmisspec.paper.studies import StudyResult, sequential_study  # noqa: E402
 
@@ -316,21 +315,14 @@ def figures(results: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
-    parser.add_argument("--json", help=f"raw results (default {DEFAULT_JSON.relative_to(ROOT)}; smoke: only if given)")
-    parser.add_argument("--markdown", action="store_true", help="write the docs page, figures and BENCHMARKS block")
-    parser.add_argument("--from-json", help="render a saved full run (its JSON) instead of running the study")
-    parser.add_argument(
-        "--add-single", action="store_true", help="with --from-json: compute the K = 1 brute force and add it"
-    )
-    args = parser.parse_args(argv)
-    if args.smoke and args.markdown:
-        parser.error("--smoke never writes the docs; drop --markdown")
-    if args.from_json:
-        saved = json.loads(Path(args.from_json).read_text())
-        if saved.get("smoke"):
-            parser.error("--from-json: that run is a smoke run; its numbers never go into the docs")
+    def extra(parser):
+        parser.add_argument(
+            "--add-single", action="store_true", help="with --from-json: compute the K = 1 brute force and add it"
+        )
+
+    args = study_arguments(__doc__, argv, DEFAULT_JSON, extra)
+    if args.saved is not None:
+        saved = args.saved
         results, info = saved["results"], saved["machine"]
         json_path = None
         if args.add_single:
