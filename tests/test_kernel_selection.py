@@ -109,6 +109,13 @@ def test_auto_chooses_the_feature_kernel_for_a_polynomial_correction(linear_samp
     assert gp.kernel in ("features", "features+rbf")
     assert gp.log_marginal_likelihood_ == pytest.approx(best["log_marginal_likelihood"])
     assert gp.auto  # a refit chooses again
+    if gp.kernel == "features":  # chosen with one weight per term and output: the model says so
+        assert gp.per_output and gp.weights.shape[0] == 2
+    x = torch.rand(7, 2, dtype=DT, generator=torch.Generator().manual_seed(9))
+    same = tms.CorrectionGP(kernel=gp.kernel, per_output=gp.per_output, degree=2).fit(samples)
+    torch.testing.assert_close(gp.predict(x).variance, same.predict(x).variance)
+    gp.fit(samples)  # the refit competes all four again (features+rbf is not skipped)
+    assert len(gp.model_selection_) == 4
 
 
 def test_auto_chooses_a_stationary_kernel_for_an_inverse_square_field(gravity_samples):

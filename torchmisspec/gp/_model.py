@@ -248,6 +248,7 @@ class CorrectionGP:
             "noise_variance": None if noise_variance is None else float(noise_variance),
         }
         self.per_output = bool(per_output)
+        self._auto_per_output = self.per_output  # what kernel="auto" was asked for (the chosen model may differ)
         self.degree = degree
         self.max_iter = check_positive_int(max_iter, "max_iter")
         self.dtype = dtype
@@ -722,13 +723,13 @@ class CorrectionGP:
 
         records, best = [], None
         for kernel in AUTO_KERNELS:
-            if self.per_output and kernel == "features+rbf":
+            if self._auto_per_output and kernel == "features+rbf":
                 continue
             cand = CorrectionGP(
                 kernel=kernel,
                 # the feature kernel: one weight per term and output, each output its own sparse equation (as
                 # SINDy); its evidence is higher than with weights shared by the outputs whenever they differ
-                per_output=self.per_output or kernel == "features",
+                per_output=self._auto_per_output or kernel == "features",
                 degree=self.degree,
                 max_iter=self.max_iter,
                 noise_variance=self.fixed["noise_variance"],
@@ -766,7 +767,12 @@ class CorrectionGP:
             )
         for r in records:
             r["chosen"] = r["kernel"] == best.kernel
-        self.kernel, self._d_in, self.fixed = best.kernel, best._d_in, dict(best.fixed)
+        self.kernel, self._d_in, self.fixed, self.per_output = (
+            best.kernel,
+            best._d_in,
+            dict(best.fixed),
+            best.per_output,
+        )
         self.model, self._cache = best.model, best._cache
         self.n_iterations_, self.n_evaluations_ = best.n_iterations_, best.n_evaluations_
         self.log_marginal_likelihood_ = best.log_marginal_likelihood_
