@@ -130,3 +130,44 @@ def test_bad_input_loses_nothing(tmp_path):
     other = tms.systems.paper_gravity()
     with pytest.raises(tms.InputError, match="run with system 'paper_linear'"):
         design.Campaign.load(good, other)
+
+
+def test_information_campaign_with_a_domain_scores_errors_there():
+    """A domain with the information criterion is only where the error is scored; asks still work."""
+    system, camp = _campaign(domain=((-0.5, 0.5), (-0.5, 0.5)))
+    _run(system, camp, 1)
+    assert camp.history[-1]["error"] == pytest.approx(
+        tms.correction_error(camp.gp, system, domain=((-0.5, 0.5), (-0.5, 0.5)), resolution=51)
+    )
+
+
+def test_duplicate_candidates_match_one_ask_each():
+    system = tms.systems.paper_linear()
+    cand = torch.tensor([[0.5, 0.5], [0.1, -0.2], [0.5, 0.5]], dtype=DT)
+    camp = design.Campaign(system, cand, TIMES, tms.CorrectionGP(**LINEAR_PRIOR), derivative="oracle", pilot=3)
+    asked = camp.ask(3)
+    camp.tell(tms.simulate(system, asked, TIMES))
+    assert camp.pending == [] and sorted(camp.measured) == [0, 1, 2]
+    assert camp.history[-1]["unrequested"] == 0
+
+
+def test_a_failed_tell_leaves_the_random_state_as_it_was(monkeypatch):
+    system, camp = _campaign(pilot=2)
+    _, twin = _campaign(pilot=2)
+    for c in (camp, twin):
+        c.tell(tms.simulate(system, c.ask(2), TIMES))
+    y0 = camp.ask(1)
+    twin.ask(1)
+    traj = tms.simulate(system, y0, TIMES)
+    original = design.Campaign._fit
+
+    def broken(self, *args):
+        raise tms.FittingError("made to fail")
+
+    monkeypatch.setattr(design.Campaign, "_fit", broken)
+    with pytest.raises(tms.FittingError):
+        camp.tell(traj)
+    monkeypatch.setattr(design.Campaign, "_fit", original)
+    camp.tell(traj)  # the retry draws the noise an uninterrupted campaign draws
+    twin.tell(traj)
+    torch.testing.assert_close(torch.cat(camp._targets), torch.cat(twin._targets))

@@ -157,3 +157,45 @@ def test_bad_input():
         tms.CorrectionGP(kernel="features+rbf", degree=0)
     with pytest.raises(tms.ShapeError):
         tms.CorrectionGP(kernel="auto").fit(torch.zeros(5, 2, dtype=DT), torch.zeros(4, 2, dtype=DT))
+
+
+def test_sum_terms_are_the_coefficient_posterior_under_the_whole_kernel(summed):
+    """terms() of features+rbf: beta ~ N(0, W) with F = Phi beta + RBF part; its posterior given the data under the
+    whole covariance (brute force: the joint Gaussian of (beta, y))."""
+    gp = summed
+    base = gp.covar_module.base_kernel
+    X, Y = gp.train_inputs_, gp.train_targets_
+    Phi, w = base.features(X).detach(), base.weights.detach()
+    C = _sum_kernel(gp, X, X) + gp.noise_variance * torch.eye(X.shape[0], dtype=DT)
+    cross = w.unsqueeze(-1) * Phi.T  # cov(beta, y) = W Phi^T
+    mean = cross @ torch.linalg.solve(C, Y)  # (p, d_out)
+    cov = torch.diag(w) - cross @ torch.linalg.solve(C, cross.T)
+    names = gp.feature_names()
+    for t in gp.terms():
+        j = names.index(t.name)
+        assert t.mean == pytest.approx(float(mean[j, t.output]), rel=1e-6, abs=1e-12)
+        assert t.std == pytest.approx(float(cov[j, j].clamp_min(0).sqrt()), rel=1e-5, abs=1e-12)
+
+
+def test_sum_fit_keeps_fixed_values_and_uses_the_outputscale(linear_samples):
+    _, _, samples = linear_samples
+    gp = tms.CorrectionGP(kernel="features+rbf", lengthscale=123.0, noise_variance=3e-4).fit(samples)
+    assert float(gp.lengthscale) == pytest.approx(123.0) and gp.noise_variance == pytest.approx(3e-4)
+    scaled = tms.CorrectionGP(kernel="features+rbf", outputscale=100.0).fit(samples)
+    plain = tms.CorrectionGP(kernel="features+rbf").fit(samples)
+    # the output scale multiplies the kernel, so the learned weights and RBF scale are 100 times smaller and the
+    # likelihood is the same optimum
+    assert scaled.log_marginal_likelihood_ == pytest.approx(plain.log_marginal_likelihood_, rel=1e-5)
+
+
+def test_auto_survives_save_and_load_and_design_says_why_it_refuses(linear_samples, tmp_path):
+    system, times, samples = linear_samples
+    gp = tms.CorrectionGP(kernel="auto").fit(samples)
+    loaded = tms.CorrectionGP.load(gp.save(tmp_path / "auto.pt"))
+    assert loaded.auto and loaded.kernel == gp.kernel
+    loaded.fit(samples)  # a refit of the loaded model chooses again among all four
+    assert len(loaded.model_selection_) == 4
+    if gp.per_output:
+        cand = uniform_box(10, system.domain, generator=torch.Generator().manual_seed(4))
+        with pytest.raises(tms.InputError, match="kernel='auto' chose the feature kernel"):
+            design.greedy(cand, 2, system=system, times=times, gp=gp)

@@ -166,33 +166,12 @@ class Campaign:
             raise InputError(f"k: expected at most the {remaining.numel()} candidates not asked for yet, got {k}")
         start = time.perf_counter()
         n_pilot = min(k, max(0, self.config["pilot"] - len(self.asked)))
-        picks: list[int] = []
-        gains: list[float | None] = []
-        if n_pilot:
-            order = torch.randperm(remaining.numel(), generator=self.generator)[:n_pilot]
-            picks = remaining[order].tolist()
-            gains = [None] * n_pilot  # drawn, not designed
-        info: dict = {}
-        if k > n_pilot:
-            mask = torch.ones(remaining.numel(), dtype=torch.bool)
-            mask[[int((remaining == p).nonzero()[0, 0]) for p in picks]] = False
-            pool = remaining[mask]
-            proxy = self.config["proxy"] or ("corrected" if self.gp.is_fitted else "known")
-            plan = greedy(
-                self.candidates[pool],
-                k - n_pilot,
-                system=self.system,
-                times=self.times,
-                gp=self.gp,
-                criterion=self.config["criterion"],
-                proxy=proxy,
-                domain=self.config["domain"],
-                domain_size=self.config["domain_size"],
-            )
-            picks += pool[plan.indices.cpu()].tolist()
-            gains += plan.gains.tolist()
-            info = {key: v for key, v in plan.diagnostics.items() if isinstance(v, (int, float, str, bool))}
-            info["selection_seconds"] = plan.elapsed
+        state = self.generator.get_state()
+        try:
+            picks, gains, info = self._design(k, n_pilot, remaining)
+        except BaseException:
+            self.generator.set_state(state)  # nothing changes when the design fails
+            raise
         self.asked += picks
         self.pending += picks
         self.history.append(
@@ -209,15 +188,50 @@ class Campaign:
         )
         return self.candidates[picks].clone()
 
+    def _design(self, k: int, n_pilot: int, remaining: torch.Tensor) -> tuple[list[int], list, dict]:
+        """The picks (pilot draws first, then the greedy design), their gains and the design's diagnostics."""
+        picks: list[int] = []
+        gains: list[float | None] = []
+        if n_pilot:
+            order = torch.randperm(remaining.numel(), generator=self.generator)[:n_pilot]
+            picks = remaining[order].tolist()
+            gains = [None] * n_pilot  # drawn, not designed
+        info: dict = {}
+        if k > n_pilot:
+            mask = torch.ones(remaining.numel(), dtype=torch.bool)
+            mask[[int((remaining == p).nonzero()[0, 0]) for p in picks]] = False
+            pool = remaining[mask]
+            proxy = self.config["proxy"] or ("corrected" if self.gp.is_fitted else "known")
+            domain = (
+                {"domain": self.config["domain"], "domain_size": self.config["domain_size"]}
+                if self.config["criterion"] == "domain"
+                else {}
+            )  # with the information criterion the domain only scores the error over D in tell
+            plan = greedy(
+                self.candidates[pool],
+                k - n_pilot,
+                system=self.system,
+                times=self.times,
+                gp=self.gp,
+                criterion=self.config["criterion"],
+                proxy=proxy,
+                **domain,
+            )
+            picks += pool[plan.indices.cpu()].tolist()
+            gains += plan.gains.tolist()
+            info = {key: v for key, v in plan.diagnostics.items() if isinstance(v, (int, float, str, bool))}
+            info["selection_seconds"] = plan.elapsed
+        return picks, gains, info
+
     # --------------------------------------------------------------------------------------------- tell
-    def _match(self, y0: torch.Tensor) -> int:
-        """The pending candidate index whose initial condition is ``y0`` (-1: none)."""
-        if not self.pending:
+    def _match(self, y0: torch.Tensor, pending: list[int]) -> int:
+        """The first of ``pending`` (candidate indices) whose initial condition is ``y0`` (-1: none)."""
+        if not pending:
             return -1
-        pend = self.candidates[self.pending]
+        pend = self.candidates[pending]
         scale = 1.0 + pend.abs().amax(-1)
         hit = ((pend - y0).abs().amax(-1) <= MATCH_TOL * scale).nonzero()
-        return self.pending[int(hit[0, 0])] if hit.numel() else -1
+        return pending[int(hit[0, 0])] if hit.numel() else -1
 
     def tell(self, trajectories: Trajectories) -> CorrectionGP:
         """Add measured experiments; returns the refitted GP (also ``self.gp``).
@@ -238,23 +252,26 @@ class Campaign:
         y0 = traj.initial_conditions
         matched, pending = [], list(self.pending)
         for row in y0:
-            idx = self._match(row) if pending else -1
-            if idx >= 0 and idx in pending:
-                pending.remove(idx)
-            else:
-                idx = -1
+            idx = self._match(row, pending)
+            if idx >= 0:
+                pending.remove(idx)  # duplicates of a candidate match one pending ask each
             matched.append(idx)
-        samples = correction_samples(
-            traj,
-            self.system,
-            derivative=self.config["derivative"],
-            noise_std=self.config["noise_std"],
-            generator=self.generator,
-        )
-        inputs = self._inputs + [samples.inputs]
-        targets = self._targets + [samples.targets]
-        noise = self._noise + [samples.noise]
-        gp, note = self._fit(inputs, targets, noise)
+        state = self.generator.get_state()
+        try:
+            samples = correction_samples(
+                traj,
+                self.system,
+                derivative=self.config["derivative"],
+                noise_std=self.config["noise_std"],
+                generator=self.generator,
+            )
+            inputs = self._inputs + [samples.inputs]
+            targets = self._targets + [samples.targets]
+            noise = self._noise + [samples.noise]
+            gp, note = self._fit(inputs, targets, noise)
+        except BaseException:
+            self.generator.set_state(state)  # a retry draws what an uninterrupted campaign draws
+            raise
         # every check passed and the fit worked: commit
         self._inputs, self._targets, self._noise = inputs, targets, noise
         self.pending = pending

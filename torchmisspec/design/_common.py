@@ -94,9 +94,15 @@ class GPKernel:
         if not isinstance(gp, CorrectionGP):
             raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
         if gp.per_output:
+            why = (
+                "kernel='auto' chose the feature kernel, which has one weight per term and output; design with a "
+                "CorrectionGP(kernel=...) of one shared kernel fitted on the same samples"
+                if getattr(gp, "auto", False)
+                else "Build the design GP with per_output=False"
+            )
             raise InputError(
                 "gp: experimental design supports the shared kernel only (the paper's model, one kernel for all "
-                "outputs); got a CorrectionGP with per_output=True. Build the design GP with per_output=False"
+                f"outputs); got a CorrectionGP with per_output=True. {why}"
             )
         if not gp.is_fitted and gp.kernel in ("features", "features+rbf"):
             raise InputError(

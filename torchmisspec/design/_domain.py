@@ -60,8 +60,8 @@ class DomainModel:
                     f"domain=((lo, hi), ...) with one (lo, hi) per correction input ({d_in})"
                 )
         self.box = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=d_in)
-        if domain_size is None:
-            domain_size = max(3, min(33, int(math.floor(DOMAIN_NODES ** (1.0 / d_in) + 1e-9))))
+        if domain_size is None:  # at most DOMAIN_NODES in all up to 10 inputs (2 per axis beyond)
+            domain_size = max(2, min(33, int(math.floor(DOMAIN_NODES ** (1.0 / d_in) + 1e-9))))
         self.size = check_positive_int(domain_size, "domain_size", minimum=2)
         self.noise = kern.noise
         dd = {"dtype": kern.dtype, "device": kern.device}
@@ -124,7 +124,8 @@ def variance_reduction(
         gp: a :class:`~torchmisspec.CorrectionGP` with a shared kernel whose hyperparameters are set.
         system: the system (its correction inputs, outputs and domain).
         domain: the box D, one ``(lo, hi)`` per correction input (default ``system.domain``).
-        domain_size: quadrature nodes per axis (default: at most 1024 nodes in all, at most 33 per axis).
+        domain_size: quadrature nodes per axis (default: at most 1024 nodes in all for up to 10 inputs, at most 33
+            per axis, at least 2).
         condition: condition on the GP's training samples (default: when it is fitted).
     """
     system = check_system(system)

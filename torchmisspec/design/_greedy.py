@@ -549,7 +549,8 @@ def greedy(
             both proxies and partition budgets work with both. See :mod:`torchmisspec.design._domain`.
         domain: ``criterion="domain"`` only: the box D, one ``(lo, hi)`` per correction input (default
             ``system.domain``).
-        domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all).
+        domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all,
+            at least 2 per axis).
 
     Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"plain"`` O(N T^2 K), about
     ``8 N K T^2`` bytes, so 1.6 GB for N = 10,000, K = 50, T = 20; ``"naive"`` O(N T^2 + chunk).

@@ -333,6 +333,21 @@ def _golden_floor(Phi, Y, known, w, lo: float, hi: float, steps: int = 40) -> fl
     return math.exp((a + b) / 2)
 
 
+def _consistent(alpha: torch.Tensor, Phi: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``alpha`` moved least in norm so that ``Phi^T alpha = target`` holds (``Phi (N, q)``, ``target (q, k)``).
+
+    Woodbury's ``C^-1 y = D^-1 (y - P g)`` subtracts two terms of size |y| / D: with nearly noiseless samples the
+    rounding, amplified by 1 / D, ruins ``alpha``, while every use of it goes through ``k(x, X) alpha =
+    phi(x)^T W Phi^T alpha`` and the exact solution satisfies ``Phi_a^T alpha = M^-1 P^T D^-1 y / sqrt(W_a)``, which
+    the small q x q system gives accurately. Enforcing that identity keeps those products as accurate as the
+    coefficients' posterior mean."""
+    G = Phi.T @ Phi
+    try:
+        return alpha + Phi @ torch.linalg.solve(G, target - Phi.T @ alpha)
+    except torch.linalg.LinAlgError:  # linearly dependent active features: keep the plain Woodbury value
+        return alpha
+
+
 class FeatureFactorization:
     """The posterior of a feature kernel in feature space: ``C = Phi W Phi^T + diag(D)`` is never formed.
 
@@ -371,7 +386,7 @@ class FeatureFactorization:
                 M = torch.eye(P.shape[1], dtype=P.dtype, device=P.device) + P.T @ Pd
                 L = cholesky(M, what="I + P^T D^-1 P (feature-space posterior)")
                 g = torch.cholesky_solve(Pd.T @ y, L)  # (q, m)
-                alpha = y / d.unsqueeze(-1) - Pd @ g
+                alpha = _consistent(y / d.unsqueeze(-1) - Pd @ g, Phi[:, act], g / sw.unsqueeze(-1))
                 logdet = logdet + 2.0 * L.diagonal().log().sum()
                 mean[act] = sw.unsqueeze(-1) * g
                 idx = act.nonzero().flatten()
@@ -400,7 +415,8 @@ class FeatureFactorization:
                 sw = self._W[b, act].sqrt()
                 P = self._Phi[:, act] * sw
                 M = torch.eye(P.shape[1], dtype=P.dtype, device=P.device) + P.T @ (P / d)
-                v = v - (P / d) @ torch.linalg.solve(M, P.T @ v)
+                g = torch.linalg.solve(M, P.T @ v)
+                v = _consistent(v - (P / d) @ g, self._Phi[:, act], g / sw.unsqueeze(-1))
             out.append(v)
         return torch.stack(out)
 

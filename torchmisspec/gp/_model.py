@@ -684,6 +684,7 @@ class CorrectionGP:
                 floor=self.fixed["noise_variance"],
                 lengthscale=self.fixed["lengthscale"],
                 max_iter=max_iter,
+                outputscale=float(self.fixed["outputscale"]),
             )
             self.n_evaluations_ = self.n_iterations_
             if self.fixed["noise_variance"] is None:
@@ -1391,6 +1392,20 @@ class CorrectionGP:
         base = self.covar_module.base_kernel
         X, Y, known = self.train_inputs_, self.train_targets_, self.train_noise_
         Phi = base.features(X).detach()
+        if self.kernel == "features+rbf":  # the coefficients' posterior under the whole kernel, RBF term included
+            fac = self._posterior_cache().fac  # dense: C = Phi W Phi^T + a K_rbf + noise
+            w = base.weights.detach().reshape(-1) * self.covar_module.outputscale.detach().reshape(())
+            out = []
+            with torch.no_grad():
+                V = torch.linalg.solve_triangular(fac.chol[0], Phi * w, upper=False)  # L^-1 Phi W
+                std = (w - V.pow(2).sum(0)).clamp_min(0.0).sqrt()
+                for o in range(Y.shape[1]):
+                    alpha = fac.alpha[0, :, o] if fac.alpha.shape[0] == 1 else fac.alpha[o, :, 0]
+                    mean = w * (Phi.T @ alpha)
+                    for j, label in enumerate(labels):
+                        if all_terms or float(w[j]) > 0:
+                            out.append(Term(o, label, float(mean[j]), float(std[j]), float(w[j])))
+            return out
         W = base.weights.detach().reshape(-1, Phi.shape[1]) * self.covar_module.outputscale.detach().reshape(-1, 1)
         floor = self._floor(self.likelihood).noise.detach().reshape(-1)
         out = []

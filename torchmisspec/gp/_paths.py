@@ -529,7 +529,7 @@ class FunctionSamples:
         N, d_out = Y.shape
         kd = dict(dtype=gp.dtype, device=gp.device)
         with torch.no_grad():
-            _, diag = gp._kernel_parts(X, noise)  # (1, 1), (1, N), (d_out, 1) or (d_out, N)
+            diag = gp._noise_diag(noise)  # (1, 1), (1, N), (d_out, 1) or (d_out, N): no N x N kernel
             B = features(X[:1]).shape[0]
             weights = torch.randn((S, B, features.num_features, d_out if B == 1 else 1), generator=generator, **kd)
             eps = torch.randn((S, N, d_out), generator=generator, **kd) * diag.T.sqrt()  # (S, N, d_out)

@@ -53,6 +53,8 @@ def to_blob(gp: CorrectionGP) -> dict:
             "max_iter": gp.max_iter,
             "fixed": dict(gp.fixed),
             "dtype": dtype,
+            "auto": bool(getattr(gp, "auto", False)),  # kernel="auto": a refit chooses again
+            "auto_per_output": bool(getattr(gp, "_auto_per_output", gp.per_output)),
         },
         "covar_module": {k: v.detach().cpu() for k, v in gp.covar_module.state_dict().items()},
         "likelihood": {k: v.detach().cpu() for k, v in gp.likelihood.state_dict().items()},
@@ -118,6 +120,8 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
         )
     except TypeError as exc:
         raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
+    gp.auto = bool(cfg.get("auto", False))
+    gp._auto_per_output = bool(cfg.get("auto_per_output", gp.per_output))
     X = _field(blob, "train_inputs", torch.Tensor, path).to(gp.device, gp.dtype)
     Y = _field(blob, "train_targets", torch.Tensor, path).to(gp.device, gp.dtype)
     if X.dim() != 2 or Y.dim() != 2 or X.shape[0] != Y.shape[0]:

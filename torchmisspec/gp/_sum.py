@@ -10,7 +10,7 @@ Fitting (:func:`fit_sum`): every hyperparameter (the weights, ``a``, ``l`` and t
 the exact log marginal likelihood, by L-BFGS in log space with autograd through one Cholesky factorization per
 evaluation (O(N^3): the RBF term has no finite features). It starts from the feature kernel's sparse Bayesian fit
 (:func:`~torchmisspec.gp._features.fit_relevance`); weights whose share of the prior variance falls below
-:data:`PRUNE_SUM` of the targets' second moment are then set to exactly 0 (the term removed) and the rest refitted.
+:data:`PRUNE_SUM` of the targets' second moment are then set to exactly 0 (the term removed).
 """
 
 from __future__ import annotations
@@ -102,16 +102,18 @@ def fit_sum(
     floor: float | None,
     lengthscale: float | None,
     max_iter: int,
+    outputscale: float = 1.0,
 ) -> tuple[float, float, int]:
     """Fit the weights, the RBF scale and lengthscale (unless ``lengthscale`` is given) and the noise floor (unless
-    ``floor`` is given) by exact marginal likelihood; write them into ``kernel``. Returns ``(floor, lml, iterations)``.
+    ``floor`` is given) by exact marginal likelihood of ``outputscale * k + noise``; write them into ``kernel``. Fixed
+    values are used as given. Returns ``(floor, lml, iterations)``.
     """
     from ._model import median_distance
 
     second = float(Y.pow(2).mean())
     if not second > 0:
         raise FittingError("targets: expected some non-zero samples to learn the kernel from, got all zeros")
-    Phi = kernel.features(X).detach()
+    Phi = kernel.features(X).detach() * math.sqrt(outputscale)  # the output scale folded into the features
     scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)
     known0 = torch.zeros_like(Y) if known is None else known
     w0, s0, _ = fit_relevance(Phi, Y, known, floor=floor, max_iter=10 * max_iter)
@@ -125,20 +127,24 @@ def fit_sum(
     log_l = torch.tensor(
         math.log(dist if lengthscale is None else lengthscale), **kd, requires_grad=lengthscale is None
     )
-    log_s = torch.tensor(math.log(max(s0, 1e-12 * second)), **kd, requires_grad=floor is None)
+    log_s = torch.tensor(
+        math.log(max(s0, 1e-12 * second) if floor is None else floor), **kd, requires_grad=floor is None
+    )
     params = [log_w, log_a] + ([log_l] if lengthscale is None else []) + ([log_s] if floor is None else [])
     l_box = (math.log(1e-3 * dist), math.log(1e3 * dist))
     s_box = (math.log(1e-12 * second), math.log(10 * second))
 
     def kernel_matrix(wts: torch.Tensor) -> torch.Tensor:
         sq = torch.cdist(X, X).pow(2)
-        return (Phi * wts) @ Phi.T + log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
+        return (Phi * wts) @ Phi.T + outputscale * log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
 
     def objective() -> torch.Tensor:
-        with torch.no_grad():
+        with torch.no_grad():  # keep line-search trials in a sane box; fixed values are left as given
             log_w.clamp_(min=lower)
-            log_l.clamp_(*l_box)
-            log_s.clamp_(*s_box)
+            if log_l.requires_grad:
+                log_l.clamp_(*l_box)
+            if log_s.requires_grad:
+                log_s.clamp_(*s_box)
             log_a.clamp_(math.log(1e-12 * second), math.log(1e3 * second))
         D = known0 + log_s.exp()
         return -_exact_mll(kernel_matrix(log_w.exp()), Y, D) / Y.numel()
@@ -162,7 +168,8 @@ def fit_sum(
         lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
         kernel.features_kernel.weights.copy_(w)
         kernel.raw_rbf_scale.copy_(log_a.reshape(1))
-        kernel.lengthscale = log_l.exp().reshape(1, 1)
+        if lengthscale is None:
+            kernel.lengthscale = log_l.exp().reshape(1, 1)
     if not all(bool(torch.isfinite(p).all()) for p in params):
         raise FittingError("the features+rbf fit diverged: a hyperparameter became non-finite; rescale the data")
     return float(log_s.detach().exp()), lml, iterations
