@@ -85,3 +85,31 @@ def study_arguments(doc: str, argv, default_json: Path, extra=None):
             parser.error("--from-json: that run is a smoke run; its numbers never go into the docs")
     args.parser = parser
     return args
+
+
+def benchmark_arguments(doc: str, argv, smoke_help: str = "tiny sizes; never writes BENCHMARKS.md"):
+    """The benchmark scripts' command line: ``--smoke``, ``--markdown``, ``--repeats`` (checked); also sets
+    ``args.command`` (how it was run) and ``args.load`` (the load average before the run)."""
+    import argparse
+    import os
+    import sys
+
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--smoke", action="store_true", help=smoke_help)
+    parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    if args.smoke and args.markdown:
+        parser.error("--smoke never writes BENCHMARKS.md")
+    script = Path(sys.argv[0]).name if argv is None else "script"
+    args.command = f"python scripts/{script} " + " ".join(sys.argv[1:] if argv is None else argv)
+    args.load = " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    return args
+
+
+def publish(text: str, markdown: bool, start: str, end: str) -> None:
+    """Print a benchmark's block and, with ``markdown``, put it into BENCHMARKS.md between its markers."""
+    print(text)
+    if markdown:
+        path = ROOT / "BENCHMARKS.md"
+        path.write_text(replace_marked(path.read_text(), text, start, end))

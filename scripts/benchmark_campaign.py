@@ -16,8 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
 import sys
 import time
@@ -26,7 +24,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import benchmark_arguments, machine, publish  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec import design  # noqa: E402
@@ -34,7 +32,6 @@ from torchmisspec.design import _common, _greedy  # noqa: E402
 from torchmisspec.paper import _setup  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 MARK_START = "<!-- bench:campaign:start -->"
 MARK_END = "<!-- bench:campaign:end -->"
 FULL = {"candidates": 10_000, "experiments": 25, "batch": 3}
@@ -89,16 +86,10 @@ def median_of(runs: list[dict]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes BENCHMARKS.md")
-    parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
-    parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args(argv)
-    if args.smoke and args.markdown:
-        parser.error("--smoke never writes BENCHMARKS.md")
+    args = benchmark_arguments(__doc__, argv)
     cfg = SMOKE if args.smoke else FULL
     repeats = 1 if args.smoke else args.repeats
-    load = " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    load = args.load
     one_round(SMOKE, "information", False)  # warm-up (first calls pay for imports and allocations): not recorded
     rows = {}
     for label, criterion, exact, n in (
@@ -110,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         print(label, rows[label])
     same = rows["information (default)"]["picks"] == rows["information, exact data term (reference)"]["picks"]
     info = machine()
-    command = "python scripts/benchmark_campaign.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = args.command
     lines = [
         MARK_START,
         "## One round of the design loop (`scripts/benchmark_campaign.py`)",
@@ -135,10 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         MARK_END,
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if args.markdown:
-        BENCHMARKS_MD.write_text(replace_marked(BENCHMARKS_MD.read_text(), text, MARK_START, MARK_END))
+    publish("\n".join(lines), args.markdown, MARK_START, MARK_END)
     return 0
 
 

@@ -14,8 +14,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
 import sys
 import time
@@ -24,13 +22,12 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked  # noqa: E402 (the scripts' shared helper)
+from _machine import benchmark_arguments, machine, publish  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.gp import _mll  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 MARK_START = "<!-- bench:features:start -->"
 MARK_END = "<!-- bench:features:end -->"
 DT = torch.float64
@@ -53,16 +50,10 @@ def timed(fn, repeats: int):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--smoke", action="store_true", help="N = 2,000; never writes BENCHMARKS.md")
-    parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
-    parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args(argv)
-    if args.smoke and args.markdown:
-        parser.error("--smoke never writes BENCHMARKS.md")
+    args = benchmark_arguments(__doc__, argv, smoke_help="N = 2,000; never writes BENCHMARKS.md")
     n = 2_000 if args.smoke else 10_000
     repeats = 1 if args.smoke else args.repeats
-    load = " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    load = args.load
     X, Y = data(n)
     tms.CorrectionGP(kernel="features", degree=2).fit(X[:200], Y[:200])  # warm-up, not recorded
     rows = []
@@ -83,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         Yb = gp._targets_batched(gp.train_targets_)
         _, dense = timed(lambda: _mll.factorize(K, diag, Yb), 1)
     info = machine()
-    command = "python scripts/benchmark_features.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = args.command
     lines = [
         MARK_START,
         "## Feature kernel fit on many samples (`scripts/benchmark_features.py`)",
@@ -105,10 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         MARK_END,
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if args.markdown:
-        BENCHMARKS_MD.write_text(replace_marked(BENCHMARKS_MD.read_text(), text, MARK_START, MARK_END))
+    publish("\n".join(lines), args.markdown, MARK_START, MARK_END)
     return 0
 
 

@@ -43,16 +43,19 @@ def test_sequential_study_is_reproducible_and_uses_the_campaign_picks():
     assert picks == a.meta["designs"]["paper design"][:2]
 
 
-@pytest.mark.slow
-def test_benchmark_campaign_smoke():
+def _script(name: str, *args: str) -> str:
+    """Run ``scripts/<name>`` with ``args``; its standard output."""
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "benchmark_campaign.py"), "--smoke"],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=600,
+        [sys.executable, str(ROOT / "scripts" / name), *args], check=True, capture_output=True, text=True, timeout=600
     )
-    assert "same picks as the reference: True" in proc.stdout
+    return proc.stdout
+
+
+@pytest.mark.slow
+def test_benchmark_smokes():
+    assert "same picks as the reference: True" in _script("benchmark_campaign.py", "--smoke")
+    out = _script("benchmark_features.py", "--smoke")
+    assert "| 8 | 45 | per output |" in out and "dense factorization" in out
 
 
 @pytest.mark.slow
