@@ -257,3 +257,52 @@ def test_feature_space_posterior_equals_the_dense_one(per_output, known):
     torch.testing.assert_close(
         C0, (base.features(X) * w0) @ base.features(X).T + torch.diag(torch.as_tensor(d0).expand(60))
     )
+
+
+def _library():
+    return [lambda x: x[..., 0] ** 2, lambda x: torch.sin(x[..., 1]), lambda x: x[..., 0] * x[..., 1]]
+
+
+def test_user_library_posterior_is_bayesian_linear_regression(tmp_path):
+    """A library of user callables replaces the monomials: the posterior is Bayesian linear regression on them."""
+    gen = torch.Generator().manual_seed(7)
+    X = torch.rand(80, 2, dtype=DT, generator=gen) * 2 - 1
+    y = 0.3 * X[:, 0] ** 2 - 0.7 * torch.sin(X[:, 1]) + 0.02 * torch.randn(80, dtype=DT, generator=gen)
+    gp = tms.CorrectionGP(kernel="features", library=_library(), library_names=["a^2", "sin b", "a b"]).fit(X, y)
+    base = gp.covar_module.base_kernel
+    w = base.weights.detach() * gp.covar_module.outputscale.detach()
+    Phi = torch.stack([f(X) for f in _library()], -1)
+    s2 = gp.noise_variance
+    act = w > 0
+    A = torch.diag(1 / w[act]) + Phi[:, act].T @ Phi[:, act] / s2
+    mean = torch.linalg.solve(A, Phi[:, act].T @ y / s2)
+    cov = torch.linalg.inv(A)
+    x = torch.rand(9, 2, dtype=DT, generator=gen)
+    phi = torch.stack([f(x) for f in _library()], -1)[:, act]
+    post = gp.predict(x)
+    torch.testing.assert_close(post.mean[:, 0], phi @ mean, rtol=1e-8, atol=1e-12)
+    torch.testing.assert_close(post.variance[:, 0], ((phi @ cov) * phi).sum(-1), rtol=1e-7, atol=1e-14)
+    terms = {t.name: t for t in gp.terms()}
+    assert terms["a^2"].mean == pytest.approx(0.3, abs=0.05) and terms["sin b"].mean == pytest.approx(-0.7, abs=0.05)
+    draws = gp.sample_functions(8, generator=torch.Generator().manual_seed(0))(x)
+    assert draws.shape == (8, 9, 1) and bool(torch.isfinite(draws).all())
+    with pytest.raises(tms.InputError, match="never holds code"):
+        gp.save(tmp_path / "lib.pt")
+
+
+def test_user_library_bad_input():
+    X = torch.zeros(5, 2, dtype=DT)
+    with pytest.raises(tms.InputError, match="at least one feature"):
+        tms.CorrectionGP(kernel="features", library=[])
+    with pytest.raises(tms.InputError, match="expected callables"):
+        tms.CorrectionGP(kernel="features", library=[lambda x: x[..., 0], 3.0])
+    with pytest.raises(tms.InputError, match="'features' or 'features\\+rbf'"):
+        tms.CorrectionGP(kernel="rbf", library=_library())
+    with pytest.raises(tms.InputError, match="3 distinct strings"):
+        tms.CorrectionGP(kernel="features", library=_library(), library_names=["a", "a", "b"])
+    with pytest.raises(tms.ShapeError, match="feature 'f1' must map inputs \\(5, 2\\) to \\(5,\\)"):
+        tms.CorrectionGP(kernel="features", library=[lambda x: x]).fit(X, X[:, :1] + 1)
+    with pytest.raises(tms.InputError, match="feature 'f1' returned NaN"):
+        tms.CorrectionGP(kernel="features", library=[lambda x: x[..., 0] / 0.0]).fit(X, X[:, :1] + 1)
+    with pytest.raises(tms.InputError, match="degree"):
+        tms.CorrectionGP(kernel="features", degree=0)

@@ -182,7 +182,7 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
 
     The fold models share the kernel and the training inputs X (a held-out sample enters with weight 0), so each
     is ``k(x, X) alpha_f``: ``alphas (folds, N, d_out)``, ``fold_of (K,)``; one kernel or one per output."""
-    params = {k: v.detach() for k, v in kernel_hyperparameters(gp).items()}
+    params = {k: v.detach() if torch.is_tensor(v) else v for k, v in kernel_hyperparameters(gp).items()}
     X = gp.train_inputs_
 
     def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:

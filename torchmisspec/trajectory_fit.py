@@ -331,13 +331,12 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     rule w_j = sum_o beta_oj^2 / sum_o gamma_oj, gamma_oj = 1 - Sigma_oj / w_j (removing terms that fall below
     :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle.
     """
-    from .gp._features import PRUNE, monomials
+    from .gp._features import PRUNE
 
     d = trajectories.state_dim
     base = gp.covar_module.base_kernel
-    powers = base.powers
     X = gp.train_inputs_
-    Phi = monomials(X, powers)  # (N, p)
+    Phi = base.features(X)  # (N, p): the monomials or a user library
     p = Phi.shape[1]
     d_out = gp.output_dim
     kd = dict(dtype=gp.dtype, device=gp.device)
@@ -357,7 +356,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     def make_field(b):
         def field(y):
             x = system.select_inputs(y)
-            return system.known_rhs(y) + system.embed(monomials(x, powers) @ b)
+            return system.known_rhs(y) + system.embed(base.features(x) @ b)
 
         return field
 

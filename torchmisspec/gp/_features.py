@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import gpytorch
 import torch
 
-from .._errors import FittingError
+from .._errors import FittingError, InputError, ShapeError
 from .._linalg import cholesky
 
 __all__ = ["FeatureKernel", "PRUNE", "Term", "monomial_names", "monomial_powers", "monomials"]
@@ -88,6 +88,44 @@ def monomial_names(powers: torch.Tensor, names=None) -> list[str]:
     return out
 
 
+def check_library(library, library_names=None) -> tuple[tuple, tuple[str, ...]]:
+    """A user feature library: a non-empty sequence of callables (and as many distinct names, default f1, f2, ...)."""
+    if isinstance(library, (str, bytes)) or not hasattr(library, "__iter__"):
+        kind = type(library).__name__
+        raise InputError(f"library: expected a sequence of callables x (..., d_in) -> (...,), got {kind}")
+    library = tuple(library)
+    if not library:
+        raise InputError("library: expected at least one feature, got an empty sequence")
+    bad = [i for i, f in enumerate(library) if not callable(f)]
+    if bad:
+        raise InputError(
+            f"library: expected callables x (..., d_in) -> (...,), got {type(library[bad[0]]).__name__} at {bad}"
+        )
+    names = tuple(f"f{i + 1}" for i in range(len(library))) if library_names is None else tuple(library_names)
+    if len(names) != len(library) or len(set(names)) != len(names) or not all(isinstance(n, str) for n in names):
+        raise InputError(
+            f"library_names: expected {len(library)} distinct strings (one per feature), got {library_names!r}"
+        )
+    return library, names
+
+
+def library_features(library, x: torch.Tensor, names) -> torch.Tensor:
+    """``(..., p)``: the library's features at ``x (..., d_in)``, each checked for its shape and finiteness."""
+    out = []
+    for f, name in zip(library, names, strict=True):
+        v = f(x)
+        if not isinstance(v, torch.Tensor) or v.shape != x.shape[:-1]:
+            shape = tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__
+            raise ShapeError(
+                f"library: feature {name!r} must map inputs {tuple(x.shape)} to {tuple(x.shape[:-1])}, got {shape}"
+            )
+        if not bool(torch.isfinite(v).all()):
+            count = x.shape[:-1].numel()
+            raise InputError(f"library: feature {name!r} returned NaN or inf at some of the {count} inputs")
+        out.append(v.to(x.dtype))
+    return torch.stack(out, -1)
+
+
 class FeatureKernel(gpytorch.kernels.Kernel):
     """``k(x, x') = sum_j w_j x^a_j x'^a_j`` over the monomials up to ``degree`` of ``d_in`` inputs.
 
@@ -98,15 +136,34 @@ class FeatureKernel(gpytorch.kernels.Kernel):
 
     is_stationary = False
 
-    def __init__(self, d_in: int, degree: int, batch_shape: torch.Size | None = None, **kwargs) -> None:
+    def __init__(
+        self,
+        d_in: int,
+        degree: int,
+        batch_shape: torch.Size | None = None,
+        library: tuple | None = None,
+        library_names: tuple[str, ...] | None = None,
+        **kwargs,
+    ) -> None:
         batch_shape = torch.Size([]) if batch_shape is None else batch_shape
         super().__init__(batch_shape=batch_shape, **kwargs)
-        powers = monomial_powers(d_in, degree)
+        #: user features (callables ``x (..., d_in) -> (...,)``) replacing the monomials, or None
+        self.library = library
+        self.library_names = library_names
+        powers = monomial_powers(d_in, degree) if library is None else torch.zeros(len(library), d_in, dtype=torch.long)
         self.register_buffer("powers", powers)
         self.register_parameter("weights", torch.nn.Parameter(torch.ones(*batch_shape, powers.shape[0])))
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        return monomials(x, self.powers)
+        if self.library is None:
+            return monomials(x, self.powers)
+        return library_features(self.library, x, self.library_names)
+
+    def names(self, input_names=None) -> list[str]:
+        """Readable names of the features: the monomials', or the library's."""
+        if self.library is None:
+            return monomial_names(self.powers, input_names)
+        return list(self.library_names)
 
     def forward(self, x1, x2, diag: bool = False, last_dim_is_batch: bool = False, **params):
         if last_dim_is_batch:

@@ -45,9 +45,9 @@ from ._features import (
     FeatureFactorization,
     FeatureKernel,
     Term,
+    check_library,
     coefficient_posterior,
     fit_relevance,
-    monomial_names,
 )
 from ._optim import maximise
 from ._sum import FeaturesPlusRBF, fit_sum
@@ -212,6 +212,8 @@ class CorrectionGP:
         max_iter: int = 200,
         dtype: torch.dtype = DEFAULT_DTYPE,
         device: torch.device | str | None = None,
+        library=None,
+        library_names=None,
     ) -> None:
         if kernel not in KERNELS:
             raise InputError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
@@ -228,6 +230,12 @@ class CorrectionGP:
                 f"lengthscale={lengthscale!r}, outputscale={outputscale!r}"
             )
         degree = check_positive_int(degree, "degree")
+        if library is not None and kernel not in FEATURE_KERNELS:
+            raise InputError(f"library: a feature library is for kernel 'features' or 'features+rbf', got {kernel!r}")
+        if library is None and library_names is not None:
+            raise InputError("library_names: names a library of features; pass library=[...] too")
+        #: user features replacing the monomials (callables x (..., d_in) -> (...,)), and their names
+        self.library, self.library_names = (None, None) if library is None else check_library(library, library_names)
         lengthscale, outputscale, noise_variance = (
             None if value is None else check_real(value, name, positive=True)
             for name, value in (
@@ -382,9 +390,10 @@ class CorrectionGP:
         elif self.kernel == "matern52":
             base = gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=shape, lengthscale_constraint=_log_positive())
         elif self.kernel == "features":
-            base = FeatureKernel(self._d_in, self.degree, batch_shape=shape)
+            lib = {"library": self.library, "library_names": self.library_names}
+            base = FeatureKernel(self._d_in, self.degree, batch_shape=shape, **lib)
         elif self.kernel == "features+rbf":
-            base = FeaturesPlusRBF(self._d_in, self.degree)
+            base = FeaturesPlusRBF(self._d_in, self.degree, library=self.library, library_names=self.library_names)
         else:
             base = gpytorch.kernels.PolynomialKernel(power=self.degree, batch_shape=shape)
             base.offset = 1.0
@@ -660,7 +669,7 @@ class CorrectionGP:
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
         d_out = Y.shape[1]
         covar, lik = self.covar_module, self.likelihood
-        if self.kernel in FEATURE_KERNELS and covar.base_kernel.powers.shape[1] != X.shape[1]:
+        if self.kernel in FEATURE_KERNELS and covar.base_kernel.powers.shape[1] != X.shape[1]:  # library: d_in too
             self._d_in = X.shape[1]  # the library of monomials of these inputs
             covar, lik = self._modules(batch=d_out)
         if self.per_output and covar.batch_shape != torch.Size([d_out]):
@@ -1102,7 +1111,7 @@ class CorrectionGP:
                 ratio = (post / prior.clamp_min(torch.finfo(prior.dtype).tiny)).clamp(0.0, 1.0).sqrt()
                 return ratio.amax(0)
             chol = cache.fac.chol  # (1 or d_out, N, N)
-            params = {k: v.detach() for k, v in kernel_hyperparameters(self).items()}
+            params = {k: v.detach() if torch.is_tensor(v) else v for k, v in kernel_hyperparameters(self).items()}
             if cache.support_basis is None:  # once per factorization, not at every extrapolation check
                 cache.support_basis = (self._support_basis(X, params),)
             (basis,) = cache.support_basis
@@ -1376,10 +1385,11 @@ class CorrectionGP:
                 f"feature_names: only the feature kernels have named terms, this GP's kernel is {self.kernel!r}"
             )
         self._require_fitted()
-        powers = self.covar_module.base_kernel.powers
+        base = self.covar_module.base_kernel
+        powers = base.powers
         if names is not None and len(names) != powers.shape[1]:
             raise InputError(f"names: expected {powers.shape[1]} input names, got {len(names)}")
-        return monomial_names(powers, names)
+        return base.names(names)
 
     def terms(self, names=None, *, all_terms: bool = False) -> list[Term]:
         """The learned terms of a feature kernel, with their coefficients' posterior means and standard deviations.

@@ -87,7 +87,6 @@ from numpy.polynomial.hermite_e import hermegauss
 
 from .._errors import InputError, ShapeError
 from .._validation import check_positive_int, check_real
-from ._features import monomials
 
 __all__ = [
     "DEFAULT_FEATURE_ERROR",
@@ -296,8 +295,11 @@ class FeatureMap:
             return torch.cat([proj.cos() * scale, proj.sin() * scale], dim=-1)
         if self.kind == "sum":
             return torch.cat([part(x) for part in t["parts"]], dim=-1)
-        powers, coef = t["powers"], t["coef"]  # (P, d_in) integer exponents, (B, P) sqrt(s^2 c_a)
-        mono = (x.unsqueeze(-2) ** powers).prod(-1)  # (..., P)
+        coef = t["coef"]  # (B, P) sqrt(s^2 c_a)
+        if self.kind == "library":  # a feature kernel's own features (monomials or a user library)
+            mono = t["fn"](x)
+        else:
+            mono = (x.unsqueeze(-2) ** t["powers"]).prod(-1)  # (..., P)
         shape = (coef.shape[0],) + (1,) * (mono.dim() - 1) + (coef.shape[-1],)
         return mono.unsqueeze(0) * coef.reshape(shape)
 
@@ -360,11 +362,11 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
             raise InputError("num_features / feature_error: the feature kernel has exact finite features; pass neither")
         base = covar.base_kernel
         w = base.weights.detach().reshape(B, -1).to(**kd)
-        return FeatureMap("polynomial", w.shape[-1], powers=base.powers.to(**kd), coef=(outputscale * w).sqrt())
+        return FeatureMap("library", w.shape[-1], fn=base.features, coef=(outputscale * w).sqrt())
     if gp.kernel == "features+rbf":  # the exact monomials beside the RBF term's features
         base = covar.base_kernel
         w = base.weights.detach().reshape(B, -1).to(**kd)
-        poly = FeatureMap("polynomial", w.shape[-1], powers=base.powers.to(**kd), coef=(outputscale * w).sqrt())
+        poly = FeatureMap("library", w.shape[-1], fn=base.features, coef=(outputscale * w).sqrt())
         rbf = _rbf_features(
             gp,
             base.lengthscale.detach().to(**kd).reshape(B, -1).expand(B, d_in),
@@ -454,7 +456,7 @@ def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
         out["offset"] = covar.base_kernel.offset.reshape(-1, 1, 1)
     elif gp.kernel in ("features", "features+rbf"):
         out["weights"] = covar.base_kernel.weights.reshape(out["outputscale"].shape[0], 1, -1)
-        out["powers"] = covar.base_kernel.powers  # the exponents, not rebuilt at every call of kernel_matrix
+        out["features"] = covar.base_kernel.features  # phi(x): the monomials or a user library (not a tensor)
         if gp.kernel == "features+rbf":
             out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
             out["rbf_scale"] = covar.base_kernel.rbf_scale.reshape(-1, 1, 1)
@@ -471,8 +473,8 @@ def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, deg
     if kind == "polynomial":
         return s2 * (params["offset"] + x @ X.T).pow(degree)
     if kind in ("features", "features+rbf"):
-        powers = params["powers"]
-        poly = s2 * (monomials(x, powers) * params["weights"]) @ monomials(X, powers).T
+        phi = params["features"]
+        poly = s2 * (phi(x) * params["weights"]) @ phi(X).T
         if kind == "features":
             return poly
         rbf = {"outputscale": s2 * params["rbf_scale"], "lengthscale": params["lengthscale"]}
@@ -556,7 +558,9 @@ class FunctionSamples:
         self.features = features
         self._kind, self._degree = gp.kernel, gp.degree
         with torch.no_grad():
-            self._params = {k: v.detach().clone() for k, v in kernel_hyperparameters(gp).items()}
+            self._params = {
+                k: v.detach().clone() if torch.is_tensor(v) else v for k, v in kernel_hyperparameters(gp).items()
+            }
         self._X = X.detach()
         self._weights = weights
         self._v = v.contiguous()

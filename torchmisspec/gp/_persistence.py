@@ -41,6 +41,11 @@ def save(gp: CorrectionGP, path: str | Path) -> Path:
 def to_blob(gp: CorrectionGP) -> dict:
     """The fitted ``gp`` as a dictionary of plain values and tensors (what :func:`save` writes)."""
     gp._require_fitted()
+    if getattr(gp, "library", None) is not None:
+        raise InputError(
+            "save: this model's feature library is Python code, and a model file never holds code (it could run on "
+            "load); save the samples and refit with the same library instead"
+        )
     dtype = str(gp.dtype).removeprefix("torch.")
     if dtype not in _DTYPES:
         raise InputError(f"dtype: only {sorted(_DTYPES)} models can be saved, got {dtype}")

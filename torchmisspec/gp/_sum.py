@@ -36,9 +36,9 @@ class FeaturesPlusRBF(gpytorch.kernels.Kernel):
 
     is_stationary = False
 
-    def __init__(self, d_in: int, degree: int, **kwargs) -> None:
+    def __init__(self, d_in: int, degree: int, library=None, library_names=None, **kwargs) -> None:
         super().__init__(**kwargs)
-        self.features_kernel = FeatureKernel(d_in, degree)
+        self.features_kernel = FeatureKernel(d_in, degree, library=library, library_names=library_names)
         positive = gpytorch.constraints.GreaterThan(0.0, transform=torch.exp, inv_transform=torch.log)
         self.rbf = gpytorch.kernels.RBFKernel(lengthscale_constraint=positive)
         self.register_parameter("raw_rbf_scale", torch.nn.Parameter(torch.zeros(1)))
@@ -54,6 +54,13 @@ class FeaturesPlusRBF(gpytorch.kernels.Kernel):
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         return self.features_kernel.features(x)
+
+    @property
+    def library(self):
+        return self.features_kernel.library
+
+    def names(self, input_names=None) -> list[str]:
+        return self.features_kernel.names(input_names)
 
     # the RBF part
     @property
