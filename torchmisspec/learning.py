@@ -47,7 +47,7 @@ from ._validation import check_positive_int
 from .data import Trajectories, simulate
 from .gp import CorrectionGP
 from .gp._model import median_distance
-from .gp._paths import kernel_hyperparameters, kernel_matrix
+from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
@@ -182,7 +182,7 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
 
     The fold models share the kernel and the training inputs X (a held-out sample enters with weight 0), so each
     is ``k(x, X) alpha_f``: ``alphas (folds, N, d_out)``, ``fold_of (K,)``; one kernel or one per output."""
-    params = {k: v.detach() if torch.is_tensor(v) else v for k, v in kernel_hyperparameters(gp).items()}
+    params = detached(kernel_hyperparameters(gp))
     X = gp.train_inputs_
 
     def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:

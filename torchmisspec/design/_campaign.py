@@ -359,11 +359,7 @@ class Campaign:
         system = check_system(system)
 
         def field(key, kind):
-            if not isinstance(blob, dict) or key not in blob:
-                raise InputError(f"{path}: expected a torchmisspec Campaign file with field {key!r}, which is missing")
-            if not isinstance(blob[key], kind):
-                raise InputError(f"{path}: field {key!r} expected {kind}, got {type(blob[key]).__name__}")
-            return blob[key]
+            return _persistence._field(blob, key, kind, path, "Campaign")
 
         if not isinstance(blob, dict) or blob.get("format") != FORMAT:
             raise InputError(f"{path}: expected a torchmisspec Campaign file (format {FORMAT!r}), it is not one")

@@ -88,6 +88,7 @@ class _Problem:
         capacities,
         proxies,
         tie_tol,
+        *,
         condition=None,
         proxy=None,
         criterion="information",
@@ -571,21 +572,9 @@ def greedy(
     if max_rank is not None:
         max_rank = check_positive_int(max_rank, "max_rank")
     prob = _Problem(
-        candidates,
-        budget,
-        system,
-        times,
-        gp,
-        partition,
-        capacities,
-        proxies,
-        tie_tol,
-        condition,
-        proxy,
-        criterion,
-        domain,
-        domain_size,
-    )
+        candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
+        condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
+    )  # fmt: skip
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES
     if max_rank is None:

@@ -431,30 +431,29 @@ class FeatureFactorization:
         W = W.expand(B, p)
         D = D.expand(B, N)
         self._Phi, self._W, self._D = Phi, W, D
-        alphas, means, covs, logdet = [], [], [], Phi.new_zeros(())
+        # per batch, once: the active terms, sqrt(W_a), P = Phi_a sqrt(W_a) and chol(M); every solve reuses them
+        self._factors = []
+        means, covs, logdet = [], [], D.log().sum()
         for b in range(B):
-            d, y, act = D[b], Y[b], W[b] > 0
-            mean = Phi.new_zeros(p, m)
-            cov = Phi.new_zeros(p, p)
+            act = W[b] > 0
+            mean, cov = Phi.new_zeros(p, m), Phi.new_zeros(p, p)
+            factor = None
             if bool(act.any()):
                 sw = W[b, act].sqrt()
                 P = Phi[:, act] * sw
-                Pd = P / d.unsqueeze(-1)
-                M = torch.eye(P.shape[1], dtype=P.dtype, device=P.device) + P.T @ Pd
+                M = torch.eye(P.shape[1], dtype=P.dtype, device=P.device) + P.T @ (P / D[b].unsqueeze(-1))
                 L = cholesky(M, what="I + P^T D^-1 P (feature-space posterior)")
-                g = torch.cholesky_solve(Pd.T @ y, L)  # (q, m)
-                alpha = _consistent(y / d.unsqueeze(-1) - Pd @ g, Phi[:, act], g / sw.unsqueeze(-1))
+                factor = (act, sw, P, L)
                 logdet = logdet + 2.0 * L.diagonal().log().sum()
-                mean[act] = sw.unsqueeze(-1) * g
                 idx = act.nonzero().flatten()
                 cov[idx.unsqueeze(-1), idx] = sw.unsqueeze(-1) * torch.cholesky_inverse(L) * sw
-            else:
-                alpha = y / d.unsqueeze(-1)
-            logdet = logdet + d.log().sum()
-            alphas.append(alpha)
-            means.append(mean)
+            self._factors.append(factor)
             covs.append(cov)
-        self.alpha = torch.stack(alphas)  # (B, N, m)
+            means.append(mean)
+        self.alpha, g = self._solve(Y)  # (B, N, m)
+        for b, factor in enumerate(self._factors):
+            if factor is not None:
+                means[b][factor[0]] = factor[1].unsqueeze(-1) * g[b]
         self.logdet = logdet
         self.quad = (Y * self.alpha).sum()
         #: ``(B, p, m)`` posterior means and ``(B, p, p)`` covariances of the coefficients
@@ -462,20 +461,23 @@ class FeatureFactorization:
         self.cov = torch.stack(covs)
         self._chol = None
 
-    def solve(self, V: torch.Tensor) -> torch.Tensor:
-        """``C^-1 V`` for ``V (B, N, k)`` (Woodbury, from the stored pieces)."""
-        out = []
-        for b in range(V.shape[0]):
-            d, act = self._D[b].unsqueeze(-1), self._W[b] > 0
-            v = V[b] / d
-            if bool(act.any()):
-                sw = self._W[b, act].sqrt()
-                P = self._Phi[:, act] * sw
-                M = torch.eye(P.shape[1], dtype=P.dtype, device=P.device) + P.T @ (P / d)
-                g = torch.linalg.solve(M, P.T @ v)
+    def _solve(self, V: torch.Tensor) -> tuple[torch.Tensor, list]:
+        """``C^-1 V`` for ``V (B, N, k)`` and, per batch, ``g = M^-1 P^T D^-1 V`` (None without active terms)."""
+        out, gs = [], []
+        for b, factor in enumerate(self._factors):
+            d = self._D[b].unsqueeze(-1)
+            v, g = V[b] / d, None
+            if factor is not None:
+                act, sw, P, L = factor
+                g = torch.cholesky_solve(P.T @ v, L)
                 v = _consistent(v - (P / d) @ g, self._Phi[:, act], g / sw.unsqueeze(-1))
             out.append(v)
-        return torch.stack(out)
+            gs.append(g)
+        return torch.stack(out), gs
+
+    def solve(self, V: torch.Tensor) -> torch.Tensor:
+        """``C^-1 V`` for ``V (B, N, k)`` (Woodbury, from the factors kept at construction)."""
+        return self._solve(V)[0]
 
     @property
     def chol(self) -> torch.Tensor:

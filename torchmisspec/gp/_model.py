@@ -1099,7 +1099,7 @@ class CorrectionGP:
         understated). The rank r is the smallest with that certificate; otherwise (known per-sample noise, or no
         saving) the exact triangular solve is used, in row chunks.
         """
-        from ._paths import kernel_hyperparameters, kernel_matrix
+        from ._paths import detached, kernel_hyperparameters, kernel_matrix
 
         cache = self._posterior_cache()
         X = self.train_inputs_
@@ -1111,7 +1111,7 @@ class CorrectionGP:
                 ratio = (post / prior.clamp_min(torch.finfo(prior.dtype).tiny)).clamp(0.0, 1.0).sqrt()
                 return ratio.amax(0)
             chol = cache.fac.chol  # (1 or d_out, N, N)
-            params = {k: v.detach() if torch.is_tensor(v) else v for k, v in kernel_hyperparameters(self).items()}
+            params = detached(kernel_hyperparameters(self))
             if cache.support_basis is None:  # once per factorization, not at every extrapolation check
                 cache.support_basis = (self._support_basis(X, params),)
             (basis,) = cache.support_basis

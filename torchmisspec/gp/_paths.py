@@ -446,6 +446,11 @@ def _quadrature_features(X: torch.Tensor, lengthscale: torch.Tensor, outputscale
     return None
 
 
+def detached(params: dict, *, clone: bool = False) -> dict:
+    """:func:`kernel_hyperparameters` without the autograd graph (the feature function is kept as it is)."""
+    return {k: (v.detach().clone() if clone else v.detach()) if torch.is_tensor(v) else v for k, v in params.items()}
+
+
 def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
     """The GP's kernel hyperparameters as ``(B, 1, 1)`` tensors (``outputscale``; ``lengthscale``, or ``offset``
     for the polynomial kernel, or ``weights (B, 1, p)`` for the feature kernel), keeping the autograd graph to the
@@ -558,9 +563,7 @@ class FunctionSamples:
         self.features = features
         self._kind, self._degree = gp.kernel, gp.degree
         with torch.no_grad():
-            self._params = {
-                k: v.detach().clone() if torch.is_tensor(v) else v for k, v in kernel_hyperparameters(gp).items()
-            }
+            self._params = detached(kernel_hyperparameters(gp), clone=True)
         self._X = X.detach()
         self._weights = weights
         self._v = v.contiguous()

@@ -72,9 +72,10 @@ def to_blob(gp: CorrectionGP) -> dict:
     return blob
 
 
-def _field(blob: dict, key: str, kind, path: Path):
-    if key not in blob:
-        raise InputError(f"{path}: expected a torchmisspec CorrectionGP file with field {key!r}, which is missing")
+def _field(blob: dict, key: str, kind, path: Path, what: str = "CorrectionGP"):
+    """``blob[key]``, checked to exist and be a ``kind`` (the error names the file, the field and what it holds)."""
+    if not isinstance(blob, dict) or key not in blob:
+        raise InputError(f"{path}: expected a torchmisspec {what} file with field {key!r}, which is missing")
     value = blob[key]
     if not isinstance(value, kind):
         raise InputError(f"{path}: field {key!r} expected {kind}, got {type(value).__name__}")

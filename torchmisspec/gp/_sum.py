@@ -141,8 +141,9 @@ def fit_sum(
     l_box = (math.log(1e-3 * dist), math.log(1e3 * dist))
     s_box = (math.log(1e-12 * second), math.log(10 * second))
 
+    sq = torch.cdist(X, X).pow(2)  # once: every evaluation of the objective reuses it
+
     def kernel_matrix(wts: torch.Tensor) -> torch.Tensor:
-        sq = torch.cdist(X, X).pow(2)
         return (Phi * wts) @ Phi.T + outputscale * log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
 
     def objective() -> torch.Tensor:
