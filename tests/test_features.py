@@ -306,3 +306,21 @@ def test_user_library_bad_input():
         tms.CorrectionGP(kernel="features", library=[lambda x: x[..., 0] / 0.0]).fit(X, X[:, :1] + 1)
     with pytest.raises(tms.InputError, match="degree"):
         tms.CorrectionGP(kernel="features", degree=0)
+
+
+def test_removal_and_readmission_do_not_cycle():
+    """Shared weights, degree 8: the removal test and the re-admission test once disagreed near the boundary and a
+    term cycled out and in until the iteration cap (4,000 posterior solves instead of ~100)."""
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(2000, 2, dtype=DT, generator=g) * 2 - 1
+    F = torch.stack([0.01 * X[:, 0] ** 2, 0.01 * X[:, 1] ** 2 + 0.003 * X[:, 0]], -1)
+    Y = F + 1e-2 * torch.randn(2000, 2, dtype=DT, generator=g)
+    Phi = monomials(X, monomial_powers(2, 8))
+    w, s, iterations = fit_relevance(Phi, Y, None, floor=None, max_iter=2000)
+    assert iterations < 500
+    best = _evidence(Phi, Y, torch.full_like(Y, s), w)
+    for j in torch.nonzero(w > 0).reshape(-1).tolist():  # still a stationary point in every kept weight
+        for f in (0.98, 1.02):
+            v = w.clone()
+            v[j] *= f
+            assert _evidence(Phi, Y, torch.full_like(Y, s), v) < best + 1e-9

@@ -279,6 +279,7 @@ def fit_relevance(
         B0 = Phi.T @ Y  # (p, m)
         yy = Y.pow(2).sum(0)  # (m,)
     iterations = 0
+    readmitted = torch.zeros_like(w, dtype=torch.bool)  # each term re-enters at most once: no remove/re-admit cycle
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is returned
         act = w > 0
         if not bool(act.any()):
@@ -335,16 +336,20 @@ def fit_relevance(
         pruned = bool(((new == 0) & (w > 0)).any())
         w, s = new, new_s
         if change < _TOLERANCE and not pruned:
-            if homoscedastic and s >= _READD_NOISE * second and _readd(w, s, G0, B0, m, scale_phi, second):
+            if homoscedastic and s >= _READD_NOISE * second and _readd(w, s, G0, B0, m, scale_phi, second, readmitted):
                 continue  # a removed term is relevant given the final others: back in, iterate again
             break
     return w, s, iterations
 
 
-def _readd(w: torch.Tensor, s: float, G0: torch.Tensor, B0: torch.Tensor, m: int, scale_phi, second: float) -> bool:
+def _readd(
+    w: torch.Tensor, s: float, G0: torch.Tensor, B0: torch.Tensor, m: int, scale_phi, second: float, readmitted
+) -> bool:
     """Put back (in place) the removed terms whose evidence-optimal weight given the kept ones is positive:
     ``sum_o q_oj^2 > m s_j`` with ``s_j = phi_j^T C^-1 phi_j``, ``q_oj = phi_j^T C^-1 y_o``, at the weight
-    ``w_j = (sum_o q_oj^2 - m s_j) / (m s_j^2)`` (Tipping & Faul 2003). Returns whether any came back."""
+    ``w_j = (sum_o q_oj^2 - m s_j) / (m s_j^2)`` (Tipping & Faul 2003), each term at most once per fit
+    (``readmitted``, updated): with shared weights the removal test and this one can disagree near the boundary, and a
+    term could otherwise cycle until the iteration cap. Returns whether any came back."""
     act, off = w > 0, w == 0
     if not bool(off.any()):
         return False
@@ -360,11 +365,12 @@ def _readd(w: torch.Tensor, s: float, G0: torch.Tensor, B0: torch.Tensor, m: int
     q2 = Q.pow(2).sum(-1)
     back = (q2 > m * S) & (S > 0)
     weight = (q2 - m * S) / (m * S.pow(2)).clamp_min(torch.finfo(w.dtype).tiny)
-    back &= weight * scale_phi[off] >= PRUNE * second
+    back &= (weight * scale_phi[off] >= PRUNE * second) & ~readmitted[off]
     if not bool(back.any()):
         return False
     idx = off.nonzero().flatten()[back]
     w[idx] = weight[back]
+    readmitted[idx] = True
     return True
 
 
