@@ -107,9 +107,24 @@ def benchmark_arguments(doc: str, argv, smoke_help: str = "tiny sizes; never wri
     return args
 
 
-def publish(text: str, markdown: bool, start: str, end: str) -> None:
-    """Print a benchmark's block and, with ``markdown``, put it into BENCHMARKS.md between its markers."""
+def run_sentence(args) -> str:
+    """How and where a benchmark ran: its command, the machine, the commit and the load average before the run."""
+    info = machine()
+    return (
+        f"Command `{args.command.strip()}`; {info['cpu']}, {info['logical_cpus']} logical CPUs, torch {info['torch']} "
+        f"({info['torch_threads']} threads), commit {info['git_commit']}, load average before the run {args.load}."
+    )
+
+
+def update_benchmarks(block: str, start: str, end: str) -> None:
+    """Put ``block`` (its markers included) into BENCHMARKS.md in place of the old one, or append it."""
+    path = ROOT / "BENCHMARKS.md"
+    path.write_text(replace_marked(path.read_text() if path.exists() else "", block, start, end))
+
+
+def publish(lines: list[str], markdown: bool, start: str, end: str) -> None:
+    """Print a benchmark's block (``lines`` between the markers) and, with ``markdown``, put it into BENCHMARKS.md."""
+    text = "\n".join([start, *lines, end, ""])
     print(text)
     if markdown:
-        path = ROOT / "BENCHMARKS.md"
-        path.write_text(replace_marked(path.read_text(), text, start, end))
+        update_benchmarks(text, start, end)

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import benchmark_arguments, machine, publish  # noqa: E402 (the scripts' shared helper)
+from _machine import benchmark_arguments, publish, run_sentence  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec import design  # noqa: E402
@@ -89,7 +89,6 @@ def main(argv: list[str] | None = None) -> int:
     args = benchmark_arguments(__doc__, argv)
     cfg = SMOKE if args.smoke else FULL
     repeats = 1 if args.smoke else args.repeats
-    load = args.load
     one_round(SMOKE, "information", False)  # warm-up (first calls pay for imports and allocations): not recorded
     rows = {}
     for label, criterion, exact, n in (
@@ -100,14 +99,10 @@ def main(argv: list[str] | None = None) -> int:
         rows[label] = median_of([one_round(cfg, criterion, exact) for _ in range(n)])
         print(label, rows[label])
     same = rows["information (default)"]["picks"] == rows["information, exact data term (reference)"]["picks"]
-    info = machine()
-    command = args.command
     lines = [
-        MARK_START,
         "## One round of the design loop (`scripts/benchmark_campaign.py`)",
         "",
-        f"Command `{command.strip()}`; {info['cpu']}, {info['logical_cpus']} logical CPUs, torch {info['torch']} "
-        f"({info['torch_threads']} threads), commit {info['git_commit']}, load average before the run {load}. "
+        run_sentence(args) + " "
         f"paper_gravity, {cfg['candidates']} candidate orbits, T = 20, {rows['domain']['samples']} samples from "
         f"{cfg['experiments']} experiments; a round = `tell` (samples + hyperparameters learned by marginal "
         f"likelihood) + `ask({cfg['batch']})` (corrected proxies of every candidate, gains conditioned on the data). "
@@ -123,10 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     lines += [
         "",
         f"Selection {ref / new:.1f}x faster than with the exact data term; same picks as the reference: {same}.",
-        MARK_END,
-        "",
     ]
-    publish("\n".join(lines), args.markdown, MARK_START, MARK_END)
+    publish(lines, args.markdown, MARK_START, MARK_END)
     return 0
 
 

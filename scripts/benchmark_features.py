@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import benchmark_arguments, machine, publish  # noqa: E402 (the scripts' shared helper)
+from _machine import benchmark_arguments, publish, run_sentence  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.gp import _mll  # noqa: E402
@@ -53,7 +53,6 @@ def main(argv: list[str] | None = None) -> int:
     args = benchmark_arguments(__doc__, argv, smoke_help="N = 2,000; never writes BENCHMARKS.md")
     n = 2_000 if args.smoke else 10_000
     repeats = 1 if args.smoke else args.repeats
-    load = args.load
     X, Y = data(n)
     tms.CorrectionGP(kernel="features", degree=2).fit(X[:200], Y[:200])  # warm-up, not recorded
     rows = []
@@ -73,14 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         K, diag = gp._kernel_parts(gp.train_inputs_)
         Yb = gp._targets_batched(gp.train_targets_)
         _, dense = timed(lambda: _mll.factorize(K, diag, Yb), 1)
-    info = machine()
-    command = args.command
     lines = [
-        MARK_START,
         "## Feature kernel fit on many samples (`scripts/benchmark_features.py`)",
         "",
-        f"Command `{command.strip()}`; {info['cpu']}, {info['logical_cpus']} logical CPUs, torch {info['torch']} "
-        f"({info['torch_threads']} threads), commit {info['git_commit']}, load average before the run {load}. "
+        run_sentence(args) + " "
         f"N = {n} samples of a 2-input, 2-output polynomial F with noise; medians of {repeats}. Target: p <= 50 "
         "features in under 1 s.",
         "",
@@ -93,10 +88,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Reference in the same run: the dense factorization of the same {n} x {n} covariance (the posterior's cost "
         f"before it moved to feature space) takes {dense:.2f} s on its own.",
-        MARK_END,
-        "",
     ]
-    publish("\n".join(lines), args.markdown, MARK_START, MARK_END)
+    publish(lines, args.markdown, MARK_START, MARK_END)
     return 0
 
 

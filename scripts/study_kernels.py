@@ -39,7 +39,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked, study_arguments  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, study_arguments, update_benchmarks  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec import design  # noqa: E402
@@ -308,7 +308,7 @@ Written by `python scripts/study_kernels.py --markdown`; tables in [docs/studies
 
 {MARK_END}
 """
-        BENCHMARKS_MD.write_text(replace_marked(BENCHMARKS_MD.read_text(), block, MARK_START, MARK_END))
+        update_benchmarks(block, MARK_START, MARK_END)
         print(f"wrote {DOC_PAGE} and the kernels block of {BENCHMARKS_MD}")
     return 0
 

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked, study_arguments  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, study_arguments, update_benchmarks  # noqa: E402 (the scripts' shared helper)
 
 from torchmisspec.paper.studies import StudyResult, sequential_study  # noqa: E402
 
@@ -63,6 +63,7 @@ def single_experiment(realizations: int, resolution: int = 51) -> dict:
     from torchmisspec.gp import CorrectionGP
     from torchmisspec.metrics import box_grid
     from torchmisspec.paper import _setup
+    from torchmisspec.paper.studies import _grid_error
     from torchmisspec.systems import paper_linear
 
     system = paper_linear()
@@ -80,8 +81,7 @@ def single_experiment(realizations: int, resolution: int = 51) -> dict:
         gen = torch.Generator().manual_seed(SEED * 7919 + r)
         y = clean + _setup.NOISE_STD * torch.randn(clean.shape, generator=gen, dtype=clean.dtype)
         for i in range(cand.shape[0]):
-            mu = gp.fit(inputs[i], y[i]).predict_mean(points)
-            err[i] += float((torch.linalg.vector_norm(mu - truth, dim=-1) * weights).sum()) / realizations
+            err[i] += _grid_error(gp.fit(inputs[i], y[i]), truth, points, weights) / realizations
     firsts = {
         "paper design": int(design.greedy(cand, 1, system=system, times=times, gp=prior).indices[0]),
         "domain design": int(
@@ -349,8 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         DOC_PAGE.parent.mkdir(parents=True, exist_ok=True)
         DOC_PAGE.write_text(render_page(results, info, saved.get("single_experiment")))
         figures(results)
-        text = BENCHMARKS_MD.read_text() if BENCHMARKS_MD.exists() else ""
-        BENCHMARKS_MD.write_text(replace_marked(text, render_block(results), MARK_START, MARK_END))
+        update_benchmarks(render_block(results), MARK_START, MARK_END)
         print(f"wrote {DOC_PAGE}, the figures and the sequential block of {BENCHMARKS_MD}")
     return 0
 
