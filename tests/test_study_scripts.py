@@ -12,16 +12,18 @@ from torchmisspec.paper.studies import sequential_study
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _script(name: str, *args: str) -> str:
+    """Run ``scripts/<name>`` with ``args``; its standard output."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / name), *args], check=True, capture_output=True, text=True, timeout=600
+    )
+    return proc.stdout
+
+
 @pytest.mark.slow
 def test_smoke_study_writes_every_strategy(tmp_path):
     out = tmp_path / "s.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "study_sequential.py"), "--smoke", "--json", str(out)],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    stdout = _script("study_sequential.py", "--smoke", "--json", str(out))
     saved = json.loads(out.read_text())
     assert saved["smoke"] is True
     for setup in ("linear", "gravity"):
@@ -31,7 +33,7 @@ def test_smoke_study_writes_every_strategy(tmp_path):
         assert any(n.startswith("sequential") for n in names)
         for errors in res["errors"].values():
             assert all(e > 0 for row in errors for e in row)
-    assert "domain design / random" in proc.stdout
+    assert "domain design / random" in stdout
 
 
 def test_sequential_study_is_reproducible_and_uses_the_campaign_picks():
@@ -41,14 +43,6 @@ def test_sequential_study_is_reproducible_and_uses_the_campaign_picks():
     picks = a.meta["sequential_picks"]["sequential information (rounds of 2)"][0]
     # the first round is the paper's one-shot design (no data yet, the same prior)
     assert picks == a.meta["designs"]["paper design"][:2]
-
-
-def _script(name: str, *args: str) -> str:
-    """Run ``scripts/<name>`` with ``args``; its standard output."""
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / name), *args], check=True, capture_output=True, text=True, timeout=600
-    )
-    return proc.stdout
 
 
 @pytest.mark.slow
@@ -62,17 +56,11 @@ def test_benchmark_smokes():
 def test_kernel_study_smoke(tmp_path):
     pytest.importorskip("pysindy")
     out = tmp_path / "k.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "study_kernels.py"), "--smoke", "--json", str(out)],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    stdout = _script("study_kernels.py", "--smoke", "--json", str(out))
     result = json.loads(out.read_text())
     for section in ("linear", "gravity"):
         for runs in result[section].values():
             for run in runs:
                 assert set(run) == {"GP rbf", "GP features", "GP features+rbf", "GP auto", "SINDy", "MLP"}
                 assert all(v["error"] is None or v["error"] > 0 for v in run.values())
-    assert "auto / SINDy" in proc.stdout
+    assert "auto / SINDy" in stdout
