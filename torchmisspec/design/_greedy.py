@@ -63,8 +63,7 @@ from ._proxy import proxy_trajectories
 __all__ = ["greedy"]
 
 METHODS = ("lazy", "plain", "naive")
-#: (rtol, atol) of the corrected proxies: a proxy only stands in for the unknown true trajectory, so 1e-6 is ample;
-#: on 10,000 gravity candidates it is 1.5 s instead of 2.2 s at the prediction tolerances
+#: (rtol, atol) of the corrected proxies: a proxy only stands in for the unknown true trajectory, so 1e-6 is ample
 PROXY_TOLERANCES = (1e-6, 1e-8)
 PROXIES = ("known", "corrected")  # the proxy trajectories: G alone (the paper's), or G + the GP's posterior mean
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on

@@ -1038,8 +1038,8 @@ class CorrectionGP:
     def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
         """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path).
 
-        Row blocks of about ``MEAN_BLOCK`` kernel entries keep the kernel's elementwise passes in cache: measured
-        2.6x faster than one (10,000 x 500) block on this machine (a corrected-model solve is mostly this call)."""
+        Row blocks of about ``MEAN_BLOCK`` kernel entries keep the kernel's elementwise passes in cache (a
+        corrected-model solve is mostly this call; ``scripts/benchmark_campaign.py`` times it against one block)."""
         if isinstance(cache.fac, FeatureFactorization):  # phi(x)^T (posterior mean of the coefficients)
             return self._unbatch(self.covar_module.base_kernel.features(x) @ cache.fac.mean)
         alpha = cache.fac.alpha
