@@ -9,7 +9,7 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec import design
-from torchmisspec.design._greedy import PROXY_TOLERANCES
+from torchmisspec.design._proxy import PROXY_TOLERANCES
 from torchmisspec.design.candidates import grid
 from torchmisspec.paper._setup import LINEAR_PRIOR, NOISE_STD
 

@@ -33,7 +33,7 @@ from ._common import (
     check_times,
     logdet_identity_plus,
 )
-from ._proxy import proxy_trajectories
+from ._proxy import corrected_proxies, proxy_trajectories
 
 __all__ = [
     "information_gain",
@@ -124,11 +124,7 @@ def _design_points(indices, candidates, system, times, gp, proxies, states, prox
     t = check_times(times, dtype=kern.dtype, device=kern.device)
     chosen = cand[idx]
     if proxies is None and proxy == "corrected":
-        from ..dynamics import CorrectedODE
-        from ._greedy import PROXY_TOLERANCES
-
-        rtol, atol = PROXY_TOLERANCES
-        prox = CorrectedODE(system, gp).predict(chosen, t, rtol=rtol, atol=atol)
+        prox = corrected_proxies(system, gp, chosen, t)
     elif proxies is None:
         prox = proxy_trajectories(system, chosen, t)
     else:

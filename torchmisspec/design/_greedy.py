@@ -58,13 +58,11 @@ from ._common import (
     pivots,
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
-from ._proxy import proxy_trajectories
+from ._proxy import corrected_proxies, proxy_trajectories
 
 __all__ = ["greedy"]
 
 METHODS = ("lazy", "plain", "naive")
-#: (rtol, atol) of the corrected proxies: a proxy only stands in for the unknown true trajectory, so 1e-6 is ample
-PROXY_TOLERANCES = (1e-6, 1e-8)
 PROXIES = ("known", "corrected")  # the proxy trajectories: G alone (the paper's), or G + the GP's posterior mean
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank)
@@ -129,11 +127,7 @@ class _Problem:
             if proxy == "known":
                 self.proxies = proxy_trajectories(self.system, self.candidates.to(**kd), self.times)
             else:  # G + the posterior mean of F: closer to the truth than G alone once data are in
-                from ..dynamics import CorrectedODE
-
-                self.proxies = CorrectedODE(self.system, gp).predict(
-                    self.candidates.to(**kd), self.times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1]
-                )
+                self.proxies = corrected_proxies(self.system, gp, self.candidates.to(**kd), self.times)
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)

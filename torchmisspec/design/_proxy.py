@@ -10,7 +10,18 @@ from ..data import simulate
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
 
-__all__ = ["proxy_trajectories"]
+__all__ = ["proxy_trajectories", "corrected_proxies", "PROXY_TOLERANCES"]
+
+#: (rtol, atol) of the corrected proxies: a proxy only stands in for the unknown true trajectory, so 1e-6 is ample
+PROXY_TOLERANCES = (1e-6, 1e-8)
+
+
+def corrected_proxies(system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+    """The corrected model's trajectories (G + the fitted GP's posterior mean) from ``y0 (N, d)``: the proxies a
+    design with data uses (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`)."""
+    from ..dynamics import CorrectedODE
+
+    return CorrectedODE(system, gp).predict(y0, times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1])
 
 
 def proxy_trajectories(
