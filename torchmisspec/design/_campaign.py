@@ -328,13 +328,7 @@ class Campaign:
             "config": dict(self.config),
             "candidates": self.candidates.cpu(),
             "times": self.times.cpu(),
-            "prior": {
-                "kernel": self.prior.kernel,
-                "per_output": self.prior.per_output,
-                "degree": self.prior.degree,
-                "fixed": dict(self.prior.fixed),
-                "dtype": str(self.prior.dtype).removeprefix("torch."),
-            },
+            "prior": _persistence.config_of(self.prior),
             "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
             "inputs": [x.cpu() for x in self._inputs],
             "targets": [y.cpu() for y in self._targets],
@@ -371,20 +365,7 @@ class Campaign:
                 f"system: the campaign was run with system '{saved.get('name')}' (state_dim "
                 f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
             )
-        pri = field("prior", dict)
-        dtypes = {"float64": torch.float64, "float32": torch.float32}
-        if pri.get("dtype") not in dtypes or not isinstance(pri.get("fixed"), dict):
-            raise InputError(f"{path}: field 'prior' is damaged: {pri!r:.200}")
-        try:
-            prior = CorrectionGP(
-                kernel=pri.get("kernel"),
-                per_output=bool(pri.get("per_output")),
-                degree=pri.get("degree", 2),
-                dtype=dtypes[pri["dtype"]],
-                **pri["fixed"],
-            )
-        except (TypeError, TorchMisspecError) as exc:
-            raise InputError(f"{path}: field 'prior' is damaged ({exc})") from exc
+        prior = _persistence.from_config(CorrectionGP, field("prior", dict), f"{path} (field 'prior')")
         cfg = field("config", dict)
         try:
             camp = cls(

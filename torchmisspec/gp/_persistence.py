@@ -21,7 +21,7 @@ from .._errors import InputError
 if TYPE_CHECKING:  # pragma: no cover
     from ._model import CorrectionGP
 
-__all__ = ["save", "load", "to_blob", "from_blob", "read_safely", "FORMAT_VERSION"]
+__all__ = ["save", "load", "to_blob", "from_blob", "config_of", "from_config", "read_safely", "FORMAT_VERSION"]
 
 FORMAT_VERSION = 3  # 3: + "train_noise" (files of version 2 have none and load as before)
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -38,9 +38,8 @@ def save(gp: CorrectionGP, path: str | Path) -> Path:
     return path
 
 
-def to_blob(gp: CorrectionGP) -> dict:
-    """The fitted ``gp`` as a dictionary of plain values and tensors (what :func:`save` writes)."""
-    gp._require_fitted()
+def config_of(gp: CorrectionGP) -> dict:
+    """The configuration of ``gp`` (fitted or not) as plain values: enough for :func:`from_config` to rebuild it."""
     if getattr(gp, "library", None) is not None:
         raise InputError(
             "save: this model's feature library is Python code, and a model file never holds code (it could run on "
@@ -49,18 +48,51 @@ def to_blob(gp: CorrectionGP) -> dict:
     dtype = str(gp.dtype).removeprefix("torch.")
     if dtype not in _DTYPES:
         raise InputError(f"dtype: only {sorted(_DTYPES)} models can be saved, got {dtype}")
+    return {
+        "kernel": gp.kernel,
+        "per_output": gp.per_output,
+        "degree": gp.degree,
+        "max_iter": gp.max_iter,
+        "fixed": dict(gp.fixed),
+        "dtype": dtype,
+        "auto": bool(getattr(gp, "auto", False)),  # kernel="auto": a refit chooses again
+        "auto_per_output": bool(getattr(gp, "_auto_per_output", gp.per_output)),
+    }
+
+
+def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
+    """The unfitted CorrectionGP of a configuration written by :func:`config_of` (checked; errors name ``path``)."""
+    if not isinstance(cfg, dict):
+        raise InputError(f"{path}: expected a configuration dictionary, got {type(cfg).__name__}")
+    dtype_name = cfg.get("dtype")
+    if dtype_name not in _DTYPES:
+        raise InputError(f"{path}: expected dtype one of {sorted(_DTYPES)}, got {dtype_name!r}")
+    fixed = cfg.get("fixed", {})
+    if not isinstance(fixed, dict) or set(fixed) - {"lengthscale", "outputscale", "noise_variance"}:
+        raise InputError(f"{path}: expected 'fixed' to map hyperparameter names to values, got {fixed!r}")
+    try:
+        gp = cls(
+            kernel=cfg.get("kernel"),
+            per_output=bool(cfg.get("per_output")),
+            degree=cfg.get("degree", 2),
+            max_iter=cfg.get("max_iter", 200),
+            dtype=_DTYPES[dtype_name],
+            device=device,
+            **fixed,
+        )
+    except (TypeError, InputError) as exc:
+        raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
+    gp.auto = bool(cfg.get("auto", False))
+    gp._auto_per_output = bool(cfg.get("auto_per_output", gp.per_output))
+    return gp
+
+
+def to_blob(gp: CorrectionGP) -> dict:
+    """The fitted ``gp`` as a dictionary of plain values and tensors (what :func:`save` writes)."""
+    gp._require_fitted()
     blob = {
         "format": FORMAT_VERSION,
-        "config": {
-            "kernel": gp.kernel,
-            "per_output": gp.per_output,
-            "degree": gp.degree,
-            "max_iter": gp.max_iter,
-            "fixed": dict(gp.fixed),
-            "dtype": dtype,
-            "auto": bool(getattr(gp, "auto", False)),  # kernel="auto": a refit chooses again
-            "auto_per_output": bool(getattr(gp, "_auto_per_output", gp.per_output)),
-        },
+        "config": config_of(gp),
         "covar_module": {k: v.detach().cpu() for k, v in gp.covar_module.state_dict().items()},
         "likelihood": {k: v.detach().cpu() for k, v in gp.likelihood.state_dict().items()},
         "train_inputs": gp.train_inputs_.detach().cpu(),
@@ -107,27 +139,7 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
     """The CorrectionGP of a dictionary written by :func:`to_blob`; ``path`` names the source in errors."""
     if not isinstance(blob, dict):
         raise InputError(f"{path}: expected a dictionary, got {type(blob).__name__}")
-    cfg = _field(blob, "config", dict, path)
-    dtype_name = cfg.get("dtype")
-    if dtype_name not in _DTYPES:
-        raise InputError(f"{path}: expected dtype one of {sorted(_DTYPES)}, got {dtype_name!r}")
-    fixed = cfg.get("fixed", {})
-    if not isinstance(fixed, dict) or set(fixed) - {"lengthscale", "outputscale", "noise_variance"}:
-        raise InputError(f"{path}: expected 'fixed' to map hyperparameter names to values, got {fixed!r}")
-    try:
-        gp = cls(
-            kernel=cfg.get("kernel"),
-            per_output=bool(cfg.get("per_output")),
-            degree=cfg.get("degree", 2),
-            max_iter=cfg.get("max_iter", 200),
-            dtype=_DTYPES[dtype_name],
-            device=device,
-            **fixed,
-        )
-    except TypeError as exc:
-        raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
-    gp.auto = bool(cfg.get("auto", False))
-    gp._auto_per_output = bool(cfg.get("auto_per_output", gp.per_output))
+    gp = from_config(cls, _field(blob, "config", dict, path), path, device=device)
     X = _field(blob, "train_inputs", torch.Tensor, path).to(gp.device, gp.dtype)
     Y = _field(blob, "train_targets", torch.Tensor, path).to(gp.device, gp.dtype)
     if X.dim() != 2 or Y.dim() != 2 or X.shape[0] != Y.shape[0]:
