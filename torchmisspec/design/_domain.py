@@ -77,10 +77,10 @@ class DomainModel:
             self.W = (phi_q * self.weights.unsqueeze(-1)).T @ phi_q  # (r, r)
             self.A = torch.eye(self.rank, **dd)  # I + Psi_data^T Psi_data
             self.num_conditioned = 0
-            if kern.chol is not None:  # the GP's data, with their own noise: diag(L L^T) - k(x_i, x_i)
+            if kern.chol is not None:  # the GP's data, with their own noise (floor + known, the same for all outputs)
                 X = kern.data
                 phi, r = self.features(X)
-                noise = (kern.chol.pow(2).sum(-1) - self.prior.diag(X)).clamp_min(0.0)
+                noise = kern.gp._noise_diag(kern.gp.train_noise_)[0].detach().expand(X.shape[0])
                 psi = phi / torch.sqrt(noise + r).unsqueeze(-1)
                 self.A = self.A + psi.T @ psi
                 self.num_conditioned = X.shape[0]
