@@ -203,6 +203,7 @@ def _settings(template: CorrectionGP) -> dict:
     return dict(
         kernel=template.kernel,
         degree=template.degree,
+        min_gain=template.min_gain if template.kernel in ("features", "features+rbf") else None,
         per_output=template.per_output,
         outputscale=template.fixed["outputscale"],
         noise_variance=template.fixed["noise_variance"],

@@ -247,6 +247,7 @@ def fit_relevance(
     *,
     floor: float | None,
     max_iter: int,
+    min_gain: float = 0.0,
 ) -> tuple[torch.Tensor, float, int]:
     """Sparse Bayesian learning of the weights (and the noise floor) for outputs ``Y (N, m)`` sharing them.
 
@@ -256,6 +257,8 @@ def fit_relevance(
         known: ``(N, m)`` known noise variances or ``None``.
         floor: the noise floor if fixed, ``None`` to learn it.
         max_iter: most fixed-point iterations.
+        min_gain: a term is kept only while the log evidence it adds at its best weight exceeds this many nats
+            (the prior log-odds against each term, see :func:`term_gain`); 0 is plain automatic relevance.
 
     Returns:
         ``(w (p,), floor, iterations)``.
@@ -282,11 +285,14 @@ def fit_relevance(
     readmitted = torch.zeros_like(w, dtype=torch.bool)  # each term re-enters at most once: no remove/re-admit cycle
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is returned
         act = w > 0
-        if not bool(act.any()):
+        if not bool(act.any()):  # no term left: F = 0, and the noise is all of the targets' variance
+            if learn_floor:
+                s = max(second if homoscedastic else _golden_floor(Phi, Y, known, w, s_min, 10.0 * second), s_min)
             break
         wa = w[act]
         num = torch.zeros_like(wa)
         gam_sum = torch.zeros_like(wa)
+        bound = torch.zeros_like(wa)  # sum over outputs of each output's own best gain: >= the shared best gain
         resid, dof = 0.0, 0.0
         for o in range(m):
             if homoscedastic:
@@ -306,6 +312,8 @@ def fit_relevance(
             gam = (1.0 - Sigma.diagonal() / wa).clamp(0.0, 1.0)
             num += mu.pow(2)
             gam_sum += gam
+            if min_gain > 0:
+                bound += term_gain(mu.pow(2) / (Sigma.diagonal() * gam).clamp_min(torch.finfo(w.dtype).tiny), 1)
             if homoscedastic:
                 Ga = G0[act][:, act]
                 r2 = float(yy[o] - 2.0 * mu @ B0[act, o] + mu @ Ga @ mu)
@@ -322,7 +330,15 @@ def fit_relevance(
             # over hundreds of fixed-point iterations
             irrelevant = torch.zeros_like(w, dtype=torch.bool)
             irrelevant[act] = num <= gam_sum * var
+            if min_gain > 0:  # the same factors give the best gain in closed form (the outputs share s_j)
+                bound = term_gain(num / (gam_sum * var).clamp_min(torch.finfo(w.dtype).tiny), m)
             new[irrelevant] = 0.0
+        if min_gain > 0 and bool((bound <= min_gain).any()):
+            # one term per iteration, the least valuable: collinear terms each look redundant given the others,
+            # and removing them together would remove what they explain jointly (re-entry is checked at the end)
+            worst = int(torch.argmin(bound))
+            if bound[worst] <= min_gain:
+                new[act.nonzero().flatten()[worst]] = 0.0
         new[new * scale_phi < PRUNE * second] = 0.0
         new_s = s
         if learn_floor:
@@ -336,14 +352,36 @@ def fit_relevance(
         pruned = bool(((new == 0) & (w > 0)).any())
         w, s = new, new_s
         if change < _TOLERANCE and not pruned:
-            if homoscedastic and s >= _READD_NOISE * second and _readd(w, s, G0, B0, m, scale_phi, second, readmitted):
+            if (
+                homoscedastic
+                and s >= _READD_NOISE * second
+                and _readd(w, s, G0, B0, m, scale_phi, second, readmitted, min_gain)
+            ):
                 continue  # a removed term is relevant given the final others: back in, iterate again
             break
     return w, s, iterations
 
 
+def term_gain(theta: torch.Tensor, m: int) -> torch.Tensor:
+    """The log evidence a term adds at its evidence-optimal weight, ``m/2 (theta - 1 - log theta)`` for ``theta > 1``
+    (0 otherwise), where ``theta = sum_o q_oj^2 / (m s_j)`` from its sparsity and quality factors (Tipping & Faul
+    2003) over the ``m`` outputs sharing it: with ``1 + w s_j = theta`` at the optimum ``w = (theta - 1) / s_j``,
+    ``sum_o [q_oj^2 w / (1 + w s_j) - log(1 + w s_j)] / 2`` is that value. A spike-and-slab prior that includes each
+    term with probability pi keeps a term when this exceeds ``log((1 - pi) / pi)``."""
+    t = theta.clamp_min(1.0)
+    return 0.5 * m * (t - 1.0 - t.log())
+
+
 def _readd(
-    w: torch.Tensor, s: float, G0: torch.Tensor, B0: torch.Tensor, m: int, scale_phi, second: float, readmitted
+    w: torch.Tensor,
+    s: float,
+    G0: torch.Tensor,
+    B0: torch.Tensor,
+    m: int,
+    scale_phi,
+    second: float,
+    readmitted,
+    min_gain: float = 0.0,
 ) -> bool:
     """Put back (in place) the removed terms whose evidence-optimal weight given the kept ones is positive:
     ``sum_o q_oj^2 > m s_j`` with ``s_j = phi_j^T C^-1 phi_j``, ``q_oj = phi_j^T C^-1 y_o``, at the weight
@@ -364,6 +402,8 @@ def _readd(
         S, Q = G[off][:, off].diagonal(), B[off]
     q2 = Q.pow(2).sum(-1)
     back = (q2 > m * S) & (S > 0)
+    if min_gain > 0:
+        back &= term_gain(q2 / (m * S).clamp_min(torch.finfo(w.dtype).tiny), m) > min_gain
     weight = (q2 - m * S) / (m * S.pow(2)).clamp_min(torch.finfo(w.dtype).tiny)
     back &= (weight * scale_phi[off] >= PRUNE * second) & ~readmitted[off]
     if not bool(back.any()):

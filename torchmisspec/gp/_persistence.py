@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .._errors import InputError
+from .._validation import check_real
 
 if TYPE_CHECKING:  # pragma: no cover
     from ._model import CorrectionGP
@@ -53,6 +54,7 @@ def config_of(gp: CorrectionGP) -> dict:
         "per_output": gp.per_output,
         "degree": gp.degree,
         "max_iter": gp.max_iter,
+        "min_gain": getattr(gp, "min_gain", None),
         "fixed": dict(gp.fixed),
         "dtype": dtype,
         "auto": bool(getattr(gp, "auto", False)),  # kernel="auto": a refit chooses again
@@ -76,6 +78,7 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
             per_output=bool(cfg.get("per_output")),
             degree=cfg.get("degree", 2),
             max_iter=cfg.get("max_iter", 200),
+            min_gain=cfg.get("min_gain") if cfg.get("kernel") in ("features", "features+rbf") else None,
             dtype=_DTYPES[dtype_name],
             device=device,
             **fixed,
@@ -83,6 +86,8 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
     except (TypeError, InputError) as exc:
         raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
     gp.auto = bool(cfg.get("auto", False))
+    if gp.auto:  # the features candidate's price (the kernel chosen may be another)
+        gp.min_gain = None if cfg.get("min_gain") is None else check_real(cfg["min_gain"], "min_gain", minimum=0.0)
     gp._auto_per_output = bool(cfg.get("auto_per_output", gp.per_output))
     return gp
 

@@ -100,6 +100,26 @@ def _exact_mll(K: torch.Tensor, Y: torch.Tensor, D: torch.Tensor) -> torch.Tenso
     return total
 
 
+def _least_valuable(Phi, w, K, Y, D) -> tuple[int, float]:
+    """The kept term (``w > 0``) of least evidence gain at its best weight given all the others, and that gain
+    (:func:`~torchmisspec.gp._features.term_gain`). From one factorization of ``C = K + D``: with
+    ``s_j = phi_j^T C^-1 phi_j`` and ``q_oj = phi_j^T C^-1 y_o``, the factors with term j left out of C are
+    ``S_j = s_j / (1 - w_j s_j)`` and ``Q_oj = q_oj / (1 - w_j s_j)`` (Sherman-Morrison), and
+    ``theta_j = sum_o Q_oj^2 / (m S_j)``. The noise must be the same for every output."""
+    from ._features import term_gain
+
+    L = torch.linalg.cholesky(K + torch.diag(D[:, 0]))
+    A = torch.cholesky_solve(Phi[:, w > 0], L)  # C^-1 phi_j for the kept terms
+    s = (Phi[:, w > 0] * A).sum(0)
+    q = A.T @ Y  # (q, m)
+    shrink = (1.0 - w[w > 0] * s).clamp_min(torch.finfo(Phi.dtype).tiny)
+    S, Q = s / shrink, q / shrink.unsqueeze(-1)
+    m = Y.shape[1]
+    gain = term_gain(Q.pow(2).sum(-1) / (m * S).clamp_min(torch.finfo(Phi.dtype).tiny), m)
+    i = int(torch.argmin(gain))
+    return int((w > 0).nonzero().flatten()[i]), float(gain[i])
+
+
 def fit_sum(
     kernel: FeaturesPlusRBF,
     X: torch.Tensor,
@@ -110,10 +130,13 @@ def fit_sum(
     lengthscale: float | None,
     max_iter: int,
     outputscale: float = 1.0,
+    min_gain: float = 0.0,
 ) -> tuple[float, float, int]:
     """Fit the weights, the RBF scale and lengthscale (unless ``lengthscale`` is given) and the noise floor (unless
     ``floor`` is given) by exact marginal likelihood of ``outputscale * k + noise``; write them into ``kernel``. Fixed
-    values are used as given. Returns ``(floor, lml, iterations)``.
+    values are used as given. With ``min_gain`` > 0, terms whose best evidence gain given the rest (RBF term
+    included, :func:`_least_valuable`) is at most ``min_gain`` nats are then removed one at a time, and the rest
+    re-fitted once. Returns ``(floor, lml, iterations)``.
     """
     from ._model import median_distance
 
@@ -123,7 +146,7 @@ def fit_sum(
     Phi = kernel.features(X).detach() * math.sqrt(outputscale)  # the output scale folded into the features
     scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)
     known0 = torch.zeros_like(Y) if known is None else known
-    w0, s0, _ = fit_relevance(Phi, Y, known, floor=floor, max_iter=10 * max_iter)
+    w0, s0, _ = fit_relevance(Phi, Y, known, floor=floor, max_iter=10 * max_iter, min_gain=min_gain)
     kd = {"dtype": X.dtype, "device": X.device}
     # start: the feature fit's weights (removed ones small, not 0: the RBF term may change what is relevant),
     # the RBF term at a tenth of the targets' second moment, the lengthscale at the median distance
@@ -143,7 +166,10 @@ def fit_sum(
 
     sq = torch.cdist(X, X).pow(2)  # once: every evaluation of the objective reuses it
 
+    keep = torch.ones_like(w0, dtype=torch.bool)  # the terms still in the model (removed ones: weight exactly 0)
+
     def kernel_matrix(wts: torch.Tensor) -> torch.Tensor:
+        wts = torch.where(keep, wts, torch.zeros_like(wts))
         return (Phi * wts) @ Phi.T + outputscale * log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
 
     def objective() -> torch.Tensor:
@@ -157,21 +183,39 @@ def fit_sum(
         D = known0 + log_s.exp()
         return -_exact_mll(kernel_matrix(log_w.exp()), Y, D) / Y.numel()
 
-    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9)
+    def optimise() -> int:
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9)
 
-    def closure():
-        opt.zero_grad()
-        value = objective()
-        value.backward()
-        return value
+        def closure():
+            opt.zero_grad()
+            value = objective()
+            value.backward()
+            return value
 
-    try:
-        opt.step(closure)
-    except torch.linalg.LinAlgError as exc:
-        raise FittingError(f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})") from exc
-    iterations = int(opt.state[opt._params[0]].get("n_iter", 0))
+        try:
+            opt.step(closure)
+        except torch.linalg.LinAlgError as exc:
+            raise FittingError(
+                f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})"
+            ) from exc
+        return int(opt.state[opt._params[0]].get("n_iter", 0))
+
+    iterations = optimise()
     with torch.no_grad():
-        w = log_w.exp()
+        keep &= log_w.exp() * scale_phi >= PRUNE_SUM * second
+    if min_gain > 0:
+        removed = False
+        with torch.no_grad():
+            while bool(keep.any()):
+                j, gain = _least_valuable(Phi, log_w.exp() * keep, kernel_matrix(log_w.exp()), Y, known0 + log_s.exp())
+                if gain > min_gain:
+                    break
+                keep[j] = False
+                removed = True
+        if removed:  # the RBF term and the noise take up what the removed terms explained
+            iterations += optimise()
+    with torch.no_grad():
+        w = log_w.exp() * keep
         w[w * scale_phi < PRUNE_SUM * second] = 0.0
         lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
         kernel.features_kernel.weights.copy_(w)
