@@ -14,7 +14,8 @@ Methods (every one sees the same samples; degree-2 monomials for every polynomia
 * ``GP rbf``: ``CorrectionGP()`` (RBF, hyperparameters by marginal likelihood);
 * ``GP features``: ``CorrectionGP(kernel="features")`` (automatic relevance);
 * ``GP features+rbf``: ``CorrectionGP(kernel="features+rbf")``;
-* ``GP auto``: ``CorrectionGP(kernel="auto")`` (the kernel of highest marginal likelihood);
+* ``GP auto``: ``CorrectionGP(kernel="auto")`` (the kernel of highest evidence score: log marginal likelihood less
+  BIC's price of the learned hyperparameters);
 * ``SINDy``: pysindy's polynomial library and STLSQ, the threshold by 5-fold cross-validation over experiments;
 * ``MLP``: a 2 x 64 tanh network, Adam with weight decay, inputs and outputs standardised.
 
@@ -136,6 +137,7 @@ def gp_method(kernel: str, samples):
     info = {"kernel": gp.kernel}
     if kernel == "auto":
         info["selection"] = {r["kernel"]: r["log_marginal_likelihood"] for r in gp.model_selection_}
+        info["score"] = {r["kernel"]: r["score"] for r in gp.model_selection_}
     return estimate, info
 
 

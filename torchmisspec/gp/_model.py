@@ -57,7 +57,7 @@ __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
 #: the kernels with a library of monomials and one learned weight per term (terms(), weights)
 FEATURE_KERNELS = ("features", "features+rbf")
-#: the candidates of kernel="auto", fitted in this order; the highest log marginal likelihood wins
+#: the candidates of kernel="auto", fitted in this order; the highest CorrectionGP.evidence_score wins
 AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
 #: (centred at the fitted value: a factor of about 7 either way).
@@ -176,8 +176,9 @@ class CorrectionGP:
             the monomials up to ``degree``, one learned weight per term: automatic relevance, see
             :mod:`torchmisspec.gp._features`), ``"features+rbf"`` (that library plus an RBF term for what it misses,
             :mod:`torchmisspec.gp._sum`), or ``"auto"``: every fit fits rbf, matern52, features and features+rbf
-            by marginal likelihood and keeps the kernel of highest log marginal likelihood (``model_selection_``
-            lists them all; the cost of about four fits). Each is scaled by ``outputscale`` (fixed at 1 for the
+            by marginal likelihood and keeps the kernel of highest :attr:`evidence_score` (the log marginal
+            likelihood less BIC's price of its learned hyperparameters; ``model_selection_`` lists them all; the
+            cost of about four fits). Each is scaled by ``outputscale`` (fixed at 1 for the
             feature kernels, whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
             here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
@@ -201,8 +202,9 @@ class CorrectionGP:
     marginal likelihood (nats, summed over outputs) at those values; ``n_iterations_`` and ``n_evaluations_`` the
     L-BFGS iterations and likelihood evaluations of the final optimisation pass; ``model`` the GPyTorch ``ExactGP``
     holding the hyperparameters and the training data. With ``kernel="auto"``, ``kernel`` is the kernel chosen and
-    ``model_selection_`` a list of dictionaries (``kernel``, ``log_marginal_likelihood``, ``seconds``, ``error``
-    of a candidate that failed, ``chosen``).
+    ``model_selection_`` a list of dictionaries (``kernel``, ``log_marginal_likelihood``, ``hyperparameters``
+    (the number learned), ``score`` (:attr:`evidence_score`), ``seconds``, ``error`` of a candidate that failed,
+    ``chosen``).
     """
 
     def __init__(
@@ -736,9 +738,31 @@ class CorrectionGP:
         self._freeze()
         self._posterior_cache()
 
+    @property
+    def num_hyperparameters(self) -> int:
+        """The number of hyperparameters learned by the fit: every free value (one per output with
+        ``per_output``), and of the feature weights only those of the terms kept (a removed term is no parameter)."""
+        self._require_fitted()
+        return sum(
+            int((p.detach() != 0).sum()) if name == "weights" else p.numel() for name, p in self._free_parameters()
+        )
+
+    @property
+    def evidence_score(self) -> float:
+        """The log marginal likelihood less ``num_hyperparameters * log(N) / 2`` (N samples): BIC's approximation
+        of the hyperparameters' own Occam factor, which ML-II evidence leaves out (the log evidence with them
+        integrated out, up to O(1)). ``kernel="auto"`` keeps the candidate of highest score. The price per learned
+        value is the same as a feature term's (``min_gain``), so the choice between kernels and the choice of terms
+        within a feature kernel follow one rule; without it, a kernel with more learned values wins whenever they
+        fit the samples slightly better."""
+        self._require_fitted()
+        n = self.train_inputs_.shape[0]
+        return float(self.log_marginal_likelihood_) - 0.5 * math.log(n) * self.num_hyperparameters
+
     def _fit_auto(self, inputs, targets, noise, **options) -> CorrectionGP:
         """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood and keep the one of
-        highest log marginal likelihood (its evidence given its own ML-II hyperparameters). The feature kernel is
+        highest :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of
+        those). The feature kernel is
         fitted with one weight per term and output (``per_output=True``); features+rbf is skipped when
         ``per_output`` (it is shared by the outputs). Cost: the sum of the candidates' fits, about 4 fits.
         ``model_selection_`` records each candidate: kernel, log marginal likelihood, seconds, and the error of a
@@ -770,21 +794,24 @@ class CorrectionGP:
                     {
                         "kernel": kernel,
                         "log_marginal_likelihood": None,
+                        "hyperparameters": None,
+                        "score": None,
                         "seconds": time.perf_counter() - start,
                         "error": f"{type(exc).__name__}: {exc}",
                     }
                 )
                 continue
-            lml = float(cand.log_marginal_likelihood_)
             records.append(
                 {
                     "kernel": kernel,
-                    "log_marginal_likelihood": lml,
+                    "log_marginal_likelihood": float(cand.log_marginal_likelihood_),
+                    "hyperparameters": cand.num_hyperparameters,
+                    "score": cand.evidence_score,
                     "seconds": time.perf_counter() - start,
                     "error": None,
                 }
             )
-            if best is None or lml > best.log_marginal_likelihood_:
+            if best is None or cand.evidence_score > best.evidence_score:
                 best = cand
         if best is None:
             raise FittingError(

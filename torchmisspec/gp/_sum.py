@@ -21,6 +21,7 @@ import gpytorch
 import torch
 
 from .._errors import FittingError
+from .._linalg import cholesky_or_fail
 from ._features import FeatureKernel, fit_relevance
 
 __all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]
@@ -105,10 +106,14 @@ def _least_valuable(Phi, w, K, Y, D) -> tuple[int, float]:
     (:func:`~torchmisspec.gp._features.term_gain`). From one factorization of ``C = K + D``: with
     ``s_j = phi_j^T C^-1 phi_j`` and ``q_oj = phi_j^T C^-1 y_o``, the factors with term j left out of C are
     ``S_j = s_j / (1 - w_j s_j)`` and ``Q_oj = q_oj / (1 - w_j s_j)`` (Sherman-Morrison), and
-    ``theta_j = sum_o Q_oj^2 / (m S_j)``. The noise must be the same for every output."""
+    ``theta_j = sum_o Q_oj^2 / (m S_j)``. The noise must be the same for every output. When ``C`` cannot be
+    factorized without jitter (nearly noiseless samples, where every kept term's gain is large anyway), no term is
+    offered: ``(-1, inf)``."""
     from ._features import term_gain
 
-    L = torch.linalg.cholesky(K + torch.diag(D[:, 0]))
+    L, failed = cholesky_or_fail(K + torch.diag(D[:, 0]))
+    if bool(failed):
+        return -1, math.inf
     A = torch.cholesky_solve(Phi[:, w > 0], L)  # C^-1 phi_j for the kept terms
     s = (Phi[:, w > 0] * A).sum(0)
     q = A.T @ Y  # (q, m)
@@ -217,7 +222,14 @@ def fit_sum(
     with torch.no_grad():
         w = log_w.exp() * keep
         w[w * scale_phi < PRUNE_SUM * second] = 0.0
-        lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
+        try:
+            lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
+        except torch.linalg.LinAlgError as exc:  # round-off with a noise floor near 0: say so, not a torch error
+            raise FittingError(
+                "the features+rbf fit failed: with the learned noise floor "
+                f"{float(log_s.exp()):.3g} the covariance is not numerically positive definite ({exc}); the samples "
+                "look noiseless: fix a small noise_variance, or use kernel='features'"
+            ) from exc
         kernel.features_kernel.weights.copy_(w)
         kernel.raw_rbf_scale.copy_(log_a.reshape(1))
         if lengthscale is None:
