@@ -20,6 +20,14 @@ noise is updated the same way, ``s <- sum_o ||y_o - Phi mu_o||^2 / sum_o (N - su
 beside known noise by a golden-section search of the evidence. Weights of terms the data do not support shrink
 to 0 geometrically and are removed (set to exactly 0) once their contribution falls below :data:`PRUNE` of the
 targets' second moment. Every step works with ``p x p`` matrices: O(N p^2 + p^3) per iteration, never O(N^3).
+
+**A price per term.** Plain automatic relevance keeps every term whose evidence-optimal weight is positive, however
+little evidence it adds; with noisy samples that leaves weak spurious terms. With ``min_gain`` > 0 a term stays only
+while the log evidence it adds at its best weight, :func:`term_gain` (closed form from Tipping & Faul's sparsity and
+quality factors), exceeds ``min_gain``: the term of least gain below the price leaves, one per iteration (collinear
+terms each look redundant given the others), and a removed term re-enters at convergence only above the price. This
+is a spike-and-slab prior with inclusion odds ``exp(-min_gain)``; :class:`~torchmisspec.CorrectionGP` uses BIC's
+``log(N) / 2`` per coefficient by default.
 """
 
 from __future__ import annotations
