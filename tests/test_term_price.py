@@ -180,3 +180,24 @@ def test_noiseless_samples_fail_clearly_or_fit():
         assert "noiseless" in str(exc) and "noise_variance" in str(exc)
     else:
         assert math.isfinite(gp.log_marginal_likelihood_)
+
+
+def test_least_valuable_with_different_noise_per_output_is_an_upper_bound():
+    """Known noise that differs between the outputs: the gain is the sum of each output's own best gain (brute
+    force per output), never below the best gain of the weight they share."""
+    g = torch.Generator().manual_seed(4)
+    X = torch.rand(50, 2, generator=g, dtype=DT) * 2 - 1
+    Phi = monomials(X, monomial_powers(2, 1))
+    Y = torch.stack([0.3 * X[:, 0], 0.2 * X[:, 0] + 0.1 * X[:, 1]], -1) + 0.05 * torch.randn(50, 2, generator=g)
+    D = torch.stack([torch.full((50,), 0.05**2, dtype=DT), torch.full((50,), 0.08**2, dtype=DT)], -1)
+    rbf = 0.01 * torch.exp(-0.5 * torch.cdist(X, X).pow(2))
+    w = torch.tensor([0.01, 0.05, 0.02], dtype=DT)
+    j, gain = _least_valuable(Phi, w, (Phi * w) @ Phi.T + rbf, Y, D)
+
+    def one(o):
+        return lambda v: float(_exact_mll((Phi * v) @ Phi.T + rbf, Y[:, o : o + 1], D[:, o : o + 1]))
+
+    separate = sum(_best_gain_by_scan(one(o), w, j) for o in range(2))
+    shared = _best_gain_by_scan(lambda v: float(_exact_mll((Phi * v) @ Phi.T + rbf, Y, D)), w, j)
+    assert gain == pytest.approx(separate, abs=1e-6, rel=1e-6)
+    assert gain >= shared - 1e-6

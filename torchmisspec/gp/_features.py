@@ -320,7 +320,7 @@ def fit_relevance(
             gam = (1.0 - Sigma.diagonal() / wa).clamp(0.0, 1.0)
             num += mu.pow(2)
             gam_sum += gam
-            if min_gain > 0:
+            if min_gain > 0 and not homoscedastic:  # (homoscedastic: the exact shared gain is computed below)
                 bound += term_gain(mu.pow(2) / (Sigma.diagonal() * gam).clamp_min(torch.finfo(w.dtype).tiny), 1)
             if homoscedastic:
                 Ga = G0[act][:, act]

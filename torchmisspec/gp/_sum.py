@@ -103,26 +103,32 @@ def _exact_mll(K: torch.Tensor, Y: torch.Tensor, D: torch.Tensor) -> torch.Tenso
 
 def _least_valuable(Phi, w, K, Y, D) -> tuple[int, float]:
     """The kept term (``w > 0``) of least evidence gain at its best weight given all the others, and that gain
-    (:func:`~torchmisspec.gp._features.term_gain`). From one factorization of ``C = K + D``: with
-    ``s_j = phi_j^T C^-1 phi_j`` and ``q_oj = phi_j^T C^-1 y_o``, the factors with term j left out of C are
-    ``S_j = s_j / (1 - w_j s_j)`` and ``Q_oj = q_oj / (1 - w_j s_j)`` (Sherman-Morrison), and
-    ``theta_j = sum_o Q_oj^2 / (m S_j)``. The noise must be the same for every output. When ``C`` cannot be
-    factorized without jitter (nearly noiseless samples, where every kept term's gain is large anyway), no term is
-    offered: ``(-1, inf)``."""
+    (:func:`~torchmisspec.gp._features.term_gain`). From one factorization of ``C = K + D`` per distinct noise
+    column: with ``s_j = phi_j^T C^-1 phi_j`` and ``q_oj = phi_j^T C^-1 y_o``, the factors with term j left out of C
+    are ``S_j = s_j / (1 - w_j s_j)`` and ``Q_oj = q_oj / (1 - w_j s_j)`` (Sherman-Morrison), and
+    ``theta_j = sum_o Q_oj^2 / (m S_j)``. When the outputs' noise differs, S_j does too and the gain is bounded by
+    the sum of each output's own best gain (an upper bound: a term is never removed for a gain it could have). When
+    ``C`` cannot be factorized without jitter (nearly noiseless samples, where every kept term's gain is large
+    anyway), no term is offered: ``(-1, inf)``."""
     from ._features import term_gain
 
-    L, failed = cholesky_or_fail(K + torch.diag(D[:, 0]))
-    if bool(failed):
-        return -1, math.inf
-    A = torch.cholesky_solve(Phi[:, w > 0], L)  # C^-1 phi_j for the kept terms
-    s = (Phi[:, w > 0] * A).sum(0)
-    q = A.T @ Y  # (q, m)
-    shrink = (1.0 - w[w > 0] * s).clamp_min(torch.finfo(Phi.dtype).tiny)
-    S, Q = s / shrink, q / shrink.unsqueeze(-1)
-    m = Y.shape[1]
-    gain = term_gain(Q.pow(2).sum(-1) / (m * S).clamp_min(torch.finfo(Phi.dtype).tiny), m)
+    tiny = torch.finfo(Phi.dtype).tiny
+    kept = w > 0
+    same = bool((D == D[:, :1]).all())
+    columns = [list(range(Y.shape[1]))] if same else [[o] for o in range(Y.shape[1])]
+    gain = torch.zeros(int(kept.sum()), dtype=Phi.dtype, device=Phi.device)
+    for cols in columns:
+        L, failed = cholesky_or_fail(K + torch.diag(D[:, cols[0]]))
+        if bool(failed):
+            return -1, math.inf
+        A = torch.cholesky_solve(Phi[:, kept], L)  # C^-1 phi_j for the kept terms
+        s = (Phi[:, kept] * A).sum(0)
+        q = A.T @ Y[:, cols]  # (q, m)
+        shrink = (1.0 - w[kept] * s).clamp_min(tiny)
+        S, Q = s / shrink, q / shrink.unsqueeze(-1)
+        gain += term_gain(Q.pow(2).sum(-1) / (len(cols) * S).clamp_min(tiny), len(cols))
     i = int(torch.argmin(gain))
-    return int((w > 0).nonzero().flatten()[i]), float(gain[i])
+    return int(kept.nonzero().flatten()[i]), float(gain[i])
 
 
 def fit_sum(
