@@ -207,9 +207,28 @@ def _ratio(runs, a, b) -> tuple[float, float]:
     return float(m), float(s)
 
 
+def _ratio_of_means(runs, a, b) -> tuple[float, float]:
+    """mean error of ``a`` / mean error of ``b`` over the realizations where both succeeded, with its standard
+    error by the delta method (the errors are paired, so their covariance enters)."""
+    ea, eb = _errors(runs, a), _errors(runs, b)
+    ok = torch.isfinite(ea) & torch.isfinite(eb)
+    ea, eb = ea[ok], eb[ok]
+    n = ea.numel()
+    ma, mb = float(ea.mean()), float(eb.mean())
+    r = ma / mb
+    if n < 2:
+        return r, math.nan
+    va, vb = float(ea.var()) / n, float(eb.var()) / n
+    cov = float(((ea - ma) * (eb - mb)).sum()) / (n - 1) / n
+    return r, r * math.sqrt(max(va / ma**2 + vb / mb**2 - 2 * cov / (ma * mb), 0.0))
+
+
 def table(section: dict) -> str:
-    head = "| setting | " + " | ".join(METHODS) + " | auto / SINDy | auto / rbf | auto chose |"
-    lines = [head, "|" + "---|" * (len(METHODS) + 4)]
+    head = (
+        "| setting | " + " | ".join(METHODS) + " | auto / SINDy (paired) | auto / SINDy (of means) | auto / rbf "
+        "| auto chose |"
+    )
+    lines = [head, "|" + "---|" * (len(METHODS) + 5)]
     for setting, runs in section.items():
         cells = []
         for name in METHODS:
@@ -223,10 +242,11 @@ def table(section: dict) -> str:
             k = r["GP auto"].get("kernel", "failed")
             chose[k] = chose.get(k, 0) + 1
         a_s, a_r = _ratio(runs, "GP auto", "SINDy"), _ratio(runs, "GP auto", "GP rbf")
+        a_m = _ratio_of_means(runs, "GP auto", "SINDy")
         picks = ", ".join(f"{k} {v}" for k, v in sorted(chose.items()))
         lines.append(
-            f"| {setting} | " + " | ".join(cells) + f" | {a_s[0]:.3f} ± {a_s[1]:.3f} | {a_r[0]:.3f} ± {a_r[1]:.3f} "
-            f"| {picks} |"
+            f"| {setting} | " + " | ".join(cells) + f" | {a_s[0]:.3f} ± {a_s[1]:.3f} | {a_m[0]:.3g} ± {a_m[1]:.2g} "
+            f"| {a_r[0]:.3f} ± {a_r[1]:.3f} | {picks} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -235,7 +255,21 @@ def goals(result: dict) -> list[str]:
     out = []
     lin = result["linear"]
     worst = max((_ratio(runs, "GP auto", "SINDy")[0], s) for s, runs in lin.items())
-    out.append(f"- paper_linear: auto / SINDy at most **{worst[0]:.3f}** (at {worst[1]}; goal <= 1.2 at every K)")
+    out.append(
+        f"- paper_linear: auto / SINDy, paired mean of the ratios, at most **{worst[0]:.3f}** (at {worst[1]}; goal "
+        "<= 1.2 at every K)"
+    )
+    means = {s: _ratio_of_means(runs, "GP auto", "SINDy") for s, runs in lin.items()}
+    worst = max((m, s) for s, (m, _) in means.items())
+    within = [s for s, (m, _) in means.items() if m <= 1.2]
+    out.append(
+        f"- paper_linear: auto's mean error / SINDy's at most **{worst[0]:.3f}** (at {worst[1]}); within 1.2 in "
+        f"**{len(within)} of {len(means)}** settings"
+    )
+    feats = [s for s, runs in lin.items() if _ratio_of_means(runs, "GP features", "SINDy")[0] < 1.0]
+    out.append(
+        f"- paper_linear: the feature kernel's mean error below SINDy's in **{len(feats)} of {len(lin)}** settings"
+    )
     late = [(s, _ratio(runs, "GP auto", "GP rbf")) for s, runs in lin.items() if int(s.split("K=")[1]) >= 12]
     bad = [s for s, (m, se) in late if not m + se < 1.0]
     out.append(

@@ -303,8 +303,16 @@ class Campaign:
         refit = self.config["refit_after"]
         if refit and X.shape[0] >= refit:
             p = self.prior
+            feature = p.kernel in ("features", "features+rbf")
             learner = CorrectionGP(
-                kernel=p.kernel, per_output=p.per_output, degree=p.degree, dtype=p.dtype, device=p.device
+                kernel=p.kernel,
+                per_output=p.per_output,
+                degree=p.degree,
+                min_gain=p.min_gain if feature else None,
+                library=p.library if feature else None,
+                library_names=p.library_names if feature and p.library is not None else None,
+                dtype=p.dtype,
+                device=p.device,
             )
             try:
                 return learner.fit(X, Y, noise=known), "learned"

@@ -24,10 +24,14 @@ targets' second moment. Every step works with ``p x p`` matrices: O(N p^2 + p^3)
 **A price per term.** Plain automatic relevance keeps every term whose evidence-optimal weight is positive, however
 little evidence it adds; with noisy samples that leaves weak spurious terms. With ``min_gain`` > 0 a term stays only
 while the log evidence it adds at its best weight, :func:`term_gain` (closed form from Tipping & Faul's sparsity and
-quality factors), exceeds ``min_gain``: the term of least gain below the price leaves, one per iteration (collinear
-terms each look redundant given the others), and a removed term re-enters at convergence only above the price. This
-is a spike-and-slab prior with inclusion odds ``exp(-min_gain)``; :class:`~torchmisspec.CorrectionGP` uses BIC's
-``log(N) / 2`` per coefficient by default.
+quality factors), exceeds ``min_gain``. The price acts only at converged states, starting from plain relevance's
+final one (so the result is never worse than it by evidence less price), one move at a time (Tipping & Faul's one
+action per step): the kept term of least gain leaves if its gain is at most the price, or the removed term of
+most gain comes back if its gain exceeds it, whichever raises the evidence less the price more; then the weights
+converge again. Removing several terms at once would be wrong: collinear terms each look redundant given the others.
+Every move raises the evidence less the price, so the search ends, and the best converged state is kept. This is a
+spike-and-slab prior with inclusion odds ``exp(-min_gain)``; :class:`~torchmisspec.CorrectionGP` uses BIC's
+``log(N) / 2`` per learned weight by default.
 """
 
 from __future__ import annotations
@@ -52,6 +56,12 @@ _TOLERANCE = 1e-9
 #: Removed terms are tested for re-entry only above this noise (a fraction of the targets' second moment): below it
 #: the test's residual correlations are round-off, and nearly noiseless fits keep every term they need anyway.
 _READD_NOISE = 1e-8
+#: Relative changes below this count as converged beside known noise with a learned floor: the golden-section search
+#: (:func:`_golden_floor`, 40 steps over a bracket of about 30 in log space) resolves the floor to about 1e-7.
+_GOLDEN_RESOLUTION = 1e-6
+#: A removed term is added back only when its gain exceeds the price by this many nats (no move back and forth on a
+#: tie).
+_MARGIN = 1e-6
 #: The learned noise floor is kept above this fraction of the targets' second moment (noiseless data stay solvable).
 _MIN_NOISE = 1e-12
 
@@ -265,8 +275,9 @@ def fit_relevance(
         known: ``(N, m)`` known noise variances or ``None``.
         floor: the noise floor if fixed, ``None`` to learn it.
         max_iter: most fixed-point iterations.
-        min_gain: a term is kept only while the log evidence it adds at its best weight exceeds this many nats
-            (the prior log-odds against each term, see :func:`term_gain`); 0 is plain automatic relevance.
+        min_gain: the price of a term in nats (the prior log-odds against it, see :func:`term_gain`): from each
+            converged state, one move at a time (:func:`_price_move`) until no term's gain crosses the price; the
+            best converged state by log evidence less the price is returned. 0 is plain automatic relevance.
 
     Returns:
         ``(w (p,), floor, iterations)``.
@@ -291,16 +302,23 @@ def fit_relevance(
         yy = Y.pow(2).sum(0)  # (m,)
     iterations = 0
     readmitted = torch.zeros_like(w, dtype=torch.bool)  # each term re-enters at most once: no remove/re-admit cycle
+    best, moves = None, 0  # with a price: the best converged state by evidence less price, and the moves made
+    plain_done = False  # plain relevance has converged (its re-admissions done)
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is returned
         act = w > 0
         if not bool(act.any()):  # no term left: F = 0, and the noise is all of the targets' variance
             if learn_floor:
                 s = max(second if homoscedastic else _golden_floor(Phi, Y, known, w, s_min, 10.0 * second), s_min)
+            if min_gain > 0:  # a converged state too: a term may still be worth its price
+                best = _better(best, Phi, Y, known, w, s, min_gain)
+                if moves < 4 * p and _price_move(Phi, Y, known, w, s, min_gain, scale_phi, second):
+                    moves += 1
+                    continue
             break
         wa = w[act]
         num = torch.zeros_like(wa)
         gam_sum = torch.zeros_like(wa)
-        bound = torch.zeros_like(wa)  # sum over outputs of each output's own best gain: >= the shared best gain
+        dead = torch.ones_like(wa, dtype=torch.bool)
         resid, dof = 0.0, 0.0
         for o in range(m):
             if homoscedastic:
@@ -320,8 +338,7 @@ def fit_relevance(
             gam = (1.0 - Sigma.diagonal() / wa).clamp(0.0, 1.0)
             num += mu.pow(2)
             gam_sum += gam
-            if min_gain > 0 and not homoscedastic:  # (homoscedastic: the exact shared gain is computed below)
-                bound += term_gain(mu.pow(2) / (Sigma.diagonal() * gam).clamp_min(torch.finfo(w.dtype).tiny), 1)
+            dead &= mu.pow(2) <= gam * Sigma.diagonal()  # this output's best weight for the term is 0
             if homoscedastic:
                 Ga = G0[act][:, act]
                 r2 = float(yy[o] - 2.0 * mu @ B0[act, o] + mu @ Ga @ mu)
@@ -338,15 +355,11 @@ def fit_relevance(
             # over hundreds of fixed-point iterations
             irrelevant = torch.zeros_like(w, dtype=torch.bool)
             irrelevant[act] = num <= gam_sum * var
-            if min_gain > 0:  # the same factors give the best gain in closed form (the outputs share s_j)
-                bound = term_gain(num / (gam_sum * var).clamp_min(torch.finfo(w.dtype).tiny), m)
             new[irrelevant] = 0.0
-        if min_gain > 0 and bool((bound <= min_gain).any()):
-            # one term per iteration, the least valuable: collinear terms each look redundant given the others,
-            # and removing them together would remove what they explain jointly (re-entry is checked at the end)
-            worst = int(torch.argmin(bound))
-            if bound[worst] <= min_gain:
-                new[act.nonzero().flatten()[worst]] = 0.0
+        else:
+            # with known noise each output has its own factors: a term whose best weight is 0 for every output has
+            # a shared best weight of 0 (each output's evidence falls as the weight grows), exactly so for one
+            new[act.nonzero().flatten()[dead]] = 0.0
         new[new * scale_phi < PRUNE * second] = 0.0
         new_s = s
         if learn_floor:
@@ -359,15 +372,97 @@ def fit_relevance(
         change = max(change, abs(math.log(new_s / s)))
         pruned = bool(((new == 0) & (w > 0)).any())
         w, s = new, new_s
-        if change < _TOLERANCE and not pruned:
-            if (
-                homoscedastic
-                and s >= _READD_NOISE * second
-                and _readd(w, s, G0, B0, m, scale_phi, second, readmitted, min_gain)
-            ):
-                continue  # a removed term is relevant given the final others: back in, iterate again
+        # beside known noise the golden-section floor moves by its resolution from one iteration to the next, and
+        # the weights with it: converged at that resolution
+        if change < (_TOLERANCE if homoscedastic or not learn_floor else _GOLDEN_RESOLUTION) and not pruned:
+            if not plain_done:  # plain relevance first: its converged state is where the price starts from
+                if (
+                    homoscedastic
+                    and s >= _READD_NOISE * second
+                    and _readd(w, s, G0, B0, m, scale_phi, second, readmitted)
+                ):
+                    continue  # a removed term is relevant given the final others: back in, iterate again
+                plain_done = True
+            if min_gain > 0:  # a converged state: keep it if it is the best so far, then one move of the price
+                best = _better(best, Phi, Y, known, w, s, min_gain)
+                if moves < 4 * p and _price_move(Phi, Y, known, w, s, min_gain, scale_phi, second):
+                    moves += 1
+                    continue
             break
+    if best is not None and best[0] > _penalised(Phi, Y, known, w, s, min_gain):
+        w, s = best[1], best[2]
     return w, s, iterations
+
+
+def _penalised(Phi, Y, known, w, s: float, min_gain: float) -> float:
+    """The log evidence less ``min_gain`` per kept term."""
+    D = torch.full_like(Y, s) if known is None else known + s
+    return _evidence(Phi, Y, D, w) - min_gain * int((w > 0).sum())
+
+
+def _better(best, Phi, Y, known, w, s: float, min_gain: float):
+    """``(score, w, s)`` of the better of ``best`` (or None) and this state, by :func:`_penalised`."""
+    score = _penalised(Phi, Y, known, w, s, min_gain)
+    return (score, w.clone(), s) if best is None or score > best[0] else best
+
+
+def _factors(Phi: torch.Tensor, Y: torch.Tensor, d: torch.Tensor, w: torch.Tensor):
+    """Tipping & Faul's sparsity and quality factors of every term with that term left out of the covariance
+    ``C = Phi W Phi^T + diag(d)`` (the outputs ``Y (N, m)`` sharing the noise ``d (N,)``): ``S (p,)``, ``Q (p, m)``,
+    in feature space. With ``s_j = phi_j^T C^-1 phi_j = G_jj - G_ja Sigma G_aj`` and ``q_j = B_j - G_ja Sigma B_a``
+    (``G = Phi^T D^-1 Phi``, ``B = Phi^T D^-1 Y``, ``Sigma = (W_a^-1 + G_aa)^-1`` over the kept terms a), a kept
+    term's are ``S_j = s_j / (1 - w_j s_j)``, ``Q_j = q_j / (1 - w_j s_j)`` (Sherman-Morrison), a removed one's
+    ``s_j``, ``q_j``."""
+    P = Phi / d.unsqueeze(-1)
+    G, B = Phi.T @ P, P.T @ Y
+    act = w > 0
+    S, Q = G.diagonal().clone(), B.clone()
+    if bool(act.any()):
+        Sigma, _, _ = _posterior(G[act][:, act], B[act, 0], w[act])
+        Ga = G[:, act]
+        S = S - ((Ga @ Sigma) * Ga).sum(-1)
+        Q = Q - Ga @ (Sigma @ B[act])
+        shrink = (1.0 - w * S).clamp_min(torch.finfo(w.dtype).tiny)
+        S = torch.where(act, S / shrink, S)
+        Q = torch.where(act.unsqueeze(-1), Q / shrink.unsqueeze(-1), Q)
+    return S, Q
+
+
+def _price_move(Phi, Y, known, w: torch.Tensor, s: float, min_gain: float, scale_phi, second: float) -> bool:
+    """One move of sparse Bayesian learning with a price per term, at a converged state (in place on ``w``): of
+    removing the kept term of least gain when that gain is at most ``min_gain`` and adding the removed term of most
+    gain when it exceeds ``min_gain`` (at its best weight ``(theta - 1) / S``), the one that raises the log evidence
+    less the price the most (Tipping & Faul 2003, one action at a time). Every move raises it, so the search ends.
+    When the outputs' noise differs, a term's gain is bounded by the sum of each output's own best gain: removals
+    use that bound (a term is never removed for a gain it could have), and no term is added; nor below
+    :data:`_READD_NOISE` (nearly noiseless fits, whose residual correlations are round-off). Returns whether a move
+    was made."""
+    tiny = torch.finfo(w.dtype).tiny
+    D = torch.full_like(Y, s) if known is None else known + s
+    same = bool((D == D[:, :1]).all())
+    groups = [list(range(Y.shape[1]))] if same else [[o] for o in range(Y.shape[1])]
+    gain = torch.zeros_like(w)
+    for cols in groups:
+        S, Q = _factors(Phi, Y[:, cols], D[:, cols[0]], w)
+        theta = Q.pow(2).sum(-1) / (len(cols) * S).clamp_min(tiny)
+        gain += term_gain(theta, len(cols))
+    act = w > 0
+    moves = []  # (rise of the penalised evidence, term, new weight)
+    if bool(act.any()):
+        j = int(torch.where(act, gain, torch.full_like(gain, math.inf)).argmin())
+        if gain[j] <= min_gain:
+            moves.append((min_gain - float(gain[j]), j, 0.0))
+    if same and float(D.mean()) >= _READD_NOISE * second:  # the noise with the known part, not the floor alone
+        weight = (theta - 1.0) / S.clamp_min(tiny)
+        add = ~act & (S > 0) & (gain > min_gain + _MARGIN) & (weight * scale_phi >= PRUNE * second)
+        if bool(add.any()):
+            j = int(torch.where(add, gain, torch.full_like(gain, -math.inf)).argmax())
+            moves.append((float(gain[j]) - min_gain, j, float(weight[j])))
+    if not moves:
+        return False
+    _, j, value = max(moves)
+    w[j] = value
+    return True
 
 
 def term_gain(theta: torch.Tensor, m: int) -> torch.Tensor:
@@ -389,7 +484,6 @@ def _readd(
     scale_phi,
     second: float,
     readmitted,
-    min_gain: float = 0.0,
 ) -> bool:
     """Put back (in place) the removed terms whose evidence-optimal weight given the kept ones is positive:
     ``sum_o q_oj^2 > m s_j`` with ``s_j = phi_j^T C^-1 phi_j``, ``q_oj = phi_j^T C^-1 y_o``, at the weight
@@ -410,8 +504,6 @@ def _readd(
         S, Q = G[off][:, off].diagonal(), B[off]
     q2 = Q.pow(2).sum(-1)
     back = (q2 > m * S) & (S > 0)
-    if min_gain > 0:
-        back &= term_gain(q2 / (m * S).clamp_min(torch.finfo(w.dtype).tiny), m) > min_gain
     weight = (q2 - m * S) / (m * S.pow(2)).clamp_min(torch.finfo(w.dtype).tiny)
     back &= (weight * scale_phi[off] >= PRUNE * second) & ~readmitted[off]
     if not bool(back.any()):

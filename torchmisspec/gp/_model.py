@@ -187,11 +187,12 @@ class CorrectionGP:
         per_output: one set of hyperparameters per output (costs one factorization per output) instead of the
             paper's shared kernel.
         degree: the polynomial kernel's order m; the highest total degree of the feature kernel's monomials.
-        min_gain: the feature kernel's price of a term: a term stays only while the log evidence it adds at its best
-            weight exceeds this many nats per coefficient (a spike-and-slab prior including each term with
-            probability pi costs ``log((1 - pi) / pi)``). ``None`` (default): half the log of the number of samples,
-            BIC's price of a parameter, so spurious terms vanish as data accumulate; 0: plain automatic relevance
-            (every term whose evidence-optimal weight is positive). For the feature kernels and ``"auto"`` only.
+        min_gain: the feature kernels' price of a term: a term stays only while the log evidence it adds at its best
+            weight exceeds this many nats (a spike-and-slab prior including each term with probability pi costs
+            ``log((1 - pi) / pi)``). ``None`` (default): half the log of the number of samples, BIC's price of one
+            learned value, the same as :attr:`evidence_score` charges, so spurious terms vanish as data accumulate;
+            0: plain automatic relevance (every term whose evidence-optimal weight is positive). For the feature
+            kernels and ``"auto"`` only.
         max_iter: most L-BFGS iterations when fitting.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
@@ -244,7 +245,7 @@ class CorrectionGP:
                     f"min_gain: the price of a feature term is for the feature kernels or 'auto', got {kernel!r}"
                 )
             min_gain = check_real(min_gain, "min_gain", minimum=0.0)
-        #: the feature kernel's price of a term in nats per coefficient (None: half the log of the sample count)
+        #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
         self.min_gain = None if min_gain is None else float(min_gain)
         if library is not None and kernel not in FEATURE_KERNELS:
             raise InputError(f"library: a feature library is for kernel 'features' or 'features+rbf', got {kernel!r}")
@@ -710,7 +711,7 @@ class CorrectionGP:
                 lengthscale=self.fixed["lengthscale"],
                 max_iter=max_iter,
                 outputscale=float(self.fixed["outputscale"]),
-                min_gain=(0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain) * Y.shape[1],
+                min_gain=0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain,
             )
             self.n_evaluations_ = self.n_iterations_
             if self.fixed["noise_variance"] is None:
@@ -842,14 +843,12 @@ class CorrectionGP:
         Phi = base.features(X) * math.sqrt(scale)  # the output scale folded into the features
         floor = self.fixed["noise_variance"]
         groups = [[o] for o in range(Y.shape[1])] if self.per_output else [list(range(Y.shape[1]))]
-        # the price per term of a group: per coefficient, so m times that of one output for m outputs sharing it
+        # the price of a term: per learned weight (shared by the outputs of a group or not), as evidence_score counts
         price = 0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain
         weights, floors, iterations = [], [], 0
         for cols in groups:
             known = None if noise is None else noise[:, cols]
-            w, s, it = fit_relevance(
-                Phi, Y[:, cols], known, floor=floor, max_iter=10 * max_iter, min_gain=price * len(cols)
-            )
+            w, s, it = fit_relevance(Phi, Y[:, cols], known, floor=floor, max_iter=10 * max_iter, min_gain=price)
             weights.append(w)
             floors.append(s)
             iterations = max(iterations, it)

@@ -183,7 +183,7 @@ def fit_sum(
         wts = torch.where(keep, wts, torch.zeros_like(wts))
         return (Phi * wts) @ Phi.T + outputscale * log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
 
-    def objective() -> torch.Tensor:
+    def clamp() -> None:
         with torch.no_grad():  # keep line-search trials in a sane box; fixed values are left as given
             log_w.clamp_(min=lower)
             if log_l.requires_grad:
@@ -191,6 +191,9 @@ def fit_sum(
             if log_s.requires_grad:
                 log_s.clamp_(*s_box)
             log_a.clamp_(math.log(1e-12 * second), math.log(1e3 * second))
+
+    def objective() -> torch.Tensor:
+        clamp()
         D = known0 + log_s.exp()
         return -_exact_mll(kernel_matrix(log_w.exp()), Y, D) / Y.numel()
 
@@ -209,6 +212,7 @@ def fit_sum(
             raise FittingError(
                 f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})"
             ) from exc
+        clamp()  # L-BFGS's last step is taken after the last evaluation: back into the box it was evaluated in
         return int(opt.state[opt._params[0]].get("n_iter", 0))
 
     iterations = optimise()
