@@ -171,3 +171,16 @@ def test_a_failed_tell_leaves_the_random_state_as_it_was(monkeypatch):
     camp.tell(traj)  # the retry draws the noise an uninterrupted campaign draws
     twin.tell(traj)
     torch.testing.assert_close(torch.cat(camp._targets), torch.cat(twin._targets))
+
+
+def test_a_feature_prior_keeps_its_price_and_library_when_the_campaign_learns():
+    """The campaign's learner is built from the prior's settings: a feature kernel's price per term and its
+    library survive (they were dropped, so a refit used the default price and the monomials)."""
+    system = tms.systems.paper_linear()
+    library = [lambda x: x[..., 0] ** 2, lambda x: x[..., 1] ** 2]
+    prior = tms.CorrectionGP(kernel="features", min_gain=1.7, library=library, library_names=["a", "b"])
+    camp = design.Campaign(system, grid(system.domain, 5), TIMES, prior, refit_after=1, derivative="oracle")
+    X = torch.rand(30, 2, dtype=DT, generator=torch.Generator().manual_seed(0))
+    gp, note = camp._fit([X], [0.01 * X**2], [None])
+    assert note == "learned"
+    assert gp.min_gain == 1.7 and gp.feature_names() == ["a", "b"]
