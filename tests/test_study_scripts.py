@@ -64,3 +64,10 @@ def test_kernel_study_smoke(tmp_path):
                 assert set(run) == {"GP rbf", "GP features", "GP features+rbf", "GP auto", "SINDy", "MLP"}
                 assert all(v["error"] is None or v["error"] > 0 for v in run.values())
     assert "auto / SINDy" in stdout
+
+
+def test_gravity_extrapolation_probe_splits_the_error():
+    out = _script("probe_gravity_extrapolation.py", "--k", "2", "--realization", "0")
+    lines = [line for line in out.splitlines() if "score" in line]
+    assert [line.split()[0] for line in lines] == ["rbf", "matern52", "features", "features+rbf"]
+    assert "of D is >= 0.5 from every sample" in out
