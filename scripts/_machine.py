@@ -87,6 +87,21 @@ def study_arguments(doc: str, argv, default_json: Path, extra=None):
     return args
 
 
+def run_json(args, default_json: Path) -> Path | None:
+    """Where a fresh run of a study writes its raw results: ``--json``, else ``default_json`` (a smoke run: only
+    where ``--json`` says)."""
+    return Path(args.json) if args.json else (None if args.smoke else default_json)
+
+
+def write_json(result: dict, path: Path | None) -> None:
+    """Write a study's raw results to ``path`` (its folder created); nothing when ``path`` is None."""
+    import json
+
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(result, indent=1))
+
+
 def benchmark_arguments(doc: str, argv, smoke_help: str = "tiny sizes; never writes BENCHMARKS.md"):
     """The benchmark scripts' command line: ``--smoke``, ``--markdown``, ``--repeats`` (checked); also sets
     ``args.command`` (how it was run) and ``args.load`` (the load average before the run)."""

@@ -21,7 +21,6 @@ Usage::
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 import warnings
@@ -30,7 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, replace_marked, study_arguments  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, replace_marked, run_json, study_arguments, write_json  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec.design.candidates import orbits
@@ -334,10 +333,8 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.perf_counter() - t0
         info = machine()
         result["machine"], result["wall_seconds"], result["smoke"] = info, wall, args.smoke
-        json_path = Path(args.json) if args.json else (None if args.smoke else DEFAULT_JSON)
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result, indent=1))
+        json_path = run_json(args, DEFAULT_JSON)
+    write_json(result, json_path)
     print(table(result))
     if args.markdown:
         DOC_PAGE.parent.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,6 @@ pysindy is an optional benchmark dependency: ``pip install -e ".[bench]"``.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -40,7 +39,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, study_arguments, update_benchmarks  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, run_json, study_arguments, update_benchmarks, write_json  # noqa: E402 (the scripts' shared helper)
 
 import torchmisspec as tms  # noqa: E402
 from torchmisspec import design  # noqa: E402
@@ -339,10 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         result = study(SMOKE if args.smoke else FULL)
         result["machine"], result["wall_seconds"], result["smoke"] = machine(), time.perf_counter() - t0, args.smoke
-        json_path = Path(args.json) if args.json else (None if args.smoke else DEFAULT_JSON)
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result, indent=1))
+        json_path = run_json(args, DEFAULT_JSON)
+    write_json(result, json_path)
     print("\n".join(goals(result)))
     if args.markdown:
         DOC_PAGE.write_text(render_page(result, result["machine"]))

@@ -17,13 +17,12 @@ Usage::
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine, study_arguments, update_benchmarks  # noqa: E402 (the scripts' shared helper)
+from _machine import machine, run_json, study_arguments, update_benchmarks, write_json  # noqa: E402 (the scripts' shared helper)
 
 from torchmisspec.paper.studies import StudyResult, sequential_study  # noqa: E402
 
@@ -340,10 +339,8 @@ def main(argv: list[str] | None = None) -> int:
             "wall_seconds": time.perf_counter() - t0,
             "smoke": args.smoke,
         }
-        json_path = Path(args.json) if args.json else (None if args.smoke else DEFAULT_JSON)
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(saved, indent=1))
+        json_path = run_json(args, DEFAULT_JSON)
+    write_json(saved, json_path)
     print("\n".join(goals(results)))
     if args.markdown:
         DOC_PAGE.parent.mkdir(parents=True, exist_ok=True)

@@ -46,6 +46,7 @@ from ._threads import adaptive_threads
 from ._validation import check_positive_int
 from .data import Trajectories, simulate
 from .gp import CorrectionGP
+from .gp._features import FEATURE_KERNELS
 from .gp._model import median_distance
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
@@ -203,7 +204,7 @@ def _settings(template: CorrectionGP) -> dict:
     return dict(
         kernel=template.kernel,
         degree=template.degree,
-        min_gain=template.min_gain if template.kernel in ("features", "features+rbf") else None,
+        min_gain=template.min_gain if template.kernel in FEATURE_KERNELS else None,
         per_output=template.per_output,
         outputscale=template.fixed["outputscale"],
         noise_variance=template.fixed["noise_variance"],

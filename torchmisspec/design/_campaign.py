@@ -20,6 +20,7 @@ from .._errors import InputError, ShapeError, TorchMisspecError
 from .._validation import check_domain, check_positive_int, check_real
 from ..data import Trajectories
 from ..gp import CorrectionGP, _persistence
+from ..gp._features import FEATURE_KERNELS
 from ..metrics import correction_error
 from ..observations import correction_samples
 from ..systems import MisspecifiedSystem
@@ -303,7 +304,7 @@ class Campaign:
         refit = self.config["refit_after"]
         if refit and X.shape[0] >= refit:
             p = self.prior
-            feature = p.kernel in ("features", "features+rbf")
+            feature = p.kernel in FEATURE_KERNELS
             learner = CorrectionGP(
                 kernel=p.kernel,
                 per_output=p.per_output,

@@ -14,6 +14,7 @@ from .._linalg import logdet_identity_plus
 from .._validation import as_tensor, check_finite, check_ndim
 from .._validation import check_times as _check_times
 from ..gp import CorrectionGP
+from ..gp._features import FEATURE_KERNELS
 from ..systems import MisspecifiedSystem
 
 __all__ = ["DesignResult", "logdet_identity_plus"]
@@ -104,7 +105,7 @@ class GPKernel:
                 "gp: experimental design supports the shared kernel only (the paper's model, one kernel for all "
                 f"outputs); got a CorrectionGP with per_output=True. {why}"
             )
-        if not gp.is_fitted and gp.kernel in ("features", "features+rbf"):
+        if not gp.is_fitted and gp.kernel in FEATURE_KERNELS:
             raise InputError(
                 "gp: the feature kernel's weights are learned from data; fit the GP on earlier samples before "
                 "designing with it (or design with an RBF, Matern or polynomial prior)"

@@ -48,6 +48,8 @@ from .._linalg import cholesky
 
 __all__ = ["FeatureKernel", "PRUNE", "Term", "monomial_names", "monomial_powers", "monomials"]
 
+#: The kernels with a library of features and one learned weight per term (terms(), weights).
+FEATURE_KERNELS = ("features", "features+rbf")
 #: A term is removed when ``w_j mean(phi_j^2)`` (its share of the prior variance) falls below this fraction of the
 #: targets' second moment.
 PRUNE = 1e-12
@@ -304,16 +306,23 @@ def fit_relevance(
     readmitted = torch.zeros_like(w, dtype=torch.bool)  # each term re-enters at most once: no remove/re-admit cycle
     best, moves = None, 0  # with a price: the best converged state by evidence less price, and the moves made
     plain_done = False  # plain relevance has converged (its re-admissions done)
+
+    def price_step() -> bool:
+        """At a converged state (w, s): keep it if it is the best so far, then one move of the price."""
+        nonlocal best, moves
+        best = _better(best, Phi, Y, known, w, s, min_gain)
+        if moves < 4 * p and _price_move(Phi, Y, known, w, s, min_gain, scale_phi, second):
+            moves += 1
+            return True
+        return False
+
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is returned
         act = w > 0
         if not bool(act.any()):  # no term left: F = 0, and the noise is all of the targets' variance
             if learn_floor:
                 s = max(second if homoscedastic else _golden_floor(Phi, Y, known, w, s_min, 10.0 * second), s_min)
-            if min_gain > 0:  # a converged state too: a term may still be worth its price
-                best = _better(best, Phi, Y, known, w, s, min_gain)
-                if moves < 4 * p and _price_move(Phi, Y, known, w, s, min_gain, scale_phi, second):
-                    moves += 1
-                    continue
+            if min_gain > 0 and price_step():  # a converged state too: a term may still be worth its price
+                continue
             break
         wa = w[act]
         num = torch.zeros_like(wa)
@@ -383,11 +392,8 @@ def fit_relevance(
                 ):
                     continue  # a removed term is relevant given the final others: back in, iterate again
                 plain_done = True
-            if min_gain > 0:  # a converged state: keep it if it is the best so far, then one move of the price
-                best = _better(best, Phi, Y, known, w, s, min_gain)
-                if moves < 4 * p and _price_move(Phi, Y, known, w, s, min_gain, scale_phi, second):
-                    moves += 1
-                    continue
+            if min_gain > 0 and price_step():
+                continue
             break
     if best is not None and best[0] > _penalised(Phi, Y, known, w, s, min_gain):
         w, s = best[1], best[2]
@@ -406,15 +412,13 @@ def _better(best, Phi, Y, known, w, s: float, min_gain: float):
     return (score, w.clone(), s) if best is None or score > best[0] else best
 
 
-def _factors(Phi: torch.Tensor, Y: torch.Tensor, d: torch.Tensor, w: torch.Tensor):
+def _factors(G: torch.Tensor, B: torch.Tensor, w: torch.Tensor):
     """Tipping & Faul's sparsity and quality factors of every term with that term left out of the covariance
-    ``C = Phi W Phi^T + diag(d)`` (the outputs ``Y (N, m)`` sharing the noise ``d (N,)``): ``S (p,)``, ``Q (p, m)``,
-    in feature space. With ``s_j = phi_j^T C^-1 phi_j = G_jj - G_ja Sigma G_aj`` and ``q_j = B_j - G_ja Sigma B_a``
-    (``G = Phi^T D^-1 Phi``, ``B = Phi^T D^-1 Y``, ``Sigma = (W_a^-1 + G_aa)^-1`` over the kept terms a), a kept
-    term's are ``S_j = s_j / (1 - w_j s_j)``, ``Q_j = q_j / (1 - w_j s_j)`` (Sherman-Morrison), a removed one's
-    ``s_j``, ``q_j``."""
-    P = Phi / d.unsqueeze(-1)
-    G, B = Phi.T @ P, P.T @ Y
+    ``C = Phi W Phi^T + D`` of outputs sharing the noise ``D``, from ``G = Phi^T D^-1 Phi (p, p)`` and
+    ``B = Phi^T D^-1 Y (p, m)``: ``S (p,)``, ``Q (p, m)``. With ``s_j = phi_j^T C^-1 phi_j = G_jj - G_ja Sigma G_aj``
+    and ``q_j = B_j - G_ja Sigma B_a`` (``Sigma = (W_a^-1 + G_aa)^-1`` over the kept terms a), a kept term's are
+    ``S_j = s_j / (1 - w_j s_j)``, ``Q_j = q_j / (1 - w_j s_j)`` (Sherman-Morrison), a removed one's ``s_j``,
+    ``q_j``. O(p^3), never N."""
     act = w > 0
     S, Q = G.diagonal().clone(), B.clone()
     if bool(act.any()):
@@ -428,6 +432,12 @@ def _factors(Phi: torch.Tensor, Y: torch.Tensor, d: torch.Tensor, w: torch.Tenso
     return S, Q
 
 
+def noise_groups(D: torch.Tensor) -> list[list[int]]:
+    """The output columns of noise variances ``D (N, m)`` that share one noise vector: all together when every
+    column is the same (homoscedastic, or the same known noise), else one each."""
+    return [list(range(D.shape[1]))] if bool((D == D[:, :1]).all()) else [[o] for o in range(D.shape[1])]
+
+
 def _price_move(Phi, Y, known, w: torch.Tensor, s: float, min_gain: float, scale_phi, second: float) -> bool:
     """One move of sparse Bayesian learning with a price per term, at a converged state (in place on ``w``): of
     removing the kept term of least gain when that gain is at most ``min_gain`` and adding the removed term of most
@@ -439,11 +449,11 @@ def _price_move(Phi, Y, known, w: torch.Tensor, s: float, min_gain: float, scale
     was made."""
     tiny = torch.finfo(w.dtype).tiny
     D = torch.full_like(Y, s) if known is None else known + s
-    same = bool((D == D[:, :1]).all())
-    groups = [list(range(Y.shape[1]))] if same else [[o] for o in range(Y.shape[1])]
+    groups = noise_groups(D)
     gain = torch.zeros_like(w)
     for cols in groups:
-        S, Q = _factors(Phi, Y[:, cols], D[:, cols[0]], w)
+        P = Phi / D[:, cols[0]].unsqueeze(-1)
+        S, Q = _factors(Phi.T @ P, P.T @ Y[:, cols], w)
         theta = Q.pow(2).sum(-1) / (len(cols) * S).clamp_min(tiny)
         gain += term_gain(theta, len(cols))
     act = w > 0
@@ -452,7 +462,9 @@ def _price_move(Phi, Y, known, w: torch.Tensor, s: float, min_gain: float, scale
         j = int(torch.where(act, gain, torch.full_like(gain, math.inf)).argmin())
         if gain[j] <= min_gain:
             moves.append((min_gain - float(gain[j]), j, 0.0))
-    if same and float(D.mean()) >= _READD_NOISE * second:  # the noise with the known part, not the floor alone
+    if (
+        len(groups) == 1 and float(D.mean()) >= _READD_NOISE * second
+    ):  # the noise with the known part, not the floor alone
         weight = (theta - 1.0) / S.clamp_min(tiny)
         add = ~act & (S > 0) & (gain > min_gain + _MARGIN) & (weight * scale_phi >= PRUNE * second)
         if bool(add.any()):
@@ -475,33 +487,17 @@ def term_gain(theta: torch.Tensor, m: int) -> torch.Tensor:
     return 0.5 * m * (t - 1.0 - t.log())
 
 
-def _readd(
-    w: torch.Tensor,
-    s: float,
-    G0: torch.Tensor,
-    B0: torch.Tensor,
-    m: int,
-    scale_phi,
-    second: float,
-    readmitted,
-) -> bool:
+def _readd(w: torch.Tensor, s: float, G0, B0, m: int, scale_phi, second: float, readmitted) -> bool:
     """Put back (in place) the removed terms whose evidence-optimal weight given the kept ones is positive:
-    ``sum_o q_oj^2 > m s_j`` with ``s_j = phi_j^T C^-1 phi_j``, ``q_oj = phi_j^T C^-1 y_o``, at the weight
-    ``w_j = (sum_o q_oj^2 - m s_j) / (m s_j^2)`` (Tipping & Faul 2003), each term at most once per fit
+    ``sum_o Q_oj^2 > m S_j`` (:func:`_factors` with the homoscedastic noise ``s``), at the weight
+    ``w_j = (sum_o Q_oj^2 - m S_j) / (m S_j^2)`` (Tipping & Faul 2003), each term at most once per fit
     (``readmitted``, updated): with shared weights the removal test and this one can disagree near the boundary, and a
     term could otherwise cycle until the iteration cap. Returns whether any came back."""
-    act, off = w > 0, w == 0
+    off = w == 0
     if not bool(off.any()):
         return False
-    G, B = G0 / s, B0 / s
-    if bool(act.any()):
-        Sigma, _, _ = _posterior(G[act][:, act], B[act, 0], w[act])
-        mus = torch.stack([_posterior(G[act][:, act], B[act, o], w[act])[1] for o in range(m)], -1)  # (q, m)
-        cross = G[off][:, act]  # (r, q)
-        S = G[off][:, off].diagonal() - ((cross @ Sigma) * cross).sum(-1)
-        Q = B[off] - cross @ mus  # (r, m)
-    else:
-        S, Q = G[off][:, off].diagonal(), B[off]
+    S, Q = _factors(G0 / s, B0 / s, w)
+    S, Q = S[off], Q[off]
     q2 = Q.pow(2).sum(-1)
     back = (q2 > m * S) & (S > 0)
     weight = (q2 - m * S) / (m * S.pow(2)).clamp_min(torch.finfo(w.dtype).tiny)

@@ -42,6 +42,7 @@ from .._threads import adaptive_threads
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
 from ._features import (
+    FEATURE_KERNELS,
     FeatureFactorization,
     FeatureKernel,
     Term,
@@ -55,8 +56,6 @@ from ._sum import FeaturesPlusRBF, fit_sum
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
-#: the kernels with a library of monomials and one learned weight per term (terms(), weights)
-FEATURE_KERNELS = ("features", "features+rbf")
 #: the candidates of kernel="auto", fitted in this order; the highest CorrectionGP.evidence_score wins
 AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`

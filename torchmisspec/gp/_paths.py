@@ -87,6 +87,7 @@ from numpy.polynomial.hermite_e import hermegauss
 
 from .._errors import InputError, ShapeError
 from .._validation import check_positive_int, check_real
+from ._features import FEATURE_KERNELS
 
 __all__ = [
     "DEFAULT_FEATURE_ERROR",
@@ -459,7 +460,7 @@ def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
     out = {"outputscale": covar.outputscale.reshape(-1, 1, 1)}
     if gp.kernel == "polynomial":  # GPyTorch's offset c of (c + <x, x'>)^m: 1 up to its constraint's rounding
         out["offset"] = covar.base_kernel.offset.reshape(-1, 1, 1)
-    elif gp.kernel in ("features", "features+rbf"):
+    elif gp.kernel in FEATURE_KERNELS:
         out["weights"] = covar.base_kernel.weights.reshape(out["outputscale"].shape[0], 1, -1)
         out["features"] = covar.base_kernel.features  # phi(x): the monomials or a user library (not a tensor)
         if gp.kernel == "features+rbf":
@@ -477,7 +478,7 @@ def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, deg
     s2 = params["outputscale"]
     if kind == "polynomial":
         return s2 * (params["offset"] + x @ X.T).pow(degree)
-    if kind in ("features", "features+rbf"):
+    if kind in FEATURE_KERNELS:
         phi = params["features"]
         poly = s2 * (phi(x) * params["weights"]) @ phi(X).T
         if kind == "features":

@@ -18,6 +18,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_real
+from ._features import FEATURE_KERNELS
 
 if TYPE_CHECKING:  # pragma: no cover
     from ._model import CorrectionGP
@@ -78,7 +79,7 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
             per_output=bool(cfg.get("per_output")),
             degree=cfg.get("degree", 2),
             max_iter=cfg.get("max_iter", 200),
-            min_gain=cfg.get("min_gain") if cfg.get("kernel") in ("features", "features+rbf") else None,
+            min_gain=cfg.get("min_gain") if cfg.get("kernel") in FEATURE_KERNELS else None,
             dtype=_DTYPES[dtype_name],
             device=device,
             **fixed,

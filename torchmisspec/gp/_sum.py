@@ -22,7 +22,7 @@ import torch
 
 from .._errors import FittingError
 from .._linalg import cholesky_or_fail
-from ._features import FeatureKernel, fit_relevance
+from ._features import FeatureKernel, fit_relevance, noise_groups, term_gain
 
 __all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]
 
@@ -91,9 +91,7 @@ def _exact_mll(K: torch.Tensor, Y: torch.Tensor, D: torch.Tensor) -> torch.Tenso
     """Sum over outputs of log N(y_o; 0, K + diag(D_o)) for ``Y (N, m)``, noise variances ``D (N, m)``."""
     n = Y.shape[0]
     total = Y.new_zeros(())
-    same = bool((D == D[:, :1]).all())
-    columns = [list(range(Y.shape[1]))] if same else [[o] for o in range(Y.shape[1])]
-    for cols in columns:
+    for cols in noise_groups(D):
         L = torch.linalg.cholesky(K + torch.diag(D[:, cols[0]]))
         a = torch.cholesky_solve(Y[:, cols], L)
         total = total - 0.5 * (Y[:, cols] * a).sum() - len(cols) * L.diagonal().log().sum()
@@ -110,14 +108,10 @@ def _least_valuable(Phi, w, K, Y, D) -> tuple[int, float]:
     the sum of each output's own best gain (an upper bound: a term is never removed for a gain it could have). When
     ``C`` cannot be factorized without jitter (nearly noiseless samples, where every kept term's gain is large
     anyway), no term is offered: ``(-1, inf)``."""
-    from ._features import term_gain
-
     tiny = torch.finfo(Phi.dtype).tiny
     kept = w > 0
-    same = bool((D == D[:, :1]).all())
-    columns = [list(range(Y.shape[1]))] if same else [[o] for o in range(Y.shape[1])]
     gain = torch.zeros(int(kept.sum()), dtype=Phi.dtype, device=Phi.device)
-    for cols in columns:
+    for cols in noise_groups(D):
         L, failed = cholesky_or_fail(K + torch.diag(D[:, cols[0]]))
         if bool(failed):
             return -1, math.inf
