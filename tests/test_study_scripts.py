@@ -36,7 +36,9 @@ def test_smoke_study_writes_every_strategy(tmp_path):
     assert "domain design / random" in stdout
 
 
-def test_sequential_study_is_reproducible_and_uses_the_campaign_picks():
+def test_sequential_study_is_reproducible_and_uses_the_campaign_picks(one_thread):
+    # one torch thread: adaptive_threads lowers the count when other processes are busy, and a different count sums
+    # in a different order (the same seeds then differ in the last bit; a fresh-clone run failed on exactly that)
     a = sequential_study("linear", ks=[1, 2], realizations=1, sequential=(("information", 2),))
     b = sequential_study("linear", ks=[1, 2], realizations=1, sequential=(("information", 2),))
     assert a.to_dict()["errors"] == b.to_dict()["errors"]
