@@ -107,6 +107,7 @@ def test_auto_chooses_the_feature_kernel_for_a_polynomial_correction(linear_samp
     best = max(table.values(), key=lambda r: r["score"])
     assert best["chosen"] and gp.kernel == best["kernel"]
     assert gp.kernel in ("features", "features+rbf")
+    assert gp.library_suffices_ and all(r["eligible"] for r in gp.model_selection_)
     assert gp.log_marginal_likelihood_ == pytest.approx(best["log_marginal_likelihood"])
     assert gp.auto  # a refit chooses again
     if gp.kernel == "features":  # chosen with one weight per term and output: the model says so
@@ -121,11 +122,59 @@ def test_auto_chooses_the_feature_kernel_for_a_polynomial_correction(linear_samp
 def test_auto_chooses_a_stationary_kernel_for_an_inverse_square_field(gravity_samples):
     _, _, samples = gravity_samples
     gp = tms.CorrectionGP(kernel="auto").fit(samples)
-    assert gp.kernel in ("rbf", "matern52", "features+rbf")  # never the polynomial library alone
-    if gp.kernel == "features+rbf":  # then the RBF term carries part of the field
-        assert float(gp.covar_module.base_kernel.rbf_scale) > 1e-3 * float(samples.targets.pow(2).mean())
     score = {r["kernel"]: r["score"] for r in gp.model_selection_}
-    assert score["features"] < score[gp.kernel]
+    # the library plus an RBF term beats the library alone: the field is not a quadratic, so neither feature
+    # candidate may be chosen, whatever its score
+    assert score["features+rbf"] > score["features"] and gp.library_suffices_ is False
+    assert gp.kernel in ("rbf", "matern52")
+    assert score[gp.kernel] == max(score["rbf"], score["matern52"])
+    assert {r["kernel"]: r["eligible"] for r in gp.model_selection_} == {
+        "rbf": True,
+        "matern52": True,
+        "features": False,
+        "features+rbf": False,
+    }
+
+
+@pytest.mark.parametrize(
+    "scores, eligible, suffices",
+    [
+        (
+            {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 4.0},
+            ["rbf", "matern52", "features", "features+rbf"],
+            True,
+        ),
+        (
+            {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 5.0},
+            ["rbf", "matern52", "features", "features+rbf"],
+            True,
+        ),
+        ({"rbf": 1.0, "matern52": 2.0, "features": 5.0, "features+rbf": 9.0}, ["rbf", "matern52"], False),
+        ({"rbf": 1.0, "features": 0.0, "features+rbf": 9.0}, ["rbf"], False),  # matern52 failed
+        ({"features": 0.0, "features+rbf": 9.0}, ["features", "features+rbf"], False),  # no stationary kernel fitted
+        ({"rbf": 1.0, "matern52": 0.0, "features": 5.0}, ["rbf", "matern52", "features"], None),  # per_output
+        ({"rbf": 1.0, "matern52": 0.0, "features+rbf": 5.0}, ["rbf", "matern52", "features+rbf"], None),
+    ],
+)
+def test_library_check(scores, eligible, suffices):
+    from torchmisspec.gp._model import library_check
+
+    assert library_check(scores) == (eligible, suffices)
+
+
+def test_auto_keeps_a_stationary_kernel_when_the_library_misses_part_of_f():
+    """F = a quadratic plus a bump no quadratic represents, sampled over the whole square: the library plus an RBF
+    term fits far better than the library alone, so the quadratic is only a local fit and auto keeps a stationary
+    kernel; the same quadratic without the bump keeps the library."""
+    gen = torch.Generator().manual_seed(3)
+    X = torch.rand(300, 2, dtype=DT, generator=gen) * 4 - 2
+    quad = 0.1 * X[:, :1] ** 2 - 0.05 * X[:, 1:] + 0.02
+    bump = 0.2 * torch.exp(-((X - 0.5) ** 2).sum(1, keepdim=True) / 0.18)
+    noise = 1e-2 * torch.randn(300, 1, dtype=DT, generator=gen)
+    with_bump = tms.CorrectionGP(kernel="auto").fit(X, quad + bump + noise)
+    assert with_bump.library_suffices_ is False and with_bump.kernel in ("rbf", "matern52")
+    plain = tms.CorrectionGP(kernel="auto").fit(X, quad + noise)
+    assert plain.library_suffices_ is True and plain.kernel == "features"
 
 
 def test_auto_records_failures_and_says_when_all_fail(linear_samples, monkeypatch):

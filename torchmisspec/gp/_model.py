@@ -56,8 +56,35 @@ from ._sum import FeaturesPlusRBF, fit_sum
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
-#: the candidates of kernel="auto", fitted in this order; the highest CorrectionGP.evidence_score wins
+#: the candidates of kernel="auto", fitted in this order; the highest CorrectionGP.evidence_score among those
+#: library_check allows wins
 AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
+STATIONARY_KERNELS = ("rbf", "matern52")
+
+
+def library_check(scores: dict[str, float]) -> tuple[list[str], bool | None]:
+    """Which fitted candidates of ``kernel="auto"`` may be chosen, given their evidence scores.
+
+    ``features+rbf`` nests ``features`` (its RBF term can vanish), so comparing the two is a test of the library: if
+    the RBF term earns its price (``features+rbf`` scores higher), part of F lies outside the library's span, the
+    library terms are then only a local fit of F (a Taylor expansion about the samples), and their extrapolation
+    away from the samples is not supported by anything. Both feature candidates are then out, and the best
+    stationary kernel is chosen: its prior falls back to F = 0 away from the samples, i.e. to the known model,
+    which the scientist trusts wherever no data say otherwise. If the library suffices, ``features`` competes with
+    the stationary kernels by score (``features+rbf`` then scores no higher than ``features`` and is never the
+    unique best). Without both feature candidates (``per_output``, or a failed fit) there is no test and every
+    candidate competes.
+
+    Returns the eligible kernels and whether the library sufficed (``None``: not tested).
+    """
+    if "features" not in scores or "features+rbf" not in scores:
+        return list(scores), None
+    if scores["features"] >= scores["features+rbf"]:
+        return list(scores), True
+    stationary = [k for k in scores if k in STATIONARY_KERNELS]
+    return (stationary or list(scores)), False
+
+
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
 #: (centred at the fitted value: a factor of about 7 either way).
 LOG_PRIOR_SD = 2.0
@@ -176,9 +203,10 @@ class CorrectionGP:
             :mod:`torchmisspec.gp._features`), ``"features+rbf"`` (that library plus an RBF term for what it misses,
             :mod:`torchmisspec.gp._sum`), or ``"auto"``: every fit fits rbf, matern52, features and features+rbf
             by marginal likelihood and keeps the kernel of highest :attr:`evidence_score` (the log marginal
-            likelihood less BIC's price of its learned hyperparameters; ``model_selection_`` lists them all; the
-            cost of about four fits). Each is scaled by ``outputscale`` (fixed at 1 for the
-            feature kernels, whose weights carry the scale).
+            likelihood less BIC's price of its learned hyperparameters), except that when features+rbf outscores
+            features the library misses part of F and a stationary kernel is kept (:func:`library_check`);
+            ``model_selection_`` lists them all; the cost of about four fits. Each is scaled by ``outputscale``
+            (fixed at 1 for the feature kernels, whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
             here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
         outputscale: the kernel's variance factor.
@@ -204,7 +232,8 @@ class CorrectionGP:
     holding the hyperparameters and the training data. With ``kernel="auto"``, ``kernel`` is the kernel chosen and
     ``model_selection_`` a list of dictionaries (``kernel``, ``log_marginal_likelihood``, ``hyperparameters``
     (the number learned), ``score`` (:attr:`evidence_score`), ``seconds``, ``error`` of a candidate that failed,
-    ``chosen``).
+    ``eligible`` (allowed by :func:`library_check`), ``chosen``) and ``library_suffices_`` the outcome of that
+    check (``None``: not made).
     """
 
     def __init__(
@@ -762,15 +791,15 @@ class CorrectionGP:
     def _fit_auto(self, inputs, targets, noise, **options) -> CorrectionGP:
         """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood and keep the one of
         highest :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of
-        those). The feature kernel is
-        fitted with one weight per term and output (``per_output=True``); features+rbf is skipped when
-        ``per_output`` (it is shared by the outputs). Cost: the sum of the candidates' fits, about 4 fits.
-        ``model_selection_`` records each candidate: kernel, log marginal likelihood, seconds, and the error of a
-        candidate that failed.
+        those) among the candidates :func:`library_check` allows (a stationary kernel when the library misses part
+        of F). The feature kernel is fitted with one weight per term and output (``per_output=True``); features+rbf
+        is skipped when ``per_output`` (it is shared by the outputs), and then the library is not checked. Cost: the
+        sum of the candidates' fits, about 4 fits. ``model_selection_`` records each candidate: kernel, log
+        marginal likelihood, score, seconds, the error of a candidate that failed, whether it was eligible.
         Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
         import time
 
-        records, best = [], None
+        records, fitted = [], {}
         for kernel in AUTO_KERNELS:
             if self._auto_per_output and kernel == "features+rbf":
                 continue
@@ -811,14 +840,16 @@ class CorrectionGP:
                     "error": None,
                 }
             )
-            if best is None or cand.evidence_score > best.evidence_score:
-                best = cand
-        if best is None:
+            fitted[kernel] = cand
+        if not fitted:
             raise FittingError(
                 "kernel='auto': every candidate kernel failed to fit: "
                 + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
             )
+        eligible, self.library_suffices_ = library_check({k: c.evidence_score for k, c in fitted.items()})
+        best = max((fitted[k] for k in eligible), key=lambda c: c.evidence_score)
         for r in records:
+            r["eligible"] = r["kernel"] in eligible
             r["chosen"] = r["kernel"] == best.kernel
         self.kernel, self._d_in, self.fixed, self.per_output = (
             best.kernel,
