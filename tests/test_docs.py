@@ -143,10 +143,12 @@ def check_kernels(ns: dict) -> None:
     assert (1, "y2^2") in {(t.output, t.name) for t in terms}
     spurious = [t for t in terms if (t.output, t.name) not in ((0, "y1^2"), (1, "y2^2"))]
     assert spurious and all(abs(t.mean) < 2 * t.std for t in spurious)
-    # "Here the polynomial library alone loses to a kernel with a smooth stationary part"
-    assert g_gp.kernel in ("rbf", "matern52", "features+rbf")
+    # "the library plus an RBF term scores far above the library alone ... library_suffices_ is False ... auto keeps
+    # the better of the RBF and the Matern kernel, even where features+rbf has the higher score"
     g_score = {r["kernel"]: r["score"] for r in g_gp.model_selection_}
-    assert g_score["features"] < g_score[g_gp.kernel]
+    assert g_score["features+rbf"] > g_score["features"] + 3 and g_gp.library_suffices_ is False
+    assert g_gp.kernel in ("rbf", "matern52") and g_score[g_gp.kernel] == max(g_score["rbf"], g_score["matern52"])
+    assert not any(r["eligible"] for r in g_gp.model_selection_ if r["kernel"] in ("features", "features+rbf"))
 
 
 PAGES = {
