@@ -311,8 +311,9 @@ Every method sees the same correction samples (the paper's observation model: ex
 The feature kernels charge a price per term (`min_gain`, by default log(N) / 2 nats) and `auto` keeps the candidate
 of highest evidence score (log marginal likelihood less log(N) / 2 per learned hyperparameter) among those its
 library check allows: when `features+rbf` outscores `features`, the library misses part of F and only the
-stationary kernels are eligible; see the tutorial "Choose the kernel by evidence". "auto / SINDy (paired)" is the mean over realizations of the ratio of the two
-errors; "(of means)" the ratio of the mean errors, with a delta-method standard error.
+stationary kernels are eligible; see the tutorial "Choose the kernel by evidence". "auto / SINDy (paired)" is the
+mean over realizations of the ratio of the two errors; "(of means)" the ratio of the mean errors, with a
+delta-method standard error.
 
 ## paper_linear (F = 0.01 y^2): integral over D of ||F_hat - F||
 
