@@ -138,6 +138,7 @@ def gp_method(kernel: str, samples):
     if kernel == "auto":
         info["selection"] = {r["kernel"]: r["log_marginal_likelihood"] for r in gp.model_selection_}
         info["score"] = {r["kernel"]: r["score"] for r in gp.model_selection_}
+        info["library_suffices"] = gp.library_suffices_
     return estimate, info
 
 
@@ -289,6 +290,13 @@ def goals(result: dict) -> list[str]:
     for other in ("SINDy", "MLP"):
         better = [s for s, runs in grav.items() if sum(_ratio(runs, "GP auto", other)) < 1.0]
         out.append(f"- paper_gravity: auto better than {other} in **{len(better)} of {len(grav)}** values of K")
+    for name, section in (("paper_linear", lin), ("paper_gravity", grav)):
+        checks = [r["GP auto"].get("library_suffices") for runs in section.values() for r in runs]
+        yes, no = checks.count(True), checks.count(False)
+        out.append(
+            f"- {name}: the library check found the library sufficient in **{yes}**, insufficient in **{no}** of "
+            f"{len(checks)} fits (not made: {len(checks) - yes - no})"
+        )
     return out
 
 

@@ -136,30 +136,27 @@ def test_auto_chooses_a_stationary_kernel_for_an_inverse_square_field(gravity_sa
     }
 
 
+ALL = {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 4.0}
+
+
 @pytest.mark.parametrize(
-    "scores, eligible, suffices",
+    "scores, library_score, eligible, suffices",
     [
-        (
-            {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 4.0},
-            ["rbf", "matern52", "features", "features+rbf"],
-            True,
-        ),
-        (
-            {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 5.0},
-            ["rbf", "matern52", "features", "features+rbf"],
-            True,
-        ),
-        ({"rbf": 1.0, "matern52": 2.0, "features": 5.0, "features+rbf": 9.0}, ["rbf", "matern52"], False),
-        ({"rbf": 1.0, "features": 0.0, "features+rbf": 9.0}, ["rbf"], False),  # matern52 failed
-        ({"features": 0.0, "features+rbf": 9.0}, ["features", "features+rbf"], False),  # no stationary kernel fitted
-        ({"rbf": 1.0, "matern52": 0.0, "features": 5.0}, ["rbf", "matern52", "features"], None),  # per_output
-        ({"rbf": 1.0, "matern52": 0.0, "features+rbf": 5.0}, ["rbf", "matern52", "features+rbf"], None),
+        (ALL, 4.5, list(ALL), True),  # the nested model beats features+rbf: the library suffices
+        (ALL, 4.0, list(ALL), True),  # a tie: the RBF term earns nothing
+        (ALL, 3.0, ["rbf", "matern52"], False),  # the RBF term earns its price
+        ({**ALL, "features": 9.0}, 3.0, ["rbf", "matern52"], False),  # whatever the feature candidates' scores
+        ({"rbf": 1.0, "features": 0.0, "features+rbf": 9.0}, 3.0, ["rbf"], False),  # matern52 failed
+        ({"features": 0.0, "features+rbf": 9.0}, 3.0, ["features", "features+rbf"], False),  # nothing stationary
+        ({"rbf": 1.0, "matern52": 0.0, "features": 5.0}, None, ["rbf", "matern52", "features"], None),  # per_output
+        (ALL, None, ["rbf", "matern52", "features"], None),  # the nested model failed: features+rbf is untested
+        ({"features+rbf": 2.0}, None, ["features+rbf"], None),  # nothing else fitted
     ],
 )
-def test_library_check(scores, eligible, suffices):
+def test_library_check(scores, library_score, eligible, suffices):
     from torchmisspec.gp._model import library_check
 
-    assert library_check(scores) == (eligible, suffices)
+    assert library_check(scores, library_score=library_score) == (eligible, suffices)
 
 
 def test_auto_keeps_a_stationary_kernel_when_the_library_misses_part_of_f():
@@ -175,6 +172,38 @@ def test_auto_keeps_a_stationary_kernel_when_the_library_misses_part_of_f():
     assert with_bump.library_suffices_ is False and with_bump.kernel in ("rbf", "matern52")
     plain = tms.CorrectionGP(kernel="auto").fit(X, quad + noise)
     assert plain.library_suffices_ is True and plain.kernel == "features"
+    ff = {r["kernel"]: r for r in with_bump.model_selection_}["features+rbf"]
+    assert ff["library_score"] < ff["score"] and not ff["eligible"]
+
+
+def test_the_library_check_compares_nested_models_when_outputs_share_terms():
+    """Two outputs made of the same quadratic: the per-output feature candidate pays for its weights twice, so
+    features+rbf (weights shared by the outputs) may outscore it with a useless RBF term; the check compares
+    features+rbf with the shared-weight feature kernel it nests, and keeps the library."""
+    gen = torch.Generator().manual_seed(3)
+    X = torch.rand(300, 2, dtype=DT, generator=gen) * 4 - 2
+    q = 0.1 * X[:, :1] ** 2 - 0.05 * X[:, 1:] + 0.02
+    for Y in (torch.cat([q, q], 1), torch.cat([q, -q], 1)):
+        gp = tms.CorrectionGP(kernel="auto").fit(X, Y + 1e-2 * torch.randn(300, 2, dtype=DT, generator=gen))
+        table = {r["kernel"]: r for r in gp.model_selection_}
+        assert table["features+rbf"]["library_score"] >= table["features+rbf"]["score"]
+        assert gp.library_suffices_ is True and gp.kernel in ("features", "features+rbf")
+
+
+def test_an_untested_sum_kernel_is_not_chosen(gravity_samples, monkeypatch):
+    """If the shared-weight feature fit (the model features+rbf nests) fails, features+rbf is not eligible."""
+    _, _, samples = gravity_samples
+    from torchmisspec.gp import _model
+
+    def broken(self, *args, **kwargs):
+        raise tms.FittingError("made to fail")
+
+    monkeypatch.setattr(_model.CorrectionGP, "_fit_features", broken)
+    gp = tms.CorrectionGP(kernel="auto").fit(samples)
+    assert gp.library_suffices_ is None and gp.kernel in ("rbf", "matern52")
+    ff = {r["kernel"]: r for r in gp.model_selection_}["features+rbf"]
+    assert ff["error"] is None and ff["library_score"] is None and not ff["eligible"]  # fitted, untested
+    assert tms.CorrectionGP(kernel="auto").library_suffices_ is None  # before any fit
 
 
 def test_auto_records_failures_and_says_when_all_fail(linear_samples, monkeypatch):

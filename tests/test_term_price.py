@@ -201,8 +201,9 @@ def test_evidence_score_is_bic_corrected_evidence_and_auto_keeps_the_best():
     assert feats.num_hyperparameters == int((feats.weights > 0).sum()) + 2  # kept weights and two noise floors
     auto = tms.CorrectionGP(kernel="auto").fit(X, y)
     table = {r["kernel"]: r for r in auto.model_selection_}
-    best = max(table.values(), key=lambda r: r["score"])
+    best = max((r for r in table.values() if r["eligible"]), key=lambda r: r["score"])
     assert best["chosen"] and auto.kernel == best["kernel"]
+    assert [r["kernel"] for r in table.values() if r["chosen"]] == [auto.kernel]
     for r in table.values():
         assert r["score"] == pytest.approx(r["log_marginal_likelihood"] - 0.5 * math.log(120) * r["hyperparameters"])
 

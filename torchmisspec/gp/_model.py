@@ -62,27 +62,35 @@ AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
 STATIONARY_KERNELS = ("rbf", "matern52")
 
 
-def library_check(scores: dict[str, float]) -> tuple[list[str], bool | None]:
+def library_check(scores: dict[str, float], *, library_score: float | None = None) -> tuple[list[str], bool | None]:
     """Which fitted candidates of ``kernel="auto"`` may be chosen, given their evidence scores.
 
-    ``features+rbf`` nests ``features`` (its RBF term can vanish), so comparing the two is a test of the library: if
-    the RBF term earns its price (``features+rbf`` scores higher), part of F lies outside the library's span, the
-    library terms are then only a local fit of F (a Taylor expansion about the samples), and their extrapolation
-    away from the samples is not supported by anything. Both feature candidates are then out, and the best
-    stationary kernel is chosen: its prior falls back to F = 0 away from the samples, i.e. to the known model,
-    which the scientist trusts wherever no data say otherwise. If the library suffices, ``features`` competes with
-    the stationary kernels by score (``features+rbf`` then scores no higher than ``features`` and is never the
-    unique best). Without both feature candidates (``per_output``, or a failed fit) there is no test and every
-    candidate competes.
+    ``library_score`` is the score of the model ``features+rbf`` nests: the feature kernel with the same shared
+    weights and noise (its RBF term removed). Comparing the two tests the library:
+
+    * the nested model scores at least as high: F lies in the library's span as far as the samples can tell, and
+      every candidate competes by score (the library extrapolates as SINDy's equation would);
+    * ``features+rbf`` scores higher: its RBF term earns its price, so part of F lies outside the library. The
+      library's coefficients are then only a local fit, confounded with the residual the RBF term carries, and
+      nothing supports their extrapolation away from the samples. Neither feature candidate is eligible, and the
+      best stationary kernel is chosen: its prior falls back to F = 0 away from the samples, i.e. to the known
+      model, which the scientist trusts wherever no data say otherwise. (If no stationary kernel fitted, every
+      candidate is eligible: a fit beats none.)
+
+    Without ``features+rbf`` (``per_output``, or a failed fit) there is nothing to test and every candidate competes;
+    if ``features+rbf`` fitted but its nested model did not (``library_score`` is ``None``), ``features+rbf`` is
+    untested and not eligible (unless nothing else fitted).
 
     Returns the eligible kernels and whether the library sufficed (``None``: not tested).
     """
-    if "features" not in scores or "features+rbf" not in scores:
-        return list(scores), None
-    if scores["features"] >= scores["features+rbf"]:
-        return list(scores), True
-    stationary = [k for k in scores if k in STATIONARY_KERNELS]
-    return (stationary or list(scores)), False
+    everything = list(scores)
+    if "features+rbf" not in scores:
+        return everything, None
+    if library_score is None:
+        return ([k for k in everything if k != "features+rbf"] or everything), None
+    if library_score >= scores["features+rbf"]:
+        return everything, True
+    return ([k for k in everything if k in STATIONARY_KERNELS] or everything), False
 
 
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
@@ -205,7 +213,7 @@ class CorrectionGP:
             by marginal likelihood and keeps the kernel of highest :attr:`evidence_score` (the log marginal
             likelihood less BIC's price of its learned hyperparameters), except that when features+rbf outscores
             features the library misses part of F and a stationary kernel is kept (:func:`library_check`);
-            ``model_selection_`` lists them all; the cost of about four fits. Each is scaled by ``outputscale``
+            ``model_selection_`` lists them all; the cost of about five fits. Each is scaled by ``outputscale``
             (fixed at 1 for the feature kernels, whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
             here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
@@ -232,8 +240,9 @@ class CorrectionGP:
     holding the hyperparameters and the training data. With ``kernel="auto"``, ``kernel`` is the kernel chosen and
     ``model_selection_`` a list of dictionaries (``kernel``, ``log_marginal_likelihood``, ``hyperparameters``
     (the number learned), ``score`` (:attr:`evidence_score`), ``seconds``, ``error`` of a candidate that failed,
-    ``eligible`` (allowed by :func:`library_check`), ``chosen``) and ``library_suffices_`` the outcome of that
-    check (``None``: not made).
+    ``eligible`` (allowed by :func:`library_check`), ``chosen``; features+rbf's also ``library_score``, the score of
+    the feature kernel it nests) and ``library_suffices_`` the outcome of that check (``None``: not made; neither is
+    saved with the model).
     """
 
     def __init__(
@@ -293,6 +302,8 @@ class CorrectionGP:
             raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
         #: kernel="auto": every fit chooses among AUTO_KERNELS by evidence (self.kernel is then the one chosen)
         self.auto = kernel == "auto"
+        #: kernel="auto": whether the last fit's library check found the library sufficient (None: not checked)
+        self.library_suffices_: bool | None = None
         self.kernel = "rbf" if self.auto else kernel  # the unfitted auto model holds an RBF until its first fit
         self._d_in = 1  # the feature kernel's input dimension (set by fit)
         self.fixed = {
@@ -780,7 +791,8 @@ class CorrectionGP:
     def evidence_score(self) -> float:
         """The log marginal likelihood less ``num_hyperparameters * log(N) / 2`` (N samples): BIC's approximation
         of the hyperparameters' own Occam factor, which ML-II evidence leaves out (the log evidence with them
-        integrated out, up to O(1)). ``kernel="auto"`` keeps the candidate of highest score. The price per learned
+        integrated out, up to O(1)). ``kernel="auto"`` keeps the eligible candidate of highest score
+        (:func:`library_check`). The price per learned
         value is the same as a feature term's (``min_gain``), so the choice between kernels and the choice of terms
         within a feature kernel follow one rule; without it, a kernel with more learned values wins whenever they
         fit the samples slightly better."""
@@ -793,21 +805,17 @@ class CorrectionGP:
         highest :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of
         those) among the candidates :func:`library_check` allows (a stationary kernel when the library misses part
         of F). The feature kernel is fitted with one weight per term and output (``per_output=True``); features+rbf
-        is skipped when ``per_output`` (it is shared by the outputs), and then the library is not checked. Cost: the
-        sum of the candidates' fits, about 4 fits. ``model_selection_`` records each candidate: kernel, log
-        marginal likelihood, score, seconds, the error of a candidate that failed, whether it was eligible.
+        is skipped when ``per_output`` (it is shared by the outputs), and then the library is not checked. Cost:
+        about 5 fits (the candidates and the check's nested model). ``model_selection_`` records each candidate:
+        kernel, log marginal likelihood, score, seconds, the error of a candidate that failed, whether it was
+        eligible.
         Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
         import time
 
-        records, fitted = [], {}
-        for kernel in AUTO_KERNELS:
-            if self._auto_per_output and kernel == "features+rbf":
-                continue
-            cand = CorrectionGP(
+        def candidate(kernel: str, per_output: bool) -> CorrectionGP:
+            return CorrectionGP(
                 kernel=kernel,
-                # the feature kernel: one weight per term and output, each output its own sparse equation (as
-                # SINDy); its evidence is higher than with weights shared by the outputs whenever they differ
-                per_output=self._auto_per_output or kernel == "features",
+                per_output=per_output,
                 degree=self.degree,
                 max_iter=self.max_iter,
                 noise_variance=self.fixed["noise_variance"],
@@ -815,38 +823,51 @@ class CorrectionGP:
                 dtype=self.dtype,
                 device=self.device,
             )
+
+        def attempt(cand: CorrectionGP) -> dict:
             start = time.perf_counter()
             try:
                 cand.fit(inputs, targets, noise=noise, **options)
             except (FittingError, LinearAlgebraError) as exc:
-                records.append(
-                    {
-                        "kernel": kernel,
-                        "log_marginal_likelihood": None,
-                        "hyperparameters": None,
-                        "score": None,
-                        "seconds": time.perf_counter() - start,
-                        "error": f"{type(exc).__name__}: {exc}",
-                    }
-                )
-                continue
-            records.append(
-                {
-                    "kernel": kernel,
-                    "log_marginal_likelihood": float(cand.log_marginal_likelihood_),
-                    "hyperparameters": cand.num_hyperparameters,
-                    "score": cand.evidence_score,
+                return {
+                    "kernel": cand.kernel,
+                    "log_marginal_likelihood": None,
+                    "hyperparameters": None,
+                    "score": None,
                     "seconds": time.perf_counter() - start,
-                    "error": None,
+                    "error": f"{type(exc).__name__}: {exc}",
                 }
-            )
-            fitted[kernel] = cand
+            return {
+                "kernel": cand.kernel,
+                "log_marginal_likelihood": float(cand.log_marginal_likelihood_),
+                "hyperparameters": cand.num_hyperparameters,
+                "score": cand.evidence_score,
+                "seconds": time.perf_counter() - start,
+                "error": None,
+            }
+
+        records, fitted = [], {}
+        for kernel in AUTO_KERNELS:
+            if self._auto_per_output and kernel == "features+rbf":
+                continue
+            # the feature kernel: one weight per term and output, each output its own sparse equation (as SINDy);
+            # its evidence is higher than with weights shared by the outputs whenever they differ
+            cand = candidate(kernel, self._auto_per_output or kernel == "features")
+            records.append(attempt(cand))
+            if records[-1]["error"] is None:
+                fitted[kernel] = cand
         if not fitted:
             raise FittingError(
                 "kernel='auto': every candidate kernel failed to fit: "
                 + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
             )
-        eligible, self.library_suffices_ = library_check({k: c.evidence_score for k, c in fitted.items()})
+        reference = None
+        if "features+rbf" in fitted:  # the model features+rbf nests: the library with weights shared by the outputs
+            reference = attempt(candidate("features", False))["score"]  # None if it failed: features+rbf untested
+            records[[r["kernel"] for r in records].index("features+rbf")]["library_score"] = reference
+        eligible, self.library_suffices_ = library_check(
+            {k: c.evidence_score for k, c in fitted.items()}, library_score=reference
+        )
         best = max((fitted[k] for k in eligible), key=lambda c: c.evidence_score)
         for r in records:
             r["eligible"] = r["kernel"] in eligible
