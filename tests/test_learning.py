@@ -100,6 +100,10 @@ def test_fallbacks_and_bad_input(linear_noisy):
         assert poly.kernel == "polynomial" and poly.cross_validation_.candidates == ("polynomial degree=2",)
         fixed = tms.fit_correction(traj, system, lengthscale=2.0)
         assert fixed.lengthscale == pytest.approx(2.0) and fixed.cross_validation_ is None
+        # an unfitted kernel="auto" template holds an RBF, yet it is scored as it is (its kernel chosen by
+        # evidence), not turned into a grid of RBF lengthscales
+        auto = tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="auto"), refine=False)
+        assert auto.auto and len(auto.model_selection_) == 4 and len(auto.cross_validation_.candidates) == 1
     for bad in ("foo", -1.0, 0.0, float("nan"), True):
         with pytest.raises(tms.InputError, match=r"lengthscale: expected 'cv', 'ml' or a positive number"):
             tms.fit_correction(traj, system, lengthscale=bad)
@@ -112,6 +116,8 @@ def test_fallbacks_and_bad_input(linear_noisy):
         cross_validate_lengthscale(system, traj[[0, 1]], samples)
     with pytest.raises(tms.InputError, match=r"chooses the lengthscale of a shared RBF or Matern kernel"):
         cross_validate_lengthscale(system, traj, samples, gp=tms.CorrectionGP(lengthscale=1.0))
+    with pytest.raises(tms.InputError, match=r"shared RBF or Matern kernel; got kernel 'auto'"):
+        cross_validate_lengthscale(system, traj, samples, gp=tms.CorrectionGP(kernel="auto"))
     with pytest.raises(tms.InputError, match=r"lengthscales: expected positive numbers"):
         cross_validate_lengthscale(system, traj, samples, lengthscales=[1.0, -2.0])
     with pytest.raises(tms.InputError, match=r"candidates: pass either a gp template or a list of candidates"):

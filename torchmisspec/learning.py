@@ -351,10 +351,11 @@ def cross_validate_lengthscale(
     template = CorrectionGP() if gp is None else gp
     if not isinstance(template, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
-    if template.kernel not in ("rbf", "matern52") or template.fixed["lengthscale"] is not None or template.per_output:
+    kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
+    if kernel not in ("rbf", "matern52") or template.fixed["lengthscale"] is not None or template.per_output:
         raise InputError(
             "gp: cross-validation chooses the lengthscale of a shared RBF or Matern kernel; got kernel "
-            f"{template.kernel!r}, lengthscale={template.fixed['lengthscale']}, per_output={template.per_output}"
+            f"{kernel!r}, lengthscale={template.fixed['lengthscale']}, per_output={template.per_output}"
         )
     if lengthscales is None:
         lengthscales = lengthscale_candidates(samples, template)
@@ -443,6 +444,7 @@ def fit_correction(
             candidates = default_candidates(samples)
         elif candidates is None:
             free = template.kernel in ("rbf", "matern52") and template.fixed["lengthscale"] is None
+            free = free and not template.auto  # kernel="auto" chooses its kernel by evidence: scored as it is
             if free and not template.per_output:
                 candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscale_candidates(samples, gp)]
             else:
