@@ -69,7 +69,8 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
     weights and noise (its RBF term removed). Comparing the two tests the library:
 
     * the nested model scores at least as high: F lies in the library's span as far as the samples can tell, and
-      every candidate competes by score (the library extrapolates as SINDy's equation would);
+      the RBF term does not earn its price, so ``features+rbf`` is dominated by its nested model and not eligible;
+      the others compete by score (the library extrapolates as SINDy's equation would);
     * ``features+rbf`` scores higher: its RBF term earns its price, so part of F lies outside the library. The
       library's coefficients are then only a local fit, confounded with the residual the RBF term carries, and
       nothing supports their extrapolation away from the samples. Neither feature candidate is eligible, and the
@@ -77,19 +78,20 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
       model, which the scientist trusts wherever no data say otherwise. (If no stationary kernel fitted, every
       candidate is eligible: a fit beats none.)
 
-    Without ``features+rbf`` (``per_output``, or a failed fit) there is nothing to test and every candidate competes;
-    if ``features+rbf`` fitted but its nested model did not (``library_score`` is ``None``), ``features+rbf`` is
-    untested and not eligible (unless nothing else fitted).
+    So ``features+rbf`` serves as the library's test and is never chosen (unless nothing else fitted). Without it
+    (``per_output``, or a failed fit) there is nothing to test and every candidate competes; if it fitted but its
+    nested model did not (``library_score`` is ``None``), nothing is tested either.
 
     Returns the eligible kernels and whether the library sufficed (``None``: not tested).
     """
     everything = list(scores)
     if "features+rbf" not in scores:
         return everything, None
+    others = [k for k in everything if k != "features+rbf"] or everything
     if library_score is None:
-        return ([k for k in everything if k != "features+rbf"] or everything), None
+        return others, None
     if library_score >= scores["features+rbf"]:
-        return everything, True
+        return others, True
     return ([k for k in everything if k in STATIONARY_KERNELS] or everything), False
 
 
@@ -211,8 +213,9 @@ class CorrectionGP:
             :mod:`torchmisspec.gp._features`), ``"features+rbf"`` (that library plus an RBF term for what it misses,
             :mod:`torchmisspec.gp._sum`), or ``"auto"``: every fit fits rbf, matern52, features and features+rbf
             by marginal likelihood and keeps the kernel of highest :attr:`evidence_score` (the log marginal
-            likelihood less BIC's price of its learned hyperparameters), except that when features+rbf outscores
-            features the library misses part of F and a stationary kernel is kept (:func:`library_check`);
+            likelihood less BIC's price of its learned hyperparameters) among rbf, matern52 and features, except
+            that when features+rbf outscores the feature kernel it nests the library misses part of F and a
+            stationary kernel is kept (:func:`library_check`: features+rbf is the library's test, never chosen);
             ``model_selection_`` lists them all; the cost of about five fits. Each is scaled by ``outputscale``
             (fixed at 1 for the feature kernels, whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
