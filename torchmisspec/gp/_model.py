@@ -854,7 +854,7 @@ class CorrectionGP:
             if self._auto_per_output and kernel == "features+rbf":
                 continue
             # the feature kernel: one weight per term and output, each output its own sparse equation (as SINDy);
-            # its evidence is higher than with weights shared by the outputs whenever they differ
+            # the shared-weight fit below is only the library check's reference (not a candidate)
             cand = candidate(kernel, self._auto_per_output or kernel == "features")
             records.append(attempt(cand))
             if records[-1]["error"] is None:
