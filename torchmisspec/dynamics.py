@@ -174,11 +174,16 @@ class CorrectedODE(nn.Module):
             times: ``(T,)`` or ``(B, T)``, strictly increasing.
             num_samples: S >= 1 posterior draws of F.
             generator: ``torch.Generator`` on the GP's device, for reproducible draws.
-            num_features / feature_error: the prior features of the draws (see ``sample_functions``).
+            num_features: the number of prior features of the draws (see ``sample_functions``).
+            feature_error: the prior features' error bound, instead of ``num_features`` (see ``sample_functions``).
             update_error: the draws' update is compressed onto a subset of the training inputs with a certified bound
                 of ``update_error`` times the prior standard deviation on the change (default :data:`UPDATE_ERROR`;
                 ``None``: exact); ``posterior.update_error`` is the bound reached.
-            method, rtol, atol, options, max_steps: the solver settings, as for :meth:`predict`.
+            method: the solver, as for :meth:`predict`.
+            rtol: the solver's relative tolerance, as for :meth:`predict`.
+            atol: the solver's absolute tolerance, as for :meth:`predict`.
+            options: the solver's options, as for :meth:`predict`.
+            max_steps: the solver's step limit, as for :meth:`predict`.
             support_threshold: the extrapolation threshold in (0, 1].
             hyperparameters: ``"fixed"`` (default: the fitted values) or ``"laplace"``: the draws are split among
                 ``hyperparameter_samples`` sets of hyperparameters drawn from the Laplace approximation of their

@@ -59,7 +59,9 @@ class Campaign:
         criterion: ``"information"`` (the paper's) or ``"domain"`` (variance of F over D), see
             :func:`~torchmisspec.design.greedy`.
         proxy: ``"known"`` or ``"corrected"``; default ``"corrected"`` once there are data, ``"known"`` before.
-        domain, domain_size: for ``criterion="domain"``.
+        domain: ``criterion="domain"`` only: the box D, as for :func:`~torchmisspec.design.greedy`.
+        domain_size: ``criterion="domain"`` only: quadrature nodes per axis, as for
+            :func:`~torchmisspec.design.greedy`.
         derivative: how ``tell`` turns states into correction samples (:func:`~torchmisspec.correction_samples`):
             ``"auto"`` for measured states; ``"oracle"`` (exact derivatives + ``noise_std``) for simulations.
         noise_std: noise added to the samples (``"oracle"``: the observation model's noise).
