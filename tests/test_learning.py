@@ -104,6 +104,8 @@ def test_fallbacks_and_bad_input(linear_noisy):
         # evidence), not turned into a grid of RBF lengthscales
         auto = tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="auto"), refine=False)
         assert auto.auto and len(auto.model_selection_) == 4 and len(auto.cross_validation_.candidates) == 1
+    with pytest.raises(tms.InputError, match=r"lengthscale: the auto kernel has no lengthscale, got 2.0"):
+        tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="auto"), lengthscale=2.0)
     for bad in ("foo", -1.0, 0.0, float("nan"), True):
         with pytest.raises(tms.InputError, match=r"lengthscale: expected 'cv', 'ml' or a positive number"):
             tms.fit_correction(traj, system, lengthscale=bad)

@@ -437,14 +437,14 @@ def fit_correction(
             raise InputError(f"candidates: are chosen by cross-validation (lengthscale='cv'), got {lengthscale!r}")
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
     options = _settings(template)
+    kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
     cv = None
     result = None
     if lengthscale == "cv" and trajectories.num_experiments >= 2:
         if candidates is None and gp is None:
             candidates = default_candidates(samples)
         elif candidates is None:
-            free = template.kernel in ("rbf", "matern52") and template.fixed["lengthscale"] is None
-            free = free and not template.auto  # kernel="auto" chooses its kernel by evidence: scored as it is
+            free = kernel in ("rbf", "matern52") and template.fixed["lengthscale"] is None  # auto: scored as it is
             if free and not template.per_output:
                 candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscale_candidates(samples, gp)]
             else:
@@ -462,8 +462,8 @@ def fit_correction(
             )
     if result is None:
         given = {"lengthscale": float(lengthscale)} if number else {}
-        if given and template.kernel not in ("rbf", "matern52"):
-            raise InputError(f"lengthscale: the {template.kernel} kernel has no lengthscale, got {lengthscale!r}")
+        if given and kernel not in ("rbf", "matern52"):
+            raise InputError(f"lengthscale: the {kernel} kernel has no lengthscale, got {lengthscale!r}")
         result = CorrectionGP(**{**options, **given}).fit(samples) if given else copy.deepcopy(template).fit(samples)
     if refine is None:
         refine = result.kernel == "features"

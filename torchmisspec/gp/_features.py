@@ -462,9 +462,9 @@ def _price_move(Phi, Y, known, w: torch.Tensor, s: float, min_gain: float, scale
         j = int(torch.where(act, gain, torch.full_like(gain, math.inf)).argmin())
         if gain[j] <= min_gain:
             moves.append((min_gain - float(gain[j]), j, 0.0))
-    if (
-        len(groups) == 1 and float(D.mean()) >= _READD_NOISE * second
-    ):  # the noise with the known part, not the floor alone
+    # re-admission only with one noise group (theta and S are then that group's), judged by the noise with the
+    # known part, not the floor alone
+    if len(groups) == 1 and float(D.mean()) >= _READD_NOISE * second:
         weight = (theta - 1.0) / S.clamp_min(tiny)
         add = ~act & (S > 0) & (gain > min_gain + _MARGIN) & (weight * scale_phi >= PRUNE * second)
         if bool(add.any()):

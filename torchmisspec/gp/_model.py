@@ -866,7 +866,11 @@ class CorrectionGP:
             )
         reference = None
         if "features+rbf" in fitted:  # the model features+rbf nests: the library with weights shared by the outputs
-            reference = attempt(candidate("features", False))["score"]  # None if it failed: features+rbf untested
+            fs = fitted.get("features")
+            if fs is not None and fs.output_dim == 1:  # one output: the per-output fit is that model already
+                reference = fs.evidence_score
+            else:
+                reference = attempt(candidate("features", False))["score"]  # None if it failed: untested
             records[[r["kernel"] for r in records].index("features+rbf")]["library_score"] = reference
         eligible, self.library_suffices_ = library_check(
             {k: c.evidence_score for k, c in fitted.items()}, library_score=reference
