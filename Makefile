@@ -33,7 +33,7 @@ format: install
 	$(BIN)/ruff format .
 
 docs: install
-	$(BIN)/mkdocs build --strict --quiet
+	$(BIN)/mkdocs build --strict
 
 reproduce-smoke: install
 	$(BIN)/python scripts/reproduce_paper.py --all --smoke --quiet --out reproduction-output/smoke
