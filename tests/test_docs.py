@@ -144,11 +144,11 @@ def check_kernels(ns: dict) -> None:
     spurious = [t for t in terms if (t.output, t.name) not in ((0, "y1^2"), (1, "y2^2"))]
     assert spurious and all(abs(t.mean) < 2 * t.std for t in spurious)
     # "the library plus an RBF term scores far above the library alone ... library_suffices_ is False ... auto keeps
-    # the better of the RBF and the Matern kernel, even where features+rbf has the higher score"
+    # the RBF, unless the Matern kernel outscores it by the margin, even where features+rbf has the higher score"
     g_score = {r["kernel"]: r["score"] for r in g_gp.model_selection_}
     ff = next(r for r in g_gp.model_selection_ if r["kernel"] == "features+rbf")
     assert ff["score"] > ff["library_score"] + 3 and g_gp.library_suffices_ is False  # vs the library it nests
-    assert g_gp.kernel in ("rbf", "matern52") and g_score[g_gp.kernel] == max(g_score["rbf"], g_score["matern52"])
+    assert g_gp.kernel == ("matern52" if g_score["matern52"] >= g_score["rbf"] + 3 else "rbf")
     assert not any(r["eligible"] for r in g_gp.model_selection_ if r["kernel"] in ("features", "features+rbf"))
 
 

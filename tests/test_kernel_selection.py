@@ -127,7 +127,8 @@ def test_auto_chooses_a_stationary_kernel_for_an_inverse_square_field(gravity_sa
     # candidate may be chosen, whatever its score
     assert score["features+rbf"] > score["features"] and gp.library_suffices_ is False
     assert gp.kernel in ("rbf", "matern52")
-    assert score[gp.kernel] == max(score["rbf"], score["matern52"])
+    # the RBF unless the Matern kernel outscores it by the margin
+    assert gp.kernel == ("matern52" if score["matern52"] >= score["rbf"] + gp.evidence_margin else "rbf")
     assert {r["kernel"]: r["eligible"] for r in gp.model_selection_} == {
         "rbf": True,
         "matern52": True,
@@ -157,6 +158,43 @@ def test_library_check(scores, library_score, eligible, suffices):
     from torchmisspec.gp._model import library_check
 
     assert library_check(scores, library_score=library_score) == (eligible, suffices)
+
+
+@pytest.mark.parametrize(
+    "scores, library_score, margin, chosen",
+    [
+        (ALL, 4.5, 3.0, "features"),  # 5.0 >= 1.0 + 3: strong evidence for the library
+        (ALL, 4.5, 4.5, "rbf"),  # 5.0 < 1.0 + 4.5: not enough to leave the RBF
+        (ALL, 4.5, 4.0, "features"),  # exactly the margin is enough
+        (ALL, 4.5, 0.0, "features"),  # margin 0: the highest eligible score
+        ({**ALL, "matern52": 3.0}, 3.0, 3.0, "rbf"),  # library rejected; Matern 2 nats above the RBF is not enough
+        ({**ALL, "matern52": 3.0}, 3.0, 0.0, "matern52"),
+        ({"matern52": 1.0, "features": 9.0, "features+rbf": 2.0}, 3.0, 3.0, "features"),  # no RBF: the best
+        ({"matern52": 1.0, "features": 0.0, "features+rbf": 9.0}, 3.0, 3.0, "matern52"),  # no RBF, library rejected
+        ({"rbf": 1.0, "features+rbf": 9.0}, None, 3.0, "rbf"),  # features+rbf untested: not eligible
+    ],
+)
+def test_auto_choice(scores, library_score, margin, chosen):
+    from torchmisspec.gp._model import auto_choice, library_check
+
+    assert auto_choice(scores, library_score=library_score, margin=margin) == (
+        chosen,
+        *library_check(scores, library_score=library_score),
+    )
+
+
+def test_evidence_margin_is_for_auto_is_checked_and_saved(linear_samples, tmp_path):
+    with pytest.raises(tms.InputError, match="evidence_margin.*'rbf'"):
+        tms.CorrectionGP(evidence_margin=1.0)
+    with pytest.raises(tms.InputError, match="evidence_margin"):
+        tms.CorrectionGP(kernel="auto", evidence_margin=-1.0)
+    assert tms.CorrectionGP(kernel="auto").evidence_margin == 3.0 and tms.CorrectionGP().evidence_margin is None
+    _, _, samples = linear_samples
+    # a margin larger than any score difference keeps the RBF; the record still ranks the candidates by score
+    gp = tms.CorrectionGP(kernel="auto", evidence_margin=1e6).fit(samples)
+    assert gp.kernel == "rbf" and {r["kernel"]: r["chosen"] for r in gp.model_selection_}["rbf"]
+    loaded = tms.CorrectionGP.load(gp.save(tmp_path / "auto.pt"))
+    assert loaded.auto and loaded.evidence_margin == 1e6 and loaded.kernel == "rbf"
 
 
 def test_auto_keeps_a_stationary_kernel_when_the_library_misses_part_of_f():

@@ -56,10 +56,15 @@ from ._sum import FeaturesPlusRBF, fit_sum
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
-#: the candidates of kernel="auto", fitted in this order; the highest CorrectionGP.evidence_score among those
-#: library_check allows wins
+#: the candidates of kernel="auto", fitted in this order (:func:`auto_choice` chooses among them)
 AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
 STATIONARY_KERNELS = ("rbf", "matern52")
+#: kernel="auto" keeps this kernel (the package's default, the paper's) unless another eligible candidate outscores it
+#: by at least ``evidence_margin`` nats
+AUTO_DEFAULT = "rbf"
+#: the default ``evidence_margin``: a Bayes factor of e^3 (about 20), "strong" evidence on Kass and Raftery's scale
+#: (2 log B > 6; J. Am. Stat. Assoc. 90, 773, 1995)
+EVIDENCE_MARGIN = 3.0
 
 
 def library_check(scores: dict[str, float], *, library_score: float | None = None) -> tuple[list[str], bool | None]:
@@ -93,6 +98,28 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
     if library_score >= scores["features+rbf"]:
         return others, True
     return ([k for k in everything if k in STATIONARY_KERNELS] or everything), False
+
+
+def auto_choice(
+    scores: dict[str, float], *, library_score: float | None = None, margin: float = EVIDENCE_MARGIN
+) -> tuple[str, list[str], bool | None]:
+    """The kernel ``kernel="auto"`` keeps, given the fitted candidates' evidence scores.
+
+    The candidates :func:`library_check` allows are eligible. Among them the one of highest score wins, unless the
+    default kernel (:data:`AUTO_DEFAULT`, the RBF) is eligible and the winner outscores it by less than ``margin``
+    nats: then the default is kept. The stake is not symmetric. A stationary kernel's prior falls back to F = 0,
+    i.e. to the known model, wherever no samples are, while a library equation chosen on weak evidence extrapolates
+    across the whole domain. Few samples (one or two short trajectories) rarely separate the candidates by much, and
+    there a few nats of evidence along the samples say little about the rest of the domain. The default margin,
+    :data:`EVIDENCE_MARGIN`, asks for "strong" evidence (a Bayes factor of about 20); 0 is the plain choice by score.
+
+    Returns the kernel chosen, the eligible kernels and whether the library sufficed (``None``: not tested).
+    """
+    eligible, suffices = library_check(scores, library_score=library_score)
+    best = max(eligible, key=scores.__getitem__)
+    if AUTO_DEFAULT in eligible and scores[best] < scores[AUTO_DEFAULT] + margin:
+        best = AUTO_DEFAULT
+    return best, eligible, suffices
 
 
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
@@ -215,7 +242,8 @@ class CorrectionGP:
             by marginal likelihood and keeps the kernel of highest :attr:`evidence_score` (the log marginal
             likelihood less BIC's price of its learned hyperparameters) among rbf, matern52 and features, except
             that when features+rbf outscores the feature kernel it nests the library misses part of F and a
-            stationary kernel is kept (:func:`library_check`: features+rbf is the library's test, never chosen);
+            stationary kernel is kept (:func:`library_check`: features+rbf is the library's test, never chosen),
+            and that the RBF is kept unless the best outscores it by ``evidence_margin`` (:func:`auto_choice`);
             ``model_selection_`` lists them all; the cost of about five fits. Each is scaled by ``outputscale``
             (fixed at 1 for the feature kernels, whose weights carry the scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
@@ -231,6 +259,8 @@ class CorrectionGP:
             learned value, the same as :attr:`evidence_score` charges, so spurious terms vanish as data accumulate;
             0: plain automatic relevance (every term whose evidence-optimal weight is positive). For the feature
             kernels and ``"auto"`` only.
+        evidence_margin: ``"auto"`` only: how many nats another kernel's score must exceed the RBF's by to be chosen
+            instead (``None``: :data:`EVIDENCE_MARGIN`, 3, "strong" evidence; 0: the highest score wins).
         max_iter: most L-BFGS iterations when fitting.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
@@ -263,6 +293,7 @@ class CorrectionGP:
         library=None,
         library_names=None,
         min_gain: float | None = None,
+        evidence_margin: float | None = None,
     ) -> None:
         if kernel not in KERNELS:
             raise InputError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
@@ -287,6 +318,18 @@ class CorrectionGP:
             min_gain = check_real(min_gain, "min_gain", minimum=0.0)
         #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
         self.min_gain = None if min_gain is None else float(min_gain)
+        if evidence_margin is not None and kernel != "auto":
+            raise InputError(f"evidence_margin: the margin of kernel='auto' over the RBF, got kernel {kernel!r}")
+        #: kernel="auto": the nats by which a candidate must outscore the RBF to be chosen instead (None otherwise)
+        self.evidence_margin = (
+            (
+                EVIDENCE_MARGIN
+                if evidence_margin is None
+                else float(check_real(evidence_margin, "evidence_margin", minimum=0.0))
+            )
+            if kernel == "auto"
+            else None
+        )
         if library is not None and kernel not in FEATURE_KERNELS:
             raise InputError(f"library: a feature library is for kernel 'features' or 'features+rbf', got {kernel!r}")
         if library is None and library_names is not None:
@@ -872,10 +915,10 @@ class CorrectionGP:
             else:
                 reference = attempt(candidate("features", False))["score"]  # None if it failed: untested
             records[[r["kernel"] for r in records].index("features+rbf")]["library_score"] = reference
-        eligible, self.library_suffices_ = library_check(
-            {k: c.evidence_score for k, c in fitted.items()}, library_score=reference
+        chosen, eligible, self.library_suffices_ = auto_choice(
+            {k: c.evidence_score for k, c in fitted.items()}, library_score=reference, margin=self.evidence_margin
         )
-        best = max((fitted[k] for k in eligible), key=lambda c: c.evidence_score)
+        best = fitted[chosen]
         for r in records:
             r["eligible"] = r["kernel"] in eligible
             r["chosen"] = r["kernel"] == best.kernel

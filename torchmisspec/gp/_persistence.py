@@ -59,6 +59,7 @@ def config_of(gp: CorrectionGP) -> dict:
         "fixed": dict(gp.fixed),
         "dtype": dtype,
         "auto": bool(getattr(gp, "auto", False)),  # kernel="auto": a refit chooses again
+        "evidence_margin": getattr(gp, "evidence_margin", None),
         "auto_per_output": bool(getattr(gp, "_auto_per_output", gp.per_output)),
     }
 
@@ -89,6 +90,11 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
     gp.auto = bool(cfg.get("auto", False))
     if gp.auto:  # the features candidate's price (the kernel chosen may be another)
         gp.min_gain = None if cfg.get("min_gain") is None else check_real(cfg["min_gain"], "min_gain", minimum=0.0)
+    if gp.auto:
+        from ._model import EVIDENCE_MARGIN
+
+        margin = cfg.get("evidence_margin")  # None in files written before the margin existed
+        gp.evidence_margin = EVIDENCE_MARGIN if margin is None else check_real(margin, "evidence_margin", minimum=0.0)
     gp._auto_per_output = bool(cfg.get("auto_per_output", gp.per_output))
     return gp
 
