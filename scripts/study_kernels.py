@@ -300,21 +300,21 @@ def goals(result: dict) -> list[str]:
             f"- {name}: the library check found the library sufficient in **{yes}**, insufficient in **{no}** of "
             f"{len(checks)} fits (not made: {len(checks) - yes - no})"
         )
-        held = [_held_by_margin(r["GP auto"]) for runs in section.values() for r in runs]
-        if held and None not in held:
+        held = [h for runs in section.values() for r in runs if (h := _held_by_margin(r["GP auto"])) is not None]
+        if held:
             out.append(
-                f"- {name}: the margin kept the RBF over a higher-scoring eligible candidate in **{sum(held)}** of "
-                f"{len(held)} fits"
+                f"- {name}: the margin kept a stationary kernel (the RBF, or the Matern kernel against a feature "
+                f"kernel) over a higher-scoring eligible candidate in **{sum(held)}** of {len(held)} fits"
             )
     return out
 
 
 def _held_by_margin(info: dict) -> bool | None:
-    """Whether auto kept the RBF although an eligible candidate scored higher (None: not recorded)."""
-    if "eligible" not in info:
+    """Whether auto kept a kernel other than the highest-scoring eligible one (None: not recorded)."""
+    if "eligible" not in info or "score" not in info:
         return None
     score = info["score"]
-    return info["kernel"] == "rbf" and any(score[k] > score["rbf"] for k in info["eligible"])
+    return any(score[k] > score[info["kernel"]] for k in info["eligible"])
 
 
 def render_page(result: dict, info: dict) -> str:

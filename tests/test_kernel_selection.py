@@ -163,15 +163,24 @@ def test_library_check(scores, library_score, eligible, suffices):
 @pytest.mark.parametrize(
     "scores, library_score, margin, chosen",
     [
-        (ALL, 4.5, 3.0, "features"),  # 5.0 >= 1.0 + 3: strong evidence for the library
+        (ALL, 4.5, 3.0, "features"),  # 5.0 > 1.0 + 3: strong evidence for the library
         (ALL, 4.5, 4.5, "rbf"),  # 5.0 < 1.0 + 4.5: not enough to leave the RBF
-        (ALL, 4.5, 4.0, "features"),  # exactly the margin is enough
+        (ALL, 4.5, 4.0, "rbf"),  # exactly the margin is not more than it
         (ALL, 4.5, 0.0, "features"),  # margin 0: the highest eligible score
+        ({"rbf": 1.0, "features": 1.0}, None, 0.0, "rbf"),  # a tie goes to the RBF, whatever the order
+        ({"features": 1.0, "rbf": 1.0}, None, 0.0, "rbf"),
+        ({"rbf": 1.0, "matern52": 0.0, "features": 3.5}, None, 3.0, "rbf"),  # per_output: no check, the margin holds
         ({**ALL, "matern52": 3.0}, 3.0, 3.0, "rbf"),  # library rejected; Matern 2 nats above the RBF is not enough
         ({**ALL, "matern52": 3.0}, 3.0, 0.0, "matern52"),
-        ({"matern52": 1.0, "features": 9.0, "features+rbf": 2.0}, 3.0, 3.0, "features"),  # no RBF: the best
+        ({**ALL, "matern52": 4.5}, 3.0, 3.0, "matern52"),  # 3.5 nats above the RBF: strong
+        # the library must beat every stationary kernel by the margin, not only the RBF: 5 > 1 + 3 but not > 2.5 + 3
+        ({**ALL, "matern52": 2.5}, 4.5, 3.0, "rbf"),
+        ({**ALL, "matern52": 1.5, "features": 9.0}, 4.5, 3.0, "features"),
+        ({"matern52": 1.0, "features": 9.0, "features+rbf": 2.0}, 3.0, 3.0, "features"),  # no RBF: beats Matern
+        ({"matern52": 1.0, "features": 3.5, "features+rbf": 2.0}, 3.0, 3.0, "matern52"),  # no RBF: Matern is the bar
         ({"matern52": 1.0, "features": 0.0, "features+rbf": 9.0}, 3.0, 3.0, "matern52"),  # no RBF, library rejected
         ({"rbf": 1.0, "features+rbf": 9.0}, None, 3.0, "rbf"),  # features+rbf untested: not eligible
+        ({"features": 0.0, "features+rbf": 9.0}, 3.0, 3.0, "features+rbf"),  # nothing stationary: the best
     ],
 )
 def test_auto_choice(scores, library_score, margin, chosen):
@@ -184,7 +193,7 @@ def test_auto_choice(scores, library_score, margin, chosen):
 
 
 def test_evidence_margin_is_for_auto_is_checked_and_saved(linear_samples, tmp_path):
-    with pytest.raises(tms.InputError, match="evidence_margin.*'rbf'"):
+    with pytest.raises(tms.InputError, match="evidence_margin: expected kernel='auto'.*kernel='rbf'"):
         tms.CorrectionGP(evidence_margin=1.0)
     with pytest.raises(tms.InputError, match="evidence_margin"):
         tms.CorrectionGP(kernel="auto", evidence_margin=-1.0)
@@ -195,6 +204,29 @@ def test_evidence_margin_is_for_auto_is_checked_and_saved(linear_samples, tmp_pa
     assert gp.kernel == "rbf" and {r["kernel"]: r["chosen"] for r in gp.model_selection_}["rbf"]
     loaded = tms.CorrectionGP.load(gp.save(tmp_path / "auto.pt"))
     assert loaded.auto and loaded.evidence_margin == 1e6 and loaded.kernel == "rbf"
+    assert loaded.fit(samples).kernel == "rbf"  # the refit chooses again, with the saved margin
+    assert gp.condition(samples.inputs[:5], samples.targets[:5]).library_suffices_ is None
+    plain = tms.CorrectionGP(kernel="auto", evidence_margin=0).fit(samples)
+    assert plain.kernel == "features" and plain.evidence_margin == 0.0
+
+
+@pytest.mark.parametrize("bad", [True, float("nan"), float("inf"), -1.0, "3", torch.tensor([1.0])])
+def test_a_bad_evidence_margin_names_what_was_expected(bad):
+    with pytest.raises(tms.InputError, match="evidence_margin: expected"):
+        tms.CorrectionGP(kernel="auto", evidence_margin=bad)
+
+
+def test_a_saved_auto_model_without_a_margin_loads_with_the_default(linear_samples, tmp_path):
+    """Files written before the margin existed hold no evidence_margin: they load with the default; a bad one in a
+    file names the file."""
+    from torchmisspec.gp import _persistence
+
+    _, _, samples = linear_samples
+    cfg = _persistence.config_of(tms.CorrectionGP(kernel="auto", evidence_margin=5.0).fit(samples))
+    del cfg["evidence_margin"]
+    assert _persistence.from_config(tms.CorrectionGP, cfg, "old.pt").evidence_margin == 3.0
+    with pytest.raises(tms.InputError, match="bad.pt: .*evidence_margin"):
+        _persistence.from_config(tms.CorrectionGP, {**cfg, "evidence_margin": -1}, "bad.pt")
 
 
 def test_auto_keeps_a_stationary_kernel_when_the_library_misses_part_of_f():

@@ -75,17 +75,18 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
 
     * the nested model scores at least as high: F lies in the library's span as far as the samples can tell, and
       the RBF term does not earn its price, so ``features+rbf`` is dominated by its nested model and not eligible;
-      the others compete by score (the library extrapolates as SINDy's equation would);
+      the others are eligible (the library extrapolates as SINDy's equation would);
     * ``features+rbf`` scores higher: its RBF term earns its price, so part of F lies outside the library. The
       library's coefficients are then only a local fit, confounded with the residual the RBF term carries, and
-      nothing supports their extrapolation away from the samples. Neither feature candidate is eligible, and the
-      best stationary kernel is chosen: its prior falls back to F = 0 away from the samples, i.e. to the known
-      model, which the scientist trusts wherever no data say otherwise. (If no stationary kernel fitted, every
-      candidate is eligible: a fit beats none.)
+      nothing supports their extrapolation away from the samples. Neither feature candidate is eligible, only the
+      stationary kernels are: their prior falls back to F = 0 away from the samples, i.e. to the known model, which
+      the scientist trusts wherever no data say otherwise. (If no stationary kernel fitted, every candidate is
+      eligible: a fit beats none.)
 
     So ``features+rbf`` serves as the library's test and is never chosen (unless nothing else fitted). Without it
     (``per_output``, or a failed fit) there is nothing to test and every candidate competes; if it fitted but its
-    nested model did not (``library_score`` is ``None``), nothing is tested either.
+    nested model did not (``library_score`` is ``None``), nothing is tested either. :func:`auto_choice` then chooses
+    among the eligible kernels.
 
     Returns the eligible kernels and whether the library sufficed (``None``: not tested).
     """
@@ -105,20 +106,35 @@ def auto_choice(
 ) -> tuple[str, list[str], bool | None]:
     """The kernel ``kernel="auto"`` keeps, given the fitted candidates' evidence scores.
 
-    The candidates :func:`library_check` allows are eligible. Among them the one of highest score wins, unless the
-    default kernel (:data:`AUTO_DEFAULT`, the RBF) is eligible and the winner outscores it by less than ``margin``
-    nats: then the default is kept. The stake is not symmetric. A stationary kernel's prior falls back to F = 0,
-    i.e. to the known model, wherever no samples are, while a library equation chosen on weak evidence extrapolates
-    across the whole domain. Few samples (one or two short trajectories) rarely separate the candidates by much, and
-    there a few nats of evidence along the samples say little about the rest of the domain. The default margin,
-    :data:`EVIDENCE_MARGIN`, asks for "strong" evidence (a Bayes factor of about 20); 0 is the plain choice by score.
+    The candidates :func:`library_check` allows are eligible. Leaving the default takes strong evidence:
+
+    * among the stationary kernels, the RBF (:data:`AUTO_DEFAULT`, the package's and the paper's kernel) is kept
+      unless the Matern kernel outscores it by more than ``margin`` nats (the better one if the RBF did not fit);
+    * a feature kernel is kept only if it outscores every eligible stationary kernel by more than ``margin``.
+
+    The stake is not symmetric. A stationary kernel's prior falls back to F = 0, i.e. to the known model, wherever no
+    samples are, while a library equation chosen on weak evidence is trusted across the whole domain. Few samples
+    (one or two short trajectories) rarely separate the candidates by much, and then a few nats of evidence along
+    the samples say little about the rest of the domain. The default, :data:`EVIDENCE_MARGIN`, asks for "strong"
+    evidence (a Bayes factor above about 20); with 0 the highest score wins, ties going to the default. Without an
+    eligible stationary kernel the highest score wins.
 
     Returns the kernel chosen, the eligible kernels and whether the library sufficed (``None``: not tested).
     """
     eligible, suffices = library_check(scores, library_score=library_score)
-    best = max(eligible, key=scores.__getitem__)
-    if AUTO_DEFAULT in eligible and scores[best] < scores[AUTO_DEFAULT] + margin:
+    stationary = [k for k in eligible if k in STATIONARY_KERNELS]
+    others = [k for k in eligible if k not in STATIONARY_KERNELS]
+    if not stationary:
+        return max(others, key=scores.__getitem__), eligible, suffices
+    top = max(scores[k] for k in stationary)
+    if AUTO_DEFAULT in stationary and top <= scores[AUTO_DEFAULT] + margin:
         best = AUTO_DEFAULT
+    else:
+        best = max(stationary, key=scores.__getitem__)
+    if others:
+        rival = max(others, key=scores.__getitem__)
+        if scores[rival] > top + margin:
+            best = rival
     return best, eligible, suffices
 
 
@@ -239,13 +255,14 @@ class CorrectionGP:
             the monomials up to ``degree``, one learned weight per term: automatic relevance, see
             :mod:`torchmisspec.gp._features`), ``"features+rbf"`` (that library plus an RBF term for what it misses,
             :mod:`torchmisspec.gp._sum`), or ``"auto"``: every fit fits rbf, matern52, features and features+rbf
-            by marginal likelihood and keeps the kernel of highest :attr:`evidence_score` (the log marginal
-            likelihood less BIC's price of its learned hyperparameters) among rbf, matern52 and features, except
-            that when features+rbf outscores the feature kernel it nests the library misses part of F and a
-            stationary kernel is kept (:func:`library_check`: features+rbf is the library's test, never chosen),
-            and that the RBF is kept unless the best outscores it by ``evidence_margin`` (:func:`auto_choice`);
-            ``model_selection_`` lists them all; the cost of about five fits. Each is scaled by ``outputscale``
-            (fixed at 1 for the feature kernels, whose weights carry the scale).
+            by marginal likelihood and scores them by :attr:`evidence_score` (the log marginal likelihood less
+            BIC's price of its learned hyperparameters). When features+rbf outscores the feature kernel it nests,
+            the library misses part of F and only rbf and matern52 are eligible (:func:`library_check`:
+            features+rbf is the library's test, never chosen). Leaving the RBF then takes strong evidence: the
+            Matern or the feature kernel is kept only if it outscores the eligible stationary kernels by more than
+            ``evidence_margin`` (:func:`auto_choice`). ``model_selection_`` lists them all; the cost of about five
+            fits. Each is scaled by ``outputscale`` (fixed at 1 for the feature kernels, whose weights carry the
+            scale).
         lengthscale: the RBF/Matern l (the paper's sigma_k^2 = l^2); not for the polynomial kernel. A value passed
             here (or for the next two) is held fixed; ``None`` means learned by marginal likelihood.
         outputscale: the kernel's variance factor.
@@ -259,8 +276,9 @@ class CorrectionGP:
             learned value, the same as :attr:`evidence_score` charges, so spurious terms vanish as data accumulate;
             0: plain automatic relevance (every term whose evidence-optimal weight is positive). For the feature
             kernels and ``"auto"`` only.
-        evidence_margin: ``"auto"`` only: how many nats another kernel's score must exceed the RBF's by to be chosen
-            instead (``None``: :data:`EVIDENCE_MARGIN`, 3, "strong" evidence; 0: the highest score wins).
+        evidence_margin: ``"auto"`` only: by how many nats a candidate's score must exceed the RBF's (the feature
+            kernel's: every eligible stationary kernel's) to be chosen instead (``None``: :data:`EVIDENCE_MARGIN`,
+            3, "strong" evidence; 0: the highest score, ties going to the RBF).
         max_iter: most L-BFGS iterations when fitting.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
@@ -319,7 +337,10 @@ class CorrectionGP:
         #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
         self.min_gain = None if min_gain is None else float(min_gain)
         if evidence_margin is not None and kernel != "auto":
-            raise InputError(f"evidence_margin: the margin of kernel='auto' over the RBF, got kernel {kernel!r}")
+            raise InputError(
+                f"evidence_margin: expected kernel='auto' (the margin over the RBF), got kernel={kernel!r} with "
+                f"evidence_margin={evidence_margin!r}"
+            )
         #: kernel="auto": the nats by which a candidate must outscore the RBF to be chosen instead (None otherwise)
         self.evidence_margin = (
             (
@@ -837,24 +858,23 @@ class CorrectionGP:
     def evidence_score(self) -> float:
         """The log marginal likelihood less ``num_hyperparameters * log(N) / 2`` (N samples): BIC's approximation
         of the hyperparameters' own Occam factor, which ML-II evidence leaves out (the log evidence with them
-        integrated out, up to O(1)). ``kernel="auto"`` keeps the eligible candidate of highest score
-        (:func:`library_check`). The price per learned
-        value is the same as a feature term's (``min_gain``), so the choice between kernels and the choice of terms
-        within a feature kernel follow one rule; without it, a kernel with more learned values wins whenever they
-        fit the samples slightly better."""
+        integrated out, up to O(1)). ``kernel="auto"`` chooses by this score (:func:`auto_choice`). The price per
+        learned value is the same as a feature term's (``min_gain``), so the choice between kernels and the choice
+        of terms within a feature kernel follow one rule; without it, a kernel with more learned values wins
+        whenever they fit the samples slightly better."""
         self._require_fitted()
         n = self.train_inputs_.shape[0]
         return float(self.log_marginal_likelihood_) - 0.5 * math.log(n) * self.num_hyperparameters
 
     def _fit_auto(self, inputs, targets, noise, **options) -> CorrectionGP:
-        """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood and keep the one of
-        highest :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of
-        those) among the candidates :func:`library_check` allows (a stationary kernel when the library misses part
-        of F). The feature kernel is fitted with one weight per term and output (``per_output=True``); features+rbf
-        is skipped when ``per_output`` (it is shared by the outputs), and then the library is not checked. Cost:
-        about 5 fits (the candidates and the check's nested model). ``model_selection_`` records each candidate:
-        kernel, log marginal likelihood, score, seconds, the error of a candidate that failed, whether it was
-        eligible.
+        """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood, score each by
+        :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of those) and keep
+        the one :func:`auto_choice` chooses (the RBF unless another eligible candidate has strong evidence; a
+        stationary kernel when the library misses part of F). The feature kernel is fitted with one weight per term
+        and output (``per_output=True``); features+rbf is skipped when ``per_output`` (it is shared by the outputs),
+        and then the library is not checked. Cost: about 5 fits (the candidates and the check's nested model).
+        ``model_selection_`` records each candidate: kernel, log marginal likelihood, score, seconds, the error of a
+        candidate that failed, whether it was eligible, whether it was chosen.
         Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
         import time
 
@@ -1503,6 +1523,7 @@ class CorrectionGP:
         new.fixed = dict(self.fixed)
         for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:
             delattr(new, name)  # records of this model's fit (cross_validation_, samples_, state_noise_, ...)
+        new.library_suffices_ = None  # kernel="auto": no check made on these data (None, as before any fit)
         new._cache = None
         covar = copy.deepcopy(self.covar_module)
         lik = copy.deepcopy(self.likelihood)

@@ -88,13 +88,18 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
     except (TypeError, InputError) as exc:
         raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
     gp.auto = bool(cfg.get("auto", False))
-    if gp.auto:  # the features candidate's price (the kernel chosen may be another)
-        gp.min_gain = None if cfg.get("min_gain") is None else check_real(cfg["min_gain"], "min_gain", minimum=0.0)
     if gp.auto:
         from ._model import EVIDENCE_MARGIN
 
-        margin = cfg.get("evidence_margin")  # None in files written before the margin existed
-        gp.evidence_margin = EVIDENCE_MARGIN if margin is None else check_real(margin, "evidence_margin", minimum=0.0)
+        try:
+            # the features candidate's price (the kernel chosen may be another)
+            gp.min_gain = None if cfg.get("min_gain") is None else check_real(cfg["min_gain"], "min_gain", minimum=0.0)
+            margin = cfg.get("evidence_margin")  # None in files written before the margin existed
+            gp.evidence_margin = (
+                EVIDENCE_MARGIN if margin is None else check_real(margin, "evidence_margin", minimum=0.0)
+            )
+        except InputError as exc:
+            raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
     gp._auto_per_output = bool(cfg.get("auto_per_output", gp.per_output))
     return gp
 
