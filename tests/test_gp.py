@@ -302,3 +302,19 @@ def test_starting_values_are_the_documented_statistics_and_the_fit_starts_there(
     one_step = tms.CorrectionGP(max_iter=1).fit(X, Y, warm_start=0)
     fixed_at_start = tms.CorrectionGP(**{k: float(v) for k, v in start.items()}).fit(X, Y)
     assert one_step.log_marginal_likelihood_ > fixed_at_start.log_marginal_likelihood_  # one step uphill from there
+
+
+@pytest.mark.parametrize("kind", ["rbf", "matern52", "features+rbf"])
+def test_a_prediction_does_not_depend_on_the_rest_of_the_batch(kind, generator):
+    """GPyTorch centres both inputs of a distance on the first one's mean: with the query batch first, one far-away
+    row (a diverging trajectory's state) changed every other row's prediction. Each row must be its own."""
+    X, Y = _data(generator)
+    gp = tms.CorrectionGP(kernel=kind).fit(X, Y)
+    x = torch.tensor([[0.375, -0.2], [0.1, 0.4]], dtype=DT)
+    far = torch.cat([x, torch.tensor([[1e6, 0.0], [0.0, -1e8]], dtype=DT)])
+    alone, batched = gp.predict(x), gp.predict(far)
+    torch.testing.assert_close(batched.mean[:2], alone.mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(batched.variance[:2], alone.variance, rtol=1e-10, atol=1e-14)
+    torch.testing.assert_close(gp.predict_mean(far)[:2], gp.predict_mean(x), rtol=1e-12, atol=1e-12)
+    if kind != "features+rbf":  # far from the data a stationary posterior is the prior: mean 0
+        assert float(batched.mean[2:].abs().max()) < 1e-12

@@ -156,3 +156,21 @@ def test_student_t_quantiles_and_the_critical_value():
     cv = CrossValidation(("a",), (None,), (1.0,), 2.0, "a", 5, gains, 0)
     assert cv.improves and cv.critical == pytest.approx(2.776, rel=1e-3) and not cv.significant
     assert CrossValidation(("a",), (None,), (1.0,), 2.0, "a", 5, gains * 4, 0).significant  # 20 experiments
+
+
+def test_cross_validation_accepts_float32_trajectories_and_templates(one_thread):
+    """The held-out field evaluated the GP's kernel on the trajectories' float32 states against its float64 training
+    inputs and raised a bare dtype error; the field now follows the GP's dtype and returns the states'."""
+    system = tms.systems.paper_linear()
+    t = torch.linspace(0, 6, 11, dtype=DT)
+    y0 = torch.tensor([[0.5, -0.3], [0.2, 0.4], [-0.5, 0.1], [0.3, 0.3]], dtype=DT)
+    traj = tms.simulate(system, y0, t)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp64 = tms.fit_correction(traj.to(torch.float32), system, derivative="central", gp=tms.CorrectionGP())
+        gp32 = tms.fit_correction(traj, system, derivative="central", gp=tms.CorrectionGP(dtype=torch.float32))
+    assert gp64.dtype == DT and gp32.dtype == torch.float32
+    assert gp64.cross_validation_ is not None and gp32.cross_validation_ is not None
+    samples = tms.correction_samples(traj.to(torch.float32), system, derivative="central")
+    result, _ = tms.cross_validate(system, traj.to(torch.float32), samples, [tms.CorrectionGP(lengthscale=1.0)])
+    assert all(torch.isfinite(torch.tensor(result.scores)))

@@ -187,14 +187,14 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
     X = gp.train_inputs_
 
     def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        x = system.select_inputs(y)
+        x = system.select_inputs(y).to(X)  # the GP's dtype and device (float32 data with a float64 GP)
         Kx = kernel_matrix(gp.kernel, x, X, params, gp.degree)  # (1 or d_out, B, N)
         a = alphas[fold_of[rows]]  # (B, N, d_out)
         if Kx.shape[0] == 1:
             mu = (Kx[0].unsqueeze(1) @ a).squeeze(1)  # (B, d_out)
         else:
             mu = torch.einsum("obn,bno->bo", Kx, a)
-        return system.known_rhs(y) + system.embed(mu)
+        return system.known_rhs(y) + system.embed(mu.to(y))
 
     return field
 

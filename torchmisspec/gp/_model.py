@@ -1179,8 +1179,11 @@ class CorrectionGP:
             return self.covar_module.forward(x1, x2)
 
     def _cross(self, x: torch.Tensor) -> torch.Tensor:
-        """k(x, X) as ``(B, M, N)``."""
-        K = self.covar_module.forward(x, self.train_inputs_)
+        """k(x, X) as ``(B, M, N)``. Computed as k(X, x) transposed: GPyTorch's distances centre both inputs on the
+        mean of the first, so with the query first one far-away row shifts every other row's distances (and a
+        prediction would depend on what else is in the batch); centred on the fixed training inputs, each row is
+        its own."""
+        K = self.covar_module.forward(self.train_inputs_, x).transpose(-1, -2)
         return K.unsqueeze(0) if K.dim() == 2 else K
 
     def predict_mean(self, x) -> torch.Tensor:
