@@ -1179,12 +1179,16 @@ class CorrectionGP:
             return self.covar_module.forward(x1, x2)
 
     def _cross(self, x: torch.Tensor) -> torch.Tensor:
-        """k(x, X) as ``(B, M, N)``. Computed as k(X, x) transposed: GPyTorch's distances centre both inputs on the
-        mean of the first, so with the query first one far-away row shifts every other row's distances (and a
-        prediction would depend on what else is in the batch); centred on the fixed training inputs, each row is
-        its own."""
-        K = self.covar_module.forward(self.train_inputs_, x).transpose(-1, -2)
+        """k(X, x) as ``(B, N, M)``, training inputs first: GPyTorch's distances centre both inputs on the mean of
+        the first, so with the queries first one far-away row would shift every other row's distances (a prediction
+        would depend on what else is in the batch); centred on the fixed training inputs, each query is its own."""
+        K = self.covar_module.forward(self.train_inputs_, x)
         return K.unsqueeze(0) if K.dim() == 2 else K
+
+    def _cross_mean(self, x: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """k(x, X) alpha as ``(B, M, d)`` for ``alpha (B, N, d)``, from :meth:`_cross` (alpha^T k(X, x), transposed:
+        a contiguous product)."""
+        return (alpha.transpose(-1, -2) @ self._cross(x)).transpose(-1, -2)
 
     def predict_mean(self, x) -> torch.Tensor:
         """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)``. One kernel block times the cached solve.
@@ -1215,8 +1219,8 @@ class CorrectionGP:
         alpha = cache.fac.alpha
         rows = max(64, MEAN_BLOCK // max(alpha.shape[-2], 1))
         if x.shape[0] <= rows:
-            return self._unbatch(self._cross(x) @ alpha)  # (1, M, d_out) or (d_out, M, 1) before
-        return torch.cat([self._unbatch(self._cross(x[i : i + rows]) @ alpha) for i in range(0, x.shape[0], rows)])
+            return self._unbatch(self._cross_mean(x, alpha))  # (1, M, d_out) or (d_out, M, 1) before
+        return torch.cat([self._unbatch(self._cross_mean(x[i : i + rows], alpha)) for i in range(0, x.shape[0], rows)])
 
     def predict(self, x) -> GPPosterior:
         """Posterior mean and variance of F itself (no observation noise) at ``x (M, d_in)``, each ``(M, d_out)``."""
@@ -1228,10 +1232,10 @@ class CorrectionGP:
                 mean = self._unbatch(phi @ cache.fac.mean)
                 var = ((phi @ cache.fac.cov) * phi).sum(-1).clamp_min(0.0)  # (B, M)
             else:
-                Kxs = self._cross(x)  # (1, M, N) shared kernel, (d_out, M, N) per output
-                mean = self._unbatch(Kxs @ cache.fac.alpha)
+                Kt = self._cross(x)  # k(X, x): (1, N, M) shared kernel, (d_out, N, M) per output
+                mean = self._unbatch((cache.fac.alpha.transpose(-1, -2) @ Kt).transpose(-1, -2))
                 chol = cache.fac.chol  # (1 or d_out, N, N)
-                Kt = Kxs.transpose(-1, -2).expand(chol.shape[0], -1, -1)
+                Kt = Kt.expand(chol.shape[0], -1, -1)
                 v = torch.linalg.solve_triangular(chol, Kt, upper=False)
                 prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
                 var = (prior - v.pow(2).sum(-2)).clamp_min(0.0)  # (1 or d_out, M)
