@@ -174,3 +174,25 @@ def test_cross_validation_accepts_float32_trajectories_and_templates(one_thread)
     samples = tms.correction_samples(traj.to(torch.float32), system, derivative="central")
     result, _ = tms.cross_validate(system, traj.to(torch.float32), samples, [tms.CorrectionGP(lengthscale=1.0)])
     assert all(torch.isfinite(torch.tensor(result.scores)))
+
+
+def test_a_known_model_that_diverges_does_not_break_the_defaults(one_thread):
+    """G(y) = y^2 blows up from y0 > 1 before t = 1, while the truth G + F = -y is stable: the case a correction
+    exists to fix. derivative='auto' (whose self-check integrates G alone) and the cross-validation baseline (G
+    alone on each held-out experiment) raised IntegrationError; now the check uses the experiments G can be
+    integrated over (with a warning) and the baseline scores the others as infinite error."""
+    system = tms.MisspecifiedSystem(lambda y: y**2, 1, correction=lambda x: -(x**2) - x, name="blowup_known")
+    t = torch.linspace(0, 1, 21, dtype=DT)
+    y0 = torch.tensor([[2.0], [1.5], [0.8], [0.5], [-0.5], [-1.0]], dtype=DT)
+    traj = tms.simulate(system, y0, t)
+    with pytest.warns(tms.TorchMisspecWarning, match=r"experiments \[0, 1\].*the other 4"):
+        samples = tms.correction_samples(traj, system)
+    assert torch.isfinite(samples.targets).all()
+    gp = tms.fit_correction(traj, system, derivative="central", gp=tms.CorrectionGP())
+    cv = gp.cross_validation_
+    assert cv.baseline == float("inf") and cv.significant
+    assert sum(g == float("inf") for g in cv.gains) == 2
+    pred = tms.CorrectedODE(system, gp).predict(y0, t)
+    assert float((pred - traj.states).abs().max()) < 1e-2
+    with pytest.raises(tms.IntegrationError, match="diverges from all 2.*derivative='central'"):
+        tms.correction_samples(traj[[0, 1]], system)

@@ -114,9 +114,15 @@ class CrossValidation:
         """Whether the best candidate beats the known model significantly: a paired comparison over the held-out
         experiments of the log ratio of their errors (log ratios, because the experiments' errors differ by orders
         of magnitude), whose mean must exceed :attr:`critical` standard errors (the one-sided Student t test at
-        level 1 - :data:`SIGNIFICANCE`): the evidence that the correction helps at all."""
+        level 1 - :data:`SIGNIFICANCE`): the evidence that the correction helps at all. An infinite gain (the known
+        model alone cannot be integrated over a held-out experiment that the corrected model predicts) is
+        significant by itself."""
         n = len(self.gains)
-        if n < 2 or not self.improves:
+        if not self.improves:
+            return False
+        if any(g == math.inf for g in self.gains):
+            return True
+        if n < 2:
             return False
         mean = sum(self.gains) / n
         var = sum((g - mean) ** 2 for g in self.gains) / (n - 1)
@@ -161,8 +167,26 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
     out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
     for idx, group in trajectories.by_length():
         if field is None:
-            pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
-            pred = pred.states
+            try:
+                pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
+                pred = pred.states
+            except IntegrationError:
+                # the known model alone diverges from some of these states (what a correction may exist to fix):
+                # each experiment alone, and an infinite error where G cannot be integrated
+                for j, k in enumerate(idx):
+                    try:
+                        one = simulate(
+                            system,
+                            group.initial_conditions[j : j + 1],
+                            group.times,
+                            known_only=True,
+                            rtol=rtol,
+                            atol=atol,
+                        )
+                        out[k] = float((one.states - group.states[j : j + 1]).pow(2).sum())
+                    except IntegrationError:
+                        out[k] = math.inf
+                continue
         else:
             rows = torch.tensor(idx, device=group.device)
             pred, _ = solve(

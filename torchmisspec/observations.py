@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import torch
 
-from ._errors import InputError, ShapeError, TorchMisspecWarning, warn
+from ._errors import InputError, IntegrationError, ShapeError, TorchMisspecWarning, warn
 from ._linalg import cholesky, cholesky_or_fail, logdet_from_cholesky
 from ._threads import adaptive_threads
 from ._validation import check_finite, check_positive_int, check_real, states_and_times
@@ -524,7 +524,10 @@ def _known_model_copy(trajectories: Trajectories, system: MisspecifiedSystem):
     # Tolerances 100x looser than the package's ground-truth simulations (2.5x faster): the copy's solver error
     # (~1e-8 relative) is far below any derivative estimator's error that the check has to rank.
     times = list(trajectories.times) if trajectories.is_ragged else trajectories.times
-    sim = simulate(system, trajectories.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
+    try:
+        sim = simulate(system, trajectories.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
+    except IntegrationError:
+        sim = _known_model_where_it_integrates(trajectories, system)
     clean = sim.flat_states()
     states, real_gp = clean, None
     if min(trajectories.lengths) >= GP_MIN_SAMPLES:
@@ -539,6 +542,35 @@ def _known_model_copy(trajectories: Trajectories, system: MisspecifiedSystem):
             eps = torch.randn(states.shape, generator=gen, dtype=states.dtype, device=states.device)
             states = states + out.noise.sqrt() * eps
     return _with_flat_states(sim, states), clean, real_gp
+
+
+def _known_model_where_it_integrates(trajectories: Trajectories, system: MisspecifiedSystem) -> Trajectories:
+    """G alone from each observed initial state in turn, keeping the experiments over which it can be integrated
+    (the known model may diverge where the true system does not: what the correction exists to fix). Warns which
+    were left out; raises if none is left."""
+    kept = []
+    for k in range(trajectories.num_experiments):
+        one = trajectories[k : k + 1]
+        try:
+            simulate(system, one.initial_conditions, one.times, known_only=True, rtol=1e-8, atol=1e-10)
+            kept.append(k)
+        except IntegrationError:
+            pass
+    if not kept:
+        raise IntegrationError(
+            "derivative='auto': the self-check integrates the known model alone from every observed initial state, "
+            f"and it diverges from all {trajectories.num_experiments} of them; choose an estimator yourself, e.g. "
+            "derivative='central' or derivative='gp'"
+        )
+    dropped = [k for k in range(trajectories.num_experiments) if k not in kept]
+    warn(
+        f"derivative='auto': the known model alone cannot be integrated from the initial states of experiments "
+        f"{dropped}; the self-check ranks the estimators on the other {len(kept)}",
+        TorchMisspecWarning,
+    )
+    sub = trajectories[kept]
+    times = list(sub.times) if sub.is_ragged else sub.times
+    return simulate(system, sub.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
 
 
 def _ratio(name, options, trajectories, known_copy, system) -> float:
@@ -583,7 +615,8 @@ def estimator_error(trajectories: Trajectories, system: MisspecifiedSystem, *, d
 
     Raises:
         InputError: bad arguments, unknown options, or too few samples for the estimator.
-        IntegrationError: the known model cannot be integrated from an observed initial state.
+        IntegrationError: the known model cannot be integrated from any observed initial state (experiments from
+            which it diverges are left out of the check, with a warning).
     """
     _check_trajectories_and_system(trajectories, system)
     options = _check_options(derivative, options)
