@@ -93,6 +93,30 @@ def test_design_command_conditions_on_data(tmp_path, candidates_csv):
     assert not {0, 6, 42, 48} & set(got["indices"])
 
 
+def test_design_command_with_the_default_derivative(tmp_path, candidates_csv):
+    """``design --data`` with the default ``--derivative auto``: on noisy data auto picks the GP in time, whose
+    noise differs between the outputs, and the design (one kernel shared by the outputs) refused the samples with
+    an option the command line does not have. Each sample now counts as noisy as its noisiest output, and the
+    command says so."""
+    system = tms.systems.paper_linear()
+    times = torch.linspace(0, 6, 11, dtype=torch.float64)
+    measured = tms.simulate(system, grid(((-1, 1), (-1, 1)), 7)[[0, 6, 42, 48]], times)
+    noisy = tms.Trajectories(
+        measured.times,
+        measured.states
+        + 1e-3 * torch.randn(measured.states.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
+    )
+    samples = tms.correction_samples(noisy, system)
+    assert samples.noise is not None and not bool((samples.noise == samples.noise[:, :1]).all())  # the case
+    data = tmp_path / "observed.npz"
+    noisy.save(data)
+    out = tmp_path / "next.json"
+    with pytest.warns(tms.TorchMisspecWarning, match="noisiest output"):
+        assert main(_design_args(candidates_csv, out, "--data", str(data), budget=3)) == 0
+    got = json.loads(out.read_text())
+    assert len(got["indices"]) == 3 and got["conditioned_on_samples"] == 44
+
+
 def test_design_command_data_errors(tmp_path, candidates_csv, capsys):
     out = tmp_path / "x.json"
     assert main(_design_args(candidates_csv, out, "--learn-hyperparameters")) == 2

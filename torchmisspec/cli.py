@@ -182,6 +182,20 @@ def _design(args: argparse.Namespace) -> int:
         from .observations import correction_samples
 
         samples = correction_samples(Trajectories.load(args.data), system, derivative=args.derivative)
+        if samples.noise is not None and not bool((samples.noise == samples.noise[:, :1]).all()):
+            # the estimator's noise differs between the outputs (e.g. the GP in time), but the design conditions one
+            # kernel shared by the outputs: each sample counts as noisy as its noisiest output (a conservative design)
+            import dataclasses
+
+            noisiest = samples.noise.amax(1, keepdim=True).expand_as(samples.noise).contiguous()
+            samples = dataclasses.replace(samples, noise=noisiest)
+            from ._errors import TorchMisspecWarning, warn
+
+            warn(
+                "design: the derivative estimator's noise differs between the outputs; each sample is counted as "
+                "noisy as its noisiest output, since the design conditions one kernel shared by the outputs",
+                TorchMisspecWarning,
+            )
         if args.learn_hyperparameters:
             gp = CorrectionGP(kernel=args.kernel, degree=args.degree).fit(samples)
         else:
