@@ -196,3 +196,31 @@ def test_a_known_model_that_diverges_does_not_break_the_defaults(one_thread):
     assert float((pred - traj.states).abs().max()) < 1e-2
     with pytest.raises(tms.IntegrationError, match="diverges from all 2.*derivative='central'"):
         tms.correction_samples(traj[[0, 1]], system)
+
+
+def test_given_candidates_are_never_silently_replaced(one_thread, monkeypatch):
+    """With one experiment the given candidates were ignored and a default RBF returned; when every candidate failed
+    cross-validation, the same happened without a word about it."""
+    system = tms.systems.paper_linear()
+    t = torch.linspace(0, 6, 21, dtype=DT)
+    one = tms.simulate(system, torch.tensor([[0.5, -0.3]], dtype=DT), t)
+    poly = tms.CorrectionGP(kernel="polynomial", degree=2)
+    gp = tms.fit_correction(one, system, candidates=[poly], derivative="oracle")
+    assert gp.kernel == "polynomial" and gp.cross_validation_ is None
+    with pytest.raises(tms.InputError, match="needs at least 2, got 1 experiment and 2 candidates"):
+        tms.fit_correction(one, system, candidates=[poly, tms.CorrectionGP()], derivative="oracle")
+    with pytest.raises(tms.InputError, match="non-empty list of CorrectionGP templates, got an empty list"):
+        tms.fit_correction(one, system, candidates=[], derivative="oracle")
+    many = tms.simulate(system, torch.tensor([[0.5, -0.3], [0.2, 0.4], [-0.5, 0.1]], dtype=DT), t)
+    from torchmisspec import learning
+
+    monkeypatch.setattr(learning, "_held_out_errors", _fail_held_out)
+    with pytest.warns(tms.TorchMisspecWarning, match="every candidate failed cross-validation.*polynomial"):
+        gp = tms.fit_correction(many, system, candidates=[poly], derivative="oracle")
+    assert gp.kernel == "polynomial" and gp.cross_validation_.scores == (float("inf"),)
+
+
+def _fail_held_out(system, trajectories, field=None):
+    if field is None:  # the known model's baseline
+        return torch.ones(trajectories.num_experiments, dtype=DT)
+    raise tms.IntegrationError("made to fail")

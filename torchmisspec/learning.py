@@ -202,6 +202,15 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
     return out
 
 
+def _check_candidates(candidates) -> list:
+    """The candidate templates as a list, or an error naming what was received."""
+    candidates = list(candidates)
+    if not candidates or not all(isinstance(c, CorrectionGP) for c in candidates):
+        got = [type(c).__name__ for c in candidates] or "an empty list"
+        raise InputError(f"candidates: expected a non-empty list of CorrectionGP templates, got {got}")
+    return candidates
+
+
 def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tensor, fold_of: torch.Tensor):
     """G(y) + the posterior mean of the GP fitted without experiment k's fold, for the rows of experiments k.
 
@@ -293,10 +302,7 @@ def cross_validate(
         failed).
     """
     folds = _check_cv_inputs(system, trajectories, samples, folds)
-    candidates = list(candidates)
-    if not candidates or not all(isinstance(c, CorrectionGP) for c in candidates):
-        got = [type(c).__name__ for c in candidates]
-        raise InputError(f"candidates: expected a non-empty list of CorrectionGP templates, got {got}")
+    candidates = _check_candidates(candidates)
     K = trajectories.num_experiments
     experiment = samples.experiment
     fold_of = [k % folds for k in range(K)]
@@ -455,10 +461,17 @@ def fit_correction(
     number = isinstance(lengthscale, (int, float)) and not isinstance(lengthscale, bool)
     if not (number or lengthscale in ("cv", "ml")) or (number and not (math.isfinite(lengthscale) and lengthscale > 0)):
         raise InputError(f"lengthscale: expected 'cv', 'ml' or a positive number, got {lengthscale!r}")
-    if candidates is not None:
-        candidates = list(candidates)
+    user_candidates = candidates is not None
+    if user_candidates:
+        candidates = _check_candidates(candidates)
         if lengthscale != "cv":
             raise InputError(f"candidates: are chosen by cross-validation (lengthscale='cv'), got {lengthscale!r}")
+    if user_candidates and trajectories.num_experiments < 2 and len(candidates) != 1:
+        raise InputError(
+            f"candidates: cross-validation compares them on held-out experiments and needs at least 2, got "
+            f"{trajectories.num_experiments} experiment and {len(candidates)} candidates; pass one candidate (it is "
+            "then fitted by marginal likelihood) or more experiments"
+        )
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
     options = _settings(template)
     kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
@@ -484,6 +497,14 @@ def fit_correction(
                 "Collect more experiments, sample the states more densely or with less noise, or check the known model",
                 TorchMisspecWarning,
             )
+    if result is None and user_candidates:  # one experiment, or every candidate failed its cross-validation
+        if cv is not None:
+            warn(
+                f"fit_correction: every candidate failed cross-validation (a fit or a held-out prediction failed: "
+                f"{', '.join(cv.candidates)}); fitted the first, {cv.candidates[0]}, by marginal likelihood instead",
+                TorchMisspecWarning,
+            )
+        result = copy.deepcopy(candidates[0]).fit(samples)
     if result is None:
         given = {"lengthscale": float(lengthscale)} if number else {}
         if given and kernel not in ("rbf", "matern52"):
