@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -280,3 +282,20 @@ def test_gravity_system_structure():
     )
     torch.testing.assert_close((rhs - g)[0, 2:], expected)
     torch.testing.assert_close((rhs - g)[0, :2], torch.zeros(2, dtype=torch.float64))
+
+
+def test_times_the_states_dtype_cannot_resolve_are_not_blamed_on_the_user():
+    """Times follow the states' dtype. Increasing float64 times that float32 rounds together raised 'expected
+    strictly increasing values' as if the user's times were wrong; large times lost a tenth of a step silently."""
+    states = torch.zeros(1, 3, 1, dtype=torch.float32)
+    close = torch.tensor([1000.0, 1000.00001, 1000.00002], dtype=torch.float64)
+    with pytest.raises(
+        tms.InputError, match="float32 \\(the states' dtype\\) cannot resolve.*pass the states as float64"
+    ):
+        tms.Trajectories(close, states)
+    far = torch.tensor([4e4, 4e4 + 0.05, 4e4 + 0.1], dtype=torch.float64)
+    with pytest.warns(tms.NumericalWarning, match="rounding moves them by up to"):
+        tms.Trajectories(far, states)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tms.Trajectories(torch.linspace(0, 6, 3, dtype=torch.float64), states)  # ordinary times: no word

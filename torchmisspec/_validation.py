@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from ._errors import InputError, ShapeError
+from ._errors import InputError, NumericalWarning, ShapeError, warn
 
 DEFAULT_DTYPE = torch.float64
 
@@ -176,12 +176,27 @@ def check_domain(domain, name: str = "domain", *, dim: int | None = None) -> tup
 
 def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None, device=None) -> torch.Tensor:
     """Observation times: ``(T,)`` (or ``(K, T)`` with ``per_row``), at least one, finite, strictly increasing."""
-    t = as_tensor(times, name, dtype=dtype, device=device)
-    check_ndim(t, (1, 2) if per_row else 1, name, "(T,) or (K, T)" if per_row else "(T,)")
-    if t.shape[-1] < 1:
-        raise ShapeError(f"{name}: expected at least one time, got shape {tuple(t.shape)}")
-    check_finite(t, name)
-    return check_increasing(t, name)
+    given = as_tensor(times, name, device=device)  # at the precision given, for the checks below
+    check_ndim(given, (1, 2) if per_row else 1, name, "(T,) or (K, T)" if per_row else "(T,)")
+    if given.shape[-1] < 1:
+        raise ShapeError(f"{name}: expected at least one time, got shape {tuple(given.shape)}")
+    check_finite(given, name)
+    check_increasing(given, name)
+    t = given if dtype is None else given.to(dtype)
+    if t.dtype != given.dtype and given.shape[-1] >= 2:
+        # the times follow the states' dtype: say so when that loses them, instead of blaming the user's times
+        step = float((given[..., 1:] - given[..., :-1]).min())
+        lost = float((t.to(given.dtype) - given).abs().max())
+        if not bool((t[..., 1:] > t[..., :-1]).all()) or lost > 1e-3 * step:
+            what = (
+                f"{name}: {str(t.dtype).removeprefix('torch.')} (the states' dtype) cannot resolve these times: "
+                f"rounding moves them by up to {lost:.3g}, against a smallest step of {step:.3g}; pass the states "
+                f"as {str(given.dtype).removeprefix('torch.')}, or shift the times to start near 0"
+            )
+            if not bool((t[..., 1:] > t[..., :-1]).all()):
+                raise InputError(what + " (rounded, some are no longer increasing)")
+            warn(what, NumericalWarning)
+    return t
 
 
 def states_and_times(states, times, *, states_name: str = "states", times_name: str = "times"):
