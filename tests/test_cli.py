@@ -243,6 +243,13 @@ def test_fit_command_lengthscale_options(tmp_path, observed_csv, capsys):
     assert not torch.equal(plain.train_targets_, refit.train_targets_)
     assert main(_fit_args(observed_csv, tmp_path / "x.pt", "--lengthscale", "long")) == 2
     assert "--lengthscale: expected cv, ml or a positive number, got 'long'" in capsys.readouterr().err
+    # kernels without a lengthscale: ml (a marginal-likelihood fit) is accepted, a number is refused
+    poly = ("--derivative", "central", "--kernel", "polynomial")
+    assert main(_fit_args(observed_csv, tmp_path / "p.pt", *poly, "--lengthscale", "ml")) == 0
+    assert tms.CorrectionGP.load(tmp_path / "p.pt").kernel == "polynomial"
+    capsys.readouterr()
+    assert main(_fit_args(observed_csv, tmp_path / "p2.pt", *poly, "--lengthscale", "0.5")) == 2
+    assert "the polynomial kernel has no lengthscale, got '0.5'" in capsys.readouterr().err
 
 
 def test_fit_command_with_a_user_system_and_fixed_hyperparameters(tmp_path, observed_csv, monkeypatch, capsys, request):

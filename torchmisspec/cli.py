@@ -299,8 +299,10 @@ def _fit(args: argparse.Namespace) -> int:
     trajs = Trajectories.load(
         args.data, time_column=args.time_column, experiment_column=experiment_column, state_columns=state_columns
     )
-    if template is not None and template.kernel in ("polynomial", "features") and lengthscale != "cv":
-        raise InputError(f"--lengthscale: the {template.kernel} kernel has no lengthscale; leave the default")
+    if template is not None and template.kernel in ("polynomial", "features") and isinstance(lengthscale, float):
+        raise InputError(
+            f"--lengthscale: the {template.kernel} kernel has no lengthscale, got {args.lengthscale!r}; pass cv or ml"
+        )
     gp = fit_correction(
         trajs, system, gp=template, derivative=args.derivative, lengthscale=lengthscale, refine=args.refine or None
     )
