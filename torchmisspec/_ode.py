@@ -190,7 +190,8 @@ def solve(
     except _StepLimit:
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         raise IntegrationError(
-            f"{what}: the solver took more than {max_steps} steps ({func.nfe - 1} right-hand-side evaluations) and "
+            f"{what}: the solver took more than {max_steps} steps (the budget is counted in right-hand-side "
+            f"evaluations, {_EVALS_PER_STEP} per step, so that it binds every method: {func.nfe - 1} of them) and "
             f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
             f"up; the initial conditions with the largest state or derivative at that point: {names(worst)}. Check "
             "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "

@@ -505,7 +505,8 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> t
         value = as_tensor(state_noise, "state_noise", **kd).reshape(-1)
         if value.shape != (d,) or not bool(torch.isfinite(value).all() and (value > 0).all()):
             raise InputError(
-                f"state_noise: expected a positive number or {d} positive variances (one per state component), got "
+                f"state_noise: expected a positive number or {d} positive variance{'s' if d > 1 else ''} (one per "
+                f"state component), got "
                 f"{state_noise!r:.80}"
             )
         return value
