@@ -324,3 +324,37 @@ def test_removal_and_readmission_do_not_cycle():
             v = w.clone()
             v[j] *= f
             assert _evidence(Phi, Y, torch.full_like(Y, s), v) < best + 1e-9
+
+
+def test_sum_kernel_terms_use_each_outputs_factor_with_known_noise():
+    """features+rbf terms(): with known noise that differs between outputs the dense factor is one per output, but
+    the coefficients' standard deviations used output 0's for every output (understated up to 2.4x)."""
+    g = torch.Generator().manual_seed(0)
+    N = 40
+    X = torch.randn(N, 2, generator=g, dtype=torch.float64)
+    F = torch.stack([1 + 0.5 * X[:, 0] + 0.2 * torch.sin(2 * X[:, 1]), -0.7 * X[:, 0] + 0.3 * X[:, 1] ** 2], -1)
+    noise = torch.stack([torch.full((N,), 1e-4), torch.full((N,), 0.25)], -1).to(torch.float64)
+    Y = F + noise.sqrt() * torch.randn(N, 2, generator=g, dtype=torch.float64)
+    gp = tms.CorrectionGP(kernel="features+rbf").fit(X, Y, noise=noise)
+    w, Phi = gp.weights, gp.covar_module.base_kernel.features(X).detach()
+    K = gp.covariance(X)  # the whole prior kernel: library and RBF term
+    terms = gp.terms(all_terms=True)
+    for o in range(2):
+        Ci = torch.linalg.inv(K + torch.diag(noise[:, o] + float(gp.noise_variance)))
+        mean = w * (Phi.T @ (Ci @ Y[:, o]))
+        std = (w - w * w * ((Phi.T @ Ci) * Phi.T).sum(-1)).clamp_min(0).sqrt()
+        got = [t for t in terms if t.output == o]
+        torch.testing.assert_close(torch.tensor([t.mean for t in got], dtype=torch.float64), mean, rtol=1e-6, atol=1e-9)
+        torch.testing.assert_close(torch.tensor([t.std for t in got], dtype=torch.float64), std, rtol=1e-6, atol=1e-9)
+
+
+def test_feature_fit_says_when_it_stops_at_its_cap_and_which_output_is_all_zeros():
+    g = torch.Generator().manual_seed(1)
+    X = torch.randn(50, 3, generator=g, dtype=torch.float64)
+    F = torch.stack([1 + 0.5 * X[:, 0] - 0.3 * X[:, 0] * X[:, 1], torch.sin(X[:, 2]), 0.1 * X[:, 1] ** 2], -1)
+    Y = F + 0.3 * torch.randn(50, 3, generator=g, dtype=torch.float64)
+    with pytest.warns(tms.NumericalWarning, match="did not converge in 20 iterations"):
+        tms.CorrectionGP(kernel="features", degree=3, per_output=True, max_iter=2).fit(X, Y)
+    Y[:, 1] = 0.0
+    with pytest.raises(tms.FittingError, match="output 1: targets: expected some non-zero samples"):
+        tms.CorrectionGP(kernel="features", per_output=True).fit(X, Y)

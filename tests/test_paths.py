@@ -372,3 +372,15 @@ def test_compressed_update_stays_within_its_certified_bound(data, kernel):
     assert compressed >= (2 if kernel == "rbf" else 1)
     with pytest.raises(tms.InputError, match="update_error"):
         gp.sample_functions(2, update_error=-1.0)
+
+
+def test_sampled_functions_follow_the_models_dtype():
+    """Sampled functions evaluated at float32 inputs of a float64 model raised a bare dtype error."""
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(30, 2, generator=g, dtype=torch.float64)
+    gp = tms.CorrectionGP().fit(X, torch.sin(3 * X) + 0.01 * torch.randn(30, 2, generator=g, dtype=torch.float64))
+    f = gp.sample_functions(4, generator=torch.Generator().manual_seed(1))
+    x = torch.rand(5, 2, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(f(x.float()), f(x.float().double()))
+    with pytest.raises(tms.InputError, match="x: expected a floating-point tensor"):
+        f(torch.ones(5, 2, dtype=torch.long))

@@ -37,7 +37,7 @@ from pathlib import Path
 import gpytorch
 import torch
 
-from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, ShapeError, warn
+from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, NumericalWarning, ShapeError, warn
 from .._threads import adaptive_threads
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
@@ -969,7 +969,19 @@ class CorrectionGP:
         weights, floors, iterations = [], [], 0
         for cols in groups:
             known = None if noise is None else noise[:, cols]
-            w, s, it = fit_relevance(Phi, Y[:, cols], known, floor=floor, max_iter=10 * max_iter, min_gain=price)
+            try:
+                w, s, it = fit_relevance(Phi, Y[:, cols], known, floor=floor, max_iter=10 * max_iter, min_gain=price)
+            except FittingError as exc:
+                if not self.per_output:
+                    raise
+                raise FittingError(f"output {cols[0]}: {exc}") from exc
+            if it >= 10 * max_iter:
+                warn(
+                    f"the feature weights{f' of output {cols[0]}' if self.per_output else ''} did not converge in "
+                    f"{it} iterations (10 x max_iter): the terms kept may include some the price would remove; "
+                    "raise max_iter",
+                    NumericalWarning,
+                )
             weights.append(w)
             floors.append(s)
             iterations = max(iterations, it)
@@ -1582,9 +1594,11 @@ class CorrectionGP:
             w = base.weights.detach().reshape(-1) * self.covar_module.outputscale.detach().reshape(())
             out = []
             with torch.no_grad():
-                V = torch.linalg.solve_triangular(fac.chol[0], Phi * w, upper=False)  # L^-1 Phi W
-                std = (w - V.pow(2).sum(0)).clamp_min(0.0).sqrt()
                 for o in range(Y.shape[1]):
+                    # one factor for every output, or one per output (known noise that differs between outputs)
+                    chol = fac.chol[0 if fac.chol.shape[0] == 1 else o]
+                    V = torch.linalg.solve_triangular(chol, Phi * w, upper=False)  # L^-1 Phi W
+                    std = (w - V.pow(2).sum(0)).clamp_min(0.0).sqrt()
                     alpha = fac.alpha[0, :, o] if fac.alpha.shape[0] == 1 else fac.alpha[o, :, 0]
                     mean = w * (Phi.T @ alpha)
                     for j, label in enumerate(labels):

@@ -655,6 +655,9 @@ class FunctionSamples:
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         S = self.num_samples
+        if not isinstance(x, torch.Tensor) or not x.is_floating_point():
+            raise InputError(f"x: expected a floating-point tensor of inputs, got {type(x).__name__} {x!r:.60}")
+        x = x.to(self._X)  # the model's dtype and device (float32 states with a float64 GP, or the reverse)
         if x.dim() == 2:
             x = x.expand(S, -1, -1)
         if x.dim() != 3 or x.shape[0] != S or x.shape[-1] != self._X.shape[-1]:
