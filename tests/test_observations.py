@@ -322,3 +322,17 @@ def test_non_finite_targets_raise():
     states[0, :, 0], states[0, :, 1] = 0.0, 4.0
     with pytest.raises(InputError, match=r"correction samples dy/dt - G\(y\) of system 'paper_gravity'"):
         correction_samples(Trajectories(torch.arange(3.0), states), system, derivative="oracle")
+
+
+def test_with_shared_noise_takes_each_samples_noisiest_output():
+    samples = CorrectionSamples(
+        torch.zeros(3, 1, dtype=torch.float64),
+        torch.zeros(3, 2, dtype=torch.float64),
+        torch.zeros(3, 1, dtype=torch.float64),
+        torch.zeros(3, dtype=torch.long),
+        torch.tensor([[1.0, 2.0], [3.0, 0.5], [4.0, 4.0]], dtype=torch.float64),
+    )
+    shared = samples.with_shared_noise()
+    assert shared.noise.tolist() == [[2.0, 2.0], [3.0, 3.0], [4.0, 4.0]]
+    assert shared.with_shared_noise() is shared  # already shared: unchanged
+    assert shared.targets is samples.targets

@@ -187,13 +187,14 @@ def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None
         # the times follow the states' dtype: say so when that loses them, instead of blaming the user's times
         step = float((given[..., 1:] - given[..., :-1]).min())
         lost = float((t.to(given.dtype) - given).abs().max())
-        if not bool((t[..., 1:] > t[..., :-1]).all()) or lost > 1e-3 * step:
+        ordered = bool((t[..., 1:] > t[..., :-1]).all())
+        if not ordered or lost > 1e-3 * step:
             what = (
                 f"{name}: {str(t.dtype).removeprefix('torch.')} (the states' dtype) cannot resolve these times: "
                 f"rounding moves them by up to {lost:.3g}, against a smallest step of {step:.3g}; pass the states "
                 f"as {str(given.dtype).removeprefix('torch.')}, or shift the times to start near 0"
             )
-            if not bool((t[..., 1:] > t[..., :-1]).all()):
+            if not ordered:
                 raise InputError(what + " (rounded, some are no longer increasing)")
             warn(what, NumericalWarning)
     return t

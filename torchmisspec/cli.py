@@ -182,13 +182,9 @@ def _design(args: argparse.Namespace) -> int:
         from .observations import correction_samples
 
         samples = correction_samples(Trajectories.load(args.data), system, derivative=args.derivative)
-        if samples.noise is not None and not bool((samples.noise == samples.noise[:, :1]).all()):
-            # the estimator's noise differs between the outputs (e.g. the GP in time), but the design conditions one
-            # kernel shared by the outputs: each sample counts as noisy as its noisiest output (a conservative design)
-            import dataclasses
-
-            noisiest = samples.noise.amax(1, keepdim=True).expand_as(samples.noise).contiguous()
-            samples = dataclasses.replace(samples, noise=noisiest)
+        shared = samples.with_shared_noise()  # the design conditions one kernel shared by the outputs
+        if shared is not samples:
+            samples = shared
             from ._errors import TorchMisspecWarning, warn
 
             warn(

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ._errors import InputError, ShapeError
+from ._errors import InputError, IntegrationError, ShapeError
 from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, states_and_times
@@ -598,3 +598,17 @@ def simulate(
             field, y0, times, method=method, rtol=rtol, atol=atol, max_steps=max_steps, what=f"simulate({system.name})"
         )
     return Trajectories(times, states)
+
+
+def simulate_known_each(system: MisspecifiedSystem, trajectories: Trajectories, **options) -> list[torch.Tensor | None]:
+    """The known model G alone from each experiment's first observed state over its own times, one experiment at a
+    time: ``(T_k, d)`` states, or ``None`` where G cannot be integrated (:class:`IntegrationError`). For when a
+    batched ``simulate(..., known_only=True)`` failed: G may diverge where the true system does not, which is what a
+    correction may exist to fix. ``options``: as for :func:`simulate`."""
+    out: list[torch.Tensor | None] = []
+    for times, states in trajectories.experiments():
+        try:
+            out.append(simulate(system, states[:1], times, known_only=True, **options).states[0])
+        except IntegrationError:
+            out.append(None)
+    return out

@@ -44,7 +44,7 @@ from ._errors import (
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._validation import check_positive_int
-from .data import Trajectories, simulate
+from .data import Trajectories, simulate, simulate_known_each
 from .gp import CorrectionGP
 from .gp._features import FEATURE_KERNELS
 from .gp._model import median_distance
@@ -173,19 +173,9 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
             except IntegrationError:
                 # the known model alone diverges from some of these states (what a correction may exist to fix):
                 # each experiment alone, and an infinite error where G cannot be integrated
-                for j, k in enumerate(idx):
-                    try:
-                        one = simulate(
-                            system,
-                            group.initial_conditions[j : j + 1],
-                            group.times,
-                            known_only=True,
-                            rtol=rtol,
-                            atol=atol,
-                        )
-                        out[k] = float((one.states - group.states[j : j + 1]).pow(2).sum())
-                    except IntegrationError:
-                        out[k] = math.inf
+                each = simulate_known_each(system, group, rtol=rtol, atol=atol)
+                for k, y, pred in zip(idx, group.states, each, strict=True):
+                    out[k] = math.inf if pred is None else float((pred - y).pow(2).sum())
                 continue
         else:
             rows = torch.tensor(idx, device=group.device)

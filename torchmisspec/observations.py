@@ -28,6 +28,7 @@ and raises :class:`~torchmisspec._errors.InputError` / :class:`~torchmisspec._er
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -38,7 +39,7 @@ from ._errors import InputError, IntegrationError, ShapeError, TorchMisspecWarni
 from ._linalg import cholesky, cholesky_or_fail, logdet_from_cholesky
 from ._threads import adaptive_threads
 from ._validation import check_finite, check_positive_int, check_real, states_and_times
-from .data import Trajectories, simulate
+from .data import Trajectories, simulate, simulate_known_each
 from .systems import MisspecifiedSystem
 
 __all__ = [
@@ -422,6 +423,16 @@ class CorrectionSamples:
     def output_dim(self) -> int:
         return self.targets.shape[1]
 
+    def with_shared_noise(self) -> CorrectionSamples:
+        """These samples with one known noise variance per sample for every output: the largest of its outputs'
+        (conservative). A design conditions one kernel shared by the outputs, so it needs the same noise for each;
+        the GP in time (:func:`gp_derivative`) estimates one per output. Unchanged when the noise is unknown or
+        already shared."""
+        if self.noise is None or bool((self.noise == self.noise[:, :1]).all()):
+            return self
+        noisiest = self.noise.amax(1, keepdim=True).expand_as(self.noise).contiguous()
+        return dataclasses.replace(self, noise=noisiest)
+
 
 def _check_trajectories_and_system(trajectories, system) -> None:
     if not isinstance(trajectories, Trajectories):
@@ -545,32 +556,25 @@ def _known_model_copy(trajectories: Trajectories, system: MisspecifiedSystem):
 
 
 def _known_model_where_it_integrates(trajectories: Trajectories, system: MisspecifiedSystem) -> Trajectories:
-    """G alone from each observed initial state in turn, keeping the experiments over which it can be integrated
-    (the known model may diverge where the true system does not: what the correction exists to fix). Warns which
-    were left out; raises if none is left."""
-    kept = []
-    for k in range(trajectories.num_experiments):
-        one = trajectories[k : k + 1]
-        try:
-            simulate(system, one.initial_conditions, one.times, known_only=True, rtol=1e-8, atol=1e-10)
-            kept.append(k)
-        except IntegrationError:
-            pass
+    """G alone from each observed initial state, keeping the experiments over which it can be integrated (the known
+    model may diverge where the true system does not: what the correction exists to fix). Warns which were left out;
+    raises if none is left."""
+    each = simulate_known_each(system, trajectories, rtol=1e-8, atol=1e-10)
+    kept = [k for k, states in enumerate(each) if states is not None]
     if not kept:
         raise IntegrationError(
             "derivative='auto': the self-check integrates the known model alone from every observed initial state, "
             f"and it diverges from all {trajectories.num_experiments} of them; choose an estimator yourself, e.g. "
             "derivative='central' or derivative='gp'"
         )
-    dropped = [k for k in range(trajectories.num_experiments) if k not in kept]
     warn(
         f"derivative='auto': the known model alone cannot be integrated from the initial states of experiments "
-        f"{dropped}; the self-check ranks the estimators on the other {len(kept)}",
+        f"{[k for k, states in enumerate(each) if states is None]}; the self-check ranks the estimators on the "
+        f"other {len(kept)}",
         TorchMisspecWarning,
     )
-    sub = trajectories[kept]
-    times = list(sub.times) if sub.is_ragged else sub.times
-    return simulate(system, sub.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
+    times = [t for k, (t, _) in enumerate(trajectories.experiments()) if k in kept]
+    return Trajectories(times, [each[k] for k in kept])
 
 
 def _ratio(name, options, trajectories, known_copy, system) -> float:

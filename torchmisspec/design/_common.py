@@ -147,7 +147,8 @@ class GPKernel:
                 raise InputError(
                     "gp: its known per-sample noise differs between outputs, so the data inform each output of F "
                     "differently; the design criterion conditions one shared kernel. Fit the GP with the same noise "
-                    "for every output, or pass condition=False"
+                    "for every output (samples.with_shared_noise(): each sample as noisy as its noisiest output), "
+                    "or pass condition=False"
                 )
             self.chol = chol[0].detach()
             self.data = gp.train_inputs_.detach()

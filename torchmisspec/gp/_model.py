@@ -1197,10 +1197,11 @@ class CorrectionGP:
         K = self.covar_module.forward(self.train_inputs_, x)
         return K.unsqueeze(0) if K.dim() == 2 else K
 
-    def _cross_mean(self, x: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """k(x, X) alpha as ``(B, M, d)`` for ``alpha (B, N, d)``, from :meth:`_cross` (alpha^T k(X, x), transposed:
-        a contiguous product)."""
-        return (alpha.transpose(-1, -2) @ self._cross(x)).transpose(-1, -2)
+    @staticmethod
+    def _cross_mean(Kt: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """k(x, X) alpha as ``(B, M, d)`` from ``Kt = k(X, x) (B, N, M)`` (:meth:`_cross`) and ``alpha (B, N, d)``:
+        alpha^T k(X, x), transposed (a contiguous product)."""
+        return (alpha.transpose(-1, -2) @ Kt).transpose(-1, -2)
 
     def predict_mean(self, x) -> torch.Tensor:
         """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)``. One kernel block times the cached solve.
@@ -1231,8 +1232,10 @@ class CorrectionGP:
         alpha = cache.fac.alpha
         rows = max(64, MEAN_BLOCK // max(alpha.shape[-2], 1))
         if x.shape[0] <= rows:
-            return self._unbatch(self._cross_mean(x, alpha))  # (1, M, d_out) or (d_out, M, 1) before
-        return torch.cat([self._unbatch(self._cross_mean(x[i : i + rows], alpha)) for i in range(0, x.shape[0], rows)])
+            return self._unbatch(self._cross_mean(self._cross(x), alpha))  # (1, M, d_out) or (d_out, M, 1) before
+        return torch.cat(
+            [self._unbatch(self._cross_mean(self._cross(x[i : i + rows]), alpha)) for i in range(0, x.shape[0], rows)]
+        )
 
     def predict(self, x) -> GPPosterior:
         """Posterior mean and variance of F itself (no observation noise) at ``x (M, d_in)``, each ``(M, d_out)``."""
@@ -1245,7 +1248,7 @@ class CorrectionGP:
                 var = ((phi @ cache.fac.cov) * phi).sum(-1).clamp_min(0.0)  # (B, M)
             else:
                 Kt = self._cross(x)  # k(X, x): (1, N, M) shared kernel, (d_out, N, M) per output
-                mean = self._unbatch((cache.fac.alpha.transpose(-1, -2) @ Kt).transpose(-1, -2))
+                mean = self._unbatch(self._cross_mean(Kt, cache.fac.alpha))
                 chol = cache.fac.chol  # (1 or d_out, N, N)
                 Kt = Kt.expand(chol.shape[0], -1, -1)
                 v = torch.linalg.solve_triangular(chol, Kt, upper=False)
