@@ -92,10 +92,10 @@ def test_trajectories_indexing_and_properties(generator):
 
 
 # ------------------------------------------------------------------------------------------------------ bad input
-def test_trajectories_reject_nan_states():
+def test_trajectories_reject_infinite_states():
     states = torch.zeros(2, 3, 2)
-    states[1, 2, 0] = float("nan")
-    with pytest.raises(tms.InputError, match=r"states: expected finite values, got 1 NaN/inf entry"):
+    states[1, 2, 0] = float("inf")  # NaN is a missing entry (tests/test_missing.py)
+    with pytest.raises(tms.InputError, match=r"states: expected finite values or NaN for a missing entry, got 1 inf"):
         tms.Trajectories(torch.arange(3.0), states)
 
 
@@ -198,7 +198,7 @@ def test_repr_is_short():
         ("time,x\n0,1\n", {"time_column": "t"}, tms.InputError, r"expected a time column 't'"),
         ("time,x,x\n0,1,2\n", {}, tms.InputError, r"expected distinct column names in the header, got \['x'\]"),
         ("time,x\n0,1\n1,abc\n", {}, tms.InputError, r"expected a number in column 'x' on line 3, got 'abc'"),
-        ("time,x\n0,1\n1,nan\n", {}, tms.InputError, r"expected a finite number in column 'x' on line 3, got 'nan'"),
+        ("time,x\n0,1\n1,inf\n", {}, tms.InputError, r"expected a finite number in column 'x' on line 3, got 'inf'"),
         ("time,x\n0,1\n1\n", {}, tms.ShapeError,
          r"expected 2 columns in every row \(as in the header\), got 1 in data row 2 \(line 3"),
         ("experiment,time,x\n0,0,1\n0,0,2\n", {}, tms.InputError,

@@ -122,8 +122,8 @@ def test_finite_difference_bad_inputs():
     with pytest.raises(ShapeError, match=r"times: expected shape \(5,\) or \(1, 5\)"):
         finite_difference(torch.zeros(1, 5, 1, dtype=DT), torch.arange(6.0))
     states = torch.zeros(1, 5, 1, dtype=DT)
-    states[0, 2, 0] = float("nan")
-    with pytest.raises(InputError, match=r"states: expected finite values"):
+    states[0, 2, 0] = float("inf")  # NaN is a missing entry (tests/test_missing.py); inf is refused
+    with pytest.raises(InputError, match=r"states: expected finite values or NaN for a missing entry"):
         finite_difference(states, torch.arange(5.0))
     with pytest.raises(InputError, match=r"times: expected strictly increasing"):
         finite_difference(torch.zeros(1, 5, 1, dtype=DT), torch.tensor([0.0, 1.0, 1.0, 2.0, 3.0]))
@@ -307,10 +307,10 @@ def test_correction_samples_bad_inputs(linear_fine):
         correction_samples(traj, system, derivative="central", noise_std=0.1, generator=0)
 
 
-def test_nan_states_surface():
+def test_infinite_states_surface():
     states = torch.zeros(1, 5, 2, dtype=DT)
-    states[0, 3, 1] = float("nan")
-    msg = r"states: expected finite values, got 1 NaN/inf entry \(first at index \(0, 3, 1\)"
+    states[0, 3, 1] = float("inf")  # NaN is a missing entry (tests/test_missing.py)
+    msg = r"states: expected finite values or NaN for a missing entry, got 1 infinite entry \(first at index \(0, 3, 1\)"
     with pytest.raises(InputError, match=msg):
         Trajectories(torch.arange(5.0), states)
 

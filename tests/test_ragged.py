@@ -105,9 +105,9 @@ def test_lists_of_equal_length_are_stacked():
         ),
         (
             [[0.0, 1.0], [0.0, 1.0, 2.0]],
-            [[[1.0], [math.nan]], [[1.0], [2.0], [3.0]]],
+            [[[1.0], [math.inf]], [[1.0], [2.0], [3.0]]],
             tms.InputError,
-            r"states\[0\].*(NaN|finite)",
+            r"states\[0\].*(infinite|finite)",
         ),
         (
             [[0.0, 1.0], [0.0, 1.0]],

@@ -200,22 +200,47 @@ def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None
     return t
 
 
-def states_and_times(states, times, *, states_name: str = "states", times_name: str = "times"):
+def states_and_times(
+    states, times, *, states_name: str = "states", times_name: str = "times", missing: bool = False
+):
     """Validate ``states (K, T, d)`` and ``times (T,)`` or ``(K, T)``: shapes agree, finite, strictly increasing.
 
-    The times follow the states' dtype and device. Returns ``(states, times)`` with the times as given ((T,) or
-    (K, T)).
+    With ``missing=True`` NaN states are allowed (missing entries); infinite ones never are. States that look
+    transposed, ``(K, d, T)`` with T times, are named as such rather than blamed on the times. The times follow the
+    states' dtype and device. Returns ``(states, times)`` with the times as given ((T,) or (K, T)).
     """
     states = check_ndim(as_tensor(states, states_name), 3, states_name, "(K, T, d)")
     times = check_times(times, times_name, per_row=True, dtype=states.dtype, device=states.device)
-    K, T, _ = states.shape
+    K, T, d = states.shape
     if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
+        if times.shape[-1] == d != T and (times.dim() == 1 or times.shape[0] == K):
+            raise ShapeError(
+                f"{states_name}: expected shape (K, T, d) = ({K}, {d}, {T}) for {d} times, got {tuple(states.shape)}: "
+                f"the states look transposed, (K, d, T) instead of (K, T, d) (one row per time, one column per state "
+                f"component); pass states.transpose(1, 2) (numpy: np.swapaxes(states, 1, 2))"
+            )
         raise ShapeError(
             f"{times_name}: expected shape ({T},) or ({K}, {T}) to match {states_name} {tuple(states.shape)}, "
             f"got {tuple(times.shape)}"
         )
-    check_finite(states, states_name)
+    if missing:
+        check_not_infinite(states, states_name)
+    else:
+        check_finite(states, states_name)
     return states, times
+
+
+def check_not_infinite(t: torch.Tensor, name: str) -> torch.Tensor:
+    """Raise :class:`InputError` naming the first infinite entry of ``t`` (NaN, a missing value, is allowed)."""
+    bad = torch.isinf(t)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        n_bad = int(bad.sum())
+        raise InputError(
+            f"{name}: expected finite values or NaN for a missing entry, got {n_bad} infinite entr"
+            f"{'y' if n_bad == 1 else 'ies'} (first at index {idx}: {t[idx].item()})"
+        )
+    return t
 
 
 class _NoBar:

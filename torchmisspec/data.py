@@ -4,12 +4,14 @@
 ``(K, T)`` one grid per experiment (irregular spacing allowed, strictly increasing along each row), or experiments
 of different lengths given as lists of per-experiment arrays (ragged data). It wraps user
 data as well as simulations and saves to / loads from ``.npz`` and text tables (``.csv``, ``.tsv``, ``.txt``) with
-any column names.
+any column names. Missing entries (an empty cell, or NaN in arrays) are kept as NaN with a mask,
+:attr:`Trajectories.observed`; infinite values are refused.
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import numbers
 import zipfile
 from collections.abc import Sequence
@@ -22,6 +24,7 @@ import torch
 from ._errors import InputError, IntegrationError, ShapeError
 from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
+from ._missing import fill
 from ._validation import as_tensor, states_and_times
 from .systems import MisspecifiedSystem
 
@@ -44,13 +47,26 @@ class Trajectories:
       :attr:`num_times` / :attr:`time_grid` raise :class:`~torchmisspec.ShapeError` (use :meth:`experiments` or
       :meth:`padded`). Everything in the package that takes trajectories accepts ragged ones.
 
+    **Missing values.** A NaN state entry is a component that was not observed at that time (an empty cell of a
+    table read by :meth:`load`); :attr:`observed` is the mask of the others. Every experiment must observe every
+    component at least once (else :class:`~torchmisspec.InputError`), times can never be missing, and infinite
+    values are refused. A time at which no component was observed carries no data and is dropped (so masking a whole
+    row is the same as deleting it; the experiment may then become shorter than the others, i.e. ragged). The
+    package's functions use only observed entries: the derivative estimators fit each component from its own
+    observed times, :func:`~torchmisspec.correction_samples` fills what a sample's G(y) and inputs need from the
+    estimator's fit, and the comparisons with the data (cross-validation, :func:`~torchmisspec.fit_trajectories`,
+    band calibration) skip missing entries. :meth:`filled` and :attr:`initial_conditions` estimate missing entries.
+
     Attributes:
         times: ``(T,)``, ``(K, T)``, or a tuple of K ``(T_k,)`` tensors (ragged).
-        states: ``(K, T, d)``, or a tuple of K ``(T_k, d)`` tensors (ragged).
+        states: ``(K, T, d)``, or a tuple of K ``(T_k, d)`` tensors (ragged); NaN where an entry is missing.
+        state_names: the names of the d state components (the table's column names for :meth:`load`; default
+            ``y0, ..., y{d-1}``); kept by indexing, :meth:`to`, :meth:`save` and :meth:`load`.
     """
 
     times: torch.Tensor | tuple[torch.Tensor, ...]
     states: torch.Tensor | tuple[torch.Tensor, ...]
+    state_names: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.states, (list, tuple)):
@@ -61,9 +77,13 @@ class Trajectories:
                     "times: a list of per-experiment time arrays needs a list of per-experiment state arrays, got "
                     f"states as one {type(self.states).__name__}"
                 )
-            states, times = states_and_times(self.states, self.times)
+            states, times = states_and_times(self.states, self.times, missing=True)
+        d = states[0].shape[-1]
+        names = _check_state_names(self.state_names, d)
+        states, times = _drop_empty_rows(states, times, names)
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
+        object.__setattr__(self, "state_names", names)
 
     # ----------------------------------------------------------------------------------------------------------
     @property
@@ -120,11 +140,45 @@ class Trajectories:
         return self.times.expand(self.num_experiments, -1) if self.times.dim() == 1 else self.times
 
     @property
-    def initial_conditions(self) -> torch.Tensor:
-        """``(K, d)``: every experiment's first observed state."""
+    def observed(self) -> torch.Tensor | tuple[torch.Tensor, ...]:
+        """Boolean mask of the observed entries: ``(K, T, d)``, or a tuple of ``(T_k, d)`` (ragged)."""
         if self.is_ragged:
-            return torch.stack([s[0] for s in self.states])
-        return self.states[:, 0]
+            return tuple(torch.isfinite(s) for s in self.states)
+        return torch.isfinite(self.states)
+
+    @property
+    def num_missing(self) -> int:
+        """The number of missing state entries (NaN)."""
+        if self.is_ragged:
+            return sum(int(torch.isnan(s).sum()) for s in self.states)
+        return int(torch.isnan(self.states).sum())
+
+    @property
+    def has_missing(self) -> bool:
+        """Whether some state entry is missing."""
+        return self.num_missing > 0
+
+    def filled(self) -> Trajectories:
+        """These trajectories with every missing entry estimated from its component's own observed samples: the
+        value at that time of a local quadratic least-squares fit through the 5 nearest (a local Savitzky-Golay
+        smoother; fewer samples: their interpolant). Observed entries are unchanged; ``self`` when nothing is
+        missing."""
+        if not self.has_missing:
+            return self
+        times, states, mask = self.padded()
+        out = fill(states, times, torch.isfinite(states) & mask.unsqueeze(-1))
+        if not self.is_ragged:
+            return Trajectories(self.times, out, state_names=self.state_names)
+        rows = [out[k, :n] for k, n in enumerate(self.lengths)]
+        return Trajectories(list(self.times), rows, state_names=self.state_names)
+
+    @property
+    def initial_conditions(self) -> torch.Tensor:
+        """``(K, d)``: every experiment's first observed state (missing entries estimated as by :meth:`filled`)."""
+        source = self.filled() if self.has_missing else self
+        if source.is_ragged:
+            return torch.stack([s[0] for s in source.states])
+        return source.states[:, 0]
 
     def experiments(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """``[(t_k (T_k,), y_k (T_k, d)), ...]``: every experiment's times and states."""
@@ -162,7 +216,14 @@ class Trajectories:
         for k, n in enumerate(self.lengths):
             groups.setdefault(n, []).append(k)
         return [
-            (idx, Trajectories(torch.stack([self.times[k] for k in idx]), torch.stack([self.states[k] for k in idx])))
+            (
+                idx,
+                Trajectories(
+                    torch.stack([self.times[k] for k in idx]),
+                    torch.stack([self.states[k] for k in idx]),
+                    state_names=self.state_names,
+                ),
+            )
             for _, idx in sorted(groups.items())
         ]
 
@@ -175,16 +236,22 @@ class Trajectories:
             index = [int(index)]
         if self.is_ragged:
             picked = torch.arange(self.num_experiments)[index].tolist()
-            return Trajectories([self.times[k] for k in picked], [self.states[k] for k in picked])
+            return Trajectories(
+                [self.times[k] for k in picked], [self.states[k] for k in picked], state_names=self.state_names
+            )
         times = self.times if self.times.dim() == 1 else self.times[index]
-        return Trajectories(times, self.states[index])
+        return Trajectories(times, self.states[index], state_names=self.state_names)
 
     def to(self, *args, **kwargs) -> Trajectories:
         if self.is_ragged:
             return Trajectories(
-                [t.to(*args, **kwargs) for t in self.times], [s.to(*args, **kwargs) for s in self.states]
+                [t.to(*args, **kwargs) for t in self.times],
+                [s.to(*args, **kwargs) for s in self.states],
+                state_names=self.state_names,
             )
-        return Trajectories(self.times.to(*args, **kwargs), self.states.to(*args, **kwargs))
+        return Trajectories(
+            self.times.to(*args, **kwargs), self.states.to(*args, **kwargs), state_names=self.state_names
+        )
 
     def __repr__(self) -> str:
         if self.is_ragged:
@@ -197,10 +264,13 @@ class Trajectories:
             grid = "shared grid" if times.dim() == 1 else "per-experiment grids"
             count = f"T={self.num_times} time{'s' * (self.num_times != 1)}"
         device = "" if self.device.type == "cpu" else f", {self.device}"
+        names = "" if self.state_names == _default_names(self.state_dim) else f" ({', '.join(self.state_names)})"
+        missing = self.num_missing
+        gaps = f", {missing} missing entr{'y' if missing == 1 else 'ies'}" if missing else ""
         return (
             f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
             f"{count} on [{lo:.6g}, {hi:.6g}] ({grid}), "
-            f"d={self.state_dim}, {str(self.dtype).removeprefix('torch.')}{device})"
+            f"d={self.state_dim}{names}{gaps}, {str(self.dtype).removeprefix('torch.')}{device})"
         )
 
     # ----------------------------------------------------------------------------------------------------------
@@ -212,29 +282,37 @@ class Trajectories:
         experiment_column: str = "experiment",
         state_columns: Sequence[str] | None = None,
     ) -> Path:
-        """Write to ``path``: ``.npz`` (arrays times, states) or a text table with a header row.
+        """Write to ``path``: ``.npz`` (arrays times, states, state_names) or a text table with a header row.
 
         Text tables: ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (space separated), one row
         per experiment and time, columns ``experiment_column, time_column, *state_columns`` (state columns
-        ``y0, ..., y{d-1}`` by default; experiments numbered 0..K-1). Values are written with full precision, so
+        :attr:`state_names` by default; experiments numbered 0..K-1). Values are written with full precision, so
         :meth:`load` with the same column names (or the defaults) reads back the same times and states (as float64).
-        The column names are ignored for ``.npz``.
+        A missing entry is written as an empty cell (``NaN`` in a ``.txt`` table, whose cells are separated by
+        spaces). The column names are ignored for ``.npz``, which stores :attr:`state_names` as an array of strings.
         """
         path = Path(path)
         if path.suffix == ".npz":
+            names = np.asarray(self.state_names, dtype=np.str_)
             if self.is_ragged:  # no object arrays (they would need pickle): concatenated, with the lengths
                 np.savez(
                     path,
                     times=torch.cat(self.times).detach().cpu().numpy(),
                     states=self.flat_states().detach().cpu().numpy(),
                     lengths=np.asarray(self.lengths, dtype=np.int64),
+                    state_names=names,
                 )
             else:
-                np.savez(path, times=self.times.detach().cpu().numpy(), states=self.states.detach().cpu().numpy())
+                np.savez(
+                    path,
+                    times=self.times.detach().cpu().numpy(),
+                    states=self.states.detach().cpu().numpy(),
+                    state_names=names,
+                )
             return path
         if path.suffix not in _TEXT_FORMATS:
             raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
-        names = [f"y{i}" for i in range(self.state_dim)] if state_columns is None else list(state_columns)
+        names = list(self.state_names) if state_columns is None else list(state_columns)
         if len(names) != self.state_dim:
             raise ShapeError(f"state_columns: expected {self.state_dim} names (one per state component), got {names}")
         header = [experiment_column, time_column, *names]
@@ -246,8 +324,9 @@ class Trajectories:
                     f"column names: a .txt table is space separated, so names cannot hold spaces: {name!r}"
                 )
         _check_distinct(header, "column names", str(path))
+        gap = "NaN" if path.suffix == ".txt" else ""
         rows = (
-            [str(k), repr(float(t_j))] + [repr(float(v)) for v in y_j]
+            [str(k), repr(float(t_j))] + [gap if v != v else repr(float(v)) for v in y_j]
             for k, (t, y) in enumerate(self.experiments())
             for t_j, y_j in zip(t.detach().cpu().tolist(), y.detach().cpu().tolist(), strict=True)
         )
@@ -283,15 +362,18 @@ class Trajectories:
                 text, in order of first appearance). When the file has no such column (or ``None``), all rows are
                 one experiment; a name other than the default that is not in the file is an error.
             state_columns: names of the state columns, in the order of the state components (default: every
-                other column, in file order).
+                other column, in file order). They become :attr:`state_names`.
 
-        Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every experiment has
+        A state cell that is empty or reads ``NaN``, ``NA`` or ``N/A`` (any case) is a missing entry (see the class
+        docstring); a missing time or experiment label is an error, and so is an experiment with no value at all in
+        some state column. Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every experiment has
         the same grid, ``(K, T)`` when the experiments have equal lengths, and ragged (one tensor per experiment)
         when their lengths differ. Column names are ignored for ``.npz`` (ragged ``.npz`` files, as :meth:`save`
         writes them, hold the concatenated ``times (N,)``, ``states (N, d)`` and ``lengths (K,)``).
 
         Nothing is unpickled and no code can run. Raises :class:`InputError` for a missing, unreadable, non-UTF-8
-        or malformed file, missing or duplicate columns, non-numeric cells or repeated (experiment, time) rows,
+        or malformed file, missing or duplicate columns, non-numeric or infinite cells, missing times or labels, or
+        repeated (experiment, time) rows,
         and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
         """
         path = Path(path)
@@ -307,6 +389,7 @@ class Trajectories:
                         raise InputError(f"{path}: expected arrays 'times' and 'states', missing {sorted(missing)}")
                     times, states = data["times"], data["states"]
                     lengths = data["lengths"] if "lengths" in data.files else None
+                    names = data["state_names"] if "state_names" in data.files else None
             except InputError:
                 raise
             except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
@@ -314,12 +397,17 @@ class Trajectories:
                     f"{path}: expected an .npz archive with numeric arrays 'times' and 'states' (no pickled objects), "
                     f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
                 ) from exc
+            if names is not None:
+                if names.dtype.kind != "U" or names.ndim != 1:
+                    raise InputError(f"{path}: expected 'state_names' to be a 1-D array of strings, got {names!r:.80}")
+                names = names.tolist()
             if lengths is not None:
-                return cls(*_split_ragged(path, times, states, lengths))
-            return cls(as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"))
+                return cls(*_split_ragged(path, times, states, lengths), state_names=names)
+            return cls(as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"), state_names=names)
         header, body = _read_table(path)
         columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-        return cls(*_columns_to_arrays(path, header, body, **columns))
+        times, states, names = _columns_to_arrays(path, header, body, **columns)
+        return cls(times, states, state_names=names)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -331,6 +419,53 @@ def _is_number(x) -> bool:
 def _describe_lengths(lengths: Sequence[int]) -> str:
     lo, hi = min(lengths), max(lengths)
     return f"{lo}" if lo == hi else f"{lo}..{hi}"
+
+
+def _default_names(d: int) -> tuple[str, ...]:
+    return tuple(f"y{i}" for i in range(d))
+
+
+def _check_state_names(names, d: int) -> tuple[str, ...]:
+    """``d`` distinct non-empty strings (default ``y0..y{d-1}``)."""
+    if names is None:
+        return _default_names(d)
+    if isinstance(names, str) or not isinstance(names, Sequence):
+        raise InputError(f"state_names: expected a list of {d} names (one per state component), got {names!r:.80}")
+    names = tuple(names)
+    if len(names) != d or not all(isinstance(n, str) and n.strip() for n in names):
+        raise ShapeError(
+            f"state_names: expected {d} non-empty strings (one per state component), got {list(names)!r:.200}"
+        )
+    _check_distinct(names, "state_names", "state_names")
+    return names
+
+
+def _drop_empty_rows(states, times, names):
+    """Check that every experiment observes every component, and drop the times at which nothing was observed."""
+    per = list(states) if isinstance(states, tuple) else list(states.unbind(0))
+    for k, y in enumerate(per):
+        never = (~torch.isfinite(y)).all(0).nonzero().flatten().tolist()
+        if never:
+            what = ", ".join(f"{j} ({names[j]!r})" for j in never)
+            raise InputError(
+                f"states: expected at least one observed value of every state component in every experiment, got "
+                f"none of component{'s' * (len(never) > 1)} {what} in experiment {k} (all {y.shape[0]} entries "
+                "missing); drop that experiment, or that component from the data and the system"
+            )
+    empty = [torch.isnan(y).all(-1) for y in per]
+    if not any(bool(e.any()) for e in empty):
+        return states, times
+    if isinstance(times, tuple):
+        grids = list(times)
+    else:
+        grids = list(times.expand(len(per), -1).unbind(0)) if times.dim() == 1 else list(times.unbind(0))
+    kept_t = [t[~e] for t, e in zip(grids, empty, strict=True)]
+    kept_y = [y[~e] for y, e in zip(per, empty, strict=True)]
+    if len({len(t) for t in kept_t}) == 1:
+        stacked_t = torch.stack(kept_t)
+        shared = bool((stacked_t == stacked_t[:1]).all())
+        return torch.stack(kept_y), stacked_t[0] if shared and not isinstance(times, tuple) else stacked_t
+    return tuple(kept_y), tuple(kept_t)
 
 
 def _per_experiment(states_list, times) -> tuple:
@@ -345,6 +480,12 @@ def _per_experiment(states_list, times) -> tuple:
             raise ShapeError(f"states[{k}]: expected a (T_k, d) array for experiment {k}, got shape {tuple(y.shape)}")
         states.append(y)
     dims = {y.shape[-1] for y in states}
+    if len(dims) != 1 and len({y.shape[0] for y in states}) == 1:
+        raise ShapeError(
+            f"states: expected (T_k, d) arrays with the same d in every experiment, got shapes "
+            f"{[tuple(y.shape) for y in states][:6]}: the arrays look transposed, (d, T_k) instead of (T_k, d) (one "
+            "row per time, one column per state component); pass [y.T for y in states]"
+        )
     if len(dims) != 1:
         raise ShapeError(
             f"states: expected the same state dimension d in every experiment, got {[y.shape[-1] for y in states]}"
@@ -362,7 +503,7 @@ def _per_experiment(states_list, times) -> tuple:
         if len(times) != K:
             raise ShapeError(f"times: expected {K} time arrays (one per experiment in states), got {len(times)}")
         checked = [
-            states_and_times(y.unsqueeze(0), t, states_name=f"states[{k}]", times_name=f"times[{k}]")
+            states_and_times(y.unsqueeze(0), t, states_name=f"states[{k}]", times_name=f"times[{k}]", missing=True)
             for k, (y, t) in enumerate(zip(states, times, strict=True))
         ]
         times_list = [t.reshape(-1) for _, t in checked]
@@ -378,7 +519,7 @@ def _per_experiment(states_list, times) -> tuple:
                 f"times: one shared (T,) array needs experiments of equal length, got lengths {lengths}; pass a "
                 "list with one time array per experiment"
             )
-        stacked, shared = states_and_times(torch.stack(states), shared)
+        stacked, shared = states_and_times(torch.stack(states), shared, missing=True)
         return stacked, shared
     if len(set(lengths)) == 1:
         return torch.stack(states), torch.stack(times_list)
@@ -389,6 +530,8 @@ def _per_experiment(states_list, times) -> tuple:
 # Text tables
 _TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
 _SUFFIXES = ".npz, .csv, .tsv or .txt"
+#: Cells (lower-cased) that :meth:`Trajectories.load` reads as missing values.
+_MISSING_CELLS = ("", "nan", "na", "n/a")
 
 
 def _check_distinct(names: Sequence[str], what: str, where: str) -> None:
@@ -435,8 +578,9 @@ def _columns_to_arrays(
     time_column: str,
     experiment_column: str | None,
     state_columns: Sequence[str] | None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``times (T,) or (K, T)`` and ``states (K, T, d)`` from the named columns of a table."""
+) -> tuple:
+    """``times (T,) or (K, T)``, ``states (K, T, d)`` (NaN where a cell is missing) and the state names from the named
+    columns of a table (lists of per-experiment arrays when the experiments' lengths differ)."""
     _check_distinct(header, "column names in the header", str(path))
     if not isinstance(time_column, str):
         raise InputError(f"time_column: expected a column name, got {type(time_column).__name__}")
@@ -472,21 +616,39 @@ def _columns_to_arrays(
     values = np.empty((len(body), len(value_columns)), dtype=np.float64)
     for r, (line, row) in enumerate(body):
         for c, col in enumerate(where):
-            try:
-                values[r, c] = float(row[col])
-            except ValueError:
+            cell = row[col]
+            if cell.lower() in _MISSING_CELLS:
+                value = math.nan
+            else:
+                try:
+                    value = float(cell)
+                except ValueError:
+                    raise InputError(
+                        f"{path}: expected a number in column {header[col]!r} on line {line}, got {cell!r}"
+                        + (" (a missing value is an empty cell, NaN or NA)" if c > 0 else "")
+                    ) from None
+            if c == 0 and not math.isfinite(value):
                 raise InputError(
-                    f"{path}: expected a number in column {header[col]!r} on line {line}, got {row[col]!r}"
-                ) from None
-            if not np.isfinite(values[r, c]):
-                raise InputError(
-                    f"{path}: expected a finite number in column {header[col]!r} on line {line}, got {row[col]!r}"
+                    f"{path}: expected a finite time in column {header[col]!r} on line {line}, got {cell!r} (times "
+                    "cannot be missing: drop the row, or fill in its time)"
                 )
+            if math.isinf(value):
+                raise InputError(
+                    f"{path}: expected a finite number in column {header[col]!r} on line {line}, got {cell!r} "
+                    "(an empty cell, NaN or NA is a missing value; infinite values are refused)"
+                )
+            values[r, c] = value
     if experiment_column is None:
         labels = [""] * len(body)
         order = [""]
     else:
         labels = [row[header.index(experiment_column)] for _, row in body]
+        blank = next((line for (line, _), label in zip(body, labels, strict=True) if not label), None)
+        if blank is not None:
+            raise InputError(
+                f"{path}: expected an experiment label in column {experiment_column!r} on line {blank}, got an empty "
+                "cell"
+            )
         try:  # numeric labels: 1 and 1.0 are the same experiment, sorted by value
             numbers = [float(label) for label in labels]
             if all(np.isfinite(numbers)):
@@ -512,12 +674,13 @@ def _columns_to_arrays(
             )
         per.append(block)
     if len({len(p) for p in per}) > 1:  # ragged: one array per experiment
-        return [torch.from_numpy(p[:, 0].copy()) for p in per], [torch.from_numpy(p[:, 1:].copy()) for p in per]
+        times_list = [torch.from_numpy(p[:, 0].copy()) for p in per]
+        return times_list, [torch.from_numpy(p[:, 1:].copy()) for p in per], names
     times = np.stack([p[:, 0] for p in per])
     states = np.stack([p[:, 1:] for p in per])
     if np.all(times == times[:1]):
         times = times[0]
-    return torch.from_numpy(times), torch.from_numpy(states)
+    return torch.from_numpy(times), torch.from_numpy(states), names
 
 
 def _split_ragged(path: Path, times: np.ndarray, states: np.ndarray, lengths: np.ndarray) -> tuple[list, list]:
@@ -606,9 +769,10 @@ def simulate_known_each(system: MisspecifiedSystem, trajectories: Trajectories, 
     batched ``simulate(..., known_only=True)`` failed: G may diverge where the true system does not, which is what a
     correction may exist to fix. ``options``: as for :func:`simulate`."""
     out: list[torch.Tensor | None] = []
-    for times, states in trajectories.experiments():
+    first = trajectories.initial_conditions  # missing entries estimated
+    for k, (times, _) in enumerate(trajectories.experiments()):
         try:
-            out.append(simulate(system, states[:1], times, known_only=True, **options).states[0])
+            out.append(simulate(system, first[k : k + 1], times, known_only=True, **options).states[0])
         except IntegrationError:
             out.append(None)
     return out

@@ -22,6 +22,11 @@ paired with the components F depends on. The derivative estimators:
 model G (where dy/dt = G(y) exactly), simulated from the observed initial states on the observed grids with the
 state-noise level the GP in time finds in the data, relative to the size of the correction samples.
 
+**Missing entries** (NaN states, see :class:`~torchmisspec.Trajectories`): every estimator fits each component
+from its own observed times only (the stencil of a time is the nearest observed samples of that component; the GP in
+time conditions on the observed entries), and returns a derivative at every time, observed or not.
+:func:`correction_samples` explains how a sample at a time with a missing component is formed.
+
 Every function is vectorised over experiments and state components, follows the dtype and device of the states,
 and raises :class:`~torchmisspec._errors.InputError` / :class:`~torchmisspec._errors.ShapeError` on bad input.
 """
@@ -37,6 +42,7 @@ import torch
 
 from ._errors import InputError, IntegrationError, ShapeError, TorchMisspecWarning, warn
 from ._linalg import cholesky, cholesky_or_fail, logdet_from_cholesky
+from ._missing import check_counts, local_fit
 from ._threads import adaptive_threads
 from ._validation import check_finite, check_positive_int, check_real, states_and_times
 from .data import Trajectories, simulate, simulate_known_each
@@ -66,9 +72,27 @@ _FD_ORDERS = (2, 4)
 # ---------------------------------------------------------------------------------------------------------------
 # Shared helpers
 def _states_and_times(states, times) -> tuple[torch.Tensor, torch.Tensor]:
-    """The shared states/times check; the times come back as ``(1, T)`` (shared grid) or ``(K, T)``."""
-    states, times = states_and_times(states, times)
+    """The shared states/times check (NaN states are missing entries); the times come back as ``(1, T)`` (shared
+    grid) or ``(K, T)``."""
+    states, times = states_and_times(states, times, missing=True)
     return states, times.reshape(-1, states.shape[1])
+
+
+def _masked(name: str, states: torch.Tensor, times: torch.Tensor, observed: torch.Tensor, options: dict):
+    """``(dy/dt, values)`` ``(K, T, d)`` of the stencil estimator ``name`` with missing entries: each component from
+    its own observed samples; ``values`` is the local fit's value at every time. ``times (K, T)``."""
+    K = states.shape[0]
+    times = times.expand(K, -1)
+    clean = torch.where(observed, states, torch.zeros((), dtype=states.dtype, device=states.device))
+    if name == "central":
+        order = options.get("order", 2)
+        check_counts(observed, order + 1, f"derivative='central' order={order}")
+        values, dydt = local_fit(clean, times, observed, kind="lagrange", width=order + 1)
+    else:
+        window, degree = options.get("window", 7), options.get("degree", 2)
+        check_counts(observed, window, f"derivative='smooth' window={window}")
+        values, dydt = local_fit(clean, times, observed, kind="poly", width=window, degree=degree)
+    return _finite_derivative(dydt), values
 
 
 def _finite_derivative(dydt: torch.Tensor) -> torch.Tensor:
@@ -134,8 +158,11 @@ def finite_difference(states, times, *, order: int = 2) -> torch.Tensor:
     * ``order=4``: 5-point stencils, centred in the interior and shifted inward at the two first and two last
       samples (fourth order everywhere).
 
+    NaN states are missing entries: each component's stencils then use its own ``order + 1`` nearest observed
+    samples, and a missing entry gets the derivative of the interpolant through them at its time.
+
     Args:
-        states: ``(K, T, d)`` states of K trajectories at T times.
+        states: ``(K, T, d)`` states of K trajectories at T times (NaN: missing).
         times: ``(T,)`` shared by all trajectories, or ``(K, T)`` one grid per trajectory; strictly increasing.
         order: 2 or 4.
 
@@ -154,6 +181,9 @@ def finite_difference(states, times, *, order: int = 2) -> torch.Tensor:
     width = order + 1
     if T < width:
         raise InputError(f"order={order} needs at least {width} samples per trajectory, got T={T}")
+    observed = torch.isfinite(states)
+    if not bool(observed.all()):
+        return _masked("central", states, times, observed, {"order": order})[0]
     index = _stencil_index(T, width, states.device)  # (T, m)
     dt = times[:, index] - times.unsqueeze(-1)  # (1 or K, T, m)
     weights = _lagrange_derivative_weights(dt)
@@ -168,10 +198,11 @@ def smoothed_derivative(states, times, *, window: int = 7, degree: int = 2) -> t
     sample i (the window is shifted inward at the ends so that it always holds ``window`` samples); the derivative
     estimate is the fitted linear coefficient. The estimate is a fixed linear combination of the window's states,
     so it is computed as one stencil per grid point, vectorised over trajectories and state components. It is exact
-    for polynomials of degree <= ``degree``.
+    for polynomials of degree <= ``degree``. NaN states are missing entries: each component's windows then hold its
+    own ``window`` nearest observed samples, and a missing entry gets the fit's derivative at its time.
 
     Args:
-        states: ``(K, T, d)``.
+        states: ``(K, T, d)`` (NaN: missing).
         times: ``(T,)`` or ``(K, T)``, strictly increasing.
         window: odd number of samples per local fit (>= 3 and > ``degree``).
         degree: polynomial degree (>= 1).
@@ -198,6 +229,9 @@ def smoothed_derivative(states, times, *, window: int = 7, degree: int = 2) -> t
     T = states.shape[1]
     if T < window:
         raise InputError(f"window={window} needs at least {window} samples per trajectory, got T={T}")
+    observed = torch.isfinite(states)
+    if not bool(observed.all()):
+        return _masked("smooth", states, times, observed, {"window": window, "degree": degree})[0]
     index = _stencil_index(T, window, states.device)  # (T, w)
     dt = times[:, index] - times.unsqueeze(-1)  # (1 or K, T, w)
     scale = dt.abs().amax(dim=-1, keepdim=True)  # (1 or K, T, 1), > 0 since the times are strictly increasing
@@ -291,10 +325,12 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
     :func:`estimator_error`). The estimate is the posterior mean of dy/dt at the sample times,
     ``d/dt k(t*, t) @ (K + n I)^-1 (y - m)``, with posterior variance
     ``s^2 / l^2 - dk^T (K + n I)^-1 dk``. All K x d Cholesky factorizations are batched; the computation runs in
-    float64 and the results come back in the states' dtype.
+    float64 and the results come back in the states' dtype. NaN states are missing entries: they are left out of
+    the likelihood and the conditioning (each component's posterior uses its own observed entries), and the posterior
+    of dy/dt is returned at every time, observed or not.
 
     Args:
-        states: ``(K, T, d)``.
+        states: ``(K, T, d)`` (NaN: missing; at least :data:`GP_MIN_SAMPLES` observed per experiment and component).
         times: ``(T,)`` or ``(K, T)``, strictly increasing.
         max_iter: most L-BFGS iterations.
 
@@ -302,32 +338,57 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
         :class:`GPDerivative` (mean, variance, and the hyperparameters per component).
 
     Raises:
-        InputError: NaN/inf values, non-increasing times, fewer than :data:`GP_MIN_SAMPLES` samples, or a state
+        InputError: infinite values, non-increasing times, fewer than :data:`GP_MIN_SAMPLES` samples, or a state
             component that is constant in every experiment (the GP in time has nothing to fit).
     """
     max_iter = check_positive_int(max_iter, "max_iter")
     states, times = _states_and_times(states, times)
-    return _gp_time(states, times.expand(states.shape[0], -1), None, max_iter)
+    observed = torch.isfinite(states)
+    mask = None if bool(observed.all()) else observed
+    return _gp_time(states, times.expand(states.shape[0], -1), mask, max_iter)
 
 
-def _gp_time(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | None, max_iter: int) -> GPDerivative:
-    """:func:`gp_derivative` on ``states (K, T, d)``, ``times (K, T)``; ``mask (K, T)`` marks the observed samples
-    of padded ragged experiments (``None``: all observed). Padded entries of the result are meaningless."""
+def _gp_time(
+    states: torch.Tensor,
+    times: torch.Tensor,
+    mask: torch.Tensor | None,
+    max_iter: int,
+    *,
+    values: bool = False,
+):
+    """:func:`gp_derivative` on ``states (K, T, d)``, ``times (K, T)``; ``mask`` marks the observed entries: ``(K, T)``
+    the samples of padded ragged experiments, ``(K, T, d)`` per component (missing entries, padding); ``None``: all
+    observed. Unobserved entries are decoupled from the likelihood; the result holds the posterior at every entry
+    (padded ones are meaningless). With ``values``, returns ``(GPDerivative, posterior mean of the states (K, T, d))``.
+    """
     K, T, d = states.shape
-    lengths = [T] * K if mask is None else mask.sum(-1).tolist()
-    if min(lengths) < GP_MIN_SAMPLES:
+    if mask is not None and mask.dim() == 2:
+        mask = mask.unsqueeze(-1).expand(K, T, d)
+    counts = torch.full((K, d), T, device=states.device) if mask is None else mask.sum(1)  # (K, d)
+    if int(counts.min()) < GP_MIN_SAMPLES:
+        k, j = (int(i) for i in (counts == counts.min()).nonzero()[0])
+        where = "" if mask is None else f" (experiment {k}" + (f", component {j})" if int(counts[k].min()) < T else ")")
         raise InputError(
-            f"derivative='gp' needs at least {GP_MIN_SAMPLES} samples per trajectory, got T={min(lengths)}"
-            + ("" if mask is None else f" (experiment {lengths.index(min(lengths))})")
+            f"derivative='gp' needs at least {GP_MIN_SAMPLES} samples per trajectory, got T={int(counts.min())}"
+            + where
         )
     dtype, device = states.dtype, states.device
-    y = states.to(torch.float64)
     t = times.to(torch.float64)
-    w = torch.ones(K, T, 1, dtype=torch.float64, device=device) if mask is None else mask.unsqueeze(-1).to(y)
-    pair = None if mask is None else mask.unsqueeze(-1) & mask.unsqueeze(-2)
-    n = w.sum()
-    centred = (y - (w * y).sum(dim=1, keepdim=True) / w.sum(dim=1, keepdim=True)) * w  # padded entries: 0
-    scale = (centred.pow(2).sum(dim=(0, 1)) / n).sqrt()  # (d,)
+    if mask is None:
+        y = states.to(torch.float64)
+        w = torch.ones(K, T, 1, dtype=torch.float64, device=device)
+        pair = None
+        rows = torch.ones(K, T, dtype=torch.bool, device=device)
+    else:
+        y = torch.where(mask, states, torch.zeros((), dtype=dtype, device=device)).to(torch.float64)
+        w = mask.to(torch.float64)
+        m = mask.permute(2, 0, 1)  # (d, K, T)
+        pair = m.unsqueeze(-1) & m.unsqueeze(-2)  # (d, K, T, T)
+        rows = mask.any(-1)  # (K, T): samples with an observed component
+    n = rows.sum()
+    level = (w * y).sum(dim=1, keepdim=True) / w.sum(dim=1, keepdim=True)  # (K, 1, d): each trajectory's mean
+    centred = (y - level) * w  # unobserved entries: 0
+    scale = (centred.pow(2).sum(dim=(0, 1)) / w.sum(dim=(0, 1)).expand(d)).sqrt()  # (d,)
     constant = (scale <= 1e-12 * (w * y).abs().amax(dim=(0, 1)).clamp_min(1.0)).nonzero().flatten().tolist()
     if constant:
         raise InputError(
@@ -335,10 +396,11 @@ def _gp_time(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | Non
             "constant in every experiment; use derivative='central' for them or drop them"
         )
     z = (centred / scale).permute(2, 0, 1).contiguous()  # (d, K, T), unit variance
-    last = torch.tensor([n_k - 1 for n_k in lengths], device=device)
-    span = float((t.gather(1, last.unsqueeze(-1)).squeeze(-1) - t[:, 0]).mean())
-    steps = t.diff(dim=-1)
-    dt_min = float(steps[mask[:, 1:]].min() if mask is not None else steps.min())
+    big = torch.tensor(math.inf, dtype=torch.float64, device=device)
+    first = torch.where(rows, t, big).amin(-1)
+    last = torch.where(rows, t, -big).amax(-1)
+    span = float((last - first).mean())
+    dt_min = min(float(t[k][rows[k]].diff().min()) for k in range(K) if int(rows[k].sum()) >= 2)
     # Start: the best of a grid of lengthscales x noise levels (per component, all in one batch).
     ells = torch.logspace(math.log10(dt_min), math.log10(2 * span), 10, dtype=torch.float64, device=device)
     noises = torch.tensor([1e-8, 1e-5, 1e-3, 1e-1], dtype=torch.float64, device=device)
@@ -346,8 +408,9 @@ def _gp_time(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | Non
     with torch.no_grad():  # all G grid points x d components in one batch
         G = grid.shape[0]
         p = torch.cat([grid[:, :1], torch.zeros_like(grid[:, :1]), grid[:, 1:]], -1).repeat_interleave(d, 0)
-        values = _gp_neg_mll(t, z.repeat(G, 1, 1), p, pair).view(G, d)  # inf where a factorization failed
-        start = p.view(G, d, 3)[values.argmin(0), torch.arange(d, device=device)]  # (d, 3)
+        grid_pair = None if pair is None else pair.repeat(G, 1, 1, 1)
+        values_ = _gp_neg_mll(t, z.repeat(G, 1, 1), p, grid_pair).view(G, d)  # inf where a factorization failed
+        start = p.view(G, d, 3)[values_.argmin(0), torch.arange(d, device=device)]  # (d, 3)
     log_params = start.clone().requires_grad_(True)
     opt = torch.optim.LBFGS(
         [log_params], lr=1.0, max_iter=max_iter, history_size=10, line_search_fn="strong_wolfe", tolerance_grad=1e-6
@@ -370,6 +433,13 @@ def _gp_time(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | Non
         Kn, dK, ell2, os = _rbf_parts(t, p, pair)
         L = cholesky(Kn, what="GP in time: K + noise I")
         a = torch.cholesky_solve(z.unsqueeze(-1), L)  # (d, K, T, 1)
+        if pair is not None:  # the posterior at every time, from the observed entries only (unobserved: a = 0)
+            diff = (t.unsqueeze(-1) - t.unsqueeze(-2)).unsqueeze(0)
+            k = os * torch.exp(-0.5 * diff**2 / ell2)
+            col = m.unsqueeze(-2)  # (d, K, 1, T)
+            zero = torch.zeros((), dtype=k.dtype, device=k.device)
+            dK = torch.where(col, -diff / ell2 * k, zero)
+            k = torch.where(col, k, zero)
         mean = (dK @ a).squeeze(-1)  # (d, K, T)
         V = torch.linalg.solve_triangular(L, dK.transpose(-1, -2), upper=False)  # L^-1 dk_i in column i
         var = (os.squeeze(-1) / ell2.squeeze(-1) - V.pow(2).sum(-2)).clamp_min(0.0)
@@ -381,8 +451,14 @@ def _gp_time(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | Non
             outputscale=(torch.exp(p[:, 1]) * scale**2).to(dtype),
             noise=((_GP_NOISE_FLOOR + torch.exp(p[:, 2])) * scale**2).to(dtype),
         )
+        fitted = None
+        if values:
+            if pair is None:
+                diff = (t.unsqueeze(-1) - t.unsqueeze(-2)).unsqueeze(0)
+                k = os * torch.exp(-0.5 * diff**2 / ell2)
+            fitted = ((k @ a).squeeze(-1).permute(1, 2, 0) * scale + level).to(dtype)  # (K, T, d)
     _finite_derivative(result.mean)
-    return result
+    return (result, fitted) if values else result
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -443,10 +519,23 @@ def _check_trajectories_and_system(trajectories, system) -> None:
     if not isinstance(system, MisspecifiedSystem):
         raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
     if trajectories.state_dim != system.state_dim:
+        names = trajectories.state_names
         raise ShapeError(
-            f"trajectories: expected state dimension {system.state_dim} of system '{system.name}', "
-            f"got trajectories.state_dim={trajectories.state_dim} (states {tuple(trajectories.states.shape)})"
+            f"trajectories: expected state dimension {system.state_dim} of system '{system.name}', got "
+            f"trajectories.state_dim={trajectories.state_dim} (state columns {list(names)}; "
+            f"{_describe_states(trajectories)}); load every state component the system has "
+            "(Trajectories.load(..., state_columns=[...]) with one column per component, in the system's order)"
         )
+
+
+def _describe_states(trajectories: Trajectories) -> str:
+    """The states' shape in words, ragged data included."""
+    if trajectories.is_ragged:
+        return (
+            f"{trajectories.num_experiments} experiments of {min(trajectories.lengths)}..{max(trajectories.lengths)} "
+            f"times x {trajectories.state_dim} components"
+        )
+    return f"states {tuple(trajectories.states.shape)}"
 
 
 def _estimate(name: str, states: torch.Tensor, times: torch.Tensor, options: dict):
@@ -464,19 +553,29 @@ def _estimate(name: str, states: torch.Tensor, times: torch.Tensor, options: dic
 
 
 def _estimate_flat(name: str, trajectories: Trajectories, options: dict):
-    """``(dy/dt (N, d), variance (N, d) or None)`` at every sample, experiment after experiment (ragged data too).
+    """``(dy/dt (N, d), variance (N, d) or None, states (N, d))`` at every sample, experiment after experiment (ragged
+    data too); ``states`` are the observed states with every missing entry replaced by the estimator's own fit at
+    that time (the interpolant for ``central``, the local polynomial for ``smooth``, the posterior mean for ``gp``).
 
     Stencil estimators run once per group of equal-length experiments; the GP in time runs on the padded batch,
-    so its hyperparameters stay shared by all experiments."""
+    so its hyperparameters stay shared by all experiments. With missing entries every estimator runs on the padded
+    batch with the mask of the observed entries."""
+    d = trajectories.state_dim
+    if name == "gp" and (trajectories.is_ragged or trajectories.has_missing):
+        return _gp_flat(trajectories, options.get("max_iter", 50))[1]
+    if trajectories.has_missing:
+        if name not in _SELF_CHECKED:
+            raise InputError(f"derivative: expected one of {list(_SELF_CHECKED)}, got {name!r}")
+        times, states, rows = trajectories.padded()
+        observed = torch.isfinite(states) & rows.unsqueeze(-1)
+        _check_stencil_options(name, options, min(trajectories.lengths))
+        dydt, fit = _masked(name, states, times, observed, options)
+        filled = torch.where(observed, states, fit)
+        return dydt[rows], None, filled[rows]
+    flat = trajectories.flat_states()
     if not trajectories.is_ragged:
         dydt, var = _estimate(name, trajectories.states, trajectories.times, options)
-        d = trajectories.state_dim
-        return dydt.reshape(-1, d), None if var is None else var.reshape(-1, d)
-    if name == "gp":
-        max_iter = check_positive_int(options.get("max_iter", 50), "max_iter")
-        times, states, mask = trajectories.padded()
-        out = _gp_time(states, times, mask, max_iter)
-        return out.mean[mask], out.variance[mask]
+        return dydt.reshape(-1, d), None if var is None else var.reshape(-1, d), flat
     per_experiment: list = [None] * trajectories.num_experiments
     for idx, group in trajectories.by_length():
         try:
@@ -485,7 +584,25 @@ def _estimate_flat(name: str, trajectories: Trajectories, options: dict):
             raise InputError(f"{exc} (experiment{'s' * (len(idx) > 1)} {idx[:5]} of the ragged data)") from None
         for i, k in enumerate(idx):
             per_experiment[k] = dydt[i]
-    return torch.cat(per_experiment), None
+    return torch.cat(per_experiment), None, flat
+
+
+def _check_stencil_options(name: str, options: dict, T: int) -> None:
+    """The checks :func:`finite_difference` / :func:`smoothed_derivative` make on their options (for the masked path,
+    which calls the stencils directly)."""
+    if name == "central":
+        order = check_positive_int(options.get("order", 2), "order")
+        if order not in _FD_ORDERS:
+            raise InputError(f"order: expected one of {list(_FD_ORDERS)}, got {order}")
+        if T < order + 1:
+            raise InputError(f"order={order} needs at least {order + 1} samples per trajectory, got T={T}")
+        return
+    window = check_positive_int(options.get("window", 7), "window")
+    degree = check_positive_int(options.get("degree", 2), "degree", minimum=1)
+    if window % 2 == 0 or window < 3 or window <= degree:
+        raise InputError(f"window: expected an odd integer >= 3 and > degree, got window={window}, degree={degree}")
+    if T < window:
+        raise InputError(f"window={window} needs at least {window} samples per trajectory, got T={T}")
 
 
 _SELF_CHECKED = ("central", "smooth", "gp")
@@ -528,37 +645,61 @@ def _with_flat_states(trajectories: Trajectories, flat: torch.Tensor) -> Traject
     return Trajectories(list(trajectories.times), list(flat.split(list(trajectories.lengths))))
 
 
+def _flat_observed(trajectories: Trajectories) -> torch.Tensor:
+    """``(N, d)``: the observed-entry mask, experiment after experiment."""
+    observed = trajectories.observed
+    return torch.cat(observed) if trajectories.is_ragged else observed.reshape(-1, trajectories.state_dim)
+
+
 def _known_model_copy(trajectories: Trajectories, system: MisspecifiedSystem):
-    """The self-check data ``(noisy copy, noise-free flat states (N, d), GP-in-time dy/dt of the real data (N, d)
-    or None)``: G alone from the observed initial states on the observed grids, plus state noise of the level the
-    GP in time finds in the real data (a fixed seed, so the check is deterministic)."""
+    """The self-check data ``(noisy copy, noise-free flat states (N, d), the GP in time's (dy/dt, variance, filled
+    states) on the real data, or None)``: G alone from the observed initial states on the observed grids, plus state
+    noise of the level the GP in time finds in the real data (a fixed seed, so the check is deterministic), with the
+    real data's missing entries missing too (the estimators are checked on the data's own gaps)."""
     # Tolerances 100x looser than the package's ground-truth simulations (2.5x faster): the copy's solver error
     # (~1e-8 relative) is far below any derivative estimator's error that the check has to rank.
     times = list(trajectories.times) if trajectories.is_ragged else trajectories.times
+    kept = trajectories
     try:
         sim = simulate(system, trajectories.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
     except IntegrationError:
-        sim = _known_model_where_it_integrates(trajectories, system)
+        sim, kept = _known_model_where_it_integrates(trajectories, system)
     clean = sim.flat_states()
     states, real_gp = clean, None
     if min(trajectories.lengths) >= GP_MIN_SAMPLES:
         try:
-            times, padded, mask = trajectories.padded()
-            out = _gp_time(padded, times, None if not trajectories.is_ragged else mask, 50)
-            real_gp = out.mean[mask]
+            out, real_gp = _gp_flat(trajectories, 50)
+            noise = out.noise
         except InputError:
-            pass  # e.g. a constant component: the check then measures the bias only
+            real_gp = None  # e.g. a constant component or too few observations: the check measures the bias only
         if real_gp is not None:
             gen = torch.Generator(device=states.device).manual_seed(0)
             eps = torch.randn(states.shape, generator=gen, dtype=states.dtype, device=states.device)
-            states = states + out.noise.sqrt() * eps
+            states = states + noise.sqrt() * eps
+    if kept.has_missing:
+        states = torch.where(_flat_observed(kept), states, torch.full_like(states, math.nan))
     return _with_flat_states(sim, states), clean, real_gp
 
 
-def _known_model_where_it_integrates(trajectories: Trajectories, system: MisspecifiedSystem) -> Trajectories:
+def _gp_flat(trajectories: Trajectories, max_iter: int):
+    """The GP in time on the padded batch: ``(GPDerivative (padded), (dy/dt (N, d), variance (N, d), states (N, d)))``
+    as :func:`_estimate_flat` returns them."""
+    max_iter = check_positive_int(max_iter, "max_iter")
+    times, states, rows = trajectories.padded()
+    if trajectories.has_missing:
+        observed = torch.isfinite(states) & rows.unsqueeze(-1)
+        out, fit = _gp_time(states, times, observed, max_iter, values=True)
+        filled = torch.where(observed, states, fit)[rows]
+    else:
+        out = _gp_time(states, times, rows if trajectories.is_ragged else None, max_iter)
+        filled = trajectories.flat_states()
+    return out, (out.mean[rows], out.variance[rows], filled)
+
+
+def _known_model_where_it_integrates(trajectories: Trajectories, system: MisspecifiedSystem):
     """G alone from each observed initial state, keeping the experiments over which it can be integrated (the known
     model may diverge where the true system does not: what the correction exists to fix). Warns which were left out;
-    raises if none is left."""
+    raises if none is left. Returns the simulated copy and the kept experiments' observations."""
     each = simulate_known_each(system, trajectories, rtol=1e-8, atol=1e-10)
     kept = [k for k, states in enumerate(each) if states is not None]
     if not kept:
@@ -574,20 +715,29 @@ def _known_model_where_it_integrates(trajectories: Trajectories, system: Misspec
         TorchMisspecWarning,
     )
     times = [t for k, (t, _) in enumerate(trajectories.experiments()) if k in kept]
-    return Trajectories(times, [each[k] for k in kept])
+    return Trajectories(times, [each[k] for k in kept]), trajectories[kept]
+
+
+def _sample_rows(trajectories: Trajectories, system: MisspecifiedSystem) -> torch.Tensor:
+    """``(N,)``: the rows that give a correction sample, those at which every output component is observed."""
+    return system.select_outputs(_flat_observed(trajectories)).all(-1)
 
 
 def _ratio(name, options, trajectories, known_copy, system) -> float:
     if name == "gp" and not options and known_copy[2] is not None:
-        dydt = known_copy[2]  # already computed for the noise level
+        dydt, _, flat = known_copy[2]  # already computed for the noise level
     else:
-        dydt, _ = _estimate_flat(name, trajectories, options)
-    flat = trajectories.flat_states()
+        dydt, _, flat = _estimate_flat(name, trajectories, options)
     targets = system.select_outputs(dydt - system.known_rhs(flat))
+    if trajectories.has_missing:
+        targets = targets[_sample_rows(trajectories, system)]
     spread = float(targets.pow(2).mean().sqrt())
-    est, _ = _estimate_flat(name, known_copy[0], options)
-    exact = system.known_rhs(known_copy[1])  # dy/dt = G(y) on the noise-free copy
-    err = float(system.select_outputs(est - exact).pow(2).mean().sqrt())
+    copy = known_copy[0]
+    est, _, _ = _estimate_flat(name, copy, options)
+    errors = system.select_outputs(est - system.known_rhs(known_copy[1]))  # dy/dt = G(y) on the noise-free copy
+    if copy.has_missing:
+        errors = errors[_sample_rows(copy, system)]
+    err = float(errors.pow(2).mean().sqrt())
     if not math.isfinite(err) or not math.isfinite(spread):
         return float("inf")
     if spread == 0.0:
@@ -679,8 +829,21 @@ def correction_samples(
 ) -> CorrectionSamples:
     """Samples F~ = dy/dt - G(y) of the missing term at every observed state.
 
+    **Missing entries** (NaN in ``trajectories``): each component's derivative comes from its own observed times
+    (see the estimators). A sample at time t_i is formed only when every output component F acts on
+    (``system.correction_outputs``) was observed at t_i; a missing input or other component of that state, which
+    G(y) and the sample's inputs need, is replaced by the estimator's own fit at t_i (the interpolant for
+    ``central``, the local polynomial for ``smooth``, the posterior mean for ``gp``; for ``oracle``,
+    :meth:`Trajectories.filled`). Why: a target at a time where its output was not observed would be an interpolation
+    of its neighbours' derivative estimates, no new information but counted as if it were (and a poor one for a
+    rarely measured component); since one sample carries all outputs at one input, a time missing any output gives
+    no sample, and the other outputs' targets lost there are covered by their neighbours'. A filled input or G
+    argument has the accuracy of the estimator's fit, the same order as its derivative's, so these samples are kept
+    rather than lose every time at which some other component was not measured.
+
     Args:
-        trajectories: the observations, ``states (K, T, d)`` or ragged (experiments of different lengths).
+        trajectories: the observations, ``states (K, T, d)`` or ragged (experiments of different lengths); NaN
+            entries are missing.
         system: the misspecified system; its ``state_dim`` must equal d.
         derivative: how dy/dt is obtained:
 
@@ -706,8 +869,9 @@ def correction_samples(
         degree: polynomial degree of the local fits for ``"smooth"``.
 
     Returns:
-        :class:`CorrectionSamples` with one sample per observed state (``N = K * T``, or the sum of the lengths),
-        in the dtype and on the device of the states.
+        :class:`CorrectionSamples` with one sample per observed state (``N = K * T``, or the sum of the lengths;
+        fewer with missing outputs), in the dtype and on the device of the states; its ``states`` are the observed
+        states with missing entries filled as above.
 
     Raises:
         InputError: ``trajectories`` / ``system`` of the wrong type, an unknown ``derivative``, a bad
@@ -722,7 +886,6 @@ def correction_samples(
     if generator is not None and not isinstance(generator, torch.Generator):
         raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
 
-    flat_states = trajectories.flat_states()  # (N, d), finite (checked by Trajectories)
     variance = None
     if derivative == "oracle":
         if not system.has_correction:
@@ -730,6 +893,7 @@ def correction_samples(
                 f"derivative='oracle': oracle derivatives need a system with a true correction F, and system "
                 f"'{system.name}' has none; use 'auto', 'central', 'smooth' or 'gp' for real data"
             )
+        flat_states = trajectories.filled().flat_states()
         check_finite(flat_states, "trajectories.states")
         dydt = system.true_rhs(flat_states)
     elif derivative == "auto":
@@ -744,14 +908,25 @@ def correction_samples(
                 "best), or fit the correction through the ODE with tms.fit_trajectories",
                 TorchMisspecWarning,
             )
-        dydt, variance = _estimate_flat(name, trajectories, options)
+        dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
     elif derivative == "central":
-        dydt, _ = _estimate_flat("central", trajectories, {"order": order})
+        dydt, _, flat_states = _estimate_flat("central", trajectories, {"order": order})
     elif derivative == "smooth":
-        dydt, _ = _estimate_flat("smooth", trajectories, {"window": window, "degree": degree})
+        dydt, _, flat_states = _estimate_flat("smooth", trajectories, {"window": window, "degree": degree})
     else:
-        dydt, variance = _estimate_flat("gp", trajectories, {})
+        dydt, variance, flat_states = _estimate_flat("gp", trajectories, {})
 
+    lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
+    experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
+    if trajectories.has_missing:
+        keep = _sample_rows(trajectories, system)
+        if not bool(keep.any()):
+            raise InputError(
+                f"trajectories: expected some time at which every output component {list(system.correction_outputs)} "
+                "of the correction is observed (a sample needs them all), got none"
+            )
+        dydt, flat_states, experiment = dydt[keep], flat_states[keep], experiment[keep]
+        variance = None if variance is None else variance[keep]
     targets = system.select_outputs(dydt - system.known_rhs(flat_states))
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     sample_noise = None if variance is None else system.select_outputs(variance)
@@ -761,8 +936,6 @@ def correction_samples(
         check_finite(targets, f"correction samples with noise_std={noise_std!r} added")
         if sample_noise is not None:
             sample_noise = sample_noise + noise**2
-    lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
-    experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
     return CorrectionSamples(
         inputs=system.select_inputs(flat_states),
         targets=targets,
