@@ -310,7 +310,9 @@ def test_correction_samples_bad_inputs(linear_fine):
 def test_infinite_states_surface():
     states = torch.zeros(1, 5, 2, dtype=DT)
     states[0, 3, 1] = float("inf")  # NaN is a missing entry (tests/test_missing.py)
-    msg = r"states: expected finite values or NaN for a missing entry, got 1 infinite entry \(first at index \(0, 3, 1\)"
+    msg = (
+        r"states: expected finite values or NaN for a missing entry, got 1 infinite entry \(first at index \(0, 3, 1\)"
+    )
     with pytest.raises(InputError, match=msg):
         Trajectories(torch.arange(5.0), states)
 

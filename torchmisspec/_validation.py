@@ -200,9 +200,7 @@ def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None
     return t
 
 
-def states_and_times(
-    states, times, *, states_name: str = "states", times_name: str = "times", missing: bool = False
-):
+def states_and_times(states, times, *, states_name: str = "states", times_name: str = "times", missing: bool = False):
     """Validate ``states (K, T, d)`` and ``times (T,)`` or ``(K, T)``: shapes agree, finite, strictly increasing.
 
     With ``missing=True`` NaN states are allowed (missing entries); infinite ones never are. States that look

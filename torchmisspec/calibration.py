@@ -105,9 +105,12 @@ def _check_level(level) -> float:
     return level
 
 
-def _state_noise(state_noise, d: int, dtype, device) -> torch.Tensor:
+def _state_noise(state_noise, d: int, dtype, device) -> tuple[torch.Tensor, float]:
+    """``(absolute std (d,), relative std)``: a number or one per state, or a string ``"2%"`` (std 0.02 |y|)."""
     if state_noise is None:
-        return torch.zeros(d, dtype=dtype, device=device)
+        return torch.zeros(d, dtype=dtype, device=device), 0.0
+    if isinstance(state_noise, str):
+        return torch.zeros(d, dtype=dtype, device=device), relative_noise(state_noise, "state_noise")
     noise = as_tensor(state_noise, "state_noise", dtype=dtype, device=device)
     if noise.dim() == 0:
         noise = noise.expand(d)
@@ -117,7 +120,24 @@ def _state_noise(state_noise, d: int, dtype, device) -> torch.Tensor:
         )
     if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
         raise InputError(f"state_noise: expected finite standard deviations >= 0, got {noise.tolist()}")
-    return noise
+    return noise, 0.0
+
+
+def relative_noise(value: str, name: str) -> float:
+    """The fraction of a noise level given relative to the signal, ``"2%"`` -> 0.02 (std = 0.02 |y| per entry)."""
+    text = value.strip()
+    try:
+        if not text.endswith("%"):
+            raise ValueError
+        fraction = float(text[:-1]) / 100.0
+    except ValueError:
+        raise InputError(
+            f"{name}: expected a standard deviation (a number, or one per state component) or a percentage of the "
+            f"signal such as '2%' (std = 0.02 * |y| per entry), got the string {value!r}"
+        ) from None
+    if not (math.isfinite(fraction) and fraction >= 0):
+        raise InputError(f"{name}: expected a percentage >= 0 such as '2%', got {value!r}")
+    return fraction
 
 
 def calibrate_bands(
@@ -139,7 +159,9 @@ def calibrate_bands(
         model: a :class:`~torchmisspec.CorrectedODE` whose GP was fitted on ``samples``.
         trajectories: the observed experiments the samples came from (experiment k of the samples is experiment k
             here); the held-out paths start at each experiment's first observed state and are compared at its other
-            observed times.
+            observed times. Missing entries (NaN) are left out of the comparison; a missing entry of a first state
+            is estimated by :meth:`Trajectories.filled` (a local quadratic fit through its component's nearest
+            observed values).
         samples: the correction samples (:func:`~torchmisspec.correction_samples`).
         level: the band to calibrate, in (0, 1) (default the central 90 %).
         folds: experiment k is held out in fold ``k % folds``; at most the number of experiments (>= 2).
@@ -147,8 +169,9 @@ def calibrate_bands(
         refit: re-learn the GP's hyperparameters in every fold (default: the honest choice, since the
             hyperparameters' own error is part of what the bands miss); ``False`` conditions the fitted GP on the
             other folds (cheaper, keeps the hyperparameters).
-        state_noise: standard deviation(s) of the observation noise on the states, a number or one per state
-            component (default none: exact states, the paper's setting).
+        state_noise: standard deviation(s) of the observation noise on the states: a number or one per state
+            component, or a percentage of the signal such as ``"2%"`` (multiplicative noise: std ``0.02 * |y|`` of
+            each entry, applied to each posterior path) (default none: exact states, the paper's setting).
         generator: ``torch.Generator`` for the draws (the same draws are reused at every scale).
         **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, solver settings).
 
@@ -171,10 +194,11 @@ def calibrate_bands(
         raise InputError("posterior_options: scale and num_samples are set by calibrate_bands itself")
     _check_trajectories_and_system(trajectories, system)
     folds = _check_cv_inputs(system, trajectories, samples, folds)
-    noise = _state_noise(state_noise, system.state_dim, gp.dtype, gp.device)
+    noise, relative = _state_noise(state_noise, system.state_dim, gp.dtype, gp.device)
     seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
     K = trajectories.num_experiments
     experiments = trajectories.experiments()
+    first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
     held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d))])
     for f in range(folds):
         ks = [k for k in range(K) if k % folds == f]
@@ -196,7 +220,7 @@ def calibrate_bands(
             kd = dict(dtype=gp.dtype, device=gp.device)
             times = torch.stack([experiments[k][0] for k in group]).to(**kd)
             states = torch.stack([experiments[k][1] for k in group]).to(**kd)
-            batches.append((states[:, 0], times, states))
+            batches.append((first[group].to(**kd), times, states))
         held_out.append((CorrectedODE(system, fold_gp), batches))
     if not held_out:
         raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
@@ -214,8 +238,9 @@ def calibrate_bands(
                         y0, times, num_samples=num_samples, generator=gen, scale=c, **posterior_options
                     )
                 draws = post.samples[:, :, 1:]  # (S, B, T - 1, d): every path starts at the first observed state
-                if bool(noise.any()):  # NOISE_DRAWS noise draws per path: the band's quantiles of path + noise
-                    draws = draws.unsqueeze(1) + noise * torch.randn(
+                if bool(noise.any()) or relative > 0:  # NOISE_DRAWS noise draws per path: quantiles of path + noise
+                    std = noise + relative * draws.abs().unsqueeze(1)  # (d,) or per entry (multiplicative noise)
+                    draws = draws.unsqueeze(1) + std * torch.randn(
                         (draws.shape[0], NOISE_DRAWS, *draws.shape[1:]),
                         generator=gen,
                         dtype=draws.dtype,
@@ -224,8 +249,9 @@ def calibrate_bands(
                     draws = draws.flatten(0, 1)
                 lo, hi = torch.quantile(draws, quantiles, dim=0)
                 obs = observed[:, 1:]
-                hits += int(((obs >= lo) & (obs <= hi)).sum())
-                total += obs.numel()
+                seen = torch.isfinite(obs)  # missing entries are not compared
+                hits += int(((obs >= lo) & (obs <= hi) & seen).sum())
+                total += int(seen.sum())
         return hits / max(total, 1), total
 
     tried: list[tuple[float, float]] = []

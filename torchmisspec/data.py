@@ -22,9 +22,9 @@ import numpy as np
 import torch
 
 from ._errors import InputError, IntegrationError, ShapeError
+from ._missing import fill
 from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
-from ._missing import fill
 from ._validation import as_tensor, states_and_times
 from .systems import MisspecifiedSystem
 
@@ -366,10 +366,10 @@ class Trajectories:
 
         A state cell that is empty or reads ``NaN``, ``NA`` or ``N/A`` (any case) is a missing entry (see the class
         docstring); a missing time or experiment label is an error, and so is an experiment with no value at all in
-        some state column. Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every experiment has
-        the same grid, ``(K, T)`` when the experiments have equal lengths, and ragged (one tensor per experiment)
-        when their lengths differ. Column names are ignored for ``.npz`` (ragged ``.npz`` files, as :meth:`save`
-        writes them, hold the concatenated ``times (N,)``, ``states (N, d)`` and ``lengths (K,)``).
+        some state column. Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every
+        experiment has the same grid, ``(K, T)`` when the experiments have equal lengths, and ragged (one tensor per
+        experiment) when their lengths differ. Column names are ignored for ``.npz`` (ragged ``.npz`` files, as
+        :meth:`save` writes them, hold the concatenated ``times (N,)``, ``states (N, d)`` and ``lengths (K,)``).
 
         Nothing is unpickled and no code can run. Raises :class:`InputError` for a missing, unreadable, non-UTF-8
         or malformed file, missing or duplicate columns, non-numeric or infinite cells, missing times or labels, or

@@ -175,7 +175,7 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
                 # each experiment alone, and an infinite error where G cannot be integrated
                 each = simulate_known_each(system, group, rtol=rtol, atol=atol)
                 for k, y, pred in zip(idx, group.states, each, strict=True):
-                    out[k] = math.inf if pred is None else float((pred - y).pow(2).sum())
+                    out[k] = math.inf if pred is None else float((pred - y).nan_to_num(nan=0.0).pow(2).sum())
                 continue
         else:
             rows = torch.tensor(idx, device=group.device)
@@ -188,7 +188,7 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
                 max_steps=_CV_MAX_STEPS,
                 what="cross-validation",
             )
-        out[idx] = (pred - group.states).pow(2).sum(dim=(1, 2)).detach().cpu().to(torch.float64)
+        out[idx] = (pred - group.states).nan_to_num(nan=0.0).pow(2).sum(dim=(1, 2)).detach().cpu().to(torch.float64)
     return out
 
 
@@ -255,7 +255,7 @@ def _check_cv_inputs(system, trajectories, samples, folds) -> int:
     folds = check_positive_int(folds, "folds")
     if K < 2 or folds < 2:
         raise InputError(f"folds: cross-validation needs at least 2 experiments and 2 folds, got K={K}, folds={folds}")
-    if int(samples.experiment.max()) != K - 1 or len(samples) != trajectories.num_samples:
+    if int(samples.experiment.max()) > K - 1 or len(samples) > trajectories.num_samples:  # missing entries: fewer
         raise InputError(
             f"samples: expected the correction samples of these {K} experiments ({trajectories.num_samples} samples), "
             f"got {len(samples)} samples of {int(samples.experiment.max()) + 1} experiments"
@@ -506,4 +506,5 @@ def fit_correction(
         result = fit_trajectories(result, system, trajectories)
     result.cross_validation_ = cv
     result.samples_ = samples
+    result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
     return result

@@ -45,6 +45,12 @@ class MisspecifiedSystem:
         domain: optional box ``(lo, hi)`` per correction input, the region D where the correction is assessed.
         known_matrix: optional ``(d, d)`` matrix A when G(y) = A y, so proxies can use ``matrix_exp``.
         name: a label for printing.
+        state_names: optional names of the d state components (e.g. ``["S", "I", "R"]``); what
+            :func:`~torchmisspec.fit_correction` calls the correction's inputs when the data carry none.
+
+    G and F must be vectorised: called with states ``(..., d)`` (any leading batch dimensions) they return a torch
+    tensor ``(..., d)`` (F: ``(..., d_out)``), e.g. built with ``y[..., 0]`` and ``torch.stack(..., dim=-1)``.
+    The first batched call checks this (against the same callable on one state) and names what is wrong.
     """
 
     def __init__(
@@ -58,6 +64,7 @@ class MisspecifiedSystem:
         domain: Sequence[Sequence[float]] | None = None,
         known_matrix: torch.Tensor | None = None,
         name: str = "system",
+        state_names: Sequence[str] | None = None,
     ) -> None:
         if not callable(known):
             raise InputError(f"known: expected a callable G(y), got {type(known).__name__}")
@@ -80,6 +87,18 @@ class MisspecifiedSystem:
                 )
         self.known_matrix = known_matrix
         self.name = name
+        if state_names is not None:
+            names = list(state_names) if not isinstance(state_names, str) else [state_names]
+            if len(names) != state_dim or not all(isinstance(n, str) and n.strip() for n in names):
+                raise ShapeError(
+                    f"state_names: expected {state_dim} non-empty strings (one per state component), got "
+                    f"{state_names!r:.200}"
+                )
+            if len(set(names)) != len(names):
+                raise InputError(f"state_names: expected distinct names, got {names}")
+            state_names = tuple(names)
+        self.state_names = state_names
+        self._vectorised = {"G": False, "F": False}  # the first batched call of each is checked
 
     # ----------------------------------------------------------------------------------------------------------
     @property
@@ -123,6 +142,16 @@ class MisspecifiedSystem:
         out[..., list(self.correction_outputs)] = f
         return out
 
+    def input_names(self, trajectories=None) -> tuple[str, ...] | None:
+        """The names of the correction's inputs: from ``trajectories.state_names`` when they are not the defaults
+        ``y0, y1, ...``, else from this system's ``state_names``; ``None`` when neither has names."""
+        names = getattr(trajectories, "state_names", None)
+        if names is None or tuple(names) == tuple(f"y{i}" for i in range(len(names))):
+            names = self.state_names
+        if names is None or len(names) != self.state_dim:
+            return None
+        return tuple(names[i] for i in self.correction_inputs)
+
     def true_correction(self, x: torch.Tensor) -> torch.Tensor:
         """F at correction inputs ``x (..., d_in)``; raises if this system has no true correction."""
         if self.correction is None:
@@ -130,12 +159,41 @@ class MisspecifiedSystem:
                 f"system '{self.name}' has no true correction F; pass correction=... to MisspecifiedSystem "
                 "(only simulation and benchmark systems have one)"
             )
-        return _checked(self.correction(x), x.shape[:-1] + (self.output_dim,), f"system '{self.name}': F", x)
+        what = f"system '{self.name}': F"
+        return self._call("F", self.correction, x, x.shape[:-1] + (self.output_dim,), what)
 
     def known_rhs(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) for states ``(..., d)``, with its output shape checked (a G that returns the wrong shape would be
         broadcast silently by the sums that follow)."""
-        return _checked(self.known(y), y.shape, f"system '{self.name}': G", y)
+        return self._call("G", self.known, y, y.shape, f"system '{self.name}': G")
+
+    def _call(self, key: str, fn, x: torch.Tensor, shape, what: str) -> torch.Tensor:
+        """``fn(x)`` with its output checked; the first batched call also checks that ``fn`` broadcasts over the
+        leading dimensions (a G written for one state fails on a batch, or mixes the batch's rows)."""
+        checking = not self._vectorised[key] and x.dim() >= 2 and x.shape[0] >= 1 and x[..., :1].numel() >= 1
+        if not checking:
+            return _checked(fn(x), shape, what, x)
+        one = x.reshape(-1, x.shape[-1])[0]
+        try:
+            out = fn(x)
+        except (ValueError, RuntimeError, TypeError, IndexError) as exc:
+            try:
+                single = fn(one)
+            except Exception:  # noqa: BLE001 - it fails on one state too: the user's own error, raised as it is
+                raise exc from None
+            if isinstance(single, torch.Tensor):
+                raise InputError(_not_vectorised(what, x, f"raised {type(exc).__name__}: {exc}")) from exc
+            raise
+        out = _checked(out, shape, what, x)
+        with torch.no_grad():
+            single = fn(one)
+            first = out.reshape(-1, out.shape[-1])[0] if out.dim() >= 1 else out
+            same = isinstance(single, torch.Tensor) and single.shape == first.shape
+            if not same or not torch.allclose(single.to(first), first, rtol=1e-6, atol=1e-12, equal_nan=True):
+                how = "gave another value for the first state of a batch than for that state alone"
+                raise InputError(_not_vectorised(what, x, how))
+        self._vectorised[key] = True
+        return out
 
     def true_rhs(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) + F(y) (just G(y) when the system has no true correction)."""
@@ -152,8 +210,26 @@ class MisspecifiedSystem:
         )
 
 
+def _not_vectorised(what: str, x: torch.Tensor, how: str) -> str:
+    return (
+        f"{what} must broadcast over leading dimensions, states (..., d) -> (..., d) (F: inputs (..., d_in) -> "
+        f"(..., d_out)): it works on one state but, called with a batch of shape {tuple(x.shape)}, {how}. Write it "
+        "with tensor operations on the last axis, e.g. S, I = y[..., 0], y[..., 1] and torch.stack([...], dim=-1), "
+        "not float(y[0]), math functions or y[0] indexing"
+    )
+
+
 def _checked(out, shape: torch.Size, what: str, x: torch.Tensor) -> torch.Tensor:
-    if not isinstance(out, torch.Tensor) or out.shape != shape:
+    if not isinstance(out, torch.Tensor):
+        import numpy as np
+
+        kind = f"a numpy array of shape {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
+        raise ShapeError(
+            f"{what} must return a torch tensor of shape {tuple(shape)} for inputs of shape {tuple(x.shape)}, got "
+            f"{kind}; build it with torch operations (e.g. torch.stack([...], dim=-1)) so it follows the states' "
+            "dtype, device and gradients, rather than numpy"
+        )
+    if out.shape != shape:
         got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
         raise ShapeError(
             f"{what} returned shape {got} for inputs of shape {tuple(x.shape)}; expected {tuple(shape)} (check the "

@@ -38,18 +38,23 @@ __all__ = ["SHOOTING", "fit_trajectories", "shooting_misfit"]
 
 def _intervals(trajectories: Trajectories) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Start states ``(B, d)``, interval grids ``(B, 2)`` and end states ``(B, d)`` of all sum_k (T_k - 1)
-    intervals (experiment after experiment; ragged data too)."""
+    intervals (experiment after experiment; ragged data too). Missing entries of the start states are estimated
+    (:meth:`Trajectories.filled`); those of the end states stay NaN (the residuals skip them)."""
     if min(trajectories.lengths) < 2:
         raise InputError(
             f"trajectories: expected at least 2 times per experiment to shoot between, got T = "
             f"{min(trajectories.lengths)}"
         )
+    filled = trajectories.filled()
     if trajectories.is_ragged:
-        parts = [(y[:-1], torch.stack([t[:-1], t[1:]], dim=-1), y[1:]) for t, y in trajectories.experiments()]
+        parts = [
+            (f[:-1], torch.stack([t[:-1], t[1:]], dim=-1), y[1:])
+            for (t, y), f in zip(trajectories.experiments(), filled.states, strict=True)
+        ]
         return tuple(torch.cat(p) for p in zip(*parts, strict=True))
     states, grid = trajectories.states, trajectories.time_grid  # (K, T, d), (K, T)
     d = states.shape[-1]
-    starts = states[:, :-1].reshape(-1, d)
+    starts = filled.states[:, :-1].reshape(-1, d)
     ends = states[:, 1:].reshape(-1, d)
     times = torch.stack([grid[:, :-1], grid[:, 1:]], dim=-1).reshape(-1, 2)
     return starts, times, ends
@@ -74,7 +79,8 @@ def shooting_misfit(
     """Root mean squared one-interval prediction error of the corrected model on the observed states.
 
     From every observed state y(t_i) the model G + mu (mu the GP's posterior mean) is integrated to t_{i+1} and
-    compared with the observed y(t_{i+1}); all K (T - 1) intervals in one batched solve.
+    compared with the observed y(t_{i+1}); all K (T - 1) intervals in one batched solve. Missing entries are not
+    compared (a missing start entry is estimated by :meth:`Trajectories.filled`).
     """
     _check(gp, system, trajectories)
     starts, times, ends = _intervals(trajectories.to(dtype=gp.dtype, device=gp.device))
@@ -83,7 +89,8 @@ def shooting_misfit(
         pred, _ = solve(
             _mean_field(gp, system, cache.fac.alpha), starts, times, max_steps=max_steps, what="shooting_misfit"
         )
-    return float((pred[:, -1] - ends).pow(2).mean().sqrt())
+    seen = torch.isfinite(ends)
+    return float((pred[:, -1] - ends)[seen].pow(2).mean().sqrt())
 
 
 def _check(gp, system, trajectories) -> None:
@@ -139,6 +146,11 @@ def fit_trajectories(
       compared with y(t_{i+1}) (all K (T - 1) intervals in one batched solve). Robust for long or chaotic
       horizons, where a single path drifts away from the data, but the noise in the start states is ignored
       (errors in variables): with noisy states the correction learns a spurious damping.
+
+    **Missing entries** (NaN states) are left out of every sum: the residuals compare observed entries only (a
+    missing component of a first state has no i = 0 term: its y0_hat starts from the estimate of
+    :meth:`Trajectories.filled` and is set by the later observations; with multiple shooting a missing start entry
+    is that estimate).
 
     ``s_j^2``: ``state_noise`` (a number or one per component) if given; otherwise the measurement-noise variance
     the GP in time (:func:`~torchmisspec.observations.gp_derivative`) finds in the data (floored at 1e-10 of each
@@ -228,17 +240,22 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
     if shooting == "multiple":
         starts, times, ends = _intervals(trajectories)
 
+        seen = torch.isfinite(ends)
+        zero = torch.zeros((), dtype=ends.dtype, device=ends.device)
+
         def residuals(field, off, sd):  # noqa: ARG001 - the same signature as single shooting's
             pred, nfe = solve(field, starts, times, **solver)
             residuals.nfe += nfe
-            return pred[:, -1] - ends
+            return torch.where(seen, pred[:, -1] - ends, zero)  # missing entries: 0
 
         residuals.experiment = None
         residuals.nfe = 0
-        return residuals, ends.numel(), None
+        residuals.seen = seen
+        return residuals, int(seen.sum()), None
     groups = trajectories.by_length()
-    first = trajectories.initial_conditions  # (K, d)
+    first = trajectories.initial_conditions  # (K, d), missing entries estimated
     offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
+    zero = torch.zeros((), dtype=first.dtype, device=first.device)
 
     def residuals(field, off, sd):
         parts = []
@@ -246,22 +263,27 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
             y0 = first[idx] if off is None else first[idx] + off[idx] * sd
             pred, nfe = solve(field, y0, group.times, **solver)
             residuals.nfe += nfe
-            parts.append((pred - group.states).reshape(-1, d))
+            seen = torch.isfinite(group.states)
+            parts.append(torch.where(seen, pred - group.states, zero).reshape(-1, d))  # missing entries: 0
         return torch.cat(parts)
 
     residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
+    residuals.seen = torch.cat([torch.isfinite(group.states).reshape(-1, d) for _, group in groups])
 
     residuals.experiment = torch.cat(
         [torch.tensor(idx, device=first.device).repeat_interleave(group.num_times) for idx, group in groups]
     )
-    return residuals, trajectories.num_samples * d, offsets
+    return residuals, int(residuals.seen.sum()), offsets
 
 
 def _balanced_noise(residuals, field, trajectories: Trajectories, d: int) -> torch.Tensor:
     """State-noise variances that balance data and prior at the start: the mean squared misfit per component."""
     with torch.no_grad():
-        sq0 = residuals(field, None, None).pow(2)  # the start: the observed initial states
-    return sq0.reshape(-1, d).mean(0).clamp_min(1e-12 * float(trajectories.flat_states().pow(2).mean()))
+        sq0 = residuals(field, None, None).pow(2).reshape(-1, d)  # the start: the observed initial states
+    seen = residuals.seen.to(sq0.dtype)
+    flat = trajectories.flat_states()
+    size = float(flat[torch.isfinite(flat)].pow(2).mean())
+    return (sq0.sum(0) / seen.sum(0).clamp_min(1.0)).clamp_min(1e-12 * size)
 
 
 def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, *, max_iter, progress, shooting):
@@ -513,9 +535,16 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> t
     if min(trajectories.lengths) < GP_MIN_SAMPLES:
         return None
     times, states, mask = trajectories.padded()
+    if trajectories.has_missing:
+        mask = torch.isfinite(states) & mask.unsqueeze(-1)
     try:
-        noise = _gp_time(states, times, mask if trajectories.is_ragged else None, 50).noise
-    except InputError:  # a constant component: nothing to estimate from
+        noise = _gp_time(states, times, mask if trajectories.is_ragged or trajectories.has_missing else None, 50).noise
+    except InputError:  # a constant component, or too few observations: nothing to estimate from
         return None
-    floor = 1e-10 * trajectories.flat_states().var(0).clamp_min(torch.finfo(noise.dtype).tiny)
+    flat = trajectories.flat_states()
+    seen = torch.isfinite(flat)
+    n = seen.sum(0).clamp_min(2)
+    mean = torch.where(seen, flat, 0.0).sum(0) / n
+    var = torch.where(seen, flat - mean, 0.0).pow(2).sum(0) / (n - 1)
+    floor = 1e-10 * var.clamp_min(torch.finfo(noise.dtype).tiny)
     return torch.maximum(noise.to(**kd), floor)

@@ -1545,6 +1545,7 @@ class CorrectionGP:
         new.fixed = dict(self.fixed)
         for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:
             delattr(new, name)  # records of this model's fit (cross_validation_, samples_, state_noise_, ...)
+        new.input_names_ = getattr(self, "input_names_", None)  # the same inputs: their names stay
         new.library_suffices_ = None  # kernel="auto": no check made on these data (None, as before any fit)
         new._cache = None
         covar = copy.deepcopy(self.covar_module)
@@ -1569,7 +1570,8 @@ class CorrectionGP:
         return self.covar_module.base_kernel.weights.detach().clone()
 
     def feature_names(self, names=None) -> list[str]:
-        """The feature kernel's monomials, e.g. ``["1", "x1", "x2", "x1^2", ...]`` (``names``: one per input)."""
+        """The feature kernel's monomials, e.g. ``["1", "x1", "x2", "x1^2", ...]`` (``names``: one per input; default
+        :attr:`input_names_` when the model has them, as :func:`~torchmisspec.fit_correction` records; else x1, x2)."""
         if self.kernel not in FEATURE_KERNELS:
             raise InputError(
                 f"feature_names: only the feature kernels have named terms, this GP's kernel is {self.kernel!r}"
@@ -1577,6 +1579,8 @@ class CorrectionGP:
         self._require_fitted()
         base = self.covar_module.base_kernel
         powers = base.powers
+        if names is None and len(getattr(self, "input_names_", None) or ()) == powers.shape[1]:
+            names = list(self.input_names_)
         if names is not None and len(names) != powers.shape[1]:
             raise InputError(f"names: expected {powers.shape[1]} input names, got {len(names)}")
         return base.names(names)
@@ -1586,7 +1590,8 @@ class CorrectionGP:
 
         The posterior of F = sum_j beta_j phi_j(x) given the training samples (and their noise): for each output and
         each term whose weight is not 0 (``all_terms=True``: every term), a :class:`~torchmisspec.gp._features.Term`
-        whose ``str`` reads like ``"+0.01 +- 0.0003 * y1^2"``. ``names``: the inputs' names (default x1, x2, ...).
+        whose ``str`` reads like ``"+0.01 +- 0.0003 * y1^2"``. ``names``: the inputs' names (default
+        :attr:`input_names_`, the data's names that :func:`~torchmisspec.fit_correction` records, else x1, x2, ...).
         """
         labels = self.feature_names(names)
         base = self.covar_module.base_kernel

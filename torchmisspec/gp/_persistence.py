@@ -118,6 +118,8 @@ def to_blob(gp: CorrectionGP) -> dict:
         "n_iterations": gp.n_iterations_,
         "n_evaluations": gp.n_evaluations_,
     }
+    if getattr(gp, "input_names_", None) is not None:  # additive: files without it load with no names
+        blob["input_names"] = list(gp.input_names_)
     return blob
 
 
@@ -187,5 +189,12 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
     gp._freeze()
     gp.n_iterations_ = int(blob.get("n_iterations", 0))
     gp.n_evaluations_ = int(blob.get("n_evaluations", blob.get("n_iter", 0)))
+    names = blob.get("input_names")
+    if names is not None and (
+        not isinstance(names, list) or len(names) != X.shape[1] or not all(isinstance(n, str) for n in names)
+    ):
+        what = f"{X.shape[1]} strings (one per input)"
+        raise InputError(f"{path}: expected 'input_names' to be {what}, got {names!r:.80}")
+    gp.input_names_ = None if names is None else tuple(names)
     gp._posterior_cache()
     return gp
