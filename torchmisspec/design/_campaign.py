@@ -33,6 +33,9 @@ __all__ = ["Campaign"]
 FORMAT = "torchmisspec.Campaign"
 VERSION = 1
 MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to an asked candidate
+# a measured first state (noisy) matches the nearest pending ask within this fraction of the candidates' range per
+# coordinate, when no pending ask matches exactly and no other pending ask is as near
+NEAR_TOL = 0.05
 
 
 def _hyperparameters(gp: CorrectionGP) -> dict:
@@ -54,8 +57,11 @@ class Campaign:
         system: the misspecified system (known model, correction inputs/outputs, domain).
         candidates: ``(N, d)`` candidate initial conditions.
         times: ``(T,)`` observation times of every experiment (the first is the initial condition's).
-        gp: the prior: a :class:`~torchmisspec.CorrectionGP` with a shared kernel whose hyperparameters are set (e.g.
-            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`); it is not modified.
+        gp: a :class:`~torchmisspec.CorrectionGP`, not modified: a prior whose hyperparameters are set (e.g.
+            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`) to start without data, or a fitted GP (e.g.
+            from :func:`~torchmisspec.fit_correction`) to start from the samples it was fitted on: the first ``ask``
+            is then conditioned on them, and ``tell`` refits on them plus the new experiments. Any model the
+            package fits works (per-output kernels, feature kernels, per-sample noise).
         criterion: ``"information"`` (the paper's) or ``"domain"`` (variance of F over D), see
             :func:`~torchmisspec.design.greedy`.
         proxy: ``"known"`` or ``"corrected"``; default ``"corrected"`` once there are data, ``"known"`` before.
@@ -104,7 +110,7 @@ class Campaign:
             raise InputError(f"proxy: expected one of {PROXIES} or None, got {proxy!r}")
         self.candidates = check_candidates(candidates, self.system, dtype=gp.dtype, device=gp.device)
         self.times = check_times(times, dtype=gp.dtype, device=gp.device)
-        self.prior = gp.fixed_copy() if gp.is_fitted else gp
+        self.prior = gp  # fitted: its hyperparameters and its samples are where the campaign starts
         if domain is not None:
             domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=self.system.input_dim)
         self.config = {
@@ -131,6 +137,11 @@ class Campaign:
         self._inputs: list[torch.Tensor] = []
         self._targets: list[torch.Tensor] = []
         self._noise: list[torch.Tensor | None] = []
+        if gp.is_fitted:  # what is known already: the first design is conditioned on the samples gp was fitted on
+            self._inputs = [gp.train_inputs_.detach().clone()]
+            self._targets = [gp.train_targets_.detach().clone()]
+            self._noise = [None if gp.train_noise_ is None else gp.train_noise_.detach().clone()]
+            self.gp = gp
 
     # --------------------------------------------------------------------------------------------- state
     @property
@@ -234,12 +245,22 @@ class Campaign:
         pend = self.candidates[pending]
         scale = 1.0 + pend.abs().amax(-1)
         hit = ((pend - y0).abs().amax(-1) <= MATCH_TOL * scale).nonzero()
-        return pending[int(hit[0, 0])] if hit.numel() else -1
+        if hit.numel():
+            return pending[int(hit[0, 0])]
+        # a lab measures the first state with noise: the nearest pending ask, in units of the candidates' range
+        span = (self.candidates.amax(0) - self.candidates.amin(0)).clamp_min(torch.finfo(pend.dtype).tiny)
+        dist = ((pend - y0).abs() / span).amax(-1)
+        order = torch.argsort(dist)
+        near = float(dist[order[0]]) <= NEAR_TOL
+        unique = dist.numel() == 1 or float(dist[order[1]]) > 2 * float(dist[order[0]])
+        return pending[int(order[0])] if near and unique else -1
 
     def tell(self, trajectories: Trajectories) -> CorrectionGP:
         """Add measured experiments; returns the refitted GP (also ``self.gp``).
 
-        The initial condition of each experiment is matched to a pending ask; experiments nobody asked for are
+        The initial condition of each experiment is matched to a pending ask (exactly, or, for a measured and so noisy
+        first state, the nearest pending ask within 5 % of the candidates' range in every coordinate when no other
+        is as near); experiments nobody asked for are
         accepted and noted as such in the history. Samples come from :func:`~torchmisspec.correction_samples` with the
         campaign's ``derivative`` and ``noise_std``. Nothing changes if anything fails (bad input, a failed fit).
         """
@@ -323,6 +344,8 @@ class Campaign:
                 note = f"hyperparameters not learned ({type(exc).__name__}: {exc}); kept the prior's"
         else:
             note = "prior hyperparameters (fewer samples than refit_after)" if refit else "prior hyperparameters"
+        if self.prior.is_fitted:  # the starting model's hyperparameters (per-output ones included), conditioned
+            return self.prior.condition(X, Y, noise=known), note
         return self.prior.fixed_copy().fit(X, Y, noise=known), note
 
     # --------------------------------------------------------------------------------------------- files
@@ -340,6 +363,7 @@ class Campaign:
             "candidates": self.candidates.cpu(),
             "times": self.times.cpu(),
             "prior": _persistence.config_of(self.prior),
+            "prior_model": _persistence.to_blob(self.prior) if self.prior.is_fitted else None,
             "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
             "inputs": [x.cpu() for x in self._inputs],
             "targets": [y.cpu() for y in self._targets],
@@ -377,6 +401,8 @@ class Campaign:
                 f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
             )
         prior = _persistence.from_config(CorrectionGP, field("prior", dict), f"{path} (field 'prior')")
+        if blob.get("prior_model") is not None:  # a campaign started from a fitted GP
+            prior = _persistence.from_blob(CorrectionGP, blob["prior_model"], f"{path} (field 'prior_model')")
         cfg = field("config", dict)
         try:
             camp = cls(
