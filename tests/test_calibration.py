@@ -144,3 +144,30 @@ def test_bad_input(data):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
         assert model.calibration_ is None  # nothing above calibrated the model
+
+
+def test_the_calibration_is_kept_with_the_gp_saved_with_it_and_dropped_by_a_refit(data, tmp_path):
+    """The calibration lives on the GP: a new CorrectedODE over it, a saved and loaded copy, and the CLI (which saves
+    only the GP) all get the calibrated bands; an uncalibrated posterior warns; a refit drops the calibration."""
+    system, traj, samples = data
+    model = _model(data, outputscale=1e-9)
+    y0, times = traj.states[:2, 0], torch.linspace(0, 6, 7, dtype=DT)
+    with pytest.warns(tms.TorchMisspecWarning, match="not calibrated on held-out experiments"):
+        model.posterior(y0, times, num_samples=4, generator=torch.Generator().manual_seed(2))
+    model.gp.samples_ = samples  # as fit_correction records them: calibrate() then needs no samples
+    cal = model.calibrate(traj, num_samples=8, generator=torch.Generator().manual_seed(1))
+    assert model.gp.calibration_ is cal and tms.CorrectedODE(system, model.gp).calibration_ is cal
+    loaded = tms.CorrectionGP.load(model.gp.save(tmp_path / "gp.pt"))
+    assert loaded.calibration_ == cal
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tms.TorchMisspecWarning)  # calibrated: no warning (paths stay in support)
+        again = tms.CorrectedODE(system, loaded).posterior(
+            y0, times, num_samples=8, generator=torch.Generator().manual_seed(2), support_threshold=1.0
+        )
+    first = model.posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(2), support_threshold=1.0)
+    torch.testing.assert_close(again.samples, first.samples, rtol=1e-7, atol=1e-10)
+    model.gp.fit(samples)
+    assert model.calibration_ is None
+    del model.gp.samples_
+    with pytest.raises(tms.InputError, match="samples: expected the correction samples"):
+        model.calibrate(traj)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 
 import torch
 
@@ -46,6 +45,7 @@ from ._errors import (
 )
 from ._validation import as_tensor, check_positive_int, check_real
 from .data import Trajectories
+from .gp._calibration import BandCalibration
 from .observations import CorrectionSamples, _check_trajectories_and_system
 
 __all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
@@ -57,45 +57,6 @@ MIN_LOG2_SCALE, MAX_LOG2_SCALE = -4.0, 8.0
 NOISE_DRAWS = 16
 #: Bisection steps: the bracket of 12 in log2 c shrinks to 12 / 2^7 < 0.1, a relative precision of ~7 % on c.
 BISECTION_STEPS = 7
-
-
-@dataclass(frozen=True)
-class BandCalibration:
-    """The result of :func:`calibrate_bands`.
-
-    Attributes:
-        scale: the calibrated factor ``c`` on the posterior draws' deviation from the posterior mean (1: the GP's
-            own bands were right; above 1: they were too narrow).
-        level: the band's nominal coverage it was calibrated for.
-        coverage_at_one: the held-out coverage of the uncalibrated bands (c = 1).
-        coverage: the held-out coverage at ``scale``.
-        scales / coverages: every scale the bisection tried, in order, with its held-out coverage.
-        folds: the number of folds held out; ``refit``: whether the GP's hyperparameters were re-learned in every
-            fold.
-        reached: whether some scale reaches the level (when not, ``scale`` is the smallest doubling whose held-out
-            coverage is within one standard error of the best one tried, and a warning was issued).
-        num_points: the held-out (time, component) entries compared at each scale.
-    """
-
-    scale: float
-    level: float
-    coverage_at_one: float
-    coverage: float
-    scales: tuple[float, ...]
-    coverages: tuple[float, ...]
-    folds: int
-    refit: bool
-    num_points: int
-    reached: bool = True
-
-    def __str__(self) -> str:
-        return (
-            f"BandCalibration(scale={self.scale:.3g}: the central {self.level:.0%} band covers {self.coverage:.3f} "
-            f"of the held-out states (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds, "
-            f"{'refitted' if self.refit else 'conditioned'} GP"
-            + ("" if self.reached else "; the level is out of reach")
-            + f", {self.num_points} points)"
-        )
 
 
 def _check_level(level) -> float:

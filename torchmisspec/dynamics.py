@@ -54,8 +54,12 @@ class CorrectedODE(nn.Module):
         self.system = system
         self.gp = gp
         self.nfe = 0  # right-hand-side evaluations of the last predict()
-        #: the :class:`~torchmisspec.calibration.BandCalibration` of the last :meth:`calibrate` (None before)
-        self.calibration_ = None
+
+    @property
+    def calibration_(self):
+        """The :class:`~torchmisspec.calibration.BandCalibration` of the GP's bands (``None`` before any
+        :meth:`calibrate`): kept on the GP (``gp.calibration_``), so it is saved and loaded with it."""
+        return getattr(self.gp, "calibration_", None)
 
     def correction(self, y: torch.Tensor) -> torch.Tensor:
         """mu placed on the full state: ``(..., d)`` from states ``(..., d)``."""
@@ -212,6 +216,14 @@ class CorrectedODE(nn.Module):
         if threshold > 1.0:
             raise InputError(f"support_threshold: expected a ratio of standard deviations in (0, 1], got {threshold!r}")
         num_samples = check_positive_int(num_samples, "num_samples")
+        if scale is None and self.calibration_ is None:
+            warn(
+                "CorrectedODE.posterior: these bands are the GP's own, not calibrated on held-out experiments; with "
+                "few experiments they are usually too narrow (docs/studies/calibration.md). Call "
+                "model.calibrate(observed) once (it is kept and saved with the GP), or pass scale=1.0 to use the "
+                "GP's own bands knowingly",
+                TorchMisspecWarning,
+            )
         if scale is None:
             scale = 1.0 if self.calibration_ is None else self.calibration_.scale
         scale = check_real(scale, "scale", positive=True)
@@ -277,22 +289,30 @@ class CorrectedODE(nn.Module):
             update_error=draws.update_error,
         )
 
-    def calibrate(self, trajectories, samples, **options):
+    def calibrate(self, trajectories, samples=None, **options):
         """Calibrate the bands of :meth:`posterior` on held-out experiments and make the result its default scale.
 
+        ``samples`` default to the ones :func:`~torchmisspec.fit_correction` recorded on the GP (``gp.samples_``).
         See :func:`torchmisspec.calibration.calibrate_bands` (the arguments after ``samples`` are its keywords:
         ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator`` and options for
         :meth:`posterior`, e.g. ``hyperparameters="laplace"``, which later calls should then use too). Costs one
         GP fit per fold plus about ten held-out posteriors per fold.
 
         Returns:
-            the :class:`~torchmisspec.calibration.BandCalibration`, also kept as ``calibration_``; later
-            ``posterior`` calls use its ``scale`` unless given another.
+            the :class:`~torchmisspec.calibration.BandCalibration`, also kept on the GP as ``gp.calibration_``
+            (saved with it by ``gp.save``); later ``posterior`` calls use its ``scale`` unless given another.
         """
         from .calibration import calibrate_bands
 
+        if samples is None:
+            samples = getattr(self.gp, "samples_", None)
+            if samples is None:
+                raise InputError(
+                    "samples: expected the correction samples the GP was fitted on; this GP has none recorded (only "
+                    "fit_correction records them, as gp.samples_): pass calibrate(trajectories, samples)"
+                )
         result = calibrate_bands(self, trajectories, samples, **options)  # a failure keeps the previous one
-        self.calibration_ = result
+        self.gp.calibration_ = result
         return result
 
     def _support(self, states: torch.Tensor) -> torch.Tensor:

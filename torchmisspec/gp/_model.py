@@ -787,6 +787,7 @@ class CorrectionGP:
             self.covar_module.load_state_dict(saved[0])
             self.likelihood.load_state_dict(saved[1])
             raise
+        self.__dict__.pop("calibration_", None)  # a calibration of the bands belongs to the fit it was made for
         return self
 
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:

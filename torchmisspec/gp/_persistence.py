@@ -18,6 +18,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_real
+from ._calibration import BandCalibration
 from ._features import FEATURE_KERNELS
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -118,6 +119,9 @@ def to_blob(gp: CorrectionGP) -> dict:
         "n_iterations": gp.n_iterations_,
         "n_evaluations": gp.n_evaluations_,
     }
+    calibration = getattr(gp, "calibration_", None)
+    if calibration is not None:  # the bands' calibrated spread travels with the model (absent in older files)
+        blob["calibration"] = calibration.to_dict()
     return blob
 
 
@@ -188,4 +192,6 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
     gp.n_iterations_ = int(blob.get("n_iterations", 0))
     gp.n_evaluations_ = int(blob.get("n_evaluations", blob.get("n_iter", 0)))
     gp._posterior_cache()
+    if blob.get("calibration") is not None:
+        gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
     return gp
