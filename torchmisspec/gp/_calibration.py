@@ -1,4 +1,4 @@
-"""The record of a calibration of a correction GP's bands (:class:`BandCalibration`), kept with the GP and saved with it.
+"""The record of a calibration of a correction GP's bands (:class:`BandCalibration`), kept and saved with the GP.
 
 :func:`torchmisspec.calibration.calibrate_bands` finds the factor ``c`` on the posterior draws' deviation from the
 posterior mean; :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` stores the result on the GP
