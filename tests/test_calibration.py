@@ -94,14 +94,20 @@ def test_state_noise_is_not_mistaken_for_missing_spread(data):
     noisy = tms.Trajectories(traj.times, traj.states + noise)
     model = _model(data)
     kw = dict(num_samples=16, folds=3, refit=False, generator=torch.Generator().manual_seed(1))
-    ignored = model.calibrate(noisy, samples, **kw)
+    ignored = model.calibrate(noisy, samples, state_noise=None, **kw)
     allowed = model.calibrate(noisy, samples, state_noise=0.05, **kw)
+    estimated = model.calibrate(noisy, samples, **kw)  # default "auto": the noise the GP in time finds
     exact = model.calibrate(traj, samples, **kw)
     # ignoring the noise, the bands miss most noisy states and must be widened a lot to cover them; allowing for it,
     # the GP's own bands (plus the noise) already cover about as often as on exact states
     assert ignored.coverage_at_one < 0.5 < 0.85 < allowed.coverage_at_one
     assert abs(allowed.coverage_at_one - exact.coverage_at_one) < 0.1
     assert ignored.scale > 5 * allowed.scale
+    assert abs(estimated.coverage_at_one - allowed.coverage_at_one) < 0.1 and estimated.scale < 2 * allowed.scale
+    relative = model.calibrate(noisy, samples, state_noise="5%", **kw)  # noise proportional to |y| (<= 1 here)
+    assert relative.coverage_at_one > ignored.coverage_at_one
+    with pytest.raises(tms.InputError, match="'auto', a percentage such as '2%'"):
+        model.calibrate(noisy, samples, state_noise="five percent", **kw)
 
 
 def test_out_of_reach_is_warned_and_kept_finite(data):

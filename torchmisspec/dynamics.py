@@ -194,9 +194,12 @@ class CorrectedODE(nn.Module):
                 posterior (``CorrectionGP.hyperparameter_samples``), so the bands allow for the hyperparameters'
                 own uncertainty (ML-II alone is overconfident with few experiments; ``docs/studies/calibration.md``).
             hyperparameter_samples: the number of hyperparameter sets with ``"laplace"`` (at most ``num_samples``).
-            scale: a factor c > 0 on every draw's deviation from the posterior mean, F_c = mu + c (F_s - mu) (the
-                posterior covariance of F times c^2); default: the scale found by :meth:`calibrate`, or 1 (the GP's
-                own bands) before any calibration.
+            scale: a factor c > 0 on every path's deviation from the mean path, y_c = y_mean + c (y_s - y_mean);
+                default: the scale found by :meth:`calibrate`, or 1 (the GP's own bands) before any calibration. To
+                first order in the draws' deviation this is the path of F_c = mu + c (F_s - mu) (the posterior
+                covariance of F times c^2), but the paths are those of the GP's own draws: a widened field far
+                from the data is never integrated, so a calibrated posterior cannot stall where the GP's own
+                does not (integrating F_c with c = 8 made the solver stall in the issue's trial).
 
         Returns:
             :class:`TrajectoryPosterior`.
@@ -238,12 +241,12 @@ class CorrectedODE(nn.Module):
             num_features=num_features, feature_error=feature_error, generator=generator, update_error=update_error
         )
         if hyperparameters == "fixed":
-            draws = self.gp.sample_functions(S, scale=scale, **options_f)
+            draws = self.gp.sample_functions(S, **options_f)
         else:
             M = min(check_positive_int(hyperparameter_samples, "hyperparameter_samples"), S)
             gps = self.gp.hyperparameter_samples(M, generator=generator)
             sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
-            draws = _Mixture([g.sample_functions(n, scale=scale, **options_f) for g, n in zip(gps, sizes, strict=True)])
+            draws = _Mixture([g.sample_functions(n, **options_f) for g, n in zip(gps, sizes, strict=True)])
         mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         system = self.system
 
@@ -279,9 +282,12 @@ class CorrectedODE(nn.Module):
                 TorchMisspecWarning,
             )
         times_out = times if times.dim() == 2 else times.expand(B, -1)
+        samples = paths.reshape(S, B, *paths.shape[1:])
+        if scale != 1.0:  # the paths' deviations from the mean path, scaled (never a re-integration)
+            samples = mean_path + scale * (samples - mean_path)
         return TrajectoryPosterior(
             times=times_out,
-            samples=paths.reshape(S, B, *paths.shape[1:]),
+            samples=samples,
             mean_path=mean_path,
             support=support,
             extrapolating=extrapolating,

@@ -51,6 +51,7 @@ __all__ = [
     "GPDerivative",
     "choose_derivative",
     "correction_samples",
+    "estimate_state_noise",
     "estimator_error",
     "finite_difference",
     "gp_derivative",
@@ -770,3 +771,21 @@ def correction_samples(
         experiment=experiment,
         noise=sample_noise,
     )
+
+
+def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:
+    """``(d,)`` the standard deviation of the measurement noise on each state component, as the GP in time
+    (:func:`gp_derivative`) finds it in the data (floored at 1e-5 of each component's standard deviation), or
+    ``None`` when an experiment has fewer than :data:`GP_MIN_SAMPLES` observations or a component is constant.
+
+    What :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` assumes by default, so that noisy
+    observations are compared with bands of noisy observations (the bands it calibrates are for the states)."""
+    if min(trajectories.lengths) < GP_MIN_SAMPLES:
+        return None
+    times, states, mask = trajectories.padded()
+    try:
+        var = _gp_time(states, times, mask if trajectories.is_ragged else None, 50).noise
+    except InputError:  # a constant component: nothing to estimate from
+        return None
+    floor = 1e-10 * trajectories.flat_states().var(0).clamp_min(torch.finfo(var.dtype).tiny)
+    return torch.maximum(var.to(states), floor.to(states)).sqrt()
