@@ -105,10 +105,10 @@ def test_extrapolation_is_flagged_and_warned_once(linear):
     times = torch.linspace(0, 1, 5, dtype=DT)
     with warnings.catch_warnings():
         warnings.simplefilter("error", tms.TorchMisspecWarning)
-        post = ode.posterior(inside, times, num_samples=4)
+        post = ode.posterior(inside, times, num_samples=4, scale=1.0)
     assert not post.extrapolating.any() and float(post.support.max()) < post.threshold
     with pytest.warns(tms.TorchMisspecWarning, match=r"2 of 3 predicted path\(s\) leave the data's support") as rec:
-        post = ode.posterior(torch.cat([inside, far]), times, num_samples=4)
+        post = ode.posterior(torch.cat([inside, far]), times, num_samples=4, scale=1.0)
     assert len([w for w in rec if issubclass(w.category, tms.TorchMisspecWarning)]) == 1
     assert post.extrapolating.tolist() == [False, True, True]
     assert float(post.support[1:].min()) > 0.99  # far from the data: the prior's standard deviation
