@@ -209,3 +209,17 @@ def test_a_fitted_gp_starts_the_campaign_from_its_data_and_noisy_first_states_ma
     path = camp.save(tmp_path / "camp.pt")
     again = design.Campaign.load(path, system)
     torch.testing.assert_close(again.ask(1), camp.ask(1))
+
+
+def test_tell_can_be_told_which_asks_the_experiments_answer():
+    system, camp = _campaign(refit_after=0)
+    asked = camp.ask(3)
+    far = asked + 0.5  # first states nowhere near the asks: matched by position when told so
+    camp.tell(tms.simulate(system, far[:2], TIMES), asked="pending")
+    assert camp.history[-1]["unrequested"] == 0 and camp.pending == camp.history[0]["indices"][2:]
+    with pytest.raises(tms.InputError, match=r"asked: expected pending asks \(each once\) or -1"):
+        camp.tell(tms.simulate(system, far[2:], TIMES), asked=[camp.history[0]["indices"][0]])
+    with pytest.raises(tms.InputError, match="asked: expected 'pending' or a list of 1"):
+        camp.tell(tms.simulate(system, far[2:], TIMES), asked=[0, 1])
+    camp.tell(tms.simulate(system, far[2:], TIMES), asked=[-1])
+    assert camp.history[-1]["unrequested"] == 1 and len(camp.pending) == 1

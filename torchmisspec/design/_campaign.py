@@ -34,8 +34,8 @@ FORMAT = "torchmisspec.Campaign"
 VERSION = 1
 MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to an asked candidate
 # a measured first state (noisy) matches the nearest pending ask within this fraction of the candidates' range per
-# coordinate, when no pending ask matches exactly and no other pending ask is as near
-NEAR_TOL = 0.05
+# coordinate, when no pending ask matches exactly and every other pending ask is at least twice as far
+NEAR_TOL = 0.1
 
 
 def _hyperparameters(gp: CorrectionGP) -> dict:
@@ -252,16 +252,39 @@ class Campaign:
         dist = ((pend - y0).abs() / span).amax(-1)
         order = torch.argsort(dist)
         near = float(dist[order[0]]) <= NEAR_TOL
-        unique = dist.numel() == 1 or float(dist[order[1]]) > 2 * float(dist[order[0]])
+        unique = dist.numel() == 1 or float(dist[order[1]]) >= 2 * float(dist[order[0]])
         return pending[int(order[0])] if near and unique else -1
 
-    def tell(self, trajectories: Trajectories) -> CorrectionGP:
+    def _given_asks(self, asked, n: int, pending: list[int]) -> list[int]:
+        """The candidate indices ``asked`` names for ``n`` told experiments, checked against the pending asks."""
+        if isinstance(asked, str) and asked == "pending":
+            if n > len(pending):
+                raise InputError(
+                    f"asked='pending': expected at most the {len(pending)} pending asks, got {n} experiments; pass "
+                    "asked=[index or -1 per experiment]"
+                )
+            return pending[:n]
+        ok = isinstance(asked, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool) for i in asked)
+        if not ok or len(asked) != n:
+            raise InputError(
+                f"asked: expected 'pending' or a list of {n} candidate indices (-1: not asked for), got {asked!r:.100}"
+            )
+        wrong = [i for i in asked if i >= 0 and (i not in pending or asked.count(i) > 1)]
+        if wrong:
+            raise InputError(
+                f"asked: expected pending asks (each once) or -1, got {wrong} (pending: {pending}); tell experiments "
+                "nobody asked for as -1"
+            )
+        return list(asked)
+
+    def tell(self, trajectories: Trajectories, *, asked=None) -> CorrectionGP:
         """Add measured experiments; returns the refitted GP (also ``self.gp``).
 
-        The initial condition of each experiment is matched to a pending ask (exactly, or, for a measured and so noisy
-        first state, the nearest pending ask within 5 % of the candidates' range in every coordinate when no other
-        is as near); experiments nobody asked for are
-        accepted and noted as such in the history. Samples come from :func:`~torchmisspec.correction_samples` with the
+        ``asked``: the candidate index each experiment answers (``-1``: not asked for), or ``"pending"``: the
+        experiments answer the pending asks in the order they were asked. By default each experiment's first state is
+        matched to a pending ask: exactly, or, a measured and so noisy first state, the nearest pending ask within
+        10 % of the candidates' range in every coordinate when it is at most half as far as any other pending ask.
+        Experiments nobody asked for are accepted and noted as such in the history. Samples come from :func:`~torchmisspec.correction_samples` with the
         campaign's ``derivative`` and ``noise_std``. Nothing changes if anything fails (bad input, a failed fit).
         """
         if not isinstance(trajectories, Trajectories):
@@ -275,11 +298,15 @@ class Campaign:
         start = time.perf_counter()
         y0 = traj.initial_conditions
         matched, pending = [], list(self.pending)
-        for row in y0:
-            idx = self._match(row, pending)
-            if idx >= 0:
-                pending.remove(idx)  # duplicates of a candidate match one pending ask each
-            matched.append(idx)
+        if asked is None:
+            for row in y0:
+                idx = self._match(row, pending)
+                if idx >= 0:
+                    pending.remove(idx)  # duplicates of a candidate match one pending ask each
+                matched.append(idx)
+        else:
+            matched = self._given_asks(asked, y0.shape[0], pending)
+            pending = [p for p in pending if p not in matched]
         state = self.generator.get_state()
         try:
             samples = correction_samples(
