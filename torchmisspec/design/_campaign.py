@@ -285,7 +285,8 @@ class Campaign:
         matched to a pending ask: exactly, or, a measured and so noisy first state, the nearest pending ask within
         10 % of the candidates' range in every coordinate when it is at most half as far as any other pending ask.
         Experiments nobody asked for are accepted and noted as such in the history. Samples come from
-        :func:`~torchmisspec.correction_samples` with the campaign's ``derivative`` and ``noise_std``. Nothing changes if anything fails (bad input, a failed fit).
+        :func:`~torchmisspec.correction_samples` with the campaign's ``derivative`` and ``noise_std``. Nothing changes
+        if anything fails (bad input, a failed fit).
         """
         if not isinstance(trajectories, Trajectories):
             raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
