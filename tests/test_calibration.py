@@ -177,3 +177,19 @@ def test_the_calibration_is_kept_with_the_gp_saved_with_it_and_dropped_by_a_refi
     del model.gp.samples_
     with pytest.raises(tms.InputError, match="samples: expected the correction samples"):
         model.calibrate(traj)
+
+
+def test_the_folds_numerical_warnings_are_summarised_once_with_what_calibrate_can_do(data):
+    """A fold refit that warns (here: the feature weights stop at a tiny max_iter) gave the user a message asking to
+    'raise max_iter', an argument calibrate does not take; now one warning says the folds use the model's settings."""
+    system, traj, samples = data
+    gp = tms.CorrectionGP(kernel="features", degree=3, max_iter=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.NumericalWarning)
+        gp.fit(samples)
+    with pytest.warns(
+        tms.NumericalWarning, match=r"calibrate_bands: the refit of the GP on \d+ fold\(s\) warned"
+    ) as rec:
+        tms.CorrectedODE(system, gp).calibrate(traj, samples, num_samples=4, folds=3, progress=False)
+    assert sum("max_iter=1" in str(w.message) for w in rec) == 1
+    assert not any(str(w.message).startswith("the feature weights") for w in rec)

@@ -43,6 +43,7 @@ from ._errors import (
     InputError,
     IntegrationError,
     LinearAlgebraError,
+    NumericalWarning,
     ShapeError,
     TorchMisspecWarning,
     warn,
@@ -166,17 +167,24 @@ def calibrate_bands(
     experiments = trajectories.experiments()
     held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d))])
     bar = progress_bar(progress, 2 * folds, "calibrate: refit and predict each fold", "step")
+    fold_warnings: list[str] = []
     for f in range(folds):
         bar.update()
         ks = [k for k in range(K) if k % folds == f]
         keep = ~torch.isin(samples.experiment, torch.tensor(ks, device=samples.experiment.device))
         sample_noise = None if samples.noise is None else samples.noise[keep]
         try:
-            if refit:
-                fold_gp = type(gp)(**_settings(gp), lengthscale=gp.fixed["lengthscale"])
-                fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
-            else:
-                fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            with warnings.catch_warnings(record=True) as caught:  # the folds' fits are ours: summarised below
+                warnings.simplefilter("always", NumericalWarning)
+                if refit:
+                    fold_gp = type(gp)(**_settings(gp), lengthscale=gp.fixed["lengthscale"])
+                    fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+                else:
+                    fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            fold_warnings += [str(w.message) for w in caught if issubclass(w.category, NumericalWarning)]
+            for w in caught:  # anything else reaches the user as it was
+                if not issubclass(w.category, NumericalWarning):
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         except (FittingError, LinearAlgebraError):
             continue  # this fold cannot be held out (too few samples left); the others still calibrate
         by_length: dict[int, list[int]] = {}
@@ -189,6 +197,14 @@ def calibrate_bands(
             states = torch.stack([experiments[k][1] for k in group]).to(**kd)
             batches.append((states[:, 0], times, states))
         held_out.append((CorrectedODE(system, fold_gp), batches))
+    if fold_warnings:
+        warn(
+            f"calibrate_bands: the refit of the GP on {len(fold_warnings)} fold(s) warned (first: "
+            f"{fold_warnings[0][:300]}). The folds are refitted with the model's own settings (e.g. max_iter="
+            f"{gp.max_iter}) and used as they are; to change the settings, fit the model with others (a "
+            "CorrectionGP(max_iter=...) template) and calibrate again",
+            NumericalWarning,
+        )
     if not held_out:
         bar.close()
         raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
