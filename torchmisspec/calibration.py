@@ -148,7 +148,7 @@ def calibrate_bands(
     Raises:
         FittingError: no fold could be fitted and integrated, or the uncalibrated bands' paths already fail.
     """
-    from .dynamics import CorrectedODE
+    from .dynamics import CorrectedODE, path_quantiles
     from .learning import _check_cv_inputs, _settings
 
     if not isinstance(model, CorrectedODE):
@@ -244,7 +244,7 @@ def calibrate_bands(
             draws = mean + c * dev
             if z is not None:
                 draws = (draws.unsqueeze(1) + (absolute + relative * draws.abs()).unsqueeze(1) * z).flatten(0, 1)
-            lo, hi = torch.quantile(draws, quantiles, dim=0)
+            lo, hi = path_quantiles(draws, quantiles)  # a diverged path makes its side of the band unbounded
             hits += int(((obs >= lo) & (obs <= hi)).sum())
         return hits / max(total, 1)
 

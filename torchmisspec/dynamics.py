@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ._errors import InputError, NotFittedError, ShapeError, TorchMisspecWarning, warn
+from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
@@ -255,20 +255,21 @@ class CorrectedODE(nn.Module):
             return system.known_rhs(y) + system.embed(draws(x).reshape(S * B, -1))
 
         grid = times if times.dim() == 1 else times.repeat(S, 1)
+        settings = dict(method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
-            paths, nfe = solve(
-                field,
-                y0.repeat(S, 1),
-                grid,
-                method=method,
-                rtol=rtol,
-                atol=atol,
-                options=options,
-                max_steps=max_steps,
-                what="CorrectedODE.posterior",
-                label=lambda i: f"draw {i // B} of initial condition {i % B}",
-            )
+            paths, nfe, diverged = _solve_draws(field, y0.repeat(S, 1), grid, settings, B)
         self.nfe = nfe
+        if diverged:
+            rows = sorted(diverged)
+            warn(
+                f"CorrectedODE.posterior: {len(rows)} of {S * B} sampled paths cannot be integrated to the end (draw, "
+                f"initial condition: {', '.join(f'({i // B}, {i % B})' for i in rows[:8])}"
+                f"{' ...' if len(rows) > 8 else ''}): under those draws of F the trajectory blows up or stalls. They "
+                "are NaN from then on, and the bands treat them as unbounded (a band they reach is infinite): the "
+                "correction's posterior allows diverging trajectories there. Shorten the time span, or collect data "
+                "nearer those states",
+                TorchMisspecWarning,
+            )
         support = self._support(mean_path.detach())
         extrapolating = support.amax(dim=-1) > threshold
         if bool(extrapolating.any()):
@@ -348,6 +349,95 @@ class _Mixture:
         return torch.cat(out)
 
 
+def path_quantiles(samples: torch.Tensor, qs: torch.Tensor) -> torch.Tensor:
+    """Quantiles ``qs (Q,)`` over the draws ``samples (S, ...)`` -> ``(Q, ...)``, where a NaN (a path that diverged
+    before that time) counts as unbounded on the side of the quantile: as -inf for q < 1/2, +inf for q > 1/2 (and the
+    mean of both for the median), so a band that such paths reach is infinite, never silently narrowed."""
+    if not bool(torch.isnan(samples).any()):
+        return torch.quantile(samples, qs, dim=0)
+    # interpolating between two infinite values gives NaN: there the quantile is that infinity
+    low = torch.quantile(samples.nan_to_num(nan=-math.inf), qs, dim=0).nan_to_num(nan=-math.inf)
+    high = torch.quantile(samples.nan_to_num(nan=math.inf), qs, dim=0).nan_to_num(nan=math.inf)
+    side = qs.reshape(-1, *([1] * (samples.dim() - 1)))
+    return torch.where(side < 0.5, low, torch.where(side > 0.5, high, 0.5 * (low + high)))
+
+
+def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: int):
+    """All sampled paths in one batched solve. Where it fails (under some draw of F a path blows up or stalls), the
+    row the solver names as the likeliest culprit is integrated alone: if it fails alone too, it is integrated as far
+    as it goes (the longest prefix of its output times that succeeds, by bisection) and is NaN after, and the others
+    are solved again without it; if it does not, the rows are halved until the failing ones are alone. Returns
+    ``(paths (S B, T, d), right-hand-side evaluations, the failing rows)``."""
+    nfe = 0
+    diverged: list[int] = []
+    n_rows = y0.shape[0]
+
+    def run(rows: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+        nonlocal nfe
+        sub = times if times.dim() == 1 else times[rows]
+
+        def part(y: torch.Tensor) -> torch.Tensor:  # the rows' own draws: field sees the whole batch's layout
+            return field(y0.new_zeros(y0.shape).index_copy(0, rows, y))[rows]
+
+        out, n = solve(
+            field if rows.numel() == n_rows else part,
+            y0[rows],
+            sub,
+            what="CorrectedODE.posterior",
+            label=lambda i: f"draw {int(rows[i]) // B} of initial condition {int(rows[i]) % B}",
+            **settings,
+        )
+        nfe += n
+        return out
+
+    def alone(row: torch.Tensor) -> tuple[torch.Tensor, bool]:
+        """The one path of ``row`` (1,) as far as it integrates (NaN after), and whether it stops early."""
+        T = grid.shape[-1]
+        lo, hi, best = 1, T, y0[row].unsqueeze(1)  # the first output time is the initial condition itself
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            try:
+                best = run(row, grid[..., :mid])
+                lo = mid
+            except IntegrationError:
+                hi = mid - 1
+        out = y0.new_full((1, T, y0.shape[-1]), math.nan)
+        out[:, : best.shape[1]] = best
+        if lo < T:
+            diverged.append(int(row[0]))
+        return out, lo < T
+
+    def paths_of(rows: torch.Tensor) -> torch.Tensor:
+        out = y0.new_empty((rows.numel(), grid.shape[-1], y0.shape[-1]))
+        todo = torch.arange(rows.numel(), device=rows.device)
+        while todo.numel():
+            try:
+                out[todo] = run(rows[todo], grid)
+                break
+            except IntegrationError as exc:
+                named = [i for i in getattr(exc, "rows", []) if i < todo.numel()]
+                stopped = False
+                for i in named:  # the rows the solver names, each alone (those that integrate are done too)
+                    out[todo[i]], early = alone(rows[todo[i : i + 1]])
+                    stopped = stopped or early
+                if not stopped:  # none of the named rows is at fault alone: halve
+                    rest = todo[[i for i in range(todo.numel()) if i not in named]]
+                    if rest.numel() == 0:
+                        break
+                    half = rest.numel() // 2
+                    if half:
+                        out[rest[:half]] = paths_of(rows[rest[:half]])
+                    out[rest[half:]] = paths_of(rows[rest[half:]]) if rest.numel() > 1 else alone(rows[rest])[0]
+                    break
+                keep = torch.ones(todo.numel(), dtype=torch.bool, device=todo.device)
+                keep[named] = False
+                todo = todo[keep]
+        return out
+
+    paths = paths_of(torch.arange(n_rows, device=y0.device))
+    return paths, nfe, diverged
+
+
 def _wants_graph(*tensors: torch.Tensor) -> bool:
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
@@ -397,7 +487,7 @@ class TrajectoryPosterior:
         qs = as_tensor(q, "q", dtype=self.samples.dtype, device=self.samples.device)
         if qs.dim() > 1 or not bool(((qs >= 0) & (qs <= 1)).all()):
             raise InputError(f"q: expected a quantile or a 1-D list of quantiles in [0, 1], got {q!r:.80}")
-        return torch.quantile(self.samples, qs, dim=0)
+        return path_quantiles(self.samples, qs)
 
     def interval(self, level: float = 0.9) -> tuple[torch.Tensor, torch.Tensor]:
         """``(lower, upper)``, each ``(B, T, d)``: the central ``level`` band of the sampled paths."""
