@@ -44,7 +44,7 @@ from ._errors import (
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._validation import check_positive_int
-from .data import Trajectories, simulate, simulate_known_each
+from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._features import FEATURE_KERNELS
 from .gp._model import median_distance
@@ -161,35 +161,36 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
     """``(K,)`` sums of squared errors of a model from each experiment's first observed state over its own times.
 
     ``field(y, rows)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each experiment may
-    have its own model: the folds of the cross-validation); ``None``: the known model G alone. One batched solve per
-    group of equal-length experiments."""
+    have its own model: the folds of the cross-validation); ``None``: the known model G alone. One batched solve of
+    every experiment (ragged ones on their own times, padded at their end)."""
     rtol, atol = FITTING_TOLERANCES
     out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
-    for idx, group in trajectories.by_length():
-        if field is None:
-            try:
-                pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
-                pred = pred.states
-            except IntegrationError:
-                # the known model alone diverges from some of these states (what a correction may exist to fix):
-                # each experiment alone, and an infinite error where G cannot be integrated
-                each = simulate_known_each(system, group, rtol=rtol, atol=atol)
-                for k, y, pred in zip(idx, group.states, each, strict=True):
-                    out[k] = math.inf if pred is None else float((pred - y).pow(2).sum())
-                continue
-        else:
-            rows = torch.tensor(idx, device=group.device)
-            pred, _ = solve(
-                lambda y, rows=rows: field(y, rows),
-                group.initial_conditions,
-                group.times,
-                rtol=rtol,
-                atol=atol,
-                max_steps=_CV_MAX_STEPS,
-                what="cross-validation",
-            )
-        out[idx] = (pred - group.states).pow(2).sum(dim=(1, 2)).detach().cpu().to(torch.float64)
-    return out
+    times, states, mask = trajectories.padded()
+    if times.dim() == 1:
+        times = times.expand(states.shape[0], -1)
+    if field is None:
+        try:
+            pred = solve(system.known_rhs, states[:, 0], times, rtol=rtol, atol=atol, what="the known model")[0]
+        except IntegrationError:
+            # the known model alone diverges from some of these states (what a correction may exist to fix):
+            # each experiment alone, and an infinite error where G cannot be integrated
+            each = simulate_known_each(system, trajectories, rtol=rtol, atol=atol)
+            for k, ((_, y), pred) in enumerate(zip(trajectories.experiments(), each, strict=True)):
+                out[k] = math.inf if pred is None else float((pred - y).pow(2).sum())
+            return out
+    else:
+        rows = torch.arange(states.shape[0], device=states.device)
+        pred, _ = solve(
+            lambda y: field(y, rows),
+            states[:, 0],
+            times,
+            rtol=rtol,
+            atol=atol,
+            max_steps=_CV_MAX_STEPS,
+            what="cross-validation",
+        )
+    sq = (pred - states).pow(2).sum(-1) * mask
+    return sq.sum(-1).detach().cpu().to(torch.float64)
 
 
 def _check_candidates(candidates) -> list:

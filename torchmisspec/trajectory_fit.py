@@ -236,24 +236,22 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
         residuals.experiment = None
         residuals.nfe = 0
         return residuals, ends.numel(), None
-    groups = trajectories.by_length()
+    # every experiment in one batched solve, ragged ones too: each row on its own times (padded at its end by
+    # repeating its last time, which the solver's shared grid absorbs); only the observed entries are compared
+    times, states, mask = trajectories.padded()
+    if times.dim() == 1:
+        times = times.expand(states.shape[0], -1)
     first = trajectories.initial_conditions  # (K, d)
     offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
 
     def residuals(field, off, sd):
-        parts = []
-        for idx, group in groups:
-            y0 = first[idx] if off is None else first[idx] + off[idx] * sd
-            pred, nfe = solve(field, y0, group.times, **solver)
-            residuals.nfe += nfe
-            parts.append((pred - group.states).reshape(-1, d))
-        return torch.cat(parts)
+        y0 = first if off is None else first + off * sd
+        pred, nfe = solve(field, y0, times, **solver)
+        residuals.nfe += nfe
+        return (pred - states)[mask]  # (n, d), experiment after experiment
 
     residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
-
-    residuals.experiment = torch.cat(
-        [torch.tensor(idx, device=first.device).repeat_interleave(group.num_times) for idx, group in groups]
-    )
+    residuals.experiment = torch.arange(states.shape[0], device=first.device).unsqueeze(-1).expand_as(mask)[mask]
     return residuals, trajectories.num_samples * d, offsets
 
 
