@@ -252,6 +252,16 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
 
     residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
     residuals.experiment = torch.arange(states.shape[0], device=first.device).unsqueeze(-1).expand_as(mask)[mask]
+
+    def many(field, copies: int, off, sd):
+        """``(copies, n, d)``: the residuals of ``copies`` models at once, ``field`` taking the states of copy c's
+        experiments in rows c K ... c K + K - 1 (one batched solve instead of ``copies``)."""
+        y0 = first if off is None else first + off * sd
+        pred, nfe = solve(field, y0.repeat(copies, 1), times.repeat(copies, 1), **solver)
+        residuals.nfe += nfe
+        return (pred.reshape(copies, *states.shape) - states)[:, mask]
+
+    residuals.many = many
     return residuals, trajectories.num_samples * d, offsets
 
 
@@ -358,6 +368,13 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
 
         return field
 
+    def make_fields(bs):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
+        def field(y):
+            f = base.features(system.select_inputs(y)).reshape(bs.shape[0], -1, p)  # (m, K, p)
+            return system.known_rhs(y) + system.embed(torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1))
+
+        return field
+
     if s2 is None:
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
     sd = s2.sqrt()
@@ -393,7 +410,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
         # Laplace: Gauss-Newton Hessian of the scaled misfit in (coefficients, initial-state offsets)
         off = None if offsets is None else offsets.detach()
         with torch.no_grad():
-            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd)
+            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
             H = J_b.T @ J_b + torch.diag(1.0 / W[active])
             if off is not None:  # the offsets' block: column j moves component j of every initial state
                 Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
@@ -443,11 +460,26 @@ def _step(value: float, typical: float) -> float:
     return 1e-5 * max(abs(value), typical, 1e-12)
 
 
-def _coefficient_columns(residuals, make_field, beta, active, off, sd) -> torch.Tensor:
-    """``(n d, q)``: d (residual / s) / d beta over the active coefficients, by central differences."""
-    cols = []
+def _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields=None) -> torch.Tensor:
+    """``(n d, q)``: d (residual / s) / d beta over the active coefficients, by central differences; with
+    ``make_fields`` (a field for a stack of coefficient sets) and single shooting, every perturbed model in one
+    batched solve."""
     typical = float(beta.abs().max()) * 1e-3
-    for i, o in active.nonzero(as_tuple=False).tolist():
+    pairs = active.nonzero(as_tuple=False).tolist()
+    if make_fields is not None and hasattr(residuals, "many"):
+        h = torch.tensor([_step(float(beta[i, o]), typical) for i, o in pairs], dtype=beta.dtype, device=beta.device)
+        q = len(pairs)
+        stack = beta.unsqueeze(0).repeat(2 * q, 1, 1)
+        rows = torch.arange(q, device=beta.device)
+        idx_i = torch.tensor([i for i, _ in pairs], device=beta.device)
+        idx_o = torch.tensor([o for _, o in pairs], device=beta.device)
+        stack[rows, idx_i, idx_o] += h
+        stack[q + rows, idx_i, idx_o] -= h
+        res = residuals.many(make_fields(stack), 2 * q, off, sd)  # (2q, n, d)
+        diff = (res[:q] - res[q:]) / (2 * h.reshape(-1, 1, 1)) / sd
+        return diff.reshape(q, -1).T
+    cols = []
+    for i, o in pairs:
         h = _step(float(beta[i, o]), typical)
         plus, minus = beta.clone(), beta.clone()
         plus[i, o] += h
