@@ -296,6 +296,10 @@ class CorrectionGP:
     saved with the model).
     """
 
+    #: the :class:`~torchmisspec.calibration.BandCalibration` of this fit's bands (``CorrectedODE.calibrate``), saved
+    #: with the model; ``None`` until calibrated, and again after a refit
+    calibration_ = None
+
     def __init__(
         self,
         *,
