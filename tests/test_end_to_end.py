@@ -71,7 +71,7 @@ def test_the_whole_loop_with_defaults(tmp_path):
     observed = tms.Trajectories.load(tmp_path / "lab.csv", time_column="hour", state_columns=["prey", "predator"])
     assert observed.num_experiments == 8 and observed.is_ragged
 
-    gp = tms.fit_correction(observed, system)
+    gp = tms.fit_correction(observed, system, progress=False)
     model = tms.CorrectedODE(system, gp)
     y0_new = torch.tensor([[0.3, 0.2], [0.7, 0.3], [0.5, 0.5], [0.9, 0.15]], dtype=DT)
     hours = torch.linspace(0, 30, 31, dtype=DT)

@@ -43,7 +43,7 @@ from ._errors import (
 )
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
-from ._validation import check_positive_int
+from ._validation import check_positive_int, progress_bar
 from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._features import FEATURE_KERNELS
@@ -272,6 +272,7 @@ def cross_validate(
     candidates,
     *,
     folds: int = 5,
+    progress: bool = False,
 ) -> tuple[CrossValidation, list[CorrectionGP | None]]:
     """Score candidate correction models by how well the corrected model predicts held-out experiments.
 
@@ -287,6 +288,7 @@ def cross_validate(
         samples: the correction samples (:func:`~torchmisspec.correction_samples`).
         candidates: unfitted :class:`CorrectionGP` templates.
         folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
+        progress: show a progress bar over the candidates.
 
     Returns:
         ``(CrossValidation, models)``: the scores, and each candidate fitted on all samples (``None`` where the fit
@@ -299,7 +301,9 @@ def cross_validate(
     fold_of = [k % folds for k in range(K)]
     folds_t = torch.tensor(fold_of, device=samples.inputs.device)
     scores, per_experiment, models = [], [], []
+    bar = progress_bar(progress, len(candidates), "fit_correction: cross-validating candidate models", "model")
     for template in candidates:
+        bar.update()
         errors = torch.full((K,), math.inf, dtype=torch.float64)
         full = None
         try:
@@ -320,6 +324,7 @@ def cross_validate(
         scores.append(float(errors.sum()))
         per_experiment.append(errors)
         models.append(full)
+    bar.close()
     base = _held_out_errors(system, trajectories)
     i = min(range(len(scores)), key=scores.__getitem__)
     tiny = torch.finfo(torch.float64).tiny
@@ -408,6 +413,7 @@ def fit_correction(
     lengthscale: str | float = "cv",
     folds: int = 5,
     refine: bool | None = None,
+    progress: bool = True,
     **estimator,
 ) -> CorrectionGP:
     """Learn the correction from observed states: samples, a GP chosen by cross-validation, optionally refined.
@@ -437,7 +443,8 @@ def fit_correction(
     Cross-validation falls back to the marginal likelihood when there are fewer than 2 experiments.
 
     Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and one batched solve of the
-    held-out experiments per candidate; about 13 candidates by default.
+    held-out experiments per candidate; about 13 candidates by default. ``progress`` (default on) shows bars over
+    the candidates and the refinement's rounds; ``progress=False`` is silent.
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
@@ -477,7 +484,7 @@ def fit_correction(
                 candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscale_candidates(samples, gp)]
             else:
                 candidates = [template]
-        cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds)
+        cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds, progress=progress)
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if not cv.significant:
             warn(
@@ -504,7 +511,7 @@ def fit_correction(
     if refine is None:
         refine = result.kernel == "features"
     if refine:
-        result = fit_trajectories(result, system, trajectories)
+        result = fit_trajectories(result, system, trajectories, progress=progress)
     result.cross_validation_ = cv
     result.samples_ = samples
     return result

@@ -26,7 +26,7 @@ from ._errors import (
 )
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
-from ._validation import as_tensor, check_positive_int, check_real
+from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp import CorrectionGP
 from .gp._optim import OptimResult, maximise
@@ -192,7 +192,9 @@ def fit_trajectories(
     kd = dict(dtype=gp.dtype, device=gp.device)
     s2 = _state_noise(state_noise, trajectories, d, kd)
     if relevance:
-        return _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter)
+        return _fit_relevance(
+            gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter, progress=progress
+        )
     L = gp._posterior_cache().fac.chol  # (B, N, N), C = K + diag(known noise + floor), fixed
     X = gp.train_inputs_
     Y0 = gp.train_targets_.detach()
@@ -329,7 +331,7 @@ RELEVANCE_ROUNDS = 10
 _LATER_ITERATIONS = 10
 
 
-def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int):
+def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int, progress: bool = False):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
     F(x) = sum_j beta_j phi_j(x) with beta_j ~ N(0, w_j). Each round (i) finds the MAP coefficients (and initial
@@ -379,7 +381,9 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
     sd = s2.sqrt()
     iterations = evaluations = 0
+    bar = progress_bar(progress, RELEVANCE_ROUNDS, "fit_trajectories: term weights through the ODE", "round")
     for round_ in range(RELEVANCE_ROUNDS):
+        bar.update()
         active = W > 0
         if not bool(active.any()):
             beta = torch.zeros_like(W)
@@ -440,6 +444,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
             W = new
         if settled:
             break
+    bar.close()
     # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta
     tmp = gp.condition(X, gp.train_targets_, noise=gp.train_noise_)
     with torch.no_grad():

@@ -90,8 +90,6 @@ def main(argv: list[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)  # argparse's own errors: usage and one line, exit 2
     try:
-        if getattr(args, "quiet", False):
-            os.environ.setdefault("TQDM_DISABLE", "1")
         return args.func(args)
     except KeyboardInterrupt:
         print(f"torchmisspec {args.command}: interrupted; nothing more was written", file=sys.stderr)

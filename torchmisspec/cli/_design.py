@@ -46,7 +46,8 @@ def _gp(args: argparse.Namespace, system):
             return CorrectionGP(kernel=args.kernel, **given).fit(samples), f"the given prior and {args.data}"
         from ..learning import fit_correction
 
-        return fit_correction(observed, system, derivative=args.derivative), f"a model fitted on {args.data}"
+        gp = fit_correction(observed, system, derivative=args.derivative, progress=not args.quiet)
+        return gp, f"a model fitted on {args.data}"
     if given:
         return CorrectionGP(kernel=args.kernel, **given), "the given prior"
     raise InputError(

@@ -40,7 +40,9 @@ def _fit(args: argparse.Namespace) -> int:
     _state_noise(args.state_noise)  # checked before the work
     system = load_system(args.system)
     observed = read_observations(args)
-    gp = fit_correction(observed, system, derivative=args.derivative, refine=True if args.refine else None)
+    gp = fit_correction(
+        observed, system, derivative=args.derivative, refine=True if args.refine else None, progress=not args.quiet
+    )
     cv = gp.cross_validation_
     times = f"{min(observed.lengths)}-{max(observed.lengths)}" if observed.is_ragged else str(observed.num_times)
     print(
