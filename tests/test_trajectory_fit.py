@@ -84,7 +84,7 @@ def test_known_per_sample_noise_stays_part_of_the_prior(problem, one_thread):
     assert shooting_misfit(refined, system, traj) <= shooting_misfit(gp, system, traj)
 
 
-def test_batched_coefficient_columns_equal_one_solve_per_column():
+def test_batched_jacobian_columns_equal_one_solve_per_column():
     """The Gauss-Newton Jacobian of the feature coefficients: every perturbed model in one batched solve (ragged
     experiments included) gives the columns of one solve per perturbation, to solver tolerance."""
     from torchmisspec import trajectory_fit as tf
@@ -119,3 +119,10 @@ def test_batched_coefficient_columns_equal_one_solve_per_column():
     batched = tf._coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
     assert one.shape == batched.shape == (ragged.num_samples * 2, int(active.sum()))
     torch.testing.assert_close(batched, one, rtol=1e-5, atol=1e-6 * float(one.abs().max()))
+    # the initial-state offsets' columns likewise (2 d perturbed models in one solve)
+    field = make_field(beta)
+    batched_o = tf._offset_columns(residuals, field, off, sd)
+    del residuals.many  # the one-solve-per-perturbation path
+    one_o = tf._offset_columns(residuals, field, off, sd)
+    assert batched_o.shape == (ragged.num_samples * 2, 3 * 2)
+    torch.testing.assert_close(batched_o, one_o, rtol=1e-5, atol=1e-6 * float(one_o.abs().max()))
