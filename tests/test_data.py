@@ -198,7 +198,9 @@ def test_repr_is_short():
         ("time,x\n0,1\n", {"time_column": "t"}, tms.InputError, r"expected a time column 't'"),
         ("time,x,x\n0,1,2\n", {}, tms.InputError, r"expected distinct column names in the header, got \['x'\]"),
         ("time,x\n0,1\n1,abc\n", {}, tms.InputError, r"expected a number in column 'x' on line 3, got 'abc'"),
-        ("time,x\n0,1\n1,nan\n", {}, tms.InputError, r"expected a finite number in column 'x' on line 3, got 'nan'"),
+        ("time,x\n0,1\n1,inf\n", {}, tms.InputError, r"expected a finite number in column 'x' on line 3, got 'inf'"),
+        ("time,x\n,1\n1,2\n", {}, tms.InputError, r"expected a number in column 'time' on line 2, got ''"),
+        ("time,x\n0,\n1,nan\n", {}, tms.InputError, r"expected at least one row with every state value, got none"),
         ("time,x\n0,1\n1\n", {}, tms.ShapeError,
          r"expected 2 columns in every row \(as in the header\), got 1 in data row 2 \(line 3"),
         ("experiment,time,x\n0,0,1\n0,0,2\n", {}, tms.InputError,
@@ -299,3 +301,18 @@ def test_times_the_states_dtype_cannot_resolve_are_not_blamed_on_the_user():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tms.Trajectories(torch.linspace(0, 6, 3, dtype=torch.float64), states)  # ordinary times: no word
+
+
+def test_a_missing_state_value_leaves_out_its_row_with_a_warning(tmp_path):
+    """One empty cell rejected the whole file; now its row is left out (with its other values), with a warning
+    naming the lines, and the rest loads as it would without that row."""
+    full = "experiment,day,S,I\n1,0,0.9,0.1\n1,1,0.85,0.14\n1,2,0.8,0.18\n2,0,0.7,0.3\n2,1.5,0.6,0.35\n"
+    holes = full.replace("1,1,0.85,0.14", "1,1,,0.14").replace("2,1.5,0.6,0.35", "2,1.5,0.6,NA")
+    (tmp_path / "full.csv").write_text(full.replace("1,1,0.85,0.14\n", "").replace("2,1.5,0.6,0.35\n", ""))
+    (tmp_path / "holes.csv").write_text(holes)
+    with pytest.warns(tms.TorchMisspecWarning, match=r"2 of 5 rows miss a state value .*lines \[3, 6\]"):
+        got = tms.Trajectories.load(tmp_path / "holes.csv", time_column="day")
+    want = tms.Trajectories.load(tmp_path / "full.csv", time_column="day")
+    assert tuple(got.lengths) == tuple(want.lengths) == (2, 1)
+    for (t1, y1), (t2, y2) in zip(got.experiments(), want.experiments(), strict=True):
+        assert torch.equal(t1, t2) and torch.equal(y1, y2)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ._errors import InputError, IntegrationError, ShapeError
+from ._errors import InputError, IntegrationError, ShapeError, TorchMisspecWarning, warn
 from ._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, states_and_times
@@ -397,6 +397,10 @@ def _check_distinct(names: Sequence[str], what: str, where: str) -> None:
         raise InputError(f"{where}: expected distinct {what}, got {repeated} more than once (in {list(names)})")
 
 
+#: Cells read as a missing state value (lower case): empty, NaN, NA, N/A.
+_MISSING = ("", "nan", "na", "n/a")
+
+
 def _read_table(path: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
     """The header and the non-blank data rows (with their line numbers) of a UTF-8 text table."""
     delimiter = _TEXT_FORMATS[path.suffix]
@@ -470,8 +474,14 @@ def _columns_to_arrays(
     value_columns = [time_column, *names]
     where = [header.index(c) for c in value_columns]
     values = np.empty((len(body), len(value_columns)), dtype=np.float64)
+    incomplete = []  # lines with a missing state value (an empty cell, NaN or NA)
     for r, (line, row) in enumerate(body):
         for c, col in enumerate(where):
+            if c > 0 and row[col].lower() in _MISSING:
+                values[r, c] = np.nan
+                if not incomplete or incomplete[-1][0] != r:
+                    incomplete.append((r, line))
+                continue
             try:
                 values[r, c] = float(row[col])
             except ValueError:
@@ -482,6 +492,20 @@ def _columns_to_arrays(
                 raise InputError(
                     f"{path}: expected a finite number in column {header[col]!r} on line {line}, got {row[col]!r}"
                 )
+    if incomplete:
+        lines = [line for _, line in incomplete]
+        warn(
+            f"{path}: {len(lines)} of {len(body)} rows miss a state value (empty, NaN or NA: lines "
+            f"{lines[:8]}{' ...' if len(lines) > 8 else ''}); those rows are left out, with their other values "
+            "(a state measured at only some times is not modelled yet)",
+            TorchMisspecWarning,
+        )
+        keep = np.ones(len(body), dtype=bool)
+        keep[[r for r, _ in incomplete]] = False
+        body = [b for b, k in zip(body, keep, strict=True) if k]
+        values = values[keep]
+        if not body:
+            raise InputError(f"{path}: expected at least one row with every state value, got none")
     if experiment_column is None:
         labels = [""] * len(body)
         order = [""]
