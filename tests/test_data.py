@@ -316,3 +316,19 @@ def test_a_missing_state_value_leaves_out_its_row_with_a_warning(tmp_path):
     assert tuple(got.lengths) == tuple(want.lengths) == (2, 1)
     for (t1, y1), (t2, y2) in zip(got.experiments(), want.experiments(), strict=True):
         assert torch.equal(t1, t2) and torch.equal(y1, y2)
+
+
+def test_messages_that_misled_now_say_what_is_wrong():
+    """States given as (K, d, T) were blamed on the times; a G returning NumPy said 'returned shape ndarray'; a G
+    that is not vectorised raised torch's bare ValueError."""
+    import numpy as np
+
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    with pytest.raises(tms.ShapeError, match=r"states look like \(K, d, T\); pass states.transpose\(1, 2\)"):
+        tms.Trajectories(t, torch.zeros(4, 3, 11, dtype=torch.float64))
+    numpy_g = tms.MisspecifiedSystem(lambda y: np.zeros(y.shape), 2)
+    with pytest.raises(tms.ShapeError, match=r"G returned a numpy.ndarray .*expected a torch.Tensor of shape \(1, 2\)"):
+        tms.simulate(numpy_g, torch.zeros(1, 2, dtype=torch.float64), t)
+    scalar_g = tms.MisspecifiedSystem(lambda y: torch.stack([y[..., 1], -torch.tensor(float(y[0]))]), 2)
+    with pytest.raises(tms.ShapeError, match=r"G must work on a batch of states.*y\[\.\.\., 0\] instead of float"):
+        tms.simulate(scalar_g, torch.zeros(3, 2, dtype=torch.float64), t)

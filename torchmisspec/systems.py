@@ -130,12 +130,14 @@ class MisspecifiedSystem:
                 f"system '{self.name}' has no true correction F; pass correction=... to MisspecifiedSystem "
                 "(only simulation and benchmark systems have one)"
             )
-        return _checked(self.correction(x), x.shape[:-1] + (self.output_dim,), f"system '{self.name}': F", x)
+        what = f"system '{self.name}': F"
+        return _checked(_call(self.correction, x, what), x.shape[:-1] + (self.output_dim,), what, x)
 
     def known_rhs(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) for states ``(..., d)``, with its output shape checked (a G that returns the wrong shape would be
         broadcast silently by the sums that follow)."""
-        return _checked(self.known(y), y.shape, f"system '{self.name}': G", y)
+        what = f"system '{self.name}': G"
+        return _checked(_call(self.known, y, what), y.shape, what, y)
 
     def true_rhs(self, y: torch.Tensor) -> torch.Tensor:
         """G(y) + F(y) (just G(y) when the system has no true correction)."""
@@ -152,8 +154,29 @@ class MisspecifiedSystem:
         )
 
 
+def _call(function, x: torch.Tensor, what: str):
+    """``function(x)``; a function that is not vectorised (it converts a batch of states to one number, or indexes
+    states as a single vector) fails here with a message that says so instead of torch's own."""
+    try:
+        return function(x)
+    except (ValueError, RuntimeError, IndexError, TypeError) as exc:
+        if "only one element tensors" in str(exc) or "a Tensor with" in str(exc) and "to a Scalar" in str(exc):
+            raise ShapeError(
+                f"{what} must work on a batch of states: it is called with a tensor of shape {tuple(x.shape)} "
+                f"(states (..., d)), and failed ({type(exc).__name__}: {exc}). Write it with tensor operations on the "
+                "last axis, e.g. y[..., 0] instead of float(y[0]), and torch.stack([...], dim=-1) for the result"
+            ) from exc
+        raise
+
+
 def _checked(out, shape: torch.Size, what: str, x: torch.Tensor) -> torch.Tensor:
-    if not isinstance(out, torch.Tensor) or out.shape != shape:
+    if not isinstance(out, torch.Tensor):
+        raise ShapeError(
+            f"{what} returned a {type(out).__module__}.{type(out).__name__} for states of shape {tuple(x.shape)}; "
+            f"expected a torch.Tensor of shape {tuple(shape)} (build it with torch operations on the input tensor, "
+            "e.g. torch.stack([...], dim=-1), not NumPy)"
+        )
+    if out.shape != shape:
         got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
         raise ShapeError(
             f"{what} returned shape {got} for inputs of shape {tuple(x.shape)}; expected {tuple(shape)} (check the "
