@@ -45,7 +45,8 @@ MARK_START = "<!-- study:calibration:start -->"
 MARK_END = "<!-- study:calibration:end -->"
 DT = torch.float64
 LEVELS = (0.5, 0.9, 0.95)
-GOAL = (0.85, 0.95)  # the 90 % band's coverage
+GOAL = (0.85, 0.95)  # the 90 % band's mean coverage over realizations
+EACH = (0.7, 0.99)  # and every realization's
 SEED = 31_000
 SETTINGS = (("paper_linear", 5), ("paper_linear", 10), ("paper_linear", 40), ("paper_gravity", 7))
 #: How the bands are made: the RBF GP with its hyperparameters fixed at their ML-II values, or drawn from their
@@ -163,23 +164,32 @@ def _ok(runs: list[dict], method: str) -> list[dict]:
 # ------------------------------------------------------------------------------------------------- reporting
 def table(result: dict) -> str:
     rows = [
-        "| system | K | hyperparameters | 50 % band | 90 % band | 95 % band | 90 % goal [0.85, 0.95] | "
+        "| system | K | hyperparameters | 50 % band | 90 % band | 90 % band per realization (min - max) | 95 % band | "
+        "90 % goal: mean in [0.85, 0.95], each in [0.7, 0.99] | "
         "90 % band width | paths flagged extrapolating | ML-II lengthscale (median) | failed runs |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in result["settings"]:
         lengths = sorted(r["lengthscale"] for r in s["runs"])
         for method in METHODS:
             cov = s["coverage"][method]
             m90, se90 = cov["0.9"]
-            ok = "met" if GOAL[0] <= m90 <= GOAL[1] else ("over-covers" if m90 > GOAL[1] else "under-covers")
             ok_runs = _ok(s["runs"], method)
+            each = [r[method]["coverage"]["0.9"] for r in ok_runs]
+            lo, hi = (min(each), max(each)) if each else (float("nan"), float("nan"))
+            ok = "over-covers" if m90 > GOAL[1] else ("under-covers" if m90 < GOAL[0] else "met")
+            if ok == "met" and not (EACH[0] <= lo and hi <= EACH[1]):
+                ok = "mean met; " + ("a realization below 0.7" if lo < EACH[0] else "a realization above 0.99")
             extrap = sum(r[method]["extrapolating"] for r in ok_runs) / len(ok_runs)
             width = sum(r[method]["band_width_90"] for r in ok_runs) / len(ok_runs)
             failed = len(s["failed"]) + len(s["runs"]) - len(ok_runs)
             rows.append(
                 f"| {s['system']} | {s['K']} | {method} | "
-                + " | ".join(f"{cov[f'{lv:g}'][0]:.3f} ± {cov[f'{lv:g}'][1]:.3f}" for lv in LEVELS)
+                + " | ".join(
+                    f"{cov[f'{lv:g}'][0]:.3f} ± {cov[f'{lv:g}'][1]:.3f}"
+                    + (f" | {lo:.3f} - {hi:.3f}" if lv == 0.9 else "")
+                    for lv in LEVELS
+                )
                 + f" | {ok} | {width:.3g} | {extrap:.2f} | {lengths[len(lengths) // 2]:.3g} | {failed} |"
             )
     return "\n".join(rows) + "\n"
@@ -225,7 +235,7 @@ hyperparameters drawn from the Laplace approximation of their posterior in log s
 2^2) prior on each log hyperparameter, `CorrectionGP.laplace_covariance`), the same data and the same seeds. Rows
 "calibrated": the "fixed" GP after `CorrectedODE.calibrate(train, samples)` (`torchmisspec.calibration`): each of
 min(K, 10) folds of the training experiments is held out, the GP refitted by marginal likelihood on the others, and
-the factor c on the draws' deviation from the posterior mean is the smallest under which the held-out observed
+the factor c on the sampled paths' deviation from the mean path is the smallest under which the held-out observed
 states lie in the central 90 % band 90 % of the time; no test data are used. Rows "features": the feature kernel
 `CorrectionGP(kernel="features", degree=3, per_output=True)` on the same samples, its term weights by evidence (the
 marginal likelihood); "features calibrated" the same after `calibrate`. The column "ML-II lengthscale" repeats the
@@ -263,10 +273,19 @@ def why(result: dict) -> str:
                     f"- {s['system']} K = {s['K']}, {method}: the 90 % band covers {m:.3f} ± {se:.3f}, outside "
                     f"[{GOAL[0]}, {GOAL[1]}] by {gap:.3f} ({gap / max(se, 1e-12):.2g} standard errors)."
                 )
+            each = sorted(r[method]["coverage"]["0.9"] for r in _ok(s["runs"], method))
+            low, high = [v for v in each if v < EACH[0]], [v for v in each if v > EACH[1]]
+            if low or high:
+                outside.append(
+                    f"- {s['system']} K = {s['K']}, {method}: {len(low)} realization(s) below {EACH[0]} "
+                    f"({', '.join(f'{v:.3f}' for v in low) or '-'}) and {len(high)} above {EACH[1]} "
+                    f"({', '.join(f'{v:.3f}' for v in high) or '-'}) of {len(each)}."
+                )
     if outside:
         lines += [
             "",
-            "Calibrated rows outside the goal (the scale is estimated from K - 1 experiments per fold, so it varies "
+            "Calibrated rows outside the goal, on average or in single realizations (the scale is estimated from the "
+            "K held-out experiments, so it varies "
             "from realization to realization: where the held-out experiments happen to be easy, c stays near 1 and "
             "the new initial conditions are covered less often; calibrating for an upper confidence bound of the "
             "held-out coverage instead of its point value would trade width for a guarantee):",

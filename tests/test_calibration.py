@@ -94,14 +94,20 @@ def test_state_noise_is_not_mistaken_for_missing_spread(data):
     noisy = tms.Trajectories(traj.times, traj.states + noise)
     model = _model(data)
     kw = dict(num_samples=16, folds=3, refit=False, generator=torch.Generator().manual_seed(1))
-    ignored = model.calibrate(noisy, samples, **kw)
+    ignored = model.calibrate(noisy, samples, state_noise=None, **kw)
     allowed = model.calibrate(noisy, samples, state_noise=0.05, **kw)
+    estimated = model.calibrate(noisy, samples, **kw)  # default "auto": the noise the GP in time finds
     exact = model.calibrate(traj, samples, **kw)
     # ignoring the noise, the bands miss most noisy states and must be widened a lot to cover them; allowing for it,
     # the GP's own bands (plus the noise) already cover about as often as on exact states
     assert ignored.coverage_at_one < 0.5 < 0.85 < allowed.coverage_at_one
     assert abs(allowed.coverage_at_one - exact.coverage_at_one) < 0.1
     assert ignored.scale > 5 * allowed.scale
+    assert abs(estimated.coverage_at_one - allowed.coverage_at_one) < 0.1 and estimated.scale < 2 * allowed.scale
+    relative = model.calibrate(noisy, samples, state_noise="5%", **kw)  # noise proportional to |y| (<= 1 here)
+    assert relative.coverage_at_one > ignored.coverage_at_one
+    with pytest.raises(tms.InputError, match="'auto', a percentage such as '2%'"):
+        model.calibrate(noisy, samples, state_noise="five percent", **kw)
 
 
 def test_out_of_reach_is_warned_and_kept_finite(data):
@@ -144,3 +150,46 @@ def test_bad_input(data):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
         assert model.calibration_ is None  # nothing above calibrated the model
+
+
+def test_the_calibration_is_kept_with_the_gp_saved_with_it_and_dropped_by_a_refit(data, tmp_path):
+    """The calibration lives on the GP: a new CorrectedODE over it, a saved and loaded copy, and the CLI (which saves
+    only the GP) all get the calibrated bands; an uncalibrated posterior warns; a refit drops the calibration."""
+    system, traj, samples = data
+    model = _model(data, outputscale=1e-9)
+    y0, times = traj.states[:2, 0], torch.linspace(0, 6, 7, dtype=DT)
+    with pytest.warns(tms.TorchMisspecWarning, match="not calibrated on held-out experiments"):
+        model.posterior(y0, times, num_samples=4, generator=torch.Generator().manual_seed(2))
+    model.gp.samples_ = samples  # as fit_correction records them: calibrate() then needs no samples
+    cal = model.calibrate(traj, num_samples=8, generator=torch.Generator().manual_seed(1))
+    assert model.gp.calibration_ is cal and tms.CorrectedODE(system, model.gp).calibration_ is cal
+    loaded = tms.CorrectionGP.load(model.gp.save(tmp_path / "gp.pt"))
+    assert loaded.calibration_ == cal
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tms.TorchMisspecWarning)  # calibrated: no warning (paths stay in support)
+        again = tms.CorrectedODE(system, loaded).posterior(
+            y0, times, num_samples=8, generator=torch.Generator().manual_seed(2), support_threshold=1.0
+        )
+    first = model.posterior(y0, times, num_samples=8, generator=torch.Generator().manual_seed(2), support_threshold=1.0)
+    torch.testing.assert_close(again.samples, first.samples, rtol=1e-7, atol=1e-10)
+    model.gp.fit(samples)
+    assert model.calibration_ is None
+    del model.gp.samples_
+    with pytest.raises(tms.InputError, match="samples: expected the correction samples"):
+        model.calibrate(traj)
+
+
+def test_the_folds_numerical_warnings_are_summarised_once_with_what_calibrate_can_do(data):
+    """A fold refit that warns (here: the feature weights stop at a tiny max_iter) gave the user a message asking to
+    'raise max_iter', an argument calibrate does not take; now one warning says the folds use the model's settings."""
+    system, traj, samples = data
+    gp = tms.CorrectionGP(kernel="features", degree=3, max_iter=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.NumericalWarning)
+        gp.fit(samples)
+    with pytest.warns(
+        tms.NumericalWarning, match=r"calibrate_bands: the refit of the GP on \d+ fold\(s\) warned"
+    ) as rec:
+        tms.CorrectedODE(system, gp).calibrate(traj, samples, num_samples=4, folds=3, progress=False)
+    assert sum("max_iter=1" in str(w.message) for w in rec) == 1
+    assert not any(str(w.message).startswith("the feature weights") for w in rec)

@@ -184,3 +184,42 @@ def test_a_feature_prior_keeps_its_price_and_library_when_the_campaign_learns():
     gp, note = camp._fit([X], [0.01 * X**2], [None])
     assert note == "learned"
     assert gp.min_gain == 1.7 and gp.feature_names() == ["a", "b"]
+
+
+def test_a_fitted_gp_starts_the_campaign_from_its_data_and_noisy_first_states_match_their_asks(tmp_path):
+    """A campaign started from a fitted GP (the loop fit_correction -> Campaign) conditions its first design on the
+    samples that GP was fitted on, and a told experiment whose first state was measured with noise is matched to
+    the ask it answers (it was counted as 'not asked for')."""
+    system = tms.systems.paper_linear()
+    cand = grid(system.domain, 7)
+    g = torch.Generator().manual_seed(0)
+    traj = tms.simulate(system, cand[[0, 6, 42]], TIMES)
+    samples = tms.correction_samples(traj, system, derivative="oracle", noise_std=NOISE_STD, generator=g)
+    fitted = tms.CorrectionGP(per_output=True).fit(samples)
+    camp = design.Campaign(system, cand, TIMES, fitted, derivative="oracle", noise_std=NOISE_STD)
+    assert camp.num_samples == 33 and camp.gp is fitted
+    picks = camp.ask(2)
+    assert camp.history[-1]["design"]["conditioned"] == 33
+    expected = design.greedy(cand, 2, system=system, times=TIMES, gp=fitted)
+    assert camp.history[-1]["indices"] == expected.indices.tolist()
+    noisy = picks + 1e-3 * torch.randn(picks.shape, generator=g, dtype=DT)  # a measured first state
+    told = tms.simulate(system, noisy, TIMES)
+    camp.tell(told)
+    assert camp.history[-1]["unrequested"] == 0 and camp.pending == [] and camp.num_samples == 55
+    path = camp.save(tmp_path / "camp.pt")
+    again = design.Campaign.load(path, system)
+    torch.testing.assert_close(again.ask(1), camp.ask(1))
+
+
+def test_tell_can_be_told_which_asks_the_experiments_answer():
+    system, camp = _campaign(refit_after=0)
+    asked = camp.ask(3)
+    far = asked + 0.5  # first states nowhere near the asks: matched by position when told so
+    camp.tell(tms.simulate(system, far[:2], TIMES), asked="pending")
+    assert camp.history[-1]["unrequested"] == 0 and camp.pending == camp.history[0]["indices"][2:]
+    with pytest.raises(tms.InputError, match=r"asked: expected pending asks \(each once\) or -1"):
+        camp.tell(tms.simulate(system, far[2:], TIMES), asked=[camp.history[0]["indices"][0]])
+    with pytest.raises(tms.InputError, match="asked: expected 'pending' or a list of 1"):
+        camp.tell(tms.simulate(system, far[2:], TIMES), asked=[0, 1])
+    camp.tell(tms.simulate(system, far[2:], TIMES), asked=[-1])
+    assert camp.history[-1]["unrequested"] == 1 and len(camp.pending) == 1

@@ -18,10 +18,13 @@ def candidates_csv(tmp_path):
     return path
 
 
-def _design_args(candidates, out, *extra, budget=2):
+PRIOR = ("--lengthscale", "1.0", "--outputscale", "4e-5", "--noise-variance", "1e-4")
+
+
+def _design_args(candidates, out, *extra, budget=2, prior=PRIOR):
     return [
         "design", "--candidates", str(candidates), "--system", "paper_linear", "--times", "0:6:11",
-        "--budget", str(budget), "--out", str(out), "--quiet", *extra,
+        "--budget", str(budget), "--out", str(out), "--quiet", *prior, *extra,
     ]  # fmt: skip
 
 
@@ -46,7 +49,7 @@ def test_demo_reports_bad_sizes_as_an_error(tmp_path, capsys):
 def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
     out = tmp_path / f"picks{suffix}"
     assert main(_design_args(candidates_csv, out, budget=4)) == 0
-    # the command's picks are those of the library call with the same candidates, times and prior
+    # the command's picks are those of the library call with the same candidates, times and (stated) prior
     expected = tms.design.greedy(
         grid(((-1, 1), (-1, 1)), 7),
         4,
@@ -59,10 +62,21 @@ def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
         assert data["indices"] == expected.indices.tolist()
         assert data["gains"] == pytest.approx(expected.gains.tolist(), rel=1e-12)
         assert data["information_gain"] == pytest.approx(expected.information_gain, rel=1e-12)
+        assert list(data["points"][0]) == ["y0", "y1"]  # the candidates file's column names
     else:
         lines = out.read_text().splitlines()
         assert lines[0] == "order,index,gain,y0,y1"
         assert [int(row.split(",")[1]) for row in lines[1:]] == expected.indices.tolist()
+
+
+def test_design_has_no_hidden_prior(tmp_path, candidates_csv, capsys):
+    """Without a model, data or a stated prior the design refuses (it applied paper_linear's prior to any system),
+    naming the three ways; a partial prior names what is missing."""
+    assert main(_design_args(candidates_csv, tmp_path / "x.csv", prior=())) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no model to design with" in err and "--model" in err and "--data" in err and "\n" not in err
+    assert main(_design_args(candidates_csv, tmp_path / "x.csv", prior=("--lengthscale", "1"))) == 2
+    assert "missing --outputscale, --noise-variance" in capsys.readouterr().err
 
 
 def test_design_command_with_partition(tmp_path, candidates_csv):
@@ -74,8 +88,8 @@ def test_design_command_with_partition(tmp_path, candidates_csv):
     assert sum(1 for i in picks if i % 2 == 0) <= 1
 
 
-def test_design_command_conditions_on_data(tmp_path, candidates_csv):
-    """``design --data``: the picks are the library's greedy design conditioned on the measured experiments."""
+def test_design_command_conditions_a_stated_prior_on_data(tmp_path, candidates_csv):
+    """``design --data`` with a stated prior: the library's greedy design of that prior conditioned on the data."""
     system = tms.systems.paper_linear()
     times = torch.linspace(0, 6, 11, dtype=torch.float64)
     measured = tms.simulate(system, grid(((-1, 1), (-1, 1)), 7)[[0, 6, 42, 48]], times)
@@ -93,64 +107,41 @@ def test_design_command_conditions_on_data(tmp_path, candidates_csv):
     assert not {0, 6, 42, 48} & set(got["indices"])
 
 
-def test_design_command_with_the_default_derivative(tmp_path, candidates_csv):
-    """``design --data`` with the default ``--derivative auto``: on noisy data auto picks the GP in time, whose
-    noise differs between the outputs, and the design (one kernel shared by the outputs) refused the samples with
-    an option the command line does not have. Each sample now counts as noisy as its noisiest output, and the
-    command says so."""
+def test_design_command_with_data_and_defaults(tmp_path, candidates_csv):
+    """``design --data`` alone: a model fitted with fit_correction's defaults (on noisy data the derivative is the GP
+    in time's, whose noise differs between outputs: the design conditions each output on its own data)."""
     system = tms.systems.paper_linear()
     times = torch.linspace(0, 6, 11, dtype=torch.float64)
-    measured = tms.simulate(system, grid(((-1, 1), (-1, 1)), 7)[[0, 6, 42, 48]], times)
-    noisy = tms.Trajectories(
-        measured.times,
-        measured.states
-        + 1e-3 * torch.randn(measured.states.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
-    )
-    samples = tms.correction_samples(noisy, system)
-    assert samples.noise is not None and not bool((samples.noise == samples.noise[:, :1]).all())  # the case
+    measured = tms.simulate(system, grid(((-1, 1), (-1, 1)), 7)[[0, 6, 24, 42, 48]], times)
+    noise = 1e-3 * torch.randn(measured.states.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     data = tmp_path / "observed.npz"
-    noisy.save(data)
+    tms.Trajectories(measured.times, measured.states + noise).save(data)
     out = tmp_path / "next.json"
-    with pytest.warns(tms.TorchMisspecWarning, match="noisiest output"):
-        assert main(_design_args(candidates_csv, out, "--data", str(data), budget=3)) == 0
+    assert main(_design_args(candidates_csv, out, "--data", str(data), budget=3, prior=())) == 0
     got = json.loads(out.read_text())
-    assert len(got["indices"]) == 3 and got["conditioned_on_samples"] == 44
-
-
-def test_design_command_data_errors(tmp_path, candidates_csv, capsys):
-    out = tmp_path / "x.json"
-    assert main(_design_args(candidates_csv, out, "--learn-hyperparameters")) == 2
-    assert "learning needs data" in capsys.readouterr().err
-    assert main(_design_args(candidates_csv, out, "--data", str(tmp_path / "missing.csv"))) == 2
-    assert "missing.csv" in capsys.readouterr().err
-    assert main(_design_args(candidates_csv, out, "--criterion", "domain", "--method", "random")) == 2
-    assert "only the greedy methods" in capsys.readouterr().err
+    assert len(got["indices"]) == 3 and got["conditioned_on_samples"] == 55 and "fitted on" in got["model"]
 
 
 def test_design_command_errors(tmp_path, candidates_csv, capsys):
-    base = [
-        "design",
-        "--candidates",
-        str(candidates_csv),
-        "--times",
-        "0:6:11",
-        "--quiet",
-        "--out",
-        str(tmp_path / "x.csv"),
-    ]
+    base = ["design", "--candidates", str(candidates_csv), "--times", "0:6:11", "--quiet", *PRIOR]
+    base += ["--out", str(tmp_path / "x.csv")]
     assert main(base + ["--system", "nope", "--budget", "2"]) == 2
     assert "unknown system name 'nope'" in capsys.readouterr().err
     assert main(base + ["--system", "paper_linear", "--budget", "100"]) == 2
     assert "expected at most the number of candidates (49), got budget = 100" in capsys.readouterr().err
     assert main(base + ["--system", "paper_gravity", "--budget", "2"]) == 2
     assert r"expected shape (N, 4)" in capsys.readouterr().err
+    assert (
+        main(base + ["--system", "paper_linear", "--budget", "2", "--criterion", "domain", "--method", "random"]) == 2
+    )
+    assert "only the greedy methods" in capsys.readouterr().err
 
 
 def test_console_script_help():
     proc = subprocess.run(
         [sys.executable, "-m", "torchmisspec.cli", "design", "--help"], capture_output=True, text=True, check=True
     )
-    for option in ("--candidates", "--system", "--times", "--budget", "--partition", "--capacities", "--out"):
+    for option in ("--candidates", "--system", "--times", "--budget", "--model", "--data", "--time-column", "--out"):
         assert option in proc.stdout
 
 
@@ -206,67 +197,36 @@ def _fit_args(data, out, *extra, system="paper_linear"):
     return ["fit", "--data", str(data), "--system", system, "--time-column", "t", "--out", str(out), "--quiet", *extra]
 
 
-def test_fit_command_saves_the_model_a_direct_fit_gives(tmp_path, observed_csv, capsys):
+def test_fit_command_saves_the_calibrated_model_a_direct_fit_gives(tmp_path, observed_csv, capsys):
     out = tmp_path / "model.pt"
     assert main(_fit_args(observed_csv, out, "--state-columns", "x1,x2", "--derivative", "central")) == 0
-    line = capsys.readouterr().out.strip()
+    printed = capsys.readouterr().out
     loaded = tms.CorrectionGP.load(out)
     trajs = tms.Trajectories.load(observed_csv, time_column="t")
-    direct = tms.fit_correction(trajs, tms.systems.paper_linear(), derivative="central")  # cv lengthscale
-    assert direct.cross_validation_ is not None
+    direct = tms.fit_correction(trajs, tms.systems.paper_linear(), derivative="central")
     x = torch.rand(20, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 2 - 1
     torch.testing.assert_close(loaded.predict_mean(x), direct.predict_mean(x), rtol=1e-7, atol=1e-10)
-    assert "\n" not in line and "N = 55 samples (5 experiments x 11 times, derivative 'central')" in line
-    assert direct.lengthscale is None or f"lengthscale {direct.lengthscale:.4g}" in line
-    assert f"fitted {direct.kernel} correction GP" in line
-    assert f"log marginal likelihood {direct.log_marginal_likelihood_:.6g}" in line and str(out) in line
+    assert "on 55 samples (5 experiments x 11 times, derivative 'central')" in printed
+    assert f"chose {direct.cross_validation_.best}" in printed and str(out) in printed
+    assert loaded.calibration_ is not None and f"scale={loaded.calibration_.scale:.3g}" in printed
+    assert main(_fit_args(observed_csv, tmp_path / "raw.pt", "--derivative", "central", "--no-calibrate")) == 0
+    assert tms.CorrectionGP.load(tmp_path / "raw.pt").calibration_ is None
 
 
-def test_fit_command_lengthscale_options(tmp_path, observed_csv, capsys):
-    trajs = tms.Trajectories.load(observed_csv, time_column="t")
-    system = tms.systems.paper_linear()
-    for option, expected in (
-        ("ml", tms.fit_correction(trajs, system, derivative="central", lengthscale="ml")),
-        ("1.5", None),
-    ):
-        out = tmp_path / f"m{option}.pt"
-        assert main(_fit_args(observed_csv, out, "--derivative", "central", "--lengthscale", option)) == 0
-        loaded = tms.CorrectionGP.load(out)
-        want = 1.5 if expected is None else float(expected.lengthscale)
-        assert float(loaded.lengthscale) == pytest.approx(want, rel=1e-9)
-    refined = tmp_path / "refined.pt"
-    assert main(_fit_args(observed_csv, refined, "--derivative", "central", "--lengthscale", "1.5", "--refine")) == 0
-    capsys.readouterr()
-    # the refinement changes the training targets (the pseudo-targets), not the inputs or the hyperparameters
-    plain, refit = tms.CorrectionGP.load(tmp_path / "m1.5.pt"), tms.CorrectionGP.load(refined)
-    assert torch.equal(plain.train_inputs_, refit.train_inputs_)
-    assert not torch.equal(plain.train_targets_, refit.train_targets_)
-    assert main(_fit_args(observed_csv, tmp_path / "x.pt", "--lengthscale", "long")) == 2
-    assert "--lengthscale: expected cv, ml or a positive number, got 'long'" in capsys.readouterr().err
-    # kernels without a lengthscale: ml (a marginal-likelihood fit) is accepted, a number is refused
-    poly = ("--derivative", "central", "--kernel", "polynomial")
-    assert main(_fit_args(observed_csv, tmp_path / "p.pt", *poly, "--lengthscale", "ml")) == 0
-    assert tms.CorrectionGP.load(tmp_path / "p.pt").kernel == "polynomial"
-    capsys.readouterr()
-    assert main(_fit_args(observed_csv, tmp_path / "p2.pt", *poly, "--lengthscale", "0.5")) == 2
-    assert "the polynomial kernel has no lengthscale, got '0.5'" in capsys.readouterr().err
-
-
-def test_fit_command_with_a_user_system_and_fixed_hyperparameters(tmp_path, observed_csv, monkeypatch, capsys, request):
+def test_fit_command_with_a_user_system(tmp_path, observed_csv, monkeypatch, capsys, request):
     module = tmp_path / "my_lab_model.py"
     module.write_text("import torchmisspec as tms\n\ndef known():\n    return tms.systems.paper_linear()\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     request.addfinalizer(lambda: sys.modules.pop("my_lab_model", None))
     out = tmp_path / "m.pt"
-    fixed = ("--lengthscale", "0.7", "--outputscale", "1e-4", "--noise-variance", "1e-6", "--derivative", "smooth")
-    assert main(_fit_args(observed_csv, out, *fixed, system="my_lab_model:known")) == 0
-    gp = tms.CorrectionGP.load(out)
-    assert (gp.lengthscale, gp.outputscale, gp.noise_variance) == pytest.approx((0.7, 1e-4, 1e-6), rel=1e-12)
-    assert "derivative 'smooth'" in capsys.readouterr().out
-    # design accepts the same spec
+    assert (
+        main(_fit_args(observed_csv, out, "--derivative", "smooth", "--no-calibrate", system="my_lab_model:known")) == 0
+    )
+    assert "derivative 'smooth'" in capsys.readouterr().out and tms.CorrectionGP.load(out).is_fitted
+    # design accepts the same spec, and the model
     cands = tmp_path / "c.csv"
     np.savetxt(cands, grid(((-1, 1), (-1, 1)), 4).numpy(), delimiter=",")
-    args = _design_args(cands, tmp_path / "picks.json")
+    args = _design_args(cands, tmp_path / "picks.json", "--model", str(out), prior=())
     args[args.index("paper_linear")] = str(module) + ":known"
     assert main(args) == 0 and len(json.loads((tmp_path / "picks.json").read_text())["indices"]) == 2
 
@@ -281,7 +241,7 @@ def test_fit_command_with_a_user_system_and_fixed_hyperparameters(tmp_path, obse
         (("--experiment-column", "run"), {}, "expected an experiment column 'run'"),
         (("--derivative", "psychic"), {}, "derivative: expected one of"),
         (("--state-columns", "x1"), {}, "expected state dimension 2 of system 'paper_linear'"),
-        (("--lengthscale", "-1"), {}, "lengthscale"),
+        (("--state-noise", "loud"), {}, "--state-noise: expected auto, a percentage"),
         ((), {"--data": "missing.csv"}, "path: expected an existing file"),
     ],
 )
@@ -315,5 +275,135 @@ def test_fit_command_fits_ragged_data(tmp_path, capsys):
     data = tms.simulate(system, y0, grids).save(tmp_path / "ragged.tsv")
     out = tmp_path / "m.pt"
     assert main(["fit", "--data", str(data), "--system", "paper_linear", "--out", str(out), "--quiet"]) == 0
-    assert "N = 58 samples (4 experiments x 11-21 times" in capsys.readouterr().out
+    assert "on 58 samples (4 experiments x 11-21 times" in capsys.readouterr().out
     assert tms.CorrectionGP.load(out).is_fitted
+
+
+# ------------------------------------------------------------------------------------------ the loop on a lab's file
+LAB_SYSTEM = """
+import torch
+import torchmisspec as tms
+
+
+def known(y):  # logistic growth of a culture, with the dilution known and the growth's saturation missing
+    x, s = y[..., 0], y[..., 1]
+    return torch.stack([0.8 * x * s - 0.1 * x, -0.8 * x * s + 0.1 * (1.0 - s)], dim=-1)
+
+
+def truth(x):  # Monod saturation of the uptake: 0.8 x s / (0.5 + s) instead of 0.8 x s
+    xx, s = x[..., 0], x[..., 1]
+    d = 0.8 * xx * s * (1.0 / (0.5 + s) - 1.0)
+    return torch.stack([d, -d], dim=-1)
+
+
+def chemostat(with_truth=False):
+    return tms.MisspecifiedSystem(known, 2, correction=truth if with_truth else None, name="chemostat")
+"""
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """A lab's CSV (columns run, hour, biomass, substrate; ragged, irregular hours, 2 % noise) of a chemostat the
+    package does not ship, and the file that declares its known model."""
+    import importlib.util
+
+    folder = tmp_path_factory.mktemp("lab")
+    (folder / "chemostat.py").write_text(LAB_SYSTEM)
+    spec = importlib.util.spec_from_file_location("chemostat_truth", folder / "chemostat.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    truth = module.chemostat(True)
+    g = torch.Generator().manual_seed(5)
+    lines = ["run,hour,biomass,substrate"]
+    for k in range(6):
+        n = int(torch.randint(8, 16, (1,), generator=g))
+        hours = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 20).values
+        hours[0] = 0.0
+        y0 = torch.tensor([0.1, 0.3], dtype=torch.float64) + 0.6 * torch.rand(2, generator=g, dtype=torch.float64)
+        states = tms.simulate(truth, y0[None], hours).states[0]
+        states = states * (1 + 0.02 * torch.randn(states.shape, generator=g, dtype=torch.float64))
+        lines += [f"r{k},{t:.3f},{a:.5g},{b:.5g}" for t, (a, b) in zip(hours.tolist(), states.tolist(), strict=True)]
+    (folder / "lab.csv").write_text("\n".join(lines) + "\n")
+    (folder / "initial.csv").write_text("biomass,substrate\n0.2,0.8\n0.5,0.4\n")
+    (folder / "candidates.csv").write_text(
+        "biomass,substrate\n" + "\n".join(f"{a:.2f},{b:.2f}" for a in (0.1, 0.4, 0.7) for b in (0.2, 0.5, 0.9)) + "\n"
+    )
+    return folder
+
+
+def _lab(folder, command, *extra):
+    data = ("--data", str(folder / "lab.csv"), "--time-column", "hour", "--experiment-column", "run")
+    system = ("--system", f"{folder / 'chemostat.py'}:chemostat")
+    return [command, *system, "--quiet", *(data if command in ("fit", "calibrate") else ()), *extra]
+
+
+@pytest.mark.slow
+def test_the_loop_on_a_lab_file(lab, capsys):
+    """fit -> calibrate -> predict -> design --model, with the defaults, on a lab's file and a user's system."""
+    model = lab / "model.pt"
+    assert main(_lab(lab, "fit", "--out", str(model))) == 0
+    assert "calibrated bands" in capsys.readouterr().out
+    assert main(_lab(lab, "calibrate", "--model", str(model), "--state-noise", "2%")) == 0
+    assert "calibrated bands" in capsys.readouterr().out and tms.CorrectionGP.load(model).calibration_ is not None
+    pred, figure = lab / "pred.csv", lab / "pred.png"
+    args = ["--model", str(model), "--initial", str(lab / "initial.csv"), "--times", "0:20:11", "--time-name", "hour"]
+    assert main(_lab(lab, "predict", *args, "--out", str(pred), "--figure", str(figure))) == 0
+    out = capsys.readouterr().out
+    assert "calibrated (scale" in out and "NOT calibrated" not in out
+    rows = pred.read_text().splitlines()
+    assert rows[0] == "initial,hour,biomass,biomass_lower,biomass_upper,substrate,substrate_lower,substrate_upper"
+    table = np.array([[float(v) for v in r.split(",")] for r in rows[1:]])
+    assert table.shape == (22, 8)
+    for j in (2, 5):  # lower <= prediction <= upper, and the band opens after t = 0
+        assert (table[:, j + 1] <= table[:, j] + 1e-12).all() and (table[:, j] <= table[:, j + 2] + 1e-12).all()
+        assert (table[1:, j + 2] - table[1:, j + 1]).max() > 0
+    assert figure.read_bytes()[:4] == b"\x89PNG"
+    picks = lab / "next.csv"
+    design = ["--candidates", str(lab / "candidates.csv"), "--times", "0:20:11", "--budget", "2", "--model", str(model)]
+    assert main(_lab(lab, "design", *design, "--out", str(picks))) == 0
+    lines = picks.read_text().splitlines()
+    assert lines[0] == "order,index,gain,biomass,substrate" and len(lines) == 3
+
+
+@pytest.mark.parametrize("command", ["fit", "calibrate", "predict", "design"])
+@pytest.mark.parametrize(
+    ("problem", "message"),
+    [
+        ("missing column", "missing ['oxygen']"),
+        ("binary data", "could not be read"),
+        ("bad system", "expected an importable module"),
+        ("unwritable output", "cannot write"),
+        ("not a model", "expected a CorrectionGP file"),
+    ],
+)
+def test_every_command_fails_with_one_line_and_exit_2(lab, tmp_path, capsys, command, problem, message):
+    (tmp_path / "binary.csv").write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe" * 8)
+    (tmp_path / "text.pt").write_text("not a model\n")
+    model = tmp_path / "text.pt" if problem == "not a model" else lab / "model.pt"
+    if command != "fit" and not (lab / "model.pt").exists():
+        assert main(_lab(lab, "fit", "--no-calibrate", "--out", str(lab / "model.pt"))) == 0
+    out = "/proc/nowhere/x" if problem == "unwritable output" else str(tmp_path / "out")
+    args = {
+        "fit": _lab(lab, "fit", "--out", out + ".pt"),
+        "calibrate": _lab(lab, "calibrate", "--model", str(model), "--out", out + ".pt"),
+        "predict": _lab(lab, "predict", "--model", str(model), "--initial", str(lab / "initial.csv"), "--times",
+                        "0:20:5", "--out", out + ".csv"),
+        "design": _lab(lab, "design", "--model", str(model), "--candidates", str(lab / "candidates.csv"), "--times",
+                       "0:20:5", "--budget", "2", "--out", out + ".csv"),
+    }[command]  # fmt: skip
+    if problem == "missing column":
+        if command in ("predict", "design"):
+            pytest.skip("reads no observations")
+        args += ["--state-columns", "biomass,oxygen"]
+    elif problem == "binary data":
+        key = "--data" if command in ("fit", "calibrate") else ("--initial" if command == "predict" else "--candidates")
+        args[args.index(key) + 1] = str(tmp_path / "binary.csv")
+    elif problem == "bad system":
+        args[args.index("--system") + 1] = "no_such_lab_module:chemostat"
+    elif problem == "not a model" and command == "fit":
+        pytest.skip("reads no model")
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"torchmisspec {command}: error: ") and message in err, err
+    assert "\n" not in err and "Traceback" not in err

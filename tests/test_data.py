@@ -199,6 +199,8 @@ def test_repr_is_short():
         ("time,x,x\n0,1,2\n", {}, tms.InputError, r"expected distinct column names in the header, got \['x'\]"),
         ("time,x\n0,1\n1,abc\n", {}, tms.InputError, r"expected a number in column 'x' on line 3, got 'abc'"),
         ("time,x\n0,1\n1,inf\n", {}, tms.InputError, r"expected a finite number in column 'x' on line 3, got 'inf'"),
+        ("time,x\n,1\n1,2\n", {}, tms.InputError, r"expected a finite time in column 'time' on line 2, got ''"),
+        ("time,x\n0,\n1,nan\n", {}, tms.InputError, r"expected at least one observed value of every state component"),
         ("time,x\n0,1\n1\n", {}, tms.ShapeError,
          r"expected 2 columns in every row \(as in the header\), got 1 in data row 2 \(line 3"),
         ("experiment,time,x\n0,0,1\n0,0,2\n", {}, tms.InputError,
@@ -299,3 +301,19 @@ def test_times_the_states_dtype_cannot_resolve_are_not_blamed_on_the_user():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tms.Trajectories(torch.linspace(0, 6, 3, dtype=torch.float64), states)  # ordinary times: no word
+
+
+def test_messages_that_misled_now_say_what_is_wrong():
+    """States given as (K, d, T) were blamed on the times; a G returning NumPy said 'returned shape ndarray'; a G
+    that is not vectorised raised torch's bare ValueError."""
+    import numpy as np
+
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    with pytest.raises(tms.ShapeError, match=r"states look like \(K, d, T\); pass states.transpose\(1, 2\)"):
+        tms.Trajectories(t, torch.zeros(4, 3, 11, dtype=torch.float64))
+    numpy_g = tms.MisspecifiedSystem(lambda y: np.zeros(y.shape), 2)
+    with pytest.raises(tms.ShapeError, match=r"G returned a numpy.ndarray .*expected a torch.Tensor of shape \(1, 2\)"):
+        tms.simulate(numpy_g, torch.zeros(1, 2, dtype=torch.float64), t)
+    scalar_g = tms.MisspecifiedSystem(lambda y: torch.stack([y[..., 1], -torch.tensor(float(y[0]))]), 2)
+    with pytest.raises(tms.ShapeError, match=r"G must work on a batch of states.*y\[\.\.\., 0\] instead of float"):
+        tms.simulate(scalar_g, torch.zeros(3, 2, dtype=torch.float64), t)

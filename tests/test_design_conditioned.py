@@ -74,8 +74,9 @@ def test_known_per_sample_noise_is_conditioned_on(corners):
     gp = tms.CorrectionGP(**LINEAR_PRIOR).fit(X, Y, noise=noise)
     plan = design.greedy(cand, 2, system=system, times=TIMES, gp=gp)
     new_x = system.select_inputs(plan.proxies).reshape(-1, 2)
-    sigma2 = gp.noise_variance
-    data_noise = noise[:, 0] + sigma2  # known noise plus the learned (here fixed) floor
+    data_noise = noise[:, 0] + gp.noise_variance  # known noise plus the learned (here fixed) floor
+    # a new sample is as noisy as the median earlier one (known part) plus the floor, not the floor alone
+    sigma2 = gp.noise_variance + float(noise[:, 0].median())
     total = 0.5 * 2 * (_joint_logdet(gp, X, data_noise, new_x, sigma2) - new_x.shape[0] * math.log(sigma2))
     assert float(plan.gains.sum()) == pytest.approx(total, rel=1e-8)
 
@@ -236,3 +237,58 @@ def test_proxy_check_for_both_proxies():
     assert corrected.proxy_gain == pytest.approx(design.information_gain(pts, fitted, condition=False), rel=1e-10)
     with pytest.raises(tms.InputError, match="proxy: expected"):
         design.proxy_check(idx, cand, system=system, times=TIMES, gp=fitted, proxy="true")
+
+
+def _per_output_gain(gp, data_noise, new_x, new_noise):
+    """Brute force over outputs: sum_o (1/2) [logdet C_o(data + new) - logdet C_o(data) - M log s_o], with output o's
+    own kernel, its own data noise ``data_noise[:, o]`` and new-sample noise ``new_noise[o]``."""
+    X = gp.train_inputs_
+    x = torch.cat([X, new_x])
+    with torch.no_grad():
+        K = gp.covar_module.forward(x, x)
+    K = K if K.dim() == 3 else K.expand(data_noise.shape[1], -1, -1)
+    total = 0.0
+    for o in range(data_noise.shape[1]):
+        s = float(new_noise[o])
+        C = K[o] + torch.diag(torch.cat([data_noise[:, o], torch.full((new_x.shape[0],), s, dtype=DT)]))
+        n = X.shape[0]
+        Cd = K[o, :n, :n] + torch.diag(data_noise[:, o])
+        total += 0.5 * float(torch.linalg.slogdet(C)[1] - torch.linalg.slogdet(Cd)[1] - new_x.shape[0] * math.log(s))
+    return total
+
+
+def test_per_output_kernels_condition_each_output_on_its_own_data(corners):
+    """A per-output GP (what fit_correction may return) is designed with: each output's information is conditioned
+    on that output's data under its own kernel and noise; the greedy's gains sum to the brute-force total."""
+    system, cand, _, fitted = corners
+    X, Y = fitted.train_inputs_, fitted.train_targets_.clone()
+    Y[:, 1] *= 30.0  # the outputs differ in size, so their hyperparameters differ
+    gp = tms.CorrectionGP(per_output=True).fit(X, Y)
+    assert float((gp.lengthscale[0] - gp.lengthscale[1]).abs()) > 1e-3
+    picks = {m: design.greedy(cand[::4], 3, system=system, times=TIMES, gp=gp, method=m) for m in ("lazy", "naive")}
+    assert picks["lazy"].indices.tolist() == picks["naive"].indices.tolist()
+    new_x = system.select_inputs(picks["lazy"].proxies).reshape(-1, 2)
+    noise = gp.noise_variance.reshape(1, -1).expand(X.shape[0], -1)
+    expected = _per_output_gain(gp, noise, new_x, gp.noise_variance)
+    assert float(picks["lazy"].gains.sum()) == pytest.approx(expected, rel=1e-7)
+    assert design.information_gain(new_x, gp) == pytest.approx(expected, rel=1e-7)
+    gains = design.marginal_gains(picks["lazy"].indices, cand[::4], system=system, times=TIMES, gp=gp)
+    torch.testing.assert_close(gains.sum(), picks["lazy"].gains.sum(), rtol=1e-7, atol=0.0)
+
+
+def test_noise_that_differs_between_outputs_is_conditioned_per_output(corners):
+    """A shared kernel fitted with known noise that differs between outputs (the default derivative='auto' samples)
+    was refused; now each output is conditioned on its own noisy data, and a new sample of output o is as noisy as
+    the median earlier one of that output plus the floor."""
+    system, cand, _, fitted = corners
+    X, Y = fitted.train_inputs_, fitted.train_targets_
+    base = torch.linspace(1e-5, 1e-3, X.shape[0], dtype=DT)
+    noise = torch.stack([base, 20 * base.flip(0)], dim=-1)
+    gp = tms.CorrectionGP(**LINEAR_PRIOR).fit(X, Y, noise=noise)
+    plan = design.greedy(cand, 2, system=system, times=TIMES, gp=gp)
+    new_x = system.select_inputs(plan.proxies).reshape(-1, 2)
+    future = gp.noise_variance + noise.median(dim=0).values
+    expected = _per_output_gain(gp, noise + gp.noise_variance, new_x, future)
+    assert float(plan.gains.sum()) == pytest.approx(expected, rel=1e-7)
+    with pytest.raises(tms.InputError, match="criterion='domain' .* per-output noise"):
+        design.greedy(cand, 2, system=system, times=TIMES, gp=gp, criterion="domain")

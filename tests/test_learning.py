@@ -224,3 +224,14 @@ def _fail_held_out(system, trajectories, field=None):
     if field is None:  # the known model's baseline
         return torch.ones(trajectories.num_experiments, dtype=DT)
     raise tms.IntegrationError("made to fail")
+
+
+def test_fit_correction_shows_progress_by_default_and_is_silent_when_asked(capfd):
+    system = tms.systems.paper_linear()
+    g = torch.Generator().manual_seed(2)
+    y0 = torch.rand(4, 2, generator=g, dtype=torch.float64) * 2 - 1
+    trajs = tms.simulate(system, y0, torch.linspace(0, 6, 11, dtype=torch.float64))
+    tms.fit_correction(trajs, system, derivative="central", refine=False, progress=False)
+    assert capfd.readouterr().err == ""
+    tms.fit_correction(trajs, system, derivative="central", refine=False)
+    assert "fit_correction: cross-validating candidate models" in capfd.readouterr().err

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import pytest
@@ -105,31 +106,47 @@ def test_extrapolation_is_flagged_and_warned_once(linear):
     times = torch.linspace(0, 1, 5, dtype=DT)
     with warnings.catch_warnings():
         warnings.simplefilter("error", tms.TorchMisspecWarning)
-        post = ode.posterior(inside, times, num_samples=4)
+        post = ode.posterior(inside, times, num_samples=4, scale=1.0)
     assert not post.extrapolating.any() and float(post.support.max()) < post.threshold
     with pytest.warns(tms.TorchMisspecWarning, match=r"2 of 3 predicted path\(s\) leave the data's support") as rec:
-        post = ode.posterior(torch.cat([inside, far]), times, num_samples=4)
+        post = ode.posterior(torch.cat([inside, far]), times, num_samples=4, scale=1.0)
     assert len([w for w in rec if issubclass(w.category, tms.TorchMisspecWarning)]) == 1
     assert post.extrapolating.tolist() == [False, True, True]
     assert float(post.support[1:].min()) > 0.99  # far from the data: the prior's standard deviation
 
 
-def test_a_blowing_up_draw_is_named():
+def test_blowing_up_draws_are_named_and_make_their_band_unbounded():
     """Quadratic draws (polynomial kernel, degree 2) with a large prior: some blow up in finite time, although the
-    posterior mean (near 0: the data are 0) does not."""
+    posterior mean (near 0: the data are 0) does not. The posterior no longer fails as a whole: the diverging draws
+    are named in one warning, their paths are NaN from where they stop, and the band's side they reach is infinite."""
     system = MisspecifiedSystem(lambda y: torch.zeros_like(y), 1, name="zero")
     X = torch.linspace(-0.1, 0.1, 5, dtype=DT).unsqueeze(-1)
     gp = tms.CorrectionGP(kernel="polynomial", degree=2, outputscale=25.0, noise_variance=1e-2)
     gp.fit(X, torch.zeros(5, 1, dtype=DT))
     ode = tms.CorrectedODE(system, gp)
-    with pytest.raises(tms.IntegrationError, match=r"CorrectedODE\.posterior: .*draw \d+ of initial condition \d"):
-        ode.posterior(
-            torch.tensor([[1.0], [2.0]], dtype=DT),
-            torch.linspace(0, 5, 6, dtype=DT),
-            num_samples=32,
-            generator=torch.Generator().manual_seed(0),
-            max_steps=2000,
-        )
+    y0, times = torch.tensor([[1.0], [2.0]], dtype=DT), torch.linspace(0, 5, 6, dtype=DT)
+    kw = dict(num_samples=8, generator=torch.Generator().manual_seed(0), max_steps=2000, scale=1.0)
+    with pytest.warns(
+        tms.TorchMisspecWarning, match=r"of 16 sampled paths cannot be integrated to the end .*\(\d+, \d\)"
+    ):
+        post = ode.posterior(y0, times, **kw)
+    paths = post.samples[..., 0]  # (S, B, T)
+    diverged = torch.isnan(paths).any(-1)
+    assert bool(diverged.any()) and not bool(diverged.all())
+    assert bool(torch.isfinite(paths[..., 0]).all())  # every path starts at its initial condition
+    assert bool(torch.isfinite(paths[~diverged]).all())
+    # NaN only after the last time each diverged path reached: a prefix of finite values, then NaN
+    for path in paths[diverged]:
+        finite = torch.isfinite(path)
+        assert bool(finite[: int(finite.sum())].all())
+    # the draws that did integrate are those of the same draws integrated without the failing ones
+    x = torch.linspace(-3, 3, 7, dtype=DT).unsqueeze(-1)
+    lower, upper = post.interval(0.9)
+    share = diverged.double().mean(0)  # (B,): the fraction of each initial condition's draws that diverged
+    for b in range(2):
+        if share[b] > 0.05:
+            assert float(upper[b, -1, 0]) == math.inf or float(lower[b, -1, 0]) == -math.inf
+    assert x.shape == (7, 1)
 
 
 def test_predict_builds_no_graph_by_default(linear):

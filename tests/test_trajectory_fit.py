@@ -82,3 +82,47 @@ def test_known_per_sample_noise_stays_part_of_the_prior(problem, one_thread):
     refined = tms.fit_trajectories(gp, system, traj, max_iter=5)
     torch.testing.assert_close(refined.train_noise_, gp.train_noise_, rtol=0, atol=0)
     assert shooting_misfit(refined, system, traj) <= shooting_misfit(gp, system, traj)
+
+
+def test_batched_jacobian_columns_equal_one_solve_per_column():
+    """The Gauss-Newton Jacobian of the feature coefficients: every perturbed model in one batched solve (ragged
+    experiments included) gives the columns of one solve per perturbation, to solver tolerance."""
+    from torchmisspec import trajectory_fit as tf
+    from torchmisspec.gp._features import FeatureKernel
+
+    system = tms.systems.paper_linear()
+    g = torch.Generator().manual_seed(0)
+    y0 = torch.rand(3, 2, generator=g, dtype=torch.float64) * 2 - 1
+    full = tms.simulate(system, y0, torch.linspace(0, 6, 11, dtype=torch.float64))
+    ragged = tms.Trajectories(
+        [full.times[: 11 - 2 * k] for k in range(3)], [full.states[k, : 11 - 2 * k] for k in range(3)]
+    )
+    residuals, _, offsets = tf._shooting(ragged, "single", dict(rtol=1e-10, atol=1e-12, what="test"))
+    features = FeatureKernel(2, 2).to(torch.float64).features
+    p = features(y0).shape[1]
+    beta = 0.01 * torch.randn(p, 2, generator=g, dtype=torch.float64)
+    active = torch.rand(p, 2, generator=g) > 0.3
+
+    def make_field(b):
+        return lambda y: system.known_rhs(y) + features(y) @ b
+
+    def make_fields(bs):
+        def field(y):
+            f = features(y).reshape(bs.shape[0], -1, p)
+            return system.known_rhs(y) + torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
+
+        return field
+
+    sd = torch.full((2,), 1e-2, dtype=torch.float64)
+    off = 0.1 * torch.randn(offsets.shape, generator=g, dtype=torch.float64)
+    one = tf._coefficient_columns(residuals, make_field, beta, active, off, sd)
+    batched = tf._coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
+    assert one.shape == batched.shape == (ragged.num_samples * 2, int(active.sum()))
+    torch.testing.assert_close(batched, one, rtol=1e-5, atol=1e-6 * float(one.abs().max()))
+    # the initial-state offsets' columns likewise (2 d perturbed models in one solve)
+    field = make_field(beta)
+    batched_o = tf._offset_columns(residuals, field, off, sd)
+    del residuals.many  # the one-solve-per-perturbation path
+    one_o = tf._offset_columns(residuals, field, off, sd)
+    assert batched_o.shape == (ragged.num_samples * 2, 3 * 2)
+    torch.testing.assert_close(batched_o, one_o, rtol=1e-5, atol=1e-6 * float(one_o.abs().max()))

@@ -121,6 +121,13 @@ def _worst(y: torch.Tensor, f: torch.Tensor, k: int = 5) -> list[int]:
     return order[: min(k, order.numel())].tolist()
 
 
+def _with_rows(rows: list[int], exc: IntegrationError) -> IntegrationError:
+    """``exc`` carrying ``rows``: the batch rows most likely at fault (largest state or derivative where the solver
+    gave up), for callers that isolate them."""
+    exc.rows = list(rows)
+    return exc
+
+
 def solve(
     field: Callable[[torch.Tensor], torch.Tensor],
     y0: torch.Tensor,
@@ -189,29 +196,39 @@ def solve(
         sol = odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options)  # (T', B, d)
     except _StepLimit:
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
-        raise IntegrationError(
-            f"{what}: the solver took more than {max_steps} steps (the budget is counted in right-hand-side "
-            f"evaluations, {_EVALS_PER_STEP} per step, so that it binds every method: {func.nfe - 1} of them) and "
-            f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
-            f"up; the initial conditions with the largest state or derivative at that point: {names(worst)}. Check "
-            "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
-            "explicit steps)"
+        raise _with_rows(
+            worst,
+            IntegrationError(
+                f"{what}: the solver took more than {max_steps} steps (the budget is counted in right-hand-side "
+                f"evaluations, {_EVALS_PER_STEP} per step, so that it binds every method: {func.nfe - 1} of them) and "
+                f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
+                f"up; the initial conditions with the largest state or derivative at that point: {names(worst)}. Check "
+                "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
+                "explicit steps)"
+            ),
         ) from None
     except _Stalled:
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
-        raise IntegrationError(
-            f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by less "
-            f"than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity of the "
-            f"model or a state where the field changes abruptly; the initial conditions with the largest state or "
-            f"derivative there: {names(worst)}. Check the model near those states, or shorten the time span"
+        raise _with_rows(
+            worst,
+            IntegrationError(
+                f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by "
+                f"less than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity "
+                f"of the model or a state where the field changes abruptly; the initial conditions with the largest "
+                f"state or derivative there: {names(worst)}. Check the model near those states, or shorten the time "
+                "span"
+            ),
         ) from None
     except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
-        raise IntegrationError(
-            f"{what}: the solver gave up{t} ({str(exc)[:120]}); the initial conditions with the largest state or "
-            f"derivative there: {names(worst)}. A trajectory probably blows up or reaches a singularity of the model: "
-            "shorten the time span, start closer to the data, or check the model"
+        raise _with_rows(
+            worst,
+            IntegrationError(
+                f"{what}: the solver gave up{t} ({str(exc)[:120]}); the initial conditions with the largest state or "
+                f"derivative there: {names(worst)}. A trajectory probably blows up or reaches a singularity of the "
+                "model: shorten the time span, start closer to the data, or check the model"
+            ),
         ) from exc
     except ValueError as exc:  # an unknown method or option
         raise InputError(f"{what}: torchdiffeq refused the solver settings: {exc}") from exc
@@ -221,8 +238,11 @@ def solve(
     finite = torch.isfinite(sol).all(dim=-1).all(dim=-1)
     if not bool(finite.all()):
         bad = (~finite).nonzero().flatten().tolist()
-        raise IntegrationError(
-            f"{what}: the solution is not finite for {len(bad)} of {sol.shape[0]} initial condition(s) "
-            f"({names(bad)}); the trajectory blows up within the time span"
+        raise _with_rows(
+            bad,
+            IntegrationError(
+                f"{what}: the solution is not finite for {len(bad)} of {sol.shape[0]} initial condition(s) "
+                f"({names(bad)}); the trajectory blows up within the time span"
+            ),
         )
     return sol, func.nfe

@@ -211,11 +211,11 @@ def states_and_times(states, times, *, states_name: str = "states", times_name: 
     times = check_times(times, times_name, per_row=True, dtype=states.dtype, device=states.device)
     K, T, d = states.shape
     if times.shape[-1] != T or (times.dim() == 2 and times.shape[0] != K):
-        if times.shape[-1] == d != T and (times.dim() == 1 or times.shape[0] == K):
+        if states.shape[-1] == times.shape[-1] and (times.dim() == 1 or times.shape[0] == K):
             raise ShapeError(
-                f"{states_name}: expected shape (K, T, d) = ({K}, {d}, {T}) for {d} times, got {tuple(states.shape)}: "
-                f"the states look transposed, (K, d, T) instead of (K, T, d) (one row per time, one column per state "
-                f"component); pass states.transpose(1, 2) (numpy: np.swapaxes(states, 1, 2))"
+                f"{states_name}: expected shape (K, T, d) = (experiments, times, state components), got "
+                f"{tuple(states.shape)}, whose last axis matches the {times.shape[-1]} times: the states look like "
+                f"(K, d, T); pass {states_name}.transpose(1, 2) (NumPy: .transpose(0, 2, 1))"
             )
         raise ShapeError(
             f"{times_name}: expected shape ({T},) or ({K}, {T}) to match {states_name} {tuple(states.shape)}, "

@@ -11,27 +11,30 @@ repair a prior of the wrong shape.
 hand: each fold of experiments is held out, the correction GP is refitted (or conditioned) on the rest, and the
 corrected model's posterior paths are started from each held-out experiment's first observed state and compared
 with its observed states. The band's spread is widened (or narrowed) by one factor ``c`` on the deviation of every
-posterior draw of F from the posterior mean,
+sampled path from the mean path (the path of the posterior mean of F),
 
-    F_c(x) = mu(x) + c (F_s(x) - mu(x)),
+    y_c(t) = y_mean(t) + c (y_s(t) - y_mean(t)),
 
-that is, the posterior covariance of F times ``c^2`` (the posterior mean is unchanged). The calibrated ``c`` is the
-smallest one under which the held-out observed states lie in the central ``level`` band at least a fraction
-``level`` of the time (pooled over every held-out time after the first and every component; found by bisection in
-log c, the draws being the same functions at every c, so coverage grows with c). This is the recalibration of
+to first order in the deviation the path of the draw F_c = mu + c (F_s - mu), that is, of the posterior covariance of
+F times ``c^2``. Scaling the paths rather than integrating the widened draws keeps every path one the solver already
+integrated: a draw widened 8 times is a field far from the data that can make the solver stall (the issue's trial),
+and each held-out posterior is integrated once, not once per scale tried. The calibrated ``c`` is the smallest one
+under which the held-out observed states lie in the central ``level`` band at least a fraction ``level`` of the time
+(pooled over every held-out time after the first and every component; found by bisection in log c: the paths are
+the same at every c, so coverage grows with c). This is the recalibration of
 Kuleshov et al. (2018, "Accurate uncertainties for deep learning using calibrated regression") with the held-out
 experiments as the calibration set; like any such rule it assumes new initial conditions resemble the experiments'.
 
-Observation noise on the states (``state_noise``) is added to the held-out paths before they are compared with the
-observed states, so that noisy observations do not inflate ``c``; the calibrated bands are for the states
-themselves. The uncertainty of a noisy first observed state is not propagated: it is absorbed into ``c``.
+Observation noise on the states (``state_noise``; by default the noise the GP in time finds in the data) is added to
+the held-out paths before they are compared with the observed states, so that noisy observations do not inflate
+``c``, and early observations, where the paths have not yet spread, can be covered at all; the calibrated bands are
+for the states themselves. The uncertainty of a noisy first observed state is not propagated: it is absorbed into ``c``.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 
 import torch
 
@@ -40,13 +43,15 @@ from ._errors import (
     InputError,
     IntegrationError,
     LinearAlgebraError,
+    NumericalWarning,
     ShapeError,
     TorchMisspecWarning,
     warn,
 )
-from ._validation import as_tensor, check_positive_int, check_real
+from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
-from .observations import CorrectionSamples, _check_trajectories_and_system
+from .gp._calibration import BandCalibration
+from .observations import CorrectionSamples, _check_trajectories_and_system, estimate_state_noise
 
 __all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
 
@@ -55,47 +60,9 @@ MIN_LOG2_SCALE, MAX_LOG2_SCALE = -4.0, 8.0
 #: Observation-noise draws added to each held-out path when ``state_noise`` is given (so that the band of path plus
 #: noise is estimated from num_samples x NOISE_DRAWS values, not from num_samples alone).
 NOISE_DRAWS = 16
-#: Bisection steps: the bracket of 12 in log2 c shrinks to 12 / 2^7 < 0.1, a relative precision of ~7 % on c.
-BISECTION_STEPS = 7
-
-
-@dataclass(frozen=True)
-class BandCalibration:
-    """The result of :func:`calibrate_bands`.
-
-    Attributes:
-        scale: the calibrated factor ``c`` on the posterior draws' deviation from the posterior mean (1: the GP's
-            own bands were right; above 1: they were too narrow).
-        level: the band's nominal coverage it was calibrated for.
-        coverage_at_one: the held-out coverage of the uncalibrated bands (c = 1).
-        coverage: the held-out coverage at ``scale``.
-        scales / coverages: every scale the bisection tried, in order, with its held-out coverage.
-        folds: the number of folds held out; ``refit``: whether the GP's hyperparameters were re-learned in every
-            fold.
-        reached: whether some scale reaches the level (when not, ``scale`` is the smallest doubling whose held-out
-            coverage is within one standard error of the best one tried, and a warning was issued).
-        num_points: the held-out (time, component) entries compared at each scale.
-    """
-
-    scale: float
-    level: float
-    coverage_at_one: float
-    coverage: float
-    scales: tuple[float, ...]
-    coverages: tuple[float, ...]
-    folds: int
-    refit: bool
-    num_points: int
-    reached: bool = True
-
-    def __str__(self) -> str:
-        return (
-            f"BandCalibration(scale={self.scale:.3g}: the central {self.level:.0%} band covers {self.coverage:.3f} "
-            f"of the held-out states (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds, "
-            f"{'refitted' if self.refit else 'conditioned'} GP"
-            + ("" if self.reached else "; the level is out of reach")
-            + f", {self.num_points} points)"
-        )
+#: Bisection steps: the bracket of 12 in log2 c shrinks to 12 / 2^10 < 0.012, a relative precision of ~1 % on c
+#: (each step costs a few tensor operations: the paths are integrated once).
+BISECTION_STEPS = 10
 
 
 def _check_level(level) -> float:
@@ -105,12 +72,27 @@ def _check_level(level) -> float:
     return level
 
 
-def _state_noise(state_noise, d: int, dtype, device) -> tuple[torch.Tensor, float]:
-    """``(absolute std (d,), relative std)``: a number or one per state, or a string ``"2%"`` (std 0.02 |y|)."""
+def _state_noise(state_noise, trajectories: Trajectories, d: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(absolute (d,), relative (d,))`` standard deviations of the observation noise on the states: a new
+    observation of a state y is y + (absolute + relative |y|) z, z standard normal."""
+    zeros = torch.zeros(d, dtype=dtype, device=device)
     if state_noise is None:
-        return torch.zeros(d, dtype=dtype, device=device), 0.0
+        return zeros, zeros
+    if isinstance(state_noise, str) and state_noise == "auto":
+        estimate = estimate_state_noise(trajectories)
+        return (zeros if estimate is None else estimate.to(dtype=dtype, device=device)), zeros
     if isinstance(state_noise, str):
-        return torch.zeros(d, dtype=dtype, device=device), relative_noise(state_noise, "state_noise")
+        text = state_noise.strip()
+        try:
+            value = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(
+                f"state_noise: expected 'auto', a percentage such as '2%' (noise relative to the state), a "
+                f"standard deviation or one per state component, got {state_noise!r}"
+            )
+        return zeros, zeros + value
     noise = as_tensor(state_noise, "state_noise", dtype=dtype, device=device)
     if noise.dim() == 0:
         noise = noise.expand(d)
@@ -120,24 +102,7 @@ def _state_noise(state_noise, d: int, dtype, device) -> tuple[torch.Tensor, floa
         )
     if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
         raise InputError(f"state_noise: expected finite standard deviations >= 0, got {noise.tolist()}")
-    return noise, 0.0
-
-
-def relative_noise(value: str, name: str) -> float:
-    """The fraction of a noise level given relative to the signal, ``"2%"`` -> 0.02 (std = 0.02 |y| per entry)."""
-    text = value.strip()
-    try:
-        if not text.endswith("%"):
-            raise ValueError
-        fraction = float(text[:-1]) / 100.0
-    except ValueError:
-        raise InputError(
-            f"{name}: expected a standard deviation (a number, or one per state component) or a percentage of the "
-            f"signal such as '2%' (std = 0.02 * |y| per entry), got the string {value!r}"
-        ) from None
-    if not (math.isfinite(fraction) and fraction >= 0):
-        raise InputError(f"{name}: expected a percentage >= 0 such as '2%', got {value!r}")
-    return fraction
+    return noise, zeros
 
 
 def calibrate_bands(
@@ -149,8 +114,9 @@ def calibrate_bands(
     folds: int = 10,
     num_samples: int = 32,
     refit: bool = True,
-    state_noise=None,
+    state_noise="auto",
     generator: torch.Generator | None = None,
+    progress: bool = True,
     **posterior_options,
 ) -> BandCalibration:
     """Calibrate the spread of ``model.posterior``'s bands on held-out experiments (see the module docstring).
@@ -169,10 +135,12 @@ def calibrate_bands(
         refit: re-learn the GP's hyperparameters in every fold (default: the honest choice, since the
             hyperparameters' own error is part of what the bands miss); ``False`` conditions the fitted GP on the
             other folds (cheaper, keeps the hyperparameters).
-        state_noise: standard deviation(s) of the observation noise on the states: a number or one per state
-            component, or a percentage of the signal such as ``"2%"`` (multiplicative noise: std ``0.02 * |y|`` of
-            each entry, applied to each posterior path) (default none: exact states, the paper's setting).
+        state_noise: the observation noise on the states: ``"auto"`` (default: the standard deviation per
+            component that the GP in time finds in the data, :func:`~torchmisspec.observations.estimate_state_noise`;
+            about 0 for exact states), a standard deviation or one per state component, a percentage such as
+            ``"2%"`` (noise proportional to the state), or ``None`` (exact states, the paper's setting).
         generator: ``torch.Generator`` for the draws (the same draws are reused at every scale).
+        progress: show a progress bar over the folds (``False``: silent).
         **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, solver settings).
 
     Returns:
@@ -182,7 +150,7 @@ def calibrate_bands(
     Raises:
         FittingError: no fold could be fitted and integrated, or the uncalibrated bands' paths already fail.
     """
-    from .dynamics import CorrectedODE
+    from .dynamics import CorrectedODE, path_quantiles
     from .learning import _check_cv_inputs, _settings
 
     if not isinstance(model, CorrectedODE):
@@ -194,22 +162,32 @@ def calibrate_bands(
         raise InputError("posterior_options: scale and num_samples are set by calibrate_bands itself")
     _check_trajectories_and_system(trajectories, system)
     folds = _check_cv_inputs(system, trajectories, samples, folds)
-    noise, relative = _state_noise(state_noise, system.state_dim, gp.dtype, gp.device)
+    absolute, relative = _state_noise(state_noise, trajectories, system.state_dim, gp.dtype, gp.device)
+    noisy = bool(absolute.any() or relative.any())
     seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
     K = trajectories.num_experiments
     experiments = trajectories.experiments()
     first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
     held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d))])
+    bar = progress_bar(progress, 2 * folds, "calibrate: refit and predict each fold", "step")
+    fold_warnings: list[str] = []
     for f in range(folds):
+        bar.update()
         ks = [k for k in range(K) if k % folds == f]
         keep = ~torch.isin(samples.experiment, torch.tensor(ks, device=samples.experiment.device))
         sample_noise = None if samples.noise is None else samples.noise[keep]
         try:
-            if refit:
-                fold_gp = type(gp)(**_settings(gp), lengthscale=gp.fixed["lengthscale"])
-                fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
-            else:
-                fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            with warnings.catch_warnings(record=True) as caught:  # the folds' fits are ours: summarised below
+                warnings.simplefilter("always", NumericalWarning)
+                if refit:
+                    fold_gp = type(gp)(**_settings(gp), lengthscale=gp.fixed["lengthscale"])
+                    fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+                else:
+                    fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            fold_warnings += [str(w.message) for w in caught if issubclass(w.category, NumericalWarning)]
+            for w in caught:  # anything else reaches the user as it was
+                if not issubclass(w.category, NumericalWarning):
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         except (FittingError, LinearAlgebraError):
             continue  # this fold cannot be held out (too few samples left); the others still calibrate
         by_length: dict[int, list[int]] = {}
@@ -222,52 +200,65 @@ def calibrate_bands(
             states = torch.stack([experiments[k][1] for k in group]).to(**kd)
             batches.append((first[group].to(**kd), times, states))
         held_out.append((CorrectedODE(system, fold_gp), batches))
+    if fold_warnings:
+        warn(
+            f"calibrate_bands: the refit of the GP on {len(fold_warnings)} fold(s) warned (first: "
+            f"{fold_warnings[0][:300]}). The folds are refitted with the model's own settings (e.g. max_iter="
+            f"{gp.max_iter}) and used as they are; to change the settings, fit the model with others (a "
+            "CorrectionGP(max_iter=...) template) and calibrate again",
+            NumericalWarning,
+        )
     if not held_out:
+        bar.close()
         raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
     quantiles = torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=gp.dtype, device=gp.device)
-
-    def coverage(c: float) -> tuple[float, int]:
-        """Held-out coverage of the band at scale c (the same draws at every c: the same seeds)."""
-        hits = total = 0
-        for i, (fold_model, batches) in enumerate(held_out):
-            for j, (y0, times, observed) in enumerate(batches):
-                gen = torch.Generator(device=gp.device).manual_seed(seed + 7919 * i + j)
-                with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
-                    warnings.simplefilter("ignore", TorchMisspecWarning)
+    # every held-out posterior is integrated once, with the GP's own draws; a scale c only rescales the paths'
+    # deviations from the mean path (CorrectedODE.posterior), so the coverage at any c is a few tensor operations
+    paths = []  # (mean path (B, T - 1, d), deviations (S, B, T - 1, d), noise draws z or None, observed)
+    for i, (fold_model, batches) in enumerate(held_out):
+        for j, (y0, times, observed) in enumerate(batches):
+            gen = torch.Generator(device=gp.device).manual_seed(seed + 7919 * i + j)
+            with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
+                warnings.simplefilter("ignore", TorchMisspecWarning)
+                try:
                     post = fold_model.posterior(
-                        y0, times, num_samples=num_samples, generator=gen, scale=c, **posterior_options
+                        y0, times, num_samples=num_samples, generator=gen, scale=1.0, **posterior_options
                     )
-                draws = post.samples[:, :, 1:]  # (S, B, T - 1, d): every path starts at the first observed state
-                if bool(noise.any()) or relative > 0:  # NOISE_DRAWS noise draws per path: quantiles of path + noise
-                    std = noise + relative * draws.abs().unsqueeze(1)  # (d,) or per entry (multiplicative noise)
-                    draws = draws.unsqueeze(1) + std * torch.randn(
-                        (draws.shape[0], NOISE_DRAWS, *draws.shape[1:]),
-                        generator=gen,
-                        dtype=draws.dtype,
-                        device=draws.device,
-                    )
-                    draws = draws.flatten(0, 1)
-                lo, hi = torch.quantile(draws, quantiles, dim=0)
-                obs = observed[:, 1:]
-                seen = torch.isfinite(obs)  # missing entries are not compared
-                hits += int(((obs >= lo) & (obs <= hi) & seen).sum())
-                total += int(seen.sum())
-        return hits / max(total, 1), total
+                except IntegrationError as exc:
+                    bar.close()
+                    raise FittingError(
+                        f"calibrate_bands: the held-out posterior paths of fold {i} fail ({exc})"
+                    ) from exc
+            mean = post.mean_path[:, 1:]  # every path starts at the first observed state
+            z = None
+            if noisy:  # NOISE_DRAWS noise draws per path: the band's quantiles of path + noise
+                z = torch.randn(
+                    (num_samples, NOISE_DRAWS, *mean.shape), generator=gen, dtype=mean.dtype, device=mean.device
+                )
+            paths.append((mean, post.samples[:, :, 1:] - mean, z, observed[:, 1:]))
+        bar.update()
+    bar.close()
+    total = sum(int(torch.isfinite(obs).sum()) for *_, obs in paths)  # missing entries (NaN) are not compared
+
+    def coverage(c: float) -> float:
+        """Held-out coverage of the band at scale c (the same draws at every c)."""
+        hits = 0
+        for mean, dev, z, obs in paths:
+            draws = mean + c * dev
+            if z is not None:
+                draws = (draws.unsqueeze(1) + (absolute + relative * draws.abs()).unsqueeze(1) * z).flatten(0, 1)
+            lo, hi = path_quantiles(draws, quantiles)  # a diverged path makes its side of the band unbounded
+            hits += int(((obs >= lo) & (obs <= hi)).sum())  # False where obs is NaN (missing)
+        return hits / max(total, 1)
 
     tried: list[tuple[float, float]] = []
 
     def covers_at(log2c: float) -> bool:
-        try:
-            value, _ = coverage(2.0**log2c)
-        except IntegrationError:
-            value = math.nan  # the widened draws blow up: treated as too wide
+        value = coverage(2.0**log2c)
         tried.append((2.0**log2c, value))
-        return value >= level  # False for NaN
+        return value >= level
 
-    try:
-        at_one, total = coverage(1.0)
-    except IntegrationError as exc:
-        raise FittingError(f"calibrate_bands: the held-out posterior paths fail at scale 1 ({exc})") from exc
+    at_one = coverage(1.0)
     tried.append((1.0, at_one))
     # bracket [lo, hi] in log2 c with coverage below the level at lo and at least the level at hi
     reached = True

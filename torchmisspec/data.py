@@ -530,14 +530,16 @@ def _per_experiment(states_list, times) -> tuple:
 # Text tables
 _TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
 _SUFFIXES = ".npz, .csv, .tsv or .txt"
-#: Cells (lower-cased) that :meth:`Trajectories.load` reads as missing values.
-_MISSING_CELLS = ("", "nan", "na", "n/a")
 
 
 def _check_distinct(names: Sequence[str], what: str, where: str) -> None:
     repeated = sorted({n for n in names if list(names).count(n) > 1})
     if repeated:
         raise InputError(f"{where}: expected distinct {what}, got {repeated} more than once (in {list(names)})")
+
+
+#: Cells read as a missing state value (lower case): empty, NaN, NA, N/A.
+_MISSING = ("", "nan", "na", "n/a")
 
 
 def _read_table(path: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
@@ -617,7 +619,7 @@ def _columns_to_arrays(
     for r, (line, row) in enumerate(body):
         for c, col in enumerate(where):
             cell = row[col]
-            if cell.lower() in _MISSING_CELLS:
+            if cell.lower() in _MISSING:
                 value = math.nan
             else:
                 try:

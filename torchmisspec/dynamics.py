@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ._errors import InputError, NotFittedError, ShapeError, TorchMisspecWarning, warn
+from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
@@ -54,8 +54,12 @@ class CorrectedODE(nn.Module):
         self.system = system
         self.gp = gp
         self.nfe = 0  # right-hand-side evaluations of the last predict()
-        #: the :class:`~torchmisspec.calibration.BandCalibration` of the last :meth:`calibrate` (None before)
-        self.calibration_ = None
+
+    @property
+    def calibration_(self):
+        """The :class:`~torchmisspec.calibration.BandCalibration` of the GP's bands (``None`` before any
+        :meth:`calibrate`): kept on the GP (``gp.calibration_``), so it is saved and loaded with it."""
+        return getattr(self.gp, "calibration_", None)
 
     def correction(self, y: torch.Tensor) -> torch.Tensor:
         """mu placed on the full state: ``(..., d)`` from states ``(..., d)``."""
@@ -190,9 +194,12 @@ class CorrectedODE(nn.Module):
                 posterior (``CorrectionGP.hyperparameter_samples``), so the bands allow for the hyperparameters'
                 own uncertainty (ML-II alone is overconfident with few experiments; ``docs/studies/calibration.md``).
             hyperparameter_samples: the number of hyperparameter sets with ``"laplace"`` (at most ``num_samples``).
-            scale: a factor c > 0 on every draw's deviation from the posterior mean, F_c = mu + c (F_s - mu) (the
-                posterior covariance of F times c^2); default: the scale found by :meth:`calibrate`, or 1 (the GP's
-                own bands) before any calibration.
+            scale: a factor c > 0 on every path's deviation from the mean path, y_c = y_mean + c (y_s - y_mean);
+                default: the scale found by :meth:`calibrate`, or 1 (the GP's own bands) before any calibration. To
+                first order in the draws' deviation this is the path of F_c = mu + c (F_s - mu) (the posterior
+                covariance of F times c^2), but the paths are those of the GP's own draws: a widened field far
+                from the data is never integrated, so a calibrated posterior cannot stall where the GP's own
+                does not (integrating F_c with c = 8 made the solver stall in the issue's trial).
 
         Returns:
             :class:`TrajectoryPosterior`.
@@ -212,6 +219,14 @@ class CorrectedODE(nn.Module):
         if threshold > 1.0:
             raise InputError(f"support_threshold: expected a ratio of standard deviations in (0, 1], got {threshold!r}")
         num_samples = check_positive_int(num_samples, "num_samples")
+        if scale is None and self.calibration_ is None:
+            warn(
+                "CorrectedODE.posterior: these bands are the GP's own, not calibrated on held-out experiments; with "
+                "few experiments they are usually too narrow (docs/studies/calibration.md). Call "
+                "model.calibrate(observed) once (it is kept and saved with the GP), or pass scale=1.0 to use the "
+                "GP's own bands knowingly",
+                TorchMisspecWarning,
+            )
         if scale is None:
             scale = 1.0 if self.calibration_ is None else self.calibration_.scale
         scale = check_real(scale, "scale", positive=True)
@@ -226,12 +241,12 @@ class CorrectedODE(nn.Module):
             num_features=num_features, feature_error=feature_error, generator=generator, update_error=update_error
         )
         if hyperparameters == "fixed":
-            draws = self.gp.sample_functions(S, scale=scale, **options_f)
+            draws = self.gp.sample_functions(S, **options_f)
         else:
             M = min(check_positive_int(hyperparameter_samples, "hyperparameter_samples"), S)
             gps = self.gp.hyperparameter_samples(M, generator=generator)
             sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
-            draws = _Mixture([g.sample_functions(n, scale=scale, **options_f) for g, n in zip(gps, sizes, strict=True)])
+            draws = _Mixture([g.sample_functions(n, **options_f) for g, n in zip(gps, sizes, strict=True)])
         mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         system = self.system
 
@@ -240,20 +255,21 @@ class CorrectedODE(nn.Module):
             return system.known_rhs(y) + system.embed(draws(x).reshape(S * B, -1))
 
         grid = times if times.dim() == 1 else times.repeat(S, 1)
+        settings = dict(method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
-            paths, nfe = solve(
-                field,
-                y0.repeat(S, 1),
-                grid,
-                method=method,
-                rtol=rtol,
-                atol=atol,
-                options=options,
-                max_steps=max_steps,
-                what="CorrectedODE.posterior",
-                label=lambda i: f"draw {i // B} of initial condition {i % B}",
-            )
+            paths, nfe, diverged = _solve_draws(field, y0.repeat(S, 1), grid, settings, B)
         self.nfe = nfe
+        if diverged:
+            rows = sorted(diverged)
+            warn(
+                f"CorrectedODE.posterior: {len(rows)} of {S * B} sampled paths cannot be integrated to the end (draw, "
+                f"initial condition: {', '.join(f'({i // B}, {i % B})' for i in rows[:8])}"
+                f"{' ...' if len(rows) > 8 else ''}): under those draws of F the trajectory blows up or stalls. They "
+                "are NaN from then on, and the bands treat them as unbounded (a band they reach is infinite): the "
+                "correction's posterior allows diverging trajectories there. Shorten the time span, or collect data "
+                "nearer those states",
+                TorchMisspecWarning,
+            )
         support = self._support(mean_path.detach())
         extrapolating = support.amax(dim=-1) > threshold
         if bool(extrapolating.any()):
@@ -267,9 +283,12 @@ class CorrectedODE(nn.Module):
                 TorchMisspecWarning,
             )
         times_out = times if times.dim() == 2 else times.expand(B, -1)
+        samples = paths.reshape(S, B, *paths.shape[1:])
+        if scale != 1.0:  # the paths' deviations from the mean path, scaled (never a re-integration)
+            samples = mean_path + scale * (samples - mean_path)
         return TrajectoryPosterior(
             times=times_out,
-            samples=paths.reshape(S, B, *paths.shape[1:]),
+            samples=samples,
             mean_path=mean_path,
             support=support,
             extrapolating=extrapolating,
@@ -277,22 +296,30 @@ class CorrectedODE(nn.Module):
             update_error=draws.update_error,
         )
 
-    def calibrate(self, trajectories, samples, **options):
+    def calibrate(self, trajectories, samples=None, **options):
         """Calibrate the bands of :meth:`posterior` on held-out experiments and make the result its default scale.
 
+        ``samples`` default to the ones :func:`~torchmisspec.fit_correction` recorded on the GP (``gp.samples_``).
         See :func:`torchmisspec.calibration.calibrate_bands` (the arguments after ``samples`` are its keywords:
         ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator`` and options for
         :meth:`posterior`, e.g. ``hyperparameters="laplace"``, which later calls should then use too). Costs one
         GP fit per fold plus about ten held-out posteriors per fold.
 
         Returns:
-            the :class:`~torchmisspec.calibration.BandCalibration`, also kept as ``calibration_``; later
-            ``posterior`` calls use its ``scale`` unless given another.
+            the :class:`~torchmisspec.calibration.BandCalibration`, also kept on the GP as ``gp.calibration_``
+            (saved with it by ``gp.save``); later ``posterior`` calls use its ``scale`` unless given another.
         """
         from .calibration import calibrate_bands
 
+        if samples is None:
+            samples = getattr(self.gp, "samples_", None)
+            if samples is None:
+                raise InputError(
+                    "samples: expected the correction samples the GP was fitted on; this GP has none recorded (only "
+                    "fit_correction records them, as gp.samples_): pass calibrate(trajectories, samples)"
+                )
         result = calibrate_bands(self, trajectories, samples, **options)  # a failure keeps the previous one
-        self.calibration_ = result
+        self.gp.calibration_ = result
         return result
 
     def _support(self, states: torch.Tensor) -> torch.Tensor:
@@ -320,6 +347,95 @@ class _Mixture:
             out.append(p(x[start : start + p.num_samples]))
             start += p.num_samples
         return torch.cat(out)
+
+
+def path_quantiles(samples: torch.Tensor, qs: torch.Tensor) -> torch.Tensor:
+    """Quantiles ``qs (Q,)`` over the draws ``samples (S, ...)`` -> ``(Q, ...)``, where a NaN (a path that diverged
+    before that time) counts as unbounded on the side of the quantile: as -inf for q < 1/2, +inf for q > 1/2 (and the
+    mean of both for the median), so a band that such paths reach is infinite, never silently narrowed."""
+    if not bool(torch.isnan(samples).any()):
+        return torch.quantile(samples, qs, dim=0)
+    # interpolating between two infinite values gives NaN: there the quantile is that infinity
+    low = torch.quantile(samples.nan_to_num(nan=-math.inf), qs, dim=0).nan_to_num(nan=-math.inf)
+    high = torch.quantile(samples.nan_to_num(nan=math.inf), qs, dim=0).nan_to_num(nan=math.inf)
+    side = qs.reshape(-1, *([1] * (samples.dim() - 1)))
+    return torch.where(side < 0.5, low, torch.where(side > 0.5, high, 0.5 * (low + high)))
+
+
+def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: int):
+    """All sampled paths in one batched solve. Where it fails (under some draw of F a path blows up or stalls), the
+    row the solver names as the likeliest culprit is integrated alone: if it fails alone too, it is integrated as far
+    as it goes (the longest prefix of its output times that succeeds, by bisection) and is NaN after, and the others
+    are solved again without it; if it does not, the rows are halved until the failing ones are alone. Returns
+    ``(paths (S B, T, d), right-hand-side evaluations, the failing rows)``."""
+    nfe = 0
+    diverged: list[int] = []
+    n_rows = y0.shape[0]
+
+    def run(rows: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+        nonlocal nfe
+        sub = times if times.dim() == 1 else times[rows]
+
+        def part(y: torch.Tensor) -> torch.Tensor:  # the rows' own draws: field sees the whole batch's layout
+            return field(y0.new_zeros(y0.shape).index_copy(0, rows, y))[rows]
+
+        out, n = solve(
+            field if rows.numel() == n_rows else part,
+            y0[rows],
+            sub,
+            what="CorrectedODE.posterior",
+            label=lambda i: f"draw {int(rows[i]) // B} of initial condition {int(rows[i]) % B}",
+            **settings,
+        )
+        nfe += n
+        return out
+
+    def alone(row: torch.Tensor) -> tuple[torch.Tensor, bool]:
+        """The one path of ``row`` (1,) as far as it integrates (NaN after), and whether it stops early."""
+        T = grid.shape[-1]
+        lo, hi, best = 1, T, y0[row].unsqueeze(1)  # the first output time is the initial condition itself
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            try:
+                best = run(row, grid[..., :mid])
+                lo = mid
+            except IntegrationError:
+                hi = mid - 1
+        out = y0.new_full((1, T, y0.shape[-1]), math.nan)
+        out[:, : best.shape[1]] = best
+        if lo < T:
+            diverged.append(int(row[0]))
+        return out, lo < T
+
+    def paths_of(rows: torch.Tensor) -> torch.Tensor:
+        out = y0.new_empty((rows.numel(), grid.shape[-1], y0.shape[-1]))
+        todo = torch.arange(rows.numel(), device=rows.device)
+        while todo.numel():
+            try:
+                out[todo] = run(rows[todo], grid)
+                break
+            except IntegrationError as exc:
+                named = [i for i in getattr(exc, "rows", []) if i < todo.numel()]
+                stopped = False
+                for i in named:  # the rows the solver names, each alone (those that integrate are done too)
+                    out[todo[i]], early = alone(rows[todo[i : i + 1]])
+                    stopped = stopped or early
+                if not stopped:  # none of the named rows is at fault alone: halve
+                    rest = todo[[i for i in range(todo.numel()) if i not in named]]
+                    if rest.numel() == 0:
+                        break
+                    half = rest.numel() // 2
+                    if half:
+                        out[rest[:half]] = paths_of(rows[rest[:half]])
+                    out[rest[half:]] = paths_of(rows[rest[half:]]) if rest.numel() > 1 else alone(rows[rest])[0]
+                    break
+                keep = torch.ones(todo.numel(), dtype=torch.bool, device=todo.device)
+                keep[named] = False
+                todo = todo[keep]
+        return out
+
+    paths = paths_of(torch.arange(n_rows, device=y0.device))
+    return paths, nfe, diverged
 
 
 def _wants_graph(*tensors: torch.Tensor) -> bool:
@@ -371,7 +487,7 @@ class TrajectoryPosterior:
         qs = as_tensor(q, "q", dtype=self.samples.dtype, device=self.samples.device)
         if qs.dim() > 1 or not bool(((qs >= 0) & (qs <= 1)).all()):
             raise InputError(f"q: expected a quantile or a 1-D list of quantiles in [0, 1], got {q!r:.80}")
-        return torch.quantile(self.samples, qs, dim=0)
+        return path_quantiles(self.samples, qs)
 
     def interval(self, level: float = 0.9) -> tuple[torch.Tensor, torch.Tensor]:
         """``(lower, upper)``, each ``(B, T, d)``: the central ``level`` band of the sampled paths."""

@@ -43,8 +43,8 @@ from ._errors import (
 )
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
-from ._validation import check_positive_int
-from .data import Trajectories, simulate, simulate_known_each
+from ._validation import check_positive_int, progress_bar
+from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._features import FEATURE_KERNELS
 from .gp._model import median_distance
@@ -161,35 +161,37 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
     """``(K,)`` sums of squared errors of a model from each experiment's first observed state over its own times.
 
     ``field(y, rows)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each experiment may
-    have its own model: the folds of the cross-validation); ``None``: the known model G alone. One batched solve per
-    group of equal-length experiments."""
+    have its own model: the folds of the cross-validation); ``None``: the known model G alone. One batched solve of
+    every experiment (ragged ones on their own times, padded at their end)."""
     rtol, atol = FITTING_TOLERANCES
     out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
-    for idx, group in trajectories.by_length():
-        if field is None:
-            try:
-                pred = simulate(system, group.initial_conditions, group.times, known_only=True, rtol=rtol, atol=atol)
-                pred = pred.states
-            except IntegrationError:
-                # the known model alone diverges from some of these states (what a correction may exist to fix):
-                # each experiment alone, and an infinite error where G cannot be integrated
-                each = simulate_known_each(system, group, rtol=rtol, atol=atol)
-                for k, y, pred in zip(idx, group.states, each, strict=True):
-                    out[k] = math.inf if pred is None else float((pred - y).nan_to_num(nan=0.0).pow(2).sum())
-                continue
-        else:
-            rows = torch.tensor(idx, device=group.device)
-            pred, _ = solve(
-                lambda y, rows=rows: field(y, rows),
-                group.initial_conditions,
-                group.times,
-                rtol=rtol,
-                atol=atol,
-                max_steps=_CV_MAX_STEPS,
-                what="cross-validation",
-            )
-        out[idx] = (pred - group.states).nan_to_num(nan=0.0).pow(2).sum(dim=(1, 2)).detach().cpu().to(torch.float64)
-    return out
+    times, states, mask = trajectories.padded()
+    first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
+    if times.dim() == 1:
+        times = times.expand(states.shape[0], -1)
+    if field is None:
+        try:
+            pred = solve(system.known_rhs, first, times, rtol=rtol, atol=atol, what="the known model")[0]
+        except IntegrationError:
+            # the known model alone diverges from some of these states (what a correction may exist to fix):
+            # each experiment alone, and an infinite error where G cannot be integrated
+            each = simulate_known_each(system, trajectories, rtol=rtol, atol=atol)
+            for k, ((_, y), pred) in enumerate(zip(trajectories.experiments(), each, strict=True)):
+                out[k] = math.inf if pred is None else float((pred - y).nan_to_num(nan=0.0).pow(2).sum())
+            return out
+    else:
+        rows = torch.arange(states.shape[0], device=states.device)
+        pred, _ = solve(
+            lambda y: field(y, rows),
+            first,
+            times,
+            rtol=rtol,
+            atol=atol,
+            max_steps=_CV_MAX_STEPS,
+            what="cross-validation",
+        )
+    sq = (pred - states).nan_to_num(nan=0.0).pow(2).sum(-1) * mask  # missing entries (NaN) are not compared
+    return sq.sum(-1).detach().cpu().to(torch.float64)
 
 
 def _check_candidates(candidates) -> list:
@@ -271,6 +273,7 @@ def cross_validate(
     candidates,
     *,
     folds: int = 5,
+    progress: bool = False,
 ) -> tuple[CrossValidation, list[CorrectionGP | None]]:
     """Score candidate correction models by how well the corrected model predicts held-out experiments.
 
@@ -286,6 +289,7 @@ def cross_validate(
         samples: the correction samples (:func:`~torchmisspec.correction_samples`).
         candidates: unfitted :class:`CorrectionGP` templates.
         folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
+        progress: show a progress bar over the candidates.
 
     Returns:
         ``(CrossValidation, models)``: the scores, and each candidate fitted on all samples (``None`` where the fit
@@ -298,7 +302,9 @@ def cross_validate(
     fold_of = [k % folds for k in range(K)]
     folds_t = torch.tensor(fold_of, device=samples.inputs.device)
     scores, per_experiment, models = [], [], []
+    bar = progress_bar(progress, len(candidates), "fit_correction: cross-validating candidate models", "model")
     for template in candidates:
+        bar.update()
         errors = torch.full((K,), math.inf, dtype=torch.float64)
         full = None
         try:
@@ -319,6 +325,7 @@ def cross_validate(
         scores.append(float(errors.sum()))
         per_experiment.append(errors)
         models.append(full)
+    bar.close()
     base = _held_out_errors(system, trajectories)
     i = min(range(len(scores)), key=scores.__getitem__)
     tiny = torch.finfo(torch.float64).tiny
@@ -407,6 +414,7 @@ def fit_correction(
     lengthscale: str | float = "cv",
     folds: int = 5,
     refine: bool | None = None,
+    progress: bool = True,
     **estimator,
 ) -> CorrectionGP:
     """Learn the correction from observed states: samples, a GP chosen by cross-validation, optionally refined.
@@ -436,7 +444,8 @@ def fit_correction(
     Cross-validation falls back to the marginal likelihood when there are fewer than 2 experiments.
 
     Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and one batched solve of the
-    held-out experiments per candidate; about 13 candidates by default.
+    held-out experiments per candidate; about 13 candidates by default. ``progress`` (default on) shows bars over
+    the candidates and the refinement's rounds; ``progress=False`` is silent.
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
@@ -476,7 +485,7 @@ def fit_correction(
                 candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscale_candidates(samples, gp)]
             else:
                 candidates = [template]
-        cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds)
+        cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds, progress=progress)
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if not cv.significant:
             warn(
@@ -503,7 +512,7 @@ def fit_correction(
     if refine is None:
         refine = result.kernel == "features"
     if refine:
-        result = fit_trajectories(result, system, trajectories)
+        result = fit_trajectories(result, system, trajectories, progress=progress)
     result.cross_validation_ = cv
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs

@@ -57,6 +57,7 @@ __all__ = [
     "GPDerivative",
     "choose_derivative",
     "correction_samples",
+    "estimate_state_noise",
     "estimator_error",
     "finite_difference",
     "gp_derivative",
@@ -942,3 +943,32 @@ def correction_samples(
         experiment=experiment,
         noise=sample_noise,
     )
+
+
+def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:
+    """``(d,)`` the standard deviation of the measurement noise on each state component, as the GP in time
+    (:func:`gp_derivative`) finds it in the data (floored at 1e-5 of each component's standard deviation), or
+    ``None`` when an experiment has fewer than :data:`GP_MIN_SAMPLES` observations or a component is constant.
+
+    What :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` assumes by default, so that noisy
+    observations are compared with bands of noisy observations (the bands it calibrates are for the states)."""
+    if min(trajectories.lengths) < GP_MIN_SAMPLES:
+        return None
+    times, states, mask = trajectories.padded()
+    if trajectories.has_missing:
+        mask = torch.isfinite(states) & mask.unsqueeze(-1)
+    try:
+        var = _gp_time(states, times, mask if trajectories.is_ragged or trajectories.has_missing else None, 50).noise
+    except InputError:  # a constant component or too few observations: nothing to estimate from
+        return None
+    floor = 1e-10 * observed_variance(trajectories.flat_states()).clamp_min(torch.finfo(var.dtype).tiny)
+    return torch.maximum(var.to(states), floor.to(states)).sqrt()
+
+
+def observed_variance(flat: torch.Tensor) -> torch.Tensor:
+    """``(d,)`` the unbiased variance of each column of ``flat (N, d)`` over its observed (non-NaN) entries."""
+    seen = torch.isfinite(flat)
+    n = seen.sum(0).clamp_min(2)
+    zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
+    mean = torch.where(seen, flat, zero).sum(0) / n
+    return torch.where(seen, flat - mean, zero).pow(2).sum(0) / (n - 1)

@@ -169,29 +169,28 @@ class MisspecifiedSystem:
 
     def _call(self, key: str, fn, x: torch.Tensor, shape, what: str) -> torch.Tensor:
         """``fn(x)`` with its output checked; the first batched call also checks that ``fn`` broadcasts over the
-        leading dimensions (a G written for one state fails on a batch, or mixes the batch's rows)."""
-        checking = not self._vectorised[key] and x.dim() >= 2 and x.shape[0] >= 1 and x[..., :1].numel() >= 1
-        if not checking:
-            return _checked(fn(x), shape, what, x)
-        one = x.reshape(-1, x.shape[-1])[0]
-        try:
-            out = fn(x)
-        except (ValueError, RuntimeError, TypeError, IndexError) as exc:
-            try:
-                single = fn(one)
-            except Exception:  # noqa: BLE001 - it fails on one state too: the user's own error, raised as it is
-                raise exc from None
-            if isinstance(single, torch.Tensor):
-                raise InputError(_not_vectorised(what, x, f"raised {type(exc).__name__}: {exc}")) from exc
-            raise
-        out = _checked(out, shape, what, x)
+        leading dimensions: a function written for one state (``y[0]``, ``torch.stack([...])`` along the first axis)
+        can return the right shape for a batch whose size equals d and silently mix its rows."""
+        out = _checked(_call(fn, x, what), shape, what, x)
+        if self._vectorised[key] or x.dim() < 2 or x[..., :1].numel() == 0:
+            return out
         with torch.no_grad():
-            single = fn(one)
-            first = out.reshape(-1, out.shape[-1])[0] if out.dim() >= 1 else out
-            same = isinstance(single, torch.Tensor) and single.shape == first.shape
-            if not same or not torch.allclose(single.to(first), first, rtol=1e-6, atol=1e-12, equal_nan=True):
-                how = "gave another value for the first state of a batch than for that state alone"
-                raise InputError(_not_vectorised(what, x, how))
+            try:
+                single = fn(x.reshape(-1, x.shape[-1])[0])
+            except Exception:  # noqa: BLE001 - it works on the batch: a function that needs one is allowed
+                single = None
+            first = out.reshape(-1, out.shape[-1])[0]
+            if (
+                isinstance(single, torch.Tensor)
+                and single.shape == first.shape
+                and not torch.allclose(single.to(first), first, rtol=1e-6, atol=1e-12, equal_nan=True)
+            ):
+                raise ShapeError(
+                    f"{what} must broadcast over leading dimensions, states (..., d) -> (..., d): called with a batch "
+                    f"of shape {tuple(x.shape)} it gave another value for the batch's first state than for that state "
+                    "alone (it mixes the batch's rows). Write it with tensor operations on the last axis, e.g. "
+                    "y[..., 0] instead of y[0], and torch.stack([...], dim=-1) for the result"
+                )
         self._vectorised[key] = True
         return out
 
@@ -210,24 +209,27 @@ class MisspecifiedSystem:
         )
 
 
-def _not_vectorised(what: str, x: torch.Tensor, how: str) -> str:
-    return (
-        f"{what} must broadcast over leading dimensions, states (..., d) -> (..., d) (F: inputs (..., d_in) -> "
-        f"(..., d_out)): it works on one state but, called with a batch of shape {tuple(x.shape)}, {how}. Write it "
-        "with tensor operations on the last axis, e.g. S, I = y[..., 0], y[..., 1] and torch.stack([...], dim=-1), "
-        "not float(y[0]), math functions or y[0] indexing"
-    )
+def _call(function, x: torch.Tensor, what: str):
+    """``function(x)``; a function that is not vectorised (it converts a batch of states to one number, or indexes
+    states as a single vector) fails here with a message that says so instead of torch's own."""
+    try:
+        return function(x)
+    except (ValueError, RuntimeError, IndexError, TypeError) as exc:
+        if "only one element tensors" in str(exc) or "a Tensor with" in str(exc) and "to a Scalar" in str(exc):
+            raise ShapeError(
+                f"{what} must work on a batch of states: it is called with a tensor of shape {tuple(x.shape)} "
+                f"(states (..., d)), and failed ({type(exc).__name__}: {exc}). Write it with tensor operations on the "
+                "last axis, e.g. y[..., 0] instead of float(y[0]), and torch.stack([...], dim=-1) for the result"
+            ) from exc
+        raise
 
 
 def _checked(out, shape: torch.Size, what: str, x: torch.Tensor) -> torch.Tensor:
     if not isinstance(out, torch.Tensor):
-        import numpy as np
-
-        kind = f"a numpy array of shape {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
         raise ShapeError(
-            f"{what} must return a torch tensor of shape {tuple(shape)} for inputs of shape {tuple(x.shape)}, got "
-            f"{kind}; build it with torch operations (e.g. torch.stack([...], dim=-1)) so it follows the states' "
-            "dtype, device and gradients, rather than numpy"
+            f"{what} returned a {type(out).__module__}.{type(out).__name__} for states of shape {tuple(x.shape)}; "
+            f"expected a torch.Tensor of shape {tuple(shape)} (build it with torch operations on the input tensor, "
+            "e.g. torch.stack([...], dim=-1), not NumPy)"
         )
     if out.shape != shape:
         got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__

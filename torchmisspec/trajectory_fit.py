@@ -26,11 +26,11 @@ from ._errors import (
 )
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
-from ._validation import as_tensor, check_positive_int, check_real
+from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp import CorrectionGP
 from .gp._optim import OptimResult, maximise
-from .observations import GP_MIN_SAMPLES, _check_trajectories_and_system, _gp_time
+from .observations import _check_trajectories_and_system, estimate_state_noise
 from .systems import MisspecifiedSystem
 
 __all__ = ["SHOOTING", "fit_trajectories", "shooting_misfit"]
@@ -204,7 +204,9 @@ def fit_trajectories(
     kd = dict(dtype=gp.dtype, device=gp.device)
     s2 = _state_noise(state_noise, trajectories, d, kd)
     if relevance:
-        return _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter)
+        return _fit_relevance(
+            gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter, progress=progress
+        )
     L = gp._posterior_cache().fac.chol  # (B, N, N), C = K + diag(known noise + floor), fixed
     X = gp.train_inputs_
     Y0 = gp.train_targets_.detach()
@@ -252,27 +254,36 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
         residuals.nfe = 0
         residuals.seen = seen
         return residuals, int(seen.sum()), None
-    groups = trajectories.by_length()
-    first = trajectories.initial_conditions  # (K, d), missing entries estimated
+    # every experiment in one batched solve, ragged ones too: each row on its own times (padded at its end by
+    # repeating its last time, which the solver's shared grid absorbs); only the observed entries are compared
+    times, states, mask = trajectories.padded()
+    if times.dim() == 1:
+        times = times.expand(states.shape[0], -1)
+    first = trajectories.initial_conditions  # (K, d), missing entries estimated (Trajectories.filled)
     offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
     zero = torch.zeros((), dtype=first.dtype, device=first.device)
+    seen = torch.isfinite(states)  # missing entries (NaN) are compared as 0
 
     def residuals(field, off, sd):
-        parts = []
-        for idx, group in groups:
-            y0 = first[idx] if off is None else first[idx] + off[idx] * sd
-            pred, nfe = solve(field, y0, group.times, **solver)
-            residuals.nfe += nfe
-            seen = torch.isfinite(group.states)
-            parts.append(torch.where(seen, pred - group.states, zero).reshape(-1, d))  # missing entries: 0
-        return torch.cat(parts)
+        y0 = first if off is None else first + off * sd
+        pred, nfe = solve(field, y0, times, **solver)
+        residuals.nfe += nfe
+        return torch.where(seen, pred - states, zero)[mask]  # (n, d), experiment after experiment
 
     residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
-    residuals.seen = torch.cat([torch.isfinite(group.states).reshape(-1, d) for _, group in groups])
+    residuals.experiment = torch.arange(states.shape[0], device=first.device).unsqueeze(-1).expand_as(mask)[mask]
 
-    residuals.experiment = torch.cat(
-        [torch.tensor(idx, device=first.device).repeat_interleave(group.num_times) for idx, group in groups]
-    )
+    def many(field, copies: int, off, sd):
+        """``(copies, n, d)``: the residuals of ``copies`` models at once, ``field`` taking the states of copy c's
+        experiments in rows c K ... c K + K - 1 (one batched solve instead of ``copies``)."""
+        y0 = first if off is None else first + off * sd  # off (K, d), or (copies, K, d): one per copy
+        y0 = y0.reshape(-1, d) if y0.dim() == 3 else y0.repeat(copies, 1)
+        pred, nfe = solve(field, y0, times.repeat(copies, 1), **solver)
+        residuals.nfe += nfe
+        return torch.where(seen, pred.reshape(copies, *states.shape) - states, zero)[:, mask]
+
+    residuals.many = many
+    residuals.seen = seen[mask]
     return residuals, int(residuals.seen.sum()), offsets
 
 
@@ -343,7 +354,7 @@ RELEVANCE_ROUNDS = 10
 _LATER_ITERATIONS = 10
 
 
-def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int):
+def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int, progress: bool = False):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
     F(x) = sum_j beta_j phi_j(x) with beta_j ~ N(0, w_j). Each round (i) finds the MAP coefficients (and initial
@@ -382,11 +393,20 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
 
         return field
 
+    def make_fields(bs):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
+        def field(y):
+            f = base.features(system.select_inputs(y)).reshape(bs.shape[0], -1, p)  # (m, K, p)
+            return system.known_rhs(y) + system.embed(torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1))
+
+        return field
+
     if s2 is None:
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
     sd = s2.sqrt()
     iterations = evaluations = 0
+    bar = progress_bar(progress, RELEVANCE_ROUNDS, "fit_trajectories: term weights through the ODE", "round")
     for round_ in range(RELEVANCE_ROUNDS):
+        bar.update()
         active = W > 0
         if not bool(active.any()):
             beta = torch.zeros_like(W)
@@ -398,26 +418,26 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
             b = torch.zeros((p, d_out), **kd).index_put((active.nonzero(as_tuple=True)), uv * root)
             return make_field(b), 0.5 * uv.pow(2).sum()
 
-        result = _maximise_posterior(
-            [u],
-            offsets,
-            field_and_prior,
-            residuals,
-            s2,
-            n_obs,
-            max_iter=max_iter if round_ == 0 else min(max_iter, _LATER_ITERATIONS),
-            progress=False,
-            shooting="relevance",
-        )
-        iterations += result.iterations
-        evaluations += result.evaluations
+        rounds_iter = max_iter if round_ == 0 else min(max_iter, _LATER_ITERATIONS)
+        if hasattr(residuals, "many") and offsets is not None:  # single shooting: Levenberg-Marquardt
+            its, evals = _levenberg_marquardt(
+                u, offsets, active, root, beta, make_field, make_fields, residuals, sd, max_iter=rounds_iter
+            )
+        else:
+            result = _maximise_posterior(
+                [u], offsets, field_and_prior, residuals, s2, n_obs, max_iter=rounds_iter, progress=False,
+                shooting="relevance",
+            )  # fmt: skip
+            its, evals = result.iterations, result.evaluations
+        iterations += its
+        evaluations += evals
         b_act = (u.detach() * root).clone()
         beta = torch.zeros((p, d_out), **kd)
         beta[active] = b_act
         # Laplace: Gauss-Newton Hessian of the scaled misfit in (coefficients, initial-state offsets)
         off = None if offsets is None else offsets.detach()
         with torch.no_grad():
-            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd)
+            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
             H = J_b.T @ J_b + torch.diag(1.0 / W[active])
             if off is not None:  # the offsets' block: column j moves component j of every initial state
                 Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
@@ -447,6 +467,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
             W = new
         if settled:
             break
+    bar.close()
     # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta
     tmp = gp.condition(X, gp.train_targets_, noise=gp.train_noise_)
     with torch.no_grad():
@@ -462,16 +483,96 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     return refined
 
 
+def _levenberg_marquardt(u, offsets, active, root, beta, make_field, make_fields, residuals, sd, *, max_iter: int):
+    """Minimise ``1/2 ||r(u, o) / s||^2 + 1/2 ||u||^2`` (the MAP of the coefficients ``u``, in units of their prior
+    standard deviations, and the initial-state offsets ``o``, in units of the state noise) by Levenberg-Marquardt
+    steps: the Jacobian by central differences, every perturbed model in one batched solve. The problem has a few
+    dozen parameters and is nearly linear in them, so a handful of steps replaces L-BFGS's dozens of evaluations,
+    each of which differentiated through the solver. ``u`` and ``offsets`` are updated in place; returns
+    ``(iterations, objective evaluations)``."""
+    q = u.numel()
+    K, d = offsets.shape
+    kd = dict(dtype=u.dtype, device=u.device)
+
+    def coefficients(uv):
+        b = torch.zeros_like(beta)
+        b[active] = uv * root
+        return b
+
+    def objective(uv, ov):
+        try:
+            r = residuals(make_field(coefficients(uv)), ov, sd) / sd
+        except IntegrationError:
+            return math.inf, None
+        return 0.5 * float(r.pow(2).sum() + uv.pow(2).sum()), r.reshape(-1)
+
+    with torch.no_grad():
+        uv, ov = u.detach().clone(), offsets.detach().clone()
+        value, r = objective(uv, ov)
+        if r is None:
+            raise FittingError("fit_trajectories: the starting correction cannot be integrated over the experiments")
+        lam, evaluations, iterations = 1e-3, 1, 0
+        while iterations < max_iter:
+            iterations += 1
+            b = coefficients(uv)
+            J_u = _coefficient_columns(residuals, make_field, b, active, ov, sd, make_fields) * root  # (n d, q)
+            J_o = _offset_columns(residuals, make_field(b), ov, sd)  # (n d, K d)
+            J = torch.cat([J_u, J_o], dim=1)
+            grad = J.T @ r + torch.cat([uv, torch.zeros(K * d, **kd)])
+            H = J.T @ J
+            H[range(q), range(q)] += 1.0
+            accepted = False
+            for _ in range(8):
+                A = H + lam * torch.diag(H.diagonal().clamp_min(1e-12))
+                try:
+                    step = -torch.linalg.solve(A, grad)
+                except torch.linalg.LinAlgError:
+                    lam *= 10.0
+                    continue
+                new_u, new_o = uv + step[:q], ov + step[q:].reshape(K, d)
+                new_value, new_r = objective(new_u, new_o)
+                evaluations += 1
+                if new_value < value:
+                    accepted = True
+                    break
+                lam *= 10.0
+            if not accepted:
+                break
+            gain = value - new_value
+            uv, ov, value, r = new_u, new_o, new_value, new_r
+            lam = max(lam / 10.0, 1e-9)
+            if gain <= 1e-8 * max(value, 1.0):
+                break
+        u.data.copy_(uv)
+        offsets.data.copy_(ov)
+    return iterations, evaluations
+
+
 def _step(value: float, typical: float) -> float:
     """A central-difference step for a parameter of size ``value`` among parameters of size ``typical``."""
     return 1e-5 * max(abs(value), typical, 1e-12)
 
 
-def _coefficient_columns(residuals, make_field, beta, active, off, sd) -> torch.Tensor:
-    """``(n d, q)``: d (residual / s) / d beta over the active coefficients, by central differences."""
-    cols = []
+def _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields=None) -> torch.Tensor:
+    """``(n d, q)``: d (residual / s) / d beta over the active coefficients, by central differences; with
+    ``make_fields`` (a field for a stack of coefficient sets) and single shooting, every perturbed model in one
+    batched solve."""
     typical = float(beta.abs().max()) * 1e-3
-    for i, o in active.nonzero(as_tuple=False).tolist():
+    pairs = active.nonzero(as_tuple=False).tolist()
+    if make_fields is not None and hasattr(residuals, "many"):
+        h = torch.tensor([_step(float(beta[i, o]), typical) for i, o in pairs], dtype=beta.dtype, device=beta.device)
+        q = len(pairs)
+        stack = beta.unsqueeze(0).repeat(2 * q, 1, 1)
+        rows = torch.arange(q, device=beta.device)
+        idx_i = torch.tensor([i for i, _ in pairs], device=beta.device)
+        idx_o = torch.tensor([o for _, o in pairs], device=beta.device)
+        stack[rows, idx_i, idx_o] += h
+        stack[q + rows, idx_i, idx_o] -= h
+        res = residuals.many(make_fields(stack), 2 * q, off, sd)  # (2q, n, d)
+        diff = (res[:q] - res[q:]) / (2 * h.reshape(-1, 1, 1)) / sd
+        return diff.reshape(q, -1).T
+    cols = []
+    for i, o in pairs:
         h = _step(float(beta[i, o]), typical)
         plus, minus = beta.clone(), beta.clone()
         plus[i, o] += h
@@ -489,6 +590,16 @@ def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
     n = rows.shape[0]
     J = torch.zeros((n, d, K, d), dtype=off.dtype, device=off.device)
     h = 1e-5
+    if hasattr(residuals, "many"):  # the 2 d perturbed offsets in one batched solve
+        stack = off.unsqueeze(0).repeat(2 * d, 1, 1)
+        j = torch.arange(d, device=off.device)
+        stack[j, :, j] += h
+        stack[d + j, :, j] -= h
+        res = residuals.many(field, 2 * d, stack, sd)  # (2 d, n, d)
+        delta = (res[:d] - res[d:]) / (2 * h) / sd  # (d, n, d)
+        for jj in range(d):
+            J[torch.arange(n, device=off.device), :, rows, jj] = delta[jj]
+        return J.reshape(n * d, K * d)
     for j in range(d):
         plus, minus = off.clone(), off.clone()
         plus[:, j] += h
@@ -532,19 +643,5 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> t
                 f"{state_noise!r:.80}"
             )
         return value
-    if min(trajectories.lengths) < GP_MIN_SAMPLES:
-        return None
-    times, states, mask = trajectories.padded()
-    if trajectories.has_missing:
-        mask = torch.isfinite(states) & mask.unsqueeze(-1)
-    try:
-        noise = _gp_time(states, times, mask if trajectories.is_ragged or trajectories.has_missing else None, 50).noise
-    except InputError:  # a constant component, or too few observations: nothing to estimate from
-        return None
-    flat = trajectories.flat_states()
-    seen = torch.isfinite(flat)
-    n = seen.sum(0).clamp_min(2)
-    mean = torch.where(seen, flat, 0.0).sum(0) / n
-    var = torch.where(seen, flat - mean, 0.0).pow(2).sum(0) / (n - 1)
-    floor = 1e-10 * var.clamp_min(torch.finfo(noise.dtype).tiny)
-    return torch.maximum(noise.to(**kd), floor)
+    std = estimate_state_noise(trajectories)  # None with fewer than 4 samples or a constant component
+    return None if std is None else std.to(**kd).pow(2)

@@ -33,6 +33,9 @@ __all__ = ["Campaign"]
 FORMAT = "torchmisspec.Campaign"
 VERSION = 1
 MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to an asked candidate
+# a measured first state (noisy) matches the nearest pending ask within this fraction of the candidates' range per
+# coordinate, when no pending ask matches exactly and every other pending ask is at least twice as far
+NEAR_TOL = 0.1
 
 
 def _hyperparameters(gp: CorrectionGP) -> dict:
@@ -54,8 +57,11 @@ class Campaign:
         system: the misspecified system (known model, correction inputs/outputs, domain).
         candidates: ``(N, d)`` candidate initial conditions.
         times: ``(T,)`` observation times of every experiment (the first is the initial condition's).
-        gp: the prior: a :class:`~torchmisspec.CorrectionGP` with a shared kernel whose hyperparameters are set (e.g.
-            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`); it is not modified.
+        gp: a :class:`~torchmisspec.CorrectionGP`, not modified: a prior whose hyperparameters are set (e.g.
+            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`) to start without data, or a fitted GP (e.g.
+            from :func:`~torchmisspec.fit_correction`) to start from the samples it was fitted on: the first ``ask``
+            is then conditioned on them, and ``tell`` refits on them plus the new experiments. Any model the
+            package fits works (per-output kernels, feature kernels, per-sample noise).
         criterion: ``"information"`` (the paper's) or ``"domain"`` (variance of F over D), see
             :func:`~torchmisspec.design.greedy`.
         proxy: ``"known"`` or ``"corrected"``; default ``"corrected"`` once there are data, ``"known"`` before.
@@ -104,7 +110,7 @@ class Campaign:
             raise InputError(f"proxy: expected one of {PROXIES} or None, got {proxy!r}")
         self.candidates = check_candidates(candidates, self.system, dtype=gp.dtype, device=gp.device)
         self.times = check_times(times, dtype=gp.dtype, device=gp.device)
-        self.prior = gp.fixed_copy() if gp.is_fitted else gp
+        self.prior = gp  # fitted: its hyperparameters and its samples are where the campaign starts
         if domain is not None:
             domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=self.system.input_dim)
         self.config = {
@@ -131,6 +137,11 @@ class Campaign:
         self._inputs: list[torch.Tensor] = []
         self._targets: list[torch.Tensor] = []
         self._noise: list[torch.Tensor | None] = []
+        if gp.is_fitted:  # what is known already: the first design is conditioned on the samples gp was fitted on
+            self._inputs = [gp.train_inputs_.detach().clone()]
+            self._targets = [gp.train_targets_.detach().clone()]
+            self._noise = [None if gp.train_noise_ is None else gp.train_noise_.detach().clone()]
+            self.gp = gp
 
     # --------------------------------------------------------------------------------------------- state
     @property
@@ -234,14 +245,48 @@ class Campaign:
         pend = self.candidates[pending]
         scale = 1.0 + pend.abs().amax(-1)
         hit = ((pend - y0).abs().amax(-1) <= MATCH_TOL * scale).nonzero()
-        return pending[int(hit[0, 0])] if hit.numel() else -1
+        if hit.numel():
+            return pending[int(hit[0, 0])]
+        # a lab measures the first state with noise: the nearest pending ask, in units of the candidates' range
+        span = (self.candidates.amax(0) - self.candidates.amin(0)).clamp_min(torch.finfo(pend.dtype).tiny)
+        dist = ((pend - y0).abs() / span).amax(-1)
+        order = torch.argsort(dist)
+        near = float(dist[order[0]]) <= NEAR_TOL
+        unique = dist.numel() == 1 or float(dist[order[1]]) >= 2 * float(dist[order[0]])
+        return pending[int(order[0])] if near and unique else -1
 
-    def tell(self, trajectories: Trajectories) -> CorrectionGP:
+    def _given_asks(self, asked, n: int, pending: list[int]) -> list[int]:
+        """The candidate indices ``asked`` names for ``n`` told experiments, checked against the pending asks."""
+        if isinstance(asked, str) and asked == "pending":
+            if n > len(pending):
+                raise InputError(
+                    f"asked='pending': expected at most the {len(pending)} pending asks, got {n} experiments; pass "
+                    "asked=[index or -1 per experiment]"
+                )
+            return pending[:n]
+        ok = isinstance(asked, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool) for i in asked)
+        if not ok or len(asked) != n:
+            raise InputError(
+                f"asked: expected 'pending' or a list of {n} candidate indices (-1: not asked for), got {asked!r:.100}"
+            )
+        wrong = [i for i in asked if i >= 0 and (i not in pending or asked.count(i) > 1)]
+        if wrong:
+            raise InputError(
+                f"asked: expected pending asks (each once) or -1, got {wrong} (pending: {pending}); tell experiments "
+                "nobody asked for as -1"
+            )
+        return list(asked)
+
+    def tell(self, trajectories: Trajectories, *, asked=None) -> CorrectionGP:
         """Add measured experiments; returns the refitted GP (also ``self.gp``).
 
-        The initial condition of each experiment is matched to a pending ask; experiments nobody asked for are
-        accepted and noted as such in the history. Samples come from :func:`~torchmisspec.correction_samples` with the
-        campaign's ``derivative`` and ``noise_std``. Nothing changes if anything fails (bad input, a failed fit).
+        ``asked``: the candidate index each experiment answers (``-1``: not asked for), or ``"pending"``: the
+        experiments answer the pending asks in the order they were asked. By default each experiment's first state is
+        matched to a pending ask: exactly, or, a measured and so noisy first state, the nearest pending ask within
+        10 % of the candidates' range in every coordinate when it is at most half as far as any other pending ask.
+        Experiments nobody asked for are accepted and noted as such in the history. Samples come from
+        :func:`~torchmisspec.correction_samples` with the campaign's ``derivative`` and ``noise_std``. Nothing changes
+        if anything fails (bad input, a failed fit).
         """
         if not isinstance(trajectories, Trajectories):
             raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
@@ -254,11 +299,15 @@ class Campaign:
         start = time.perf_counter()
         y0 = traj.initial_conditions
         matched, pending = [], list(self.pending)
-        for row in y0:
-            idx = self._match(row, pending)
-            if idx >= 0:
-                pending.remove(idx)  # duplicates of a candidate match one pending ask each
-            matched.append(idx)
+        if asked is None:
+            for row in y0:
+                idx = self._match(row, pending)
+                if idx >= 0:
+                    pending.remove(idx)  # duplicates of a candidate match one pending ask each
+                matched.append(idx)
+        else:
+            matched = self._given_asks(asked, y0.shape[0], pending)
+            pending = [p for p in pending if p not in matched]
         state = self.generator.get_state()
         try:
             samples = correction_samples(
@@ -323,6 +372,8 @@ class Campaign:
                 note = f"hyperparameters not learned ({type(exc).__name__}: {exc}); kept the prior's"
         else:
             note = "prior hyperparameters (fewer samples than refit_after)" if refit else "prior hyperparameters"
+        if self.prior.is_fitted:  # the starting model's hyperparameters (per-output ones included), conditioned
+            return self.prior.condition(X, Y, noise=known), note
         return self.prior.fixed_copy().fit(X, Y, noise=known), note
 
     # --------------------------------------------------------------------------------------------- files
@@ -340,6 +391,7 @@ class Campaign:
             "candidates": self.candidates.cpu(),
             "times": self.times.cpu(),
             "prior": _persistence.config_of(self.prior),
+            "prior_model": _persistence.to_blob(self.prior) if self.prior.is_fitted else None,
             "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
             "inputs": [x.cpu() for x in self._inputs],
             "targets": [y.cpu() for y in self._targets],
@@ -377,6 +429,8 @@ class Campaign:
                 f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
             )
         prior = _persistence.from_config(CorrectionGP, field("prior", dict), f"{path} (field 'prior')")
+        if blob.get("prior_model") is not None:  # a campaign started from a fitted GP
+            prior = _persistence.from_blob(CorrectionGP, blob["prior_model"], f"{path} (field 'prior_model')")
         cfg = field("config", dict)
         try:
             camp = cls(

@@ -77,16 +77,76 @@ class _PriorView:
         return self.module.forward(x, x, diag=True)
 
 
+class _OutputBlocks:
+    """The kernel of F's outputs as one kernel on points ``(x, o)`` whose last column is the output ``o``:
+
+        k_aug((x, o), (x', o')) = [o = o'] k_o(x, x') / s_o,
+
+    with ``k_o`` output o's kernel (the shared one, or its own with per-output kernels) and ``s_o`` the noise variance
+    of a new sample of output o. The outputs are independent, so the information of samples of all outputs is the sum
+    of each output's, and dividing each block by its noise makes the sum ``(1 / 2) logdet(I + K_aug)``: one
+    criterion with unit noise, exact for outputs whose kernels or data noise differ."""
+
+    def __init__(self, module, scales: torch.Tensor, batched: bool) -> None:
+        self.module, self.scales, self.batched = module, scales, batched
+
+    def forward(self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False) -> torch.Tensor:
+        o1, o2 = x1[..., -1].round().long(), x2[..., -1].round().long()
+        z1, z2 = x1[..., :-1], x2[..., :-1]
+        if self.batched:  # one kernel per output: (..., d_out, M1, M2), output o1's rows kept
+            K = self.module.forward(z1.unsqueeze(-3), z2.unsqueeze(-3), diag=diag)
+            if diag:
+                idx = o1.unsqueeze(-1).expand(*K.shape[:-2], K.shape[-1], 1)
+                K = K.transpose(-1, -2).gather(-1, idx).squeeze(-1)
+            else:
+                idx = o1.unsqueeze(-2).unsqueeze(-1).expand(*K.shape[:-3], 1, K.shape[-2], K.shape[-1])
+                K = K.gather(-3, idx).squeeze(-3)
+        else:
+            K = self.module.forward(z1, z2, diag=diag)
+        inv = 1.0 / self.scales[o1]
+        if diag:
+            return K * inv
+        return K * (o1.unsqueeze(-1) == o2.unsqueeze(-2)) * inv.unsqueeze(-1)
+
+
+def future_noise(gp: CorrectionGP) -> torch.Tensor | None:
+    """``(d_out,)`` the noise variance the design assumes for a new sample of each output, ``None`` for an unfitted
+    GP (its one fixed ``noise_variance`` then).
+
+    The learned (or fixed) noise variance, plus, when the GP was fitted with known per-sample noise (a derivative
+    estimator's, e.g. the GP in time), the median known variance of that output's training samples: a new
+    experiment is measured and differentiated like the earlier ones, so its samples are as noisy as a typical one
+    (the learned variance alone is only the floor above the known noise, often orders of magnitude smaller)."""
+    if not gp.is_fitted:
+        return None
+    d_out = gp.output_dim
+    floor = gp._floor(gp.likelihood).noise.detach().reshape(-1).expand(d_out)
+    known = gp.train_noise_
+    if known is None:
+        return floor.clone()
+    return floor + known.detach().median(dim=0).values
+
+
 class GPKernel:
     """The correction GP's prior kernel k (outputscale included) and noise variance, ready for batched use.
 
     Calls the GP's own GPyTorch kernel module, so the design uses exactly the covariance the GP will use; inputs
-    may carry batch dimensions (``(..., M1, d_in)`` with ``(..., M2, d_in)``). Only the shared kernel is
-    supported: the design criterion is then ``d_out`` times the single-output one.
+    may carry batch dimensions (``(..., M1, d_in)`` with ``(..., M2, d_in)``).
+
+    Two layouts, chosen from the GP (consumers call :meth:`expand` on their points and weigh log-determinants by
+    :meth:`multiplicity`, and never ask which):
+
+    * **shared**: one kernel, one noise variance and the same data for every output (the paper's model); the
+      criterion is ``d_out`` times the single-output one.
+    * **per output**: per-output kernels, or noise (learned or known per sample) that differs between outputs. Each
+      output is then informed by its own data and noise: points become ``(x, o)`` pairs, one per output
+      (:meth:`expand`), under the block kernel of :class:`_OutputBlocks` with unit noise. Exact: the information
+      of independent outputs is the sum of each output's, and each is conditioned on its own samples.
 
     With ``condition`` (default: when the GP is fitted) the kernel is the *posterior* covariance of F given the GP's
     training samples (with their noise, per sample where known), k(x, x') - k(x, X) C^-1 k(X, x') with
-    C = K(X, X) + noise: every information gain is then the information given the data already collected.
+    C = K(X, X) + noise: every information gain is then the information given the data already collected. The
+    noise of *new* samples is :func:`future_noise`.
     """
 
     def __init__(
@@ -94,16 +154,10 @@ class GPKernel:
     ) -> None:
         if not isinstance(gp, CorrectionGP):
             raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
-        if gp.per_output:
-            why = (
-                "kernel='auto' chose the feature kernel, which has one weight per term and output; design with a "
-                "CorrectionGP(kernel=...) of one shared kernel fitted on the same samples"
-                if getattr(gp, "auto", False)
-                else "Build the design GP with per_output=False"
-            )
+        if not gp.is_fitted and gp.per_output:
             raise InputError(
-                "gp: experimental design supports the shared kernel only (the paper's model, one kernel for all "
-                f"outputs); got a CorrectionGP with per_output=True. {why}"
+                "gp: an unfitted CorrectionGP with per_output=True has no per-output hyperparameters yet; design "
+                "before any data with a shared kernel (per_output=False) and given hyperparameters, or fit it first"
             )
         if not gp.is_fitted and gp.kernel in FEATURE_KERNELS:
             raise InputError(
@@ -120,44 +174,74 @@ class GPKernel:
                     f"{'is' if len(missing) == 1 else 'are'} not set (None) on this unfitted CorrectionGP; pass "
                     f"CorrectionGP({args}) or fit the GP on earlier data first"
                 )
-        noise = gp.noise_variance
-        if noise is None or not math.isfinite(float(noise)) or float(noise) <= 0:
+        scales = future_noise(gp)
+        noise = float(gp.noise_variance) if scales is None else float(scales.max())
+        if scales is not None and not bool(torch.isfinite(scales).all() and (scales > 0).all()):
+            raise InputError(f"gp: expected positive finite noise variances, got {scales.tolist()}")
+        if not math.isfinite(noise) or noise <= 0:
             raise InputError(f"gp: expected a positive finite noise_variance, got {noise!r}")
         if gp.is_fitted and input_dim is not None and gp.input_dim != input_dim:
             raise ShapeError(
                 f"gp: expected a GP with {input_dim} inputs (the system's correction inputs), got one "
                 f"fitted on {gp.input_dim}"
             )
-        self.gp = gp
-        self.module = gp.covar_module
-        self.noise = float(noise)
-        self.dtype = gp.dtype
-        self.device = gp.device
         if condition is None:
             condition = gp.is_fitted
         if condition and not gp.is_fitted:
             raise InputError("condition: an unfitted gp holds no data to condition on; fit it first or pass False")
+        self.gp = gp
+        self.dtype = gp.dtype
+        self.device = gp.device
+        fac = gp._posterior_cache().fac if gp.is_fitted else None
+        # the data's factor: (1, N, N) when every output has the same C = K + noise, else (d_out, N, N)
+        chol = None if fac is None else fac.chol.detach()
+        shared_data = chol is None or chol.shape[0] == 1 or all(torch.equal(chol[0], c) for c in chol[1:])
+        shared = not gp.per_output and shared_data and (scales is None or bool((scales == scales[0]).all()))
+        #: whether points are expanded to one block per output (:meth:`expand`); False: the shared layout
+        self.expanded = not shared
+        self.blocks = 1 if shared else gp.output_dim
+        if shared:
+            self.module = gp.covar_module
+            self.noise = noise
+        else:
+            self.module = _OutputBlocks(gp.covar_module, scales, gp.per_output)
+            self.noise = 1.0
+            self.scales = scales
         #: the lower Cholesky factor of K(X, X) + noise of the GP's training samples X when conditioning, else None
         self.chol: torch.Tensor | None = None
         self.data: torch.Tensor | None = None
         self._memo: tuple | None = None
         if condition:
-            chol = gp._posterior_cache().fac.chol  # (1, N, N); (d_out, N, N) with per-output known noise
-            if chol.shape[0] != 1 and not all(torch.equal(chol[0], c) for c in chol[1:]):
-                raise InputError(
-                    "gp: its known per-sample noise differs between outputs, so the data inform each output of F "
-                    "differently; the design criterion conditions one shared kernel. Fit the GP with the same noise "
-                    "for every output (samples.with_shared_noise(): each sample as noisy as its noisiest output), "
-                    "or pass condition=False"
-                )
-            self.chol = chol[0].detach()
-            self.data = gp.train_inputs_.detach()
+            X = gp.train_inputs_.detach()
+            if shared:
+                self.chol, self.data = chol[0], X
+            else:  # block o: output o's data factor over its noise, C_o / s_o = (L_o / sqrt(s_o))(...)^T
+                L = chol.expand(self.blocks, -1, -1) / scales.sqrt().reshape(-1, 1, 1)
+                self.chol = torch.block_diag(*L)
+                self.data = self.expand(X)
             self._data_factor(exact_data)
+
+    def expand(self, x: torch.Tensor) -> torch.Tensor:
+        """Points ``(..., M, d_in)`` as the kernel takes them: unchanged in the shared layout, else one copy per
+        output with the output's index as a last column, ``(..., d_out M, d_in + 1)`` (output-major)."""
+        if not self.expanded:
+            return x
+        labels = torch.arange(self.blocks, dtype=x.dtype, device=x.device)
+        labels = labels.repeat_interleave(x.shape[-2]).reshape(*([1] * (x.dim() - 2)), -1, 1)
+        copies = (
+            x.unsqueeze(-3).expand(*x.shape[:-2], self.blocks, *x.shape[-2:]).reshape(*x.shape[:-2], -1, x.shape[-1])
+        )
+        return torch.cat([copies, labels.expand(*copies.shape[:-1], 1)], dim=-1)
+
+    def multiplicity(self, d_out: int) -> int:
+        """The factor on ``(1 / 2) logdet(I + K / noise)`` of expanded points: ``d_out`` identical outputs in the
+        shared layout, 1 per output block (each output is one of the expanded points' blocks)."""
+        return 1 if self.expanded else d_out
 
     @property
     def num_conditioned(self) -> int:
         """Training samples the kernel is conditioned on (0: the prior)."""
-        return 0 if self.data is None else self.data.shape[0]
+        return 0 if self.data is None else self.data.shape[0] // self.blocks
 
     def _data_factor(self, exact: bool = False) -> None:
         """A factor G (r x r) with k(x, X) C^-1 k(X, x') = (G^T k(Z, x))^T (G^T k(Z, x')) up to ``data_error``.

@@ -52,6 +52,14 @@ class DomainModel:
 
     def __init__(self, kern: GPKernel, system, domain=None, domain_size: int | None = None) -> None:
         d_in = system.input_dim
+        if kern.expanded:
+            raise InputError(
+                "gp: criterion='domain' weighs the variance of F over D in F's units and needs one kernel and one "
+                "noise for all outputs; this GP has per-output kernels or per-output noise. Use "
+                "criterion='information' (it conditions each output on its own data), or fit a shared GP "
+                "(CorrectionGP(per_output=False)) on samples with the same noise for every output "
+                "(samples.with_shared_noise())"
+            )
         if domain is None:
             domain = system.domain
             if domain is None:

@@ -80,8 +80,8 @@ def information_gain(points, gp: CorrectionGP, *, d_out: int | None = None, cond
         raise ShapeError(f"points: expected {gp.input_dim} input columns (as the fitted gp), got {tuple(x.shape)}")
     if x.shape[0] == 0:
         return 0.0
-    logdet, _ = logdet_identity_plus(kern(x), kern.noise, "I + K / noise_variance")
-    return 0.5 * d_out * float(logdet)
+    logdet, _ = logdet_identity_plus(kern(kern.expand(x)), kern.noise, "I + K / noise_variance")
+    return 0.5 * kern.multiplicity(d_out) * float(logdet)
 
 
 # ------------------------------------------------------------------------------------------- proxy vs truth
@@ -145,7 +145,8 @@ def _design_points(indices, candidates, system, times, gp, proxies, states, prox
             )
         check_finite(true, "states")
     d_in = system.input_dim
-    return kern, system.select_inputs(prox).reshape(-1, d_in), system.select_inputs(true).reshape(-1, d_in), system
+    prox_x, true_x = (kern.expand(system.select_inputs(p).reshape(-1, d_in)) for p in (prox, true))
+    return kern, prox_x, true_x, system
 
 
 def true_information_gain(
@@ -169,7 +170,7 @@ def true_information_gain(
     """
     kern, _, true_x, system = _design_points(indices, candidates, system, times, gp, None, states)
     logdet, _ = logdet_identity_plus(kern(true_x), kern.noise, "I + K(true) / noise_variance")
-    return 0.5 * system.output_dim * float(logdet)
+    return 0.5 * kern.multiplicity(system.output_dim) * float(logdet)
 
 
 def _bound(delta: float, n: int, noise: float, blocks: int) -> float:
@@ -204,7 +205,7 @@ def proxy_check(
     )
     Kp, Kt = kern(prox_x), kern(true_x)
     delta = float((Kt - Kp).abs().max())
-    d_out = system.output_dim
+    d_out = kern.multiplicity(system.output_dim)
     ld_p, _ = logdet_identity_plus(Kp, kern.noise, "I + K(proxy) / noise_variance")
     ld_t, _ = logdet_identity_plus(Kt, kern.noise, "I + K(true) / noise_variance")
     m = prox_x.shape[0]

@@ -131,8 +131,9 @@ class _Problem:
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)
-        self.points = self.system.select_inputs(self.proxies).contiguous()  # (N, T, d_in)
-        self.d_out = self.system.output_dim
+        # (N, T, d_in), or (N, d_out T, d_in + 1) when each output is informed by its own data (GPKernel.expand)
+        self.points = self.kern.expand(self.system.select_inputs(self.proxies)).contiguous()
+        self.d_out = self.kern.multiplicity(self.system.output_dim)  # the factor on (1 / 2) logdet
 
     @property
     def n(self) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .._errors import InputError, IntegrationError
+from .._errors import InputError, IntegrationError, TorchMisspecWarning, warn
 from .._ode import SIMULATION_TOLERANCES
 from ..data import simulate
 from ..systems import MisspecifiedSystem
@@ -21,7 +21,32 @@ def corrected_proxies(system: MisspecifiedSystem, gp, y0: torch.Tensor, times: t
     design with data uses (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`)."""
     from ..dynamics import CorrectedODE
 
-    return CorrectedODE(system, gp).predict(y0, times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1])
+    model = CorrectedODE(system, gp)
+    failed: list[int] = []
+
+    def solve(rows: torch.Tensor) -> torch.Tensor:
+        """The corrected proxies of ``y0[rows]``; where the corrected model cannot be integrated from a candidate (the
+        posterior mean far from the data can grow without bound), the halves are solved apart until the failing
+        candidates are found, and those get G's proxy."""
+        try:
+            return model.predict(y0[rows], times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1])
+        except IntegrationError:
+            if rows.numel() == 1:
+                failed.append(int(rows[0]))
+                return proxy_trajectories(system, y0[rows], times)
+            half = rows.numel() // 2
+            return torch.cat([solve(rows[:half]), solve(rows[half:])])
+
+    out = solve(torch.arange(y0.shape[0], device=y0.device))
+    if failed:
+        warn(
+            f"corrected proxies: the corrected model (G + the GP's posterior mean) cannot be integrated from "
+            f"{len(failed)} of {y0.shape[0]} candidates (e.g. {sorted(failed)[:5]}): far from the data the correction "
+            "is an extrapolation. Their proxies are the known model's alone (the paper's proxy); the design still "
+            "ranks them, by the information along G's trajectories",
+            TorchMisspecWarning,
+        )
+    return out
 
 
 def proxy_trajectories(

@@ -296,6 +296,10 @@ class CorrectionGP:
     saved with the model).
     """
 
+    #: the :class:`~torchmisspec.calibration.BandCalibration` of this fit's bands (``CorrectedODE.calibrate``), saved
+    #: with the model; ``None`` until calibrated, and again after a refit
+    calibration_ = None
+
     def __init__(
         self,
         *,
@@ -787,6 +791,7 @@ class CorrectionGP:
             self.covar_module.load_state_dict(saved[0])
             self.likelihood.load_state_dict(saved[1])
             raise
+        self.__dict__.pop("calibration_", None)  # a calibration of the bands belongs to the fit it was made for
         return self
 
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:

@@ -18,6 +18,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_real
+from ._calibration import BandCalibration
 from ._features import FEATURE_KERNELS
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -120,6 +121,9 @@ def to_blob(gp: CorrectionGP) -> dict:
     }
     if getattr(gp, "input_names_", None) is not None:  # additive: files without it load with no names
         blob["input_names"] = list(gp.input_names_)
+    calibration = getattr(gp, "calibration_", None)
+    if calibration is not None:  # the bands' calibrated spread travels with the model (absent in older files)
+        blob["calibration"] = calibration.to_dict()
     return blob
 
 
@@ -197,4 +201,6 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
         raise InputError(f"{path}: expected 'input_names' to be {what}, got {names!r:.80}")
     gp.input_names_ = None if names is None else tuple(names)
     gp._posterior_cache()
+    if blob.get("calibration") is not None:
+        gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
     return gp

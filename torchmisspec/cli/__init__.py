@@ -1,0 +1,119 @@
+"""The ``torchmisspec`` command: the scientist's loop on a lab's files.
+
+``fit`` (learn the correction from a table of observed trajectories, calibrate its bands, save the model),
+``calibrate`` (recalibrate a saved model's bands), ``predict`` (trajectories from new initial conditions with bands,
+as a CSV and a figure), ``design`` (the next experiments) and ``demo`` (paper 5.1 end to end). Every command reads
+lab tables with the same column options and takes the user's system as ``module:function`` or ``file.py:function``.
+Every error is one line on stderr naming the fix, with exit status 2; no traceback reaches the user (set
+``TORCHMISSPEC_TRACEBACK=1`` to see one when reporting a bug).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from ._design import add_design
+from ._fit import add_calibrate, add_fit
+from ._predict import add_predict
+
+__all__ = ["build_parser", "main"]
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from ..paper.demo import linear_demo
+
+    print(
+        f"paper 5.1: {args.n_train} random experiments in [-1, 1]^2, T = 11 on [0, 6], oracle noise std "
+        f"{args.noise_std}, seed {args.seed}"
+    )
+    r = linear_demo(
+        args.out,
+        n_train=args.n_train,
+        n_test=args.n_test,
+        seed=args.seed,
+        noise_std=args.noise_std,
+        progress=not args.quiet,
+    )
+    print(
+        f"fitted GP: lengthscale {r.lengthscale:.4g}, outputscale {r.outputscale:.4g}, noise variance "
+        f"{r.noise_variance:.4g}, log marginal likelihood {r.log_marginal_likelihood:.6g} ({r.seconds['fit']:.2f} s)"
+    )
+    print(
+        f"integrated error of the correction over D: {r.integrated_error:.4g}   "
+        f"(energy of F: {r.energy_of_F:.4g}, ratio {r.integrated_error / r.energy_of_F:.3f}; "
+        f"energy of G + F: {r.energy_of_G_plus_F:.4g})"
+    )
+    print(
+        f"trajectory RMSE on {r.n_test} new initial conditions: corrected {r.rmse_corrected:.4g}, misspecified "
+        f"{r.rmse_misspecified:.4g}, ratio {r.rmse_ratio:.3f} ({r.rhs_evaluations} right-hand-side evaluations, "
+        f"{r.seconds['predict']:.2f} s)"
+    )
+    if r.figures:
+        print("figures: " + ", ".join(r.figures) + f"; numbers: {args.out}/results.json")
+    return 0
+
+
+def _add_demo(sub) -> None:
+    demo = sub.add_parser(
+        "demo",
+        help="run paper 5.1 end to end (fit, predict, figures)",
+        description="Paper 5.1 end to end: simulate random experiments of the linear system, fit "
+        "the correction GP, predict new trajectories, write figures.",
+    )
+    demo.add_argument(
+        "--out", default="demo-output", help="folder for the figures and results.json (default: %(default)s)"
+    )
+    demo.add_argument("--n-train", type=int, default=40, help="number of training experiments (default: 40)")
+    demo.add_argument("--n-test", type=int, default=20, help="number of new initial conditions (default: 20)")
+    demo.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    demo.add_argument("--noise-std", type=float, default=1e-2, help="std of the derivative noise (default: 1e-2)")
+    demo.add_argument("--quiet", action="store_true", help="no progress bar")
+    demo.set_defaults(func=_demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchmisspec", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_fit(sub)
+    add_calibrate(sub)
+    add_predict(sub)
+    add_design(sub)
+    _add_demo(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; 0 on success, 2 on any error (one line on stderr)."""
+    from .._errors import TorchMisspecError
+
+    args = build_parser().parse_args(argv)  # argparse's own errors: usage and one line, exit 2
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print(f"torchmisspec {args.command}: interrupted; nothing more was written", file=sys.stderr)
+        return 2
+    except TorchMisspecError as exc:
+        print(f"torchmisspec {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file that cannot be read or written
+        print(f"torchmisspec {args.command}: error: {exc.strerror or exc} ({exc.filename or ''})", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: still one line, with what to send us
+        if os.environ.get("TORCHMISSPEC_TRACEBACK"):
+            raise
+        print(
+            f"torchmisspec {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} (please report it "
+            "with the command; TORCHMISSPEC_TRACEBACK=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return 2
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,5 @@
+"""``python -m torchmisspec.cli``: the command line."""
+
+from . import main
+
+raise SystemExit(main())

@@ -1,0 +1,209 @@
+"""``torchmisspec design``: the next experiments, from a model, from data, or from a prior the user states."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from .._errors import InputError
+from ._common import (
+    add_data_options,
+    add_system_option,
+    check_output,
+    load_model,
+    parse_times,
+    read_observations,
+    read_table,
+    state_names,
+    write_csv,
+)
+
+__all__ = ["add_design"]
+
+PRIOR = ("lengthscale", "outputscale", "noise_variance")
+
+
+def _gp(args: argparse.Namespace, system):
+    """The design's GP: ``--model``, or fitted on ``--data``, or the prior the user gave; never a hidden one."""
+    from ..gp import CorrectionGP
+
+    given = {name: getattr(args, name) for name in PRIOR if getattr(args, name) is not None}
+    if args.model is not None and (given or args.data is not None):
+        raise InputError("--model: the model already holds its data and hyperparameters; drop --data and the prior")
+    if args.model is not None:
+        return load_model(args.model, system), "the model " + args.model
+    if given and len(given) != len(PRIOR):
+        missing = ", ".join("--" + n.replace("_", "-") for n in PRIOR if n not in given)
+        raise InputError(
+            f"the prior: expected --lengthscale, --outputscale and --noise-variance together; missing {missing}"
+        )
+    if args.data is not None:
+        observed = read_observations(args)
+        if given:  # the user's prior, conditioned on the data
+            from ..observations import correction_samples
+
+            samples = correction_samples(observed, system, derivative=args.derivative)
+            return CorrectionGP(kernel=args.kernel, **given).fit(samples), f"the given prior and {args.data}"
+        from ..learning import fit_correction
+
+        gp = fit_correction(observed, system, derivative=args.derivative, progress=not args.quiet)
+        return gp, f"a model fitted on {args.data}"
+    if given:
+        return CorrectionGP(kernel=args.kernel, **given), "the given prior"
+    raise InputError(
+        "design: no model to design with. Pass --model model.pt (written by 'fit'), --data observed.csv (a model is "
+        "fitted with the defaults), or a prior before any data: --lengthscale, --outputscale and --noise-variance "
+        "(the size of F in the units of dy/dt, squared, and the noise on its samples)"
+    )
+
+
+def _capacities(args: argparse.Namespace, n: int):
+    import torch
+
+    if args.partition is None:
+        if args.capacities is not None:
+            raise InputError("--capacities: needs --partition (a region label per candidate)")
+        return None, None
+    labels = torch.as_tensor(read_table(args.partition, "partition")[0]).reshape(-1)
+    if labels.is_floating_point() and not bool((labels == labels.round()).all()):
+        raise InputError(f"--partition: expected integer region labels, got fractional values in {args.partition}")
+    if args.capacities is None:
+        raise InputError("--capacities: expected the most picks per region with --partition, got none")
+    try:
+        if "=" in args.capacities:
+            caps = {int(k): int(v) for k, v in (kv.split("=") for kv in args.capacities.split(","))}
+        else:
+            caps = [int(v) for v in args.capacities.split(",")]
+    except ValueError as exc:
+        raise InputError(
+            f"--capacities: expected 'label=count,...' or 'count,count,...', got {args.capacities!r}"
+        ) from exc
+    return labels.long(), caps
+
+
+def _design(args: argparse.Namespace) -> int:
+    import torch
+
+    from .. import design
+    from ..systems import load_system
+
+    out = check_output(args.out, (".csv", ".json"))
+    system = load_system(args.system)
+    table, header = read_table(args.candidates, "candidates")
+    candidates = torch.as_tensor(table, dtype=torch.float64)
+    if candidates.dim() == 1:
+        candidates = candidates.unsqueeze(-1)
+    times = parse_times(args.times)
+    partition, capacities = _capacities(args, candidates.shape[0])
+    gp, source = _gp(args, system)
+    if args.criterion != "information" and args.method not in ("lazy", "plain", "naive"):
+        raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")
+    common = dict(
+        system=system, times=times, gp=gp, progress=not args.quiet, partition=partition, capacities=capacities
+    )
+    if args.method == "random":
+        plan = design.random(candidates, args.budget, generator=torch.Generator().manual_seed(args.seed), **common)
+    elif args.method == "agnostic":
+        plan = design.agnostic(candidates, args.budget, **common)
+    else:
+        plan = design.greedy(
+            candidates, args.budget, method=args.method, criterion=args.criterion, proxy=args.proxy, **common
+        )
+    names = header if header is not None and len(header) == system.state_dim else state_names(args, system.state_dim)
+    units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
+    conditioned = plan.diagnostics.get("conditioned", 0)
+    if out.suffix == ".json":
+        out.write_text(
+            json.dumps(
+                {
+                    "system": system.name,
+                    "model": source,
+                    "method": plan.method,
+                    "budget": args.budget,
+                    "indices": plan.indices.tolist(),
+                    "gains": plan.gains.tolist(),
+                    "information_gain": plan.information_gain,
+                    "points": [dict(zip(names, p, strict=True)) for p in plan.points.tolist()],
+                    "criterion": args.criterion,
+                    "conditioned_on_samples": conditioned,
+                    "proxy": plan.diagnostics.get("proxy"),
+                    "units": units,
+                },
+                indent=2,
+            )
+        )
+    else:
+        rows = [
+            [i, c, g, *p]
+            for i, (c, g, p) in enumerate(
+                zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(), strict=True)
+            )
+        ]
+        write_csv(out, ["order", "index", "gain", *names], rows)
+    print(
+        f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on {system.name} "
+        f"with {source}"
+        + (f" (conditioned on {conditioned} samples)" if conditioned else "")
+        + f": criterion {args.criterion} {plan.information_gain:.4g} ({units}); indices {plan.indices.tolist()}; "
+        f"written to {out}"
+    )
+    return 0
+
+
+def add_design(sub) -> None:
+    des = sub.add_parser(
+        "design",
+        help="choose the next experiments: the candidate initial conditions that teach the most about F",
+        description="Experimental design (paper section 4): pick BUDGET of the candidate initial conditions whose "
+        "predicted trajectories carry the most information about F, given what is known: a fitted model (--model), "
+        "data (--data: a model is fitted with the defaults), or, before any data, a prior you state "
+        "(--lengthscale, --outputscale, --noise-variance). Writes the picks in order with their marginal gains.",
+    )
+    des.add_argument(
+        "--candidates",
+        required=True,
+        help="candidate initial conditions, one per row (N, d): CSV/TSV/TXT (an optional header row of state names), "
+        ".npy, or .npz (array 'candidates' or a single array)",
+    )
+    add_system_option(des)
+    des.add_argument(
+        "--times",
+        required=True,
+        help="observation times: 'start:stop:count' (equally spaced, e.g. 0:6:11) or a comma list",
+    )
+    des.add_argument("--budget", type=int, required=True, help="number of experiments K to choose")
+    des.add_argument("--model", help="a model file written by 'fit' (its data condition the design)")
+    add_data_options(des, required=False, help="experiments already run, as for 'fit': a model is fitted on them")
+    des.add_argument("--derivative", default="auto", help="with --data: how dy/dt is estimated (default: auto)")
+    des.add_argument("--kernel", default="rbf", choices=["rbf", "matern52", "polynomial"], help="the prior's kernel")
+    des.add_argument("--lengthscale", type=float, help="the prior's lengthscale (with --outputscale, --noise-variance)")
+    des.add_argument("--outputscale", type=float, help="the prior's output scale: the variance of F")
+    des.add_argument("--noise-variance", type=float, help="the variance of the noise on the samples of F")
+    des.add_argument(
+        "--method",
+        default="lazy",
+        choices=["lazy", "plain", "naive", "agnostic", "random"],
+        help="lazy greedy (default), plain greedy, naive greedy (reference), agnostic (ignores the known model), "
+        "random",
+    )
+    des.add_argument(
+        "--criterion",
+        default="information",
+        choices=["information", "domain"],
+        help="information about F (the paper's, default) or domain: the variance of F over the system's domain D",
+    )
+    des.add_argument(
+        "--proxy",
+        choices=["known", "corrected"],
+        help="trajectories the samples are predicted along: G alone or G + the GP's mean (default: corrected with a "
+        "fitted model, known without)",
+    )
+    des.add_argument("--partition", help="optional file with one integer region label per candidate")
+    des.add_argument(
+        "--capacities",
+        help="most picks per region: 'label=count,...' or 'count,count,...' (indexed by label); needs --partition",
+    )
+    des.add_argument("--seed", type=int, default=0, help="seed of the random design (default: 0)")
+    des.add_argument("--out", default="design.csv", help="output file, .csv or .json (default: %(default)s)")
+    des.add_argument("--quiet", action="store_true", help="no progress bars")
+    des.set_defaults(func=_design)

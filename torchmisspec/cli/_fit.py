@@ -1,0 +1,149 @@
+"""``torchmisspec fit`` and ``torchmisspec calibrate``: learn the correction from a lab's table, calibrate its bands."""
+
+from __future__ import annotations
+
+import argparse
+
+from .._errors import InputError
+from ._common import add_data_options, add_system_option, check_output, load_model, read_observations, state_names
+
+__all__ = ["add_calibrate", "add_fit"]
+
+
+def _state_noise(text: str):
+    """``--state-noise``: auto, a percentage, a number, or one number per state."""
+    text = text.strip()
+    if text == "auto" or text.endswith("%"):
+        return text
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise InputError(
+            f"--state-noise: expected auto, a percentage such as 2%, a standard deviation or one per state "
+            f"(comma separated), got {text!r}"
+        ) from None
+    return values[0] if len(values) == 1 else values
+
+
+def _calibrate(model, observed, args: argparse.Namespace):
+    return model.calibrate(
+        observed, level=args.level, state_noise=_state_noise(args.state_noise), progress=not args.quiet
+    )
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from ..dynamics import CorrectedODE
+    from ..learning import fit_correction
+    from ..systems import load_system
+
+    out = check_output(args.out, (".pt",))
+    _state_noise(args.state_noise)  # checked before the work
+    system = load_system(args.system)
+    observed = read_observations(args)
+    gp = fit_correction(
+        observed, system, derivative=args.derivative, refine=True if args.refine else None, progress=not args.quiet
+    )
+    cv = gp.cross_validation_
+    times = f"{min(observed.lengths)}-{max(observed.lengths)}" if observed.is_ragged else str(observed.num_times)
+    print(
+        f"fitted the correction of '{system.name}' on {len(gp.samples_)} samples ({observed.num_experiments} "
+        f"experiments x {times} times, derivative {args.derivative!r}): {gp!r}"
+    )
+    if cv is not None:
+        print(
+            f"cross-validation ({cv.folds} folds): chose {cv.best}; held-out error {min(cv.scores):.4g} against "
+            f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
+        )
+    if gp.weights is not None:  # a feature kernel: its terms, in the data's names
+        names = state_names(args, system.state_dim)
+        terms = list(gp.terms([names[i] for i in system.correction_inputs]))
+        for o, j in enumerate(system.correction_outputs):
+            kept = [str(t) for t in terms if t.output == o]
+            print(f"correction of d{names[j]}/dt: " + (" ".join(kept) if kept else "0 (no term kept)"))
+    if not args.no_calibrate:
+        if observed.num_experiments < 2:
+            print("bands not calibrated: calibration holds out experiments and needs at least 2")
+        else:
+            print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
+    gp.save(out)
+    print(f"written to {out}")
+    return 0
+
+
+def _recalibrate(args: argparse.Namespace) -> int:
+    from ..dynamics import CorrectedODE
+    from ..observations import correction_samples
+    from ..systems import load_system
+
+    out = check_output(args.out or args.model, (".pt",))
+    _state_noise(args.state_noise)  # checked before the work
+    system = load_system(args.system)
+    gp = load_model(args.model, system)
+    observed = read_observations(args)
+    samples = correction_samples(observed, system, derivative=args.derivative)
+    result = CorrectedODE(system, gp).calibrate(
+        observed, samples, level=args.level, state_noise=_state_noise(args.state_noise), progress=not args.quiet
+    )
+    gp.save(out)
+    print(f"calibrated bands: {result}; written to {out}")
+    return 0
+
+
+def _calibration_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--level", type=float, default=0.9, help="the band to calibrate (default: %(default)s)")
+    parser.add_argument(
+        "--state-noise",
+        default="auto",
+        help="noise on the measured states: auto (default: estimated from the data), a percentage of the state "
+        "(2%%), a standard deviation, or one per state (comma separated)",
+    )
+
+
+def add_fit(sub) -> None:
+    fit = sub.add_parser(
+        "fit",
+        help="learn the correction F from a table of observed trajectories, calibrate its bands, save the model",
+        description="Learn the missing term F of dy/dt = G(y) + F(y) from observed trajectories with the library's "
+        "defaults (torchmisspec.fit_correction: dy/dt estimated from the states, the correction model chosen by "
+        "cross-validation on held-out experiments), calibrate its uncertainty bands on held-out experiments "
+        "(CorrectedODE.calibrate; a few seconds, --no-calibrate to skip), and save it with its calibration (read it "
+        "back with torchmisspec.CorrectionGP.load, or pass it to 'predict', 'calibrate' and 'design').",
+    )
+    add_data_options(
+        fit,
+        required=True,
+        help="observed trajectories: a .csv, .tsv or .txt table with a header row (one row per experiment and time, "
+        "rows in any order) or an .npz written by Trajectories.save",
+    )
+    add_system_option(fit)
+    fit.add_argument(
+        "--derivative",
+        default="auto",
+        help="how dy/dt is estimated from the states: auto (default: the estimator whose self-check on the known "
+        "model is best), central, smooth, gp (a Gaussian process in time)",
+    )
+    fit.add_argument("--refine", action="store_true", help="always refine the correction through the ODE")
+    fit.add_argument("--no-calibrate", action="store_true", help="save the model without calibrating its bands")
+    _calibration_options(fit)
+    fit.add_argument("--out", default="model.pt", help="output model file, .pt (default: %(default)s)")
+    fit.add_argument("--quiet", action="store_true", help="no progress bars")
+    fit.set_defaults(func=_fit)
+
+
+def add_calibrate(sub) -> None:
+    cal = sub.add_parser(
+        "calibrate",
+        help="calibrate a saved model's uncertainty bands on the experiments it was fitted on",
+        description="Hold out folds of the experiments, refit, and scale the bands until they cover the held-out "
+        "observations at the level (CorrectedODE.calibrate); the calibration is saved in the model file.",
+    )
+    cal.add_argument("--model", required=True, help="the model file written by 'fit'")
+    add_data_options(cal, required=True, help="the observed trajectories the model was fitted on (as for 'fit')")
+    add_system_option(cal)
+    cal.add_argument(
+        "--derivative", default="auto", help="how dy/dt is estimated from the states, as for 'fit' (default: auto)"
+    )
+    _calibration_options(cal)
+    cal.add_argument("--out", help="output model file, .pt (default: rewrite --model)")
+    cal.add_argument("--quiet", action="store_true", help="no progress bars")
+    cal.set_defaults(func=_recalibrate)
