@@ -87,6 +87,8 @@ def check_own_system(ns: dict) -> None:
     assert torch.equal(loaded.states, data.states) and torch.equal(loaded.times, data.times)
     # "Experiments of different lengths": T=51..81
     assert ns["ragged"].is_ragged and ns["ragged"].lengths == (81, 71, 61, 51)
+    # "Missing values and names": 4 missing entries, no sample where omega is missing
+    assert ns["gappy"].num_missing == 4 and (ns["gappy"].num_samples, len(ns["gappy_samples"])) == (324, 323)
     errors, gps = ns["errors"], ns["gps"]
     central, smooth = "central, order 4", "smooth, window 11, degree 3"
     # "On precise states, fourth-order differences are nearly exact and beat the local fit"

@@ -188,7 +188,7 @@ class Trajectories:
         return [(grid[k], self.states[k]) for k in range(self.num_experiments)]
 
     def flat_states(self) -> torch.Tensor:
-        """``(N, d)``: all observed states, experiment after experiment (N = sum of the lengths)."""
+        """``(N, d)``: all observed states, experiment after experiment (N = sum of the lengths; NaN where missing)."""
         if self.is_ragged:
             return torch.cat(self.states)
         return self.states.reshape(-1, self.state_dim)
@@ -196,7 +196,8 @@ class Trajectories:
     def padded(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(times (K, T_max), states (K, T_max, d), mask (K, T_max))``, each experiment padded at its end.
 
-        Padded entries repeat the experiment's last time and state; ``mask`` is true on the observed samples.
+        Padded entries repeat the experiment's last time and state; ``mask`` is true on the observed samples (rows:
+        missing entries inside them stay NaN, see :attr:`observed`).
         """
         if not self.is_ragged:
             mask = torch.ones(self.states.shape[:2], dtype=torch.bool, device=self.device)
