@@ -220,20 +220,9 @@ def calibrate_bands(
             gen = torch.Generator(device=gp.device).manual_seed(seed + 7919 * i + j)
             with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
                 warnings.simplefilter("ignore", TorchMisspecWarning)
-                # each draw starts from its own noisy first state (the observed one is measured with noise too)
-                starts = None
-                if noisy:
-                    sd = absolute + relative * y0.abs()
-                    starts = sd * torch.randn((num_samples, *y0.shape), generator=gen, dtype=y0.dtype, device=y0.device)
                 try:
                     post = fold_model.posterior(
-                        y0,
-                        times,
-                        num_samples=num_samples,
-                        generator=gen,
-                        scale=1.0,
-                        initial_offsets=starts,
-                        **posterior_options,
+                        y0, times, num_samples=num_samples, generator=gen, scale=1.0, **posterior_options
                     )
                 except IntegrationError as exc:
                     bar.close()

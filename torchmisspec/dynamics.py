@@ -158,7 +158,6 @@ class CorrectedODE(nn.Module):
         hyperparameters: str = "fixed",
         hyperparameter_samples: int = 8,
         scale: float | None = None,
-        initial_offsets: torch.Tensor | None = None,
     ) -> TrajectoryPosterior:
         """Trajectories under posterior draws of F: uncertainty bands on the predicted paths.
 
@@ -195,9 +194,6 @@ class CorrectedODE(nn.Module):
                 posterior (``CorrectionGP.hyperparameter_samples``), so the bands allow for the hyperparameters'
                 own uncertainty (ML-II alone is overconfident with few experiments; ``docs/studies/calibration.md``).
             hyperparameter_samples: the number of hyperparameter sets with ``"laplace"`` (at most ``num_samples``).
-            initial_offsets: optional ``(S, B, d)`` offsets of each draw's initial state from ``y0`` (the uncertainty
-                of a measured initial state; :meth:`calibrate` uses it for the noise on the held-out first states,
-                so that the error it starts the paths with is not mistaken for missing spread of F).
             scale: a factor c > 0 on every path's deviation from the mean path, y_c = y_mean + c (y_s - y_mean);
                 default: the scale found by :meth:`calibrate`, or 1 (the GP's own bands) before any calibration. To
                 first order in the draws' deviation this is the path of F_c = mu + c (F_s - mu) (the posterior
@@ -261,16 +257,7 @@ class CorrectedODE(nn.Module):
         grid = times if times.dim() == 1 else times.repeat(S, 1)
         settings = dict(method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
-            starts = y0.repeat(S, 1)
-            if initial_offsets is not None:  # each draw from its own initial state (a measured one's uncertainty)
-                offsets = as_tensor(initial_offsets, "initial_offsets", dtype=y0.dtype, device=y0.device)
-                if offsets.shape != (S, B, d) or not bool(torch.isfinite(offsets).all()):
-                    raise ShapeError(
-                        f"initial_offsets: expected finite offsets of shape ({S}, {B}, {d}) (draws, initial "
-                        f"conditions, states), got {tuple(offsets.shape)}"
-                    )
-                starts = starts + offsets.reshape(S * B, d)
-            paths, nfe, diverged = _solve_draws(field, starts, grid, settings, B)
+            paths, nfe, diverged = _solve_draws(field, y0.repeat(S, 1), grid, settings, B)
         self.nfe = nfe
         if diverged:
             rows = sorted(diverged)
