@@ -73,3 +73,14 @@ def test_gravity_extrapolation_probe_splits_the_error():
     lines = [line for line in out.splitlines() if "score" in line]
     assert [line.split()[0] for line in lines] == ["rbf", "matern52", "features", "features+rbf"]
     assert "of D is >= 0.5 from every sample" in out
+
+
+@pytest.mark.slow
+def test_end_to_end_study_smoke(tmp_path):
+    out = tmp_path / "e.json"
+    stdout = _script("study_end_to_end.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert len(result["runs"]) == 2 and result["smoke"]
+    for run in result["runs"]:
+        assert 0 < run["rmse_ratio"] < 1 and 0 <= run["coverage"] <= 1 and run["greedy"] and run["campaign"]
+    assert "calibrated 90 % band: coverage of the true states" in stdout
