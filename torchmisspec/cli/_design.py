@@ -144,7 +144,7 @@ def _design(args: argparse.Namespace) -> int:
         f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on {system.name} "
         f"with {source}"
         + (f" (conditioned on {conditioned} samples)" if conditioned else "")
-        + f": criterion {args.criterion} {plan.information_gain:.4g} ({units}); indices {plan.indices.tolist()}; "
+        + f": criterion {args.criterion} {plan.information_gain:.4g} {units}; indices {plan.indices.tolist()}; "
         f"written to {out}"
     )
     return 0
