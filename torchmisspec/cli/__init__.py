@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
+from functools import partial
 
 from ._design import add_design
 from ._fit import add_calibrate, add_fit
@@ -73,8 +75,15 @@ def _add_demo(sub) -> None:
     demo.set_defaults(func=_demo)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (it prints the usage first), exit status 2 as argparse's own."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchmisspec", description=__doc__.split("\n\n")[0])
+    parser = _Parser(prog="torchmisspec", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_fit(sub)
     add_calibrate(sub)
@@ -88,9 +97,17 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; 0 on success, 2 on any error (one line on stderr)."""
     from .._errors import TorchMisspecError
 
-    args = build_parser().parse_args(argv)  # argparse's own errors: usage and one line, exit 2
     try:
-        return args.func(args)
+        args = build_parser().parse_args(argv)  # argparse's own errors: one line, SystemExit(2)
+    except KeyboardInterrupt:
+        print("torchmisspec: interrupted", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help (0) or a usage error (2, its line already printed)
+        return exc.code if isinstance(exc.code, int) else 2
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = partial(_warning_line, args.command)
+            return args.func(args)
     except KeyboardInterrupt:
         print(f"torchmisspec {args.command}: interrupted; nothing more was written", file=sys.stderr)
         return 2
@@ -111,8 +128,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException | str) -> str:
     return " ".join(str(exc).split())
+
+
+def _warning_line(command: str, message, category, filename, lineno, file=None, line=None) -> None:
+    """The library's warnings reach the user as one line each on stderr, without the source line."""
+    print(f"torchmisspec {command}: warning: {_one_line(message)}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -144,7 +144,18 @@ def read_safely(path: str | Path, what: str, writer: str):
         raise InputError(f"path: expected an existing {what} file, got {str(path)!r}")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, RuntimeError, ValueError, OSError) as exc:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        zipfile.BadZipFile,
+        RuntimeError,
+        ValueError,
+        OSError,
+        IndexError,  # a text file (a CSV passed as the model): the legacy reader pops an empty stack
+        KeyError,
+        TypeError,
+        AttributeError,
+    ) as exc:
         raise InputError(
             f"{path}: expected a {what} file written by {writer} (tensors and plain values only), "
             f"but it could not be read safely ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
