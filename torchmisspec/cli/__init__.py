@@ -15,7 +15,9 @@ import os
 import sys
 import warnings
 from functools import partial
+from pathlib import Path
 
+from .._errors import InputError
 from ._design import add_design
 from ._fit import add_calibrate, add_fit
 from ._predict import add_predict
@@ -25,6 +27,11 @@ __all__ = ["build_parser", "main"]
 
 def _demo(args: argparse.Namespace) -> int:
     from ..paper.demo import linear_demo
+
+    try:  # the folder is checked before the work, as every command's output
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out: cannot write {args.out!r} (a folder that can be created): {exc.strerror}") from None
 
     print(
         f"paper 5.1: {args.n_train} random experiments in [-1, 1]^2, T = 11 on [0, 6], oracle noise std "
@@ -98,7 +105,14 @@ def main(argv: list[str] | None = None) -> int:
     from .._errors import TorchMisspecError
 
     try:
-        args = build_parser().parse_args(argv)  # argparse's own errors: one line, SystemExit(2)
+        parser = build_parser()
+        args, unknown = parser.parse_known_args(argv)  # argparse's own errors: one line, SystemExit(2)
+        if unknown:  # named by the command, as every other error
+            parser.exit(
+                2,
+                f"torchmisspec {args.command}: error: unrecognized arguments: {' '.join(unknown)} (see "
+                f"'torchmisspec {args.command} --help')\n",
+            )
     except KeyboardInterrupt:
         print("torchmisspec: interrupted", file=sys.stderr)
         return 2

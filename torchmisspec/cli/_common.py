@@ -13,6 +13,7 @@ __all__ = [
     "add_system_option",
     "check_names",
     "check_output",
+    "known_state_names",
     "load_model",
     "parse_times",
     "read_observations",
@@ -86,18 +87,32 @@ def _number(text: str) -> bool:
     return True
 
 
-def read_states(path: str, option: str, args: argparse.Namespace, system):
+def known_state_names(system, gp=None) -> list[str] | None:
+    """The states' names the system declares, or those the model was fitted on when its inputs are every state."""
+    if getattr(system, "state_names", None) is not None:
+        return list(system.state_names)
+    names = getattr(gp, "input_names_", None)
+    if names is not None and len(names) == system.state_dim:
+        out = [""] * system.state_dim
+        for i, n in zip(system.correction_inputs, names, strict=True):
+            out[i] = n
+        return out if all(out) else None
+    return None
+
+
+def read_states(path: str, option: str, args: argparse.Namespace, system, known: list[str] | None = None):
     """Initial states, one per row, from ``path``: ``(tensor (N, d), state names, row labels)``.
 
     A CSV/TSV/TXT with a header row is read by name with the column options: ``--state-columns`` (default: every
     column but the experiment column), ``--experiment-column`` (optional: the rows' labels, else 0..N-1); a time
-    column is refused (one state per row, not trajectories). Without a header, or from .npy/.npz, every column is a
-    state, in the system's order."""
+    column is refused (one state per row, not trajectories). ``known``: the states' names (the system's or the
+    model's); a header holding them all is read by them, in the system's order, whatever the columns' order. Without a
+    header, or from .npy/.npz, every column is a state, in the system's order."""
     import torch
 
     p = Path(path)
     if p.suffix in (".npy", ".npz") or not p.is_file():
-        table, _ = read_table(path, option.lstrip("-"))
+        table, _ = read_table(path, option.lstrip("-"), option)
         names, labels, rows = None, None, table
     else:
         try:
@@ -122,7 +137,11 @@ def read_states(path: str, option: str, args: argparse.Namespace, system):
                     f"{option}: expected one state per row, but {path!r} has a time column {args.time_column!r}; "
                     "drop it (or rename it if it is a state)"
                 )
-            wanted = state_columns(args) or [c for c in header if c != args.experiment_column]
+            wanted = state_columns(args)
+            if wanted is None and known is not None and all(c in header for c in known):
+                wanted = list(known)
+            if wanted is None:
+                wanted = [c for c in header if c != args.experiment_column]
             missing = [c for c in wanted if c not in header]
             if missing:
                 raise InputError(
@@ -180,7 +199,7 @@ def parse_times(text: str):
     message = "--times: expected 'start:stop:count' with count >= 1, a comma list of numbers or a file of times, "
     message += f"got {text!r}"
     if Path(text).suffix in (".csv", ".tsv", ".txt", ".npy", ".npz") and Path(text).is_file():
-        table, _ = read_table(text, "times")
+        table, _ = read_table(text, "times", "--times")
         if table.ndim == 2 and table.shape[1] != 1:
             raise InputError(f"--times: expected one column of times in {text!r}, got {table.shape[1]} columns")
         return torch.as_tensor(table.reshape(-1), dtype=torch.float64)
@@ -196,19 +215,21 @@ def parse_times(text: str):
         raise InputError(message) from exc
 
 
-def read_table(path: str, what: str):
+def read_table(path: str, what: str, option: str | None = None):
     """A numeric array from .npz (array ``what`` or the only one), .npy, or CSV/TSV/TXT (an optional header row),
     and the header's column names (``None`` without one). Nothing is unpickled; unreadable, non-UTF-8 or
     non-numeric files raise :class:`InputError`."""
     import zipfile
 
+    label = option or what  # the option named in messages (``what`` is also the .npz array's name)
+
     import numpy as np
 
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{what}: file {path!r} does not exist")
+        raise InputError(f"{label}: file {path!r} does not exist")
     if p.suffix not in (".csv", ".tsv", ".txt", ".npz", ".npy"):
-        raise InputError(f"{what}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
+        raise InputError(f"{label}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
     header = None
     try:
         if p.suffix == ".npz":
@@ -235,12 +256,12 @@ def read_table(path: str, what: str):
         raise
     except (ValueError, OSError, EOFError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
         raise InputError(
-            f"{what}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), but it "
+            f"{label}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), but it "
             f"could not be read ({type(exc).__name__}: {str(exc)[:160]})"
         ) from exc
     if arr.dtype.kind not in "iuf" or arr.size == 0:
         raise InputError(
-            f"{what}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
+            f"{label}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
         )
     return arr, header
 

@@ -11,6 +11,7 @@ from ._common import (
     add_system_option,
     check_names,
     check_output,
+    known_state_names,
     load_model,
     parse_times,
     read_observations,
@@ -91,9 +92,11 @@ def _design(args: argparse.Namespace) -> int:
     out = check_output(args.out, (".csv", ".json"))
     system = load_system(args.system)
     times = parse_times(args.times)
-    candidates, names, labels = read_states(args.candidates, "--candidates", args, system)
+    early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
+    known = known_state_names(system, None if early is None else early[0])
+    candidates, names, labels = read_states(args.candidates, "--candidates", args, system, known)
     partition, capacities = _capacities(args, candidates.shape[0])
-    gp, source = _gp(args, system)
+    gp, source = early or _gp(args, system)  # a fit on --data comes last: after every cheap check
     names = check_names(gp, names, system, "--candidates")
     if args.criterion != "information" and args.method not in ("lazy", "plain", "naive"):
         raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")

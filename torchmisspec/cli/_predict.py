@@ -12,6 +12,7 @@ from ._common import (
     add_system_option,
     check_names,
     check_output,
+    known_state_names,
     load_model,
     parse_times,
     read_states,
@@ -38,7 +39,7 @@ def _predict(args: argparse.Namespace) -> int:
     times = parse_times(args.times)
     system = load_system(args.system)
     gp = load_model(args.model, system)
-    y0, names, labels = read_states(args.initial, "--initial", args, system)
+    y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
     names = check_names(gp, names, system, "--initial")
     labels = labels if labels is not None else [str(b) for b in range(y0.shape[0])]
     model = CorrectedODE(system, gp)
