@@ -527,3 +527,27 @@ def test_every_command_fails_with_one_line_and_exit_2(lab, lab_model, tmp_path, 
     assert err.startswith(f"torchmisspec {command}: ") and message in err, err
     assert "\n" not in err and "Traceback" not in err + captured.out
     assert not [p for p in tmp_path.rglob("out*") if p.is_file()], "an output was written although the command failed"
+
+
+@pytest.mark.slow
+def test_the_command_line_page_runs_on_the_lab_files(lab, tmp_path, monkeypatch, capsys):
+    """docs/tutorials/command-line.md: its commands, run as written on files like the page's (the same columns,
+    initial file and system), succeed and write what the page says."""
+    import re
+    import shlex
+    import shutil
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "tutorials" / "command-line.md").read_text()
+    commands = [c.replace("\\\n", " ") for c in re.findall(r"^```bash\n(.*?)^```", page, re.S | re.M)]
+    assert [shlex.split(c)[1] for c in commands] == ["fit", "calibrate", "predict", "design"]
+    for name in ("lab.csv", "chemostat.py", "initial.csv", "candidates.csv"):
+        shutil.copy(lab / name, tmp_path / name)
+    assert "run,biomass,substrate\nlean,0.2,0.8\nrich,0.5,0.4\n" in page  # the page's initial.csv is the test's
+    monkeypatch.chdir(tmp_path)
+    for command in commands:
+        assert main([*shlex.split(command)[1:], "--quiet"]) == 0, command
+    header = (tmp_path / "prediction.csv").read_text().splitlines()[0]
+    assert header.startswith("run,hour,biomass_mean,biomass_lower,biomass_upper,substrate_mean,")
+    assert (tmp_path / "prediction.png").is_file() and (tmp_path / "next.csv").is_file()
+    assert "calibrated (scale" in capsys.readouterr().out
