@@ -365,7 +365,14 @@ def test_the_loop_on_a_lab_file(lab, tmp_path, capsys):
     assert main(_lab(lab, "fit", "--out", str(model))) == 0
     out = capsys.readouterr().out
     assert "cross-validation" in out and "calibrated bands: BandCalibration(" in out and str(model) in out
-    assert tms.CorrectionGP.load(model).input_names_ == ("biomass", "substrate")
+    saved = tms.CorrectionGP.load(model)
+    assert saved.input_names_ == ("biomass", "substrate")
+    assert saved.system_ == {
+        "name": "chemostat",
+        "state_dim": 2,
+        "correction_inputs": [0, 1],
+        "correction_outputs": [0, 1],
+    }
     recalibrated = tmp_path / "recalibrated.pt"
     args = ("--model", str(model), "--state-noise", "2%", "--level", "0.8", "--out", str(recalibrated))
     assert main(_lab(lab, "calibrate", *args)) == 0
@@ -458,6 +465,7 @@ PROBLEMS = {  # problem -> the message's telling part (per command where it diff
         "predict": "pass the system it was fitted with",
         "design": "pass the system it was fitted with",
     },
+    "another system of the same shape": "corrects system 'chemostat' (2 states), but 'paper_linear' (2 states)",
     "unwritable output": "cannot write '/proc/x",
     "not a model": "expected a CorrectionGP file",
     "a CSV as the model": "expected a CorrectionGP file",
@@ -498,6 +506,10 @@ def _args_with(problem, command, lab, model, tmp_path):
         args[args.index("--system") + 1] = f"{tmp_path / 'raises.py'}:chemostat"
     elif problem == "mismatched system and model":
         args[args.index("--system") + 1] = f"{lab / 'chemostat.py'}:three_states"
+    elif problem == "another system of the same shape":  # the model file records the system it corrects
+        if command == "fit":
+            return None
+        args[args.index("--system") + 1] = "paper_linear"
     elif problem in ("not a model", "a CSV as the model") and command == "fit":
         return None  # reads no model
     elif problem == "usage":
@@ -551,3 +563,30 @@ def test_the_command_line_page_runs_on_the_lab_files(lab, tmp_path, monkeypatch,
     assert header.startswith("run,hour,biomass_mean,biomass_lower,biomass_upper,substrate_mean,")
     assert (tmp_path / "prediction.png").is_file() and (tmp_path / "next.csv").is_file()
     assert "calibrated (scale" in capsys.readouterr().out
+
+
+def test_candidates_with_an_unnamed_state_in_another_column_order(tmp_path, capsys):
+    """A 3-state system whose correction reads 2 named states (as the trial's SIR): a candidates file with the
+    columns R, S, I is read by name, the one column left being the third state."""
+    system_file = tmp_path / "sir.py"
+    system_file.write_text(
+        "import torch\nimport torchmisspec as tms\n\n"
+        "def known(y):\n    s, i = y[..., 0], y[..., 1]\n"
+        "    return torch.stack([-0.5 * s * i, 0.5 * s * i - 0.1 * i, 0.1 * i], dim=-1)\n\n"
+        "def sir():\n    return tms.MisspecifiedSystem(known, 3, correction_inputs=[0, 1], correction_outputs=[0, 1], "
+        "name='sir')\n"
+    )
+    inputs = torch.tensor([[0.5, 0.1], [0.7, 0.2]], dtype=torch.float64)
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1e-3, noise_variance=1e-6).fit(inputs, torch.zeros_like(inputs))
+    gp.input_names_ = ("S", "I")
+    gp.save(tmp_path / "m.pt")
+    (tmp_path / "c.csv").write_text("R,S,I\n0.1,0.8,0.05\n0.2,0.6,0.3\n")
+    args = ["design", "--system", f"{system_file}:sir", "--candidates", str(tmp_path / "c.csv"), "--times", "0:10:5"]
+    assert (
+        main([*args, "--budget", "2", "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "d.csv"), "--quiet"])
+        == 0
+    )
+    header, rows = _table(tmp_path / "d.csv")
+    assert header == ["order", "index", "gain", "S", "I", "R"]
+    by_index = {int(r[1]): [float(v) for v in r[-3:]] for r in rows}
+    assert by_index == {0: [0.8, 0.05, 0.1], 1: [0.6, 0.3, 0.2]}

@@ -13,6 +13,7 @@ __all__ = [
     "add_system_option",
     "check_names",
     "check_output",
+    "describe_system",
     "known_state_names",
     "load_model",
     "parse_times",
@@ -87,17 +88,18 @@ def _number(text: str) -> bool:
     return True
 
 
-def known_state_names(system, gp=None) -> list[str] | None:
-    """The states' names the system declares, or those the model was fitted on when its inputs are every state."""
+def known_state_names(system, gp=None) -> list[str | None] | None:
+    """The states' names the system declares, else those the model was fitted on (``None`` for a state that is not an
+    input of the correction), else ``None``."""
     if getattr(system, "state_names", None) is not None:
         return list(system.state_names)
     names = getattr(gp, "input_names_", None)
-    if names is not None and len(names) == system.state_dim:
-        out = [""] * system.state_dim
-        for i, n in zip(system.correction_inputs, names, strict=True):
-            out[i] = n
-        return out if all(out) else None
-    return None
+    if names is None:
+        return None
+    out = [None] * system.state_dim  # the correction's inputs are named; the other states may not be
+    for i, n in zip(system.correction_inputs, names, strict=True):
+        out[i] = n
+    return out
 
 
 def read_states(path: str, option: str, args: argparse.Namespace, system, known: list[str] | None = None):
@@ -138,8 +140,10 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                     "drop it (or rename it if it is a state)"
                 )
             wanted = state_columns(args)
-            if wanted is None and known is not None and all(c in header for c in known):
-                wanted = list(known)
+            if wanted is None and known is not None and all(c in header for c in known if c is not None):
+                others = [c for c in header if c != args.experiment_column and c not in known]
+                if known.count(None) == len(others) <= 1:  # one unnamed state at most: the one column left
+                    wanted = [others.pop() if c is None else c for c in known]
             if wanted is None:
                 wanted = [c for c in header if c != args.experiment_column]
             missing = [c for c in wanted if c not in header]
@@ -286,11 +290,27 @@ def check_output(path: str, suffixes: tuple[str, ...], option: str = "--out") ->
     return out
 
 
+def describe_system(system) -> dict:
+    """What a model file records of the system it corrects (checked when the model is used again)."""
+    return {
+        "name": system.name,
+        "state_dim": int(system.state_dim),
+        "correction_inputs": [int(i) for i in system.correction_inputs],
+        "correction_outputs": [int(i) for i in system.correction_outputs],
+    }
+
+
 def load_model(path: str, system):
     """A saved CorrectionGP, checked against the system's correction inputs and outputs."""
     from ..gp import CorrectionGP
 
     gp = CorrectionGP.load(path)
+    saved = getattr(gp, "system_", None)
+    if saved is not None and saved != describe_system(system):
+        raise InputError(
+            f"--system: {path} corrects system {saved.get('name')!r} ({saved.get('state_dim')} states), but "
+            f"'{system.name}' ({system.state_dim} states) was given; pass the system it was fitted with"
+        )
     if gp.input_dim != system.input_dim or gp.output_dim != system.output_dim:
         raise InputError(
             f"--model: {path} holds a correction with {gp.input_dim} inputs and {gp.output_dim} outputs, but system "

@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 
 from .._errors import InputError
-from ._common import add_data_options, add_system_option, check_names, check_output, load_model, read_observations
+from ._common import (
+    add_data_options,
+    add_system_option,
+    check_names,
+    check_output,
+    describe_system,
+    load_model,
+    read_observations,
+)
 
 __all__ = ["add_calibrate", "add_fit"]
 
@@ -65,6 +73,7 @@ def _fit(args: argparse.Namespace) -> int:
             print("bands not calibrated: calibration holds out experiments and needs at least 2")
         else:
             print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
+    gp.system_ = describe_system(system)  # later commands check they are given the same system
     gp.save(out)
     print(f"written to {out}")
     return 0
