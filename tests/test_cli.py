@@ -590,3 +590,14 @@ def test_candidates_with_an_unnamed_state_in_another_column_order(tmp_path, caps
     assert header == ["order", "index", "gain", "S", "I", "R"]
     by_index = {int(r[1]): [float(v) for v in r[-3:]] for r in rows}
     assert by_index == {0: [0.8, 0.05, 0.1], 1: [0.6, 0.3, 0.2]}
+
+
+def test_design_with_data_reads_the_candidates_by_the_data_names(lab, tmp_path):
+    """design --data: the candidates file (columns substrate, biomass) is read by the data's names, before the fit."""
+    out = tmp_path / "next.json"
+    args = ("--candidates", str(lab / "candidates.csv"), "--times", "0:20:5", "--budget", "1", "--out", str(out))
+    assert main(_lab(lab, "design", "--data", str(lab / "lab.csv"), *args)) == 0
+    picked = json.loads(out.read_text())
+    candidates = np.loadtxt(lab / "candidates.csv", delimiter=",", skiprows=1)
+    point = picked["points"][0]
+    assert [point["biomass"], point["substrate"]] == candidates[picked["indices"][0]][::-1].tolist()

@@ -25,7 +25,7 @@ __all__ = ["add_design"]
 PRIOR = ("lengthscale", "outputscale", "noise_variance")
 
 
-def _gp(args: argparse.Namespace, system):
+def _gp(args: argparse.Namespace, system, observed=None):
     """The design's GP: ``--model``, or fitted on ``--data``, or the prior the user gave; never a hidden one."""
     from ..gp import CorrectionGP
 
@@ -40,7 +40,7 @@ def _gp(args: argparse.Namespace, system):
             f"the prior: expected --lengthscale, --outputscale and --noise-variance together; missing {missing}"
         )
     if args.data is not None:
-        observed = read_observations(args)
+        observed = read_observations(args) if observed is None else observed
         if given:  # the user's prior, conditioned on the data
             from ..observations import correction_samples
 
@@ -93,10 +93,13 @@ def _design(args: argparse.Namespace) -> int:
     system = load_system(args.system)
     times = parse_times(args.times)
     early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
+    observed = read_observations(args) if args.data is not None and early is None else None  # read before the fit
     known = known_state_names(system, None if early is None else early[0])
+    if observed is not None and tuple(observed.state_names) != tuple(f"y{j}" for j in range(system.state_dim)):
+        known = list(observed.state_names)  # the data's names: the candidates are read by them
     candidates, names, labels = read_states(args.candidates, "--candidates", args, system, known)
     partition, capacities = _capacities(args, candidates.shape[0])
-    gp, source = early or _gp(args, system)  # a fit on --data comes last: after every cheap check
+    gp, source = early or _gp(args, system, observed)  # a fit on --data comes last: after every cheap check
     names = check_names(gp, names, system, "--candidates")
     if args.criterion != "information" and args.method not in ("lazy", "plain", "naive"):
         raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")
