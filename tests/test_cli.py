@@ -130,7 +130,7 @@ def test_design_command_errors(tmp_path, candidates_csv, capsys):
     assert main(base + ["--system", "paper_linear", "--budget", "100"]) == 2
     assert "expected at most the number of candidates (49), got budget = 100" in capsys.readouterr().err
     assert main(base + ["--system", "paper_gravity", "--budget", "2"]) == 2
-    assert r"expected shape (N, 4)" in capsys.readouterr().err
+    assert "--candidates: expected 4 states per row (system 'paper_gravity'), got 2" in capsys.readouterr().err
     assert (
         main(base + ["--system", "paper_linear", "--budget", "2", "--criterion", "domain", "--method", "random"]) == 2
     )
@@ -150,8 +150,11 @@ def test_console_script_help():
     [
         (b"\xff\xfe\x00binary", ".csv", "UnicodeDecodeError"),
         ("y\xe9\n1,2\n".encode("latin-1"), ".csv", "UnicodeDecodeError"),
-        (b"a,b\n1,x\n", ".csv", "could not be read"),
-        (b"", ".csv", "expected a non-empty array of real numbers"),
+        (b"a,b\n1,x\n", ".csv", "expected a number in every state column of line 2"),
+        (b"", ".csv", "expected at least one row of states"),
+        (b"y0,y1\n", ".csv", "expected at least one row of states"),
+        (b"y0,y1\n1,\n", ".csv", "expected a number in every state column of line 2"),
+        (b"y0,y1\n1,nan\n", ".csv", "expected finite states"),
         (b"\x93NUMPY garbage", ".npy", "could not be read"),
     ],
 )
@@ -160,7 +163,7 @@ def test_unreadable_candidate_files_exit_2_with_one_line(tmp_path, capsys, conte
     path.write_bytes(content)
     assert main(_design_args(path, tmp_path / "out.csv")) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("torchmisspec design: error: candidates:") and message in err and "\n" not in err
+    assert err.startswith("torchmisspec design: error: --candidates:") and message in err and "\n" not in err
 
 
 def test_object_arrays_are_not_unpickled(tmp_path, capsys):
@@ -298,13 +301,17 @@ def truth(x):  # Monod saturation of the uptake: 0.8 x s / (0.5 + s) instead of 
 
 def chemostat(with_truth=False):
     return tms.MisspecifiedSystem(known, 2, correction=truth if with_truth else None, name="chemostat")
+
+
+def three_states():  # not the system the model was fitted with
+    return tms.MisspecifiedSystem(lambda y: -y, 3, name="decay3")
 """
 
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory):
     """A lab's CSV (columns run, hour, biomass, substrate; ragged, irregular hours, 2 % noise) of a chemostat the
-    package does not ship, and the file that declares its known model."""
+    package does not ship, the file that declares its known model, initial conditions and candidates."""
     import importlib.util
 
     folder = tmp_path_factory.mktemp("lab")
@@ -324,86 +331,273 @@ def lab(tmp_path_factory):
         states = states * (1 + 0.02 * torch.randn(states.shape, generator=g, dtype=torch.float64))
         lines += [f"r{k},{t:.3f},{a:.5g},{b:.5g}" for t, (a, b) in zip(hours.tolist(), states.tolist(), strict=True)]
     (folder / "lab.csv").write_text("\n".join(lines) + "\n")
-    (folder / "initial.csv").write_text("biomass,substrate\n0.2,0.8\n0.5,0.4\n")
-    (folder / "candidates.csv").write_text(
-        "biomass,substrate\n" + "\n".join(f"{a:.2f},{b:.2f}" for a in (0.1, 0.4, 0.7) for b in (0.2, 0.5, 0.9)) + "\n"
+    (folder / "initial.csv").write_text("run,biomass,substrate\nlean,0.2,0.8\nrich,0.5,0.4\n")
+    (folder / "candidates.csv").write_text(  # the columns in another order: read by name
+        "substrate,biomass\n" + "\n".join(f"{b:.2f},{a:.2f}" for a in (0.1, 0.4, 0.7) for b in (0.2, 0.5, 0.9)) + "\n"
     )
     return folder
 
 
 def _lab(folder, command, *extra):
-    data = ("--data", str(folder / "lab.csv"), "--time-column", "hour", "--experiment-column", "run")
-    system = ("--system", f"{folder / 'chemostat.py'}:chemostat")
-    return [command, *system, "--quiet", *(data if command in ("fit", "calibrate") else ()), *extra]
+    """A command on the lab's files, with the lab's column names (the same options for every command)."""
+    columns = ("--time-column", "hour", "--experiment-column", "run")
+    data = ("--data", str(folder / "lab.csv")) if command in ("fit", "calibrate") else ()
+    return [command, "--system", f"{folder / 'chemostat.py'}:chemostat", "--quiet", *data, *columns, *extra]
 
 
-@pytest.mark.slow
-def test_the_loop_on_a_lab_file(lab, capsys):
-    """fit -> calibrate -> predict -> design --model, with the defaults, on a lab's file and a user's system."""
-    model = lab / "model.pt"
+@pytest.fixture(scope="module")
+def lab_model(lab):
+    """A model of the lab's data, fitted without calibration (the error tests need a model, not its bands)."""
+    path = lab / "uncalibrated.pt"
+    assert main(_lab(lab, "fit", "--no-calibrate", "--out", str(path))) == 0
+    return path
+
+
+def _table(path):
+    lines = path.read_text().splitlines()
+    return lines[0].split(","), [line.split(",") for line in lines[1:]]
+
+
+def test_the_loop_on_a_lab_file(lab, tmp_path, capsys):
+    """fit -> calibrate -> predict -> design --model, with the defaults, on a lab's file and a user's system: the
+    files a spreadsheet opens (columns in the lab's names, bands ordered), the figure, the calibration carried."""
+    model = tmp_path / "model.pt"
     assert main(_lab(lab, "fit", "--out", str(model))) == 0
-    assert "calibrated bands" in capsys.readouterr().out
-    assert main(_lab(lab, "calibrate", "--model", str(model), "--state-noise", "2%")) == 0
-    assert "calibrated bands" in capsys.readouterr().out and tms.CorrectionGP.load(model).calibration_ is not None
-    pred, figure = lab / "pred.csv", lab / "pred.png"
-    args = ["--model", str(model), "--initial", str(lab / "initial.csv"), "--times", "0:20:11", "--time-name", "hour"]
-    assert main(_lab(lab, "predict", *args, "--out", str(pred), "--figure", str(figure))) == 0
     out = capsys.readouterr().out
-    assert "calibrated (scale" in out and "NOT calibrated" not in out
-    rows = pred.read_text().splitlines()
-    assert rows[0] == "initial,hour,biomass,biomass_lower,biomass_upper,substrate,substrate_lower,substrate_upper"
-    table = np.array([[float(v) for v in r.split(",")] for r in rows[1:]])
-    assert table.shape == (22, 8)
-    for j in (2, 5):  # lower <= prediction <= upper, and the band opens after t = 0
-        assert (table[:, j + 1] <= table[:, j] + 1e-12).all() and (table[:, j] <= table[:, j + 2] + 1e-12).all()
-        assert (table[1:, j + 2] - table[1:, j + 1]).max() > 0
+    assert "cross-validation" in out and "calibrated bands: BandCalibration(" in out and str(model) in out
+    saved = tms.CorrectionGP.load(model)
+    assert saved.input_names_ == ("biomass", "substrate")
+    assert saved.system_ == {
+        "name": "chemostat",
+        "state_dim": 2,
+        "correction_inputs": [0, 1],
+        "correction_outputs": [0, 1],
+    }
+    recalibrated = tmp_path / "recalibrated.pt"
+    args = ("--model", str(model), "--state-noise", "2%", "--level", "0.8", "--out", str(recalibrated))
+    assert main(_lab(lab, "calibrate", *args)) == 0
+    assert "calibrated bands: BandCalibration(" in capsys.readouterr().out
+    calibration = tms.CorrectionGP.load(recalibrated).calibration_
+    assert calibration is not None and calibration.level == pytest.approx(0.8)
+
+    pred, figure = tmp_path / "pred.csv", tmp_path / "pred.png"
+    args = ("--model", str(recalibrated), "--initial", str(lab / "initial.csv"), "--times", "0:20:11")
+    assert main(_lab(lab, "predict", *args, "--out", str(pred), "--figure", str(figure))) == 0
+    captured = capsys.readouterr()
+    assert f"calibrated (scale {calibration.scale:.3g}" in captured.out and "NOT calibrated" not in captured.out
+    assert all(line.startswith("torchmisspec predict: warning: ") for line in captured.err.splitlines())
+    assert "not calibrated" not in captured.err
+    header, rows = _table(pred)
+    assert header == ["run", "hour"] + [
+        f"{s}_{k}" for s in ("biomass", "substrate") for k in ("mean", "lower", "upper")
+    ]
+    assert len(rows) == 22 and [r[0] for r in rows[::11]] == ["lean", "rich"]  # the initial file's labels
+    values = np.array([[float(v) for v in r[1:]] for r in rows])
+    assert values[:11, 0].tolist() == pytest.approx(np.linspace(0, 20, 11).tolist())
+    assert values[[0, 11], 1].tolist() == [0.2, 0.5] and values[[0, 11], 4].tolist() == [0.8, 0.4]  # from y0
+    for j in (1, 4):  # lower <= mean <= upper, and the band opens after t = 0
+        assert (values[:, j + 1] <= values[:, j] + 1e-12).all() and (values[:, j] <= values[:, j + 2] + 1e-12).all()
+        assert (values[1:, j + 2] - values[1:, j + 1]).max() > 0
     assert figure.read_bytes()[:4] == b"\x89PNG"
-    picks = lab / "next.csv"
-    design = ["--candidates", str(lab / "candidates.csv"), "--times", "0:20:11", "--budget", "2", "--model", str(model)]
-    assert main(_lab(lab, "design", *design, "--out", str(picks))) == 0
-    lines = picks.read_text().splitlines()
-    assert lines[0] == "order,index,gain,biomass,substrate" and len(lines) == 3
+
+    picks = tmp_path / "next.csv"
+    args = ("--candidates", str(lab / "candidates.csv"), "--times", "0:20:11", "--budget", "2")
+    assert main(_lab(lab, "design", *args, "--model", str(recalibrated), "--out", str(picks))) == 0
+    header, rows = _table(picks)
+    assert header == ["order", "index", "gain", "biomass", "substrate"] and len(rows) == 2
+    candidates = np.loadtxt(lab / "candidates.csv", delimiter=",", skiprows=1)
+    for row in rows:  # the picked points are the candidates, in the system's order
+        assert [float(row[3]), float(row[4])] == candidates[int(row[1])][::-1].tolist()
 
 
-@pytest.mark.parametrize("command", ["fit", "calibrate", "predict", "design"])
-@pytest.mark.parametrize(
-    ("problem", "message"),
-    [
-        ("missing column", "missing ['oxygen']"),
-        ("binary data", "could not be read"),
-        ("bad system", "expected an importable module"),
-        ("unwritable output", "cannot write"),
-        ("not a model", "expected a CorrectionGP file"),
-    ],
-)
-def test_every_command_fails_with_one_line_and_exit_2(lab, tmp_path, capsys, command, problem, message):
+def test_predict_without_calibration_says_so_on_stderr(lab, lab_model, tmp_path, capsys):
+    pred = tmp_path / "p.csv"
+    args = ("--model", str(lab_model), "--initial", str(lab / "initial.csv"), "--times", "0,5,10", "--samples", "8")
+    assert main(_lab(lab, "predict", *args, "--out", str(pred))) == 0
+    captured = capsys.readouterr()
+    assert "NOT calibrated" in captured.out
+    lines = captured.err.strip().splitlines()  # one line per warning (the library's may come first)
+    assert all(line.startswith("torchmisspec predict: warning: ") for line in lines)
+    assert lines[-1].startswith("torchmisspec predict: warning: the model's bands are not calibrated")
+    assert len(_table(pred)[1]) == 6
+
+
+def test_predict_and_design_refuse_states_named_otherwise_than_the_model(lab, lab_model, tmp_path, capsys):
+    """A model fitted on (biomass, substrate) and an initial file whose columns are other names: refused, not
+    silently taken in file order; --state-columns picks the right columns by name."""
+    (tmp_path / "renamed.csv").write_text("a,b\n0.2,0.8\n")
+    (tmp_path / "extra.csv").write_text("note,substrate,biomass,ph\n1,0.8,0.2,7\n")
+    base = ("--model", str(lab_model), "--times", "0:10:3", "--samples", "8")
+    assert (
+        main(_lab(lab, "predict", *base, "--initial", str(tmp_path / "renamed.csv"), "--out", str(tmp_path / "p.csv")))
+        == 2
+    )
+    err = capsys.readouterr().err.strip()
+    assert "fitted on states named ['biomass', 'substrate'], but the columns give ['a', 'b']" in err and "\n" not in err
+    extra = ("--initial", str(tmp_path / "extra.csv"), "--state-columns", "biomass,substrate")
+    assert main(_lab(lab, "predict", *base, *extra, "--out", str(tmp_path / "p.csv"))) == 0
+    header, rows = _table(tmp_path / "p.csv")
+    assert header[2] == "biomass_mean" and float(rows[0][2]) == 0.2 and float(rows[0][5]) == 0.8
+    design = ("--candidates", str(tmp_path / "renamed.csv"), "--times", "0:10:3", "--budget", "1")
+    assert main(_lab(lab, "design", "--model", str(lab_model), *design, "--out", str(tmp_path / "d.csv"))) == 2
+    assert "the columns give ['a', 'b']" in capsys.readouterr().err
+
+
+def test_times_from_a_file(lab, lab_model, tmp_path):
+    (tmp_path / "hours.csv").write_text("hour\n0\n2.5\n7\n")
+    args = ("--model", str(lab_model), "--initial", str(lab / "initial.csv"), "--samples", "8")
+    assert (
+        main(_lab(lab, "predict", *args, "--times", str(tmp_path / "hours.csv"), "--out", str(tmp_path / "p.csv"))) == 0
+    )
+    assert [float(r[1]) for r in _table(tmp_path / "p.csv")[1]][:3] == [0.0, 2.5, 7.0]
+
+
+COMMANDS = ["fit", "calibrate", "predict", "design", "demo"]
+PROBLEMS = {  # problem -> the message's telling part (per command where it differs)
+    "missing column": "missing ['oxygen']",
+    "ragged data, missing column": "missing ['oxygen']",
+    "binary data": "could not be read",
+    "bad system": "expected an importable module",
+    "system file raises": "importing it raised ZeroDivisionError",
+    "mismatched system and model": {
+        "fit": "expected state dimension 3 of system 'decay3'",
+        "calibrate": "pass the system it was fitted with",
+        "predict": "pass the system it was fitted with",
+        "design": "pass the system it was fitted with",
+    },
+    "another system of the same shape": "corrects system 'chemostat' (2 states), but 'paper_linear' (2 states)",
+    "unwritable output": "cannot write '/proc/x",
+    "not a model": "expected a CorrectionGP file",
+    "a CSV as the model": "expected a CorrectionGP file",
+    "interrupted": "interrupted; nothing more was written",
+    "usage": {c: "the following arguments are required" for c in COMMANDS} | {"demo": "unrecognized arguments"},
+}
+
+
+def _args_with(problem, command, lab, model, tmp_path):
+    """The command on the lab's files, with ``problem`` in its inputs; None where the command has no such input."""
     (tmp_path / "binary.csv").write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe" * 8)
     (tmp_path / "text.pt").write_text("not a model\n")
-    model = tmp_path / "text.pt" if problem == "not a model" else lab / "model.pt"
-    if command != "fit" and not (lab / "model.pt").exists():
-        assert main(_lab(lab, "fit", "--no-calibrate", "--out", str(lab / "model.pt"))) == 0
-    out = "/proc/nowhere/x" if problem == "unwritable output" else str(tmp_path / "out")
+    (tmp_path / "raises.py").write_text("1 / 0\n")
+    model = {"not a model": tmp_path / "text.pt", "a CSV as the model": lab / "lab.csv"}.get(problem, model)
+    out = "/proc/x" if problem == "unwritable output" else str(tmp_path / "out")
+    times = ("--times", "0:20:5")
     args = {
-        "fit": _lab(lab, "fit", "--out", out + ".pt"),
+        "fit": _lab(lab, "fit", "--no-calibrate", "--out", out + ".pt"),
         "calibrate": _lab(lab, "calibrate", "--model", str(model), "--out", out + ".pt"),
-        "predict": _lab(lab, "predict", "--model", str(model), "--initial", str(lab / "initial.csv"), "--times",
-                        "0:20:5", "--out", out + ".csv"),
-        "design": _lab(lab, "design", "--model", str(model), "--candidates", str(lab / "candidates.csv"), "--times",
-                       "0:20:5", "--budget", "2", "--out", out + ".csv"),
+        "predict": _lab(lab, "predict", "--model", str(model), "--initial", str(lab / "initial.csv"), *times,
+                        "--out", out + ".csv", "--samples", "4"),
+        "design": _lab(lab, "design", "--model", str(model), "--candidates", str(lab / "candidates.csv"), *times,
+                       "--budget", "1", "--out", out + ".csv"),
+        "demo": ["demo", "--quiet", "--n-train", "3", "--n-test", "2", "--out", out],
     }[command]  # fmt: skip
-    if problem == "missing column":
-        if command in ("predict", "design"):
-            pytest.skip("reads no observations")
+    if command == "demo" and problem not in ("unwritable output", "interrupted", "usage"):
+        return None  # the demo reads nothing
+    if problem in ("missing column", "ragged data, missing column"):  # lab.csv is ragged
+        if problem == "ragged data, missing column" and command not in ("fit", "calibrate"):
+            return None
         args += ["--state-columns", "biomass,oxygen"]
     elif problem == "binary data":
-        key = "--data" if command in ("fit", "calibrate") else ("--initial" if command == "predict" else "--candidates")
+        key = {"predict": "--initial", "design": "--candidates"}.get(command, "--data")
         args[args.index(key) + 1] = str(tmp_path / "binary.csv")
     elif problem == "bad system":
         args[args.index("--system") + 1] = "no_such_lab_module:chemostat"
-    elif problem == "not a model" and command == "fit":
-        pytest.skip("reads no model")
+    elif problem == "system file raises":
+        args[args.index("--system") + 1] = f"{tmp_path / 'raises.py'}:chemostat"
+    elif problem == "mismatched system and model":
+        args[args.index("--system") + 1] = f"{lab / 'chemostat.py'}:three_states"
+    elif problem == "another system of the same shape":  # the model file records the system it corrects
+        if command == "fit":
+            return None
+        args[args.index("--system") + 1] = "paper_linear"
+    elif problem in ("not a model", "a CSV as the model") and command == "fit":
+        return None  # reads no model
+    elif problem == "usage":
+        args = [command, "--no-such-option"] if command == "demo" else [command, "--quiet"]
+    return args
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("problem", list(PROBLEMS))
+def test_every_command_fails_with_one_line_and_exit_2(lab, lab_model, tmp_path, capsys, monkeypatch, command, problem):
+    """No traceback reaches the user: each class of error, for every command, is one line on stderr, exit 2."""
+    args = _args_with(problem, command, lab, lab_model, tmp_path)
+    if args is None:
+        pytest.skip(f"{command} has no such input")
+    if problem == "interrupted":  # Ctrl-C in the middle of the work
+
+        def interrupt(*a, **k):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(tms.systems, "load_system", interrupt)
+        monkeypatch.setattr("torchmisspec.paper.demo.linear_demo", interrupt)
     capsys.readouterr()
     assert main(args) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith(f"torchmisspec {command}: error: ") and message in err, err
-    assert "\n" not in err and "Traceback" not in err
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    message = PROBLEMS[problem] if isinstance(PROBLEMS[problem], str) else PROBLEMS[problem][command]
+    assert err.startswith(f"torchmisspec {command}: ") and message in err, err
+    assert "\n" not in err and "Traceback" not in err + captured.out
+    assert not [p for p in tmp_path.rglob("out*") if p.is_file()], "an output was written although the command failed"
+
+
+@pytest.mark.slow
+def test_the_command_line_page_runs_on_the_lab_files(lab, tmp_path, monkeypatch, capsys):
+    """docs/tutorials/command-line.md: its commands, run as written on files like the page's (the same columns,
+    initial file and system), succeed and write what the page says."""
+    import re
+    import shlex
+    import shutil
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "tutorials" / "command-line.md").read_text()
+    commands = [c.replace("\\\n", " ") for c in re.findall(r"^```bash\n(.*?)^```", page, re.S | re.M)]
+    assert [shlex.split(c)[1] for c in commands] == ["fit", "calibrate", "predict", "design"]
+    for name in ("lab.csv", "chemostat.py", "initial.csv", "candidates.csv"):
+        shutil.copy(lab / name, tmp_path / name)
+    assert "run,biomass,substrate\nlean,0.2,0.8\nrich,0.5,0.4\n" in page  # the page's initial.csv is the test's
+    monkeypatch.chdir(tmp_path)
+    for command in commands:
+        assert main([*shlex.split(command)[1:], "--quiet"]) == 0, command
+    header = (tmp_path / "prediction.csv").read_text().splitlines()[0]
+    assert header.startswith("run,hour,biomass_mean,biomass_lower,biomass_upper,substrate_mean,")
+    assert (tmp_path / "prediction.png").is_file() and (tmp_path / "next.csv").is_file()
+    assert "calibrated (scale" in capsys.readouterr().out
+
+
+def test_candidates_with_an_unnamed_state_in_another_column_order(tmp_path, capsys):
+    """A 3-state system whose correction reads 2 named states (as the trial's SIR): a candidates file with the
+    columns R, S, I is read by name, the one column left being the third state."""
+    system_file = tmp_path / "sir.py"
+    system_file.write_text(
+        "import torch\nimport torchmisspec as tms\n\n"
+        "def known(y):\n    s, i = y[..., 0], y[..., 1]\n"
+        "    return torch.stack([-0.5 * s * i, 0.5 * s * i - 0.1 * i, 0.1 * i], dim=-1)\n\n"
+        "def sir():\n    return tms.MisspecifiedSystem(known, 3, correction_inputs=[0, 1], correction_outputs=[0, 1], "
+        "name='sir')\n"
+    )
+    inputs = torch.tensor([[0.5, 0.1], [0.7, 0.2]], dtype=torch.float64)
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1e-3, noise_variance=1e-6).fit(inputs, torch.zeros_like(inputs))
+    gp.input_names_ = ("S", "I")
+    gp.save(tmp_path / "m.pt")
+    (tmp_path / "c.csv").write_text("R,S,I\n0.1,0.8,0.05\n0.2,0.6,0.3\n")
+    args = ["design", "--system", f"{system_file}:sir", "--candidates", str(tmp_path / "c.csv"), "--times", "0:10:5"]
+    assert (
+        main([*args, "--budget", "2", "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "d.csv"), "--quiet"])
+        == 0
+    )
+    header, rows = _table(tmp_path / "d.csv")
+    assert header == ["order", "index", "gain", "S", "I", "R"]
+    by_index = {int(r[1]): [float(v) for v in r[-3:]] for r in rows}
+    assert by_index == {0: [0.8, 0.05, 0.1], 1: [0.6, 0.3, 0.2]}
+
+
+def test_design_with_data_reads_the_candidates_by_the_data_names(lab, tmp_path):
+    """design --data: the candidates file (columns substrate, biomass) is read by the data's names, before the fit."""
+    out = tmp_path / "next.json"
+    args = ("--candidates", str(lab / "candidates.csv"), "--times", "0:20:5", "--budget", "1", "--out", str(out))
+    assert main(_lab(lab, "design", "--data", str(lab / "lab.csv"), *args)) == 0
+    picked = json.loads(out.read_text())
+    candidates = np.loadtxt(lab / "candidates.csv", delimiter=",", skiprows=1)
+    point = picked["points"][0]
+    assert [point["biomass"], point["substrate"]] == candidates[picked["indices"][0]][::-1].tolist()

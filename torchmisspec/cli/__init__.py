@@ -13,7 +13,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
+from functools import partial
+from pathlib import Path
 
+from .._errors import InputError
 from ._design import add_design
 from ._fit import add_calibrate, add_fit
 from ._predict import add_predict
@@ -23,6 +27,11 @@ __all__ = ["build_parser", "main"]
 
 def _demo(args: argparse.Namespace) -> int:
     from ..paper.demo import linear_demo
+
+    try:  # the folder is checked before the work, as every command's output
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out: cannot write {args.out!r} (a folder that can be created): {exc.strerror}") from None
 
     print(
         f"paper 5.1: {args.n_train} random experiments in [-1, 1]^2, T = 11 on [0, 6], oracle noise std "
@@ -73,8 +82,15 @@ def _add_demo(sub) -> None:
     demo.set_defaults(func=_demo)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (it prints the usage first), exit status 2 as argparse's own."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchmisspec", description=__doc__.split("\n\n")[0])
+    parser = _Parser(prog="torchmisspec", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_fit(sub)
     add_calibrate(sub)
@@ -88,9 +104,24 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; 0 on success, 2 on any error (one line on stderr)."""
     from .._errors import TorchMisspecError
 
-    args = build_parser().parse_args(argv)  # argparse's own errors: usage and one line, exit 2
     try:
-        return args.func(args)
+        parser = build_parser()
+        args, unknown = parser.parse_known_args(argv)  # argparse's own errors: one line, SystemExit(2)
+        if unknown:  # named by the command, as every other error
+            parser.exit(
+                2,
+                f"torchmisspec {args.command}: error: unrecognized arguments: {' '.join(unknown)} (see "
+                f"'torchmisspec {args.command} --help')\n",
+            )
+    except KeyboardInterrupt:
+        print("torchmisspec: interrupted", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help (0) or a usage error (2, its line already printed)
+        return exc.code if isinstance(exc.code, int) else 2
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = partial(_warning_line, args.command)
+            return args.func(args)
     except KeyboardInterrupt:
         print(f"torchmisspec {args.command}: interrupted; nothing more was written", file=sys.stderr)
         return 2
@@ -111,8 +142,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException | str) -> str:
     return " ".join(str(exc).split())
+
+
+def _warning_line(command: str, message, category, filename, lineno, file=None, line=None) -> None:
+    """The library's warnings reach the user as one line each on stderr, without the source line."""
+    print(f"torchmisspec {command}: warning: {_one_line(message)}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from .._errors import InputError
 
-__all__ = ["add_data_options", "add_system_option", "check_output", "load_model", "parse_times", "read_observations"]
+__all__ = [
+    "add_column_options",
+    "add_data_options",
+    "add_system_option",
+    "check_names",
+    "check_output",
+    "describe_system",
+    "known_state_names",
+    "load_model",
+    "parse_times",
+    "read_observations",
+    "read_states",
+]
 
 
 def add_system_option(parser: argparse.ArgumentParser) -> None:
@@ -20,27 +31,35 @@ def add_system_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_data_options(parser: argparse.ArgumentParser, *, required: bool, help: str) -> None:
-    """``--data`` and the columns of a lab's table, the same for every command."""
-    parser.add_argument("--data", required=required, help=help)
-    parser.add_argument("--time-column", default="time", help="name of the time column (default: %(default)s)")
+def add_column_options(parser: argparse.ArgumentParser) -> None:
+    """The columns of a lab's tables, the same options for every command (read and written)."""
+    parser.add_argument(
+        "--time-column", default="time", help="name of the time column in the tables (default: %(default)s)"
+    )
     parser.add_argument(
         "--experiment-column",
         default="experiment",
-        help="name of the column labelling the experiments (default: %(default)s; when the file has no such column, "
-        "or with '', all rows are one experiment)",
+        help="name of the column labelling the experiments (default: %(default)s; when a file has no such column, "
+        "or with '', all rows of --data are one experiment)",
     )
     parser.add_argument(
-        "--state-columns", help="comma separated state column names, in order (default: every other column)"
+        "--state-columns",
+        help="comma separated state column names, in the system's order (default: every other column)",
     )
+
+
+def add_data_options(parser: argparse.ArgumentParser, *, required: bool, help: str) -> None:
+    """``--data`` and the column options."""
+    parser.add_argument("--data", required=required, help=help)
+    add_column_options(parser)
 
 
 def state_columns(args: argparse.Namespace) -> list[str] | None:
     if getattr(args, "state_columns", None) is None:
         return None
     names = [c.strip() for c in args.state_columns.split(",")]
-    if not all(names):
-        raise InputError(f"--state-columns: expected comma separated column names, got {args.state_columns!r}")
+    if not all(names) or len(set(names)) != len(names):
+        raise InputError(f"--state-columns: expected distinct comma separated column names, got {args.state_columns!r}")
     return names
 
 
@@ -56,29 +75,138 @@ def read_observations(args: argparse.Namespace):
     )
 
 
-def state_names(args: argparse.Namespace, d: int) -> list[str]:
-    """The state names for outputs: ``--state-columns``, else the data file's header, else ``y0 .. y{d-1}``."""
-    names = state_columns(args)
-    if names is None and getattr(args, "data", None) and Path(args.data).suffix in (".csv", ".tsv", ".txt"):
+def default_names(system) -> list[str]:
+    names = getattr(system, "state_names", None)
+    return list(names) if names is not None else [f"y{j}" for j in range(system.state_dim)]
+
+
+def _number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def known_state_names(system, gp=None) -> list[str | None] | None:
+    """The states' names the system declares, else those the model was fitted on (``None`` for a state that is not an
+    input of the correction), else ``None``."""
+    if getattr(system, "state_names", None) is not None:
+        return list(system.state_names)
+    names = getattr(gp, "input_names_", None)
+    if names is None:
+        return None
+    out = [None] * system.state_dim  # the correction's inputs are named; the other states may not be
+    for i, n in zip(system.correction_inputs, names, strict=True):
+        out[i] = n
+    return out
+
+
+def read_states(path: str, option: str, args: argparse.Namespace, system, known: list[str] | None = None):
+    """Initial states, one per row, from ``path``: ``(tensor (N, d), state names, row labels)``.
+
+    A CSV/TSV/TXT with a header row is read by name with the column options: ``--state-columns`` (default: every
+    column but the experiment column), ``--experiment-column`` (optional: the rows' labels, else 0..N-1); a time
+    column is refused (one state per row, not trajectories). ``known``: the states' names (the system's or the
+    model's); a header holding them all is read by them, in the system's order, whatever the columns' order. Without a
+    header, or from .npy/.npz, every column is a state, in the system's order."""
+    import torch
+
+    p = Path(path)
+    if p.suffix in (".npy", ".npz") or not p.is_file():
+        table, _ = read_table(path, option.lstrip("-"), option)
+        names, labels, rows = None, None, table
+    else:
         try:
-            with open(args.data, encoding="utf-8") as fh:
-                header = fh.readline().strip()
-            sep = "\t" if "\t" in header else ","
-            cols = [c.strip() for c in header.split(sep)]
-            skip = {args.time_column, args.experiment_column}
-            names = [c for c in cols if c and c not in skip]
-        except (OSError, UnicodeDecodeError):
-            names = None
-    if names is None or len(names) != d:
-        names = [f"y{j}" for j in range(d)]
-    return names
+            lines = [ln for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(
+                f"{option}: expected a UTF-8 text table in {path!r}, but it could not be read "
+                f"({type(exc).__name__}: {str(exc)[:160]})"
+            ) from exc
+        sep = "\t" if lines and "\t" in lines[0] else ","
+        cells = [[c.strip() for c in ln.split(sep)] for ln in lines]
+        if not cells or (len(cells) == 1 and not any(_number(c) for c in cells[0])):
+            raise InputError(f"{option}: expected at least one row of states in {path!r}, got none")
+        header = cells[0] if not any(_number(c) for c in cells[0]) else None
+        body = cells[1:] if header is not None else cells
+        labels = None
+        if header is None:
+            names, columns = None, list(range(len(body[0])))
+        else:
+            if args.time_column in header:
+                raise InputError(
+                    f"{option}: expected one state per row, but {path!r} has a time column {args.time_column!r}; "
+                    "drop it (or rename it if it is a state)"
+                )
+            wanted = state_columns(args)
+            if wanted is None and known is not None and all(c in header for c in known if c is not None):
+                others = [c for c in header if c != args.experiment_column and c not in known]
+                if known.count(None) == len(others) <= 1:  # one unnamed state at most: the one column left
+                    wanted = [others.pop() if c is None else c for c in known]
+            if wanted is None:
+                wanted = [c for c in header if c != args.experiment_column]
+            missing = [c for c in wanted if c not in header]
+            if missing:
+                raise InputError(
+                    f"{option}: expected state columns {wanted}, missing {missing}; {path!r} has {header} "
+                    "(set --state-columns)"
+                )
+            names, columns = wanted, [header.index(c) for c in wanted]
+            if args.experiment_column and args.experiment_column in header:
+                e = header.index(args.experiment_column)
+                labels = [row[e] if e < len(row) else "" for row in body]
+        rows = []
+        for k, row in enumerate(body, start=2 if header is not None else 1):
+            try:
+                rows.append([float(row[c]) for c in columns])
+            except (ValueError, IndexError):
+                raise InputError(
+                    f"{option}: expected a number in every state column of line {k} of {path!r}, got {sep.join(row)!r}"
+                ) from None
+    y0 = torch.as_tensor(rows, dtype=torch.float64)
+    y0 = y0.reshape(1, -1) if y0.dim() == 1 else y0
+    if y0.dim() != 2 or y0.shape[-1] != system.state_dim:
+        got = y0.shape[-1] if y0.dim() == 2 else tuple(y0.shape)
+        raise InputError(
+            f"{option}: expected {system.state_dim} states per row (system '{system.name}'), got {got} in {path!r}"
+            + ("" if names is None else f" (columns {names}; set --state-columns)")
+        )
+    if not bool(torch.isfinite(y0).all()):
+        raise InputError(f"{option}: expected finite states in every row of {path!r}, got NaN or infinite values")
+    return y0, names, labels
+
+
+def check_names(gp, names, system, option: str) -> list[str]:
+    """The state names to write; the model's input names (the data's columns it was fitted on) must match."""
+    model_names = getattr(gp, "input_names_", None)
+    if names is not None and model_names is not None:
+        got = tuple(names[i] for i in system.correction_inputs)
+        if got != tuple(model_names):
+            raise InputError(
+                f"{option}: the model's correction was fitted on states named {list(model_names)}, but the columns "
+                f"give {list(got)} in their place; name (or order) the columns as in the fitted data, or pass "
+                "--state-columns"
+            )
+    if names is None and model_names is not None and getattr(system, "state_names", None) is None:
+        names = [f"y{j}" for j in range(system.state_dim)]
+        for i, n in zip(system.correction_inputs, model_names, strict=True):
+            names[i] = n
+        return names
+    return list(names) if names is not None else default_names(system)
 
 
 def parse_times(text: str):
     """``start:stop:count`` (equally spaced) or a comma list of times."""
     import torch
 
-    message = f"--times: expected 'start:stop:count' with count >= 1 or a comma list of numbers, got {text!r}"
+    message = "--times: expected 'start:stop:count' with count >= 1, a comma list of numbers or a file of times, "
+    message += f"got {text!r}"
+    if Path(text).suffix in (".csv", ".tsv", ".txt", ".npy", ".npz") and Path(text).is_file():
+        table, _ = read_table(text, "times", "--times")
+        if table.ndim == 2 and table.shape[1] != 1:
+            raise InputError(f"--times: expected one column of times in {text!r}, got {table.shape[1]} columns")
+        return torch.as_tensor(table.reshape(-1), dtype=torch.float64)
     try:
         if ":" in text:
             start, stop, count = text.split(":")
@@ -91,19 +219,21 @@ def parse_times(text: str):
         raise InputError(message) from exc
 
 
-def read_table(path: str, what: str):
+def read_table(path: str, what: str, option: str | None = None):
     """A numeric array from .npz (array ``what`` or the only one), .npy, or CSV/TSV/TXT (an optional header row),
     and the header's column names (``None`` without one). Nothing is unpickled; unreadable, non-UTF-8 or
     non-numeric files raise :class:`InputError`."""
     import zipfile
 
+    label = option or what  # the option named in messages (``what`` is also the .npz array's name)
+
     import numpy as np
 
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{what}: file {path!r} does not exist")
+        raise InputError(f"{label}: file {path!r} does not exist")
     if p.suffix not in (".csv", ".tsv", ".txt", ".npz", ".npy"):
-        raise InputError(f"{what}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
+        raise InputError(f"{label}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
     header = None
     try:
         if p.suffix == ".npz":
@@ -130,12 +260,12 @@ def read_table(path: str, what: str):
         raise
     except (ValueError, OSError, EOFError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
         raise InputError(
-            f"{what}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), but it "
+            f"{label}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), but it "
             f"could not be read ({type(exc).__name__}: {str(exc)[:160]})"
         ) from exc
     if arr.dtype.kind not in "iuf" or arr.size == 0:
         raise InputError(
-            f"{what}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
+            f"{label}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
         )
     return arr, header
 
@@ -145,10 +275,29 @@ def check_output(path: str, suffixes: tuple[str, ...], option: str = "--out") ->
     out = Path(path)
     if out.suffix not in suffixes:
         raise InputError(f"{option}: expected a {' or '.join(suffixes)} file name, got {path!r}")
+    message = f"{option}: cannot write {path!r} (the folder must exist and be writable)"
     folder = out.parent if str(out.parent) else Path(".")
-    if not folder.is_dir() or not os.access(folder, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
-        raise InputError(f"{option}: cannot write {path!r} (the folder must exist and be writable)")
+    if not folder.is_dir() or out.is_dir():
+        raise InputError(message)
+    existed = out.exists()
+    try:  # a real try: os.access says yes to root everywhere, /proc included
+        with out.open("ab"):
+            pass
+    except OSError as exc:
+        raise InputError(f"{message}: {exc.strerror or exc}") from None
+    if not existed:
+        out.unlink(missing_ok=True)
     return out
+
+
+def describe_system(system) -> dict:
+    """What a model file records of the system it corrects (checked when the model is used again)."""
+    return {
+        "name": system.name,
+        "state_dim": int(system.state_dim),
+        "correction_inputs": [int(i) for i in system.correction_inputs],
+        "correction_outputs": [int(i) for i in system.correction_outputs],
+    }
 
 
 def load_model(path: str, system):
@@ -156,6 +305,12 @@ def load_model(path: str, system):
     from ..gp import CorrectionGP
 
     gp = CorrectionGP.load(path)
+    saved = getattr(gp, "system_", None)
+    if saved is not None and saved != describe_system(system):
+        raise InputError(
+            f"--system: {path} corrects system {saved.get('name')!r} ({saved.get('state_dim')} states), but "
+            f"'{system.name}' ({system.state_dim} states) was given; pass the system it was fitted with"
+        )
     if gp.input_dim != system.input_dim or gp.output_dim != system.output_dim:
         raise InputError(
             f"--model: {path} holds a correction with {gp.input_dim} inputs and {gp.output_dim} outputs, but system "

@@ -9,12 +9,14 @@ from .._errors import InputError
 from ._common import (
     add_data_options,
     add_system_option,
+    check_names,
     check_output,
+    known_state_names,
     load_model,
     parse_times,
     read_observations,
+    read_states,
     read_table,
-    state_names,
     write_csv,
 )
 
@@ -23,7 +25,7 @@ __all__ = ["add_design"]
 PRIOR = ("lengthscale", "outputscale", "noise_variance")
 
 
-def _gp(args: argparse.Namespace, system):
+def _gp(args: argparse.Namespace, system, observed=None):
     """The design's GP: ``--model``, or fitted on ``--data``, or the prior the user gave; never a hidden one."""
     from ..gp import CorrectionGP
 
@@ -38,7 +40,7 @@ def _gp(args: argparse.Namespace, system):
             f"the prior: expected --lengthscale, --outputscale and --noise-variance together; missing {missing}"
         )
     if args.data is not None:
-        observed = read_observations(args)
+        observed = read_observations(args) if observed is None else observed
         if given:  # the user's prior, conditioned on the data
             from ..observations import correction_samples
 
@@ -89,13 +91,16 @@ def _design(args: argparse.Namespace) -> int:
 
     out = check_output(args.out, (".csv", ".json"))
     system = load_system(args.system)
-    table, header = read_table(args.candidates, "candidates")
-    candidates = torch.as_tensor(table, dtype=torch.float64)
-    if candidates.dim() == 1:
-        candidates = candidates.unsqueeze(-1)
     times = parse_times(args.times)
+    early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
+    observed = read_observations(args) if args.data is not None and early is None else None  # read before the fit
+    known = known_state_names(system, None if early is None else early[0])
+    if observed is not None and tuple(observed.state_names) != tuple(f"y{j}" for j in range(system.state_dim)):
+        known = list(observed.state_names)  # the data's names: the candidates are read by them
+    candidates, names, labels = read_states(args.candidates, "--candidates", args, system, known)
     partition, capacities = _capacities(args, candidates.shape[0])
-    gp, source = _gp(args, system)
+    gp, source = early or _gp(args, system, observed)  # a fit on --data comes last: after every cheap check
+    names = check_names(gp, names, system, "--candidates")
     if args.criterion != "information" and args.method not in ("lazy", "plain", "naive"):
         raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")
     common = dict(
@@ -109,7 +114,6 @@ def _design(args: argparse.Namespace) -> int:
         plan = design.greedy(
             candidates, args.budget, method=args.method, criterion=args.criterion, proxy=args.proxy, **common
         )
-    names = header if header is not None and len(header) == system.state_dim else state_names(args, system.state_dim)
     units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
     conditioned = plan.diagnostics.get("conditioned", 0)
     if out.suffix == ".json":
@@ -124,6 +128,7 @@ def _design(args: argparse.Namespace) -> int:
                     "gains": plan.gains.tolist(),
                     "information_gain": plan.information_gain,
                     "points": [dict(zip(names, p, strict=True)) for p in plan.points.tolist()],
+                    "labels": None if labels is None else [labels[i] for i in plan.indices.tolist()],
                     "criterion": args.criterion,
                     "conditioned_on_samples": conditioned,
                     "proxy": plan.diagnostics.get("proxy"),
@@ -133,13 +138,14 @@ def _design(args: argparse.Namespace) -> int:
             )
         )
     else:
+        label = [] if labels is None else [args.experiment_column]  # the candidates' own labels, when they have them
         rows = [
-            [i, c, g, *p]
+            [i, c, *([] if labels is None else [labels[c]]), g, *p]
             for i, (c, g, p) in enumerate(
                 zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(), strict=True)
             )
         ]
-        write_csv(out, ["order", "index", "gain", *names], rows)
+        write_csv(out, ["order", "index", *label, "gain", *names], rows)
     print(
         f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on {system.name} "
         f"with {source}"
@@ -162,7 +168,8 @@ def add_design(sub) -> None:
     des.add_argument(
         "--candidates",
         required=True,
-        help="candidate initial conditions, one per row (N, d): CSV/TSV/TXT (an optional header row of state names), "
+        help="candidate initial conditions, one per row (N, d): CSV/TSV/TXT with a header of state names (read with "
+        "--state-columns; an --experiment-column labels the rows) or without one, "
         ".npy, or .npz (array 'candidates' or a single array)",
     )
     add_system_option(des)

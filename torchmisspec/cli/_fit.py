@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 
 from .._errors import InputError
-from ._common import add_data_options, add_system_option, check_output, load_model, read_observations, state_names
+from ._common import (
+    add_data_options,
+    add_system_option,
+    check_names,
+    check_output,
+    describe_system,
+    load_model,
+    read_observations,
+)
 
 __all__ = ["add_calibrate", "add_fit"]
 
@@ -55,7 +63,7 @@ def _fit(args: argparse.Namespace) -> int:
             f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
         )
     if gp.weights is not None:  # a feature kernel: its terms, in the data's names
-        names = state_names(args, system.state_dim)
+        names = list(observed.state_names)
         terms = list(gp.terms([names[i] for i in system.correction_inputs]))
         for o, j in enumerate(system.correction_outputs):
             kept = [str(t) for t in terms if t.output == o]
@@ -65,6 +73,7 @@ def _fit(args: argparse.Namespace) -> int:
             print("bands not calibrated: calibration holds out experiments and needs at least 2")
         else:
             print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
+    gp.system_ = describe_system(system)  # later commands check they are given the same system
     gp.save(out)
     print(f"written to {out}")
     return 0
@@ -80,6 +89,8 @@ def _recalibrate(args: argparse.Namespace) -> int:
     system = load_system(args.system)
     gp = load_model(args.model, system)
     observed = read_observations(args)
+    if tuple(observed.state_names) != tuple(f"y{j}" for j in range(observed.state_dim)):
+        check_names(gp, list(observed.state_names), system, "--data")
     samples = correction_samples(observed, system, derivative=args.derivative)
     result = CorrectedODE(system, gp).calibrate(
         observed, samples, level=args.level, state_noise=_state_noise(args.state_noise), progress=not args.quiet

@@ -3,12 +3,25 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import warnings
 
-from .._errors import InputError, TorchMisspecWarning
-from ._common import add_system_option, check_output, load_model, parse_times, read_table, write_csv
+from .._errors import InputError
+from ._common import (
+    add_column_options,
+    add_system_option,
+    check_names,
+    check_output,
+    known_state_names,
+    load_model,
+    parse_times,
+    read_states,
+    write_csv,
+)
 
 __all__ = ["add_predict"]
+
+MAX_FIGURE_ROWS = 6  # initial conditions drawn in the figure (one row of panels each)
 
 
 def _predict(args: argparse.Namespace) -> int:
@@ -23,28 +36,20 @@ def _predict(args: argparse.Namespace) -> int:
         raise InputError(f"--level: expected a band's coverage in (0, 1), got {args.level}")
     if args.samples < 2:
         raise InputError(f"--samples: expected at least 2 posterior draws for a band, got {args.samples}")
+    times = parse_times(args.times)
     system = load_system(args.system)
     gp = load_model(args.model, system)
-    table, header = read_table(args.initial, "initial")
-    y0 = torch.as_tensor(table, dtype=torch.float64)
-    y0 = y0.unsqueeze(0) if y0.dim() == 1 else y0
-    if y0.shape[-1] != system.state_dim:
-        raise InputError(
-            f"--initial: expected {system.state_dim} states per row (system '{system.name}'), got rows of "
-            f"{y0.shape[-1]} in {args.initial}"
-        )
-    names = header if header is not None and len(header) == system.state_dim else [f"y{j}" for j in range(y0.shape[-1])]
-    times = parse_times(args.times)
+    y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
+    names = check_names(gp, names, system, "--initial")
+    labels = labels if labels is not None else [str(b) for b in range(y0.shape[0])]
     model = CorrectedODE(system, gp)
     calibrated = model.calibration_ is not None
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", TorchMisspecWarning)
+    with warnings.catch_warnings():
+        # the command says itself, once, whether the bands are calibrated
+        warnings.filterwarnings("ignore", message=".*not calibrated.*")
         post = model.posterior(
             y0, times, num_samples=args.samples, generator=torch.Generator().manual_seed(args.seed), scale=None
         )
-    for w in caught:  # the library's warnings reach the user as one line each
-        if calibrated or "not calibrated" not in str(w.message):
-            print(f"torchmisspec predict: warning: {w.message}")
     lower, upper = post.interval(args.level)
     mean = post.mean_path
     rows = []
@@ -53,14 +58,16 @@ def _predict(args: argparse.Namespace) -> int:
             values = []
             for j in range(system.state_dim):
                 values += [float(mean[b, i, j]), float(lower[b, i, j]), float(upper[b, i, j])]
-            rows.append([b, t, *values])
-    header_out = ["initial", args.time_name]
+            rows.append([labels[b], t, *values])
+    header = [args.experiment_column or "experiment", args.time_column]
     for name in names:
-        header_out += [name, f"{name}_lower", f"{name}_upper"]
-    write_csv(out, header_out, rows)
+        header += [f"{name}_mean", f"{name}_lower", f"{name}_upper"]
+    write_csv(out, header, rows)
     unbounded = int((~torch.isfinite(lower) | ~torch.isfinite(upper)).sum())
     band = f"the central {args.level:.0%} band" + (
-        f", calibrated (scale {model.calibration_.scale:.3g})" if calibrated else ", NOT calibrated: the GP's own bands"
+        f", calibrated (scale {model.calibration_.scale:.3g}, saved in {args.model})"
+        if calibrated
+        else ", NOT calibrated: the GP's own bands"
     )
     print(
         f"predicted {y0.shape[0]} trajectories x {times.numel()} times with {band} from {args.samples} posterior "
@@ -69,18 +76,40 @@ def _predict(args: argparse.Namespace) -> int:
     )
     if not calibrated:
         print(
-            "torchmisspec predict: warning: the model's bands are not calibrated (with few experiments they are "
-            "usually too narrow); run 'torchmisspec calibrate' on its data first"
+            f"torchmisspec predict: warning: the model's bands are not calibrated (with few experiments they are "
+            f"usually too narrow); run 'torchmisspec calibrate --model {args.model} --data ...' first",
+            file=sys.stderr,
         )
     if figure is not None:
-        from ..plotting import plot_prediction_bands
-
-        fig = plot_prediction_bands(post, index=0, levels=(args.level,), component_labels=names, title="initial 0")
-        for ax in fig.axes:
-            ax.set_xlabel(args.time_name)
-        fig.savefig(figure, dpi=100)
-        print(f"figure of initial condition 0: {figure}")
+        _figure(post, figure, names, labels, args)
+        shown = min(y0.shape[0], MAX_FIGURE_ROWS)
+        print(f"figure of {'the first ' + str(shown) if shown < y0.shape[0] else shown} initial condition(s): {figure}")
     return 0
+
+
+def _figure(post, path, names, labels, args: argparse.Namespace) -> None:
+    """One row of panels (one per state) for each of the first initial conditions, with the band and its legend."""
+    from matplotlib.figure import Figure
+
+    from ..plotting import plot_prediction_bands
+
+    n = min(post.samples.shape[1], MAX_FIGURE_ROWS)
+    d = post.samples.shape[-1]
+    fig = Figure(figsize=(4.0 * d, 2.8 * n), layout="constrained")
+    axes = fig.subplots(n, d, squeeze=False)
+    for b in range(n):
+        plot_prediction_bands(
+            post,
+            index=b,
+            levels=(args.level,),
+            component_labels=names,
+            axes=list(axes[b]),
+            title=f"{args.experiment_column or 'experiment'} {labels[b]}",
+            legend=b == 0,
+        )
+        for ax in axes[b]:
+            ax.set_xlabel(args.time_column)
+    fig.savefig(path, dpi=100)
 
 
 def add_predict(sub) -> None:
@@ -89,23 +118,28 @@ def add_predict(sub) -> None:
         help="predict trajectories from new initial conditions, with uncertainty bands (a CSV and a figure)",
         description="Integrate the corrected model (G + the correction's posterior mean) from each initial condition, "
         "and posterior draws of the correction for the bands (CorrectedODE.posterior), calibrated when the model file "
-        "holds a calibration. Writes one row per initial condition and time: the prediction and the band's lower and "
-        "upper ends for every state.",
+        "holds a calibration (written by 'fit' or 'calibrate'). Writes one row per initial condition and time: "
+        "experiment, time, and <state>_mean, <state>_lower, <state>_upper for every state.",
     )
     pre.add_argument("--model", required=True, help="the model file written by 'fit' (or 'calibrate')")
     add_system_option(pre)
     pre.add_argument(
         "--initial",
         required=True,
-        help="initial conditions, one per row: CSV/TSV/TXT with an optional header of state names (used in the "
-        "output), .npy or .npz",
+        help="initial conditions, one per row: a CSV/TSV/TXT with a header of state names (read with "
+        "--state-columns; an --experiment-column labels the rows), or a table without header, .npy or .npz, in "
+        "the system's order",
     )
-    pre.add_argument("--times", required=True, help="output times: 'start:stop:count' or a comma list")
-    pre.add_argument("--time-name", default="time", help="name of the time column written (default: %(default)s)")
+    pre.add_argument(
+        "--times", required=True, help="output times: 'start:stop:count', a comma list, or a file of times"
+    )
+    add_column_options(pre)
     pre.add_argument("--level", type=float, default=0.9, help="the central band written (default: %(default)s)")
     pre.add_argument("--samples", type=int, default=64, help="posterior draws for the bands (default: %(default)s)")
     pre.add_argument("--seed", type=int, default=0, help="seed of the draws (default: %(default)s)")
     pre.add_argument("--out", default="prediction.csv", help="output table, .csv (default: %(default)s)")
-    pre.add_argument("--figure", help="also draw the first initial condition's prediction and band, .png")
-    pre.add_argument("--quiet", action="store_true", help="no progress bars")
+    pre.add_argument(
+        "--figure", help=f"also draw the prediction and band (the first {MAX_FIGURE_ROWS} initial conditions), .png"
+    )
+    pre.add_argument("--quiet", action="store_true", help="no progress output (prediction has no progress bar yet)")
     pre.set_defaults(func=_predict)

@@ -299,6 +299,9 @@ class CorrectionGP:
     #: the :class:`~torchmisspec.calibration.BandCalibration` of this fit's bands (``CorrectedODE.calibrate``), saved
     #: with the model; ``None`` until calibrated, and again after a refit
     calibration_ = None
+    #: the system it corrects (name, state_dim, correction_inputs, correction_outputs), when the command line fitted
+    #: it; saved with the model and checked by the command line
+    system_ = None
 
     def __init__(
         self,

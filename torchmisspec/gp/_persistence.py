@@ -121,6 +121,8 @@ def to_blob(gp: CorrectionGP) -> dict:
     }
     if getattr(gp, "input_names_", None) is not None:  # additive: files without it load with no names
         blob["input_names"] = list(gp.input_names_)
+    if getattr(gp, "system_", None) is not None:  # additive: which system it corrects, as the command line records
+        blob["system"] = dict(gp.system_)
     calibration = getattr(gp, "calibration_", None)
     if calibration is not None:  # the bands' calibrated spread travels with the model (absent in older files)
         blob["calibration"] = calibration.to_dict()
@@ -144,7 +146,18 @@ def read_safely(path: str | Path, what: str, writer: str):
         raise InputError(f"path: expected an existing {what} file, got {str(path)!r}")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, RuntimeError, ValueError, OSError) as exc:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        zipfile.BadZipFile,
+        RuntimeError,
+        ValueError,
+        OSError,
+        IndexError,  # a text file (a CSV passed as the model): the legacy reader pops an empty stack
+        KeyError,
+        TypeError,
+        AttributeError,
+    ) as exc:
         raise InputError(
             f"{path}: expected a {what} file written by {writer} (tensors and plain values only), "
             f"but it could not be read safely ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
@@ -200,6 +213,10 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
         what = f"{X.shape[1]} strings (one per input)"
         raise InputError(f"{path}: expected 'input_names' to be {what}, got {names!r:.80}")
     gp.input_names_ = None if names is None else tuple(names)
+    system = blob.get("system")
+    if system is not None and not (isinstance(system, dict) and all(isinstance(k, str) for k in system)):
+        raise InputError(f"{path}: expected 'system' to be a dictionary of the corrected system's description")
+    gp.system_ = system
     gp._posterior_cache()
     if blob.get("calibration") is not None:
         gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
