@@ -183,7 +183,8 @@ def fit_trajectories(
         right-hand-side evaluations of all its solves (each a batched call; gradients and finite differences
         included); ``result.state_noise_`` is the
         ``(d,)`` state-noise variance used; with single shooting ``result.initial_states_`` holds the estimated
-        ``(K, d)`` initial states.
+        ``(K, d)`` initial states; ``result.refinement_`` the settings of this refinement (saved with the model:
+        :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` refines each fold the same way).
     """
     _check(gp, system, trajectories)
     if not isinstance(shooting, str) or shooting not in SHOOTING:
@@ -203,10 +204,23 @@ def fit_trajectories(
     residuals, n_obs, offsets = _shooting(trajectories, shooting, solver)
     kd = dict(dtype=gp.dtype, device=gp.device)
     s2 = _state_noise(state_noise, trajectories, d, kd)
+    # how this refinement was made: calibrate_bands repeats it on each fold (a fold fitted to the samples alone is a
+    # worse model than the refined one, and its held-out errors would widen the bands too much)
+    recipe = dict(
+        shooting=shooting,
+        state_noise=_recorded(state_noise),
+        max_iter=max_iter,
+        rtol=float(rtol),
+        atol=float(atol),
+        max_steps=max_steps,
+        relevance=relevance,
+    )
     if relevance:
-        return _fit_relevance(
+        refined = _fit_relevance(
             gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter, progress=progress
         )
+        refined.refinement_ = recipe
+        return refined
     L = gp._posterior_cache().fac.chol  # (B, N, N), C = K + diag(known noise + floor), fixed
     X = gp.train_inputs_
     Y0 = gp.train_targets_.detach()
@@ -230,6 +244,7 @@ def fit_trajectories(
     refined.state_noise_ = s2
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2.sqrt()
+    refined.refinement_ = recipe
     return refined
 
 
@@ -628,6 +643,13 @@ def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) 
 
 class _TrialDiverged(Exception):
     """A line-search trial of the trajectory fit made the ODE blow up (caught inside fit_trajectories)."""
+
+
+def _recorded(state_noise):
+    """``state_noise`` as a model records it (None, a float or a list of floats: saved with the model)."""
+    if state_noise is None or isinstance(state_noise, (int, float)):
+        return None if state_noise is None else float(state_noise)
+    return [float(v) for v in torch.as_tensor(state_noise).reshape(-1).tolist()]
 
 
 def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> torch.Tensor | None:

@@ -302,6 +302,9 @@ class CorrectionGP:
     #: the system it corrects (name, state_dim, correction_inputs, correction_outputs), when the command line fitted
     #: it; saved with the model and checked by the command line
     system_ = None
+    #: the settings of :func:`~torchmisspec.fit_trajectories` when this model was refined through the ODE (``None``
+    #: otherwise); saved with the model, so that ``CorrectedODE.calibrate`` refines each fold the same way
+    refinement_ = None
 
     def __init__(
         self,
@@ -795,6 +798,7 @@ class CorrectionGP:
             self.likelihood.load_state_dict(saved[1])
             raise
         self.__dict__.pop("calibration_", None)  # a calibration of the bands belongs to the fit it was made for
+        self.__dict__.pop("refinement_", None)  # and so does a refinement through the ODE
         return self
 
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:

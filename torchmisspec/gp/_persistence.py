@@ -123,6 +123,8 @@ def to_blob(gp: CorrectionGP) -> dict:
         blob["input_names"] = list(gp.input_names_)
     if getattr(gp, "system_", None) is not None:  # additive: which system it corrects, as the command line records
         blob["system"] = dict(gp.system_)
+    if getattr(gp, "refinement_", None) is not None:  # additive: how it was refined through the ODE
+        blob["refinement"] = dict(gp.refinement_)
     calibration = getattr(gp, "calibration_", None)
     if calibration is not None:  # the bands' calibrated spread travels with the model (absent in older files)
         blob["calibration"] = calibration.to_dict()
@@ -217,7 +219,34 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
     if system is not None and not (isinstance(system, dict) and all(isinstance(k, str) for k in system)):
         raise InputError(f"{path}: expected 'system' to be a dictionary of the corrected system's description")
     gp.system_ = system
+    gp.refinement_ = _refinement(blob.get("refinement"), path)
     gp._posterior_cache()
     if blob.get("calibration") is not None:
         gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
     return gp
+
+
+#: The settings a saved refinement may hold, and the types each may take.
+_REFINEMENT = {
+    "shooting": (str,),
+    "state_noise": (type(None), float, int, list),
+    "max_iter": (int,),
+    "rtol": (float, int),
+    "atol": (float, int),
+    "max_steps": (type(None), int),
+    "relevance": (bool,),
+}
+
+
+def _refinement(value, path: Path) -> dict | None:
+    """The saved settings of a refinement through the ODE, checked (``None`` when the model was not refined)."""
+    if value is None:
+        return None
+    ok = isinstance(value, dict) and set(value) <= set(_REFINEMENT)
+    ok = ok and all(isinstance(v, _REFINEMENT[k]) for k, v in value.items())
+    if not ok:
+        raise InputError(
+            f"{path}: expected 'refinement' to be the settings of fit_trajectories ({', '.join(_REFINEMENT)}), got "
+            f"{value!r:.80}"
+        )
+    return dict(value)
