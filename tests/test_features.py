@@ -9,7 +9,14 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.gp._features import _evidence, fit_relevance, monomial_names, monomial_powers, monomials
+from torchmisspec.gp._features import (
+    _evidence,
+    fit_relevance,
+    monomial_names,
+    monomial_powers,
+    monomials,
+    unit_information_weights,
+)
 from torchmisspec.systems import LinearField, MisspecifiedSystem
 from torchmisspec.trajectory_fit import shooting_misfit
 
@@ -89,6 +96,40 @@ def test_weights_are_a_stationary_point_of_the_evidence():
             assert _evidence(Phi, y, torch.full_like(y, s), v) < best
     for f in (0.99, 1.01):
         assert _evidence(Phi, y, torch.full_like(y, s * f), w) < best
+
+
+@pytest.mark.parametrize("known", [False, True])
+def test_a_kept_term_is_least_squares_under_its_unit_information_slab(known):
+    """A term measured at a modest signal-to-noise ratio keeps its least-squares coefficient (within N / (N + 1)),
+    not MacKay's shrunk one (issue 27: the shrinkage doubled the error against SINDy). Reference: (weighted) least
+    squares on the one kept term, by hand; the result does not depend on the learned noise floor."""
+    g = torch.Generator().manual_seed(0)
+    N = 50
+    X = torch.rand(N, 1, generator=g, dtype=torch.float64) * 2 - 1
+    noise = 0.05 * (1 + X) ** 2 + 1e-3 if known else None  # (N, 1) known variances, or a learned floor
+    sd = 0.05 if noise is None else noise.sqrt()
+    Y = 0.05 * X**2 + sd * torch.randn(N, 1, generator=g, dtype=torch.float64)
+    gp = tms.CorrectionGP(kernel="features").fit(X, Y, noise=noise)
+    (term,) = gp.terms()
+    assert term.name == "x1^2"
+    phi = X[:, 0] ** 2
+    floor = float(gp.noise_variance)  # the learned floor (beside the known noise)
+    D = torch.full((N,), floor, dtype=torch.float64) if noise is None else noise[:, 0] + floor
+    lsq = float((phi * Y[:, 0] / D).sum() / (phi * phi / D).sum())
+    assert term.mean == pytest.approx(lsq * N / (N + 1), rel=1e-9)
+    assert term.weight == pytest.approx(N / float((phi * phi / D).sum()), rel=1e-9)  # the unit-information slab
+
+
+def test_unit_information_weights_widen_only_kept_narrow_terms():
+    Phi = torch.tensor([[1.0, 2.0, 0.5], [3.0, 1.0, 0.5]], dtype=torch.float64)
+    w = torch.tensor([0.0, 1e-6, 10.0], dtype=torch.float64)
+    out = unit_information_weights(Phi, w, None, 0.1)
+    unit = 2 * 0.1 / Phi.pow(2).sum(0)
+    assert out.tolist() == [0.0, pytest.approx(float(unit[1])), 10.0]
+    known = torch.tensor([[0.1, 0.3], [0.2, 0.1]], dtype=torch.float64)  # two outputs sharing the weights
+    out = unit_information_weights(Phi, w, known, 0.05)
+    info = (Phi[:, 1:2].pow(2) / (known + 0.05)).sum()
+    assert float(out[1]) == pytest.approx(2 * 2 / float(info))
 
 
 def test_known_noise_and_a_fixed_floor():

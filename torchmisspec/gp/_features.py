@@ -32,6 +32,17 @@ converge again. Removing several terms at once would be wrong: collinear terms e
 Every move raises the evidence less the price, so the search ends, and the best converged state is kept. This is a
 spike-and-slab prior with inclusion odds ``exp(-min_gain)``; :class:`~torchmisspec.CorrectionGP` uses BIC's
 ``log(N) / 2`` per learned weight by default.
+
+**The slab of a kept term.** MacKay's evidence-optimal weight of a kept term is about its coefficient squared,
+``w_j ~ mu_j^2 / gamma_j``: a prior as narrow as the coefficient, which shrinks the posterior mean toward 0 by a
+factor ``1 / (1 + 1/SNR_j)`` (``SNR_j = mu_j^2 / v_j``, ``v_j`` the coefficient's least-squares variance). On a term
+the data measure only moderately that bias is the whole error: on paper_linear with 20 random experiments, the
+coefficient 0.01 of y2^2 measured at SNR 19 came out 0.00949 where least squares (and SINDy) gave 0.01009, twice
+SINDy's integrated error (issue 27). Once the price has decided *which* terms are present, the slab of each kept
+term is therefore widened to the unit-information prior (Kass & Wasserman 1995), the prior carrying one
+observation's worth of information, ``w_j = N / sum_n phi_nj^2 / D_n`` (the prior under which BIC's ``log(N) / 2``
+is the log Bayes factor of the term): the kept terms' posterior is least squares' within ``N / (N + 1)``, and a
+weight already wider is left as it is (:func:`unit_information_weights`). Pruned terms stay at 0.
 """
 
 from __future__ import annotations
@@ -46,7 +57,15 @@ import torch
 from .._errors import FittingError, InputError, ShapeError
 from .._linalg import cholesky
 
-__all__ = ["FeatureKernel", "PRUNE", "Term", "monomial_names", "monomial_powers", "monomials"]
+__all__ = [
+    "FeatureKernel",
+    "PRUNE",
+    "Term",
+    "monomial_names",
+    "monomial_powers",
+    "monomials",
+    "unit_information_weights",
+]
 
 #: The kernels with a library of features and one learned weight per term (terms(), weights).
 FEATURE_KERNELS = ("features", "features+rbf")
@@ -398,6 +417,19 @@ def fit_relevance(
     if best is not None and best[0] > _penalised(Phi, Y, known, w, s, min_gain):
         w, s = best[1], best[2]
     return w, s, iterations
+
+
+def unit_information_weights(Phi: torch.Tensor, w: torch.Tensor, known: torch.Tensor | None, floor: float):
+    """``(p,)``: the weights ``w`` with every kept term's (``w_j > 0``) raised to at least the unit-information prior
+    ``N m / sum_{n,o} phi_nj^2 / D_no`` over the ``N`` samples and ``m`` outputs sharing it, ``D = known + floor``
+    (module docstring: the slab of a kept term). Removed terms (``w_j = 0``) stay removed."""
+    N, m = Phi.shape[0], 1 if known is None else known.shape[1]
+    if known is None:
+        information = Phi.pow(2).sum(0) / floor  # (p,)
+    else:
+        information = (Phi.pow(2).unsqueeze(-1) / (known + floor).unsqueeze(1)).sum((0, 2))  # (p,)
+    unit = N * m / information.clamp_min(torch.finfo(Phi.dtype).tiny)
+    return torch.where(w > 0, torch.maximum(w, unit), w)
 
 
 def _penalised(Phi, Y, known, w, s: float, min_gain: float) -> float:

@@ -49,6 +49,7 @@ from ._features import (
     check_library,
     coefficient_posterior,
     fit_relevance,
+    unit_information_weights,
 )
 from ._optim import maximise
 from ._sum import FeaturesPlusRBF, fit_sum
@@ -994,7 +995,7 @@ class CorrectionGP:
                     "raise max_iter",
                     NumericalWarning,
                 )
-            weights.append(w)
+            weights.append(unit_information_weights(Phi, w, known, s))  # the kept terms' slab (_features)
             floors.append(s)
             iterations = max(iterations, it)
         with torch.no_grad():
