@@ -68,18 +68,18 @@ def test_posterior_is_bayesian_linear_regression(per_output):
 def test_relevance_removes_absent_terms_and_recovers_present_ones():
     X, F, _ = data()
     gp = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(X, F)  # noiseless
-    W = gp.weights
-    names = gp.feature_names(["y1", "y2"])
     present = {0: {"y2", "y1^2"}, 1: {"y1 y2"}}
+    chosen = gp.terms(["y1", "y2"])
     for o in range(2):
-        kept = {names[j] for j in range(len(names)) if W[o, j] > 0}
-        assert kept == present[o]  # every absent monomial's weight is exactly 0
+        assert {t.name for t in chosen if t.output == o} == present[o]  # the chosen subset: no absent monomial
+    for t in gp.terms(["y1", "y2"], all_terms=True):  # a removed term keeps only a small chance of being present
+        assert (t.inclusion > 0.5) == (t.name in present[t.output])
     terms = {(t.output, t.name): t for t in gp.terms(["y1", "y2"])}
     assert terms[0, "y1^2"].mean == pytest.approx(0.5, abs=1e-8)
     assert terms[0, "y2"].mean == pytest.approx(-0.3, abs=1e-8)
     assert terms[1, "y1 y2"].mean == pytest.approx(2.0, abs=1e-8)
     assert str(terms[0, "y1^2"]).startswith("+0.5 +- ") and str(terms[0, "y1^2"]).endswith("* y1^2")
-    assert len(gp.terms(all_terms=True)) == 2 * len(names)
+    assert len(gp.terms(all_terms=True)) == 2 * len(gp.feature_names())
 
 
 def test_weights_are_a_stationary_point_of_the_evidence():
@@ -100,9 +100,9 @@ def test_weights_are_a_stationary_point_of_the_evidence():
 
 @pytest.mark.parametrize("known", [False, True])
 def test_a_kept_term_is_least_squares_under_its_unit_information_slab(known):
-    """A term measured at a modest signal-to-noise ratio keeps its least-squares coefficient (within N / (N + 1)),
-    not MacKay's shrunk one (issue 27: the shrinkage doubled the error against SINDy). Reference: (weighted) least
-    squares on the one kept term, by hand; the result does not depend on the learned noise floor."""
+    """A term measured at a modest signal-to-noise ratio gets the unit-information slab N / sum phi^2 / D, not
+    MacKay's weight ~ its coefficient squared, which shrank it (issue 27: the shrinkage doubled the error against
+    SINDy); its coefficient is Bayesian linear regression's with the GP's weights, by hand."""
     g = torch.Generator().manual_seed(0)
     N = 50
     X = torch.rand(N, 1, generator=g, dtype=torch.float64) * 2 - 1
@@ -115,9 +115,44 @@ def test_a_kept_term_is_least_squares_under_its_unit_information_slab(known):
     phi = X[:, 0] ** 2
     floor = float(gp.noise_variance)  # the learned floor (beside the known noise)
     D = torch.full((N,), floor, dtype=torch.float64) if noise is None else noise[:, 0] + floor
-    lsq = float((phi * Y[:, 0] / D).sum() / (phi * phi / D).sum())
-    assert term.mean == pytest.approx(lsq * N / (N + 1), rel=1e-9)
     assert term.weight == pytest.approx(N / float((phi * phi / D).sum()), rel=1e-9)  # the unit-information slab
+    # the coefficient: Bayesian linear regression by hand with the GP's weights (the removed terms' small ones too)
+    Phi = monomials(X, monomial_powers(1, 2))
+    W = gp.weights.reshape(-1)
+    A = Phi.T @ (Phi / D.unsqueeze(-1)) + torch.diag(1 / W)
+    mean = torch.linalg.solve(A, Phi.T @ (Y[:, 0] / D))
+    assert term.mean == pytest.approx(float(mean[2]), rel=1e-8)
+    lsq = float((phi * Y[:, 0] / D).sum() / (phi * phi / D).sum())  # one kept term: least squares x N / (N + 1)
+    assert term.mean == pytest.approx(lsq * N / (N + 1), rel=1e-9)
+
+
+def test_term_inclusion_is_the_exact_bayes_factor():
+    """Brute force on a tiny problem: each term's chance of being present is the posterior odds (1:1 prior) of the
+    models with and without it, from dense Gaussian evidences with the unit-information slab N s / sum phi^2."""
+    g = torch.Generator().manual_seed(3)
+    N = 30
+    X = torch.rand(N, 1, generator=g, dtype=torch.float64) * 2 - 1
+    Y = 0.5 * X**2 + 0.2 * torch.randn(N, 1, generator=g, dtype=torch.float64)
+    gp = tms.CorrectionGP(kernel="features", degree=3).fit(X, Y)
+    Phi = monomials(X, monomial_powers(1, 3))
+    w = gp.weights.reshape(-1)
+    s = float(gp.noise_variance)
+    unit = N * s / Phi.pow(2).sum(0)
+    y = Y[:, 0]
+
+    def log_evidence(weights):
+        C = (Phi * weights) @ Phi.T + s * torch.eye(N, dtype=torch.float64)
+        return float(torch.distributions.MultivariateNormal(torch.zeros(N, dtype=torch.float64), C).log_prob(y))
+
+    kept = w > 0
+    assert bool(kept.any()) and not bool(kept.all())
+    terms = gp.terms(all_terms=True)
+    for j in range(4):
+        with_j, without_j = w.clone(), w.clone()
+        with_j[j], without_j[j] = (w[j] if kept[j] else unit[j]), 0.0
+        p = 1 / (1 + math.exp(log_evidence(without_j) - log_evidence(with_j)))
+        assert terms[j].inclusion == pytest.approx(p, rel=1e-6)
+    assert all((t.inclusion > 0.5) == (t.weight > 0) for t in terms)  # here the price and the odds agree
 
 
 def test_unit_information_weights_widen_only_kept_narrow_terms():

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.gp._features import _evidence, fit_relevance, monomial_powers, monomials, term_gain
+from torchmisspec.gp._features import _evidence, _penalised, fit_relevance, monomial_powers, monomials, term_gain
 from torchmisspec.gp._sum import _exact_mll, _least_valuable
 
 DT = torch.float64
@@ -93,8 +93,7 @@ def _spurious(min_gain, seeds):
         X = torch.rand(300, 2, generator=g, dtype=DT) * 2 - 1
         y = 0.5 * X[:, :1] ** 2 + 0.1 * torch.randn(300, 1, generator=g, dtype=DT)
         gp = tms.CorrectionGP(kernel="features", degree=3, min_gain=min_gain).fit(X, y)
-        names = gp.feature_names(["y1", "y2"])
-        kept = {names[j] for j in range(len(names)) if gp.weights.reshape(-1)[j] > 0}
+        kept = {t.name for t in gp.terms(["y1", "y2"])}  # the chosen subset
         kept_true &= "y1^2" in kept
         count += len(kept - {"y1^2"})
     return count, kept_true
@@ -120,11 +119,14 @@ def test_collinear_terms_are_not_removed_together():
     gp = tms.CorrectionGP(kernel="features", degree=2).fit(X, y)
     assert float(gp.noise_variance) < 4 * 1e-6
     assert float((gp.predict_mean(X) - y).pow(2).mean()) < 4 * 1e-6
-    plain = tms.CorrectionGP(kernel="features", degree=2, min_gain=0.0).fit(X, y)
+    # the subset the price chose is no worse by evidence less price than plain relevance's (the fit's objective,
+    # before the kept terms' slab and the removed terms' chance are set)
+    Phi = monomials(X, monomial_powers(2, 2))
     price = 0.5 * math.log(60)
-    assert gp.log_marginal_likelihood_ - price * int((gp.weights > 0).sum()) >= (
-        plain.log_marginal_likelihood_ - price * int((plain.weights > 0).sum()) - 1e-6
-    )
+    w, s, _ = fit_relevance(Phi, y, None, floor=None, max_iter=2000, min_gain=price)
+    w0, s0, _ = fit_relevance(Phi, y, None, floor=None, max_iter=2000, min_gain=0.0)
+    assert _penalised(Phi, y, None, w, s, price) >= _penalised(Phi, y, None, w0, s0, price) - 1e-6
+    assert {t.name for t in gp.terms()} == {gp.feature_names()[j] for j in range(6) if w[j] > 0}
 
 
 def _curve_problem(seed):
@@ -198,7 +200,7 @@ def test_evidence_score_is_bic_corrected_evidence_and_auto_chooses_by_it():
     assert rbf.num_hyperparameters == 3  # lengthscale, output scale, noise
     assert rbf.evidence_score == pytest.approx(rbf.log_marginal_likelihood_ - 1.5 * math.log(120))
     feats = tms.CorrectionGP(kernel="features", per_output=True).fit(X, y)
-    assert feats.num_hyperparameters == int((feats.weights > 0).sum()) + 2  # kept weights and two noise floors
+    assert feats.num_hyperparameters == len(feats.terms()) + 2  # the chosen terms' weights and two noise floors
     auto = tms.CorrectionGP(kernel="auto").fit(X, y)
     table = {r["kernel"]: r for r in auto.model_selection_}
     from torchmisspec.gp._model import auto_choice

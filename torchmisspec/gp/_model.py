@@ -49,6 +49,7 @@ from ._features import (
     check_library,
     coefficient_posterior,
     fit_relevance,
+    term_inclusion,
     unit_information_weights,
 )
 from ._optim import maximise
@@ -979,7 +980,7 @@ class CorrectionGP:
         groups = [[o] for o in range(Y.shape[1])] if self.per_output else [list(range(Y.shape[1]))]
         # the price of a term: per learned weight (shared by the outputs of a group or not), as evidence_score counts
         price = 0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain
-        weights, floors, iterations = [], [], 0
+        weights, floors, inclusion, iterations = [], [], [], 0
         for cols in groups:
             known = None if noise is None else noise[:, cols]
             try:
@@ -995,11 +996,14 @@ class CorrectionGP:
                     "raise max_iter",
                     NumericalWarning,
                 )
-            weights.append(unit_information_weights(Phi, w, known, s))  # the kept terms' slab (_features)
+            w = unit_information_weights(Phi, w, known, s)  # the kept terms' slab (_features)
+            weights.append(w)
+            inclusion.append(term_inclusion(Phi, Y[:, cols], known, w, s))  # each term's chance (_features)
             floors.append(s)
             iterations = max(iterations, it)
         with torch.no_grad():
             base.weights.copy_(torch.stack(weights).reshape(base.weights.shape))
+            base.inclusion.copy_(torch.stack(inclusion).reshape(base.inclusion.shape))
             if floor is None:
                 value = torch.tensor(floors, dtype=self.dtype, device=self.device)
                 self._floor(lik).noise = value.reshape(-1, 1) if self.per_output else value.reshape(1)
@@ -1603,6 +1607,7 @@ class CorrectionGP:
 
         The posterior of F = sum_j beta_j phi_j(x) given the training samples (and their noise): for each output and
         each term whose weight is not 0 (``all_terms=True``: every term), a :class:`~torchmisspec.gp._features.Term`
+        with its posterior probability of being present (``inclusion``)
         whose ``str`` reads like ``"+0.01 +- 0.0003 * y1^2"``. ``names``: the inputs' names (default
         :attr:`input_names_`, the data's names that :func:`~torchmisspec.fit_correction` records, else x1, x2, ...).
         """
@@ -1627,6 +1632,7 @@ class CorrectionGP:
                             out.append(Term(o, label, float(mean[j]), float(std[j]), float(w[j])))
             return out
         W = base.weights.detach().reshape(-1, Phi.shape[1]) * self.covar_module.outputscale.detach().reshape(-1, 1)
+        inclusion = base.inclusion.reshape(W.shape)
         floor = self._floor(self.likelihood).noise.detach().reshape(-1)
         out = []
         for o in range(Y.shape[1]):
@@ -1636,7 +1642,7 @@ class CorrectionGP:
             mean, std = coefficient_posterior(Phi, Y[:, o], D, W[b])
             for j, label in enumerate(labels):
                 if all_terms or float(W[b, j]) > 0:
-                    out.append(Term(o, label, float(mean[j]), float(std[j]), float(W[b, j])))
+                    out.append(Term(o, label, float(mean[j]), float(std[j]), float(W[b, j]), float(inclusion[b, j])))
         return out
 
     def __repr__(self) -> str:

@@ -200,7 +200,11 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
     gp._d_in = X.shape[1]  # the feature kernel's library depends on the number of inputs
     covar, lik = gp._modules(batch=Y.shape[1], noise=noise)
     try:
-        covar.load_state_dict(_field(blob, "covar_module", dict, path))
+        state = dict(_field(blob, "covar_module", dict, path))
+        for key, value in covar.state_dict().items():  # files from before the feature kernel's chosen subset was
+            if key.endswith(".inclusion"):  # recorded: every term's chance of being present 1, as before
+                state.setdefault(key, value)
+        covar.load_state_dict(state)
         lik.load_state_dict(_field(blob, "likelihood", dict, path))
     except RuntimeError as exc:
         raise InputError(f"{path}: the saved hyperparameters do not match the kernel {gp.kernel!r} ({exc})") from exc
