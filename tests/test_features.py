@@ -50,6 +50,7 @@ def test_posterior_is_bayesian_linear_regression(per_output):
     phis = monomials(xs, P)
     post = gp.predict(xs)
     W = gp.weights.reshape(-1, P.shape[0])
+    spread = gp.covar_module.base_kernel.spread.reshape(-1, P.shape[0])  # the removed terms' (tested below)
     s = torch.as_tensor(gp.noise_variance, dtype=DT).reshape(-1)
     total = 0.0
     for o in range(2):
@@ -59,7 +60,7 @@ def test_posterior_is_bayesian_linear_regression(per_output):
         Sigma = torch.linalg.inv(A)
         mu = Sigma @ Phi[:, act].T @ Y[:, o] / noise
         torch.testing.assert_close(post.mean[:, o], phis[:, act] @ mu, rtol=1e-7, atol=1e-9)
-        var = ((phis[:, act] @ Sigma) * phis[:, act]).sum(-1)
+        var = ((phis[:, act] @ Sigma) * phis[:, act]).sum(-1) + (phis.pow(2) * spread[o if per_output else 0]).sum(-1)
         torch.testing.assert_close(post.variance[:, o], var, rtol=1e-6, atol=1e-10)
         total += _evidence(Phi, Y[:, o : o + 1], noise.expand(len(X), 1), w)
     assert gp.log_marginal_likelihood_ == pytest.approx(total, rel=1e-9)
@@ -126,9 +127,11 @@ def test_a_kept_term_is_least_squares_under_its_unit_information_slab(known):
     assert term.mean == pytest.approx(lsq * N / (N + 1), rel=1e-9)
 
 
-def test_term_inclusion_is_the_exact_bayes_factor():
+def test_term_inclusion_is_the_exact_bayes_factor_and_widens_the_bands():
     """Brute force on a tiny problem: each term's chance of being present is the posterior odds (1:1 prior) of the
-    models with and without it, from dense Gaussian evidences with the unit-information slab N s / sum phi^2."""
+    models with and without it, from dense Gaussian evidences with the unit-information slab N s / sum phi^2; a
+    removed term's spread is that chance times its coefficient's variance in the model with it; predict and the
+    draws add that spread to the chosen subset's posterior (hand-written), whose mean they keep."""
     g = torch.Generator().manual_seed(3)
     N = 30
     X = torch.rand(N, 1, generator=g, dtype=torch.float64) * 2 - 1
@@ -152,7 +155,25 @@ def test_term_inclusion_is_the_exact_bayes_factor():
         with_j[j], without_j[j] = (w[j] if kept[j] else unit[j]), 0.0
         p = 1 / (1 + math.exp(log_evidence(without_j) - log_evidence(with_j)))
         assert terms[j].inclusion == pytest.approx(p, rel=1e-6)
+        if not kept[j]:  # its spread: p times its coefficient's posterior variance in the model with it
+            act = with_j > 0
+            cov = torch.linalg.inv(Phi[:, act].T @ Phi[:, act] / s + torch.diag(1 / with_j[act]))
+            v = float(cov[int(act[:j].sum()), int(act[:j].sum())])
+            assert float(gp.covar_module.base_kernel.spread[j]) == pytest.approx(p * v, rel=1e-6)
+        else:
+            assert float(gp.covar_module.base_kernel.spread[j]) == 0.0
     assert all((t.inclusion > 0.5) == (t.weight > 0) for t in terms)  # here the price and the odds agree
+    # the bands and the draws carry the spread; the mean is the chosen subset's
+    xs = torch.linspace(-1.5, 1.5, 7, dtype=torch.float64).unsqueeze(-1)
+    post = gp.predict(xs)
+    phis = monomials(xs, monomial_powers(1, 3))
+    A = Phi[:, kept].T @ Phi[:, kept] / s + torch.diag(1 / w[kept])
+    cov = torch.linalg.inv(A)
+    torch.testing.assert_close(post.mean[:, 0], phis[:, kept] @ (cov @ Phi[:, kept].T @ y / s))
+    extra = (phis.pow(2) * gp.covar_module.base_kernel.spread).sum(-1)
+    torch.testing.assert_close(post.variance[:, 0], ((phis[:, kept] @ cov) * phis[:, kept]).sum(-1) + extra)
+    draws = gp.sample_functions(4000, generator=torch.Generator().manual_seed(0))(xs)[..., 0]
+    assert float((draws.var(0) / post.variance[:, 0] - 1).abs().max()) < 0.1
 
 
 def test_unit_information_weights_widen_only_kept_narrow_terms():
@@ -322,6 +343,8 @@ def test_feature_space_posterior_equals_the_dense_one(per_output, known):
         alpha = torch.cholesky_solve(Y[:, o : o + 1], L)
         mean = k(x, X) @ alpha
         var = k(x, x).diagonal() - (torch.linalg.solve_triangular(L, k(X, x), upper=False) ** 2).sum(0)
+        spread = base.spread.reshape(-1, 6)[o if W.shape[0] > 1 else 0]  # the removed terms' (not conditioned)
+        var = var + (base.features(x).pow(2) * spread).sum(-1)
         torch.testing.assert_close(post.mean[:, o], mean[:, 0], rtol=1e-9, atol=1e-12)
         torch.testing.assert_close(post.variance[:, o], var, rtol=1e-7, atol=1e-12)
         lml += float(-0.5 * Y[:, o] @ alpha[:, 0] - L.diagonal().log().sum() - 30 * math.log(2 * math.pi))
@@ -357,7 +380,8 @@ def test_user_library_posterior_is_bayesian_linear_regression(tmp_path):
     phi = torch.stack([f(x) for f in _library()], -1)[:, act]
     post = gp.predict(x)
     torch.testing.assert_close(post.mean[:, 0], phi @ mean, rtol=1e-8, atol=1e-12)
-    torch.testing.assert_close(post.variance[:, 0], ((phi @ cov) * phi).sum(-1), rtol=1e-7, atol=1e-14)
+    spread = (torch.stack([f(x) for f in _library()], -1).pow(2) * base.spread).sum(-1)
+    torch.testing.assert_close(post.variance[:, 0], ((phi @ cov) * phi).sum(-1) + spread, rtol=1e-7, atol=1e-14)
     terms = {t.name: t for t in gp.terms()}
     assert terms["a^2"].mean == pytest.approx(0.3, abs=0.05) and terms["sin b"].mean == pytest.approx(-0.7, abs=0.05)
     draws = gp.sample_functions(8, generator=torch.Generator().manual_seed(0))(x)

@@ -488,7 +488,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     with torch.no_grad():
         wt = (W.T / scale) if gp.per_output else (W[:, :1].T / scale)
         tmp.covar_module.base_kernel.weights.copy_(wt.reshape(tmp.covar_module.base_kernel.weights.shape))
-        tmp.covar_module.base_kernel.inclusion.fill_(1.0)  # plain relevance through the ODE: not estimated
+        tmp.covar_module.base_kernel.forget_inclusion()  # plain relevance through the ODE: not estimated
         Yhat = _pseudo_targets(tmp, Phi, W, beta)
     refined = tmp.condition(X, Yhat, noise=gp.train_noise_)
     refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations

@@ -52,12 +52,17 @@ quality factors ``s_oj, q_oj`` (Tipping & Faul 2003; for a kept term those of th
 
     log BF_j = sum_o [ q_oj^2 u_j / (1 + u_j s_oj) - log(1 + u_j s_oj) ] / 2,   u_j its unit-information weight.
 
-It is reported per term (``Term.inclusion``, :attr:`FeatureKernel.inclusion`); the bands do not use it yet. Tried
-and measured (issue 27): giving each removed term the Gaussian weight whose posterior has the presence-averaged
-mean ``p m`` and variance ``p v`` raised the coverage of the uncalibrated feature bands on paper_linear from 0.36
-to 0.78 (K = 5) and from 0.75 to 0.91 (K = 10), but all removed terms at once pull the correlated kept ones, and
-the mean's error against SINDy's rose at K = 20 from 0.94 to 1.17 (one realization 3.2x): the average over subsets
-has to enter the spread of the draws without moving their mean, which the pathwise sampler does not do yet.
+It is reported per term (``Term.inclusion``, :attr:`FeatureKernel.inclusion`), and it widens the bands: averaged
+over the two cases, a removed term's coefficient (given the kept ones) has variance ``p_j v_oj`` within the case
+where it is present (``v = u / (1 + u s)``, its posterior variance then). The posterior draws of F add
+``sum_j e_j phi_j(x)`` with independent ``e_oj ~ N(0, p_j v_oj)`` over the removed terms, and the posterior variance
+``sum_j p_j v_oj phi_j(x)^2`` (:attr:`FeatureKernel.spread`); the mean stays the chosen subset's. This leaves out the
+shift of the mean by ``p_j m_oj`` and the between-case variance ``p_j (1 - p_j) m_oj^2``, both small where ``p_j``
+is (a term the price removed), and the correlation with the kept terms. Measured (issue 27) before settling on it:
+putting the removed terms back into the kernel with the Gaussian weights that give each, alone, the averaged mean
+``p m`` and variance ``p v`` raised the uncalibrated feature bands' coverage on paper_linear from 0.36 to 0.78
+(K = 5), but all removed terms at once pull the correlated kept ones, and the mean's error against SINDy's rose at
+K = 20 from 0.94 to 1.17 (one realization 3.2x). The design criteria use the chosen subset's covariance.
 """
 
 from __future__ import annotations
@@ -210,6 +215,15 @@ class FeatureKernel(gpytorch.kernels.Kernel):
         self.register_parameter("weights", torch.nn.Parameter(torch.ones(*batch_shape, powers.shape[0])))
         #: each term's posterior probability of being present (:func:`term_inclusion`; 1 until a fit sets it)
         self.register_buffer("inclusion", torch.ones(*batch_shape, powers.shape[0]))
+        #: the removed terms' coefficient variance averaged over their presence, ``p v`` (module docstring; 0 for
+        #: kept terms and until a fit sets it), per output with ``per_output``: the draws' and bands' extra spread
+        self.register_buffer("spread", torch.zeros(*batch_shape, powers.shape[0]))
+
+    def forget_inclusion(self) -> None:
+        """Every term with a weight present for sure, none of the removed ones possible (after weights were set by
+        something other than a fit with a price, e.g. the refinement through the ODE)."""
+        self.inclusion.fill_(1.0)
+        self.spread.zero_()
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         if self.library is None:
@@ -454,9 +468,11 @@ def unit_information_weights(Phi: torch.Tensor, w: torch.Tensor, known: torch.Te
 
 
 def term_inclusion(Phi: torch.Tensor, Y: torch.Tensor, known: torch.Tensor | None, w: torch.Tensor, floor: float):
-    """``(p,)``: every term's posterior probability of being present given the others, for outputs ``Y (N, m)``
-    sharing the weights ``w`` of the chosen subset (``w_j > 0``, with their unit-information slab; module docstring:
-    which terms are present is uncertain too). Everything in ``p x p``: O(N p^2 + p^3) per output."""
+    """``(inclusion (p,), spread (m, p))``: every term's posterior probability of being present given the others,
+    and each removed term's coefficient variance averaged over its presence (0 for kept terms), for outputs
+    ``Y (N, m)`` sharing the weights ``w`` of the chosen subset (``w_j > 0``, with their unit-information slab;
+    module docstring: which terms are present is uncertain too). Everything in ``p x p``: O(N p^2 + p^3) per
+    output."""
     N, p = Phi.shape
     m = Y.shape[1]
     kept = w > 0
@@ -464,6 +480,7 @@ def term_inclusion(Phi: torch.Tensor, Y: torch.Tensor, known: torch.Tensor | Non
     information = (Phi.pow(2).unsqueeze(-1) / D.unsqueeze(1)).sum(0)  # (p, m)
     u = N * m / information.sum(-1).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p,): the unit-information slab
     log_bf = torch.zeros(p, dtype=Phi.dtype, device=Phi.device)
+    sparsity = []
     for o in range(m):
         P = Phi / D[:, o : o + 1]
         G = Phi.T @ P  # Phi^T D^-1 Phi
@@ -482,7 +499,10 @@ def term_inclusion(Phi: torch.Tensor, Y: torch.Tensor, known: torch.Tensor | Non
         a = torch.where(kept, 1.0 - w * S, torch.ones_like(S)).clamp_min(torch.finfo(Phi.dtype).tiny)
         S = S.clamp_min(0.0)
         log_bf += 0.5 * (Q.pow(2) * u / (a * (a + u * S)) - torch.log(a + u * S) + torch.log(a))
-    return torch.sigmoid(log_bf)
+        sparsity.append(S)  # a removed term's s (a = 1)
+    inclusion = torch.sigmoid(log_bf)
+    spread = inclusion * u / (1.0 + u * torch.stack(sparsity))  # (m, p): p v, v the variance given presence
+    return inclusion, torch.where(kept, torch.zeros_like(spread), spread)
 
 
 def _penalised(Phi, Y, known, w, s: float, min_gain: float) -> float:

@@ -980,7 +980,7 @@ class CorrectionGP:
         groups = [[o] for o in range(Y.shape[1])] if self.per_output else [list(range(Y.shape[1]))]
         # the price of a term: per learned weight (shared by the outputs of a group or not), as evidence_score counts
         price = 0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain
-        weights, floors, inclusion, iterations = [], [], [], 0
+        weights, floors, inclusion, spread, iterations = [], [], [], [], 0
         for cols in groups:
             known = None if noise is None else noise[:, cols]
             try:
@@ -998,12 +998,15 @@ class CorrectionGP:
                 )
             w = unit_information_weights(Phi, w, known, s)  # the kept terms' slab (_features)
             weights.append(w)
-            inclusion.append(term_inclusion(Phi, Y[:, cols], known, w, s))  # each term's chance (_features)
+            p_in, extra = term_inclusion(Phi, Y[:, cols], known, w, s)  # each term's chance (_features)
+            inclusion.append(p_in)
+            spread.append(extra.mean(0) * scale)  # one per weight (shared outputs: their mean), unscaled features
             floors.append(s)
             iterations = max(iterations, it)
         with torch.no_grad():
             base.weights.copy_(torch.stack(weights).reshape(base.weights.shape))
             base.inclusion.copy_(torch.stack(inclusion).reshape(base.inclusion.shape))
+            base.spread.copy_(torch.stack(spread).reshape(base.spread.shape))
             if floor is None:
                 value = torch.tensor(floors, dtype=self.dtype, device=self.device)
                 self._floor(lik).noise = value.reshape(-1, 1) if self.per_output else value.reshape(1)
@@ -1263,6 +1266,7 @@ class CorrectionGP:
                 phi = self.covar_module.base_kernel.features(x)  # (M, p)
                 mean = self._unbatch(phi @ cache.fac.mean)
                 var = ((phi @ cache.fac.cov) * phi).sum(-1).clamp_min(0.0)  # (B, M)
+                var = var + self._term_spread(phi)  # the removed terms' chance of being present (_features)
             else:
                 Kt = self._cross(x)  # k(X, x): (1, N, M) shared kernel, (d_out, N, M) per output
                 mean = self._unbatch(self._cross_mean(Kt, cache.fac.alpha))
@@ -1271,10 +1275,20 @@ class CorrectionGP:
                 v = torch.linalg.solve_triangular(chol, Kt, upper=False)
                 prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
                 var = (prior - v.pow(2).sum(-2)).clamp_min(0.0)  # (1 or d_out, M)
+                if self.kernel == "features":  # the removed terms' chance of being present (_features)
+                    var = var + self._term_spread(self.covar_module.base_kernel.features(x))
             var = var.T.expand(-1, mean.shape[-1])
         _check_prediction(mean, x)
         _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
+
+    def _term_spread(self, phi: torch.Tensor) -> torch.Tensor | float:
+        """``(B, M)``: the variance the removed terms add at features ``phi (M, p)`` (their chance of being present,
+        :attr:`~torchmisspec.gp._features.FeatureKernel.spread`), or 0 for other kernels."""
+        if self.kernel != "features":
+            return 0.0
+        spread = self.covar_module.base_kernel.spread.reshape(-1, phi.shape[-1]).to(phi)  # (B, p)
+        return (phi.pow(2) @ spread.T).T
 
     def _support_basis(self, X: torch.Tensor, params: dict) -> torch.Tensor | None:
         """``U_r / sqrt(lam_r + s2n)`` ``(B, N, r)`` for :meth:`_sd_ratio` (see there), or ``None`` for the exact

@@ -553,7 +553,17 @@ class FunctionSamples:
                 v = solve(rhs)[0].reshape(N, S, d_out).permute(1, 0, 2)
             else:
                 v = solve(residual.permute(2, 1, 0)).permute(2, 1, 0)  # (S, N, d_out)
+            # the removed feature terms' chance of being present: independent coefficients e_s ~ N(0, spread), not
+            # conditioned on the data (it is posterior spread already: gp._features), drawn after the others
+            extra = None
+            if gp.kernel == "features" and bool((gp.covar_module.base_kernel.spread > 0).any()):
+                base = gp.covar_module.base_kernel
+                spread = base.spread.detach().reshape(-1, base.spread.shape[-1]).to(**kd)  # (B, p)
+                e = torch.randn((S, spread.shape[-1], d_out), generator=generator, **kd)
+                extra = (base.features, e * spread.T.sqrt())  # (S, p, d_out): one column per output
             scale = float(scale)
+            if extra is not None and scale != 1.0:
+                extra = (extra[0], extra[1] * scale)
             if scale != 1.0:  # mu + c (F_s - mu): c w_s and c v_s + (1 - c) alpha
                 alpha = cache.fac.alpha  # (1, N, d_out) or (d_out, N, 1)
                 alpha = alpha[0] if alpha.shape[0] == 1 else alpha.squeeze(-1).T  # (N, d_out)
@@ -570,6 +580,7 @@ class FunctionSamples:
         self._v = v.contiguous()
         self._per_output = gp.per_output
         self._d_out = d_out
+        self._extra = extra  # (features, coefficients (S, p, d_out)) of the removed terms' spread, or None
         self._fast: dict | bool | None = None  # the hot path's precomputed pieces (built at the first call)
         self._buffers: dict = {}
         #: certified bound on |update - exact update| at any point (0: the exact canonical basis is used)
@@ -681,6 +692,9 @@ class FunctionSamples:
             else:  # (d_out, s*M, N): per-output kernels
                 K = K.reshape(self._d_out, xs.shape[0], M, N)
                 parts.append(prior + torch.einsum("bsmn,snb->smb", K, self._v[s0 : s0 + step]))
+            if self._extra is not None:
+                fn, e = self._extra
+                parts[-1] = parts[-1] + fn(xs) @ e[s0 : s0 + step]  # (s, M, p) @ (s, p, d_out)
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
     def _fast_parts(self) -> dict | None:

@@ -202,7 +202,7 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
     try:
         state = dict(_field(blob, "covar_module", dict, path))
         for key, value in covar.state_dict().items():  # files from before the feature kernel's chosen subset was
-            if key.endswith(".inclusion"):  # recorded: every term's chance of being present 1, as before
+            if key.endswith((".inclusion", ".spread")):  # recorded: every kept term present for sure, as before
                 state.setdefault(key, value)
         covar.load_state_dict(state)
         lik.load_state_dict(_field(blob, "likelihood", dict, path))
