@@ -239,10 +239,10 @@ the factor c on the sampled paths' deviation from the mean path is the smallest 
 states lie in the central 90 % band 90 % of the time; no test data are used. Rows "features": the feature kernel
 `CorrectionGP(kernel="features", degree=3, per_output=True)` on the same samples, its terms chosen by evidence less
 a price per term, each kept term with the unit-information prior, and the bands widened by the removed terms' chance
-of being present (`torchmisspec.gp._features`); "features calibrated" the same after `calibrate`. The column "ML-II lengthscale" repeats the
-RBF fit's. Paths the posterior flags as leaving the data's support are counted like any other. "failed runs":
-realizations whose fit failed, or in which this method's sampled paths blew up (`posterior` raised
-`IntegrationError`, naming the draw); the coverages are over the other realizations.
+of being present (`torchmisspec.gp._features`); "features calibrated" the same after `calibrate`. The column "ML-II
+lengthscale" repeats the RBF fit's. Paths the posterior flags as leaving the data's support are counted like any
+other. "failed runs": realizations whose fit failed, or in which this method's sampled paths blew up (`posterior`
+raised `IntegrationError`, naming the draw); the coverages are over the other realizations.
 
 {why(result)}
 """

@@ -139,6 +139,11 @@ def check_kernels(ns: dict) -> None:
     assert (t.output, t.name) == (0, "y1^2") and abs(t.mean - 0.01) < 2 * t.std
     # "y2 stays below 0.85"
     assert float(ns["samples"].inputs[:, 1].abs().max()) < 0.85
+    # "a term the data could not decide on (the second output's y2^2 here) widens the bands without moving the mean"
+    every = {(t.output, t.name): t for t in gp.terms(["y1", "y2"], all_terms=True)}
+    y2 = every[1, "y2^2"]
+    assert y2.weight == 0 and 0.05 < y2.inclusion < 0.95
+    assert float(gp.covar_module.base_kernel.spread.reshape(2, -1)[1, 5]) > 0  # y2^2 of the second output
     # plain relevance: "It finds y2^2 for the second output, but weak spurious terms survive beside it, with error
     # bars that include 0."
     terms = plain.terms(["y1", "y2"])

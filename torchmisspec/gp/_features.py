@@ -219,12 +219,6 @@ class FeatureKernel(gpytorch.kernels.Kernel):
         #: kept terms and until a fit sets it), per output with ``per_output``: the draws' and bands' extra spread
         self.register_buffer("spread", torch.zeros(*batch_shape, powers.shape[0]))
 
-    def forget_inclusion(self) -> None:
-        """Every term with a weight present for sure, none of the removed ones possible (after weights were set by
-        something other than a fit with a price, e.g. the refinement through the ODE)."""
-        self.inclusion.fill_(1.0)
-        self.spread.zero_()
-
     def features(self, x: torch.Tensor) -> torch.Tensor:
         if self.library is None:
             return monomials(x, self.powers)
