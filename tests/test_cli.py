@@ -212,6 +212,14 @@ def test_fit_command_saves_the_calibrated_model_a_direct_fit_gives(tmp_path, obs
     assert "on 55 samples (5 experiments x 11 times, derivative 'central')" in printed
     assert f"chose {direct.cross_validation_.best}" in printed and str(out) in printed
     assert loaded.calibration_ is not None and f"scale={loaded.calibration_.scale:.3g}" in printed
+    if loaded.weights is not None:  # a feature kernel: its terms in the data's names, and the ones it may have missed
+        terms = loaded.terms(["x1", "x2"], all_terms=True)
+        for o, name in enumerate(["x1", "x2"]):
+            (line,) = [row for row in printed.splitlines() if row.startswith(f"correction of d{name}/dt: ")]
+            assert all(str(t) in line for t in terms if t.output == o and t.weight > 0)
+            for t in terms:
+                if t.output == o and t.weight == 0:
+                    assert (f"{t.name} (chance {t.inclusion:.2f})" in line) == (t.inclusion >= 0.05)
     assert main(_fit_args(observed_csv, tmp_path / "raw.pt", "--derivative", "central", "--no-calibrate")) == 0
     assert tms.CorrectionGP.load(tmp_path / "raw.pt").calibration_ is None
 

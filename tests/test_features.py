@@ -458,3 +458,23 @@ def test_feature_fit_says_when_it_stops_at_its_cap_and_which_output_is_all_zeros
     Y[:, 1] = 0.0
     with pytest.raises(tms.FittingError, match="output 1: targets: expected some non-zero samples"):
         tms.CorrectionGP(kernel="features", per_output=True).fit(X, Y)
+
+
+def test_refinement_through_the_ode_keeps_only_the_samples_chance_of_the_terms_both_removed(one_thread):
+    """After fit_trajectories: a kept term is present (chance 1, no spread); a term the samples' fit removed too keeps
+    the samples' chance and spread; a term the samples kept but the trajectories removed counts as absent."""
+    system = tms.systems.paper_linear()
+    y0 = torch.rand(5, 2, generator=torch.Generator().manual_seed(7), dtype=DT) * 2 - 1
+    trajs = tms.simulate(system, y0, torch.linspace(0, 6, 11, dtype=DT))
+    samples = tms.correction_samples(trajs, system, derivative="central")
+    gp = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(samples)
+    refined = tms.fit_trajectories(gp, system, trajs)
+    before, after = gp.covar_module.base_kernel, refined.covar_module.base_kernel
+    kept, was_kept = after.weights.detach() > 0, before.weights.detach() > 0
+    assert bool((after.inclusion[kept] == 1).all()) and bool((after.spread[kept] == 0).all())
+    both = ~kept & ~was_kept
+    assert bool(both.any())
+    torch.testing.assert_close(after.inclusion[both], before.inclusion[both])
+    torch.testing.assert_close(after.spread[both], before.spread[both])
+    dropped = ~kept & was_kept
+    assert bool((after.inclusion[dropped] == 0).all()) and bool((after.spread[dropped] == 0).all())

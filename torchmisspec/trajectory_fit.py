@@ -488,12 +488,15 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     with torch.no_grad():
         wt = (W.T / scale) if gp.per_output else (W[:, :1].T / scale)
         tmp.covar_module.base_kernel.weights.copy_(wt.reshape(tmp.covar_module.base_kernel.weights.shape))
-        # a term kept through the ODE is present; one still removed keeps the chance of being present and the spread
-        # that the derivative samples gave it (gp._features; the trajectories' own would need the linearised factors)
+        # a term kept through the ODE is present; one the samples' fit removed too keeps the chance of being present
+        # and the spread that the samples gave it (gp._features; the trajectories' own would need the linearised
+        # factors); one the samples kept but the trajectories removed counts as absent (chance 0, no spread)
         base = tmp.covar_module.base_kernel
         kept = base.weights.detach() > 0
-        base.inclusion.copy_(torch.where(kept, torch.ones_like(base.inclusion), base.inclusion))
-        base.spread.copy_(torch.where(kept, torch.zeros_like(base.spread), base.spread))
+        was_kept = gp.covar_module.base_kernel.weights.detach().reshape(kept.shape) > 0
+        one, zero = torch.ones_like(base.inclusion), torch.zeros_like(base.inclusion)
+        base.inclusion.copy_(torch.where(kept, one, torch.where(was_kept, zero, base.inclusion)))
+        base.spread.copy_(torch.where(kept | was_kept, zero, base.spread))
         Yhat = _pseudo_targets(tmp, Phi, W, beta)
     refined = tmp.condition(X, Yhat, noise=gp.train_noise_)
     refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations

@@ -15,7 +15,10 @@ from ._common import (
     read_observations,
 )
 
-__all__ = ["add_calibrate", "add_fit"]
+__all__ = ["POSSIBLE_TERM", "add_calibrate", "add_fit"]
+
+#: ``fit`` names the removed terms of a feature kernel whose chance of being present is at least this.
+POSSIBLE_TERM = 0.05
 
 
 def _state_noise(text: str):
@@ -64,10 +67,15 @@ def _fit(args: argparse.Namespace) -> int:
         )
     if gp.weights is not None:  # a feature kernel: its terms, in the data's names
         names = list(observed.state_names)
-        terms = list(gp.terms([names[i] for i in system.correction_inputs]))
+        terms = list(gp.terms([names[i] for i in system.correction_inputs], all_terms=True))
         for o, j in enumerate(system.correction_outputs):
-            kept = [str(t) for t in terms if t.output == o]
-            print(f"correction of d{names[j]}/dt: " + (" ".join(kept) if kept else "0 (no term kept)"))
+            kept = [str(t) for t in terms if t.output == o and t.weight > 0]
+            line = f"correction of d{names[j]}/dt: " + (" ".join(kept) if kept else "0 (no term kept)")
+            maybe = [t for t in terms if t.output == o and t.weight == 0 and t.inclusion >= POSSIBLE_TERM]
+            if maybe:  # removed terms the data could not rule out (their chance widens the bands)
+                maybe = sorted(maybe, key=lambda t: -t.inclusion)
+                line += "; possibly also " + ", ".join(f"{t.name} (chance {t.inclusion:.2f})" for t in maybe)
+            print(line)
     if not args.no_calibrate:
         if observed.num_experiments < 2:
             print("bands not calibrated: calibration holds out experiments and needs at least 2")
