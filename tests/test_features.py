@@ -174,6 +174,8 @@ def test_term_inclusion_is_the_exact_bayes_factor_and_widens_the_bands():
     torch.testing.assert_close(post.variance[:, 0], ((phis[:, kept] @ cov) * phis[:, kept]).sum(-1) + extra)
     draws = gp.sample_functions(4000, generator=torch.Generator().manual_seed(0))(xs)[..., 0]
     assert float((draws.var(0) / post.variance[:, 0] - 1).abs().max()) < 0.1
+    wide = gp.sample_functions(4000, generator=torch.Generator().manual_seed(0), scale=2.0)(xs)[..., 0]
+    assert float((wide.var(0) / (4 * post.variance[:, 0]) - 1).abs().max()) < 0.1  # the spread widens with c too
 
 
 def test_unit_information_weights_widen_only_kept_narrow_terms():

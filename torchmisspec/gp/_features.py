@@ -448,16 +448,24 @@ def fit_relevance(
     return w, s, iterations
 
 
+def _noise(Phi: torch.Tensor, m: int, known: torch.Tensor | None, floor: float) -> torch.Tensor:
+    """``(N, m)``: the samples' noise variances ``D = known + floor`` of ``m`` outputs (kept positive)."""
+    D = torch.full((Phi.shape[0], m), floor, dtype=Phi.dtype, device=Phi.device) if known is None else known + floor
+    return D.clamp_min(torch.finfo(Phi.dtype).tiny)
+
+
+def _unit_information(Phi: torch.Tensor, D: torch.Tensor) -> torch.Tensor:
+    """``(p,)``: each term's unit-information prior variance ``N m / sum_{n,o} phi_nj^2 / D_no`` over the ``N``
+    samples and ``m`` outputs ``D (N, m)`` sharing it (module docstring: the slab of a kept term)."""
+    information = (Phi.pow(2).unsqueeze(-1) / D.unsqueeze(1)).sum((0, 2))  # (p,)
+    return D.numel() / information.clamp_min(torch.finfo(Phi.dtype).tiny)
+
+
 def unit_information_weights(Phi: torch.Tensor, w: torch.Tensor, known: torch.Tensor | None, floor: float):
-    """``(p,)``: the weights ``w`` with every kept term's (``w_j > 0``) raised to at least the unit-information prior
-    ``N m / sum_{n,o} phi_nj^2 / D_no`` over the ``N`` samples and ``m`` outputs sharing it, ``D = known + floor``
-    (module docstring: the slab of a kept term). Removed terms (``w_j = 0``) stay removed."""
-    N, m = Phi.shape[0], 1 if known is None else known.shape[1]
-    if known is None:
-        information = Phi.pow(2).sum(0) / floor  # (p,)
-    else:
-        information = (Phi.pow(2).unsqueeze(-1) / (known + floor).unsqueeze(1)).sum((0, 2))  # (p,)
-    unit = N * m / information.clamp_min(torch.finfo(Phi.dtype).tiny)
+    """``(p,)``: the weights ``w`` with every kept term's (``w_j > 0``) raised to at least its unit-information prior
+    (:func:`_unit_information`, ``D = known + floor``; module docstring: the slab of a kept term). Removed terms
+    (``w_j = 0``) stay removed."""
+    unit = _unit_information(Phi, _noise(Phi, 1 if known is None else known.shape[1], known, floor))
     return torch.where(w > 0, torch.maximum(w, unit), w)
 
 
@@ -467,12 +475,10 @@ def term_inclusion(Phi: torch.Tensor, Y: torch.Tensor, known: torch.Tensor | Non
     ``Y (N, m)`` sharing the weights ``w`` of the chosen subset (``w_j > 0``, with their unit-information slab;
     module docstring: which terms are present is uncertain too). Everything in ``p x p``: O(N p^2 + p^3) per
     output."""
-    N, p = Phi.shape
-    m = Y.shape[1]
+    p, m = Phi.shape[1], Y.shape[1]
     kept = w > 0
-    D = (torch.full_like(Y, floor) if known is None else known + floor).clamp_min(torch.finfo(Phi.dtype).tiny)
-    information = (Phi.pow(2).unsqueeze(-1) / D.unsqueeze(1)).sum(0)  # (p, m)
-    u = N * m / information.sum(-1).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p,): the unit-information slab
+    D = _noise(Phi, m, known, floor)
+    u = _unit_information(Phi, D)  # (p,): the slab
     log_bf = torch.zeros(p, dtype=Phi.dtype, device=Phi.device)
     sparsity = []
     for o in range(m):

@@ -1266,7 +1266,6 @@ class CorrectionGP:
                 phi = self.covar_module.base_kernel.features(x)  # (M, p)
                 mean = self._unbatch(phi @ cache.fac.mean)
                 var = ((phi @ cache.fac.cov) * phi).sum(-1).clamp_min(0.0)  # (B, M)
-                var = var + self._term_spread(phi)  # the removed terms' chance of being present (_features)
             else:
                 Kt = self._cross(x)  # k(X, x): (1, N, M) shared kernel, (d_out, N, M) per output
                 mean = self._unbatch(self._cross_mean(Kt, cache.fac.alpha))
@@ -1275,20 +1274,19 @@ class CorrectionGP:
                 v = torch.linalg.solve_triangular(chol, Kt, upper=False)
                 prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
                 var = (prior - v.pow(2).sum(-2)).clamp_min(0.0)  # (1 or d_out, M)
-                if self.kernel == "features":  # the removed terms' chance of being present (_features)
-                    var = var + self._term_spread(self.covar_module.base_kernel.features(x))
-            var = var.T.expand(-1, mean.shape[-1])
+            var = (var + self._term_spread(x)).T.expand(-1, mean.shape[-1])  # + the removed terms' chance
         _check_prediction(mean, x)
         _check_prediction(var, x)
         return GPPosterior(mean=mean, variance=var.contiguous())
 
-    def _term_spread(self, phi: torch.Tensor) -> torch.Tensor | float:
-        """``(B, M)``: the variance the removed terms add at features ``phi (M, p)`` (their chance of being present,
-        :attr:`~torchmisspec.gp._features.FeatureKernel.spread`), or 0 for other kernels."""
+    def _term_spread(self, x: torch.Tensor) -> torch.Tensor | float:
+        """``(B, M)``: the variance the feature kernel's removed terms add at ``x (M, d_in)`` (their chance of being
+        present, :attr:`~torchmisspec.gp._features.FeatureKernel.spread`), or 0 for other kernels."""
         if self.kernel != "features":
             return 0.0
-        spread = self.covar_module.base_kernel.spread.reshape(-1, phi.shape[-1]).to(phi)  # (B, p)
-        return (phi.pow(2) @ spread.T).T
+        base = self.covar_module.base_kernel
+        phi = base.features(x)  # (M, p)
+        return (phi.pow(2) @ base.spread.reshape(-1, phi.shape[-1]).to(phi).T).T
 
     def _support_basis(self, X: torch.Tensor, params: dict) -> torch.Tensor | None:
         """``U_r / sqrt(lam_r + s2n)`` ``(B, N, r)`` for :meth:`_sd_ratio` (see there), or ``None`` for the exact

@@ -562,12 +562,11 @@ class FunctionSamples:
                 e = torch.randn((S, spread.shape[-1], d_out), generator=generator, **kd)
                 extra = (base.features, e * spread.T.sqrt())  # (S, p, d_out): one column per output
             scale = float(scale)
-            if extra is not None and scale != 1.0:
-                extra = (extra[0], extra[1] * scale)
-            if scale != 1.0:  # mu + c (F_s - mu): c w_s and c v_s + (1 - c) alpha
+            if scale != 1.0:  # mu + c (F_s - mu): c w_s and c v_s + (1 - c) alpha (and c e_s)
                 alpha = cache.fac.alpha  # (1, N, d_out) or (d_out, N, 1)
                 alpha = alpha[0] if alpha.shape[0] == 1 else alpha.squeeze(-1).T  # (N, d_out)
                 weights = weights * scale
+                extra = None if extra is None else (extra[0], extra[1] * scale)
                 v = scale * v + (1.0 - scale) * alpha
         self.num_samples = S
         self.scale = scale
