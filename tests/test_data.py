@@ -205,6 +205,13 @@ def test_repr_is_short():
          r"expected 2 columns in every row \(as in the header\), got 1 in data row 2 \(line 3"),
         ("experiment,time,x\n0,0,1\n0,0,2\n", {}, tms.InputError,
          r"expected one row per experiment and time, got time 0.0 more than once for experiment '0'"),
+        # a label column not named 'experiment': the message names the option that reads it
+        ("flask,time,x\nA,0,1\nB,0,2\n", {"state_columns": ["x"]}, tms.InputError,
+         r"got time 0.0 more than once \(no column 'experiment' labels the experiments: name yours with "
+         r"experiment_column='flask', --experiment-column flask on the command line\)"),
+        ("flask,time,x\nA,0,1\nB,0,2\n", {}, tms.InputError,
+         r"got 'A' \(a missing value is an empty cell, NaN or NA\); if 'flask' labels the experiments, name it "
+         r"with experiment_column='flask'"),
         ("time\n0\n", {}, tms.InputError, r"expected at least one state column besides \['time'\]"),
         ("time,x\n0,1\n", {"state_columns": ["time"]}, tms.InputError, r"got the time / experiment column"),
         ("time,x\n0,1\n", {"state_columns": "x"}, tms.InputError, r"expected a list of column names"),

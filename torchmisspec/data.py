@@ -626,9 +626,16 @@ def _columns_to_arrays(
                 try:
                     value = float(cell)
                 except ValueError:
+                    label = c > 0 and state_columns is None and experiment_column is None
                     raise InputError(
                         f"{path}: expected a number in column {header[col]!r} on line {line}, got {cell!r}"
                         + (" (a missing value is an empty cell, NaN or NA)" if c > 0 else "")
+                        + (
+                            f"; if {header[col]!r} labels the experiments, name it with experiment_column="
+                            f"{header[col]!r} (--experiment-column {header[col]} on the command line)"
+                            if label
+                            else ""
+                        )
                     ) from None
             if c == 0 and not math.isfinite(value):
                 raise InputError(
@@ -671,6 +678,12 @@ def _columns_to_arrays(
         repeated = np.flatnonzero(np.diff(block[:, 0]) == 0)
         if repeated.size:
             what = "" if experiment_column is None else f" for experiment {label!r}"
+            if experiment_column is None:  # several experiments with no label column found: say how to name it
+                others = [c for c in header if c not in value_columns]
+                what = (
+                    " (no column 'experiment' labels the experiments: name yours with experiment_column="
+                    + (f"{others[0]!r}, --experiment-column {others[0]} on the command line)" if others else "...)")
+                )
             raise InputError(
                 f"{path}: expected one row per experiment and time, got time {float(block[repeated[0], 0])!r} "
                 f"more than once{what}"
