@@ -680,9 +680,8 @@ def _columns_to_arrays(
             what = "" if experiment_column is None else f" for experiment {label!r}"
             if experiment_column is None:  # several experiments with no label column found: say how to name it
                 others = [c for c in header if c not in value_columns]
-                what = (
-                    " (no column 'experiment' labels the experiments: name yours with experiment_column="
-                    + (f"{others[0]!r}, --experiment-column {others[0]} on the command line)" if others else "...)")
+                what = " (no column 'experiment' labels the experiments: name yours with experiment_column=" + (
+                    f"{others[0]!r}, --experiment-column {others[0]} on the command line)" if others else "...)"
                 )
             raise InputError(
                 f"{path}: expected one row per experiment and time, got time {float(block[repeated[0], 0])!r} "
