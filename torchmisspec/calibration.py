@@ -39,6 +39,7 @@ import warnings
 
 import torch
 
+from ._bands import band_quantiles, path_quantiles
 from ._errors import (
     FittingError,
     InputError,
@@ -156,7 +157,7 @@ def calibrate_bands(
     Raises:
         FittingError: no fold could be fitted and integrated, or the uncalibrated bands' paths already fail.
     """
-    from .dynamics import CorrectedODE, path_quantiles
+    from .dynamics import CorrectedODE
     from .learning import _check_cv_inputs, _settings
     from .trajectory_fit import fit_trajectories
 
@@ -224,7 +225,10 @@ def calibrate_bands(
     if not held_out:
         bar.close()
         raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
-    quantiles = torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=gp.dtype, device=gp.device)
+    # the band the user's posterior.interval(level) draws from num_samples paths (times the noise draws)
+    quantiles = band_quantiles(
+        level, num_samples * (NOISE_DRAWS if noisy else 1), dtype=gp.dtype, device=gp.device, what="calibrate"
+    )
     # every held-out posterior is integrated once, with the GP's own draws; a scale c only rescales the paths'
     # deviations from the mean path (CorrectedODE.posterior), so the coverage at any c is a few tensor operations
     paths = []  # (mean path (B, T - 1, d), deviations (S, B, T - 1, d), noise draws z or None, observed)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ._bands import band_quantiles, path_quantiles
 from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
@@ -349,19 +350,6 @@ class _Mixture:
         return torch.cat(out)
 
 
-def path_quantiles(samples: torch.Tensor, qs: torch.Tensor) -> torch.Tensor:
-    """Quantiles ``qs (Q,)`` over the draws ``samples (S, ...)`` -> ``(Q, ...)``, where a NaN (a path that diverged
-    before that time) counts as unbounded on the side of the quantile: as -inf for q < 1/2, +inf for q > 1/2 (and the
-    mean of both for the median), so a band that such paths reach is infinite, never silently narrowed."""
-    if not bool(torch.isnan(samples).any()):
-        return torch.quantile(samples, qs, dim=0)
-    # interpolating between two infinite values gives NaN: there the quantile is that infinity
-    low = torch.quantile(samples.nan_to_num(nan=-math.inf), qs, dim=0).nan_to_num(nan=-math.inf)
-    high = torch.quantile(samples.nan_to_num(nan=math.inf), qs, dim=0).nan_to_num(nan=math.inf)
-    side = qs.reshape(-1, *([1] * (samples.dim() - 1)))
-    return torch.where(side < 0.5, low, torch.where(side > 0.5, high, 0.5 * (low + high)))
-
-
 def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: int):
     """All sampled paths in one batched solve. Where it fails (under some draw of F a path blows up or stalls), the
     row the solver names as the likeliest culprit is integrated alone: if it fails alone too, it is integrated as far
@@ -490,11 +478,17 @@ class TrajectoryPosterior:
         return path_quantiles(self.samples, qs)
 
     def interval(self, level: float = 0.9) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(lower, upper)``, each ``(B, T, d)``: the central ``level`` band of the sampled paths."""
+        """``(lower, upper)``, each ``(B, T, d)``: the central band of the sampled paths that a new draw falls in with
+        probability ``level``: the order statistics at ranks ``(S + 1)(1 -/+ level) / 2`` of the S draws, not the
+        plain quantiles, whose band of 64 draws covers 0.87 for ``level=0.9`` (:mod:`torchmisspec._bands`). A level
+        beyond ``(S - 1) / (S + 1)`` gives the draws' range, with a warning naming the draws it needs."""
         level = check_real(level, "level", minimum=0.0)
         if level > 1.0:
             raise InputError(f"level: expected a probability in [0, 1], got {level!r}")
-        lo_hi = self.quantile([(1 - level) / 2, (1 + level) / 2])
+        qs = band_quantiles(
+            level, self.num_samples, dtype=self.samples.dtype, device=self.samples.device, what="interval"
+        )
+        lo_hi = path_quantiles(self.samples, qs)
         return lo_hi[0], lo_hi[1]
 
     def covers(self, states, level: float = 0.9) -> torch.Tensor:
