@@ -138,7 +138,10 @@ def test_bad_input(data):
         tms.calibrate_bands(model, traj, samples, state_noise=[0.1, 0.1, 0.1])
     with pytest.raises(tms.InputError, match="scale and num_samples are set by calibrate_bands"):
         tms.calibrate_bands(model, traj, samples, scale=2.0)
-    with pytest.raises(tms.InputError, match="model: expected a CorrectedODE, got CorrectionGP"):
+    with pytest.raises(
+        tms.InputError,
+        match=r"model: expected a CorrectedODE \(torchmisspec\.CorrectedODE\(system, gp\)\), got CorrectionGP",
+    ):
         tms.calibrate_bands(model.gp, traj, samples)
     fewer = tms.Trajectories(traj.times, traj.states[:4])
     with pytest.raises(tms.InputError, match="samples: expected the correction samples of these 4 experiments"):
@@ -200,7 +203,7 @@ def test_a_model_refined_through_the_ode_has_each_fold_refined_the_same_way(data
     """fit_correction refines the feature kernel through the ODE; the folds used to be fitted to the samples alone, a
     worse model whose held-out errors made the bands cover 0.98 of the true states in the end-to-end study. The
     refinement's settings are recorded on the model, saved with it, and repeated on every fold's experiments."""
-    import torchmisspec.trajectory_fit as trajectory_fit
+    import torchmisspec.calibration as calibration
 
     system, traj, samples = data
     gp = tms.CorrectionGP(kernel="features", degree=2).fit(samples)
@@ -211,13 +214,13 @@ def test_a_model_refined_through_the_ode_has_each_fold_refined_the_same_way(data
     loaded = tms.CorrectionGP.load(refined.save(tmp_path / "gp.pt"))
     assert loaded.refinement_ == refined.refinement_
     calls = []
-    real = trajectory_fit.fit_trajectories
+    real = calibration.fit_trajectories
 
     def counting(fold_gp, fold_system, fold_traj, **settings):
         calls.append((fold_traj.num_experiments, settings))
         return real(fold_gp, fold_system, fold_traj, **settings)
 
-    monkeypatch.setattr(trajectory_fit, "fit_trajectories", counting)
+    monkeypatch.setattr(calibration, "fit_trajectories", counting)
     loaded.samples_ = samples
     model = tms.CorrectedODE(system, loaded)
     model.calibrate(traj, num_samples=4, folds=3, progress=False, generator=torch.Generator().manual_seed(0))

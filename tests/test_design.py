@@ -147,11 +147,6 @@ def test_lazy_greedy_and_naive_pick_identical_sets(outputscale):
         prox = simulate(system, cand[ref], TIMES, known_only=True).states
         assert res["lazy"].information_gain == pytest.approx(set_gain(prox, range(9), outputscale), rel=1e-8)
         assert res["lazy"].evaluations < res["plain"].evaluations  # lazy skips evaluations
-    with pytest.warns(DeprecationWarning, match=r"greedy\(lazy=\.\.\.\) is deprecated"):
-        old = design.greedy(cand, 9, system=system, times=TIMES, gp=gp, lazy=False)
-    assert old.method == "plain" and old.indices.tolist() == ref
-    with pytest.warns(DeprecationWarning, match="method='greedy' is deprecated"):
-        assert design.greedy(cand, 9, system=system, times=TIMES, gp=gp, method="greedy").indices.tolist() == ref
 
 
 @pytest.mark.parametrize("outputscale", [4e-5, 1e-2])
@@ -370,8 +365,6 @@ def test_true_information_gain_and_theorem1_bound():
     # observed states instead of a simulation
     given = design.true_information_gain(res, cand, system=system, times=TIMES, gp=gp, states=true)
     assert given == pytest.approx(exact, rel=1e-12)
-    with pytest.warns(DeprecationWarning, match="use design.true_information_gain"):
-        assert design.exact_information_gain(res, cand, system=system, times=TIMES, gp=gp) == exact
 
 
 # ------------------------------------------------------------------------------------------------ bad inputs

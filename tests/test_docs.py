@@ -159,8 +159,15 @@ def check_kernels(ns: dict) -> None:
     assert not any(r["eligible"] for r in g_gp.model_selection_ if r["kernel"] in ("features", "features+rbf"))
 
 
+def check_overview(ns: dict) -> None:
+    assert len(ns["plan"].indices) == 9 and ns["plan"].information_gain > 0
+    campaign = ns["campaign"]
+    assert campaign.num_experiments == 6 and Path("campaign.pt").is_file()
+
+
 PAGES = {
     "index.md": check_index,
+    "overview.md": check_overview,
     "tutorials/learn-and-predict.md": check_learn_and_predict,
     "tutorials/design.md": check_design,
     "tutorials/own-system.md": check_own_system,
@@ -177,7 +184,7 @@ def test_page_runs_and_its_claims_hold(page, tmp_path, monkeypatch, one_thread):
 
 
 def test_every_tutorial_with_code_is_run():
-    pages = [DOCS / "index.md", *sorted((DOCS / "tutorials").glob("*.md"))]
+    pages = [DOCS / "index.md", DOCS / "overview.md", *sorted((DOCS / "tutorials").glob("*.md"))]
     with_code = {str(p.relative_to(DOCS)) for p in pages if BLOCK.search(p.read_text())}
     assert with_code == set(PAGES), "add the page (and the claims its text makes) to PAGES"
 

@@ -6,7 +6,6 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.gp import cholesky_with_jitter
 
 DT = torch.float64
 HYPER = {"lengthscale": 0.7, "outputscale": 2e-3, "noise_variance": 1e-4}
@@ -202,14 +201,6 @@ def test_rejects_bad_data(generator):
         gp.predict(torch.zeros(4, 3))
 
 
-def test_deprecated_cholesky_with_jitter_still_works():
-    x = torch.ones(4, 1, dtype=torch.float64)
-    with pytest.warns(DeprecationWarning, match="cholesky_with_jitter is deprecated"):
-        with pytest.warns(tms.NumericalWarning, match="added jitter"):
-            L = cholesky_with_jitter(x @ x.T)
-    assert torch.isfinite(L).all()
-
-
 def test_duplicate_inputs_with_tiny_noise_warn_and_stay_close(generator):
     """100 copies of 5 inputs, noise 1e-12: the posterior mean at an input is (almost exactly) the average of its
     copies. The Cholesky succeeds but the solve is inaccurate: a warning says by how much."""
@@ -241,12 +232,11 @@ def test_fit_is_equivariant_to_the_units_of_targets_and_inputs(scale, generator)
     assert scaled_x.lengthscale == pytest.approx(scale * base.lengthscale, rel=1e-8)
 
 
-def test_iteration_counts_and_the_deprecated_n_iter(generator):
+def test_iteration_counts(generator):
     X, Y = _data(generator)
     gp = tms.CorrectionGP().fit(X, Y)
     assert 1 <= gp.n_iterations_ <= gp.n_evaluations_  # line searches evaluate more often than they iterate
-    with pytest.warns(DeprecationWarning, match="use n_evaluations_ or n_iterations_"):
-        assert gp.n_iter_ == gp.n_evaluations_
+    assert not hasattr(gp, "n_iter_")  # the old name, removed: it counted evaluations, not iterations
     assert tms.CorrectionGP(**HYPER).fit(X, Y).n_evaluations_ == 0  # nothing to learn
 
 

@@ -155,7 +155,7 @@ ALL = {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 4.0}
     ],
 )
 def test_library_check(scores, library_score, eligible, suffices):
-    from torchmisspec.gp._model import library_check
+    from torchmisspec.gp._selection import library_check
 
     assert library_check(scores, library_score=library_score) == (eligible, suffices)
 
@@ -184,7 +184,7 @@ def test_library_check(scores, library_score, eligible, suffices):
     ],
 )
 def test_auto_choice(scores, library_score, margin, chosen):
-    from torchmisspec.gp._model import auto_choice, library_check
+    from torchmisspec.gp._selection import auto_choice, library_check
 
     assert auto_choice(scores, library_score=library_score, margin=margin) == (
         chosen,

@@ -57,7 +57,7 @@ def test_metric_bad_input(linear_system):
         integrate_over_box(lambda x: 1 / x[:, 0], ((0.0, 1.0),))
 
 
-def test_correction_error_metrics_and_the_deprecated_flag(linear_system):
+def test_correction_error_metrics(linear_system):
     """A GP fitted to zero targets predicts F_hat = 0: its errors are the energies of F, in both metrics."""
     x = torch.rand(8, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-3, noise_variance=1e-4).fit(x, torch.zeros(8, 2))
@@ -65,8 +65,6 @@ def test_correction_error_metrics_and_the_deprecated_flag(linear_system):
     assert tms.correction_error(gp, linear_system) == pytest.approx(energy, rel=1e-12)
     mean_sq = tms.correction_error(gp, linear_system, metric="mean_squared", resolution=401)
     assert mean_sq == pytest.approx(1e-4 * 2 * (2 / 5) * 2 / 4, rel=1e-4)
-    with pytest.warns(DeprecationWarning, match="use metric='mean_squared'"):
-        assert tms.correction_error(gp, linear_system, squared=True, resolution=401) == mean_sq
     with pytest.raises(tms.InputError, match=r"metric: expected one of \('integrated', 'mean_squared'\), got 'l1'"):
         tms.correction_error(gp, linear_system, metric="l1")
 

@@ -477,18 +477,15 @@ def test_plot_design_explicit_styles_picks_and_trajectory_colours():
     assert "seen from G trajectories" in legend_labels(ax)
 
 
-def test_plot_design_rejects_bad_styles_and_accepts_the_old_chosen_argument():
+def test_plot_design_rejects_bad_styles():
     with pytest.raises(
         InputError, match=r"styles\['a'\]: expected keys among \['marker', 'color', 'size', 'linestyle'\]"
     ):
         plot_design(grid13(), {"a": [0]}, styles={"a": {"edgecolor": "red"}})
     with pytest.raises(InputError, match=r"styles: expected keys among \['a'\], got unknown 'b'"):
         plot_design(grid13(), {"a": [0]}, styles={"b": {"color": "red"}})
-    with pytest.warns(DeprecationWarning, match=r"plot_design\(chosen=\.\.\.\) is deprecated; use picks="):
-        fig = plot_design(grid13(), chosen={"a": [0, 1, 2]})
+    fig = plot_design(grid13(), {"a": [0, 1, 2]})
     assert "a (K=3)" in legend_labels(fig.axes[0])
-    with pytest.warns(DeprecationWarning), pytest.raises(InputError, match="either picks or the deprecated chosen"):
-        plot_design(grid13(), {"a": [0]}, chosen={"a": [0]})
     with pytest.raises(InputError, match=r"picks: expected a dict design name -> indices, got NoneType"):
         plot_design(grid13())
 

@@ -203,7 +203,7 @@ def test_evidence_score_is_bic_corrected_evidence_and_auto_chooses_by_it():
     assert feats.num_hyperparameters == len(feats.terms()) + 2  # the chosen terms' weights and two noise floors
     auto = tms.CorrectionGP(kernel="auto").fit(X, y)
     table = {r["kernel"]: r for r in auto.model_selection_}
-    from torchmisspec.gp._model import auto_choice
+    from torchmisspec.gp._selection import auto_choice
 
     library_score = table["features+rbf"].get("library_score")
     scores = {k: r["score"] for k, r in table.items()}

@@ -84,21 +84,3 @@ __all__ = [
     "systems",
     "trajectory_rmse",
 ]
-
-
-def __getattr__(name: str):
-    """Deprecated top-level names (the paper's studies moved to :mod:`torchmisspec.paper`)."""
-    if name == "studies":
-        import importlib
-        import warnings
-
-        warnings.warn(
-            "torchmisspec.studies is deprecated: the paper's studies live in torchmisspec.paper.studies and the "
-            "candidate generators in torchmisspec.design.candidates",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            return importlib.import_module("torchmisspec.studies")
-    raise AttributeError(f"module 'torchmisspec' has no attribute {name!r}")

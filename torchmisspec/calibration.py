@@ -53,7 +53,9 @@ from ._errors import (
 from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp._calibration import BandCalibration
+from .learning import _check_cv_inputs, _settings
 from .observations import CorrectionSamples, _check_trajectories_and_system, estimate_state_noise
+from .trajectory_fit import fit_trajectories
 
 __all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
 
@@ -157,12 +159,11 @@ def calibrate_bands(
     Raises:
         FittingError: no fold could be fitted and integrated, or the uncalibrated bands' paths already fail.
     """
-    from .dynamics import CorrectedODE
-    from .learning import _check_cv_inputs, _settings
-    from .trajectory_fit import fit_trajectories
-
-    if not isinstance(model, CorrectedODE):
-        raise InputError(f"model: expected a CorrectedODE, got {type(model).__name__}")
+    # a CorrectedODE (this module does not import dynamics, which imports it): each fold's model is one of its kind
+    if not all(hasattr(model, name) for name in ("system", "gp", "posterior")):
+        raise InputError(
+            f"model: expected a CorrectedODE (torchmisspec.CorrectedODE(system, gp)), got {type(model).__name__}"
+        )
     system, gp = model.system, model.gp
     level = _check_level(level)
     num_samples = check_positive_int(num_samples, "num_samples")
@@ -213,7 +214,7 @@ def calibrate_bands(
             times = torch.stack([experiments[k][0] for k in group]).to(**kd)
             states = torch.stack([experiments[k][1] for k in group]).to(**kd)
             batches.append((first[group].to(**kd), times, states))
-        held_out.append((CorrectedODE(system, fold_gp), batches))
+        held_out.append((type(model)(system, fold_gp), batches))
     if fold_warnings:
         warn(
             f"calibrate_bands: the refit of the GP on {len(fold_warnings)} fold(s) warned (first: "

@@ -14,6 +14,7 @@ from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, T
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
+from .calibration import calibrate_bands
 from .gp import CorrectionGP
 from .systems import MisspecifiedSystem
 
@@ -310,8 +311,6 @@ class CorrectedODE(nn.Module):
             the :class:`~torchmisspec.calibration.BandCalibration`, also kept on the GP as ``gp.calibration_``
             (saved with it by ``gp.save``); later ``posterior`` calls use its ``scale`` unless given another.
         """
-        from .calibration import calibrate_bands
-
         if samples is None:
             samples = getattr(self.gp, "samples_", None)
             if samples is None:

@@ -46,8 +46,8 @@ from ._threads import adaptive_threads
 from ._validation import check_positive_int, progress_bar
 from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
+from .gp._exact import median_distance
 from .gp._features import FEATURE_KERNELS
-from .gp._model import median_distance
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .systems import MisspecifiedSystem

@@ -9,7 +9,6 @@ error of knowing nothing.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
 
 import torch
@@ -111,9 +110,7 @@ def mean_squared_error(estimate: Field, truth: Field, domain, *, resolution: int
 CORRECTION_METRICS = ("integrated", "mean_squared")
 
 
-def correction_error(
-    gp, system, *, domain=None, resolution: int = 101, metric: str = "integrated", squared: bool | None = None
-) -> float:
+def correction_error(gp, system, *, domain=None, resolution: int = 101, metric: str = "integrated") -> float:
     """Error of a fitted correction GP's posterior mean against the system's true F over ``domain``.
 
     Args:
@@ -123,16 +120,7 @@ def correction_error(
         resolution: quadrature points per axis.
         metric: ``"integrated"``, the paper's integral over D of ``||F_hat - F||_2`` (§5.2), or
             ``"mean_squared"``, ``(1 / |D|)`` times the integral of ``||F_hat - F||_2^2`` (paper Fig 8).
-        squared: deprecated spelling of ``metric="mean_squared"`` (it returned a mean, not a square).
     """
-    if squared is not None:
-        warnings.warn(
-            "correction_error(squared=...) is deprecated: it returns the mean over D, not a squared integral; "
-            "use metric='mean_squared' (or metric='integrated')",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        metric = "mean_squared" if squared else "integrated"
     if metric not in CORRECTION_METRICS:
         raise InputError(f"metric: expected one of {CORRECTION_METRICS}, got {metric!r}")
     domain = system.domain if domain is None else domain

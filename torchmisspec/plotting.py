@@ -28,7 +28,6 @@ and ``ys`` evenly spaced from the domain's lower to upper bounds (both included)
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -715,7 +714,6 @@ def plot_design(
     legend: bool | str = "right",
     path: str | Path | None = None,
     dpi: int = DPI,
-    chosen: Mapping[str, Any] | None = None,
 ) -> Figure:
     """The candidate initial conditions and the picks of one or more designs among them.
 
@@ -734,13 +732,7 @@ def plot_design(
         domain: optional box ``((x_lo, x_hi), (y_lo, y_hi))`` drawn dashed.
         ax: draw into this Axes instead of a new figure.
         legend: ``"right"`` (default, outside the axes), ``True``/``"axes"``, ``"below"`` or ``False``.
-        chosen: deprecated name of ``picks``.
     """
-    if chosen is not None:
-        warnings.warn("plot_design(chosen=...) is deprecated; use picks=...", DeprecationWarning, stacklevel=2)
-        if picks is not None:
-            raise InputError("picks: expected either picks or the deprecated chosen, got both")
-        picks = chosen
     cand = _as_array(candidates_xy, "candidates_xy")
     if cand.ndim != 2 or cand.shape[1] != 2:
         raise ShapeError(f"candidates_xy: expected shape (N, 2), got {cand.shape}")

@@ -23,7 +23,6 @@ __all__ = [
     "paper_linear",
     "paper_gravity",
     "PAPER_GRAVITY_KNOWN_MASS",
-    "gravity_candidates",
     "data_driven",
     "ZeroField",
     "get_system",
@@ -330,30 +329,6 @@ def paper_gravity() -> MisspecifiedSystem:
         domain=((-2.0, 2.0), (-2.0, 2.0)),
         name="paper_gravity",
     )
-
-
-def gravity_candidates(
-    n: int = 300,
-    *,
-    generator: torch.Generator | None = None,
-    half_width: float = 2.0,
-    min_radius: float = 0.75,
-    dtype=torch.float64,
-) -> torch.Tensor:
-    """Deprecated: use :func:`torchmisspec.design.candidates.orbits` (same arguments, same draws).
-
-    Candidate initial conditions ``(n, 4)`` on circular orbits about the known mass of :func:`paper_gravity`.
-    """
-    import warnings
-
-    from .design.candidates import orbits
-
-    warnings.warn(
-        "torchmisspec.systems.gravity_candidates is deprecated; use torchmisspec.design.candidates.orbits",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    return orbits(n, generator=generator, half_width=half_width, min_radius=min_radius, dtype=dtype)
 
 
 def data_driven(system: MisspecifiedSystem) -> MisspecifiedSystem:

@@ -96,10 +96,8 @@ def _all_finite(value) -> bool:
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    """The smoke reproduction of every figure through the script's main (a few seconds).
-
-    A deprecated call in the paper's code (e.g. ``greedy(lazy=...)``, ``correction_error(squared=...)``) fails it.
-    """
+    """The smoke reproduction of every figure through the script's main (a few seconds); any DeprecationWarning
+    the paper's code raises (from torch or gpytorch) fails it."""
     out = tmp_path_factory.mktemp("repro")
     with warnings.catch_warnings():
         warnings.filterwarnings("error", category=DeprecationWarning, module=r"torchmisspec\.paper")

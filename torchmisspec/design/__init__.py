@@ -32,7 +32,6 @@ from ._common import DesignResult
 from ._domain import CRITERIA, variance_reduction
 from ._gain import (
     ProxyCheck,
-    exact_information_gain,
     information_gain,
     proxy_check,
     proxy_gap_bound,
@@ -48,7 +47,6 @@ __all__ = [
     "ProxyCheck",
     "agnostic",
     "candidates",
-    "exact_information_gain",
     "greedy",
     "information_gain",
     "marginal_gains",

@@ -21,7 +21,7 @@ from ._common import (
     check_times,
     logdet_identity_plus,
 )
-from ._greedy import _Problem, greedy, resolve_method
+from ._greedy import _Problem, greedy
 
 __all__ = ["random", "agnostic", "marginal_gains"]
 
@@ -151,7 +151,6 @@ def agnostic(
     partition=None,
     capacities=None,
     progress: bool = False,
-    lazy: bool | None = None,
     **kwargs,
 ) -> DesignResult:
     """The design that ignores the known model: greedy on proxy trajectories that stay at the initial condition.
@@ -171,7 +170,7 @@ def agnostic(
         system=system,
         times=t,
         gp=gp,
-        method=resolve_method(method, lazy),
+        method=method,
         partition=partition,
         capacities=capacities,
         proxies=proxies,

@@ -14,7 +14,6 @@ package reports are in the real-Gaussian nats above.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -38,7 +37,6 @@ from ._proxy import corrected_proxies, proxy_trajectories
 __all__ = [
     "information_gain",
     "true_information_gain",
-    "exact_information_gain",
     "proxy_gap_bound",
     "proxy_check",
     "ProxyCheck",
@@ -259,14 +257,3 @@ def proxy_gap_bound(
     return proxy_check(
         indices, candidates, system=system, times=times, gp=gp, proxies=proxies, states=states, blockwise=blockwise
     ).bound
-
-
-def exact_information_gain(*args, **kwargs) -> float:
-    """Deprecated name of :func:`true_information_gain` (the gain along the true trajectories)."""
-    warnings.warn(
-        "design.exact_information_gain is deprecated; it is the information gain along the true trajectories: "
-        "use design.true_information_gain",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    return true_information_gain(*args, **kwargs)

@@ -39,7 +39,7 @@ import time
 
 import torch
 
-from .._errors import InputError, warn
+from .._errors import InputError
 from .._linalg import cholesky
 from .._threads import adaptive_threads
 from .._validation import check_positive_int, progress_bar
@@ -448,20 +448,6 @@ def _naive(prob: _Problem, progress: bool, chunk_bytes: int = 64 * 2**20) -> tup
 
 
 # ----------------------------------------------------------------------------------------------------- public
-def resolve_method(method: str, lazy: bool | None) -> str:
-    """The engine name from ``method`` and the deprecated ``lazy`` flag / ``"greedy"`` spelling (with a warning)."""
-    if lazy is not None:
-        warn(
-            "greedy(lazy=...) is deprecated; use method='lazy' (lazy=True) or method='plain' (lazy=False)",
-            DeprecationWarning,
-        )
-        return "lazy" if lazy else "plain"
-    if method == "greedy":
-        warn("method='greedy' is deprecated; plain greedy is now method='plain'", DeprecationWarning)
-        return "plain"
-    return method
-
-
 @adaptive_threads()
 def greedy(
     candidates,
@@ -475,7 +461,6 @@ def greedy(
     capacities=None,
     proxies=None,
     progress: bool = False,
-    lazy: bool | None = None,
     batch_size: int = 16,
     tie_tol: float = 1e-9,
     screen: bool | str = "auto",
@@ -519,7 +504,6 @@ def greedy(
         proxies: optional ``(N, T, d)`` trajectories to use instead of :func:`proxy_trajectories` (e.g. the
             agnostic design passes the constant trajectories).
         progress: show a tqdm progress bar over the picks.
-        lazy: deprecated; ``lazy=True`` is ``method="lazy"``, ``lazy=False`` is ``method="plain"``.
         batch_size: lazy greedy's first batch of re-evaluations per pick (doubling while needed; same picks for
             any value).
         tie_tol: relative tolerance under which two gains tie; ties go to the lowest candidate index.
@@ -557,7 +541,6 @@ def greedy(
         BudgetError: budget < 1, > N, or more than the capacities allow.
         InputError / ShapeError: bad candidates, times, proxies, partition, or a GP without hyperparameters.
     """
-    method = resolve_method(method, lazy)
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
     batch_size = check_positive_int(batch_size, "batch_size")

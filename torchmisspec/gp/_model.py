@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import copy
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +40,7 @@ from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedErr
 from .._threads import adaptive_threads
 from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
 from . import _mll
+from ._exact import IndependentOutputsGP, median_distance
 from ._features import (
     FEATURE_KERNELS,
     FeatureFactorization,
@@ -53,93 +53,14 @@ from ._features import (
     unit_information_weights,
 )
 from ._optim import maximise
+from ._persistence import load as _load
+from ._persistence import save as _save
+from ._selection import AUTO_KERNELS, EVIDENCE_MARGIN, auto_choice
 from ._sum import FeaturesPlusRBF, fit_sum
 
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
-#: the candidates of kernel="auto", fitted in this order (:func:`auto_choice` chooses among them)
-AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
-STATIONARY_KERNELS = ("rbf", "matern52")
-#: kernel="auto" keeps this kernel (the package's default, the paper's) unless another eligible candidate outscores it
-#: by at least ``evidence_margin`` nats
-AUTO_DEFAULT = "rbf"
-#: the default ``evidence_margin``: a Bayes factor of e^3 (about 20), "strong" evidence on Kass and Raftery's scale
-#: (2 log B > 6; J. Am. Stat. Assoc. 90, 773, 1995)
-EVIDENCE_MARGIN = 3.0
-
-
-def library_check(scores: dict[str, float], *, library_score: float | None = None) -> tuple[list[str], bool | None]:
-    """Which fitted candidates of ``kernel="auto"`` may be chosen, given their evidence scores.
-
-    ``library_score`` is the score of the model ``features+rbf`` nests: the feature kernel with the same shared
-    weights and noise (its RBF term removed). Comparing the two tests the library:
-
-    * the nested model scores at least as high: F lies in the library's span as far as the samples can tell, and
-      the RBF term does not earn its price, so ``features+rbf`` is dominated by its nested model and not eligible;
-      the others are eligible (the library extrapolates as SINDy's equation would);
-    * ``features+rbf`` scores higher: its RBF term earns its price, so part of F lies outside the library. The
-      library's coefficients are then only a local fit, confounded with the residual the RBF term carries, and
-      nothing supports their extrapolation away from the samples. Neither feature candidate is eligible, only the
-      stationary kernels are: their prior falls back to F = 0 away from the samples, i.e. to the known model, which
-      the scientist trusts wherever no data say otherwise. (If no stationary kernel fitted, every candidate is
-      eligible: a fit beats none.)
-
-    So ``features+rbf`` serves as the library's test and is never chosen (unless nothing else fitted). Without it
-    (``per_output``, or a failed fit) there is nothing to test and every candidate competes; if it fitted but its
-    nested model did not (``library_score`` is ``None``), nothing is tested either. :func:`auto_choice` then chooses
-    among the eligible kernels.
-
-    Returns the eligible kernels and whether the library sufficed (``None``: not tested).
-    """
-    everything = list(scores)
-    if "features+rbf" not in scores:
-        return everything, None
-    others = [k for k in everything if k != "features+rbf"] or everything
-    if library_score is None:
-        return others, None
-    if library_score >= scores["features+rbf"]:
-        return others, True
-    return ([k for k in everything if k in STATIONARY_KERNELS] or everything), False
-
-
-def auto_choice(
-    scores: dict[str, float], *, library_score: float | None = None, margin: float = EVIDENCE_MARGIN
-) -> tuple[str, list[str], bool | None]:
-    """The kernel ``kernel="auto"`` keeps, given the fitted candidates' evidence scores.
-
-    The candidates :func:`library_check` allows are eligible. Leaving the default takes strong evidence:
-
-    * among the stationary kernels, the RBF (:data:`AUTO_DEFAULT`, the package's and the paper's kernel) is kept
-      unless the Matern kernel outscores it by more than ``margin`` nats (the better one if the RBF did not fit);
-    * a feature kernel is kept only if it outscores every eligible stationary kernel by more than ``margin``.
-
-    The stake is not symmetric. A stationary kernel's prior falls back to F = 0, i.e. to the known model, wherever no
-    samples are, while a library equation chosen on weak evidence is trusted across the whole domain. Few samples
-    (one or two short trajectories) rarely separate the candidates by much, and then a few nats of evidence along
-    the samples say little about the rest of the domain. The default, :data:`EVIDENCE_MARGIN`, asks for "strong"
-    evidence (a Bayes factor above about 20); with 0 the highest score wins, ties going to the default. Without an
-    eligible stationary kernel the highest score wins.
-
-    Returns the kernel chosen, the eligible kernels and whether the library sufficed (``None``: not tested).
-    """
-    eligible, suffices = library_check(scores, library_score=library_score)
-    stationary = [k for k in eligible if k in STATIONARY_KERNELS]
-    others = [k for k in eligible if k not in STATIONARY_KERNELS]
-    if not stationary:
-        return max(others, key=scores.__getitem__), eligible, suffices
-    top = max(scores[k] for k in stationary)
-    if AUTO_DEFAULT in stationary and top <= scores[AUTO_DEFAULT] + margin:
-        best = AUTO_DEFAULT
-    else:
-        best = max(stationary, key=scores.__getitem__)
-    if others:
-        rival = max(others, key=scores.__getitem__)
-        if scores[rival] > top + margin:
-            best = rival
-    return best, eligible, suffices
-
-
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
 #: (centred at the fitted value: a factor of about 7 either way).
 LOG_PRIOR_SD = 2.0
@@ -195,33 +116,7 @@ def _check_prediction(value: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return value
 
 
-class _IndependentOutputsGP(gpytorch.models.ExactGP):
-    """GPyTorch ExactGP: d_out independent outputs (a batch) sharing one kernel (or one kernel per output)."""
-
-    def __init__(self, train_x, train_y, likelihood, covar_module, num_outputs: int) -> None:
-        super().__init__(train_x, train_y, likelihood)  # train_y: (d_out, N)
-        self.num_outputs = num_outputs
-        self.mean_module = gpytorch.means.ZeroMean(batch_shape=torch.Size([num_outputs]))
-        self.covar_module = covar_module
-
-    def forward(self, x):
-        mean = self.mean_module(x)
-        covar = self.covar_module(x)
-        if covar.dim() == 2:  # shared kernel: the same covariance for every output
-            covar = covar.expand(self.num_outputs, *covar.shape)
-        return gpytorch.distributions.MultivariateNormal(mean, covar)
-
-
 MEAN_BLOCK = 2**19  # kernel entries per row block of the posterior mean (4 MiB in float64)
-
-
-def median_distance(X: torch.Tensor) -> float:
-    """The median distance between distinct inputs of an evenly spaced subsample of at most 500 (1.0 when all the
-    inputs coincide): the length scale of the data, for starting values, bounds and candidate grids."""
-    sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-    dist = torch.cdist(sub, sub)
-    positive = dist[dist > 0]
-    return float(positive.median()) if positive.numel() else 1.0
 
 
 def _identical_columns(noise: torch.Tensor) -> bool:
@@ -401,7 +296,7 @@ class CorrectionGP:
         self.n_evaluations_: int = 0
         self._cache: _Cache | None = None
         covar, lik = self._modules(batch=1)
-        self.model: _IndependentOutputsGP = _IndependentOutputsGP(None, None, lik, covar, 1).eval()
+        self.model: IndependentOutputsGP = IndependentOutputsGP(None, None, lik, covar, 1).eval()
         self._freeze()
 
     @classmethod
@@ -816,7 +711,7 @@ class CorrectionGP:
             # (a copy: the model never shares storage with the caller's tensor)
             known = None if noise is None else noise.T.clone(memory_format=torch.contiguous_format)
             lik = self._modules(batch=d_out, noise=known)[1]
-        self.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
+        self.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
         self._cache = None
         if learn and self.kernel == "features":
             self.n_iterations_ = self._fit_features(X, Y, noise, max_iter=max_iter)
@@ -1185,17 +1080,6 @@ class CorrectionGP:
     def output_dim(self) -> int | None:
         Y = self.train_targets_
         return None if Y is None else Y.shape[1]
-
-    @property
-    def n_iter_(self) -> int:
-        """Deprecated: it counted likelihood evaluations; use ``n_evaluations_`` (or ``n_iterations_``)."""
-        warnings.warn(
-            "CorrectionGP.n_iter_ is deprecated (it counted likelihood evaluations, not iterations); use "
-            "n_evaluations_ or n_iterations_",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.n_evaluations_
 
     def covariance(self, x1, x2=None) -> torch.Tensor:
         """Prior covariance k(x1, x2) of F from the model's GPyTorch kernel (outputscale included).
@@ -1584,7 +1468,7 @@ class CorrectionGP:
             lik = new._modules(batch=Y.shape[1], noise=known)[1]
             with torch.no_grad():
                 new._floor(lik).noise = self._floor(self.likelihood).noise.detach().clone()
-        new.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+        new.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
         new.n_iterations_, new.n_evaluations_, new.log_marginal_likelihood_ = 0, 0, None
         new._freeze()
         new._posterior_cache()
@@ -1669,13 +1553,11 @@ class CorrectionGP:
     # ------------------------------------------------------------------------------------------- persistence
     def save(self, path: str | Path) -> Path:
         """Save a fitted model (configuration, hyperparameters, training data); see :mod:`._persistence`."""
-        from ._persistence import save
 
-        return save(self, path)
+        return _save(self, path)
 
     @classmethod
     def load(cls, path: str | Path, *, device: torch.device | str | None = None) -> CorrectionGP:
         """Load a model written by :meth:`save` (no code is executed); the posterior cache is rebuilt."""
-        from ._persistence import load
 
-        return load(cls, path, device=device)
+        return _load(cls, path, device=device)

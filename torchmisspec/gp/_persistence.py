@@ -19,7 +19,9 @@ import torch
 from .._errors import InputError
 from .._validation import check_real
 from ._calibration import BandCalibration
+from ._exact import IndependentOutputsGP
 from ._features import FEATURE_KERNELS
+from ._selection import EVIDENCE_MARGIN
 
 if TYPE_CHECKING:  # pragma: no cover
     from ._model import CorrectionGP
@@ -90,8 +92,6 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
         raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
     gp.auto = bool(cfg.get("auto", False))
     if gp.auto:
-        from ._model import EVIDENCE_MARGIN
-
         try:
             # the features candidate's price (the kernel chosen may be another)
             gp.min_gain = None if cfg.get("min_gain") is None else check_real(cfg["min_gain"], "min_gain", minimum=0.0)
@@ -195,7 +195,6 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
         if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
             raise InputError(f"{path}: expected finite non-negative known noise variances in 'train_noise'")
         noise = noise.T.contiguous()
-    from ._model import _IndependentOutputsGP
 
     gp._d_in = X.shape[1]  # the feature kernel's library depends on the number of inputs
     covar, lik = gp._modules(batch=Y.shape[1], noise=noise)
@@ -208,7 +207,7 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
         lik.load_state_dict(_field(blob, "likelihood", dict, path))
     except RuntimeError as exc:
         raise InputError(f"{path}: the saved hyperparameters do not match the kernel {gp.kernel!r} ({exc})") from exc
-    gp.model = _IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+    gp.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
     gp._freeze()
     gp.n_iterations_ = int(blob.get("n_iterations", 0))
     gp.n_evaluations_ = int(blob.get("n_evaluations", blob.get("n_iter", 0)))

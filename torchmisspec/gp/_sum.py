@@ -22,6 +22,7 @@ import torch
 
 from .._errors import FittingError
 from .._linalg import cholesky_or_fail
+from ._exact import median_distance
 from ._features import FeatureKernel, fit_relevance, noise_groups, term_gain
 
 __all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]
@@ -143,7 +144,6 @@ def fit_sum(
     included, :func:`_least_valuable`) is at most ``min_gain`` nats are then removed one at a time, and the rest
     re-fitted once. Returns ``(floor, lml, iterations)``.
     """
-    from ._model import median_distance
 
     second = float(Y.pow(2).mean())
     if not second > 0:

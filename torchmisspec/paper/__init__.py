@@ -13,13 +13,6 @@ The generic pieces these use live in the library: candidate sets in :mod:`torchm
 :mod:`torchmisspec.plotting`, error measures in :mod:`torchmisspec.metrics`.
 """
 
-import warnings
-
 from . import demo, figures, studies
 
 __all__ = ["demo", "figures", "studies"]
-
-
-def _warn_moved(old: str, new: str) -> None:
-    """At the import of the deprecated module ``old``: a DeprecationWarning naming where its names went."""
-    warnings.warn(f"{old} is deprecated: use {new}", DeprecationWarning, stacklevel=3)  # the importer's frame
