@@ -239,7 +239,7 @@ def test_bad_input():
         tms.CorrectionGP(kernel="features", lengthscale=1.0)
     with pytest.raises(tms.InputError, match=r"degree: expected"):
         tms.CorrectionGP(kernel="features", degree=0)
-    with pytest.raises(tms.InputError, match=r"kernel: expected one of"):
+    with pytest.raises(tms.InputError, match=r"kernel: expected a Kernel object or one of"):
         tms.CorrectionGP(kernel="sindy")
     with pytest.raises(tms.NotFittedError, match=r"feature kernels are built by fit"):
         tms.CorrectionGP(kernel="features").covariance(X)

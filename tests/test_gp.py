@@ -171,7 +171,7 @@ def test_prior_covariance_before_fit():
 
 # ------------------------------------------------------------------------------------------------------ bad input
 def test_rejects_bad_configuration():
-    with pytest.raises(tms.InputError, match=r"kernel: expected one of .*got 'cubic'"):
+    with pytest.raises(tms.InputError, match=r"kernel: expected a Kernel object or one of .*got 'cubic'"):
         tms.CorrectionGP(kernel="cubic")
     with pytest.raises(tms.InputError, match="lengthscale: expected a positive finite number, got -1"):
         tms.CorrectionGP(lengthscale=-1.0)

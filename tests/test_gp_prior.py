@@ -51,7 +51,10 @@ def test_bad_input():
         tms.CorrectionGP.prior(system)  # the samples' noise only the experimenter knows
     with pytest.raises(tms.InputError, match="size: expected an integer >= 2, got 1"):
         tms.CorrectionGP.prior(system, noise_variance=1e-4, grid_size=1)
-    with pytest.raises(tms.InputError, match="kernel: expected 'rbf' or 'matern52'"):
+    with pytest.raises(
+        tms.InputError,
+        match="kernel: expected a stationary kernel with a lengthscale such as 'rbf' or 'matern52', got 'polynomial'",
+    ):
         tms.CorrectionGP.prior(system, noise_variance=1e-4, kernel="polynomial")
     with pytest.raises(tms.ShapeError, match=r"states: expected \(M, 2\) full states"):
         tms.CorrectionGP.prior(system, noise_variance=1e-4, states=torch.zeros(5, 3))

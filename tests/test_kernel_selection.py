@@ -293,7 +293,7 @@ def test_auto_records_failures_and_says_when_all_fail(linear_samples, monkeypatc
 
 
 def test_bad_input():
-    with pytest.raises(tms.InputError, match="kernel: expected one of"):
+    with pytest.raises(tms.InputError, match="kernel: expected a Kernel object or one of"):
         tms.CorrectionGP(kernel="poly")
     with pytest.raises(tms.InputError, match="per_output"):
         tms.CorrectionGP(kernel="features+rbf", per_output=True)

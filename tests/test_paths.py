@@ -69,7 +69,7 @@ def exact_posterior(gp, X, Xs):
 def test_kernel_matrix_equals_the_gpytorch_kernel(fitted, data):
     X, _, Xs = data
     with torch.no_grad():
-        ours = kernel_matrix(fitted.kernel, Xs, X, kernel_hyperparameters(fitted), fitted.degree)
+        ours = kernel_matrix(fitted.kernel_spec, Xs, X, kernel_hyperparameters(fitted), fitted.degree)
     theirs = fitted.covariance(Xs, X)
     assert torch.allclose(ours, theirs if theirs.dim() == 3 else theirs.unsqueeze(0), rtol=1e-12, atol=1e-14)
 

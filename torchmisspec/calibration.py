@@ -53,7 +53,7 @@ from ._errors import (
 from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp._calibration import BandCalibration
-from .learning import _check_cv_inputs, _settings
+from .learning import _check_cv_inputs
 from .observations import CorrectionSamples, _check_trajectories_and_system, estimate_state_noise
 from .trajectory_fit import fit_trajectories
 
@@ -192,7 +192,7 @@ def calibrate_bands(
             with warnings.catch_warnings(record=True) as caught:  # the folds' fits are ours: summarised below
                 warnings.simplefilter("always", NumericalWarning)
                 if refit:
-                    fold_gp = type(gp)(**_settings(gp), lengthscale=gp.fixed["lengthscale"])
+                    fold_gp = gp.clone(kernel=gp.kernel_spec)  # the kernel chosen, refitted
                     fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
                 else:
                     fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)

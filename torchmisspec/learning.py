@@ -47,7 +47,6 @@ from ._validation import check_positive_int, progress_bar
 from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._exact import median_distance
-from .gp._features import FEATURE_KERNELS
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .systems import MisspecifiedSystem
@@ -213,7 +212,7 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
 
     def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         x = system.select_inputs(y).to(X)  # the GP's dtype and device (float32 data with a float64 GP)
-        Kx = kernel_matrix(gp.kernel, x, X, params, gp.degree)  # (1 or d_out, B, N)
+        Kx = kernel_matrix(gp.kernel_spec, x, X, params, gp.degree)  # (1 or d_out, B, N)
         a = alphas[fold_of[rows]]  # (B, N, d_out)
         if Kx.shape[0] == 1:
             mu = (Kx[0].unsqueeze(1) @ a).squeeze(1)  # (B, d_out)
@@ -224,24 +223,9 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
     return field
 
 
-def _settings(template: CorrectionGP) -> dict:
-    """The constructor arguments of ``template`` except the lengthscale (the kernel, fixed values, dtype...)."""
-    return dict(
-        kernel=template.kernel,
-        degree=template.degree,
-        min_gain=template.min_gain if template.kernel in FEATURE_KERNELS else None,
-        per_output=template.per_output,
-        outputscale=template.fixed["outputscale"],
-        noise_variance=template.fixed["noise_variance"],
-        max_iter=template.max_iter,
-        dtype=template.dtype,
-        device=template.device,
-    )
-
-
 def _label(gp: CorrectionGP) -> str:
     """A candidate's label: its kernel and what distinguishes it."""
-    if gp.kernel in ("rbf", "matern52"):
+    if gp.kernel_spec.stationary:
         ell = gp.fixed["lengthscale"]
         label = gp.kernel + ("" if ell is None else f" lengthscale={ell:.4g}")
     else:
@@ -332,7 +316,7 @@ def cross_validate(
     ratio = base.clamp_min(tiny) / per_experiment[i].clamp_min(tiny)
     gains = tuple(ratio.log().tolist()) if math.isfinite(scores[i]) else ()
     labels = tuple(_label(c) for c in candidates)
-    ells = tuple(c.fixed["lengthscale"] if c.kernel in ("rbf", "matern52") else None for c in candidates)
+    ells = tuple(c.fixed["lengthscale"] if c.kernel_spec.stationary else None for c in candidates)
     result = CrossValidation(labels, ells, tuple(scores), float(base.sum()), labels[i], folds, gains, i)
     return result, models
 
@@ -344,7 +328,9 @@ def lengthscale_candidates(samples: CorrectionSamples, template: CorrectionGP | 
     scale = median_distance(samples.inputs)
     candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
     try:
-        candidates.add(round(float(CorrectionGP(**_settings(template)).fit(samples).lengthscale), 12))
+        candidates.add(
+            round(float(template.clone(kernel=template.kernel_spec, lengthscale=None).fit(samples).lengthscale), 12)
+        )
     except (FittingError, LinearAlgebraError):
         pass
     return sorted(candidates)
@@ -379,7 +365,8 @@ def cross_validate_lengthscale(
     if not isinstance(template, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
     kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
-    if kernel not in ("rbf", "matern52") or template.fixed["lengthscale"] is not None or template.per_output:
+    searchable = not template.auto and template.kernel_spec.stationary and template.kernel_spec.has_lengthscale
+    if not searchable or template.fixed["lengthscale"] is not None or template.per_output:
         raise InputError(
             "gp: cross-validation chooses the lengthscale of a shared RBF or Matern kernel; got kernel "
             f"{kernel!r}, lengthscale={template.fixed['lengthscale']}, per_output={template.per_output}"
@@ -390,8 +377,7 @@ def cross_validate_lengthscale(
         lengthscales = sorted(float(v) for v in lengthscales)
         if not lengthscales or not all(math.isfinite(v) and v > 0 for v in lengthscales):
             raise InputError(f"lengthscales: expected positive numbers, got {lengthscales}")
-    options = _settings(template)
-    candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscales]
+    candidates = [template.clone(kernel=template.kernel_spec, lengthscale=ell) for ell in lengthscales]
     return cross_validate(system, trajectories, samples, candidates, folds=folds)[0]
 
 
@@ -472,7 +458,6 @@ def fit_correction(
             "then fitted by marginal likelihood) or more experiments"
         )
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
-    options = _settings(template)
     kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
     cv = None
     result = None
@@ -480,9 +465,13 @@ def fit_correction(
         if candidates is None and gp is None:
             candidates = default_candidates(samples)
         elif candidates is None:
-            free = kernel in ("rbf", "matern52") and template.fixed["lengthscale"] is None  # auto: scored as it is
+            # auto: scored as it is
+            free = not template.auto and template.kernel_spec.stationary and template.fixed["lengthscale"] is None
             if free and not template.per_output:
-                candidates = [CorrectionGP(lengthscale=ell, **options) for ell in lengthscale_candidates(samples, gp)]
+                candidates = [
+                    template.clone(kernel=template.kernel_spec, lengthscale=ell)
+                    for ell in lengthscale_candidates(samples, gp)
+                ]
             else:
                 candidates = [template]
         cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds, progress=progress)
@@ -506,11 +495,15 @@ def fit_correction(
         result = copy.deepcopy(candidates[0]).fit(samples)
     if result is None:
         given = {"lengthscale": float(lengthscale)} if number else {}
-        if given and kernel not in ("rbf", "matern52"):
+        if given and (template.auto or not template.kernel_spec.stationary):
             raise InputError(f"lengthscale: the {kernel} kernel has no lengthscale, got {lengthscale!r}")
-        result = CorrectionGP(**{**options, **given}).fit(samples) if given else copy.deepcopy(template).fit(samples)
+        result = (
+            template.clone(kernel=template.kernel_spec, **given).fit(samples)
+            if given
+            else copy.deepcopy(template).fit(samples)
+        )
     if refine is None:
-        refine = result.kernel == "features"
+        refine = result.kernel_spec.feature_space  # the feature kernel's terms, refined through the ODE
     if refine:
         result = fit_trajectories(result, system, trajectories, progress=progress)
     result.cross_validation_ = cv

@@ -190,8 +190,8 @@ def fit_trajectories(
     if not isinstance(shooting, str) or shooting not in SHOOTING:
         raise InputError(f"shooting: expected one of {list(SHOOTING)}, got {shooting!r}")
     max_iter = check_positive_int(max_iter, "max_iter")
-    relevance = gp.kernel == "features" if relevance is None else bool(relevance)
-    if relevance and gp.kernel != "features":
+    relevance = gp.kernel_spec.feature_space if relevance is None else bool(relevance)
+    if relevance and not gp.kernel_spec.feature_space:
         raise InputError(f"relevance: re-estimating term weights needs the feature kernel, got kernel {gp.kernel!r}")
     trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
     d = trajectories.state_dim

@@ -20,7 +20,6 @@ from .._errors import InputError, ShapeError, TorchMisspecError
 from .._validation import check_domain, check_positive_int, check_real
 from ..data import Trajectories
 from ..gp import CorrectionGP, _persistence
-from ..gp._features import FEATURE_KERNELS
 from ..metrics import correction_error
 from ..observations import correction_samples
 from ..systems import MisspecifiedSystem
@@ -354,18 +353,9 @@ class Campaign:
             known = torch.cat([torch.zeros_like(t) if n is None else n for n, t in zip(noise, targets, strict=True)])
         refit = self.config["refit_after"]
         if refit and X.shape[0] >= refit:
+            # the prior's kernel and settings, every hyperparameter learned
             p = self.prior
-            feature = p.kernel in FEATURE_KERNELS
-            learner = CorrectionGP(
-                kernel=p.kernel,
-                per_output=p.per_output,
-                degree=p.degree,
-                min_gain=p.min_gain if feature else None,
-                library=p.library if feature else None,
-                library_names=p.library_names if feature and p.library is not None else None,
-                dtype=p.dtype,
-                device=p.device,
-            )
+            learner = p.clone(kernel=p.kernel_spec, lengthscale=None, outputscale=None, noise_variance=None)
             try:
                 return learner.fit(X, Y, noise=known), "learned"
             except TorchMisspecError as exc:

@@ -14,7 +14,6 @@ from .._linalg import logdet_identity_plus
 from .._validation import as_tensor, check_finite, check_ndim
 from .._validation import check_times as _check_times
 from ..gp import CorrectionGP
-from ..gp._features import FEATURE_KERNELS
 from ..systems import MisspecifiedSystem
 
 __all__ = ["DesignResult", "logdet_identity_plus"]
@@ -159,13 +158,13 @@ class GPKernel:
                 "gp: an unfitted CorrectionGP with per_output=True has no per-output hyperparameters yet; design "
                 "before any data with a shared kernel (per_output=False) and given hyperparameters, or fit it first"
             )
-        if not gp.is_fitted and gp.kernel in FEATURE_KERNELS:
+        if not gp.is_fitted and gp.kernel_spec.terms:
             raise InputError(
                 "gp: the feature kernel's weights are learned from data; fit the GP on earlier samples before "
                 "designing with it (or design with an RBF, Matern or polynomial prior)"
             )
         if not gp.is_fitted:
-            needed = ["noise_variance", "outputscale"] + ([] if gp.kernel == "polynomial" else ["lengthscale"])
+            needed = ["noise_variance", "outputscale"] + (["lengthscale"] if gp.kernel_spec.has_lengthscale else [])
             missing = [name for name in needed if gp.fixed.get(name) is None]
             if missing:
                 args = ", ".join(f"{m}=..." for m in missing)

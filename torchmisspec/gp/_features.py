@@ -88,8 +88,6 @@ __all__ = [
     "unit_information_weights",
 ]
 
-#: The kernels with a library of features and one learned weight per term (terms(), weights).
-FEATURE_KERNELS = ("features", "features+rbf")
 #: A term is removed when ``w_j mean(phi_j^2)`` (its share of the prior variance) falls below this fraction of the
 #: targets' second moment.
 PRUNE = 1e-12

@@ -42,9 +42,7 @@ from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, ch
 from . import _mll
 from ._exact import IndependentOutputsGP, median_distance
 from ._features import (
-    FEATURE_KERNELS,
     FeatureFactorization,
-    FeatureKernel,
     Term,
     check_library,
     coefficient_posterior,
@@ -52,11 +50,12 @@ from ._features import (
     term_inclusion,
     unit_information_weights,
 )
+from ._kernels import Kernel, as_kernel, log_positive
 from ._optim import maximise
 from ._persistence import load as _load
 from ._persistence import save as _save
-from ._selection import AUTO_KERNELS, EVIDENCE_MARGIN, auto_choice
-from ._sum import FeaturesPlusRBF, fit_sum
+from ._selection import EVIDENCE_MARGIN, fit_auto
+from ._sum import fit_sum
 
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
@@ -64,20 +63,8 @@ KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
 #: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
 #: (centred at the fitted value: a factor of about 7 either way).
 LOG_PRIOR_SD = 2.0
-#: Kernels without a lengthscale.
-_NO_LENGTHSCALE = ("polynomial", "features")
 #: smallest noise-to-output-scale ratio the profiled fit considers (relative, so the fit is scale-equivariant)
 _MIN_RATIO = 1e-12
-
-
-def _log_positive() -> gpytorch.constraints.Interval:
-    """A positive constraint whose raw value is the log of the hyperparameter.
-
-    No absolute floor: an absolute floor (GPyTorch's default 1e-4 on the noise, or any fixed number) breaks the
-    scale-equivariance of the fit (targets of size 1e-6 would be fitted differently from the same targets in other
-    units). Optimising in log space keeps every value positive.
-    """
-    return gpytorch.constraints.GreaterThan(0.0, transform=torch.exp, inv_transform=torch.log)
 
 
 @dataclass(frozen=True)
@@ -220,32 +207,31 @@ class CorrectionGP:
         min_gain: float | None = None,
         evidence_margin: float | None = None,
     ) -> None:
-        if kernel not in KERNELS:
-            raise InputError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
-        if kernel in _NO_LENGTHSCALE and lengthscale is not None:
-            formula = "(1 + <y, y'>)^m" if kernel == "polynomial" else "sum_j w_j y^a_j y'^a_j"
-            raise InputError(f"lengthscale: the {kernel} kernel {formula} has no lengthscale; pass None")
-        if kernel in FEATURE_KERNELS and outputscale is None:
+        auto = isinstance(kernel, str) and kernel == "auto"
+        spec = as_kernel("rbf" if auto else kernel)  # the unfitted auto model holds an RBF until its first fit
+        if not spec.has_lengthscale and lengthscale is not None:
+            raise InputError(f"lengthscale: the {spec.name} kernel {spec!r} has no lengthscale; pass None")
+        if spec.terms and outputscale is None:
             outputscale = 1.0  # the weights carry the scale
-        if kernel == "features+rbf" and per_output:
-            raise InputError("per_output: the features+rbf kernel is shared by the outputs; pass per_output=False")
-        if kernel == "auto" and (lengthscale is not None or outputscale is not None):
+        if spec.shared_only and per_output:
+            raise InputError(f"per_output: the {spec.name} kernel is shared by the outputs; pass per_output=False")
+        if auto and (lengthscale is not None or outputscale is not None):
             raise InputError(
                 "kernel='auto': the candidates' hyperparameters are learned (only noise_variance may be fixed); got "
                 f"lengthscale={lengthscale!r}, outputscale={outputscale!r}"
             )
         degree = check_positive_int(degree, "degree")
         if min_gain is not None:
-            if kernel not in (*FEATURE_KERNELS, "auto"):
+            if not (auto or spec.terms):
                 raise InputError(
-                    f"min_gain: the price of a feature term is for the feature kernels or 'auto', got {kernel!r}"
+                    f"min_gain: the price of a feature term is for the feature kernels or 'auto', got {spec.name!r}"
                 )
             min_gain = check_real(min_gain, "min_gain", minimum=0.0)
         #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
         self.min_gain = None if min_gain is None else float(min_gain)
-        if evidence_margin is not None and kernel != "auto":
+        if evidence_margin is not None and not auto:
             raise InputError(
-                f"evidence_margin: expected kernel='auto' (the margin over the RBF), got kernel={kernel!r} with "
+                f"evidence_margin: expected kernel='auto' (the margin over the RBF), got kernel={spec.name!r} with "
                 f"evidence_margin={evidence_margin!r}"
             )
         #: kernel="auto": the nats by which a candidate must outscore the RBF to be chosen instead (None otherwise)
@@ -255,11 +241,13 @@ class CorrectionGP:
                 if evidence_margin is None
                 else float(check_real(evidence_margin, "evidence_margin", minimum=0.0))
             )
-            if kernel == "auto"
+            if auto
             else None
         )
-        if library is not None and kernel not in FEATURE_KERNELS:
-            raise InputError(f"library: a feature library is for kernel 'features' or 'features+rbf', got {kernel!r}")
+        if library is not None and not (spec.terms or auto):
+            raise InputError(
+                f"library: a feature library is for kernel 'features' or 'features+rbf', got {spec.name!r}"
+            )
         if library is None and library_names is not None:
             raise InputError("library_names: names a library of features; pass library=[...] too")
         #: user features replacing the monomials (callables x (..., d_in) -> (...,)), and their names
@@ -275,10 +263,11 @@ class CorrectionGP:
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
         #: kernel="auto": every fit chooses among AUTO_KERNELS by evidence (self.kernel is then the one chosen)
-        self.auto = kernel == "auto"
+        self.auto = auto
         #: kernel="auto": whether the last fit's library check found the library sufficient (None: not checked)
         self.library_suffices_: bool | None = None
-        self.kernel = "rbf" if self.auto else kernel  # the unfitted auto model holds an RBF until its first fit
+        #: the kernel object (:mod:`torchmisspec.gp._kernels`); ``kernel`` is its name
+        self.kernel_spec: Kernel = spec
         self._d_in = 1  # the feature kernel's input dimension (set by fit)
         self.fixed = {
             "lengthscale": None if lengthscale is None else float(lengthscale),
@@ -332,7 +321,7 @@ class CorrectionGP:
             noise_variance: the samples' noise variance.
             relative_size: the expected size of F relative to G's, > 0.
             lengthscale_fraction: the lengthscale as a fraction of D's mean side length, > 0.
-            kernel: ``"rbf"`` or ``"matern52"``.
+            kernel: a stationary kernel with a lengthscale: ``"rbf"``, ``"matern52"`` or such an object.
             states: ``(M, d)`` full states at which G is evaluated; default: a ``grid_size`` per axis grid over D
                 in the correction inputs, the other state components at 0.
             grid_size: points per axis of the default grid (at least 2).
@@ -342,8 +331,12 @@ class CorrectionGP:
 
         if not isinstance(system, MisspecifiedSystem):
             raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
-        if kernel not in ("rbf", "matern52"):
-            raise InputError(f"kernel: expected 'rbf' or 'matern52' (kernels with a lengthscale), got {kernel!r}")
+        spec = as_kernel(kernel)
+        if not (spec.stationary and spec.has_lengthscale):
+            raise InputError(
+                "kernel: expected a stationary kernel with a lengthscale such as 'rbf' or 'matern52', got "
+                f"{spec.name!r}"
+            )
         if system.domain is None:
             raise InputError(
                 f"system: '{system.name}' has no domain D; build it with MisspecifiedSystem(..., domain=((lo, hi), "
@@ -377,12 +370,22 @@ class CorrectionGP:
         outputscale = (relative_size * float(size.median())) ** 2
         lengthscale = fraction * float((box[:, 1] - box[:, 0]).mean())
         return cls(
-            kernel=kernel,
+            kernel=spec,
             lengthscale=lengthscale,
             outputscale=outputscale,
             noise_variance=noise_variance,
             **kwargs,
         )
+
+    @property
+    def kernel(self) -> str:
+        """The kernel's name (``"rbf"``, ``"features"``, ...; for ``kernel="auto"`` the one chosen); the object itself
+        is :attr:`kernel_spec`."""
+        return self.kernel_spec.name
+
+    @kernel.setter
+    def kernel(self, value) -> None:
+        self.kernel_spec = as_kernel(value)
 
     def _freeze(self) -> None:
         """Outside fitting no hyperparameter requires grad, so predictions build no autograd graph through them.
@@ -415,28 +418,16 @@ class CorrectionGP:
         is a ``FixedNoiseGaussianLikelihood`` whose learned additional noise is the floor ``noise_variance``.
         """
         shape = torch.Size([batch]) if self.per_output else torch.Size([])
-        if self.kernel == "rbf":
-            base = gpytorch.kernels.RBFKernel(batch_shape=shape, lengthscale_constraint=_log_positive())
-        elif self.kernel == "matern52":
-            base = gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=shape, lengthscale_constraint=_log_positive())
-        elif self.kernel == "features":
-            lib = {"library": self.library, "library_names": self.library_names}
-            base = FeatureKernel(self._d_in, self.degree, batch_shape=shape, **lib)
-        elif self.kernel == "features+rbf":
-            base = FeaturesPlusRBF(self._d_in, self.degree, library=self.library, library_names=self.library_names)
-        else:
-            base = gpytorch.kernels.PolynomialKernel(power=self.degree, batch_shape=shape)
-            base.offset = 1.0
-            base.raw_offset.requires_grad_(False)
-        covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=_log_positive())
+        base = self.kernel_spec.module(self, shape)
+        covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=log_positive())
         if noise is None:
-            lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=_log_positive())
+            lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=log_positive())
         else:
             # min_fixed_noise 0: GPyTorch would otherwise round known variances below 1e-6 up (and warn), and the
             # ExactGP view would no longer be the model that is fitted
             with gpytorch.settings.min_fixed_noise(float_value=0.0, double_value=0.0, half_value=0.0):
                 lik = gpytorch.likelihoods.FixedNoiseGaussianLikelihood(
-                    noise=noise, learn_additional_noise=True, batch_shape=shape, noise_constraint=_log_positive()
+                    noise=noise, learn_additional_noise=True, batch_shape=shape, noise_constraint=log_positive()
                 )
         covar, lik = covar.to(self.device, self.dtype), lik.to(self.device, self.dtype)
 
@@ -493,15 +484,7 @@ class CorrectionGP:
         return None if targets is None else targets.T
 
     def _free_parameters(self) -> list[tuple[str, torch.nn.Parameter]]:
-        params = []
-        if self.kernel in FEATURE_KERNELS:
-            params.append(("weights", self.covar_module.base_kernel.weights))
-        if self.kernel == "features+rbf":
-            params.append(("rbf_scale", self.covar_module.base_kernel.raw_rbf_scale))
-            if self.fixed["lengthscale"] is None:
-                params.append(("lengthscale", self.covar_module.base_kernel.raw_lengthscale))
-        elif self.kernel not in _NO_LENGTHSCALE and self.fixed["lengthscale"] is None:
-            params.append(("lengthscale", self.covar_module.base_kernel.raw_lengthscale))
+        params = self.kernel_spec.free_parameters(self.covar_module.base_kernel, self.fixed)
         if self.fixed["outputscale"] is None:
             params.append(("outputscale", self.covar_module.raw_outputscale))
         if self.fixed["noise_variance"] is None:
@@ -526,7 +509,7 @@ class CorrectionGP:
         var = Y.pow(2).mean(dim=0)  # (d_out,)
         var = torch.where(var > 0, var, var.max()) if self.per_output else var.mean()
         out = {"outputscale": var, "noise_variance": 1e-2 * var}
-        if self.kernel not in _NO_LENGTHSCALE:
+        if self.kernel_spec.has_lengthscale:
             out["lengthscale"] = torch.tensor(median_distance(X), dtype=X.dtype, device=X.device)
         return out
 
@@ -534,7 +517,7 @@ class CorrectionGP:
         """Set the learned hyperparameters to :meth:`starting_values` (the fixed ones are already set)."""
         start = self.starting_values(X, Y)
         with torch.no_grad():
-            if self.kernel not in _NO_LENGTHSCALE and self.fixed["lengthscale"] is None:
+            if self.kernel_spec.has_lengthscale and self.fixed["lengthscale"] is None:
                 base = self.covar_module.base_kernel
                 base.lengthscale = start["lengthscale"].expand(base.lengthscale.shape)
             if self.fixed["outputscale"] is None:
@@ -658,7 +641,7 @@ class CorrectionGP:
         progress bar.
         """
         if self.auto:
-            return self._fit_auto(inputs, targets, noise, progress=progress, max_iter=max_iter, warm_start=warm_start)
+            return fit_auto(self, inputs, targets, noise, progress=progress, max_iter=max_iter, warm_start=warm_start)
         inputs, targets, noise = self._unpack(inputs, targets, noise)
         X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
         Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
@@ -701,7 +684,7 @@ class CorrectionGP:
     def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
         d_out = Y.shape[1]
         covar, lik = self.covar_module, self.likelihood
-        if self.kernel in FEATURE_KERNELS and covar.base_kernel.powers.shape[1] != X.shape[1]:  # library: d_in too
+        if self.kernel_spec.terms and covar.base_kernel.powers.shape[1] != X.shape[1]:  # library: d_in too
             self._d_in = X.shape[1]  # the library of monomials of these inputs
             covar, lik = self._modules(batch=d_out)
         if self.per_output and covar.batch_shape != torch.Size([d_out]):
@@ -713,25 +696,9 @@ class CorrectionGP:
             lik = self._modules(batch=d_out, noise=known)[1]
         self.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
         self._cache = None
-        if learn and self.kernel == "features":
-            self.n_iterations_ = self._fit_features(X, Y, noise, max_iter=max_iter)
-            self.n_evaluations_ = self.n_iterations_
-        elif learn and self.kernel == "features+rbf":
-            floor, _, self.n_iterations_ = fit_sum(
-                self.covar_module.base_kernel,
-                X,
-                Y,
-                noise,
-                floor=self.fixed["noise_variance"],
-                lengthscale=self.fixed["lengthscale"],
-                max_iter=max_iter,
-                outputscale=float(self.fixed["outputscale"]),
-                min_gain=0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain,
-            )
-            self.n_evaluations_ = self.n_iterations_
-            if self.fixed["noise_variance"] is None:
-                with torch.no_grad():
-                    self._floor(self.likelihood).noise = torch.tensor([floor], dtype=self.dtype, device=self.device)
+        own = self.kernel_spec.fit(self, X, Y, noise, max_iter=max_iter) if learn else None
+        if own is not None:  # the kernel's own fit (the feature kernels')
+            self.n_iterations_, self.n_evaluations_ = own
         elif learn:
             self._initialise(X, Y)
             if warm_start and X.shape[0] > 2 * warm_start:
@@ -775,93 +742,23 @@ class CorrectionGP:
         n = self.train_inputs_.shape[0]
         return float(self.log_marginal_likelihood_) - 0.5 * math.log(n) * self.num_hyperparameters
 
-    def _fit_auto(self, inputs, targets, noise, **options) -> CorrectionGP:
-        """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood, score each by
-        :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of those) and keep
-        the one :func:`auto_choice` chooses (the RBF unless another eligible candidate has strong evidence; a
-        stationary kernel when the library misses part of F). The feature kernel is fitted with one weight per term
-        and output (``per_output=True``); features+rbf is skipped when ``per_output`` (it is shared by the outputs),
-        and then the library is not checked. Cost: about 5 fits (the candidates and the check's nested model).
-        ``model_selection_`` records each candidate: kernel, log marginal likelihood, score, seconds, the error of a
-        candidate that failed, whether it was eligible, whether it was chosen.
-        Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
-        import time
-
-        def candidate(kernel: str, per_output: bool) -> CorrectionGP:
-            return CorrectionGP(
-                kernel=kernel,
-                per_output=per_output,
-                degree=self.degree,
-                max_iter=self.max_iter,
-                noise_variance=self.fixed["noise_variance"],
-                min_gain=self.min_gain if kernel in FEATURE_KERNELS else None,
-                dtype=self.dtype,
-                device=self.device,
-            )
-
-        def attempt(cand: CorrectionGP) -> dict:
-            start = time.perf_counter()
-            try:
-                cand.fit(inputs, targets, noise=noise, **options)
-            except (FittingError, LinearAlgebraError) as exc:
-                return {
-                    "kernel": cand.kernel,
-                    "log_marginal_likelihood": None,
-                    "hyperparameters": None,
-                    "score": None,
-                    "seconds": time.perf_counter() - start,
-                    "error": f"{type(exc).__name__}: {exc}",
-                }
-            return {
-                "kernel": cand.kernel,
-                "log_marginal_likelihood": float(cand.log_marginal_likelihood_),
-                "hyperparameters": cand.num_hyperparameters,
-                "score": cand.evidence_score,
-                "seconds": time.perf_counter() - start,
-                "error": None,
-            }
-
-        records, fitted = [], {}
-        for kernel in AUTO_KERNELS:
-            if self._auto_per_output and kernel == "features+rbf":
-                continue
-            # the feature kernel: one weight per term and output, each output its own sparse equation (as SINDy);
-            # the shared-weight fit below is only the library check's reference (not a candidate)
-            cand = candidate(kernel, self._auto_per_output or kernel == "features")
-            records.append(attempt(cand))
-            if records[-1]["error"] is None:
-                fitted[kernel] = cand
-        if not fitted:
-            raise FittingError(
-                "kernel='auto': every candidate kernel failed to fit: "
-                + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
-            )
-        reference = None
-        if "features+rbf" in fitted:  # the model features+rbf nests: the library with weights shared by the outputs
-            fs = fitted.get("features")
-            if fs is not None and fs.output_dim == 1:  # one output: the per-output fit is that model already
-                reference = fs.evidence_score
-            else:
-                reference = attempt(candidate("features", False))["score"]  # None if it failed: untested
-            records[[r["kernel"] for r in records].index("features+rbf")]["library_score"] = reference
-        chosen, eligible, self.library_suffices_ = auto_choice(
-            {k: c.evidence_score for k, c in fitted.items()}, library_score=reference, margin=self.evidence_margin
+    def _fit_sum(self, X, Y, noise, *, max_iter: int) -> tuple[int, int]:
+        """The features+rbf kernel's fit (:func:`~torchmisspec.gp._sum.fit_sum`): ``(iterations, evaluations)``."""
+        floor, _, iterations = fit_sum(
+            self.covar_module.base_kernel,
+            X,
+            Y,
+            noise,
+            floor=self.fixed["noise_variance"],
+            lengthscale=self.fixed["lengthscale"],
+            max_iter=max_iter,
+            outputscale=float(self.fixed["outputscale"]),
+            min_gain=0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain,
         )
-        best = fitted[chosen]
-        for r in records:
-            r["eligible"] = r["kernel"] in eligible
-            r["chosen"] = r["kernel"] == best.kernel
-        self.kernel, self._d_in, self.fixed, self.per_output = (
-            best.kernel,
-            best._d_in,
-            dict(best.fixed),
-            best.per_output,
-        )
-        self.model, self._cache = best.model, best._cache
-        self.n_iterations_, self.n_evaluations_ = best.n_iterations_, best.n_evaluations_
-        self.log_marginal_likelihood_ = best.log_marginal_likelihood_
-        self.model_selection_ = records
-        return self
+        if self.fixed["noise_variance"] is None:
+            with torch.no_grad():
+                self._floor(self.likelihood).noise = torch.tensor([floor], dtype=self.dtype, device=self.device)
+        return iterations, iterations
 
     def _fit_features(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, max_iter: int) -> int:
         """The feature kernel's weights (and the noise floor unless fixed) by sparse Bayesian learning in feature
@@ -911,7 +808,7 @@ class CorrectionGP:
         """``(raw lengthscale, lo, hi)``: the learned lengthscale is kept within [1e-4, 1e4] times the median distance
         between the inputs (log space), or ``None`` when it is not learned. Without the box a line-search trial can
         take log l to -1000, where every kernel entry is 0/0."""
-        if self.kernel in _NO_LENGTHSCALE or self.fixed["lengthscale"] is not None:
+        if not self.kernel_spec.has_lengthscale or self.fixed["lengthscale"] is not None:
             return None
         scale = median_distance(X)
         return self.covar_module.base_kernel.raw_lengthscale, math.log(1e-4 * scale), math.log(1e4 * scale)
@@ -1032,7 +929,7 @@ class CorrectionGP:
         self.model.num_outputs = Y.shape[1]
         with torch.no_grad():
             Yb = self._targets_batched(Y, noise)
-            if self.kernel == "features":  # in feature space: O(N p^2), the N x N matrix is never formed
+            if self.kernel_spec.feature_space:  # in feature space: O(N p^2), the N x N matrix is never formed
                 base = self.covar_module.base_kernel
                 Phi = base.features(X)
                 W = base.weights.detach().reshape(-1, Phi.shape[1]) * self.covar_module.outputscale.reshape(-1, 1)
@@ -1087,7 +984,7 @@ class CorrectionGP:
         Returns a dense ``(M1, M2)`` tensor (``(d_out, M1, M2)`` when ``per_output``). Works before fitting for a
         shared kernel, with the hyperparameters given (or their defaults).
         """
-        if (self.per_output or self.kernel in FEATURE_KERNELS) and not self.is_fitted:
+        if (self.per_output or self.kernel_spec.terms) and not self.is_fitted:
             raise NotFittedError("per-output and feature kernels are built by fit(); call .fit(inputs, targets) first")
         x1 = self._check_inputs(x1, "x1")
         x2 = x1 if x2 is None else self._check_inputs(x2, "x2")
@@ -1166,9 +1063,9 @@ class CorrectionGP:
     def _term_spread(self, x: torch.Tensor) -> torch.Tensor | float:
         """``(B, M)``: the variance the feature kernel's removed terms add at ``x (M, d_in)`` (their chance of being
         present, :attr:`~torchmisspec.gp._features.FeatureKernel.spread`), or 0 for other kernels."""
-        if self.kernel != "features":
-            return 0.0
         base = self.covar_module.base_kernel
+        if getattr(base, "spread", None) is None:
+            return 0.0
         phi = base.features(x)  # (M, p)
         return (phi.pow(2) @ base.spread.reshape(-1, phi.shape[-1]).to(phi).T).T
 
@@ -1179,7 +1076,7 @@ class CorrectionGP:
 
         if self.train_noise_ is not None:
             return None
-        K = kernel_matrix(self.kernel, X, X, params, self.degree)  # (B, N, N)
+        K = kernel_matrix(self.kernel_spec, X, X, params, self.degree)  # (B, N, N)
         lam, U = torch.linalg.eigh(K)  # ascending
         lam = lam.clamp_min(0.0)
         s2n = self._floor(self.likelihood).noise.detach().reshape(-1, 1)  # (B, 1)
@@ -1219,7 +1116,7 @@ class CorrectionGP:
             (basis,) = cache.support_basis
             explained = []
             for start in range(0, x.shape[0], chunk):
-                K = kernel_matrix(self.kernel, x[start : start + chunk], X, params, self.degree)  # (B, m, N)
+                K = kernel_matrix(self.kernel_spec, x[start : start + chunk], X, params, self.degree)  # (B, m, N)
                 if basis is not None:
                     V = K @ basis  # (B, m, r): (u_i^T k_x) / sqrt(lam_i + s2n)
                 else:
@@ -1296,7 +1193,7 @@ class CorrectionGP:
             their own posterior: :meth:`terms`).
         """
         self._require_fitted()
-        if self.kernel in FEATURE_KERNELS:
+        if self.kernel_spec.terms:
             raise InputError(
                 "laplace_covariance: the feature kernel's weights are not log hyperparameters; its uncertainty is "
                 "the coefficients' posterior (gp.terms())"
@@ -1318,7 +1215,7 @@ class CorrectionGP:
                 # the kernel written out in torch (GPyTorch's RBF has a custom backward without a second derivative)
                 from ._paths import kernel_hyperparameters, kernel_matrix
 
-                K = kernel_matrix(self.kernel, X, X, kernel_hyperparameters(self), self.degree)
+                K = kernel_matrix(self.kernel_spec, X, X, kernel_hyperparameters(self), self.degree)
                 floor = self._floor(self.likelihood).noise.reshape(-1, 1)
                 if noise is None:
                     diag = floor
@@ -1384,7 +1281,7 @@ class CorrectionGP:
     def lengthscale(self) -> float | torch.Tensor | None:
         """The kernel lengthscale in use (``None`` for the polynomial and feature kernels, or when unfitted and not
         given)."""
-        if self.kernel in _NO_LENGTHSCALE:
+        if not self.kernel_spec.has_lengthscale:
             return None
         return self._value("lengthscale", self.covar_module.base_kernel.lengthscale)
 
@@ -1399,6 +1296,50 @@ class CorrectionGP:
         noise, the floor added to it."""
         return self._value("noise_variance", self._floor(self.likelihood).noise)
 
+    def clone(self, **overrides) -> CorrectionGP:
+        """An unfitted model with this one's settings, ``overrides`` replacing any of the constructor's arguments:
+        the one way to copy a template.
+
+        The settings are the constructor's: the kernel (``"auto"`` for an auto model; pass ``kernel=gp.kernel_spec``
+        for the kernel it chose), the fixed hyperparameters, ``per_output``, ``degree``, the feature library and
+        price, ``max_iter``, dtype and device. Settings the new kernel has no use for (a lengthscale for the feature
+        kernel, a price of terms for the RBF) are dropped when ``kernel`` is overridden.
+        """
+        auto = self.auto
+        args = {
+            "kernel": "auto" if auto else self.kernel_spec,
+            "lengthscale": None if auto else self.fixed["lengthscale"],
+            "outputscale": None if auto else self.fixed["outputscale"],
+            "noise_variance": self.fixed["noise_variance"],
+            "per_output": self._auto_per_output if auto else self.per_output,
+            "degree": self.degree,
+            "max_iter": self.max_iter,
+            "dtype": self.dtype,
+            "device": self.device,
+            "library": self.library,
+            "library_names": self.library_names,
+            "min_gain": self.min_gain,
+            "evidence_margin": self.evidence_margin,
+        }
+        unknown = sorted(set(overrides) - set(args))
+        if unknown:
+            raise InputError(f"clone: expected overrides among {sorted(args)}, got {unknown}")
+        if "kernel" in overrides:
+            kernel = overrides["kernel"]
+            new_auto = isinstance(kernel, str) and kernel == "auto"
+            spec = None if new_auto else as_kernel(kernel)
+            dropped = {
+                "lengthscale": new_auto or not spec.has_lengthscale,
+                "outputscale": new_auto or (spec.terms != self.kernel_spec.terms),
+                "library": not (new_auto or spec.terms),
+                "library_names": not (new_auto or spec.terms),
+                "min_gain": not (new_auto or spec.terms),
+                "evidence_margin": not new_auto,
+            }
+            args.update({name: None for name, drop in dropped.items() if drop})
+        args.update(overrides)
+        return type(self)(**args)
+
     def fixed_copy(self) -> CorrectionGP:
         """A new, unfitted CorrectionGP with every hyperparameter fixed at this one's values in use.
 
@@ -1412,12 +1353,12 @@ class CorrectionGP:
             "outputscale": self.outputscale,
             "noise_variance": self.noise_variance,
         }
-        if self.kernel in FEATURE_KERNELS:
+        if self.kernel_spec.terms:
             raise InputError(
                 "fixed_copy: the feature kernel's weights cannot be fixed by value; use gp.condition(inputs, targets) "
                 "to condition these hyperparameters on other samples"
             )
-        if self.kernel == "polynomial":
+        if not self.kernel_spec.has_lengthscale:
             values.pop("lengthscale")
         missing = [k for k, v in values.items() if v is None]
         if missing:
@@ -1428,7 +1369,7 @@ class CorrectionGP:
         if self.per_output:
             raise InputError("fixed_copy: per-output hyperparameters cannot be fixed by value; use per_output=False")
         return CorrectionGP(
-            kernel=self.kernel,
+            kernel=self.kernel_spec,
             degree=self.degree,
             max_iter=self.max_iter,
             dtype=self.dtype,
@@ -1478,14 +1419,14 @@ class CorrectionGP:
     def weights(self) -> torch.Tensor | None:
         """The feature kernel's term weights ``(p,)`` (``(d_out, p)`` with ``per_output``); ``None`` for other
         kernels or before fitting. A weight of 0 removes its term."""
-        if self.kernel not in FEATURE_KERNELS or not self.is_fitted:
+        if not self.kernel_spec.terms or not self.is_fitted:
             return None
         return self.covar_module.base_kernel.weights.detach().clone()
 
     def feature_names(self, names=None) -> list[str]:
         """The feature kernel's monomials, e.g. ``["1", "x1", "x2", "x1^2", ...]`` (``names``: one per input; default
         :attr:`input_names_` when the model has them, as :func:`~torchmisspec.fit_correction` records; else x1, x2)."""
-        if self.kernel not in FEATURE_KERNELS:
+        if not self.kernel_spec.terms:
             raise InputError(
                 f"feature_names: only the feature kernels have named terms, this GP's kernel is {self.kernel!r}"
             )
@@ -1511,7 +1452,7 @@ class CorrectionGP:
         base = self.covar_module.base_kernel
         X, Y, known = self.train_inputs_, self.train_targets_, self.train_noise_
         Phi = base.features(X).detach()
-        if self.kernel == "features+rbf":  # the coefficients' posterior under the whole kernel, RBF term included
+        if not self.kernel_spec.feature_space:  # the coefficients' posterior under the whole kernel (RBF term too)
             fac = self._posterior_cache().fac  # dense: C = Phi W Phi^T + a K_rbf + noise
             w = base.weights.detach().reshape(-1) * self.covar_module.outputscale.detach().reshape(())
             out = []

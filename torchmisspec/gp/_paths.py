@@ -87,7 +87,6 @@ from numpy.polynomial.hermite_e import hermegauss
 
 from .._errors import InputError, ShapeError
 from .._validation import check_positive_int, check_real
-from ._features import FEATURE_KERNELS
 
 __all__ = [
     "DEFAULT_FEATURE_ERROR",
@@ -338,62 +337,34 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
     gp._require_fitted()
     generator = _check_generator(generator, gp.device)
     covar = gp.covar_module
+    outputscale = covar.outputscale.detach().reshape(-1, 1).to(dtype=gp.dtype, device=gp.device)  # (B, 1)
+    return gp.kernel_spec.path_features(gp, covar.base_kernel, outputscale, num_features, feature_error, generator)
+
+
+def polynomial_features(gp, base, outputscale: torch.Tensor) -> FeatureMap:
+    """The exact features of (c + <x, x'>)^m: every monomial x^a with |a| <= m, weighted by the multinomial
+    coefficient times c^(m - |a|) and the output scale ``(B, 1)``."""
     kd = dict(dtype=gp.dtype, device=gp.device)
-    outputscale = covar.outputscale.detach().reshape(-1, 1).to(**kd)  # (B, 1)
-    B = outputscale.shape[0]
     d_in = gp.input_dim
-    if gp.kernel == "polynomial":
-        if num_features is not None or feature_error is not None:
-            raise InputError(
-                "num_features / feature_error: the polynomial kernel has exact finite features; pass neither"
-            )
-        m = gp.degree
-        offset = covar.base_kernel.offset.detach().reshape(-1, 1).to(**kd)  # (B, 1)
-        powers, coef, rest = [], [], []
-        for a in itertools.product(range(m + 1), repeat=d_in):
-            if sum(a) <= m:  # (c + <x, x'>)^m = sum_a m! / ((m - |a|)! prod a_i!) c^(m - |a|) x^a x'^a
-                powers.append(a)
-                coef.append(math.factorial(m) / (math.factorial(m - sum(a)) * math.prod(math.factorial(i) for i in a)))
-                rest.append(m - sum(a))
-        P = torch.tensor(powers, **kd)
-        c = torch.tensor(coef, **kd) * offset ** torch.tensor(rest, **kd)  # (B, P)
-        return FeatureMap("polynomial", len(coef), powers=P, coef=(outputscale * c).sqrt())
-    if gp.kernel == "features":  # exact: the monomials weighted by sqrt(outputscale w_j)
-        if num_features is not None or feature_error is not None:
-            raise InputError("num_features / feature_error: the feature kernel has exact finite features; pass neither")
-        base = covar.base_kernel
-        w = base.weights.detach().reshape(B, -1).to(**kd)
-        return FeatureMap("library", w.shape[-1], fn=base.features, coef=(outputscale * w).sqrt())
-    if gp.kernel == "features+rbf":  # the exact monomials beside the RBF term's features
-        base = covar.base_kernel
-        w = base.weights.detach().reshape(B, -1).to(**kd)
-        poly = FeatureMap("library", w.shape[-1], fn=base.features, coef=(outputscale * w).sqrt())
-        rbf = _rbf_features(
-            gp,
-            base.lengthscale.detach().to(**kd).reshape(B, -1).expand(B, d_in),
-            outputscale * base.rbf_scale.detach().to(**kd).reshape(B, 1),
-            num_features,
-            feature_error,
-            generator,
-        )
-        return FeatureMap(
-            "sum", poly.num_features + rbf.num_features, error_bound=rbf.error_bound, box=rbf.box, parts=(poly, rbf)
-        )
-    if gp.kernel not in ("rbf", "matern52"):
-        raise InputError(
-            "kernel: expected a kernel with a feature representation (rbf, matern52, polynomial, features, "
-            f"features+rbf), got {gp.kernel!r}"
-        )
-    lengthscale = covar.base_kernel.lengthscale.detach().to(**kd).reshape(B, -1).expand(B, d_in)  # (B, d_in)
-    return _rbf_features(gp, lengthscale, outputscale, num_features, feature_error, generator, kind=gp.kernel)
+    m = gp.degree
+    offset = base.offset.detach().reshape(-1, 1).to(**kd)  # (B, 1)
+    powers, coef, rest = [], [], []
+    for a in itertools.product(range(m + 1), repeat=d_in):
+        if sum(a) <= m:  # (c + <x, x'>)^m = sum_a m! / ((m - |a|)! prod a_i!) c^(m - |a|) x^a x'^a
+            powers.append(a)
+            coef.append(math.factorial(m) / (math.factorial(m - sum(a)) * math.prod(math.factorial(i) for i in a)))
+            rest.append(m - sum(a))
+    P = torch.tensor(powers, **kd)
+    c = torch.tensor(coef, **kd) * offset ** torch.tensor(rest, **kd)  # (B, P)
+    return FeatureMap("polynomial", len(coef), powers=P, coef=(outputscale * c).sqrt())
 
 
-def _rbf_features(gp, lengthscale, outputscale, num_features, feature_error, generator, *, kind: str = "rbf"):
-    """Features of the stationary kernel ``kind`` (RBF: quadrature when they pay, else random; Matern: random)
-    with ``lengthscale (B, d_in)`` and ``outputscale (B, 1)``."""
+def stationary_features(gp, kernel, lengthscale, outputscale, num_features, feature_error, generator):
+    """Features of the stationary ``kernel`` (the squared exponential: quadrature when they pay, else random; the
+    others: random, from ``kernel.spectral``) with ``lengthscale (B, d_in)`` and ``outputscale (B, 1)``."""
     kd = dict(dtype=gp.dtype, device=gp.device)
     B, d_in = lengthscale.shape
-    if num_features is None and kind == "rbf":
+    if num_features is None and getattr(kernel, "squared_exponential", False):
         quadrature = _quadrature_features(gp.train_inputs_.detach().to(**kd), lengthscale, outputscale, feature_error)
         if quadrature is not None:
             return quadrature
@@ -406,10 +377,7 @@ def _rbf_features(gp, lengthscale, outputscale, num_features, feature_error, gen
         if F % 2:
             raise InputError(f"num_features: expected an even number (cos and sin per frequency), got {F}")
         D = F // 2
-    z = torch.randn((B, d_in, D), generator=generator, **kd)
-    if kind == "matern52":  # Student t with 2 nu = 5 degrees of freedom: z sqrt(5 / chi2_5)
-        chi2 = torch.randn((B, 5, D), generator=generator, **kd).pow(2).sum(1, keepdim=True)
-        z = z * (5.0 / chi2).sqrt()
+    z = kernel.spectral((B, d_in, D), generator, kd["dtype"], kd["device"])
     omega = z / lengthscale.unsqueeze(-1)
     return FeatureMap("fourier", 2 * D, omega=omega, scale=(outputscale / D).sqrt(), error_bound=1.0 / math.sqrt(D))
 
@@ -453,49 +421,21 @@ def detached(params: dict, *, clone: bool = False) -> dict:
 
 
 def kernel_hyperparameters(gp) -> dict[str, torch.Tensor]:
-    """The GP's kernel hyperparameters as ``(B, 1, 1)`` tensors (``outputscale``; ``lengthscale``, or ``offset``
-    for the polynomial kernel, or ``weights (B, 1, p)`` for the feature kernel), keeping the autograd graph to the
-    GPyTorch parameters."""
+    """The GP's kernel hyperparameters as ``(B, 1, 1)`` tensors (``outputscale`` and what its kernel object's
+    :meth:`~torchmisspec.gp._kernels.Kernel.hyperparameters` gives), keeping the autograd graph to the GPyTorch
+    parameters."""
     covar = gp.covar_module
     out = {"outputscale": covar.outputscale.reshape(-1, 1, 1)}
-    if gp.kernel == "polynomial":  # GPyTorch's offset c of (c + <x, x'>)^m: 1 up to its constraint's rounding
-        out["offset"] = covar.base_kernel.offset.reshape(-1, 1, 1)
-    elif gp.kernel in FEATURE_KERNELS:
-        out["weights"] = covar.base_kernel.weights.reshape(out["outputscale"].shape[0], 1, -1)
-        out["features"] = covar.base_kernel.features  # phi(x): the monomials or a user library (not a tensor)
-        if gp.kernel == "features+rbf":
-            out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
-            out["rbf_scale"] = covar.base_kernel.rbf_scale.reshape(-1, 1, 1)
-    else:
-        out["lengthscale"] = covar.base_kernel.lengthscale.reshape(-1, 1, 1)
+    out.update(gp.kernel_spec.hyperparameters(covar.base_kernel, out["outputscale"].shape[0]))
     return out
 
 
-def kernel_matrix(kind: str, x: torch.Tensor, X: torch.Tensor, params: dict, degree: int = 2) -> torch.Tensor:
-    """``k(x, X)`` as ``(B, M, N)`` for inputs ``x (M, d)``, ``X (N, d)`` and hyperparameters ``(B, 1, 1)``: the
-    same kernels as the GP's GPyTorch modules (tested against them), written out so that the hot loop of sampled
-    paths needs no module calls and the hyperparameters can be constants or carry gradients."""
-    s2 = params["outputscale"]
-    if kind == "polynomial":
-        return s2 * (params["offset"] + x @ X.T).pow(degree)
-    if kind in FEATURE_KERNELS:
-        phi = params["features"]
-        poly = s2 * (phi(x) * params["weights"]) @ phi(X).T
-        if kind == "features":
-            return poly
-        rbf = {"outputscale": s2 * params["rbf_scale"], "lengthscale": params["lengthscale"]}
-        return poly + kernel_matrix("rbf", x, X, rbf)
-    ell = params["lengthscale"]
-    if kind == "rbf" and ell.numel() == 1 and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
-        # the hot path of sampled trajectories: one fused pass per operation, in place (no temporaries)
-        a, b = x / ell.reshape(()), X / ell.reshape(())
-        sq = torch.addmm(a.pow(2).sum(-1, keepdim=True) + b.pow(2).sum(-1), a, b.T, alpha=-2.0)
-        return sq.clamp_min_(0.0).mul_(-0.5).exp_().mul_(s2.reshape(())).unsqueeze(0)
-    sq = (x.pow(2).sum(-1, keepdim=True) + X.pow(2).sum(-1) - 2.0 * (x @ X.T)).clamp_min(0.0) / ell.pow(2)
-    if kind == "rbf":
-        return s2 * torch.exp(-0.5 * sq)
-    r = (5.0 * sq).clamp_min(1e-300).sqrt() * (sq > 0)  # sqrt(5) ||x - x'|| / l, with a finite gradient at 0
-    return s2 * (1.0 + r + r.pow(2) / 3.0) * torch.exp(-r)
+def kernel_matrix(kernel, x: torch.Tensor, X: torch.Tensor, params: dict, degree: int = 2) -> torch.Tensor:
+    """``k(x, X)`` as ``(B, M, N)`` for inputs ``x (M, d)``, ``X (N, d)`` and hyperparameters ``(B, 1, 1)`` of the
+    kernel object ``kernel`` (:meth:`~torchmisspec.gp._kernels.Kernel.matrix`): the same kernels as the GP's
+    GPyTorch modules (tested against them), written out so that the hot loop of sampled paths needs no module calls
+    and the hyperparameters can be constants or carry gradients."""
+    return kernel.matrix(x, X, params, degree)
 
 
 class FunctionSamples:
@@ -556,8 +496,8 @@ class FunctionSamples:
             # the removed feature terms' chance of being present: independent coefficients e_s ~ N(0, spread), not
             # conditioned on the data (it is posterior spread already: gp._features), drawn after the others
             extra = None
-            if gp.kernel == "features" and bool((gp.covar_module.base_kernel.spread > 0).any()):
-                base = gp.covar_module.base_kernel
+            base = gp.covar_module.base_kernel
+            if getattr(base, "spread", None) is not None and bool((base.spread > 0).any()):
                 spread = base.spread.detach().reshape(-1, base.spread.shape[-1]).to(**kd)  # (B, p)
                 e = torch.randn((S, spread.shape[-1], d_out), generator=generator, **kd)
                 extra = (base.features, e * spread.T.sqrt())  # (S, p, d_out): one column per output
@@ -571,7 +511,7 @@ class FunctionSamples:
         self.num_samples = S
         self.scale = scale
         self.features = features
-        self._kind, self._degree = gp.kernel, gp.degree
+        self._kind, self._degree = gp.kernel_spec, gp.degree
         with torch.no_grad():
             self._params = detached(kernel_hyperparameters(gp), clone=True)
         self._X = X.detach()
@@ -584,7 +524,7 @@ class FunctionSamples:
         self._buffers: dict = {}
         #: certified bound on |update - exact update| at any point (0: the exact canonical basis is used)
         self.update_error = 0.0
-        if update_error is not None and batches == 1 and gp.kernel in ("rbf", "matern52"):
+        if update_error is not None and batches == 1 and gp.kernel_spec.stationary:
             with torch.no_grad():
                 self._compress(float(update_error) * math.sqrt(float(self._params["outputscale"].reshape(-1)[0])))
 
@@ -709,7 +649,7 @@ class FunctionSamples:
             if (
                 f.kind in ("fourier", "quadrature")
                 and f._t["omega"].shape[0] == 1
-                and self._kind == "rbf"
+                and getattr(self._kind, "squared_exponential", False)
                 and params["lengthscale"].numel() == 1
             ):
                 omega, scale = f._t["omega"][0], f._t["scale"].reshape(-1, 1)  # (d_in, D), (1 or D, 1)

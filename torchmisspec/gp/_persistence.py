@@ -20,7 +20,7 @@ from .._errors import InputError
 from .._validation import check_real
 from ._calibration import BandCalibration
 from ._exact import IndependentOutputsGP
-from ._features import FEATURE_KERNELS
+from ._kernels import as_kernel
 from ._selection import EVIDENCE_MARGIN
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -55,6 +55,7 @@ def config_of(gp: CorrectionGP) -> dict:
         raise InputError(f"dtype: only {sorted(_DTYPES)} models can be saved, got {dtype}")
     return {
         "kernel": gp.kernel,
+        "kernel_config": gp.kernel_spec.config(),  # the kernel object's arguments (plain values)
         "per_output": gp.per_output,
         "degree": gp.degree,
         "max_iter": gp.max_iter,
@@ -78,12 +79,13 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
     if not isinstance(fixed, dict) or set(fixed) - {"lengthscale", "outputscale", "noise_variance"}:
         raise InputError(f"{path}: expected 'fixed' to map hyperparameter names to values, got {fixed!r}")
     try:
+        kernel = as_kernel(cfg.get("kernel"), cfg.get("kernel_config") or {})
         gp = cls(
-            kernel=cfg.get("kernel"),
+            kernel=kernel,
             per_output=bool(cfg.get("per_output")),
             degree=cfg.get("degree", 2),
             max_iter=cfg.get("max_iter", 200),
-            min_gain=cfg.get("min_gain") if cfg.get("kernel") in FEATURE_KERNELS else None,
+            min_gain=cfg.get("min_gain") if kernel.terms else None,
             dtype=_DTYPES[dtype_name],
             device=device,
             **fixed,

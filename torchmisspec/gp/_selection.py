@@ -8,11 +8,15 @@ hyperparameters); :meth:`CorrectionGP.fit <torchmisspec.CorrectionGP.fit>` fits 
 
 from __future__ import annotations
 
-__all__ = ["AUTO_KERNELS", "EVIDENCE_MARGIN", "auto_choice", "library_check"]
+import time
+
+from .._errors import FittingError, LinearAlgebraError
+from ._kernels import REGISTRY
+
+__all__ = ["AUTO_KERNELS", "EVIDENCE_MARGIN", "auto_choice", "fit_auto", "library_check"]
 
 #: the candidates of kernel="auto", fitted in this order (:func:`auto_choice` chooses among them)
 AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
-STATIONARY_KERNELS = ("rbf", "matern52")
 #: kernel="auto" keeps this kernel (the package's default, the paper's) unless another eligible candidate outscores it
 #: by at least ``evidence_margin`` nats
 AUTO_DEFAULT = "rbf"
@@ -52,7 +56,7 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
         return others, None
     if library_score >= scores["features+rbf"]:
         return others, True
-    return ([k for k in everything if k in STATIONARY_KERNELS] or everything), False
+    return ([k for k in everything if REGISTRY[k].stationary] or everything), False
 
 
 def auto_choice(
@@ -76,8 +80,8 @@ def auto_choice(
     Returns the kernel chosen, the eligible kernels and whether the library sufficed (``None``: not tested).
     """
     eligible, suffices = library_check(scores, library_score=library_score)
-    stationary = [k for k in eligible if k in STATIONARY_KERNELS]
-    others = [k for k in eligible if k not in STATIONARY_KERNELS]
+    stationary = [k for k in eligible if REGISTRY[k].stationary]
+    others = [k for k in eligible if not REGISTRY[k].stationary]
     if not stationary:
         return max(others, key=scores.__getitem__), eligible, suffices
     top = max(scores[k] for k in stationary)
@@ -90,3 +94,84 @@ def auto_choice(
         if scores[rival] > top + margin:
             best = rival
     return best, eligible, suffices
+
+
+def fit_auto(gp, inputs, targets, noise, **options):
+    """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood, score each by
+    :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of those) and keep
+    the one :func:`auto_choice` chooses (the RBF unless another eligible candidate has strong evidence; a
+    stationary kernel when the library misses part of F). The feature kernel is fitted with one weight per term
+    and output (``per_output=True``); features+rbf is skipped when ``per_output`` (it is shared by the outputs),
+    and then the library is not checked. Cost: about 5 fits (the candidates and the check's nested model).
+    ``model_selection_`` records each candidate: kernel, log marginal likelihood, score, seconds, the error of a
+    candidate that failed, whether it was eligible, whether it was chosen.
+    Bad input raises at once; numerical failures of a candidate are recorded and the others still compete."""
+
+    def candidate(kernel: str, per_output: bool):
+        # the auto model's settings (degree, price of a term, noise if fixed, ...) with this kernel, all learned
+        return gp.clone(kernel=REGISTRY[kernel](), per_output=per_output)
+
+    def attempt(cand) -> dict:
+        start = time.perf_counter()
+        try:
+            cand.fit(inputs, targets, noise=noise, **options)
+        except (FittingError, LinearAlgebraError) as exc:
+            return {
+                "kernel": cand.kernel,
+                "log_marginal_likelihood": None,
+                "hyperparameters": None,
+                "score": None,
+                "seconds": time.perf_counter() - start,
+                "error": f"{type(exc).__name__}: {exc}",
+            }
+        return {
+            "kernel": cand.kernel,
+            "log_marginal_likelihood": float(cand.log_marginal_likelihood_),
+            "hyperparameters": cand.num_hyperparameters,
+            "score": cand.evidence_score,
+            "seconds": time.perf_counter() - start,
+            "error": None,
+        }
+
+    records, fitted = [], {}
+    for kernel in AUTO_KERNELS:
+        if gp._auto_per_output and REGISTRY[kernel].shared_only:
+            continue
+        # the feature kernel: one weight per term and output, each output its own sparse equation (as SINDy);
+        # the shared-weight fit below is only the library check's reference (not a candidate)
+        cls = REGISTRY[kernel]
+        cand = candidate(kernel, gp._auto_per_output or (cls.terms and not cls.shared_only))
+        records.append(attempt(cand))
+        if records[-1]["error"] is None:
+            fitted[kernel] = cand
+    if not fitted:
+        raise FittingError(
+            "kernel='auto': every candidate kernel failed to fit: "
+            + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
+        )
+    reference = None
+    if "features+rbf" in fitted:  # the model features+rbf nests: the library with weights shared by the outputs
+        fs = fitted.get("features")
+        if fs is not None and fs.output_dim == 1:  # one output: the per-output fit is that model already
+            reference = fs.evidence_score
+        else:
+            reference = attempt(candidate("features", False))["score"]  # None if it failed: untested
+        records[[r["kernel"] for r in records].index("features+rbf")]["library_score"] = reference
+    chosen, eligible, gp.library_suffices_ = auto_choice(
+        {k: c.evidence_score for k, c in fitted.items()}, library_score=reference, margin=gp.evidence_margin
+    )
+    best = fitted[chosen]
+    for r in records:
+        r["eligible"] = r["kernel"] in eligible
+        r["chosen"] = r["kernel"] == best.kernel
+    gp.kernel_spec, gp._d_in, gp.fixed, gp.per_output = (
+        best.kernel_spec,
+        best._d_in,
+        dict(best.fixed),
+        best.per_output,
+    )
+    gp.model, gp._cache = best.model, best._cache
+    gp.n_iterations_, gp.n_evaluations_ = best.n_iterations_, best.n_evaluations_
+    gp.log_marginal_likelihood_ = best.log_marginal_likelihood_
+    gp.model_selection_ = records
+    return gp
