@@ -81,7 +81,7 @@ def one_round(cfg: dict, criterion: str, exact: bool) -> dict:
 def mean_blocks(cfg: dict, repeats: int) -> tuple[float, float]:
     """Median seconds of the posterior mean at the candidates' positions (GP on the round's samples), in row blocks
     and as one block (``MEAN_BLOCK`` raised past the size)."""
-    from torchmisspec.gp import _model
+    from torchmisspec.gp import _posterior
 
     system = tms.systems.paper_gravity()
     times = _setup.gravity_times()
@@ -92,22 +92,22 @@ def mean_blocks(cfg: dict, repeats: int) -> tuple[float, float]:
     )
     gp = tms.CorrectionGP(**_setup.GRAVITY_PRIOR).fit(samples)
     x = system.select_inputs(cand)
-    cache = gp._posterior_cache()
+    posterior = gp.posterior()
 
     def timed() -> float:
         out = []
         for _ in range(max(repeats, 3)):
             t0 = time.perf_counter()
-            gp._mean_from(cache, x)
+            posterior.mean(x, check=False)
             out.append(time.perf_counter() - t0)
         return statistics.median(out)
 
     blocked = timed()
-    saved, _model.MEAN_BLOCK = _model.MEAN_BLOCK, 10**15
+    saved, _posterior.MEAN_BLOCK = _posterior.MEAN_BLOCK, 10**15
     try:
         whole = timed()
     finally:
-        _model.MEAN_BLOCK = saved
+        _posterior.MEAN_BLOCK = saved
     return blocked, whole
 
 

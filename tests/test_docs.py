@@ -43,6 +43,9 @@ def check_learn_and_predict(ns: dict) -> None:
     assert ns["error_central"] < 0.1 * ns["error_oracle"]
     assert ns["mse_oracle"] > 0
     assert ns["posterior"].mean.shape == ns["posterior"].stddev.shape == (1, 2)
+    # "gp.predict(x) is a shortcut for gp.posterior().predict(x)"; the covariance's diagonal is its variance
+    assert ns["post"].covariance(ns["x"]).shape == (1, 1, 1) and ns["post"].weights.shape == (330, 2)
+    assert float(ns["post"].covariance(ns["x"])[0, 0, 0]) == pytest.approx(float(ns["posterior"].variance[0, 0]))
     # "The corrected trajectories are closer to the truth than the misspecified ones, by a factor that grows with
     # the quality of the samples"
     assert ns["corrected"].shape == (10, 61, 2)

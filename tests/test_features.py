@@ -9,14 +9,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.gp._features import (
-    _evidence,
-    fit_relevance,
-    monomial_names,
-    monomial_powers,
-    monomials,
-    unit_information_weights,
-)
+from torchmisspec.gp._features import monomial_names, monomial_powers, monomials
+from torchmisspec.gp._relevance import _evidence, fit_relevance, unit_information_weights
 from torchmisspec.systems import LinearField, MisspecifiedSystem
 from torchmisspec.trajectory_fit import shooting_misfit
 
@@ -351,7 +345,7 @@ def test_feature_space_posterior_equals_the_dense_one(per_output, known):
         torch.testing.assert_close(post.variance[:, o], var, rtol=1e-7, atol=1e-12)
         lml += float(-0.5 * Y[:, o] @ alpha[:, 0] - L.diagonal().log().sum() - 30 * math.log(2 * math.pi))
     assert gp.log_marginal_likelihood_ == pytest.approx(lml, rel=1e-10)
-    fac = gp._posterior_cache().fac
+    fac = gp.posterior().factor
     C0 = fac.chol[0] @ fac.chol[0].T  # the dense factor, on request
     d0 = floor[0] + (noise[:, 0] if known else 0.0)
     w0 = W[0]

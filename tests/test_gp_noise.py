@@ -74,7 +74,7 @@ def test_posterior_and_likelihood_match_hand_written_cholesky(kind, per_output):
     assert gp.train_noise_.data_ptr() != given.data_ptr()  # a copy, not the caller's tensor
     assert "with known noise" in repr(gp)
     # one factorization for noise shared by the outputs (shared kernel), one per output otherwise
-    batch = gp._posterior_cache().fac.chol.shape[0]
+    batch = gp.posterior().factor.chol.shape[0]
     assert batch == (1 if (kind == "shared_noise" and not per_output) else 2)
 
 

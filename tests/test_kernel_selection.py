@@ -260,16 +260,16 @@ def test_the_library_check_compares_nested_models_when_outputs_share_terms():
         assert gp.library_suffices_ is True and gp.kernel == "features"
 
 
-def _broken(self, *args, **kwargs):
+def _broken(*args, **kwargs):
     raise tms.FittingError("made to fail")
 
 
 def test_an_untested_sum_kernel_is_not_chosen(gravity_samples, monkeypatch):
     """If the shared-weight feature fit (the model features+rbf nests) fails, features+rbf is not eligible."""
     _, _, samples = gravity_samples
-    from torchmisspec.gp import _model
+    from torchmisspec.gp import _kernels
 
-    monkeypatch.setattr(_model.CorrectionGP, "_fit_features", _broken)
+    monkeypatch.setattr(_kernels, "fit_features", _broken)
     gp = tms.CorrectionGP(kernel="auto").fit(samples)
     assert gp.library_suffices_ is None and gp.kernel in ("rbf", "matern52")
     ff = {r["kernel"]: r for r in gp.model_selection_}["features+rbf"]
@@ -279,15 +279,17 @@ def test_an_untested_sum_kernel_is_not_chosen(gravity_samples, monkeypatch):
 
 def test_auto_records_failures_and_says_when_all_fail(linear_samples, monkeypatch):
     _, _, samples = linear_samples
-    from torchmisspec.gp import _model
+    from torchmisspec.gp import _kernels
 
-    monkeypatch.setattr(_model.CorrectionGP, "_fit_features", _broken)
+    monkeypatch.setattr(_kernels, "fit_features", _broken)
     gp = tms.CorrectionGP(kernel="auto").fit(samples)
     failed = [r for r in gp.model_selection_ if r["error"]]
     assert [r["kernel"] for r in failed] == ["features"]  # the others still compete
     assert "made to fail" in failed[0]["error"]
-    monkeypatch.setattr(_model.CorrectionGP, "_optimise", _broken)
-    monkeypatch.setattr(_model, "fit_sum", _broken)
+    from torchmisspec.gp import _fit
+
+    monkeypatch.setattr(_fit, "optimise", _broken)
+    monkeypatch.setattr(_fit, "fit_sum", _broken)
     with pytest.raises(tms.FittingError, match="every candidate kernel failed.*rbf: FittingError: made to fail"):
         tms.CorrectionGP(kernel="auto").fit(samples)
 

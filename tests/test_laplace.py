@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.gp._model import LOG_PRIOR_SD
+from torchmisspec.gp._laplace import LOG_PRIOR_SD
 
 DT = torch.float64
 
@@ -27,7 +27,7 @@ def finite_difference_hessian(gp, X, Y, noise, mean, h=1e-4):
             for _, p in g._free_parameters():
                 p.copy_(theta[i : i + p.numel()].reshape(p.shape))
                 i += p.numel()
-        return g._posterior_cache().mll
+        return g.posterior().log_marginal_likelihood
 
     P = mean.numel()
     H = torch.zeros(P, P, dtype=DT)

@@ -255,8 +255,8 @@ def test_the_support_ratio_matches_the_exact_posterior_variance(linear, kw):
     prior = gp.covar_module.forward(x, x, diag=True)
     prior = prior.unsqueeze(-1) if prior.dim() == 1 else prior.T
     exact = (post / prior).clamp(0, 1)
-    got = gp._sd_ratio(x).pow(2)
+    got = gp.posterior().sd_ratio(x).pow(2)
     assert float((got - exact.amax(-1)).min()) > -1e-9  # never understated
     assert float((got - exact.amax(-1)).max()) < 1.001e-3
-    cache = gp._posterior_cache()
-    assert cache.support_basis is not None and gp._posterior_cache() is cache
+    posterior = gp.posterior()
+    assert posterior._basis is not None and gp.posterior() is posterior

@@ -16,13 +16,11 @@ MAX_LINES = 600
 #: Modules still over MAX_LINES, each capped at its size when the cap was set (issue 23 splits them): a cap may only
 #: go down. A module not listed must stay within MAX_LINES.
 OVERSIZED = {
-    "gp/_model.py": 1504,
+    "gp/_model.py": 670,
     "plotting.py": 1039,
     "paper/figures.py": 988,
     "observations.py": 974,
     "data.py": 793,
-    "gp/_paths.py": 713,
-    "gp/_features.py": 733,
     "trajectory_fit.py": 678,
 }
 

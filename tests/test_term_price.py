@@ -9,7 +9,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.gp._features import _evidence, _penalised, fit_relevance, monomial_powers, monomials, term_gain
+from torchmisspec.gp._features import monomial_powers, monomials
+from torchmisspec.gp._relevance import _evidence, _penalised, fit_relevance, term_gain
 from torchmisspec.gp._sum import _exact_mll, _least_valuable
 
 DT = torch.float64

@@ -35,7 +35,7 @@ from ._errors import (
 from .calibration import BandCalibration, calibrate_bands
 from .data import Trajectories, simulate
 from .dynamics import CorrectedODE, TrajectoryPosterior
-from .gp import CorrectionGP, GPPosterior
+from .gp import CorrectionGP, GPPosterior, Posterior
 from .learning import cross_validate, fit_correction
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
@@ -60,6 +60,7 @@ __all__ = [
     "CorrectionSamples",
     "FittingError",
     "GPPosterior",
+    "Posterior",
     "InputError",
     "IntegrationError",
     "MisspecifiedSystem",

@@ -72,7 +72,7 @@ class CorrectedODE(nn.Module):
         shape = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype)
         # inside predict() the cache was validated once for the whole solve; a direct call checks everything
-        mu = self.gp.predict_mean(x) if cache is None else self.gp._mean_from(cache, x)
+        mu = self.gp.predict_mean(x) if cache is None else cache.mean(x, check=False)
         return self.system.embed(mu.reshape(*shape, -1).to(y.device, y.dtype))
 
     def field(self, y: torch.Tensor) -> torch.Tensor:
@@ -121,7 +121,7 @@ class CorrectedODE(nn.Module):
         hyper = torch.is_grad_enabled() and self.gp._hyperparameters_require_grad()
         # refreshed here if the GP changed since its last prediction; with the graph to the hyperparameters when
         # one of them requires grad
-        cache = self.gp._differentiable_cache() if hyper else self.gp._posterior_cache()
+        cache = self.gp.posterior(differentiable=hyper)
 
         def field(y: torch.Tensor) -> torch.Tensor:
             return self.system.known_rhs(y) + self._correction(y, cache)
@@ -326,7 +326,7 @@ class CorrectedODE(nn.Module):
         """``(B, T)``: posterior over prior standard deviation of F at the states ``(B, T, d)`` (largest output)."""
         x = self.system.select_inputs(states)
         flat = x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype)
-        return self.gp._sd_ratio(flat).reshape(states.shape[:-1])
+        return self.gp.posterior().sd_ratio(flat).reshape(states.shape[:-1])
 
 
 #: Default ``support_threshold`` of :meth:`CorrectedODE.posterior`: posterior / prior standard deviation of F above

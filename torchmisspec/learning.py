@@ -301,8 +301,7 @@ def cross_validate(
                     keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
                     noise = None if samples.noise is None else samples.noise[keep]
                     fold_gp = full.condition(samples.inputs[keep], samples.targets[keep], noise=noise)
-                    alpha = fold_gp._posterior_cache().fac.alpha  # (1, N_f, d_out) or (d_out, N_f, 1)
-                    alphas[f, keep] = alpha[0] if alpha.shape[0] == 1 else alpha[..., 0].T
+                    alphas[f, keep] = fold_gp.posterior().weights  # (N_f, d_out)
                 errors = _held_out_errors(system, trajectories, _fold_field(system, full, alphas, folds_t))
         except (IntegrationError, FittingError, LinearAlgebraError):
             errors.fill_(math.inf)

@@ -10,7 +10,6 @@ result is again a :class:`CorrectionGP` that :class:`~torchmisspec.CorrectedODE`
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import torch
 
@@ -28,7 +27,7 @@ from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
-from .gp import CorrectionGP
+from .gp import CorrectionGP, Posterior
 from .gp._optim import OptimResult, maximise
 from .observations import _check_trajectories_and_system, estimate_state_noise
 from .systems import MisspecifiedSystem
@@ -60,14 +59,14 @@ def _intervals(trajectories: Trajectories) -> tuple[torch.Tensor, torch.Tensor, 
     return starts, times, ends
 
 
-def _mean_field(gp: CorrectionGP, system: MisspecifiedSystem, alpha: torch.Tensor):
-    """G(y) + k(x(y), X) alpha: the corrected right-hand side for pseudo-targets whose solve is ``alpha``."""
-    cache = SimpleNamespace(fac=SimpleNamespace(alpha=alpha))
+def _mean_field(system: MisspecifiedSystem, posterior: Posterior):
+    """G(y) + the posterior mean of F: the corrected right-hand side (differentiable through ``posterior``'s solve
+    when it was built from pseudo-targets, :meth:`Posterior.with_targets`)."""
 
     def field(y: torch.Tensor) -> torch.Tensor:
         x = system.select_inputs(y)
         shape = x.shape[:-1]
-        mu = gp._mean_from(cache, x.reshape(-1, x.shape[-1]))
+        mu = posterior.mean(x.reshape(-1, x.shape[-1]), check=False)
         return system.known_rhs(y) + system.embed(mu.reshape(*shape, -1))
 
     return field
@@ -84,11 +83,8 @@ def shooting_misfit(
     """
     _check(gp, system, trajectories)
     starts, times, ends = _intervals(trajectories.to(dtype=gp.dtype, device=gp.device))
-    cache = gp._posterior_cache()
     with torch.no_grad():
-        pred, _ = solve(
-            _mean_field(gp, system, cache.fac.alpha), starts, times, max_steps=max_steps, what="shooting_misfit"
-        )
+        pred, _ = solve(_mean_field(system, gp.posterior()), starts, times, max_steps=max_steps, what="shooting_misfit")
     seen = torch.isfinite(ends)
     return float((pred[:, -1] - ends)[seen].pow(2).mean().sqrt())
 
@@ -221,7 +217,7 @@ def fit_trajectories(
         )
         refined.refinement_ = recipe
         return refined
-    L = gp._posterior_cache().fac.chol  # (B, N, N), C = K + diag(known noise + floor), fixed
+    posterior = gp.posterior()  # its factor of C = K + diag(known noise + floor) is fixed; the targets are not
     X = gp.train_inputs_
     Y0 = gp.train_targets_.detach()
     scale = Y0.pow(2).mean().sqrt().clamp_min(torch.finfo(Y0.dtype).tiny)
@@ -229,9 +225,8 @@ def fit_trajectories(
     noise = gp.train_noise_  # known per-sample noise, part of C (None when there is none)
 
     def field_and_prior(zv: torch.Tensor):
-        Yhat = gp._targets_batched(zv * scale, noise)  # (1, N, d_out), or (d_out, N, 1) with per-output noise
-        alpha = torch.cholesky_solve(Yhat, L)
-        return _mean_field(gp, system, alpha), 0.5 * (Yhat * alpha).sum()
+        pseudo = posterior.with_targets(zv * scale)
+        return _mean_field(system, pseudo), 0.5 * pseudo.factor.quad
 
     if s2 is None:  # too few samples for the GP in time: balance the terms at the start
         s2 = _balanced_noise(residuals, field_and_prior(z.detach())[0], trajectories, d)
@@ -392,8 +387,7 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     W = (base.weights.detach().reshape(-1, p) * scale).T.expand(p, d_out).clone()  # (p, d_out) prior variances
     shared = W.shape[1] > 1 and not gp.per_output
     # the starting coefficients: the posterior mean of the current fit, beta = W Phi^T alpha
-    alpha = gp._posterior_cache().fac.alpha
-    alpha = alpha[0] if alpha.shape[0] == 1 else alpha[..., 0].T  # (N, d_out)
+    alpha = gp.posterior().weights  # (N, d_out)
     beta = W * (Phi.T @ alpha)
     second = float(gp.train_targets_.pow(2).mean()) or 1.0
     phi2 = Phi.pow(2).mean(0).unsqueeze(-1).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p, 1)
@@ -638,8 +632,7 @@ def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) 
     ``phi(x)^T beta``: with C the training covariance, ``Y_o = C Phi_a (Phi_a^T Phi_a)^-1 W_a^-1 beta_a`` over the
     active terms a of output o (then ``W_a Phi_a^T C^-1 Y_o = beta_a``)."""
     X = gp.train_inputs_
-    K, diag = gp._kernel_parts(X, gp.train_noise_)  # (B, N, N), (B, 1 or N)
-    C = K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
+    C = gp.posterior().training_covariance()  # (B, N, N)
     Y = torch.zeros((X.shape[0], beta.shape[1]), dtype=beta.dtype, device=beta.device)
     for o in range(beta.shape[1]):
         act = W[:, o] > 0

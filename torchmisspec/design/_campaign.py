@@ -362,9 +362,8 @@ class Campaign:
                 note = f"hyperparameters not learned ({type(exc).__name__}: {exc}); kept the prior's"
         else:
             note = "prior hyperparameters (fewer samples than refit_after)" if refit else "prior hyperparameters"
-        if self.prior.is_fitted:  # the starting model's hyperparameters (per-output ones included), conditioned
-            return self.prior.condition(X, Y, noise=known), note
-        return self.prior.fixed_copy().fit(X, Y, noise=known), note
+        # the starting model's hyperparameters (fitted, per-output ones included, or given), conditioned
+        return self.prior.condition(X, Y, noise=known), note
 
     # --------------------------------------------------------------------------------------------- files
     def save(self, path: str | Path) -> Path:

@@ -191,7 +191,7 @@ class GPKernel:
         self.gp = gp
         self.dtype = gp.dtype
         self.device = gp.device
-        fac = gp._posterior_cache().fac if gp.is_fitted else None
+        fac = gp.posterior().factor if gp.is_fitted else None
         # the data's factor: (1, N, N) when every output has the same C = K + noise, else (d_out, N, N)
         chol = None if fac is None else fac.chol.detach()
         shared_data = chol is None or chol.shape[0] == 1 or all(torch.equal(chol[0], c) for c in chol[1:])

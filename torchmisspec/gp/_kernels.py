@@ -24,6 +24,8 @@ import gpytorch
 import torch
 
 from .._errors import InputError
+from ._exact import log_positive
+from ._fit import fit_features, fit_sum_kernel
 
 __all__ = ["Kernel", "Stationary", "RBF", "Matern52", "Polynomial", "Features", "FeaturesRBF", "register", "as_kernel"]
 
@@ -52,16 +54,6 @@ def as_kernel(kernel, config: dict | None = None) -> Kernel:
         f"kernel: expected a Kernel object or one of {(*REGISTRY, 'auto')}, got {kernel!r:.80} (a kernel of your own "
         "is a torchmisspec.gp.Kernel subclass, registered with torchmisspec.gp.register before it is named or loaded)"
     )
-
-
-def log_positive() -> gpytorch.constraints.Interval:
-    """A positive constraint whose raw value is the log of the hyperparameter.
-
-    No absolute floor: an absolute floor (GPyTorch's default 1e-4 on the noise, or any fixed number) breaks the
-    scale-equivariance of the fit (targets of size 1e-6 would be fitted differently from the same targets in other
-    units). Optimising in log space keeps every value positive.
-    """
-    return gpytorch.constraints.GreaterThan(0.0, transform=torch.exp, inv_transform=torch.log)
 
 
 class Kernel:
@@ -258,7 +250,7 @@ class Features(Kernel):
         return [("weights", base.weights)]
 
     def fit(self, gp, X, Y, noise, *, max_iter):
-        iterations = gp._fit_features(X, Y, noise, max_iter=max_iter)
+        iterations = fit_features(gp, X, Y, noise, max_iter=max_iter)
         return iterations, iterations
 
     def hyperparameters(self, base, B):
@@ -300,7 +292,7 @@ class FeaturesRBF(Features):
         return out
 
     def fit(self, gp, X, Y, noise, *, max_iter):
-        return gp._fit_sum(X, Y, noise, max_iter=max_iter)
+        return fit_sum_kernel(gp, X, Y, noise, max_iter=max_iter)
 
     def hyperparameters(self, base, B):
         out = super().hyperparameters(base, B)

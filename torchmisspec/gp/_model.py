@@ -3,20 +3,17 @@
 F ~ GP(0, k(y, y') I_{d_out}). Because the kernel is shared, the d_out outputs have the same covariance
 K + sigma^2 I, so **one** Cholesky factorization serves all of them, in the marginal likelihood as in the
 posterior. The hyperparameters and the training data live in a GPyTorch ``ExactGP`` (``gp.model``: a batch of
-d_out independent outputs, GPyTorch kernels, likelihood and constraints). Two choices depart from GPyTorch's
-defaults, on purpose:
+d_out independent outputs, GPyTorch kernels, likelihood and constraints). :class:`CorrectionGP` is the front; each
+idea behind it has its own module:
 
-* Training maximises the exact log marginal likelihood with one Cholesky of the shared N x N covariance and an
-  analytic gradient (:mod:`torchmisspec.gp._mll`). GPyTorch's ``ExactMarginalLogLikelihood`` would factorize the
-  same matrix once per output and, above 800 points, switch to conjugate gradients and stochastic Lanczos.
-* The posterior solve alpha = (K + sigma^2 I)^-1 Y and the Cholesky factor are cached; ``predict_mean`` then costs
-  one kernel block k(x, X) @ alpha, which is what an ODE right-hand side needs. The cache is keyed by the values of
-  every parameter and buffer of ``gp.model`` and by the identity and version of its training tensors: a change of
-  hyperparameters or data through any public path (the properties, ``gp.model``, its GPyTorch modules,
-  ``set_train_data``) is detected at the next prediction, which refactorizes once.
-
-Positive hyperparameters are optimised in log space (as scikit-learn does), which keeps small output scales and
-noise variances (1e-5 .. 1e-4 in the paper) well conditioned for L-BFGS.
+* the kernels as objects: :mod:`._kernels`; the checked settings: :mod:`._settings`; the GPyTorch modules:
+  :mod:`._exact`;
+* the fit by exact marginal likelihood with an analytic gradient (GPyTorch's ``ExactMarginalLogLikelihood`` would
+  factorize the shared matrix once per output and switch to conjugate gradients above 800 points): :mod:`._fit`,
+  :mod:`._mll`; ``kernel="auto"``'s choice by evidence: :mod:`._selection`;
+* the posterior, one cached factorization: :mod:`._posterior` (``gp.posterior()``); copies and conditioning:
+  :mod:`._conditioning`; the hyperparameters' Laplace posterior: :mod:`._laplace`; draws of F as functions:
+  :mod:`._paths`; save / load: :mod:`._persistence`.
 
 **Known per-sample noise** (``fit(..., noise=...)``, heteroscedastic): the covariance of output j is
 K + diag(known_j + floor), the known variances plus the ``noise_variance`` hyperparameter (a learned or fixed floor).
@@ -28,106 +25,36 @@ the ExactGP view and the cached posterior still agree.
 
 from __future__ import annotations
 
-import copy
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import gpytorch
 import torch
 
-from .._errors import FittingError, InputError, LinearAlgebraError, NotFittedError, NumericalWarning, ShapeError, warn
+from .._errors import FittingError, InputError, NotFittedError
 from .._threads import adaptive_threads
-from .._validation import DEFAULT_DTYPE, as_tensor, check_finite, check_ndim, check_positive_int, check_real
-from . import _mll
-from ._exact import IndependentOutputsGP, median_distance
-from ._features import (
-    FeatureFactorization,
-    Term,
-    check_library,
-    coefficient_posterior,
-    fit_relevance,
-    term_inclusion,
-    unit_information_weights,
-)
-from ._kernels import Kernel, as_kernel, log_positive
-from ._optim import maximise
+from .._validation import DEFAULT_DTYPE, as_tensor, check_positive_int, check_real
+from . import _conditioning, _laplace, _terms
+from ._exact import IndependentOutputsGP, build_modules, median_distance, noise_module
+from ._features import Term
+from ._fit import fit_model
+from ._inputs import check_inputs, check_samples
+from ._kernels import Kernel, as_kernel
 from ._persistence import load as _load
 from ._persistence import save as _save
-from ._selection import EVIDENCE_MARGIN, fit_auto
-from ._sum import fit_sum
+from ._posterior import GPPosterior, Posterior
+from ._prior import prior_hyperparameters
+from ._selection import fit_auto
+from ._settings import check_settings
 
 __all__ = ["CorrectionGP", "GPPosterior", "KERNELS"]
 
 KERNELS = ("rbf", "matern52", "polynomial", "features", "features+rbf", "auto")
-#: Standard deviation of the weak prior on each log hyperparameter of :meth:`CorrectionGP.laplace_covariance`
-#: (centred at the fitted value: a factor of about 7 either way).
-LOG_PRIOR_SD = 2.0
-#: smallest noise-to-output-scale ratio the profiled fit considers (relative, so the fit is scale-equivariant)
-_MIN_RATIO = 1e-12
-
-
-@dataclass(frozen=True)
-class GPPosterior:
-    """Posterior of F at test inputs (no observation noise).
-
-    Attributes:
-        mean: ``(M, d_out)``.
-        variance: ``(M, d_out)``.
-    """
-
-    mean: torch.Tensor
-    variance: torch.Tensor
-
-    @property
-    def stddev(self) -> torch.Tensor:
-        return self.variance.clamp_min(0).sqrt()
-
-
-def _show(module, name: str) -> str:
-    """A hyperparameter's current value(s) for an error message."""
-    value = getattr(module, name, None)
-    if not isinstance(value, torch.Tensor):
-        return "n/a"
-    flat = value.detach().reshape(-1).tolist()
-    return f"{flat[0]:.4g}" if len(flat) == 1 else "[" + ", ".join(f"{v:.4g}" for v in flat) + "]"
-
-
-def _check_prediction(value: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Refuse a non-finite prediction at finite inputs (the kernel overflowed: inputs far too large)."""
-    if not bool(torch.isfinite(value).all()):
-        raise InputError(
-            f"x: the prediction is not finite at inputs of size up to {float(x.abs().max()):.3g} (the kernel "
-            "overflows there); rescale the inputs so that they are of the size of the training inputs"
-        )
-    return value
-
-
-MEAN_BLOCK = 2**19  # kernel entries per row block of the posterior mean (4 MiB in float64)
 
 
 def _identical_columns(noise: torch.Tensor) -> bool:
     """Known noise ``(N, d_out)`` the same for every output (then one factorization serves all outputs)."""
     return bool((noise == noise[:, :1]).all())
-
-
-def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
-    return a.dtype == b.dtype and a.shape == b.shape and a.device == b.device and torch.equal(a, b)
-
-
-#: Certified bound on the error of the posterior / prior variance ratio in the extrapolation check
-#: (:meth:`CorrectionGP._sd_ratio`): 1e-3, far below the threshold's scale (a ratio of 1/2).
-SUPPORT_TOLERANCE = 1e-3
-
-
-class _Cache:
-    """The factorization of the training covariance and the posterior solve, with the state they were built from."""
-
-    def __init__(self, key: tuple, values: list[torch.Tensor], fac: _mll.Factorization, mll: float) -> None:
-        self.key, self.values, self.fac, self.mll = key, values, fac, mll
-        #: the extrapolation check's truncated eigenbasis (``CorrectionGP._sd_ratio``), built on first use
-        #: (a 1-tuple, since the basis itself may be None: the exact solve)
-        self.support_basis: tuple[torch.Tensor | None] | None = None
 
 
 class CorrectionGP:
@@ -207,83 +134,46 @@ class CorrectionGP:
         min_gain: float | None = None,
         evidence_margin: float | None = None,
     ) -> None:
-        auto = isinstance(kernel, str) and kernel == "auto"
-        spec = as_kernel("rbf" if auto else kernel)  # the unfitted auto model holds an RBF until its first fit
-        if not spec.has_lengthscale and lengthscale is not None:
-            raise InputError(f"lengthscale: the {spec.name} kernel {spec!r} has no lengthscale; pass None")
-        if spec.terms and outputscale is None:
-            outputscale = 1.0  # the weights carry the scale
-        if spec.shared_only and per_output:
-            raise InputError(f"per_output: the {spec.name} kernel is shared by the outputs; pass per_output=False")
-        if auto and (lengthscale is not None or outputscale is not None):
-            raise InputError(
-                "kernel='auto': the candidates' hyperparameters are learned (only noise_variance may be fixed); got "
-                f"lengthscale={lengthscale!r}, outputscale={outputscale!r}"
-            )
-        degree = check_positive_int(degree, "degree")
-        if min_gain is not None:
-            if not (auto or spec.terms):
-                raise InputError(
-                    f"min_gain: the price of a feature term is for the feature kernels or 'auto', got {spec.name!r}"
-                )
-            min_gain = check_real(min_gain, "min_gain", minimum=0.0)
-        #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
-        self.min_gain = None if min_gain is None else float(min_gain)
-        if evidence_margin is not None and not auto:
-            raise InputError(
-                f"evidence_margin: expected kernel='auto' (the margin over the RBF), got kernel={spec.name!r} with "
-                f"evidence_margin={evidence_margin!r}"
-            )
-        #: kernel="auto": the nats by which a candidate must outscore the RBF to be chosen instead (None otherwise)
-        self.evidence_margin = (
-            (
-                EVIDENCE_MARGIN
-                if evidence_margin is None
-                else float(check_real(evidence_margin, "evidence_margin", minimum=0.0))
-            )
-            if auto
-            else None
+        c = check_settings(
+            kernel=kernel,
+            lengthscale=lengthscale,
+            outputscale=outputscale,
+            noise_variance=noise_variance,
+            per_output=per_output,
+            degree=degree,
+            max_iter=max_iter,
+            dtype=dtype,
+            device=device,
+            library=library,
+            library_names=library_names,
+            min_gain=min_gain,
+            evidence_margin=evidence_margin,
         )
-        if library is not None and not (spec.terms or auto):
-            raise InputError(
-                f"library: a feature library is for kernel 'features' or 'features+rbf', got {spec.name!r}"
-            )
-        if library is None and library_names is not None:
-            raise InputError("library_names: names a library of features; pass library=[...] too")
-        #: user features replacing the monomials (callables x (..., d_in) -> (...,)), and their names
-        self.library, self.library_names = (None, None) if library is None else check_library(library, library_names)
-        lengthscale, outputscale, noise_variance = (
-            None if value is None else check_real(value, name, positive=True)
-            for name, value in (
-                ("lengthscale", lengthscale),
-                ("outputscale", outputscale),
-                ("noise_variance", noise_variance),
-            )
-        )
-        if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
-            raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
         #: kernel="auto": every fit chooses among AUTO_KERNELS by evidence (self.kernel is then the one chosen)
-        self.auto = auto
+        self.auto: bool = c["auto"]
+        #: the kernel object (:mod:`torchmisspec.gp._kernels`); ``kernel`` is its name (an RBF until an auto fit)
+        self.kernel_spec: Kernel = c["kernel"]
+        #: the hyperparameters given (held fixed), ``None`` for those learned
+        self.fixed: dict = c["fixed"]
+        #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
+        self.min_gain: float | None = c["min_gain"]
+        #: kernel="auto": the nats by which a candidate must outscore the RBF to be chosen instead (None otherwise)
+        self.evidence_margin: float | None = c["evidence_margin"]
+        #: user features replacing the monomials (callables x (..., d_in) -> (...,)), and their names
+        self.library, self.library_names = c["library"], c["library_names"]
+        self.per_output: bool = c["per_output"]
+        self._auto_per_output = self.per_output  # what kernel="auto" was asked for (the chosen model may differ)
+        self.degree: int = c["degree"]
+        self.max_iter: int = c["max_iter"]
+        self.dtype: torch.dtype = c["dtype"]
+        self.device: torch.device = c["device"]
         #: kernel="auto": whether the last fit's library check found the library sufficient (None: not checked)
         self.library_suffices_: bool | None = None
-        #: the kernel object (:mod:`torchmisspec.gp._kernels`); ``kernel`` is its name
-        self.kernel_spec: Kernel = spec
         self._d_in = 1  # the feature kernel's input dimension (set by fit)
-        self.fixed = {
-            "lengthscale": None if lengthscale is None else float(lengthscale),
-            "outputscale": None if outputscale is None else float(outputscale),
-            "noise_variance": None if noise_variance is None else float(noise_variance),
-        }
-        self.per_output = bool(per_output)
-        self._auto_per_output = self.per_output  # what kernel="auto" was asked for (the chosen model may differ)
-        self.degree = degree
-        self.max_iter = check_positive_int(max_iter, "max_iter")
-        self.dtype = dtype
-        self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.log_marginal_likelihood_: float | None = None
         self.n_iterations_: int = 0
         self.n_evaluations_: int = 0
-        self._cache: _Cache | None = None
+        self._cache: Posterior | None = None
         covar, lik = self._modules(batch=1)
         self.model: IndependentOutputsGP = IndependentOutputsGP(None, None, lik, covar, 1).eval()
         self._freeze()
@@ -327,53 +217,18 @@ class CorrectionGP:
             grid_size: points per axis of the default grid (at least 2).
             **kwargs: other constructor arguments (``dtype``, ``device``, ``max_iter``).
         """
-        from ..systems import MisspecifiedSystem
-
-        if not isinstance(system, MisspecifiedSystem):
-            raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
-        spec = as_kernel(kernel)
-        if not (spec.stationary and spec.has_lengthscale):
-            raise InputError(
-                "kernel: expected a stationary kernel with a lengthscale such as 'rbf' or 'matern52', got "
-                f"{spec.name!r}"
-            )
-        if system.domain is None:
-            raise InputError(
-                f"system: '{system.name}' has no domain D; build it with MisspecifiedSystem(..., domain=((lo, hi), "
-                "...)) (one box side per correction input)"
-            )
-        relative_size = check_real(relative_size, "relative_size", positive=True)
-        fraction = check_real(lengthscale_fraction, "lengthscale_fraction", positive=True)
-        noise_variance = check_real(noise_variance, "noise_variance", positive=True)
-        dtype = kwargs.get("dtype", DEFAULT_DTYPE)
-        kd = dict(dtype=dtype, device=kwargs.get("device"))
-        box = torch.as_tensor(system.domain, **kd)  # (d_in, 2)
-        if states is None:
-            from ..design.candidates import grid  # the package's one grid over a box (checks grid_size >= 2)
-
-            inputs = grid(system.domain, grid_size, **kd)
-            states = torch.zeros((inputs.shape[0], system.state_dim), **kd)
-            states[:, list(system.correction_inputs)] = inputs
-        else:
-            states = as_tensor(states, "states", **kd)
-            if states.dim() != 2 or states.shape[1] != system.state_dim:
-                raise ShapeError(f"states: expected (M, {system.state_dim}) full states, got {tuple(states.shape)}")
-        with torch.no_grad():
-            g = system.select_outputs(system.known_rhs(states))
-        size = g.norm(dim=-1) / math.sqrt(g.shape[-1])
-        size = size[torch.isfinite(size)]
-        if size.numel() == 0 or not float(size.median()) > 0:
-            raise InputError(
-                "system: the known model G is zero or not finite on D's correction outputs, so it gives no scale "
-                "for F; pass CorrectionGP(outputscale=...) yourself"
-            )
-        outputscale = (relative_size * float(size.median())) ** 2
-        lengthscale = fraction * float((box[:, 1] - box[:, 0]).mean())
         return cls(
-            kernel=spec,
-            lengthscale=lengthscale,
-            outputscale=outputscale,
-            noise_variance=noise_variance,
+            **prior_hyperparameters(
+                system,
+                noise_variance=noise_variance,
+                relative_size=relative_size,
+                lengthscale_fraction=lengthscale_fraction,
+                kernel=kernel,
+                states=states,
+                grid_size=grid_size,
+                dtype=kwargs.get("dtype", DEFAULT_DTYPE),
+                device=kwargs.get("device"),
+            ),
             **kwargs,
         )
 
@@ -396,59 +251,19 @@ class CorrectionGP:
         GPyTorch loop, call ``gp.model.requires_grad_(True)`` first.)
         """
         self.model.requires_grad_(False)
+        for p in self.model.parameters():  # no stale gradient of the fit, to add to a user's own backward
+            p.grad = None
 
     def _hyperparameters_require_grad(self) -> bool:
         return any(p.requires_grad for p in self.model.parameters())
 
-    def _differentiable_cache(self):
-        """The posterior solve recomputed with the autograd graph to the hyperparameters (one factorization, not
-        cached): for predictions whose gradient in the hyperparameters is wanted."""
-        from types import SimpleNamespace
-
-        self._posterior_cache()  # validates the training data and noise as for any prediction
-        X, Y, noise = self.train_inputs_, self.train_targets_, self.train_noise_
-        K, diag = self._kernel_parts(X, noise)
-        return SimpleNamespace(fac=_mll.factorize(K, diag, self._targets_batched(Y, noise)))
-
     # ------------------------------------------------------------------------------------------------ building
     def _modules(self, batch: int, noise: torch.Tensor | None = None):
-        """A fresh kernel and likelihood holding the fixed values (batch of ``batch`` when ``per_output``).
-
-        ``noise``: known per-sample noise ``(d_out, N)`` (model dtype and device), or ``None``. With it the likelihood
-        is a ``FixedNoiseGaussianLikelihood`` whose learned additional noise is the floor ``noise_variance``.
-        """
-        shape = torch.Size([batch]) if self.per_output else torch.Size([])
-        base = self.kernel_spec.module(self, shape)
-        covar = gpytorch.kernels.ScaleKernel(base, batch_shape=shape, outputscale_constraint=log_positive())
-        if noise is None:
-            lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=shape, noise_constraint=log_positive())
-        else:
-            # min_fixed_noise 0: GPyTorch would otherwise round known variances below 1e-6 up (and warn), and the
-            # ExactGP view would no longer be the model that is fitted
-            with gpytorch.settings.min_fixed_noise(float_value=0.0, double_value=0.0, half_value=0.0):
-                lik = gpytorch.likelihoods.FixedNoiseGaussianLikelihood(
-                    noise=noise, learn_additional_noise=True, batch_shape=shape, noise_constraint=log_positive()
-                )
-        covar, lik = covar.to(self.device, self.dtype), lik.to(self.device, self.dtype)
-
-        # GPyTorch's setters would round a Python float through float32: pass tensors of the model's dtype
-        def value(name):
-            return torch.tensor(self.fixed[name], dtype=self.dtype, device=self.device)
-
-        if self.fixed["lengthscale"] is not None:
-            base.lengthscale = value("lengthscale")
-        if self.fixed["outputscale"] is not None:
-            covar.outputscale = value("outputscale")
-        if self.fixed["noise_variance"] is not None:
-            self._floor(lik).noise = value("noise_variance")
-        return covar, lik
+        return build_modules(self, batch, noise)
 
     @staticmethod
     def _floor(lik) -> gpytorch.likelihoods.noise_models.HomoskedasticNoise:
-        """The module of the learned (or fixed) noise variance: the whole noise, or the floor over known noise."""
-        if isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
-            return lik.second_noise_covar
-        return lik.noise_covar
+        return noise_module(lik)
 
     @property
     def covar_module(self) -> gpytorch.kernels.ScaleKernel:
@@ -513,19 +328,6 @@ class CorrectionGP:
             out["lengthscale"] = torch.tensor(median_distance(X), dtype=X.dtype, device=X.device)
         return out
 
-    def _initialise(self, X: torch.Tensor, Y: torch.Tensor) -> None:
-        """Set the learned hyperparameters to :meth:`starting_values` (the fixed ones are already set)."""
-        start = self.starting_values(X, Y)
-        with torch.no_grad():
-            if self.kernel_spec.has_lengthscale and self.fixed["lengthscale"] is None:
-                base = self.covar_module.base_kernel
-                base.lengthscale = start["lengthscale"].expand(base.lengthscale.shape)
-            if self.fixed["outputscale"] is None:
-                self.covar_module.outputscale = start["outputscale"].expand(self.covar_module.outputscale.shape)
-            if self.fixed["noise_variance"] is None:
-                noise = start["noise_variance"]
-                self._floor(self.likelihood).noise = noise.reshape(-1, 1) if self.per_output else noise.reshape(1)
-
     # ----------------------------------------------------------------------------------------------- the maths
     def _batched(self, noise: torch.Tensor | None) -> bool:
         """One covariance per output: per-output kernels, or known noise that differs between outputs."""
@@ -559,58 +361,6 @@ class CorrectionGP:
         return Y.T.unsqueeze(-1) if self._batched(noise) else Y.unsqueeze(0)
 
     # ------------------------------------------------------------------------------------------------- fitting
-    def _check_inputs(self, x, name: str) -> torch.Tensor:
-        x = as_tensor(x, name, dtype=self.dtype, device=self.device)
-        d_in = self.input_dim
-        if x.dim() == 1 and d_in == 1:
-            x = x.unsqueeze(-1)
-        check_ndim(x, 2, name, "(M, d_in)")
-        check_finite(x, name)
-        if d_in is not None and x.shape[1] != d_in:
-            raise ShapeError(f"{name}: expected {d_in} input columns (as in training), got shape {tuple(x.shape)}")
-        return x
-
-    @staticmethod
-    def _unpack(inputs, targets, noise):
-        """``fit(samples)`` or ``fit(inputs, targets, noise=...)``: the three arrays."""
-        from ..observations import CorrectionSamples
-
-        if isinstance(inputs, CorrectionSamples):
-            if targets is not None or noise is not None:
-                given = [name for name, v in (("targets", targets), ("noise", noise)) if v is not None]
-                raise InputError(
-                    f"fit: expected either a CorrectionSamples object alone or inputs and targets (and noise), got a "
-                    f"CorrectionSamples object and {' and '.join(given)} (the samples already carry their targets "
-                    "and noise)"
-                )
-            return inputs.inputs, inputs.targets, inputs.noise
-        if targets is None:
-            raise InputError(
-                f"targets: expected (N, d_out) samples of F (or a CorrectionSamples object as the only argument), "
-                f"got None with inputs of type {type(inputs).__name__}"
-            )
-        return inputs, targets, noise
-
-    def _check_noise(self, noise, N: int, d_out: int) -> torch.Tensor | None:
-        """Known noise variances ``(N,)`` or ``(N, d_out)`` -> ``(N, d_out)`` (finite, >= 0), or ``None``."""
-        if noise is None:
-            return None
-        noise = as_tensor(noise, "noise", dtype=self.dtype, device=self.device)
-        if noise.dim() == 1 and noise.shape[0] == N:
-            noise = noise.unsqueeze(-1).expand(N, d_out)
-        if noise.shape != (N, d_out):
-            raise ShapeError(
-                f"noise: expected known noise variances ({N},) (the same for every output) or ({N}, {d_out}) (per "
-                f"sample and output), got shape {tuple(noise.shape)}"
-            )
-        check_finite(noise, "noise")
-        if bool((noise < 0).any()):
-            raise InputError(
-                f"noise: expected non-negative variances, got {int((noise < 0).sum())} negative values (smallest "
-                f"{float(noise.min()):.3g})"
-            )
-        return noise.contiguous()
-
     @adaptive_threads()
     def fit(
         self,
@@ -642,22 +392,7 @@ class CorrectionGP:
         """
         if self.auto:
             return fit_auto(self, inputs, targets, noise, progress=progress, max_iter=max_iter, warm_start=warm_start)
-        inputs, targets, noise = self._unpack(inputs, targets, noise)
-        X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
-        Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
-        if Y.dim() == 1:
-            Y = Y.unsqueeze(-1)
-        check_ndim(X, 2, "inputs", "(N, d_in)")
-        check_ndim(Y, 2, "targets", "(N, d_out)")
-        if X.shape[0] != Y.shape[0]:
-            raise ShapeError(
-                f"targets: expected {X.shape[0]} rows to match inputs {tuple(X.shape)}, got {tuple(Y.shape)}"
-            )
-        if X.shape[0] < 1:
-            raise FittingError("inputs: expected at least one sample, got 0")
-        check_finite(X, "inputs")
-        check_finite(Y, "targets")
-        noise = self._check_noise(noise, Y.shape[0], Y.shape[1])
+        X, Y, noise = check_samples(self, inputs, targets, noise)
         max_iter = self.max_iter if max_iter is None else check_positive_int(max_iter, "max_iter")
         warm_start = check_positive_int(warm_start, "warm_start", minimum=0)
         free = [name for name, _ in self._free_parameters()]
@@ -671,7 +406,7 @@ class CorrectionGP:
         before = (self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_)
         saved = [{k: v.clone() for k, v in m.state_dict().items()} for m in (self.covar_module, self.likelihood)]
         try:
-            self._fit(X, Y, noise, bool(free), progress=progress, max_iter=max_iter, warm_start=warm_start)
+            fit_model(self, X, Y, noise, bool(free), progress=progress, max_iter=max_iter, warm_start=warm_start)
         except BaseException:
             self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_ = before
             self.covar_module.load_state_dict(saved[0])
@@ -680,46 +415,6 @@ class CorrectionGP:
         self.__dict__.pop("calibration_", None)  # a calibration of the bands belongs to the fit it was made for
         self.__dict__.pop("refinement_", None)  # and so does a refinement through the ODE
         return self
-
-    def _fit(self, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, warm_start: int) -> None:
-        d_out = Y.shape[1]
-        covar, lik = self.covar_module, self.likelihood
-        if self.kernel_spec.terms and covar.base_kernel.powers.shape[1] != X.shape[1]:  # library: d_in too
-            self._d_in = X.shape[1]  # the library of monomials of these inputs
-            covar, lik = self._modules(batch=d_out)
-        if self.per_output and covar.batch_shape != torch.Size([d_out]):
-            covar, lik = self._modules(batch=d_out)
-        if noise is not None or isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
-            # the likelihood holds the known noise (or none): a fresh one for these data, fixed values included
-            # (a copy: the model never shares storage with the caller's tensor)
-            known = None if noise is None else noise.T.clone(memory_format=torch.contiguous_format)
-            lik = self._modules(batch=d_out, noise=known)[1]
-        self.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
-        self._cache = None
-        own = self.kernel_spec.fit(self, X, Y, noise, max_iter=max_iter) if learn else None
-        if own is not None:  # the kernel's own fit (the feature kernels')
-            self.n_iterations_, self.n_evaluations_ = own
-        elif learn:
-            self._initialise(X, Y)
-            if warm_start and X.shape[0] > 2 * warm_start:
-                # a cheap first pass on an evenly spaced subsample puts L-BFGS near the optimum; the second pass
-                # on all the data then needs few O(N^3) evaluations (the result maximises the full likelihood)
-                sub = torch.linspace(0, X.shape[0] - 1, warm_start, device=X.device).round().long()
-                sub_noise = None if noise is None else noise[sub]
-                self._optimise(X[sub], Y[sub], sub_noise, progress=False, max_iter=max_iter)
-                if noise is not None and self.fixed["noise_variance"] is None:
-                    # beside known noise a subsample often cannot identify the floor, which then collapses towards
-                    # 0, where its log-space gradient vanishes: the full pass starts it afresh
-                    start = self.starting_values(X, Y)["noise_variance"]
-                    with torch.no_grad():
-                        floor = self._floor(self.likelihood)
-                        floor.noise = start.reshape(-1, 1) if self.per_output else start.reshape(1)
-            result = self._optimise(X, Y, noise, progress=progress, max_iter=max_iter)
-            self.n_iterations_, self.n_evaluations_ = result.iterations, result.evaluations
-        else:
-            self.n_iterations_, self.n_evaluations_ = 0, 0
-        self._freeze()
-        self._posterior_cache()
 
     @property
     def num_hyperparameters(self) -> int:
@@ -742,221 +437,23 @@ class CorrectionGP:
         n = self.train_inputs_.shape[0]
         return float(self.log_marginal_likelihood_) - 0.5 * math.log(n) * self.num_hyperparameters
 
-    def _fit_sum(self, X, Y, noise, *, max_iter: int) -> tuple[int, int]:
-        """The features+rbf kernel's fit (:func:`~torchmisspec.gp._sum.fit_sum`): ``(iterations, evaluations)``."""
-        floor, _, iterations = fit_sum(
-            self.covar_module.base_kernel,
-            X,
-            Y,
-            noise,
-            floor=self.fixed["noise_variance"],
-            lengthscale=self.fixed["lengthscale"],
-            max_iter=max_iter,
-            outputscale=float(self.fixed["outputscale"]),
-            min_gain=0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain,
-        )
-        if self.fixed["noise_variance"] is None:
-            with torch.no_grad():
-                self._floor(self.likelihood).noise = torch.tensor([floor], dtype=self.dtype, device=self.device)
-        return iterations, iterations
+    # --------------------------------------------------------------------------------------------- the posterior
+    def posterior(self, *, differentiable: bool = False) -> Posterior:
+        """The posterior of F given the training data (:class:`~torchmisspec.gp._posterior.Posterior`): its mean,
+        variance and covariance, the factor of the training covariance, function draws.
 
-    def _fit_features(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, max_iter: int) -> int:
-        """The feature kernel's weights (and the noise floor unless fixed) by sparse Bayesian learning in feature
-        space (:func:`~torchmisspec.gp._features.fit_relevance`): one set of weights shared by the outputs, or one
-        per output with ``per_output``. Returns the number of fixed-point iterations (the most over the outputs)."""
-        covar, lik = self.covar_module, self.likelihood
-        base = covar.base_kernel
-        scale = float(self.fixed["outputscale"])
-        Phi = base.features(X) * math.sqrt(scale)  # the output scale folded into the features
-        floor = self.fixed["noise_variance"]
-        groups = [[o] for o in range(Y.shape[1])] if self.per_output else [list(range(Y.shape[1]))]
-        # the price of a term: per learned weight (shared by the outputs of a group or not), as evidence_score counts
-        price = 0.5 * math.log(X.shape[0]) if self.min_gain is None else self.min_gain
-        weights, floors, inclusion, spread, iterations = [], [], [], [], 0
-        for cols in groups:
-            known = None if noise is None else noise[:, cols]
-            try:
-                w, s, it = fit_relevance(Phi, Y[:, cols], known, floor=floor, max_iter=10 * max_iter, min_gain=price)
-            except FittingError as exc:
-                if not self.per_output:
-                    raise
-                raise FittingError(f"output {cols[0]}: {exc}") from exc
-            if it >= 10 * max_iter:
-                warn(
-                    f"the feature weights{f' of output {cols[0]}' if self.per_output else ''} did not converge in "
-                    f"{it} iterations (10 x max_iter): the terms kept may include some the price would remove; "
-                    "raise max_iter",
-                    NumericalWarning,
-                )
-            w = unit_information_weights(Phi, w, known, s)  # the kept terms' slab (_features)
-            weights.append(w)
-            p_in, extra = term_inclusion(Phi, Y[:, cols], known, w, s)  # each term's chance (_features)
-            inclusion.append(p_in)
-            spread.append(extra.mean(0) * scale)  # one per weight (shared outputs: their mean), unscaled features
-            floors.append(s)
-            iterations = max(iterations, it)
-        with torch.no_grad():
-            base.weights.copy_(torch.stack(weights).reshape(base.weights.shape))
-            base.inclusion.copy_(torch.stack(inclusion).reshape(base.inclusion.shape))
-            base.spread.copy_(torch.stack(spread).reshape(base.spread.shape))
-            if floor is None:
-                value = torch.tensor(floors, dtype=self.dtype, device=self.device)
-                self._floor(lik).noise = value.reshape(-1, 1) if self.per_output else value.reshape(1)
-        return iterations
-
-    def _lengthscale_box(self, X: torch.Tensor):
-        """``(raw lengthscale, lo, hi)``: the learned lengthscale is kept within [1e-4, 1e4] times the median distance
-        between the inputs (log space), or ``None`` when it is not learned. Without the box a line-search trial can
-        take log l to -1000, where every kernel entry is 0/0."""
-        if not self.kernel_spec.has_lengthscale or self.fixed["lengthscale"] is not None:
-            return None
-        scale = median_distance(X)
-        return self.covar_module.base_kernel.raw_lengthscale, math.log(1e-4 * scale), math.log(1e4 * scale)
-
-    def _optimise(self, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *, progress: bool, max_iter: int):
-        """L-BFGS on the exact log marginal likelihood with the analytic gradient of :mod:`._mll`.
-
-        When the output scale and the noise are both learned with a shared kernel and there is no known noise, the
-        output scale s is profiled out: C = s (R + g I), leaving the lengthscale and the noise ratio g for L-BFGS
-        (the same optimum of the same likelihood, in fewer iterations); s* and g s* are written back into the
-        GPyTorch modules. Known noise does not scale with s, so then every free hyperparameter is optimised directly.
+        Cached: rebuilt (one factorization) only when a hyperparameter or the training data changed since the last
+        call. ``differentiable=True``: a fresh one whose solve keeps the autograd graph to the hyperparameters that
+        require grad (for sensitivities of predictions), not cached.
         """
-        n, d_out = Y.shape
-        free = [p for _, p in self._free_parameters()]
-        profile = (
-            not self.per_output
-            and noise is None
-            and self.fixed["outputscale"] is None
-            and self.fixed["noise_variance"] is None
-        )
-        Yb = self._targets_batched(Y, noise)
-        covar, lik = self.covar_module, self.likelihood
-        if profile:
-            ratio0 = (lik.noise.detach() / covar.outputscale.detach()).log().reshape(1)
-            log_ratio = ratio0.clone().requires_grad_(True)
-            params = [p for p in free if p is not covar.raw_outputscale and p is not lik.noise_covar.raw_noise]
-            params.append(log_ratio)
-
-            def matrices():
-                return covar.base_kernel.forward(X, X).unsqueeze(0), (log_ratio.exp() + _MIN_RATIO).reshape(1, 1)
-        else:
-            params = free
-
-            def matrices():
-                return self._kernel_parts(X, noise)
-
-        box = self._lengthscale_box(X)
-
-        def evaluate():
-            if box is not None:  # a line-search trial far out in log space (l -> 0 makes K all NaN): project back
-                with torch.no_grad():
-                    box[0].clamp_(box[1], box[2])
-            K, diag = matrices()
-            with torch.no_grad():
-                fac = _mll.factorize(K.detach(), diag.detach(), Yb, warn=False)
-                if profile:
-                    value, scale = _mll.profiled_mll(fac)
-                    Q = _mll.gradient_weights(fac, scale)
-                else:
-                    value = _mll.exact_mll(fac, n)
-                    Q = _mll.gradient_weights(fac)
-            return value, _mll.gradient_surrogate(Q, K, diag)
-
-        try:
-            result = maximise(
-                params,
-                evaluate,
-                max_iter=max_iter,
-                normaliser=float(n * d_out),
-                progress=progress,
-                desc=f"fit GP (N={n})",
-            )
-            if profile:  # write the profiled output scale and the noise back into the GPyTorch modules
-                with torch.no_grad():
-                    K, diag = matrices()
-                    _, scale = _mll.profiled_mll(_mll.factorize(K, diag, Yb, warn=False))
-                    covar.outputscale = scale
-                    lik.noise = (scale * (log_ratio.exp() + _MIN_RATIO)).reshape(1)
-        except LinearAlgebraError as exc:
-            raise FittingError(
-                f"fitting failed at lengthscale={_show(self.covar_module.base_kernel, 'lengthscale')}, "
-                f"outputscale={_show(covar, 'outputscale')}, noise_variance={_show(self._floor(lik), 'noise')}: {exc}"
-            ) from exc
-        for p in params:
-            if not bool(torch.isfinite(p).all()):
-                raise FittingError(
-                    "fitting diverged: a hyperparameter became non-finite; fix some of them "
-                    "(lengthscale=..., outputscale=..., noise_variance=...) or rescale the data"
-                )
-        return result
-
-    # ------------------------------------------------------------------------------------------- the cache
-    def _state(self) -> tuple[tuple, list[torch.Tensor]]:
-        """What the posterior depends on: identities/versions of modules and data, and every parameter's value."""
-        m = self.model
-        X, Yt = m.train_inputs[0], m.train_targets
-        key = (id(m.covar_module), id(m.likelihood), id(X), X._version, id(Yt), Yt._version)
-        values = [t.detach() for t in (*m.parameters(), *m.buffers())]
-        if isinstance(m.likelihood, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
-            known = m.likelihood.noise_covar.noise  # a plain attribute in GPyTorch (not a buffer): keyed here
-            key += (id(known), known._version)
-            values.append(known.detach())
-        return key, values
-
-    def _posterior_cache(self) -> _Cache:
-        """The cached factorization; rebuilt (one factorization) when anything it depends on has changed."""
         self._require_fitted()
-        key, values = self._state()
-        c = self._cache
-        if (
-            c is not None
-            and c.key == key
-            and len(c.values) == len(values)
-            and all(_same(a, b) for a, b in zip(c.values, values, strict=True))
-        ):
-            return c
-        X, Y, noise = self.train_inputs_, self.train_targets_, self.train_noise_
-        if noise is not None and noise.shape != Y.shape:
-            raise ShapeError(
-                f"known noise: expected {tuple(Y.shape)} (the training targets' shape) as gp.train_noise_, got "
-                f"{tuple(noise.shape)}; refit with gp.fit(inputs, targets, noise=...)"
-            )
-        if self.per_output and self.covar_module.batch_shape != torch.Size([Y.shape[1]]):
-            raise ShapeError(
-                f"training targets: expected {self.covar_module.batch_shape[0]} outputs for the per-output kernels, "
-                f"got {Y.shape[1]}; refit with gp.fit(inputs, targets)"
-            )
-        self.model.num_outputs = Y.shape[1]
-        with torch.no_grad():
-            Yb = self._targets_batched(Y, noise)
-            if self.kernel_spec.feature_space:  # in feature space: O(N p^2), the N x N matrix is never formed
-                base = self.covar_module.base_kernel
-                Phi = base.features(X)
-                W = base.weights.detach().reshape(-1, Phi.shape[1]) * self.covar_module.outputscale.reshape(-1, 1)
-                diag = self._noise_diag(noise)
-                fac = FeatureFactorization(Phi, W, diag, Yb)
-                B = fac.alpha.shape[0]
-                KA = Phi @ (W.expand(B, -1).unsqueeze(-1) * (Phi.T @ fac.alpha))  # K alpha, (B, N, m)
-                resid = KA + diag.expand(B, -1).unsqueeze(-1) * fac.alpha - Yb
-            else:
-                K, diag = self._kernel_parts(X, noise)
-                fac = _mll.factorize(K, diag, Yb)
-                resid = K @ fac.alpha + diag.unsqueeze(-1) * fac.alpha - Yb
-            # a Cholesky that "succeeds" on a nearly singular matrix can still solve badly (tiny noise with repeated
-            # inputs). The residual r = (K + noise I) alpha - Y is, to first order, the error of the posterior mean
-            # at the training inputs: warn when it exceeds a tenth of the noise standard deviation (then it is no
-            # longer negligible beside the uncertainty the model reports; the smallest one with per-sample noise)
-            err = float(resid.abs().max())
-            tol = 0.1 * float(diag.min().sqrt())
-        if err > tol:
-            warn(
-                f"CorrectionGP: the posterior solve is inaccurate: the posterior mean at the training inputs is off "
-                f"by up to {err:.2e}, more than a tenth of the noise standard deviation ({10 * tol:.2e}). The noise "
-                "variance is too small for these inputs (repeated or nearly repeated points?); raise noise_variance "
-                "or remove duplicate inputs",
-            )
-        self._cache = _Cache(key, [v.clone() for v in values], fac, float(_mll.exact_mll(fac, X.shape[0])))
-        self.log_marginal_likelihood_ = self._cache.mll
+        if differentiable:
+            Posterior.build(self)  # validates the training data and noise as for any prediction
+            return Posterior.build(self, differentiable=True)
+        if self._cache is not None and self._cache.is_current(self):
+            return self._cache
+        self._cache = Posterior.build(self)
+        self.log_marginal_likelihood_ = self._cache.log_marginal_likelihood
         return self._cache
 
     # ---------------------------------------------------------------------------------------------- prediction
@@ -986,146 +483,24 @@ class CorrectionGP:
         """
         if (self.per_output or self.kernel_spec.terms) and not self.is_fitted:
             raise NotFittedError("per-output and feature kernels are built by fit(); call .fit(inputs, targets) first")
-        x1 = self._check_inputs(x1, "x1")
-        x2 = x1 if x2 is None else self._check_inputs(x2, "x2")
+        x1 = check_inputs(self, x1, "x1")
+        x2 = x1 if x2 is None else check_inputs(self, x2, "x2")
         with torch.no_grad():
             return self.covar_module.forward(x1, x2)
 
-    def _cross(self, x: torch.Tensor) -> torch.Tensor:
-        """k(X, x) as ``(B, N, M)``, training inputs first: GPyTorch's distances centre both inputs on the mean of
-        the first, so with the queries first one far-away row would shift every other row's distances (a prediction
-        would depend on what else is in the batch); centred on the fixed training inputs, each query is its own."""
-        K = self.covar_module.forward(self.train_inputs_, x)
-        return K.unsqueeze(0) if K.dim() == 2 else K
-
-    @staticmethod
-    def _cross_mean(Kt: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """k(x, X) alpha as ``(B, M, d)`` from ``Kt = k(X, x) (B, N, M)`` (:meth:`_cross`) and ``alpha (B, N, d)``:
-        alpha^T k(X, x), transposed (a contiguous product)."""
-        return (alpha.transpose(-1, -2) @ Kt).transpose(-1, -2)
-
     def predict_mean(self, x) -> torch.Tensor:
-        """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)``. One kernel block times the cached solve.
+        """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)`` (:meth:`Posterior.mean`). One kernel block times
+        the cached solve.
 
         Differentiable with respect to ``x`` when ``x`` requires grad (autograd flows through the kernel; the cached
         solve is a constant, so no gradient reaches the hyperparameters). Never refactorizes unless the
         hyperparameters or the training data changed since the last prediction.
         """
-        cache = self._posterior_cache()
-        x = self._check_inputs(x, "x")
-        # a graph only when the inputs ask for one: the cached solve is constant, so this is d mean / d x, and
-        # results used as numbers carry no autograd history
-        with torch.set_grad_enabled(x.requires_grad and torch.is_grad_enabled()):
-            return _check_prediction(self._mean_from(cache, x), x)
-
-    @staticmethod
-    def _unbatch(mean: torch.Tensor) -> torch.Tensor:
-        """``(1, M, d_out)`` (one covariance) or ``(d_out, M, 1)`` (one per output) -> ``(M, d_out)``."""
-        return mean[0] if mean.shape[0] == 1 else mean.squeeze(-1).T
-
-    def _mean_from(self, cache: _Cache, x: torch.Tensor) -> torch.Tensor:
-        """The posterior mean at checked inputs ``x (M, d_in)`` from a cache (the ODE right-hand side's path).
-
-        Row blocks of about ``MEAN_BLOCK`` kernel entries keep the kernel's elementwise passes in cache (a
-        corrected-model solve is mostly this call; ``scripts/benchmark_campaign.py`` times it against one block)."""
-        if isinstance(cache.fac, FeatureFactorization):  # phi(x)^T (posterior mean of the coefficients)
-            return self._unbatch(self.covar_module.base_kernel.features(x) @ cache.fac.mean)
-        alpha = cache.fac.alpha
-        rows = max(64, MEAN_BLOCK // max(alpha.shape[-2], 1))
-        if x.shape[0] <= rows:
-            return self._unbatch(self._cross_mean(self._cross(x), alpha))  # (1, M, d_out) or (d_out, M, 1) before
-        return torch.cat(
-            [self._unbatch(self._cross_mean(self._cross(x[i : i + rows]), alpha)) for i in range(0, x.shape[0], rows)]
-        )
+        return self.posterior().mean(x)
 
     def predict(self, x) -> GPPosterior:
         """Posterior mean and variance of F itself (no observation noise) at ``x (M, d_in)``, each ``(M, d_out)``."""
-        cache = self._posterior_cache()
-        x = self._check_inputs(x, "x")
-        with torch.no_grad():
-            if isinstance(cache.fac, FeatureFactorization):  # phi(x)^T cov phi(x): no N x N factor
-                phi = self.covar_module.base_kernel.features(x)  # (M, p)
-                mean = self._unbatch(phi @ cache.fac.mean)
-                var = ((phi @ cache.fac.cov) * phi).sum(-1).clamp_min(0.0)  # (B, M)
-            else:
-                Kt = self._cross(x)  # k(X, x): (1, N, M) shared kernel, (d_out, N, M) per output
-                mean = self._unbatch(self._cross_mean(Kt, cache.fac.alpha))
-                chol = cache.fac.chol  # (1 or d_out, N, N)
-                Kt = Kt.expand(chol.shape[0], -1, -1)
-                v = torch.linalg.solve_triangular(chol, Kt, upper=False)
-                prior = self.covar_module.forward(x, x, diag=True)  # (M,) or (d_out, M)
-                var = (prior - v.pow(2).sum(-2)).clamp_min(0.0)  # (1 or d_out, M)
-            var = (var + self._term_spread(x)).T.expand(-1, mean.shape[-1])  # + the removed terms' chance
-        _check_prediction(mean, x)
-        _check_prediction(var, x)
-        return GPPosterior(mean=mean, variance=var.contiguous())
-
-    def _term_spread(self, x: torch.Tensor) -> torch.Tensor | float:
-        """``(B, M)``: the variance the feature kernel's removed terms add at ``x (M, d_in)`` (their chance of being
-        present, :attr:`~torchmisspec.gp._features.FeatureKernel.spread`), or 0 for other kernels."""
-        base = self.covar_module.base_kernel
-        if getattr(base, "spread", None) is None:
-            return 0.0
-        phi = base.features(x)  # (M, p)
-        return (phi.pow(2) @ base.spread.reshape(-1, phi.shape[-1]).to(phi).T).T
-
-    def _support_basis(self, X: torch.Tensor, params: dict) -> torch.Tensor | None:
-        """``U_r / sqrt(lam_r + s2n)`` ``(B, N, r)`` for :meth:`_sd_ratio` (see there), or ``None`` for the exact
-        solve (known per-sample noise, or no saving)."""
-        from ._paths import kernel_matrix
-
-        if self.train_noise_ is not None:
-            return None
-        K = kernel_matrix(self.kernel_spec, X, X, params, self.degree)  # (B, N, N)
-        lam, U = torch.linalg.eigh(K)  # ascending
-        lam = lam.clamp_min(0.0)
-        s2n = self._floor(self.likelihood).noise.detach().reshape(-1, 1)  # (B, 1)
-        # the tail sums of the shares lam / (lam + s2n) from the smallest: drop as many as the budget allows
-        drop = int((((lam / (lam + s2n)).cumsum(-1)) <= SUPPORT_TOLERANCE).sum(-1).min())
-        if X.shape[0] - drop > X.shape[0] // 2:  # not worth it: more than half the rank
-            return None
-        return U[..., drop:] / (lam[..., drop:] + s2n).sqrt().unsqueeze(-2)
-
-    def _sd_ratio(self, x: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
-        """``(M,)``: posterior over prior standard deviation of F at inputs ``x (M, d_in)``, the largest over the
-        outputs (1: the prior alone, 0: F known). The extrapolation check of every predicted path calls this.
-
-        With one noise variance per output (no known per-sample noise), the posterior variance is computed in the
-        eigenbasis of K(X, X) = sum_i lam_i u_i u_i^T, keeping the r largest eigenpairs: k_x^T C^-1 k_x =
-        sum_i (u_i^T k_x)^2 / (lam_i + s2n), and since k_x^T K^+ k_x <= k(x, x) every term i is at most
-        lam_i / (lam_i + s2n) k(x, x), so the dropped terms change the variance ratio by at most
-        sum_{i > r} lam_i / (lam_i + s2n) <= :data:`SUPPORT_TOLERANCE`, always upward (the ratio is never
-        understated). The rank r is the smallest with that certificate; otherwise (known per-sample noise, or no
-        saving) the exact triangular solve is used, in row chunks.
-        """
-        from ._paths import detached, kernel_hyperparameters, kernel_matrix
-
-        cache = self._posterior_cache()
-        X = self.train_inputs_
-        with torch.no_grad():
-            prior = self.covar_module.forward(x, x, diag=True).reshape(-1, x.shape[0])  # (1 or d_out, M)
-            if isinstance(cache.fac, FeatureFactorization):  # exact, in feature space
-                phi = self.covar_module.base_kernel.features(x)
-                post = ((phi @ cache.fac.cov) * phi).sum(-1).clamp_min(0.0)
-                ratio = (post / prior.clamp_min(torch.finfo(prior.dtype).tiny)).clamp(0.0, 1.0).sqrt()
-                return ratio.amax(0)
-            chol = cache.fac.chol  # (1 or d_out, N, N)
-            params = detached(kernel_hyperparameters(self))
-            if cache.support_basis is None:  # once per factorization, not at every extrapolation check
-                cache.support_basis = (self._support_basis(X, params),)
-            (basis,) = cache.support_basis
-            explained = []
-            for start in range(0, x.shape[0], chunk):
-                K = kernel_matrix(self.kernel_spec, x[start : start + chunk], X, params, self.degree)  # (B, m, N)
-                if basis is not None:
-                    V = K @ basis  # (B, m, r): (u_i^T k_x) / sqrt(lam_i + s2n)
-                else:
-                    K = K.expand(chol.shape[0], -1, -1)
-                    V = torch.linalg.solve_triangular(chol.transpose(-1, -2), K, upper=True, left=False)  # K L^-T
-                explained.append(V.pow(2).sum(-1))
-            post = (prior - torch.cat(explained, -1)).clamp_min(0.0)
-            ratio = (post / prior.clamp_min(torch.finfo(prior.dtype).tiny)).clamp(0.0, 1.0).sqrt()
-        return ratio.amax(0)
+        return self.posterior().predict(x)
 
     def sample_functions(
         self,
@@ -1178,97 +553,14 @@ class CorrectionGP:
 
     # ------------------------------------------------------------------------------------------ hyperparameters
     def laplace_covariance(self) -> tuple[list[str], torch.Tensor, torch.Tensor]:
-        """A Laplace approximation of the posterior of the learned hyperparameters, in log space.
-
-        At the fitted (ML-II) values, ``-H`` with H the Hessian of the exact log marginal likelihood in the log
-        hyperparameters (autograd through one Cholesky factorization) is the precision of a Gaussian around them;
-        a weakly informative prior N(log value, :data:`LOG_PRIOR_SD`^2) on each log hyperparameter is added, which
-        keeps the covariance finite where the likelihood is flat (the data barely constrain a hyperparameter, as at
-        small K) and clips directions of negative curvature (an optimum on a boundary) to the prior alone.
-
-        Returns:
-            ``(names, mean, covariance)``: a name per entry (``"lengthscale"``, ``"outputscale"``,
-            ``"noise_variance"``, with an output index for per-output values), the log values ``(P,)`` and the
-            ``(P, P)`` covariance. Only the RBF, Matern and polynomial kernels (the feature kernel's weights have
-            their own posterior: :meth:`terms`).
-        """
-        self._require_fitted()
-        if self.kernel_spec.terms:
-            raise InputError(
-                "laplace_covariance: the feature kernel's weights are not log hyperparameters; its uncertainty is "
-                "the coefficients' posterior (gp.terms())"
-            )
-        free = self._free_parameters()
-        if not free:
-            raise InputError("laplace_covariance: every hyperparameter is fixed; nothing is uncertain")
-        params = [p for _, p in free]
-        names = []
-        for name, p in free:
-            n = p.numel()
-            names += [name] if n == 1 else [f"{name}[{i}]" for i in range(n)]
-        X, Y, noise = self.train_inputs_, self.train_targets_, self.train_noise_
-        Yb = self._targets_batched(Y, noise)
-        for p in params:
-            p.requires_grad_(True)
-        try:
-            with torch.enable_grad():
-                # the kernel written out in torch (GPyTorch's RBF has a custom backward without a second derivative)
-                from ._paths import kernel_hyperparameters, kernel_matrix
-
-                K = kernel_matrix(self.kernel_spec, X, X, kernel_hyperparameters(self), self.degree)
-                floor = self._floor(self.likelihood).noise.reshape(-1, 1)
-                if noise is None:
-                    diag = floor
-                else:
-                    diag = (noise.T if self._batched(noise) else noise[:, 0].unsqueeze(0)) + floor
-                if diag.shape[0] != K.shape[0]:
-                    K = K.expand(diag.shape[0], -1, -1)
-                C = K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
-                L = torch.linalg.cholesky(C)
-                alpha = torch.cholesky_solve(Yb, L)
-                m = Yb.shape[-1]
-                mll = -0.5 * (Yb * alpha).sum() - m * L.diagonal(dim1=-2, dim2=-1).log().sum()
-                grads = torch.autograd.grad(mll, params, create_graph=True)
-                g = torch.cat([t.reshape(-1) for t in grads])
-                rows = [
-                    torch.cat([t.reshape(-1) for t in torch.autograd.grad(g[i], params, retain_graph=True)])
-                    for i in range(g.numel())
-                ]
-        except torch.linalg.LinAlgError as exc:
-            raise LinearAlgebraError(
-                f"laplace_covariance: the training covariance is not positive definite ({exc})"
-            ) from exc
-        finally:
-            self._freeze()
-        H = torch.stack(rows).detach()
-        H = 0.5 * (H + H.T)
-        evals, evecs = torch.linalg.eigh(-H)
-        precision = (evecs * evals.clamp_min(0.0)) @ evecs.T + torch.eye(len(names), dtype=H.dtype, device=H.device) / (
-            LOG_PRIOR_SD**2
-        )
-        mean = torch.cat([p.detach().reshape(-1) for p in params])
-        return names, mean, torch.linalg.inv(precision)
+        """A Laplace approximation of the posterior of the learned log hyperparameters: ``(names, mean, covariance)``
+        (:func:`torchmisspec.gp._laplace.laplace_covariance`)."""
+        return _laplace.laplace_covariance(self)
 
     def hyperparameter_samples(self, num_samples: int, *, generator: torch.Generator | None = None) -> list:
-        """``num_samples`` copies of this GP, each conditioned on the same data with hyperparameters drawn from the
-        Laplace approximation of their posterior (:meth:`laplace_covariance`); for predictions that allow for the
-        hyperparameters' own uncertainty (ML-II alone is overconfident when the data are few)."""
-        num_samples = check_positive_int(num_samples, "num_samples")
-        _, mean, cov = self.laplace_covariance()
-        root = torch.linalg.cholesky(cov)
-        z = torch.randn((num_samples, mean.numel()), generator=generator, dtype=mean.dtype, device=mean.device)
-        draws = mean + z @ root.T
-        out = []
-        for theta in draws:
-            copy_ = self.condition(self.train_inputs_, self.train_targets_, noise=self.train_noise_)
-            start = 0
-            with torch.no_grad():
-                for _, p in copy_._free_parameters():
-                    p.copy_(theta[start : start + p.numel()].reshape(p.shape))
-                    start += p.numel()
-            copy_._posterior_cache()
-            out.append(copy_)
-        return out
+        """``num_samples`` copies of this GP conditioned on the same data, with hyperparameters drawn from their
+        Laplace posterior (:func:`torchmisspec.gp._laplace.hyperparameter_samples`)."""
+        return _laplace.hyperparameter_samples(self, num_samples, generator=generator)
 
     def _value(self, name: str, t: torch.Tensor) -> float | torch.Tensor | None:
         """The value in use; before fitting only a fixed (given) value is in use, otherwise ``None``."""
@@ -1305,115 +597,25 @@ class CorrectionGP:
         price, ``max_iter``, dtype and device. Settings the new kernel has no use for (a lengthscale for the feature
         kernel, a price of terms for the RBF) are dropped when ``kernel`` is overridden.
         """
-        auto = self.auto
-        args = {
-            "kernel": "auto" if auto else self.kernel_spec,
-            "lengthscale": None if auto else self.fixed["lengthscale"],
-            "outputscale": None if auto else self.fixed["outputscale"],
-            "noise_variance": self.fixed["noise_variance"],
-            "per_output": self._auto_per_output if auto else self.per_output,
-            "degree": self.degree,
-            "max_iter": self.max_iter,
-            "dtype": self.dtype,
-            "device": self.device,
-            "library": self.library,
-            "library_names": self.library_names,
-            "min_gain": self.min_gain,
-            "evidence_margin": self.evidence_margin,
-        }
-        unknown = sorted(set(overrides) - set(args))
-        if unknown:
-            raise InputError(f"clone: expected overrides among {sorted(args)}, got {unknown}")
-        if "kernel" in overrides:
-            kernel = overrides["kernel"]
-            new_auto = isinstance(kernel, str) and kernel == "auto"
-            spec = None if new_auto else as_kernel(kernel)
-            dropped = {
-                "lengthscale": new_auto or not spec.has_lengthscale,
-                "outputscale": new_auto or (spec.terms != self.kernel_spec.terms),
-                "library": not (new_auto or spec.terms),
-                "library_names": not (new_auto or spec.terms),
-                "min_gain": not (new_auto or spec.terms),
-                "evidence_margin": not new_auto,
-            }
-            args.update({name: None for name, drop in dropped.items() if drop})
-        args.update(overrides)
-        return type(self)(**args)
+        return _conditioning.clone(self, **overrides)
 
     def fixed_copy(self) -> CorrectionGP:
         """A new, unfitted CorrectionGP with every hyperparameter fixed at this one's values in use.
 
-        ``gp.fixed_copy().fit(inputs, targets)`` conditions on new samples without re-learning anything (the paper's
+        A template: ``gp.fixed_copy().fit(inputs, targets)`` is ``gp.condition(inputs, targets)`` (the paper's
         studies fit every realization with the same prior). Known per-sample noise is data, not a hyperparameter:
         it is not copied (pass it again to ``fit``); the copy's ``noise_variance`` is this one's (floor). Needs every
         hyperparameter to be set (given or fitted).
         """
-        values = {
-            "lengthscale": self.lengthscale,
-            "outputscale": self.outputscale,
-            "noise_variance": self.noise_variance,
-        }
-        if self.kernel_spec.terms:
-            raise InputError(
-                "fixed_copy: the feature kernel's weights cannot be fixed by value; use gp.condition(inputs, targets) "
-                "to condition these hyperparameters on other samples"
-            )
-        if not self.kernel_spec.has_lengthscale:
-            values.pop("lengthscale")
-        missing = [k for k, v in values.items() if v is None]
-        if missing:
-            raise NotFittedError(
-                f"fixed_copy: expected every hyperparameter to be set, but {missing} are not; pass them to "
-                "CorrectionGP(...) or fit first"
-            )
-        if self.per_output:
-            raise InputError("fixed_copy: per-output hyperparameters cannot be fixed by value; use per_output=False")
-        return CorrectionGP(
-            kernel=self.kernel_spec,
-            degree=self.degree,
-            max_iter=self.max_iter,
-            dtype=self.dtype,
-            device=self.device,
-            **{k: float(v) for k, v in values.items()},
-        )
+        return _conditioning.fixed_copy(self)
 
     def condition(self, inputs, targets=None, *, noise=None) -> CorrectionGP:
         """A new CorrectionGP with exactly this one's hyperparameters (every kind of kernel, per-output ones too)
-        conditioned on other samples: nothing is re-learned. ``condition(samples)`` takes a
-        :class:`~torchmisspec.CorrectionSamples` object; ``noise`` is known per-sample noise as in :meth:`fit` (the
-        floor ``noise_variance`` is this one's)."""
-        self._require_fitted()
-        inputs, targets, noise = self._unpack(inputs, targets, noise)
-        X = self._check_inputs(inputs, "inputs")
-        Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
-        Y = Y.unsqueeze(-1) if Y.dim() == 1 else Y
-        check_ndim(Y, 2, "targets", "(N, d_out)")
-        check_finite(Y, "targets")
-        if Y.shape != (X.shape[0], self.output_dim):
-            raise ShapeError(
-                f"targets: expected ({X.shape[0]}, {self.output_dim}) (one row per input, this GP's outputs), got "
-                f"{tuple(Y.shape)}"
-            )
-        noise = self._check_noise(noise, Y.shape[0], Y.shape[1])
-        new = copy.copy(self)
-        new.fixed = dict(self.fixed)
-        for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:
-            delattr(new, name)  # records of this model's fit (cross_validation_, samples_, state_noise_, ...)
-        new.input_names_ = getattr(self, "input_names_", None)  # the same inputs: their names stay
-        new.library_suffices_ = None  # kernel="auto": no check made on these data (None, as before any fit)
-        new._cache = None
-        covar = copy.deepcopy(self.covar_module)
-        lik = copy.deepcopy(self.likelihood)
-        if noise is not None or isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
-            known = None if noise is None else noise.T.clone(memory_format=torch.contiguous_format)
-            lik = new._modules(batch=Y.shape[1], noise=known)[1]
-            with torch.no_grad():
-                new._floor(lik).noise = self._floor(self.likelihood).noise.detach().clone()
-        new.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
-        new.n_iterations_, new.n_evaluations_, new.log_marginal_likelihood_ = 0, 0, None
-        new._freeze()
-        new._posterior_cache()
-        return new
+        conditioned on other samples: nothing is re-learned; the one way to condition a model on data.
+        ``condition(samples)`` takes a :class:`~torchmisspec.CorrectionSamples` object; ``noise`` is known per-sample
+        noise as in :meth:`fit` (the floor ``noise_variance`` is this one's). An unfitted model conditions with the
+        hyperparameters it was given (all of them: e.g. :meth:`prior`)."""
+        return _conditioning.condition(self, inputs, targets, noise=noise)
 
     @property
     def weights(self) -> torch.Tensor | None:
@@ -1440,47 +642,11 @@ class CorrectionGP:
         return base.names(names)
 
     def terms(self, names=None, *, all_terms: bool = False) -> list[Term]:
-        """The learned terms of a feature kernel, with their coefficients' posterior means and standard deviations.
-
-        The posterior of F = sum_j beta_j phi_j(x) given the training samples (and their noise): for each output and
-        each term whose weight is not 0 (``all_terms=True``: every term), a :class:`~torchmisspec.gp._features.Term`
-        with its posterior probability of being present (``inclusion``)
-        whose ``str`` reads like ``"+0.01 +- 0.0003 * y1^2"``. ``names``: the inputs' names (default
-        :attr:`input_names_`, the data's names that :func:`~torchmisspec.fit_correction` records, else x1, x2, ...).
-        """
-        labels = self.feature_names(names)
-        base = self.covar_module.base_kernel
-        X, Y, known = self.train_inputs_, self.train_targets_, self.train_noise_
-        Phi = base.features(X).detach()
-        if not self.kernel_spec.feature_space:  # the coefficients' posterior under the whole kernel (RBF term too)
-            fac = self._posterior_cache().fac  # dense: C = Phi W Phi^T + a K_rbf + noise
-            w = base.weights.detach().reshape(-1) * self.covar_module.outputscale.detach().reshape(())
-            out = []
-            with torch.no_grad():
-                for o in range(Y.shape[1]):
-                    # one factor for every output, or one per output (known noise that differs between outputs)
-                    chol = fac.chol[0 if fac.chol.shape[0] == 1 else o]
-                    V = torch.linalg.solve_triangular(chol, Phi * w, upper=False)  # L^-1 Phi W
-                    std = (w - V.pow(2).sum(0)).clamp_min(0.0).sqrt()
-                    alpha = fac.alpha[0, :, o] if fac.alpha.shape[0] == 1 else fac.alpha[o, :, 0]
-                    mean = w * (Phi.T @ alpha)
-                    for j, label in enumerate(labels):
-                        if all_terms or float(w[j]) > 0:
-                            out.append(Term(o, label, float(mean[j]), float(std[j]), float(w[j])))
-            return out
-        W = base.weights.detach().reshape(-1, Phi.shape[1]) * self.covar_module.outputscale.detach().reshape(-1, 1)
-        inclusion = base.inclusion.reshape(W.shape)
-        floor = self._floor(self.likelihood).noise.detach().reshape(-1)
-        out = []
-        for o in range(Y.shape[1]):
-            b = o if W.shape[0] > 1 else 0
-            D = floor[o if floor.numel() > 1 else 0] + (0.0 if known is None else known[:, o])
-            D = torch.as_tensor(D, dtype=self.dtype, device=self.device).expand(Y.shape[0])
-            mean, std = coefficient_posterior(Phi, Y[:, o], D, W[b])
-            for j, label in enumerate(labels):
-                if all_terms or float(W[b, j]) > 0:
-                    out.append(Term(o, label, float(mean[j]), float(std[j]), float(W[b, j]), float(inclusion[b, j])))
-        return out
+        """The learned terms of a feature kernel, with their coefficients' posterior means and standard deviations
+        (:func:`torchmisspec.gp._terms.terms`): a :class:`~torchmisspec.gp._features.Term` per output and kept term
+        (``all_terms=True``: every term), whose ``str`` reads like ``"+0.01 +- 0.0003 * y1^2"``. ``names``: the
+        inputs' names (default :attr:`input_names_`, else x1, x2, ...)."""
+        return _terms.terms(self, names, all_terms=all_terms)
 
     def __repr__(self) -> str:
         state = f"fitted on N={self.train_inputs_.shape[0]}" if self.is_fitted else "not fitted"

@@ -225,7 +225,7 @@ def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
         raise InputError(f"{path}: expected 'system' to be a dictionary of the corrected system's description")
     gp.system_ = system
     gp.refinement_ = _refinement(blob.get("refinement"), path)
-    gp._posterior_cache()
+    gp.posterior()
     if blob.get("calibration") is not None:
         gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
     return gp

@@ -170,7 +170,7 @@ def fit_auto(gp, inputs, targets, noise, **options):
         dict(best.fixed),
         best.per_output,
     )
-    gp.model, gp._cache = best.model, best._cache
+    gp.model, gp._cache = best.model, None  # the posterior is rebuilt for gp at its first use
     gp.n_iterations_, gp.n_evaluations_ = best.n_iterations_, best.n_evaluations_
     gp.log_marginal_likelihood_ = best.log_marginal_likelihood_
     gp.model_selection_ = records

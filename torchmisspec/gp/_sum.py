@@ -9,7 +9,7 @@ it is the feature kernel, with every ``w_j -> 0`` the RBF kernel, so the margina
 Fitting (:func:`fit_sum`): every hyperparameter (the weights, ``a``, ``l`` and the noise floor unless fixed) maximises
 the exact log marginal likelihood, by L-BFGS in log space with autograd through one Cholesky factorization per
 evaluation (O(N^3): the RBF term has no finite features). It starts from the feature kernel's sparse Bayesian fit
-(:func:`~torchmisspec.gp._features.fit_relevance`); weights whose share of the prior variance falls below
+(:func:`~torchmisspec.gp._relevance.fit_relevance`); weights whose share of the prior variance falls below
 :data:`PRUNE_SUM` of the targets' second moment are then set to exactly 0 (the term removed).
 """
 
@@ -23,7 +23,8 @@ import torch
 from .._errors import FittingError
 from .._linalg import cholesky_or_fail
 from ._exact import median_distance
-from ._features import FeatureKernel, fit_relevance, noise_groups, term_gain
+from ._features import FeatureKernel
+from ._relevance import fit_relevance, noise_groups, term_gain
 
 __all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]
 
@@ -102,7 +103,7 @@ def _exact_mll(K: torch.Tensor, Y: torch.Tensor, D: torch.Tensor) -> torch.Tenso
 
 def _least_valuable(Phi, w, K, Y, D) -> tuple[int, float]:
     """The kept term (``w > 0``) of least evidence gain at its best weight given all the others, and that gain
-    (:func:`~torchmisspec.gp._features.term_gain`). From one factorization of ``C = K + D`` per distinct noise
+    (:func:`~torchmisspec.gp._relevance.term_gain`). From one factorization of ``C = K + D`` per distinct noise
     column: with ``s_j = phi_j^T C^-1 phi_j`` and ``q_oj = phi_j^T C^-1 y_o``, the factors with term j left out of C
     are ``S_j = s_j / (1 - w_j s_j)`` and ``Q_oj = q_oj / (1 - w_j s_j)`` (Sherman-Morrison), and
     ``theta_j = sum_o Q_oj^2 / (m S_j)``. When the outputs' noise differs, S_j does too and the gain is bounded by

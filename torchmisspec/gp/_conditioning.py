@@ -1,0 +1,130 @@
+"""Copies of a GP: its settings as a template (``gp.clone``), and its hyperparameters conditioned on other samples
+(``gp.condition``), nothing re-learned.
+
+The one way to put a model's hyperparameters on new data: the calibration's folds, the design's conditioned
+proxies, a Campaign's models between refits and the Laplace draws all go through it. A copy shares nothing with
+the original (its kernel and likelihood are deep copies), and records of the original's fit are not carried over.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import gpytorch
+import torch
+
+from .._errors import InputError, NotFittedError, ShapeError
+from .._validation import as_tensor, check_finite, check_ndim
+from ._exact import IndependentOutputsGP
+from ._inputs import check_inputs, check_noise, unpack
+from ._kernels import as_kernel
+
+__all__ = ["clone", "condition", "fixed_copy"]
+
+
+def condition(gp, inputs, targets=None, *, noise=None):
+    """:meth:`CorrectionGP.condition <torchmisspec.gp.CorrectionGP.condition>`: ``gp``'s hyperparameters conditioned
+    on other samples."""
+    if not gp.is_fitted:
+        unset = [name for name, _ in gp._free_parameters()]
+        if unset:
+            raise NotFittedError(
+                f"condition: expected a fitted GP, or one whose hyperparameters are all given, but {unset} are "
+                "neither; fit it first, or pass them to CorrectionGP(...)"
+            )
+        return gp.clone().fit(inputs, targets, noise=noise)  # nothing to learn: the given values, on these data
+    inputs, targets, noise = unpack(inputs, targets, noise)
+    X = check_inputs(gp, inputs, "inputs")
+    Y = as_tensor(targets, "targets", dtype=gp.dtype, device=gp.device)
+    Y = Y.unsqueeze(-1) if Y.dim() == 1 else Y
+    check_ndim(Y, 2, "targets", "(N, d_out)")
+    check_finite(Y, "targets")
+    if Y.shape != (X.shape[0], gp.output_dim):
+        raise ShapeError(
+            f"targets: expected ({X.shape[0]}, {gp.output_dim}) (one row per input, this GP's outputs), got "
+            f"{tuple(Y.shape)}"
+        )
+    noise = check_noise(gp, noise, Y.shape[0], Y.shape[1])
+    new = copy.copy(gp)
+    new.fixed = dict(gp.fixed)
+    for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:
+        delattr(new, name)  # records of this model's fit (cross_validation_, samples_, state_noise_, ...)
+    new.input_names_ = getattr(gp, "input_names_", None)  # the same inputs: their names stay
+    new.library_suffices_ = None  # kernel="auto": no check made on these data (None, as before any fit)
+    new._cache = None
+    covar = copy.deepcopy(gp.covar_module)
+    lik = copy.deepcopy(gp.likelihood)
+    if noise is not None or isinstance(lik, gpytorch.likelihoods.FixedNoiseGaussianLikelihood):
+        known = None if noise is None else noise.T.clone(memory_format=torch.contiguous_format)
+        lik = new._modules(batch=Y.shape[1], noise=known)[1]
+        with torch.no_grad():
+            new._floor(lik).noise = gp._floor(gp.likelihood).noise.detach().clone()
+    new.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+    new.n_iterations_, new.n_evaluations_, new.log_marginal_likelihood_ = 0, 0, None
+    new._freeze()
+    new.posterior()
+    return new
+
+
+def clone(gp, **overrides):
+    """:meth:`CorrectionGP.clone <torchmisspec.gp.CorrectionGP.clone>`: an unfitted model with ``gp``'s settings."""
+    auto = gp.auto
+    args = {
+        "kernel": "auto" if auto else gp.kernel_spec,
+        "lengthscale": None if auto else gp.fixed["lengthscale"],
+        "outputscale": None if auto else gp.fixed["outputscale"],
+        "noise_variance": gp.fixed["noise_variance"],
+        "per_output": gp._auto_per_output if auto else gp.per_output,
+        "degree": gp.degree,
+        "max_iter": gp.max_iter,
+        "dtype": gp.dtype,
+        "device": gp.device,
+        "library": gp.library,
+        "library_names": gp.library_names,
+        "min_gain": gp.min_gain,
+        "evidence_margin": gp.evidence_margin,
+    }
+    unknown = sorted(set(overrides) - set(args))
+    if unknown:
+        raise InputError(f"clone: expected overrides among {sorted(args)}, got {unknown}")
+    if "kernel" in overrides:
+        kernel = overrides["kernel"]
+        new_auto = isinstance(kernel, str) and kernel == "auto"
+        spec = None if new_auto else as_kernel(kernel)
+        dropped = {
+            "lengthscale": new_auto or not spec.has_lengthscale,
+            "outputscale": new_auto or (spec.terms != gp.kernel_spec.terms),
+            "library": not (new_auto or spec.terms),
+            "library_names": not (new_auto or spec.terms),
+            "min_gain": not (new_auto or spec.terms),
+            "evidence_margin": not new_auto,
+        }
+        args.update({name: None for name, drop in dropped.items() if drop})
+    args.update(overrides)
+    return type(gp)(**args)
+
+
+def fixed_copy(gp):
+    """:meth:`CorrectionGP.fixed_copy <torchmisspec.gp.CorrectionGP.fixed_copy>`: an unfitted model with every
+    hyperparameter fixed at ``gp``'s values."""
+    values = {
+        "lengthscale": gp.lengthscale,
+        "outputscale": gp.outputscale,
+        "noise_variance": gp.noise_variance,
+    }
+    if gp.kernel_spec.terms:
+        raise InputError(
+            "fixed_copy: the feature kernel's weights cannot be fixed by value; use gp.condition(inputs, targets) "
+            "to condition these hyperparameters on other samples"
+        )
+    if not gp.kernel_spec.has_lengthscale:
+        values.pop("lengthscale")
+    missing = [k for k, v in values.items() if v is None]
+    if missing:
+        raise NotFittedError(
+            f"fixed_copy: expected every hyperparameter to be set, but {missing} are not; pass them to "
+            "CorrectionGP(...) or fit first"
+        )
+    if gp.per_output:
+        raise InputError("fixed_copy: per-output hyperparameters cannot be fixed by value; use per_output=False")
+    return gp.clone(kernel=gp.kernel_spec, **{k: float(v) for k, v in values.items()})

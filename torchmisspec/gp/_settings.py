@@ -1,0 +1,105 @@
+"""The settings of a :class:`~torchmisspec.gp.CorrectionGP`, checked once: what its constructor (and ``clone``) accept.
+
+Each refusal names the argument, what was expected and what was received; combinations that make no sense (a
+lengthscale for a kernel without one, a term price for the RBF, a margin without ``kernel="auto"``) are refused,
+not ignored.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .._errors import InputError
+from .._validation import check_positive_int, check_real
+from ._features import check_library
+from ._kernels import as_kernel
+from ._selection import EVIDENCE_MARGIN
+
+__all__ = ["check_settings"]
+
+
+def check_settings(
+    *,
+    kernel,
+    lengthscale,
+    outputscale,
+    noise_variance,
+    per_output,
+    degree,
+    max_iter,
+    dtype,
+    device,
+    library,
+    library_names,
+    min_gain,
+    evidence_margin,
+) -> dict:
+    """The constructor's arguments, checked and normalised (floats, a :class:`~torchmisspec.gp.Kernel` object, a
+    device); ``auto`` says whether the kernel is ``"auto"`` (then ``kernel`` is the RBF it holds until a fit)."""
+    auto = isinstance(kernel, str) and kernel == "auto"
+    spec = as_kernel("rbf" if auto else kernel)  # the unfitted auto model holds an RBF until its first fit
+    if not spec.has_lengthscale and lengthscale is not None:
+        raise InputError(f"lengthscale: the {spec.name} kernel {spec!r} has no lengthscale; pass None")
+    if spec.terms and outputscale is None:
+        outputscale = 1.0  # the weights carry the scale
+    if spec.shared_only and per_output:
+        raise InputError(f"per_output: the {spec.name} kernel is shared by the outputs; pass per_output=False")
+    if auto and (lengthscale is not None or outputscale is not None):
+        raise InputError(
+            "kernel='auto': the candidates' hyperparameters are learned (only noise_variance may be fixed); got "
+            f"lengthscale={lengthscale!r}, outputscale={outputscale!r}"
+        )
+    degree = check_positive_int(degree, "degree")
+    if min_gain is not None:
+        if not (auto or spec.terms):
+            raise InputError(
+                f"min_gain: the price of a feature term is for the feature kernels or 'auto', got {spec.name!r}"
+            )
+        min_gain = check_real(min_gain, "min_gain", minimum=0.0)
+    if evidence_margin is not None and not auto:
+        raise InputError(
+            f"evidence_margin: expected kernel='auto' (the margin over the RBF), got kernel={spec.name!r} with "
+            f"evidence_margin={evidence_margin!r}"
+        )
+    evidence_margin = (
+        (
+            EVIDENCE_MARGIN
+            if evidence_margin is None
+            else float(check_real(evidence_margin, "evidence_margin", minimum=0.0))
+        )
+        if auto
+        else None
+    )
+    if library is not None and not (spec.terms or auto):
+        raise InputError(f"library: a feature library is for kernel 'features' or 'features+rbf', got {spec.name!r}")
+    if library is None and library_names is not None:
+        raise InputError("library_names: names a library of features; pass library=[...] too")
+    library, library_names = (None, None) if library is None else check_library(library, library_names)
+    lengthscale, outputscale, noise_variance = (
+        None if value is None else check_real(value, name, positive=True)
+        for name, value in (
+            ("lengthscale", lengthscale),
+            ("outputscale", outputscale),
+            ("noise_variance", noise_variance),
+        )
+    )
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
+    return {
+        "auto": auto,
+        "kernel": spec,
+        "fixed": {
+            "lengthscale": None if lengthscale is None else float(lengthscale),
+            "outputscale": None if outputscale is None else float(outputscale),
+            "noise_variance": None if noise_variance is None else float(noise_variance),
+        },
+        "min_gain": None if min_gain is None else float(min_gain),
+        "evidence_margin": evidence_margin,
+        "library": library,
+        "library_names": library_names,
+        "per_output": bool(per_output),
+        "degree": degree,
+        "max_iter": check_positive_int(max_iter, "max_iter"),
+        "dtype": dtype,
+        "device": torch.device(device) if device is not None else torch.device("cpu"),
+    }
