@@ -203,7 +203,7 @@ def domain_greedy(prob, method: str, progress: bool, feasible) -> tuple[list[int
         for k in range(K):
             ok = feas.mask()
             E = Y @ B.transpose(1, 2)  # B_c W B_c^T
-            Lc = torch.linalg.cholesky(eye + H)
+            Lc = cholesky(eye + H, what="I + Psi A^-1 Psi^T (domain criterion)")
             g = d_out * torch.cholesky_solve(E, Lc).diagonal(dim1=1, dim2=2).sum(-1)
             evaluations += int(ok.sum())
             n = first_best(g, ok)

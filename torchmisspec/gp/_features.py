@@ -255,7 +255,7 @@ def _posterior(G: torch.Tensor, b: torch.Tensor, w: torch.Tensor):
     """Coefficient posterior over the active terms: ``Sigma (q, q)``, ``mu (q,)``, ``logdet A`` for
     ``A = diag(1 / w) + G`` (``G = Phi^T D^-1 Phi``, ``b = Phi^T D^-1 y``)."""
     A = G + torch.diag(1.0 / w)
-    L = torch.linalg.cholesky(A)
+    L = cholesky(A, what="diag(1 / w) + Phi^T D^-1 Phi (coefficient posterior)")
     Sigma = torch.cholesky_inverse(L)
     mu = torch.cholesky_solve(b.unsqueeze(-1), L).squeeze(-1)
     return Sigma, mu, 2.0 * L.diagonal().log().sum()

@@ -67,7 +67,7 @@ def laplace_covariance(gp) -> tuple[list[str], torch.Tensor, torch.Tensor]:
             if diag.shape[0] != K.shape[0]:
                 K = K.expand(diag.shape[0], -1, -1)
             C = K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
-            L = torch.linalg.cholesky(C)
+            L = cholesky(C, what="the training covariance (Laplace approximation)")
             alpha = torch.cholesky_solve(Yb, L)
             m = Yb.shape[-1]
             mll = -0.5 * (Yb * alpha).sum() - m * L.diagonal(dim1=-2, dim2=-1).log().sum()

@@ -1,4 +1,8 @@
-"""L-BFGS on an objective that supplies its own gradient through a surrogate (no closure state in the model)."""
+"""The one L-BFGS loop of the package: on an objective that supplies its own gradient through a surrogate.
+
+Every fit maximises through :func:`maximise`: the GP's marginal likelihood (:mod:`._fit`), the features+rbf kernel's
+(:mod:`._sum`), the GP in time of the derivative estimates and the trajectory fit; progress shows when asked.
+"""
 
 from __future__ import annotations
 
@@ -34,6 +38,9 @@ def maximise(
     normaliser: float = 1.0,
     progress: bool = False,
     desc: str = "fit",
+    tolerance_grad: float = 1e-7,
+    tolerance_change: float = 1e-12,
+    history_size: int = 20,
 ) -> OptimResult:
     """Maximise an objective over ``params`` with L-BFGS (strong Wolfe line search).
 
@@ -43,15 +50,16 @@ def maximise(
             gradient in ``params`` equals the objective's gradient (e.g. ``_mll.gradient_surrogate``).
         max_iter: most L-BFGS iterations.
         normaliser: the objective is divided by it for the optimiser (e.g. the number of samples: O(1) gradients).
+        tolerance_grad, tolerance_change, history_size: PyTorch L-BFGS's (on the normalised objective).
     """
     opt = torch.optim.LBFGS(
         params,
         lr=1.0,
         max_iter=max_iter,
-        history_size=20,
+        history_size=history_size,
         line_search_fn="strong_wolfe",
-        tolerance_grad=1e-7,
-        tolerance_change=1e-12,
+        tolerance_grad=tolerance_grad,
+        tolerance_change=tolerance_change,
     )
     count = [0, float("nan")]
     flags = [p.requires_grad for p in params]
@@ -72,7 +80,7 @@ def _run(opt, evaluate, normaliser, progress, max_iter, desc, count) -> OptimRes
             value, surrogate = evaluate()
             (-surrogate / normaliser).backward()
             count[0] += 1
-            count[1] = float(value)
+            count[1] = float(value.detach())
             bar.update(1)
             bar.set_postfix(mll=f"{count[1]:.6g}")
             return -value.detach() / normaliser

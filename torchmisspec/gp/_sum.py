@@ -20,10 +20,12 @@ import math
 import gpytorch
 import torch
 
-from .._errors import FittingError
+from .._errors import FittingError, LinearAlgebraError
 from .._linalg import cholesky_or_fail
+from . import _mll
 from ._exact import median_distance
 from ._features import FeatureKernel
+from ._optim import maximise
 from ._relevance import fit_relevance, noise_groups, term_gain
 
 __all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]
@@ -90,14 +92,12 @@ class FeaturesPlusRBF(gpytorch.kernels.Kernel):
 
 
 def _exact_mll(K: torch.Tensor, Y: torch.Tensor, D: torch.Tensor) -> torch.Tensor:
-    """Sum over outputs of log N(y_o; 0, K + diag(D_o)) for ``Y (N, m)``, noise variances ``D (N, m)``."""
-    n = Y.shape[0]
+    """Sum over outputs of log N(y_o; 0, K + diag(D_o)) for ``Y (N, m)``, noise variances ``D (N, m)``: one
+    factorization per group of outputs with the same noise (:func:`~torchmisspec.gp._mll.factorize`)."""
     total = Y.new_zeros(())
     for cols in noise_groups(D):
-        L = torch.linalg.cholesky(K + torch.diag(D[:, cols[0]]))
-        a = torch.cholesky_solve(Y[:, cols], L)
-        total = total - 0.5 * (Y[:, cols] * a).sum() - len(cols) * L.diagonal().log().sum()
-        total = total - 0.5 * len(cols) * n * math.log(2 * math.pi)
+        fac = _mll.factorize(K.unsqueeze(0), D[:, cols[0]].unsqueeze(0), Y[:, cols].unsqueeze(0), warn=False)
+        total = total + _mll.exact_mll(fac, Y.shape[0])
     return total
 
 
@@ -187,28 +187,29 @@ def fit_sum(
                 log_s.clamp_(*s_box)
             log_a.clamp_(math.log(1e-12 * second), math.log(1e3 * second))
 
-    def objective() -> torch.Tensor:
+    def evaluate() -> tuple[torch.Tensor, torch.Tensor]:
         clamp()
-        D = known0 + log_s.exp()
-        return -_exact_mll(kernel_matrix(log_w.exp()), Y, D) / Y.numel()
+        value = _exact_mll(kernel_matrix(log_w.exp()), Y, known0 + log_s.exp())
+        return value, value  # autograd through the factorization: the value is its own surrogate
 
     def optimise() -> int:
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9)
-
-        def closure():
-            opt.zero_grad()
-            value = objective()
-            value.backward()
-            return value
-
         try:
-            opt.step(closure)
-        except torch.linalg.LinAlgError as exc:
+            result = maximise(
+                params,
+                evaluate,
+                max_iter=max_iter,
+                normaliser=float(Y.numel()),
+                tolerance_grad=1e-9,
+                tolerance_change=1e-9,
+                history_size=100,
+                desc="fit features+rbf",
+            )
+        except (torch.linalg.LinAlgError, LinearAlgebraError) as exc:
             raise FittingError(
                 f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})"
             ) from exc
         clamp()  # L-BFGS's last step is taken after the last evaluation: back into the box it was evaluated in
-        return int(opt.state[opt._params[0]].get("n_iter", 0))
+        return result.iterations
 
     iterations = optimise()
     with torch.no_grad():
@@ -229,7 +230,7 @@ def fit_sum(
         w[w * scale_phi < PRUNE_SUM * second] = 0.0
         try:
             lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
-        except torch.linalg.LinAlgError as exc:  # round-off with a noise floor near 0: say so, not a torch error
+        except (torch.linalg.LinAlgError, LinearAlgebraError) as exc:  # round-off with a floor near 0: say so
             raise FittingError(
                 "the features+rbf fit failed: with the learned noise floor "
                 f"{float(log_s.exp()):.3g} the covariance is not numerically positive definite ({exc}); the samples "
