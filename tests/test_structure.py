@@ -17,7 +17,6 @@ MAX_LINES = 600
 #: go down. A module not listed must stay within MAX_LINES.
 OVERSIZED = {
     "gp/_model.py": 1504,
-    "data.py": 793,
     "gp/_paths.py": 713,
     "gp/_features.py": 733,
     "trajectory_fit.py": 678,
