@@ -10,13 +10,9 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.observations import (
-    _estimate_flat,
-    _gp_time,
-    finite_difference,
-    gp_derivative,
-    smoothed_derivative,
-)
+from torchmisspec._estimators import _estimate_flat
+from torchmisspec._gp_in_time import _gp_time
+from torchmisspec.observations import finite_difference, gp_derivative, smoothed_derivative
 from torchmisspec.trajectory_fit import _shooting
 
 DT = torch.float64

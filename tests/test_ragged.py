@@ -12,8 +12,9 @@ import pytest
 import torch
 
 import torchmisspec as tms
+from torchmisspec._gp_in_time import _gp_neg_mll
 from torchmisspec.data import Trajectories, simulate
-from torchmisspec.observations import _gp_neg_mll, correction_samples, estimator_error
+from torchmisspec.observations import correction_samples, estimator_error
 from torchmisspec.trajectory_fit import shooting_misfit
 
 DT = torch.float64

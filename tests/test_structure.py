@@ -17,11 +17,7 @@ MAX_LINES = 600
 #: go down. A module not listed must stay within MAX_LINES.
 OVERSIZED = {
     "gp/_model.py": 670,
-    "plotting.py": 1039,
-    "paper/figures.py": 988,
-    "observations.py": 974,
-    "data.py": 793,
-    "trajectory_fit.py": 678,
+    "trajectory_fit.py": 671,
 }
 
 

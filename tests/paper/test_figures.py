@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from torchmisspec import InputError, correction_error
+from torchmisspec.paper import _layout
 from torchmisspec.paper import figures as rep
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reproduce_paper.py"
@@ -186,7 +187,7 @@ def test_figure_3_draws_both_designs_and_both_corrected_models(tmp_path, monkeyp
     """Fig 3 is composed from the generic plotting functions with the paper's explicit styles."""
     saved = {}
     monkeypatch.setattr(
-        rep._layout, "save", lambda fig, path, files: (saved.__setitem__(path.name, fig), files.append(path.name))
+        _layout, "save", lambda fig, path, files: (saved.__setitem__(path.name, fig), files.append(path.name))
     )
     numbers = rep.figure_3(tmp_path, smoke=True)
     assert numbers["files"] == ["fig3_design.png", "fig3.png"]

@@ -1,0 +1,321 @@
+"""The :class:`Trajectories` container (see :mod:`torchmisspec.data`)."""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .._errors import InputError, ShapeError
+from .._missing import fill
+from .._validation import states_and_times
+from . import _tables
+from ._input import _check_state_names, _default_names, _describe_lengths, _drop_empty_rows, _is_number, _per_experiment
+
+
+@dataclass(frozen=True)
+class Trajectories:
+    """States of K experiments, each observed at its own times.
+
+    ``Trajectories(times, states)`` takes either tensors (arrays) for experiments of equal length, or lists with one
+    array per experiment (*ragged* data: experiments of different lengths):
+
+    * equal lengths: ``states (K, T, d)`` and ``times (T,)`` shared by all experiments or ``(K, T)`` one grid per
+      experiment (irregular spacing allowed, strictly increasing along each row);
+    * lists: ``states = [y_1 (T_1, d), ..., y_K (T_K, d)]`` and ``times = [t_1 (T_1,), ..., t_K (T_K,)]`` (or one
+      shared ``(T,)`` array when the lengths agree). When every ``T_k`` is the same the lists are stacked into the
+      equal-length form; otherwise the object is ragged: :attr:`is_ragged` is true, :attr:`times` and
+      :attr:`states` are tuples of per-experiment tensors, :attr:`lengths` gives every ``T_k`` and
+      :attr:`num_times` / :attr:`time_grid` raise :class:`~torchmisspec.ShapeError` (use :meth:`experiments` or
+      :meth:`padded`). Everything in the package that takes trajectories accepts ragged ones.
+
+    **Missing values.** A NaN state entry is a component that was not observed at that time (an empty cell of a
+    table read by :meth:`load`); :attr:`observed` is the mask of the others. Every experiment must observe every
+    component at least once (else :class:`~torchmisspec.InputError`), times can never be missing, and infinite
+    values are refused. A time at which no component was observed carries no data and is dropped (so masking a whole
+    row is the same as deleting it; the experiment may then become shorter than the others, i.e. ragged). The
+    package's functions use only observed entries: the derivative estimators fit each component from its own
+    observed times, :func:`~torchmisspec.correction_samples` fills what a sample's G(y) and inputs need from the
+    estimator's fit, and the comparisons with the data (cross-validation, :func:`~torchmisspec.fit_trajectories`,
+    band calibration) skip missing entries. :meth:`filled` and :attr:`initial_conditions` estimate missing entries.
+
+    Attributes:
+        times: ``(T,)``, ``(K, T)``, or a tuple of K ``(T_k,)`` tensors (ragged).
+        states: ``(K, T, d)``, or a tuple of K ``(T_k, d)`` tensors (ragged); NaN where an entry is missing.
+        state_names: the names of the d state components (the table's column names for :meth:`load`; default
+            ``y0, ..., y{d-1}``); kept by indexing, :meth:`to`, :meth:`save` and :meth:`load`.
+    """
+
+    times: torch.Tensor | tuple[torch.Tensor, ...]
+    states: torch.Tensor | tuple[torch.Tensor, ...]
+    state_names: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.states, (list, tuple)):
+            states, times = _per_experiment(self.states, self.times)
+        else:
+            if isinstance(self.times, (list, tuple)) and self.times and not _is_number(self.times[0]):
+                raise InputError(
+                    "times: a list of per-experiment time arrays needs a list of per-experiment state arrays, got "
+                    f"states as one {type(self.states).__name__}"
+                )
+            states, times = states_and_times(self.states, self.times, missing=True)
+        d = states[0].shape[-1]
+        names = _check_state_names(self.state_names, d)
+        states, times = _drop_empty_rows(states, times, names)
+        object.__setattr__(self, "states", states)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "state_names", names)
+
+    # ----------------------------------------------------------------------------------------------------------
+    @property
+    def is_ragged(self) -> bool:
+        """Whether the experiments have different numbers of samples (then times and states are tuples)."""
+        return isinstance(self.states, tuple)
+
+    @property
+    def lengths(self) -> tuple[int, ...]:
+        """``(T_1, ..., T_K)``: the number of samples of every experiment."""
+        if self.is_ragged:
+            return tuple(s.shape[0] for s in self.states)
+        return (self.states.shape[1],) * self.states.shape[0]
+
+    @property
+    def num_experiments(self) -> int:
+        return len(self.states) if self.is_ragged else self.states.shape[0]
+
+    @property
+    def num_samples(self) -> int:
+        """Total number of observed states, ``sum_k T_k``."""
+        return sum(self.lengths)
+
+    @property
+    def num_times(self) -> int:
+        """T, the number of samples of every experiment (ragged data has none: see :attr:`lengths`)."""
+        if self.is_ragged:
+            raise ShapeError(
+                f"num_times: expected experiments of equal length, got ragged data with lengths "
+                f"{_describe_lengths(self.lengths)}; use .lengths"
+            )
+        return self.states.shape[1]
+
+    @property
+    def state_dim(self) -> int:
+        return self.states[0].shape[-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.states[0].dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.states[0].device
+
+    @property
+    def time_grid(self) -> torch.Tensor:
+        """Times as ``(K, T)``, expanded when shared (equal-length data only; see :meth:`padded`)."""
+        if self.is_ragged:
+            raise ShapeError(
+                f"time_grid: expected experiments of equal length, got ragged data with lengths "
+                f"{_describe_lengths(self.lengths)}; use .experiments() or .padded()"
+            )
+        return self.times.expand(self.num_experiments, -1) if self.times.dim() == 1 else self.times
+
+    @property
+    def observed(self) -> torch.Tensor | tuple[torch.Tensor, ...]:
+        """Boolean mask of the observed entries: ``(K, T, d)``, or a tuple of ``(T_k, d)`` (ragged)."""
+        if self.is_ragged:
+            return tuple(torch.isfinite(s) for s in self.states)
+        return torch.isfinite(self.states)
+
+    @property
+    def num_missing(self) -> int:
+        """The number of missing state entries (NaN)."""
+        if self.is_ragged:
+            return sum(int(torch.isnan(s).sum()) for s in self.states)
+        return int(torch.isnan(self.states).sum())
+
+    @property
+    def has_missing(self) -> bool:
+        """Whether some state entry is missing."""
+        return self.num_missing > 0
+
+    def filled(self) -> Trajectories:
+        """These trajectories with every missing entry estimated from its component's own observed samples: the
+        value at that time of a local quadratic least-squares fit through the 5 nearest (a local Savitzky-Golay
+        smoother; fewer samples: their interpolant). Observed entries are unchanged; ``self`` when nothing is
+        missing."""
+        if not self.has_missing:
+            return self
+        times, states, mask = self.padded()
+        out = fill(states, times, torch.isfinite(states) & mask.unsqueeze(-1))
+        if not self.is_ragged:
+            return Trajectories(self.times, out, state_names=self.state_names)
+        rows = [out[k, :n] for k, n in enumerate(self.lengths)]
+        return Trajectories(list(self.times), rows, state_names=self.state_names)
+
+    @property
+    def initial_conditions(self) -> torch.Tensor:
+        """``(K, d)``: every experiment's first observed state (missing entries estimated as by :meth:`filled`)."""
+        source = self.filled() if self.has_missing else self
+        if source.is_ragged:
+            return torch.stack([s[0] for s in source.states])
+        return source.states[:, 0]
+
+    def experiments(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """``[(t_k (T_k,), y_k (T_k, d)), ...]``: every experiment's times and states."""
+        if self.is_ragged:
+            return list(zip(self.times, self.states, strict=True))
+        grid = self.time_grid
+        return [(grid[k], self.states[k]) for k in range(self.num_experiments)]
+
+    def flat_states(self) -> torch.Tensor:
+        """``(N, d)``: all observed states, experiment after experiment (N = sum of the lengths; NaN where missing)."""
+        if self.is_ragged:
+            return torch.cat(self.states)
+        return self.states.reshape(-1, self.state_dim)
+
+    def padded(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(times (K, T_max), states (K, T_max, d), mask (K, T_max))``, each experiment padded at its end.
+
+        Padded entries repeat the experiment's last time and state; ``mask`` is true on the observed samples (rows:
+        missing entries inside them stay NaN, see :attr:`observed`).
+        """
+        if not self.is_ragged:
+            mask = torch.ones(self.states.shape[:2], dtype=torch.bool, device=self.device)
+            return self.time_grid, self.states, mask
+        T = max(self.lengths)
+        times = torch.stack([torch.cat([t, t[-1:].expand(T - len(t))]) for t in self.times])
+        states = torch.stack([torch.cat([s, s[-1:].expand(T - len(s), -1)]) for s in self.states])
+        lengths = torch.tensor(self.lengths, device=self.device)
+        mask = torch.arange(T, device=self.device) < lengths.unsqueeze(-1)
+        return times, states, mask
+
+    def by_length(self) -> list[tuple[list[int], Trajectories]]:
+        """The experiments grouped by length: ``[(indices, equal-length Trajectories), ...]``, shortest first."""
+        if not self.is_ragged:
+            return [(list(range(self.num_experiments)), self)]
+        groups: dict[int, list[int]] = {}
+        for k, n in enumerate(self.lengths):
+            groups.setdefault(n, []).append(k)
+        return [
+            (
+                idx,
+                Trajectories(
+                    torch.stack([self.times[k] for k in idx]),
+                    torch.stack([self.states[k] for k in idx]),
+                    state_names=self.state_names,
+                ),
+            )
+            for _, idx in sorted(groups.items())
+        ]
+
+    def __len__(self) -> int:
+        return self.num_experiments
+
+    def __getitem__(self, index) -> Trajectories:
+        """A subset of experiments (int, slice, index list or boolean mask)."""
+        if isinstance(index, numbers.Integral) or (isinstance(index, torch.Tensor) and index.dim() == 0):
+            index = [int(index)]
+        if self.is_ragged:
+            picked = torch.arange(self.num_experiments)[index].tolist()
+            return Trajectories(
+                [self.times[k] for k in picked], [self.states[k] for k in picked], state_names=self.state_names
+            )
+        times = self.times if self.times.dim() == 1 else self.times[index]
+        return Trajectories(times, self.states[index], state_names=self.state_names)
+
+    def to(self, *args, **kwargs) -> Trajectories:
+        if self.is_ragged:
+            return Trajectories(
+                [t.to(*args, **kwargs) for t in self.times],
+                [s.to(*args, **kwargs) for s in self.states],
+                state_names=self.state_names,
+            )
+        return Trajectories(
+            self.times.to(*args, **kwargs), self.states.to(*args, **kwargs), state_names=self.state_names
+        )
+
+    def __repr__(self) -> str:
+        if self.is_ragged:
+            lo = min(float(t[0]) for t in self.times)
+            hi = max(float(t[-1]) for t in self.times)
+            count, grid = f"T={_describe_lengths(self.lengths)} times", "ragged"
+        else:
+            times = self.times.detach()
+            lo, hi = float(times[..., 0].min()), float(times[..., -1].max())
+            grid = "shared grid" if times.dim() == 1 else "per-experiment grids"
+            count = f"T={self.num_times} time{'s' * (self.num_times != 1)}"
+        device = "" if self.device.type == "cpu" else f", {self.device}"
+        names = "" if self.state_names == _default_names(self.state_dim) else f" ({', '.join(self.state_names)})"
+        missing = self.num_missing
+        gaps = f", {missing} missing entr{'y' if missing == 1 else 'ies'}" if missing else ""
+        return (
+            f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
+            f"{count} on [{lo:.6g}, {hi:.6g}] ({grid}), "
+            f"d={self.state_dim}{names}{gaps}, {str(self.dtype).removeprefix('torch.')}{device})"
+        )
+
+    # ----------------------------------------------------------------------------------------------------------
+    def save(
+        self,
+        path: str | Path,
+        *,
+        time_column: str = "time",
+        experiment_column: str = "experiment",
+        state_columns: Sequence[str] | None = None,
+    ) -> Path:
+        """Write to ``path``: ``.npz`` (arrays times, states, state_names) or a text table with a header row.
+
+        Text tables: ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (space separated), one row
+        per experiment and time, columns ``experiment_column, time_column, *state_columns`` (state columns
+        :attr:`state_names` by default; experiments numbered 0..K-1). Values are written with full precision, so
+        :meth:`load` with the same column names (or the defaults) reads back the same times and states (as float64).
+        A missing entry is written as an empty cell (``NaN`` in a ``.txt`` table, whose cells are separated by
+        spaces). The column names are ignored for ``.npz``, which stores :attr:`state_names` as an array of strings.
+        """
+        return _tables.write(
+            self, path, time_column=time_column, experiment_column=experiment_column, state_columns=state_columns
+        )
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        *,
+        time_column: str = "time",
+        experiment_column: str | None = "experiment",
+        state_columns: Sequence[str] | None = None,
+    ) -> Trajectories:
+        """Read trajectories from ``.npz`` (arrays ``times`` and ``states``) or a text table with a header row.
+
+        Text tables are UTF-8 ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (whitespace
+        separated), one row per experiment and time, columns in any order and rows in any order.
+
+        Args:
+            path: the file.
+            time_column: name of the time column.
+            experiment_column: name of the column labelling the experiments (numbers, sorted numerically, or any
+                text, in order of first appearance). When the file has no such column (or ``None``), all rows are
+                one experiment; a name other than the default that is not in the file is an error.
+            state_columns: names of the state columns, in the order of the state components (default: every
+                other column, in file order). They become :attr:`state_names`.
+
+        A state cell that is empty or reads ``NaN``, ``NA`` or ``N/A`` (any case) is a missing entry (see the class
+        docstring); a missing time or experiment label is an error, and so is an experiment with no value at all in
+        some state column. Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every
+        experiment has the same grid, ``(K, T)`` when the experiments have equal lengths, and ragged (one tensor per
+        experiment) when their lengths differ. Column names are ignored for ``.npz`` (ragged ``.npz`` files, as
+        :meth:`save` writes them, hold the concatenated ``times (N,)``, ``states (N, d)`` and ``lengths (K,)``).
+
+        Nothing is unpickled and no code can run. Raises :class:`InputError` for a missing, unreadable, non-UTF-8
+        or malformed file, missing or duplicate columns, non-numeric or infinite cells, missing times or labels, or
+        repeated (experiment, time) rows,
+        and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
+        """
+        columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
+        times, states, names = _tables.read(path, **columns)
+        return cls(times, states, state_names=names)
