@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
+import torchmisspec as tms
+
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
 
@@ -160,6 +162,10 @@ def check_kernels(ns: dict) -> None:
     assert ff["score"] > ff["library_score"] + 3 and g_gp.library_suffices_ is False  # vs the library it nests
     assert g_gp.kernel == ("matern52" if g_score["matern52"] >= g_score["rbf"] + 3 else "rbf")
     assert not any(r["eligible"] for r in g_gp.model_selection_ if r["kernel"] in ("features", "features+rbf"))
+    # "A kernel of your own": registered, fitted, and its paths drawn
+    assert ns["rq"].kernel == "rational_quadratic" and ns["rq"].lengthscale > 0
+    assert ns["paths"](ns["samples"].inputs[:3]).shape == (4, 3, 2)
+    assert tms.CorrectionGP(kernel="rational_quadratic").kernel_spec.alpha == 2.0
 
 
 def check_overview(ns: dict) -> None:

@@ -122,3 +122,13 @@ def test_clone_copies_the_kernel_object(problem):
     assert features.kernel == "features" and features.fixed["lengthscale"] is None
     with pytest.raises(tms.InputError, match=r"clone: expected overrides among .*got \['alpha'\]"):
         gp.clone(alpha=3.0)
+
+
+def test_register_refuses_to_replace_a_package_kernel():
+    class Impostor(tgp.Stationary):
+        name = "rbf"
+
+    with pytest.raises(tms.InputError, match=r"register: the name 'rbf' is the package's RBF; give Impostor a name"):
+        tgp.register(Impostor)
+    assert REGISTRY["rbf"] is tgp.RBF
+    tgp.register(RationalQuadratic)  # registering the same class again is harmless

@@ -19,6 +19,7 @@ One idea per module, each readable in one sitting:
 
 from __future__ import annotations
 
+from ._exact import log_positive
 from ._kernels import RBF, Features, FeaturesRBF, Kernel, Matern52, Polynomial, Stationary, register
 from ._model import KERNELS, CorrectionGP
 from ._posterior import GPPosterior, Posterior
@@ -36,4 +37,5 @@ __all__ = [
     "Features",
     "FeaturesRBF",
     "register",
+    "log_positive",
 ]

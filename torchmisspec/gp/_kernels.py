@@ -40,6 +40,11 @@ def register(cls: type[Kernel]) -> type[Kernel]:
         raise InputError(f"register: expected a Kernel subclass with a string name, got {cls!r}")
     if cls.name in ("auto",):
         raise InputError(f"register: the name {cls.name!r} is reserved")
+    known = REGISTRY.get(cls.name)
+    if known is not None and known is not cls and known.__module__ == __name__:
+        raise InputError(
+            f"register: the name {cls.name!r} is the package's {known.__name__}; give {cls.__name__} a name of its own"
+        )
     REGISTRY[cls.name] = cls
     return cls
 
