@@ -119,13 +119,26 @@ def test_no_import_circles():
 
 
 def test_the_library_never_imports_the_paper():
-    """Only the paper's own modules import ``torchmisspec.paper``, and the CLI's ``demo`` command, which runs it."""
+    """Only the paper's own modules import ``torchmisspec.paper``, the benchmarks (which time the paper's set-ups) and
+    the CLI's ``demo`` command, which runs it."""
     offenders = {
         name: sorted(d for d in deps if d.startswith("torchmisspec.paper"))
         for name, deps in import_graph().items()
-        if not name.startswith("torchmisspec.paper") and name != "torchmisspec.cli"
+        if not name.startswith(("torchmisspec.paper", "torchmisspec.benchmarks")) and name != "torchmisspec.cli"
     }
     assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def test_the_library_never_imports_the_benchmarks():
+    """``torchmisspec.benchmarks`` (and its reporting helpers, which the paper's studies share) sits on top of the
+    library: only the benchmarks themselves and the paper import it."""
+    offenders = {
+        name: sorted(d for d in deps if d.startswith("torchmisspec.benchmarks"))
+        for name, deps in import_graph().items()
+        if not name.startswith(("torchmisspec.benchmarks", "torchmisspec.paper"))
+    }
+    assert {k: v for k, v in offenders.items() if v} == {}
+    assert any(d.startswith("torchmisspec.benchmarks") for d in import_graph()["torchmisspec.paper.study_kernels"])
 
 
 def test_no_deprecated_shims():

@@ -1,4 +1,5 @@
-"""``scripts/study_observations.py`` (issue 9's study): its smoke run, its JSON, and the BENCHMARKS.md blocks."""
+"""``scripts/study_observations.py`` (issue 9's study: ``torchmisspec.paper.study_observations`` and
+``study_observations_report``): its smoke run, its JSON, and the BENCHMARKS.md blocks."""
 
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ from pathlib import Path
 
 import pytest
 import torch
+
+from torchmisspec.benchmarks import reporting, suite
+from torchmisspec.paper import study_observations, study_observations_report
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
@@ -37,8 +41,8 @@ def finite(x) -> bool:
 @pytest.mark.slow
 def test_smoke_run_writes_the_expected_json(study, tmp_path, monkeypatch):
     # smoke mode must never touch the docs or BENCHMARKS.md: point them at files that must stay absent
-    monkeypatch.setattr(study, "DOC_PAGE", tmp_path / "docs" / "page.md")
-    monkeypatch.setattr(study, "BENCHMARKS_MD", tmp_path / "B.md")
+    monkeypatch.setattr(study_observations_report, "DOC_PAGE", tmp_path / "docs" / "page.md")
+    monkeypatch.setattr(study_observations_report, "BENCHMARKS_MD", tmp_path / "B.md")
     threads = torch.get_num_threads()
     try:
         assert study.main(["--smoke", "--json", str(tmp_path / "s.json")]) == 0
@@ -49,7 +53,7 @@ def test_smoke_run_writes_the_expected_json(study, tmp_path, monkeypatch):
     assert result["smoke"] is True
     assert set(result) >= {"command", "machine", "config", "raw", "summary", "wall_seconds"}
     assert result["machine"]["torch"] == torch.__version__
-    names = [c.name for c in study.CASES]
+    names = [c.name for c in study_observations.CASES]
     runs = result["raw"]["runs"]
     assert sorted(r["system"] for r in runs) == sorted(names)  # every system, one cell each
     for r in runs:
@@ -73,7 +77,7 @@ def test_smoke_run_writes_the_expected_json(study, tmp_path, monkeypatch):
     goals = result["summary"]["goals"]
     assert goals and all(isinstance(g["pass"], bool) and g["goal"] for g in goals)
     # the pages render from the smoke result without a missing number
-    page = study.render_page(result)
+    page = study_observations_report.render_page(result)
     assert "nan" not in page.lower().replace("n/a", "")
 
 
@@ -82,20 +86,21 @@ def test_smoke_refuses_markdown(study):
         study.main(["--smoke", "--markdown"])
 
 
-def test_replace_block_appends_then_replaces(study):
-    block1 = f"{study.MARK_START}\nfirst\n{study.MARK_END}\n"
-    block2 = f"{study.MARK_START}\nsecond\n{study.MARK_END}\n"
-    text = study.replace_block("# Benchmarks\n\nbody\n", block1)
+def test_replace_block_appends_then_replaces():
+    start, end = study_observations_report.MARK_START, study_observations_report.MARK_END
+    block1 = f"{start}\nfirst\n{end}\n"
+    block2 = f"{start}\nsecond\n{end}\n"
+    text = reporting.replace_marked("# Benchmarks\n\nbody\n", block1, start, end)
     assert text == "# Benchmarks\n\nbody\n\n" + block1
-    again = study.replace_block(text + "\ntail\n", block2)
-    assert "first" not in again and again.count(study.MARK_START) == 1
+    again = reporting.replace_marked(text + "\ntail\n", block2, start, end)
+    assert "first" not in again and again.count(start) == 1
     assert again.startswith("# Benchmarks\n\nbody\n\n" + block2) and again.endswith("tail\n")
 
 
 def test_benchmark_markdown_keeps_study_blocks(tmp_path, monkeypatch):
     bench = load("benchmark")
-    monkeypatch.setattr(bench, "BENCHMARKS", {})  # nothing to run: only the page writing is under test
-    monkeypatch.setattr(bench, "render_markdown", lambda results: "# Benchmarks\n\nfresh\n")
+    monkeypatch.setattr(suite, "BENCHMARKS", {})  # nothing to run: only the page writing is under test
+    monkeypatch.setattr(suite, "render_markdown", lambda results: "# Benchmarks\n\nfresh\n")
     path = tmp_path / "B.md"
     block = "<!-- study:observations:start -->\nkept\n<!-- study:observations:end -->"
     path.write_text(f"# Benchmarks\n\nstale\n\n{block}\n")

@@ -1,12 +1,22 @@
-"""What the benchmark and study scripts record about the machine and the code they ran on (one shared copy)."""
+"""What the benchmarks and the studies record and write, one copy for all of them: the machine and the code they ran
+on, their command lines, median timings, raw results as JSON, and their markdown blocks between markers in
+BENCHMARKS.md (each script keeps its own block there)."""
 
 from __future__ import annotations
 
+import json
+import os
 import platform
+import re
+import statistics
 import subprocess
+import sys
+import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+#: The repository the package runs from (the scripts, BENCHMARKS.md, docs/ and benchmarks/ live there).
+ROOT = Path(__file__).resolve().parents[2]
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 
 
 def cpu_model() -> str:
@@ -33,8 +43,6 @@ def git(*args: str) -> str | None:
 def replace_marked(text: str, block: str, start: str, end: str) -> str:
     """``text`` with the block between the markers ``start`` ... ``end`` (markers included) replaced by ``block``,
     or ``block`` appended when the markers are absent (how the scripts keep their sections of BENCHMARKS.md)."""
-    import re
-
     pattern = re.compile(re.escape(start) + r".*?" + re.escape(end) + r"\n?", re.S)
     if pattern.search(text):
         return pattern.sub(lambda _: block, text, count=1)
@@ -43,8 +51,6 @@ def replace_marked(text: str, block: str, start: str, end: str) -> str:
 
 def machine() -> dict:
     """The machine, the library's commit (and whether the library has uncommitted changes) and versions."""
-    import os
-
     import torch
 
     import torchmisspec
@@ -66,7 +72,6 @@ def study_arguments(doc: str, argv, default_json: Path, extra=None):
     """The study scripts' command line: ``--smoke``, ``--json``, ``--markdown``, ``--from-json`` (plus what ``extra``
     adds to the parser), checked; ``args.saved`` is the run read from ``--from-json`` (never a smoke run) or None."""
     import argparse
-    import json
 
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--smoke", action="store_true", help="tiny sizes; never writes the docs")
@@ -95,30 +100,30 @@ def run_json(args, default_json: Path) -> Path | None:
 
 def write_json(result: dict, path: Path | None) -> None:
     """Write a study's raw results to ``path`` (its folder created); nothing when ``path`` is None."""
-    import json
-
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(result, indent=1))
 
 
-def benchmark_arguments(doc: str, argv, smoke_help: str = "tiny sizes; never writes BENCHMARKS.md"):
-    """The benchmark scripts' command line: ``--smoke``, ``--markdown``, ``--repeats`` (checked); also sets
-    ``args.command`` (how it was run) and ``args.load`` (the load average before the run)."""
+def benchmark_arguments(doc: str, argv, smoke_help: str = "tiny sizes; never writes BENCHMARKS.md", extra=None):
+    """The benchmark scripts' command line: ``--smoke``, ``--markdown``, ``--repeats`` (plus what ``extra`` adds to the
+    parser), checked; also sets ``args.command`` (how it was run), ``args.load`` (the load average before the run)
+    and ``args.parser``."""
     import argparse
-    import os
-    import sys
 
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--smoke", action="store_true", help=smoke_help)
     parser.add_argument("--markdown", action="store_true", help="write the block of BENCHMARKS.md")
     parser.add_argument("--repeats", type=int, default=3)
+    if extra is not None:
+        extra(parser)
     args = parser.parse_args(argv)
     if args.smoke and args.markdown:
         parser.error("--smoke never writes BENCHMARKS.md")
     script = Path(sys.argv[0]).name if argv is None else "script"
     args.command = f"python scripts/{script} " + " ".join(sys.argv[1:] if argv is None else argv)
     args.load = " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    args.parser = parser
     return args
 
 
@@ -131,9 +136,10 @@ def run_sentence(args) -> str:
     )
 
 
-def update_benchmarks(block: str, start: str, end: str) -> None:
-    """Put ``block`` (its markers included) into BENCHMARKS.md in place of the old one, or append it."""
-    path = ROOT / "BENCHMARKS.md"
+def update_benchmarks(block: str, start: str, end: str, path: Path | None = None) -> None:
+    """Put ``block`` (its markers included) into ``path`` (default BENCHMARKS.md) in place of the old one, or append
+    it: how every benchmark and study writes its block."""
+    path = BENCHMARKS_MD if path is None else path
     path.write_text(replace_marked(path.read_text() if path.exists() else "", block, start, end))
 
 
@@ -143,3 +149,70 @@ def publish(lines: list[str], markdown: bool, start: str, end: str) -> None:
     print(text)
     if markdown:
         update_benchmarks(text, start, end)
+
+
+def write_page(path: Path, text: str) -> None:
+    """Write a docs page (its folder created)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def timed(fn, repeats: int, setup=None):
+    """``(last output, median wall time, every wall time)`` of ``fn()`` over ``repeats`` calls (``setup()`` before
+    each, not timed): how every benchmark times."""
+    times, out = [], None
+    for _ in range(repeats):
+        if setup is not None:
+            setup()
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return out, statistics.median(times), times
+
+
+def memory_gb() -> float | None:
+    """Total memory of the machine (GB, from /proc/meminfo), or None."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemTotal:"):
+                    return int(line.split()[1]) / 1024**2
+    except OSError:
+        pass
+    return None
+
+
+def load_average() -> list[float]:
+    """The 1 / 5 / 15 min load average, rounded (empty where the platform has none)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def version(module: str) -> str | None:
+    """``module.__version__``, or None when it is not installed."""
+    try:
+        return __import__(module).__version__
+    except ImportError:
+        return None
+
+
+def run_worker(module: str, payload, threads: int, env: dict | None = None):
+    """Run ``python -m module --threads N PAYLOAD`` (a benchmark's worker, in a fresh process so that its memory and
+    threads are its own) with this copy of the package first on the path; the JSON of its last output line."""
+    package_root = str(Path(__file__).resolve().parents[2])
+    path = os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH", "")) if p)
+    cmd = [sys.executable, "-m", module, "--threads", str(threads), json.dumps(payload)]
+    env = dict(os.environ, **(env or {}), PYTHONPATH=path)
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def worker_main(work) -> None:
+    """The ``__main__`` of a worker module: ``--threads N PAYLOAD`` -> print the JSON of ``work(*PAYLOAD)``."""
+    import torch
+
+    threads, payload = int(sys.argv[2]), json.loads(sys.argv[3])
+    torch.set_num_threads(threads)
+    print(json.dumps(work(*payload)))
