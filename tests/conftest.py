@@ -1,9 +1,13 @@
 import contextlib
+import os
 
 import pytest
 import torch
 
 import torchmisspec as tms
+
+if os.environ.get("PYTEST_XDIST_WORKER"):  # one torch thread per worker: the workers share the cores
+    torch.set_num_threads(1)
 
 
 @pytest.fixture

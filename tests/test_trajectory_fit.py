@@ -87,6 +87,7 @@ def test_known_per_sample_noise_stays_part_of_the_prior(problem, one_thread):
 def test_batched_jacobian_columns_equal_one_solve_per_column():
     """The Gauss-Newton Jacobian of the feature coefficients: every perturbed model in one batched solve (ragged
     experiments included) gives the columns of one solve per perturbation, to solver tolerance."""
+    from torchmisspec import _trajectory_map as tm
     from torchmisspec import trajectory_fit as tf
     from torchmisspec.gp._features import FeatureKernel
 
@@ -115,14 +116,14 @@ def test_batched_jacobian_columns_equal_one_solve_per_column():
 
     sd = torch.full((2,), 1e-2, dtype=torch.float64)
     off = 0.1 * torch.randn(offsets.shape, generator=g, dtype=torch.float64)
-    one = tf._coefficient_columns(residuals, make_field, beta, active, off, sd)
-    batched = tf._coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
+    one = tm._coefficient_columns(residuals, make_field, beta, active, off, sd)
+    batched = tm._coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
     assert one.shape == batched.shape == (ragged.num_samples * 2, int(active.sum()))
     torch.testing.assert_close(batched, one, rtol=1e-5, atol=1e-6 * float(one.abs().max()))
     # the initial-state offsets' columns likewise (2 d perturbed models in one solve)
     field = make_field(beta)
-    batched_o = tf._offset_columns(residuals, field, off, sd)
+    batched_o = tm._offset_columns(residuals, field, off, sd)
     del residuals.many  # the one-solve-per-perturbation path
-    one_o = tf._offset_columns(residuals, field, off, sd)
+    one_o = tm._offset_columns(residuals, field, off, sd)
     assert batched_o.shape == (ragged.num_samples * 2, 3 * 2)
     torch.testing.assert_close(batched_o, one_o, rtol=1e-5, atol=1e-6 * float(one_o.abs().max()))

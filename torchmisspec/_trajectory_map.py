@@ -1,0 +1,377 @@
+"""The trajectory fit's inner machinery (:func:`~torchmisspec.fit_trajectories`): the MAP of the pseudo-targets and
+state offsets through the ODE, and relevance through the ODE for the feature kernels.
+
+* :func:`_maximise_posterior`: L-BFGS (the package's one loop, :func:`~torchmisspec.gp._optim.maximise`) on the log
+  posterior of the pseudo-targets and the initial-state offsets given the observed states;
+* :func:`_fit_relevance`: for a feature kernel, alternates Levenberg-Marquardt steps on the active coefficients and
+  the offsets (Jacobians by central differences through one batched solve) with relevance updates of the weights,
+  until the active terms and weights settle; the result is written back as pseudo-targets
+  (:func:`_pseudo_targets`), so the model stays a :class:`~torchmisspec.CorrectionGP`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ._errors import (
+    FittingError,
+    IntegrationError,
+    LinearAlgebraError,
+    TorchMisspecWarning,
+    warn,
+)
+from ._validation import progress_bar
+from .data import Trajectories
+from .gp._optim import OptimResult, maximise
+
+
+def _balanced_noise(residuals, field, trajectories: Trajectories, d: int) -> torch.Tensor:
+    """State-noise variances that balance data and prior at the start: the mean squared misfit per component."""
+    with torch.no_grad():
+        sq0 = residuals(field, None, None).pow(2).reshape(-1, d)  # the start: the observed initial states
+    seen = residuals.seen.to(sq0.dtype)
+    flat = trajectories.flat_states()
+    size = float(flat[torch.isfinite(flat)].pow(2).mean())
+    return (sq0.sum(0) / seen.sum(0).clamp_min(1.0)).clamp_min(1e-12 * size)
+
+
+def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, *, max_iter, progress, shooting):
+    """L-BFGS on the log posterior ``-(sum squares / (2 s2) + prior)`` over ``params`` (and the offsets); a trial
+    step that blows up the ODE ends the fit at the best iterate, with a warning. The parameters hold the optimum."""
+    d = s2.shape[0]
+    sd = s2.sqrt()
+    every = [*params] + ([] if offsets is None else [offsets])
+    best = {"value": -math.inf, "params": None, "evaluations": 0}
+
+    def evaluate():
+        try:
+            field, prior = field_and_prior(params[0])
+            sq = residuals(field, offsets, sd).pow(2)
+        except IntegrationError:
+            if best["params"] is None:  # the starting correction itself blows up: nothing to fall back on
+                raise
+            raise _TrialDiverged from None
+        objective = -((sq.reshape(-1, d) / s2).sum() / 2 + prior)  # the log posterior, up to a constant
+        value = float(objective.detach())
+        best["evaluations"] += 1
+        if math.isfinite(value) and value > best["value"]:
+            best["value"], best["params"] = value, [p.detach().clone() for p in every]
+        return objective.detach(), objective
+
+    try:
+        result = maximise(
+            every,
+            evaluate,
+            max_iter=max_iter,
+            normaliser=float(n_obs),
+            progress=progress,
+            desc=f"fit_trajectories ({shooting} shooting)",
+        )
+    except LinearAlgebraError as exc:
+        raise FittingError(f"fit_trajectories failed: {exc}") from exc
+    except _TrialDiverged:
+        # a line-search trial drove the corrected ODE into a blow-up or a stiff region: keep the best iterate
+        with torch.no_grad():
+            for p, value in zip(every, best["params"], strict=True):
+                p.copy_(value)
+        result = OptimResult(0, best["evaluations"], best["value"])
+        warn(
+            "fit_trajectories: a trial step of the optimiser made the corrected ODE blow up (or stall); the fit "
+            f"stopped there and returns the best correction found ({best['evaluations']} evaluations). Give "
+            "state_noise=... (a larger noise weakens the pull of the data) or fewer max_iter",
+            TorchMisspecWarning,
+        )
+    if not all(bool(torch.isfinite(p).all()) for p in every):
+        raise FittingError("fit_trajectories diverged: the parameters became non-finite; give state_noise=...")
+    return result
+
+
+#: Most outer iterations (MAP, then a relevance update of the weights) of the feature kernel's trajectory fit.
+RELEVANCE_ROUNDS = 10
+#: L-BFGS iterations of the MAP in the rounds after the first (each starts from the previous optimum).
+_LATER_ITERATIONS = 10
+
+
+def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int, progress: bool = False):
+    """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
+
+    F(x) = sum_j beta_j phi_j(x) with beta_j ~ N(0, w_j). Each round (i) finds the MAP coefficients (and initial
+    states) under the current weights by L-BFGS, (ii) approximates their posterior by Laplace with the Gauss-Newton
+    Hessian of the state misfit (its Jacobian by central differences: every coefficient, and each state component
+    of all initial states at once, since experiments are independent), and (iii) updates the weights by MacKay's
+    rule w_j = sum_o beta_oj^2 / sum_o gamma_oj, gamma_oj = 1 - Sigma_oj / w_j (removing terms that fall below
+    :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle.
+    """
+    from .gp._features import PRUNE
+
+    d = trajectories.state_dim
+    base = gp.covar_module.base_kernel
+    X = gp.train_inputs_
+    Phi = base.features(X)  # (N, p): the monomials or a user library
+    p = Phi.shape[1]
+    d_out = gp.output_dim
+    kd = dict(dtype=gp.dtype, device=gp.device)
+    scale = gp.covar_module.outputscale.detach().reshape(-1, 1)  # (B, 1)
+    W = (base.weights.detach().reshape(-1, p) * scale).T.expand(p, d_out).clone()  # (p, d_out) prior variances
+    shared = W.shape[1] > 1 and not gp.per_output
+    # the starting coefficients: the posterior mean of the current fit, beta = W Phi^T alpha
+    alpha = gp.posterior().weights  # (N, d_out)
+    beta = W * (Phi.T @ alpha)
+    second = float(gp.train_targets_.pow(2).mean()) or 1.0
+    phi2 = Phi.pow(2).mean(0).unsqueeze(-1).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p, 1)
+    # every term starts active: the derivative samples may have removed a term the trajectories support (their
+    # estimator's bias is not the trajectories'); a removed term starts with an equal share of the samples' size
+    W = torch.where(W > 0, W, (second / (p * phi2)).expand_as(W))
+
+    def make_field(b):
+        def field(y):
+            x = system.select_inputs(y)
+            return system.known_rhs(y) + system.embed(base.features(x) @ b)
+
+        return field
+
+    def make_fields(bs):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
+        def field(y):
+            f = base.features(system.select_inputs(y)).reshape(bs.shape[0], -1, p)  # (m, K, p)
+            return system.known_rhs(y) + system.embed(torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1))
+
+        return field
+
+    if s2 is None:
+        s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
+    sd = s2.sqrt()
+    iterations = evaluations = 0
+    bar = progress_bar(progress, RELEVANCE_ROUNDS, "fit_trajectories: term weights through the ODE", "round")
+    for round_ in range(RELEVANCE_ROUNDS):
+        bar.update()
+        active = W > 0
+        if not bool(active.any()):
+            beta = torch.zeros_like(W)
+            break
+        root = W[active].sqrt()
+        u = (beta[active] / root).clone().requires_grad_(True)  # coefficients in units of their prior std
+
+        def field_and_prior(uv, active=active, root=root):
+            b = torch.zeros((p, d_out), **kd).index_put((active.nonzero(as_tuple=True)), uv * root)
+            return make_field(b), 0.5 * uv.pow(2).sum()
+
+        rounds_iter = max_iter if round_ == 0 else min(max_iter, _LATER_ITERATIONS)
+        if hasattr(residuals, "many") and offsets is not None:  # single shooting: Levenberg-Marquardt
+            its, evals = _levenberg_marquardt(
+                u, offsets, active, root, beta, make_field, make_fields, residuals, sd, max_iter=rounds_iter
+            )
+        else:
+            result = _maximise_posterior(
+                [u], offsets, field_and_prior, residuals, s2, n_obs, max_iter=rounds_iter, progress=False,
+                shooting="relevance",
+            )  # fmt: skip
+            its, evals = result.iterations, result.evaluations
+        iterations += its
+        evaluations += evals
+        b_act = (u.detach() * root).clone()
+        beta = torch.zeros((p, d_out), **kd)
+        beta[active] = b_act
+        # Laplace: Gauss-Newton Hessian of the scaled misfit in (coefficients, initial-state offsets)
+        off = None if offsets is None else offsets.detach()
+        with torch.no_grad():
+            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
+            H = J_b.T @ J_b + torch.diag(1.0 / W[active])
+            if off is not None:  # the offsets' block: column j moves component j of every initial state
+                Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
+                Kx, dd = off.shape
+                Hbo = J_b.T @ Jo
+                Hoo = Jo.T @ Jo + torch.eye(Kx * dd, **kd)  # the offsets' prior N(0, 1) in units of sd
+                H = H - Hbo @ torch.linalg.solve(Hoo, Hbo.T)  # marginal over the offsets (Schur complement)
+            try:
+                Sigma = torch.linalg.inv(H).diagonal()
+            except torch.linalg.LinAlgError:
+                break
+            new = torch.zeros_like(W)
+            gam = (1.0 - Sigma / W[active]).clamp(1e-12, 1.0)
+            num = torch.zeros_like(W)
+            num[active] = b_act.pow(2)
+            den = torch.zeros_like(W)
+            den[active] = gam
+            if shared:  # one weight per term shared by the outputs
+                num = num.sum(1, keepdim=True).expand_as(W)
+                den = den.sum(1, keepdim=True).expand_as(W)
+            new[active] = num[active] / den[active].clamp_min(1e-12)
+            new[new * phi2 < PRUNE * second] = 0.0
+            both = (new > 0) & active
+            change = float((new[both].log() - W[both].log()).abs().max()) if bool(both.any()) else 0.0
+            settled = bool(((new > 0) == active).all()) and change < 1e-2
+            beta = beta * (new > 0)
+            W = new
+        if settled:
+            break
+    bar.close()
+    # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta
+    tmp = gp.condition(X, gp.train_targets_, noise=gp.train_noise_)
+    with torch.no_grad():
+        wt = (W.T / scale) if gp.per_output else (W[:, :1].T / scale)
+        tmp.covar_module.base_kernel.weights.copy_(wt.reshape(tmp.covar_module.base_kernel.weights.shape))
+        # a term kept through the ODE is present; one the samples' fit removed too keeps the chance of being present
+        # and the spread that the samples gave it (gp._features; the trajectories' own would need the linearised
+        # factors); one the samples kept but the trajectories removed counts as absent (chance 0, no spread)
+        base = tmp.covar_module.base_kernel
+        kept = base.weights.detach() > 0
+        was_kept = gp.covar_module.base_kernel.weights.detach().reshape(kept.shape) > 0
+        one, zero = torch.ones_like(base.inclusion), torch.zeros_like(base.inclusion)
+        base.inclusion.copy_(torch.where(kept, one, torch.where(was_kept, zero, base.inclusion)))
+        base.spread.copy_(torch.where(kept | was_kept, zero, base.spread))
+        Yhat = _pseudo_targets(tmp, Phi, W, beta)
+    refined = tmp.condition(X, Yhat, noise=gp.train_noise_)
+    refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations
+    refined.n_rhs_evaluations_ = residuals.nfe
+    refined.state_noise_ = s2
+    if offsets is not None:
+        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
+    return refined
+
+
+def _levenberg_marquardt(u, offsets, active, root, beta, make_field, make_fields, residuals, sd, *, max_iter: int):
+    """Minimise ``1/2 ||r(u, o) / s||^2 + 1/2 ||u||^2`` (the MAP of the coefficients ``u``, in units of their prior
+    standard deviations, and the initial-state offsets ``o``, in units of the state noise) by Levenberg-Marquardt
+    steps: the Jacobian by central differences, every perturbed model in one batched solve. The problem has a few
+    dozen parameters and is nearly linear in them, so a handful of steps replaces L-BFGS's dozens of evaluations,
+    each of which differentiated through the solver. ``u`` and ``offsets`` are updated in place; returns
+    ``(iterations, objective evaluations)``."""
+    q = u.numel()
+    K, d = offsets.shape
+    kd = dict(dtype=u.dtype, device=u.device)
+
+    def coefficients(uv):
+        b = torch.zeros_like(beta)
+        b[active] = uv * root
+        return b
+
+    def objective(uv, ov):
+        try:
+            r = residuals(make_field(coefficients(uv)), ov, sd) / sd
+        except IntegrationError:
+            return math.inf, None
+        return 0.5 * float(r.pow(2).sum() + uv.pow(2).sum()), r.reshape(-1)
+
+    with torch.no_grad():
+        uv, ov = u.detach().clone(), offsets.detach().clone()
+        value, r = objective(uv, ov)
+        if r is None:
+            raise FittingError("fit_trajectories: the starting correction cannot be integrated over the experiments")
+        lam, evaluations, iterations = 1e-3, 1, 0
+        while iterations < max_iter:
+            iterations += 1
+            b = coefficients(uv)
+            J_u = _coefficient_columns(residuals, make_field, b, active, ov, sd, make_fields) * root  # (n d, q)
+            J_o = _offset_columns(residuals, make_field(b), ov, sd)  # (n d, K d)
+            J = torch.cat([J_u, J_o], dim=1)
+            grad = J.T @ r + torch.cat([uv, torch.zeros(K * d, **kd)])
+            H = J.T @ J
+            H[range(q), range(q)] += 1.0
+            accepted = False
+            for _ in range(8):
+                A = H + lam * torch.diag(H.diagonal().clamp_min(1e-12))
+                try:
+                    step = -torch.linalg.solve(A, grad)
+                except torch.linalg.LinAlgError:
+                    lam *= 10.0
+                    continue
+                new_u, new_o = uv + step[:q], ov + step[q:].reshape(K, d)
+                new_value, new_r = objective(new_u, new_o)
+                evaluations += 1
+                if new_value < value:
+                    accepted = True
+                    break
+                lam *= 10.0
+            if not accepted:
+                break
+            gain = value - new_value
+            uv, ov, value, r = new_u, new_o, new_value, new_r
+            lam = max(lam / 10.0, 1e-9)
+            if gain <= 1e-8 * max(value, 1.0):
+                break
+        u.data.copy_(uv)
+        offsets.data.copy_(ov)
+    return iterations, evaluations
+
+
+def _step(value: float, typical: float) -> float:
+    """A central-difference step for a parameter of size ``value`` among parameters of size ``typical``."""
+    return 1e-5 * max(abs(value), typical, 1e-12)
+
+
+def _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields=None) -> torch.Tensor:
+    """``(n d, q)``: d (residual / s) / d beta over the active coefficients, by central differences; with
+    ``make_fields`` (a field for a stack of coefficient sets) and single shooting, every perturbed model in one
+    batched solve."""
+    typical = float(beta.abs().max()) * 1e-3
+    pairs = active.nonzero(as_tuple=False).tolist()
+    if make_fields is not None and hasattr(residuals, "many"):
+        h = torch.tensor([_step(float(beta[i, o]), typical) for i, o in pairs], dtype=beta.dtype, device=beta.device)
+        q = len(pairs)
+        stack = beta.unsqueeze(0).repeat(2 * q, 1, 1)
+        rows = torch.arange(q, device=beta.device)
+        idx_i = torch.tensor([i for i, _ in pairs], device=beta.device)
+        idx_o = torch.tensor([o for _, o in pairs], device=beta.device)
+        stack[rows, idx_i, idx_o] += h
+        stack[q + rows, idx_i, idx_o] -= h
+        res = residuals.many(make_fields(stack), 2 * q, off, sd)  # (2q, n, d)
+        diff = (res[:q] - res[q:]) / (2 * h.reshape(-1, 1, 1)) / sd
+        return diff.reshape(q, -1).T
+    cols = []
+    for i, o in pairs:
+        h = _step(float(beta[i, o]), typical)
+        plus, minus = beta.clone(), beta.clone()
+        plus[i, o] += h
+        minus[i, o] -= h
+        diff = residuals(make_field(plus), off, sd) - residuals(make_field(minus), off, sd)
+        cols.append((diff / (2 * h) / sd).reshape(-1))
+    return torch.stack(cols, dim=-1)
+
+
+def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
+    """``(n d, K d)``: d (residual / s) / d offsets by central differences; experiments are independent, so moving
+    component j of every initial state at once gives each experiment's own column."""
+    rows = residuals.experiment  # (n,)
+    K, d = off.shape
+    n = rows.shape[0]
+    J = torch.zeros((n, d, K, d), dtype=off.dtype, device=off.device)
+    h = 1e-5
+    if hasattr(residuals, "many"):  # the 2 d perturbed offsets in one batched solve
+        stack = off.unsqueeze(0).repeat(2 * d, 1, 1)
+        j = torch.arange(d, device=off.device)
+        stack[j, :, j] += h
+        stack[d + j, :, j] -= h
+        res = residuals.many(field, 2 * d, stack, sd)  # (2 d, n, d)
+        delta = (res[:d] - res[d:]) / (2 * h) / sd  # (d, n, d)
+        for jj in range(d):
+            J[torch.arange(n, device=off.device), :, rows, jj] = delta[jj]
+        return J.reshape(n * d, K * d)
+    for j in range(d):
+        plus, minus = off.clone(), off.clone()
+        plus[:, j] += h
+        minus[:, j] -= h
+        delta = (residuals(field, plus, sd) - residuals(field, minus, sd)) / (2 * h) / sd  # (n, d)
+        J[torch.arange(n, device=off.device), :, rows, j] = delta
+    return J.reshape(n * d, K * d)
+
+
+def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
+    """Targets ``Y (N, d_out)`` whose posterior mean under ``gp`` (a feature kernel with prior variances ``W``) is
+    ``phi(x)^T beta``: with C the training covariance, ``Y_o = C Phi_a (Phi_a^T Phi_a)^-1 W_a^-1 beta_a`` over the
+    active terms a of output o (then ``W_a Phi_a^T C^-1 Y_o = beta_a``)."""
+    X = gp.train_inputs_
+    C = gp.posterior().training_covariance()  # (B, N, N)
+    Y = torch.zeros((X.shape[0], beta.shape[1]), dtype=beta.dtype, device=beta.device)
+    for o in range(beta.shape[1]):
+        act = W[:, o] > 0
+        if not bool(act.any()):
+            continue
+        P = Phi[:, act]
+        Y[:, o] = C[o if C.shape[0] > 1 else 0] @ (P @ torch.linalg.solve(P.T @ P, beta[act, o] / W[act, o]))
+    return Y
+
+
+class _TrialDiverged(Exception):
+    """A line-search trial of the trajectory fit made the ODE blow up (caught inside fit_trajectories)."""
