@@ -10,6 +10,7 @@ import torch
 
 from ._errors import InputError
 from ._linalg import cholesky, cholesky_or_fail, logdet_from_cholesky
+from ._optim import maximise
 from ._stencils import _finite_derivative, _states_and_times
 from ._threads import adaptive_threads
 from ._validation import check_positive_int
@@ -180,20 +181,24 @@ def _gp_time(
         values_ = _gp_neg_mll(t, z.repeat(G, 1, 1), p, grid_pair).view(G, d)  # inf where a factorization failed
         start = p.view(G, d, 3)[values_.argmin(0), torch.arange(d, device=device)]  # (d, 3)
     log_params = start.clone().requires_grad_(True)
-    opt = torch.optim.LBFGS(
-        [log_params], lr=1.0, max_iter=max_iter, history_size=10, line_search_fn="strong_wolfe", tolerance_grad=1e-6
-    )
     lo = torch.tensor([math.log(dt_min / 4), -12.0, -30.0], dtype=torch.float64, device=device)
     hi = torch.tensor([math.log(20 * span), 8.0, 2.0], dtype=torch.float64, device=device)
 
-    def closure():
-        opt.zero_grad()
-        value = _gp_neg_mll(t, z, torch.maximum(torch.minimum(log_params, hi), lo), pair).sum() / n
-        if torch.isfinite(value):
-            value.backward()
-        return value
+    def evaluate() -> tuple[torch.Tensor, torch.Tensor]:
+        value = -_gp_neg_mll(t, z, torch.maximum(torch.minimum(log_params, hi), lo), pair).sum()
+        # a failed factorization is -inf: no step is taken towards it (and no gradient is formed through it)
+        return value, (value if bool(torch.isfinite(value)) else 0.0 * log_params.sum())
 
-    opt.step(closure)
+    maximise(
+        [log_params],
+        evaluate,
+        max_iter=max_iter,
+        normaliser=float(n),
+        tolerance_grad=1e-6,
+        tolerance_change=1e-9,
+        history_size=10,
+        desc="GP in time",
+    )
     with torch.no_grad():
         p = torch.maximum(torch.minimum(log_params, hi), lo)
         if not bool(torch.isfinite(_gp_neg_mll(t, z, p, pair)).all()):

@@ -1,7 +1,7 @@
 """The trajectory fit's inner machinery (:func:`~torchmisspec.fit_trajectories`): the MAP of the pseudo-targets and
 state offsets through the ODE, and relevance through the ODE for the feature kernels.
 
-* :func:`_maximise_posterior`: L-BFGS (the package's one loop, :func:`~torchmisspec.gp._optim.maximise`) on the log
+* :func:`_maximise_posterior`: L-BFGS (the package's one loop, :func:`~torchmisspec._optim.maximise`) on the log
   posterior of the pseudo-targets and the initial-state offsets given the observed states;
 * :func:`_fit_relevance`: for a feature kernel, alternates Levenberg-Marquardt steps on the active coefficients and
   the offsets (Jacobians by central differences through one batched solve) with relevance updates of the weights,
@@ -22,9 +22,9 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
+from ._optim import OptimResult, maximise
 from ._validation import progress_bar
 from .data import Trajectories
-from .gp._optim import OptimResult, maximise
 
 
 def _balanced_noise(residuals, field, trajectories: Trajectories, d: int) -> torch.Tensor:

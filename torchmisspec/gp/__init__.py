@@ -7,10 +7,10 @@ One idea per module, each readable in one sitting:
 * :mod:`._kernels` - the kernels as objects (:class:`Kernel`, :class:`RBF`, ...; :func:`register` a kernel of your
   own); :mod:`._features` - the feature kernel, its terms and its feature-space posterior; :mod:`._sum` - the
   library plus an RBF;
-* :mod:`._mll` - the exact log marginal likelihood and its analytic gradient (pure functions); :mod:`._optim` - the
-  one L-BFGS loop; :mod:`._fit` - how a model learns; :mod:`._relevance` - the feature weights' sparse Bayesian
-  learning; :mod:`._selection` - ``kernel="auto"``'s choice by evidence; :mod:`._prior` - hyperparameters before
-  data;
+* :mod:`._mll` - the exact log marginal likelihood and its analytic gradient (pure functions); :mod:`._fit` - how
+  a model learns (through the package's one L-BFGS loop, :mod:`torchmisspec._optim`); :mod:`._relevance` - the
+  feature weights' sparse Bayesian learning; :mod:`._selection` - ``kernel="auto"``'s choice by evidence;
+  :mod:`._prior` - hyperparameters before data;
 * :mod:`._posterior` - :class:`Posterior` (``gp.posterior()``) and :class:`GPPosterior`; :mod:`._conditioning` -
   copies and conditioning; :mod:`._laplace` - the hyperparameters' Laplace posterior; :mod:`._terms` - the feature
   kernels' read-out; :mod:`._paths` and :mod:`._quadrature` - draws of F as functions; :mod:`._calibration` - the

@@ -19,9 +19,9 @@ import gpytorch
 import torch
 
 from .._errors import FittingError, LinearAlgebraError, NumericalWarning, warn
+from .._optim import maximise
 from . import _mll
 from ._exact import IndependentOutputsGP, median_distance
-from ._optim import maximise
 from ._relevance import fit_relevance, term_inclusion, unit_information_weights
 from ._sum import fit_sum
 

@@ -22,10 +22,10 @@ import torch
 
 from .._errors import FittingError, LinearAlgebraError
 from .._linalg import cholesky_or_fail
+from .._optim import maximise
 from . import _mll
 from ._exact import median_distance
 from ._features import FeatureKernel
-from ._optim import maximise
 from ._relevance import fit_relevance, noise_groups, term_gain
 
 __all__ = ["FeaturesPlusRBF", "fit_sum", "PRUNE_SUM"]

@@ -1,7 +1,8 @@
 """The one L-BFGS loop of the package: on an objective that supplies its own gradient through a surrogate.
 
-Every fit maximises through :func:`maximise`: the GP's marginal likelihood (:mod:`._fit`), the features+rbf kernel's
-(:mod:`._sum`), the GP in time of the derivative estimates and the trajectory fit; progress shows when asked.
+Every fit maximises through :func:`maximise`: the GP's marginal likelihood (:mod:`torchmisspec.gp._fit`), the
+features+rbf kernel's (:mod:`torchmisspec.gp._sum`), the GP in time of the derivative estimates and the trajectory
+fit; progress shows when asked.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._validation import progress_bar
+from ._validation import progress_bar
 
 __all__ = ["OptimResult", "maximise"]
 
