@@ -1,13 +1,4 @@
-"""Costs of issues 9 and 10 measured in one run, written as a block of BENCHMARKS.md.
-
-* Issue 10: ``CorrectedODE.posterior`` with 1,000 initial conditions x 64 draws x 61 times on paper_linear (GP on 440
-  samples: 40 trajectories x 11 times, oracle noise std 1e-2) against the mean-only ``predict`` on the same 1,000
-  initial conditions (target: at most 20x its time); both timed in this process, medians of ``--repeats``. Also
-  timed: the posterior with the previous default prior features (800 random Fourier features, ``num_features=800``)
-  and two parts of the default posterior (building the draws; the support check along the mean paths).
-* Issue 9: ``derivative="gp"`` on 40 experiments x 21 times (target < 1 s), ``fit_trajectories`` (single shooting,
-  the default) and ``fit_correction`` (cross-validated lengthscale) on the same data with 1 % state noise (target
-  for fit_trajectories < 30 s).
+"""Command line of :mod:`torchmisspec.benchmarks.posterior` (``--help`` prints that docstring first).
 
 Usage::
 
@@ -29,7 +20,7 @@ def _posterior_only(parser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = benchmark_arguments(__doc__, argv, extra=_posterior_only)
+    args = benchmark_arguments(posterior.__doc__ + __doc__, argv, extra=_posterior_only)
     if args.posterior_only and args.markdown:
         args.parser.error("--posterior-only never writes BENCHMARKS.md (the block needs issue 9's rows too)")
     return posterior.run(args)

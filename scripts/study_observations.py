@@ -1,21 +1,4 @@
-"""Study of issue 9: learning the correction from noisy, sparsely sampled *states* instead of exact derivatives.
-
-For four systems (the paper's linear system and three that are not in the package: a pendulum with unknown
-friction, FitzHugh-Nagumo with its cubic term unknown, Lotka-Volterra with a missing logistic prey term), K = 5,
-10, 20 training experiments from random initial conditions, and state noise of 0, 0.1 % and 1 % of each
-component's RMS, every realization runs what a user would run:
-
-* (a) ``fit_correction(trajectories, system)``: ``correction_samples`` with ``derivative="auto"``, then the model
-  chosen by cross-validation on held-out experiments among RBF GPs over a grid of lengthscales and a feature kernel
-  with automatic relevance (which ``fit_correction`` then refines through the ODE), the package's defaults ->
-  ``CorrectedODE(system, gp).predict``;
-* (b) ``fit_trajectories(gp, system, trajectories)`` starting from (a); where (a) chose the feature kernel, (a) is
-  already its trajectory fit and (b) is (a).
-
-It records which estimator ``auto`` chose (``choose_derivative``, deterministic, called again for the record) and
-whether ``fit_correction`` issued a ``TorchMisspecWarning`` (data that cannot support a correction). The
-metric is the corrected / misspecified trajectory RMSE ratio on 25 new initial conditions. On paper_linear the
-integrated error of F_hat is also compared with the paper's oracle observation model (exact derivatives + noise).
+"""Command line of :mod:`torchmisspec.paper.study_observations` (``--help`` prints that docstring first).
 
 Usage::
 
@@ -36,7 +19,9 @@ from torchmisspec.paper import study_observations_report as report
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=study.__doc__ + __doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument(
         "--smoke", action="store_true", help="tiny: every system, K = 5, one noise level, 1 realization"
     )

@@ -1,8 +1,8 @@
 """The package's structure, checked on its source: no import circles, no deprecated shims, the library never
 imports the paper's code, and no module grows past a size a newcomer reads in one sitting.
 
-Imports are read from the syntax tree (top-level and inside functions alike: a lazy import is still a dependency),
-except those under ``if TYPE_CHECKING:``, which never run.
+Imports are read from the syntax tree: top-level, inside functions (a lazy import is still a dependency) and under
+``if TYPE_CHECKING:`` (a circle of annotations is still a circle to read).
 """
 
 from __future__ import annotations
@@ -27,23 +27,11 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _type_checking_nodes(tree: ast.AST) -> set[int]:
-    """ids of the import nodes under ``if TYPE_CHECKING:``."""
-    skip = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-            skip |= {id(n) for stmt in node.body for n in ast.walk(stmt)}
-    return skip
-
-
 def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     tree = ast.parse(path.read_text())
-    skip = _type_checking_nodes(tree)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(tree):
-        if id(node) in skip:
-            continue
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):

@@ -9,7 +9,6 @@ import math
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -17,9 +16,6 @@ import torch
 from .._errors import InputError, ShapeError
 from .._validation import as_tensor
 from ._input import _check_distinct
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ._trajectories import Trajectories
 
 _TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
 _SUFFIXES = ".npz, .csv, .tsv or .txt"
@@ -200,7 +196,7 @@ def _split_ragged(path: Path, times: np.ndarray, states: np.ndarray, lengths: np
 
 
 def write(
-    trajectories: Trajectories,
+    trajectories,
     path: str | Path,
     *,
     time_column: str,

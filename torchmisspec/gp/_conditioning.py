@@ -14,9 +14,8 @@ import gpytorch
 import torch
 
 from .._errors import InputError, NotFittedError, ShapeError
-from .._validation import as_tensor, check_finite, check_ndim
 from ._exact import IndependentOutputsGP
-from ._inputs import check_inputs, check_noise, unpack
+from ._inputs import check_inputs, check_samples
 from ._kernels import as_kernel
 
 __all__ = ["clone", "condition", "fixed_copy"]
@@ -33,18 +32,10 @@ def condition(gp, inputs, targets=None, *, noise=None):
                 "neither; fit it first, or pass them to CorrectionGP(...)"
             )
         return gp.clone().fit(inputs, targets, noise=noise)  # nothing to learn: the given values, on these data
-    inputs, targets, noise = unpack(inputs, targets, noise)
-    X = check_inputs(gp, inputs, "inputs")
-    Y = as_tensor(targets, "targets", dtype=gp.dtype, device=gp.device)
-    Y = Y.unsqueeze(-1) if Y.dim() == 1 else Y
-    check_ndim(Y, 2, "targets", "(N, d_out)")
-    check_finite(Y, "targets")
-    if Y.shape != (X.shape[0], gp.output_dim):
-        raise ShapeError(
-            f"targets: expected ({X.shape[0]}, {gp.output_dim}) (one row per input, this GP's outputs), got "
-            f"{tuple(Y.shape)}"
-        )
-    noise = check_noise(gp, noise, Y.shape[0], Y.shape[1])
+    X, Y, noise = check_samples(gp, inputs, targets, noise)  # as fit() checks them
+    X = check_inputs(gp, X, "inputs")  # and as wide as the training inputs
+    if Y.shape[1] != gp.output_dim:
+        raise ShapeError(f"targets: expected {gp.output_dim} columns (this GP's outputs), got {tuple(Y.shape)}")
     new = copy.copy(gp)
     new.fixed = dict(gp.fixed)
     for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:

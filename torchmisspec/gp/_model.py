@@ -426,7 +426,7 @@ class CorrectionGP(Readout):
         """
         self._require_fitted()
         if differentiable:
-            Posterior.build(self)  # validates the training data and noise as for any prediction
+            self.posterior()  # the cached one validates the training data and noise (no second factorization)
             return Posterior.build(self, differentiable=True)
         if self._cache is not None and self._cache.is_current(self):
             return self._cache

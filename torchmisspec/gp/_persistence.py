@@ -12,7 +12,6 @@ from __future__ import annotations
 import pickle
 import zipfile
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -23,16 +22,13 @@ from ._exact import IndependentOutputsGP
 from ._kernels import as_kernel
 from ._selection import EVIDENCE_MARGIN
 
-if TYPE_CHECKING:  # pragma: no cover
-    from ._model import CorrectionGP
-
 __all__ = ["save", "load", "to_blob", "from_blob", "config_of", "from_config", "read_safely", "FORMAT_VERSION"]
 
 FORMAT_VERSION = 3  # 3: + "train_noise" (files of version 2 have none and load as before)
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
-def save(gp: CorrectionGP, path: str | Path) -> Path:
+def save(gp, path: str | Path) -> Path:
     """Write ``gp`` (fitted) to ``path``; the folder must exist."""
     path = Path(path)
     if not path.parent.is_dir():
@@ -43,7 +39,7 @@ def save(gp: CorrectionGP, path: str | Path) -> Path:
     return path
 
 
-def config_of(gp: CorrectionGP) -> dict:
+def config_of(gp) -> dict:
     """The configuration of ``gp`` (fitted or not) as plain values: enough for :func:`from_config` to rebuild it."""
     if getattr(gp, "library", None) is not None:
         raise InputError(
@@ -68,7 +64,7 @@ def config_of(gp: CorrectionGP) -> dict:
     }
 
 
-def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
+def from_config(cls, cfg, path, *, device=None):
     """The unfitted CorrectionGP of a configuration written by :func:`config_of` (checked; errors name ``path``)."""
     if not isinstance(cfg, dict):
         raise InputError(f"{path}: expected a configuration dictionary, got {type(cfg).__name__}")
@@ -107,7 +103,7 @@ def from_config(cls, cfg, path, *, device=None) -> CorrectionGP:
     return gp
 
 
-def to_blob(gp: CorrectionGP) -> dict:
+def to_blob(gp) -> dict:
     """The fitted ``gp`` as a dictionary of plain values and tensors (what :func:`save` writes)."""
     gp._require_fitted()
     blob = {
@@ -168,14 +164,14 @@ def read_safely(path: str | Path, what: str, writer: str):
         ) from exc
 
 
-def load(cls, path: str | Path, *, device=None) -> CorrectionGP:
+def load(cls, path: str | Path, *, device=None):
     """Read a file written by :func:`save`; the posterior cache is rebuilt (one factorization)."""
     path = Path(path)
     blob = read_safely(path, "CorrectionGP", "CorrectionGP.save")
     return from_blob(cls, blob, path, device=device)
 
 
-def from_blob(cls, blob, path, *, device=None) -> CorrectionGP:
+def from_blob(cls, blob, path, *, device=None):
     """The CorrectionGP of a dictionary written by :func:`to_blob`; ``path`` names the source in errors."""
     if not isinstance(blob, dict):
         raise InputError(f"{path}: expected a dictionary, got {type(blob).__name__}")

@@ -134,7 +134,7 @@ def gp_method(kernel: str, samples):
             return gp.predict_mean(x)
 
     info = {"kernel": gp.kernel}
-    if kernel == "auto":
+    if gp.auto:  # the chooser: what it compared
         info["selection"] = {r["kernel"]: r["log_marginal_likelihood"] for r in gp.model_selection_}
         info["score"] = {r["kernel"]: r["score"] for r in gp.model_selection_}
         info["library_suffices"] = gp.library_suffices_
