@@ -35,7 +35,10 @@ def condition(gp, inputs, targets=None, *, noise=None):
     X, Y, noise = check_samples(gp, inputs, targets, noise)  # as fit() checks them
     X = check_inputs(gp, X, "inputs")  # and as wide as the training inputs
     if Y.shape[1] != gp.output_dim:
-        raise ShapeError(f"targets: expected {gp.output_dim} columns (this GP's outputs), got {tuple(Y.shape)}")
+        raise ShapeError(
+            f"targets: expected ({X.shape[0]}, {gp.output_dim}) (one row per input, this GP's outputs), got "
+            f"{tuple(Y.shape)}"
+        )
     new = copy.copy(gp)
     new.fixed = dict(gp.fixed)
     for name in [k for k in vars(new) if k.endswith("_") and not k.startswith("_")]:
