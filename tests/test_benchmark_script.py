@@ -67,3 +67,17 @@ def test_prediction_peers_match(smoke):
 def test_design_picks_agree(smoke):
     for case in smoke[0]["naive"].values():
         assert case["identical_picks"]
+
+
+def test_the_page_keeps_every_other_scripts_block(smoke, tmp_path):
+    """benchmark.py rewrites its own part of BENCHMARKS.md and keeps the blocks the study and benchmark scripts
+    maintain there (``study:*`` and ``bench:*``: a rerun once dropped the campaign and features blocks)."""
+    from torchmisspec.benchmarks.suite import write_page
+
+    results, _ = smoke
+    page = tmp_path / "B.md"
+    kept = "<!-- study:x:start -->\nS\n<!-- study:x:end -->\n\n<!-- bench:y-z:start -->\nB\n<!-- bench:y-z:end -->"
+    page.write_text("old\n\n" + kept + "\n")
+    write_page(results, str(page))
+    text = page.read_text()
+    assert kept in text and "old\n" not in text

@@ -240,8 +240,6 @@ def test_bad_input():
     with pytest.raises(tms.FittingError, match=r"expected some non-zero samples"):
         tms.CorrectionGP(kernel="features", noise_variance=1e-3).fit(X, torch.zeros_like(Y))
     gp = tms.CorrectionGP(kernel="features").fit(X, Y)
-    with pytest.raises(tms.InputError, match=r"fixed_copy: the feature kernel's weights cannot be fixed"):
-        gp.fixed_copy()
     with pytest.raises(tms.InputError, match=r"only the feature kernels have named terms"):
         tms.CorrectionGP().fit(X, Y).terms()
     with pytest.raises(tms.ShapeError, match=r"targets: expected \(10, 2\)"):

@@ -247,12 +247,11 @@ def test_load_refuses_bad_saved_noise(tmp_path):
             tms.CorrectionGP.load(tmp_path / "bad.pt")
 
 
-def test_fixed_copy_conditions_on_new_noise():
+def test_condition_on_new_noise_keeps_the_hyperparameters():
     X, Y, noise = _data(seed=10)
     gp = tms.CorrectionGP().fit(X, Y, noise=noise)
-    copy = gp.fixed_copy()
+    copy = gp.condition(X, Y, noise=noise)
     assert copy.noise_variance == gp.noise_variance
-    copy.fit(X, Y, noise=noise)
     assert copy.n_iterations_ == 0
     torch.testing.assert_close(copy.predict_mean(XS), gp.predict_mean(XS), rtol=1e-12, atol=1e-15)
 

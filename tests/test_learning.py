@@ -45,7 +45,7 @@ def test_cross_validation_beats_the_marginal_likelihood_on_noisy_states(linear_n
     system, traj, test = linear_noisy
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)  # the estimator self-check warns at 1 % noise
-        ml = tms.fit_correction(traj, system, lengthscale="ml")
+        ml = tms.fit_correction(traj, system, gp=tms.CorrectionGP(), select="evidence")
         cv = tms.fit_correction(traj, system, gp=tms.CorrectionGP())  # the RBF kernel's lengthscale by CV
     assert ml.cross_validation_ is None and cv.cross_validation_ is not None
     # measured: marginal likelihood lengthscale 0.20, ratio 0.77; cross-validated 2.9, ratio 0.18
@@ -94,21 +94,28 @@ def test_fallbacks_and_bad_input(linear_noisy):
     one = traj[[0]]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
-        assert tms.fit_correction(one, system).cross_validation_ is None  # one experiment: marginal likelihood
+        # one experiment: nothing to hold out, chosen by evidence (kernel="auto")
+        single = tms.fit_correction(one, system, refine=False)
+        assert single.cross_validation_ is None and single.auto and len(single.model_selection_) == 4
         poly = tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="polynomial"))
         # a template without a lengthscale is still scored on held-out experiments (for the warning)
         assert poly.kernel == "polynomial" and poly.cross_validation_.candidates == ("polynomial degree=2",)
-        fixed = tms.fit_correction(traj, system, lengthscale=2.0)
-        assert fixed.lengthscale == pytest.approx(2.0) and fixed.cross_validation_ is None
+        fixed = tms.fit_correction(traj, system, gp=tms.CorrectionGP(lengthscale=2.0))  # scored, not searched
+        assert fixed.lengthscale == pytest.approx(2.0) and fixed.cross_validation_.candidates == ("rbf lengthscale=2",)
+        # select="evidence" among candidates: the highest evidence score wins, every candidate recorded
+        pool = [tms.CorrectionGP(lengthscale=ell) for ell in (0.05, 1.0, 20.0)]
+        best = tms.fit_correction(traj, system, candidates=pool, select="evidence")
+        scores = [r["score"] for r in best.model_selection_]
+        assert best.cross_validation_ is None and best.evidence_score == pytest.approx(max(scores), rel=1e-12)
+        assert [r["chosen"] for r in best.model_selection_] == [s == max(scores) for s in scores]
+        assert not any(c.is_fitted for c in pool)  # the templates are not touched
         # an unfitted kernel="auto" template holds an RBF, yet it is scored as it is (its kernel chosen by
         # evidence), not turned into a grid of RBF lengthscales
         auto = tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="auto"), refine=False)
         assert auto.auto and len(auto.model_selection_) == 4 and len(auto.cross_validation_.candidates) == 1
-    with pytest.raises(tms.InputError, match=r"lengthscale: the auto kernel has no lengthscale, got 2.0"):
-        tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="auto"), lengthscale=2.0)
-    for bad in ("foo", -1.0, 0.0, float("nan"), True):
-        with pytest.raises(tms.InputError, match=r"lengthscale: expected 'cv', 'ml' or a positive number"):
-            tms.fit_correction(traj, system, lengthscale=bad)
+    for bad in ("ml", "foo", None, True, 2.0):
+        with pytest.raises(tms.InputError, match=r"select: expected 'cv' \(held-out experiments\) or 'evidence'"):
+            tms.fit_correction(traj, system, select=bad)
     with pytest.raises(tms.InputError, match=r"gp: expected a CorrectionGP template or None, got str"):
         tms.fit_correction(traj, system, gp="rbf")
     samples = tms.correction_samples(traj, system, derivative="central")
@@ -124,8 +131,6 @@ def test_fallbacks_and_bad_input(linear_noisy):
         cross_validate_lengthscale(system, traj, samples, lengthscales=[1.0, -2.0])
     with pytest.raises(tms.InputError, match=r"candidates: pass either a gp template or a list of candidates"):
         tms.fit_correction(traj, system, gp=tms.CorrectionGP(), candidates=[tms.CorrectionGP()])
-    with pytest.raises(tms.InputError, match=r"candidates: are chosen by cross-validation .* got 'ml'"):
-        tms.fit_correction(traj, system, candidates=[tms.CorrectionGP()], lengthscale="ml")
     with pytest.raises(tms.InputError, match=r"candidates: expected a non-empty list of CorrectionGP templates"):
         tms.cross_validate(system, traj, samples, [])
     with pytest.raises(tms.InputError, match=r"candidates: expected a non-empty list of CorrectionGP templates"):
@@ -207,8 +212,9 @@ def test_given_candidates_are_never_silently_replaced(one_thread, monkeypatch):
     poly = tms.CorrectionGP(kernel="polynomial", degree=2)
     gp = tms.fit_correction(one, system, candidates=[poly], derivative="oracle")
     assert gp.kernel == "polynomial" and gp.cross_validation_ is None
-    with pytest.raises(tms.InputError, match="needs at least 2, got 1 experiment and 2 candidates"):
-        tms.fit_correction(one, system, candidates=[poly, tms.CorrectionGP()], derivative="oracle")
+    # one experiment, nothing to hold out: the candidates compete by evidence (every one recorded)
+    chosen = tms.fit_correction(one, system, candidates=[poly, tms.CorrectionGP()], derivative="oracle")
+    assert chosen.cross_validation_ is None and [r["kernel"] for r in chosen.model_selection_] == ["polynomial", "rbf"]
     with pytest.raises(tms.InputError, match="non-empty list of CorrectionGP templates, got an empty list"):
         tms.fit_correction(one, system, candidates=[], derivative="oracle")
     many = tms.simulate(system, torch.tensor([[0.5, -0.3], [0.2, 0.4], [-0.5, 0.1]], dtype=DT), t)

@@ -18,7 +18,7 @@ Typical use::
 from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
 from importlib.metadata import version as _version
 
-from . import design, metrics, systems
+from . import design, metrics, signals, systems
 from ._errors import (
     BudgetError,
     FittingError,
@@ -39,6 +39,7 @@ from .gp import CorrectionGP, GPPosterior, Posterior
 from .learning import cross_validate, fit_correction
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
+from .signals import Controls
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
 
@@ -50,6 +51,7 @@ except _PackageNotFoundError:  # pragma: no cover - running from a source tree t
 __all__ = [
     "BandCalibration",
     "BudgetError",
+    "Controls",
     "LinearAlgebraError",
     "NumericalWarning",
     "TorchMisspecWarning",
@@ -80,6 +82,7 @@ __all__ = [
     "integrated_error",
     "integrated_norm",
     "metrics",
+    "signals",
     "simulate",
     "smoothed_derivative",
     "systems",

@@ -32,7 +32,14 @@ def _check_trajectories_and_system(trajectories, system) -> None:
             f"trajectories.state_dim={trajectories.state_dim} (state columns {list(names)}; "
             f"{_describe_states(trajectories)}); load every state component the system has "
             "(Trajectories.load(..., state_columns=[...]) with one column per component, in the system's order)"
+            + (
+                f"; the system also takes {system.num_controls} input(s) {list(system.control_names)}: name their "
+                "columns (Trajectories.load(..., control_columns=[...]), --input-columns on the command line)"
+                if system.num_controls and trajectories.controls is None
+                else ""
+            )
         )
+    system.check_controls(trajectories.controls, trajectories.num_experiments, "trajectories.controls")
 
 
 def _describe_states(trajectories: Trajectories) -> str:
@@ -68,6 +75,11 @@ def _estimate_flat(name: str, trajectories: Trajectories, options: dict):
     so its hyperparameters stay shared by all experiments. With missing entries every estimator runs on the padded
     batch with the mask of the observed entries."""
     d = trajectories.state_dim
+    cut = _cut_at_jumps(trajectories)
+    if cut is not None:  # piecewise-constant controls: dy/dt jumps with them, so no stencil may straddle a jump
+        segments, rows = cut
+        dydt, var, states = _estimate_flat(name, segments, options)
+        return dydt[rows], None if var is None else var[rows], states[rows]
     if name == "gp" and (trajectories.is_ragged or trajectories.has_missing):
         return _gp_flat(trajectories, options.get("max_iter", 50))[1]
     if trajectories.has_missing:
@@ -128,10 +140,60 @@ def _check_options(name: str, options: dict) -> dict:
 
 
 def _with_flat_states(trajectories: Trajectories, flat: torch.Tensor) -> Trajectories:
-    """``trajectories`` with its states replaced by ``flat (N, d)`` (same experiments, times and lengths)."""
+    """``trajectories`` with its states replaced by ``flat (N, d)`` (same experiments, times, lengths, controls)."""
+    controls = trajectories.controls
     if not trajectories.is_ragged:
-        return Trajectories(trajectories.times, flat.reshape(trajectories.states.shape))
-    return Trajectories(list(trajectories.times), list(flat.split(list(trajectories.lengths))))
+        return Trajectories(trajectories.times, flat.reshape(trajectories.states.shape), controls=controls)
+    return Trajectories(list(trajectories.times), list(flat.split(list(trajectories.lengths))), controls=controls)
+
+
+#: a segment between two jumps of the controls is estimated on its own only with at least this many samples
+_MIN_SEGMENT = 4
+
+
+def _cut_at_jumps(trajectories: Trajectories):
+    """Every experiment cut where its piecewise-constant controls jump (the states' derivative jumps there), as
+    ragged segments without controls, and for every sample the row of the segments' flat arrays its derivative is
+    read from; ``None`` when there is nothing to cut (no such controls, or missing entries: then the experiments are
+    estimated whole). A sample at a jump ends one segment and starts the next; it takes the next one's (right)
+    derivative, as the hold is right-continuous. A cut that would leave a segment shorter than :data:`_MIN_SEGMENT`
+    samples is not made (those few samples keep the straddling stencils' error)."""
+    controls = trajectories.controls
+    if controls is None or controls.jumps is None or trajectories.has_missing:
+        return None
+    times, states, rows = [], [], []
+    offset = 0
+    cut_any = False
+    for (t, y), (knots, _) in zip(trajectories.experiments(), controls.profiles(), strict=True):
+        inner = knots[(knots > t[0]) & (knots < t[-1])].to(t)
+        starts, at_jump = [0], set()
+        for s in inner:
+            i = int(torch.searchsorted(t, s))  # the first sample at or after the jump
+            end = i + 1 if bool(t[i] == s) else i  # a sample at the jump ends the previous segment too
+            if end - starts[-1] >= _MIN_SEGMENT and len(t) - i >= _MIN_SEGMENT:
+                starts.append(i)
+                if bool(t[i] == s):
+                    at_jump.add(i)
+        bounds = starts + [len(t)]
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            stop = b + 1 if b in at_jump else b
+            times.append(t[a:stop])
+            states.append(y[a:stop])
+            rows += list(range(offset, offset + (b - a)))
+            offset += stop - a
+        cut_any = cut_any or len(bounds) > 2
+    if not cut_any:
+        return None
+    segments = Trajectories(times, states)
+    return segments, torch.tensor(rows, device=trajectories.device)
+
+
+def known_flat(system: MisspecifiedSystem, trajectories: Trajectories, flat: torch.Tensor) -> torch.Tensor:
+    """G at ``flat (N, d)``, the states of ``trajectories`` experiment after experiment, at their own times and
+    controls (``G(y)`` for an autonomous system)."""
+    if system.autonomous:
+        return system.known_rhs(flat)
+    return system.known_rhs(flat, trajectories.flat_times().to(flat), trajectories.flat_controls())
 
 
 def _flat_observed(trajectories: Trajectories) -> torch.Tensor:
@@ -150,7 +212,15 @@ def _known_model_copy(trajectories: Trajectories, system: MisspecifiedSystem):
     times = list(trajectories.times) if trajectories.is_ragged else trajectories.times
     kept = trajectories
     try:
-        sim = simulate(system, trajectories.initial_conditions, times, known_only=True, rtol=1e-8, atol=1e-10)
+        sim = simulate(
+            system,
+            trajectories.initial_conditions,
+            times,
+            known_only=True,
+            controls=trajectories.controls,
+            rtol=1e-8,
+            atol=1e-10,
+        )
     except IntegrationError:
         sim, kept = _known_model_where_it_integrates(trajectories, system)
     clean = sim.flat_states()
@@ -204,7 +274,8 @@ def _known_model_where_it_integrates(trajectories: Trajectories, system: Misspec
         TorchMisspecWarning,
     )
     times = [t for k, (t, _) in enumerate(trajectories.experiments()) if k in kept]
-    return Trajectories(times, [each[k] for k in kept]), trajectories[kept]
+    controls = None if trajectories.controls is None else trajectories.controls[kept]
+    return Trajectories(times, [each[k] for k in kept], controls=controls), trajectories[kept]
 
 
 def _sample_rows(trajectories: Trajectories, system: MisspecifiedSystem) -> torch.Tensor:
@@ -217,13 +288,13 @@ def _ratio(name, options, trajectories, known_copy, system) -> float:
         dydt, _, flat = known_copy[2]  # already computed for the noise level
     else:
         dydt, _, flat = _estimate_flat(name, trajectories, options)
-    targets = system.select_outputs(dydt - system.known_rhs(flat))
+    targets = system.select_outputs(dydt - known_flat(system, trajectories, flat))
     if trajectories.has_missing:
         targets = targets[_sample_rows(trajectories, system)]
     spread = float(targets.pow(2).mean().sqrt())
     copy = known_copy[0]
     est, _, _ = _estimate_flat(name, copy, options)
-    errors = system.select_outputs(est - system.known_rhs(known_copy[1]))  # dy/dt = G(y) on the noise-free copy
+    errors = system.select_outputs(est - known_flat(system, copy, known_copy[1]))  # dy/dt = G on the noise-free copy
     if copy.has_missing:
         errors = errors[_sample_rows(copy, system)]
     err = float(errors.pow(2).mean().sqrt())

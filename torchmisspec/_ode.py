@@ -62,6 +62,8 @@ DEFAULT_MAX_STEPS = 10_000
 #: right-hand-side evaluations allowed per step (dopri5 uses 6 per accepted or rejected step, plus the start)
 _EVALS_PER_STEP = 7
 _FLOAT_DTYPES = (torch.float32, torch.float64)
+#: torchdiffeq's adaptive solvers that take ``jump_t`` (discontinuities of the field they never step across)
+_JUMPING = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
 
 
 #: a solve is stalled when 100 steps advance time by less than this fraction of the time span
@@ -81,9 +83,17 @@ class _Autonomous(torch.nn.Module):
     """Wrap an autonomous field f(y) as torchdiffeq's func(t, y): counts evaluations, enforces the step budget,
     checks the field's output shape and remembers the last state (for the error message)."""
 
-    def __init__(self, field: Callable[[torch.Tensor], torch.Tensor], max_evals: int, what: str, span: float) -> None:
+    def __init__(
+        self,
+        field: Callable[[torch.Tensor], torch.Tensor],
+        max_evals: int,
+        what: str,
+        span: float,
+        offsets: torch.Tensor | None = None,
+    ) -> None:
         super().__init__()
         self.field = field
+        self.offsets = offsets  # a timed field: every row's own time is the solver's time plus its offset
         self.nfe = 0
         self.max_evals = max_evals
         self.what = what
@@ -102,7 +112,7 @@ class _Autonomous(torch.nn.Module):
             if self.window_t is not None and now - self.window_t < self.min_advance:
                 raise _Stalled
             self.window_t = now
-        f = self.field(y)
+        f = self.field(y) if self.offsets is None else self.field(t + self.offsets, y)
         if not isinstance(f, torch.Tensor) or f.shape != y.shape:
             shape = tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__
             raise ShapeError(
@@ -140,10 +150,16 @@ def solve(
     max_steps: int | None = None,
     what: str = "ODE",
     label: Callable[[int], str] | None = None,
+    timed: bool = False,
+    jumps: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, int]:
     """Integrate dy/dt = field(y) from ``y0 (B, d)`` given at ``times[..., 0]``.
 
     Args:
+        field: ``field(y (B, d)) -> (B, d)``; with ``timed=True``, ``field(t (B,), y (B, d))``, ``t`` every row's
+            own time (rows on their own grids are integrated together, each shifted by its start time).
+        jumps: with ``timed=True``, times where the field jumps (a piecewise-constant control): the adaptive
+            solvers never step across one (torchdiffeq's ``jump_t``).
         times: ``(T,)`` shared by all, or ``(B, T)`` one grid per initial condition; each row starts at the
             time of its initial condition. Rows may start at different times.
         max_steps: most solver steps (default :data:`DEFAULT_MAX_STEPS`); the solve stops with
@@ -171,19 +187,26 @@ def solve(
             return f"indices {rows[:10]}{more}"
         return "; ".join(label(i) for i in rows[:10]) + more
 
-    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0)
     if times.dim() == 1:
         grid, gather = times, None
+        offsets = times.new_zeros(y0.shape[0])
     else:
         # One solve on the union of all grids; row b starts at times[b, 0], so shift every row to start at 0
-        # (autonomous system) and gather each row's own times afterwards.
+        # (a timed field gets each row's own time back) and gather each row's own times afterwards.
         rel = times - times[:, :1]
         grid, inverse = torch.unique(rel.reshape(-1), sorted=True, return_inverse=True)
         gather = inverse.reshape(times.shape)
+        offsets = times[:, 0]
+    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0, offsets.detach() if timed else None)
+    if timed and jumps is not None and method in _JUMPING:
+        inner = jumps.to(grid).reshape(1, -1) - offsets.detach().to(grid).reshape(-1, 1)
+        inner = torch.unique(inner[(inner > grid[0]) & (inner < grid[-1])])
+        if inner.numel():
+            options = {**(options or {}), "jump_t": inner}
     span = f"[{float(grid[0]):.4g}, {float(grid[-1]):.4g}]"
     func.min_advance = _STALL_FRACTION * float(grid[-1] - grid[0])
     with torch.no_grad():
-        f0 = field(y0)
+        f0 = field(grid[0] + offsets, y0) if timed else field(y0)
     if not isinstance(f0, torch.Tensor) or f0.shape != y0.shape:
         func(grid[0], y0)  # raises the shape error
     if not bool(torch.isfinite(f0).all()):

@@ -114,6 +114,19 @@ def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
     return out
 
 
+def check_names(names, count: int, name: str, *, default: str | None = None) -> tuple[str, ...] | None:
+    """``count`` distinct non-empty strings (one string alone is a list of one); ``None`` gives ``default0,
+    default1, ...`` (or ``None`` without a default prefix)."""
+    if names is None:
+        return None if default is None else tuple(f"{default}{j}" for j in range(count))
+    items = [names] if isinstance(names, str) else list(names)
+    if len(items) != count or not all(isinstance(n, str) and n.strip() for n in items):
+        raise ShapeError(f"{name}: expected {count} non-empty strings (one per component), got {names!r:.200}")
+    if len(set(items)) != len(items):
+        raise InputError(f"{name}: expected distinct names, got {items}")
+    return tuple(items)
+
+
 def check_positive_int(value, name: str, *, minimum: int = 1, maximum: int = 2**62) -> int:
     """An integer in ``[minimum, maximum]`` (bools, floats and other types are refused; numpy/torch integers are
     accepted). The default maximum keeps every count within torch's 64-bit sizes."""

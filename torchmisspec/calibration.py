@@ -177,7 +177,7 @@ def calibrate_bands(
     K = trajectories.num_experiments
     experiments = trajectories.experiments()
     first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
-    held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d))])
+    held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d), controls or None)])
     refinement = getattr(gp, "refinement_", None)
     if refinement is not None and not refit:  # conditioning keeps the hyperparameters: the term weights too
         refinement = {**refinement, "relevance": False}
@@ -213,7 +213,8 @@ def calibrate_bands(
             kd = dict(dtype=gp.dtype, device=gp.device)
             times = torch.stack([experiments[k][0] for k in group]).to(**kd)
             states = torch.stack([experiments[k][1] for k in group]).to(**kd)
-            batches.append((first[group].to(**kd), times, states))
+            controls = None if trajectories.controls is None else trajectories.controls[group]
+            batches.append((first[group].to(**kd), times, states, controls))
         held_out.append((type(model)(system, fold_gp), batches))
     if fold_warnings:
         warn(
@@ -234,13 +235,19 @@ def calibrate_bands(
     # deviations from the mean path (CorrectedODE.posterior), so the coverage at any c is a few tensor operations
     paths = []  # (mean path (B, T - 1, d), deviations (S, B, T - 1, d), noise draws z or None, observed)
     for i, (fold_model, batches) in enumerate(held_out):
-        for j, (y0, times, observed) in enumerate(batches):
+        for j, (y0, times, observed, controls) in enumerate(batches):
             gen = torch.Generator(device=gp.device).manual_seed(seed + 7919 * i + j)
             with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
                 warnings.simplefilter("ignore", TorchMisspecWarning)
                 try:
                     post = fold_model.posterior(
-                        y0, times, num_samples=num_samples, generator=gen, scale=1.0, **posterior_options
+                        y0,
+                        times,
+                        num_samples=num_samples,
+                        generator=gen,
+                        scale=1.0,
+                        controls=controls,
+                        **posterior_options,
                     )
                 except IntegrationError as exc:
                     bar.close()

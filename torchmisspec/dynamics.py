@@ -63,24 +63,27 @@ class CorrectedODE(nn.Module):
         :meth:`calibrate`): kept on the GP (``gp.calibration_``), so it is saved and loaded with it."""
         return getattr(self.gp, "calibration_", None)
 
-    def correction(self, y: torch.Tensor) -> torch.Tensor:
-        """mu placed on the full state: ``(..., d)`` from states ``(..., d)``."""
-        return self._correction(y, None)
+    def correction(self, y: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+        """mu placed on the full state: ``(..., d)`` from states ``(..., d)`` (and controls ``(..., m)`` when F
+        depends on them)."""
+        return self._correction(y, None, u)
 
-    def _correction(self, y: torch.Tensor, cache) -> torch.Tensor:
-        x = self.system.select_inputs(y)
+    def _correction(self, y: torch.Tensor, cache, u: torch.Tensor | None = None) -> torch.Tensor:
+        x = self.system.select_inputs(y, u)
         shape = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype)
         # inside predict() the cache was validated once for the whole solve; a direct call checks everything
         mu = self.gp.predict_mean(x) if cache is None else cache.mean(x, check=False)
         return self.system.embed(mu.reshape(*shape, -1).to(y.device, y.dtype))
 
-    def field(self, y: torch.Tensor) -> torch.Tensor:
-        """G(y) + mu(y) for states ``(..., d)``."""
-        return self.system.known_rhs(y) + self.correction(y)
+    def field(self, y: torch.Tensor, t=None, u: torch.Tensor | None = None) -> torch.Tensor:
+        """G + mu for states ``(..., d)``; ``t`` and ``u`` as for :meth:`MisspecifiedSystem.known_rhs
+        <torchmisspec.MisspecifiedSystem.known_rhs>` (needed when the system has time or controls)."""
+        return self.system.known_rhs(y, t, u) + self.correction(y, u)
 
     def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        return self.field(y)
+        """torchdiffeq's ``func(t, y)`` for a system without controls (with controls, use :meth:`predict`)."""
+        return self.field(y, None if self.system.autonomous else t)
 
     @adaptive_threads()
     def predict(
@@ -93,12 +96,15 @@ class CorrectedODE(nn.Module):
         atol: float = PREDICTION_TOLERANCES[1],
         options: dict | None = None,
         max_steps: int | None = None,
+        controls=None,
     ) -> torch.Tensor:
         """Integrate the corrected model from every initial condition in one batched solve.
 
         Args:
             y0: ``(B, d)`` initial conditions at ``times[..., 0]`` (or ``(d,)`` for one).
             times: ``(T,)`` shared, or ``(B, T)`` per initial condition; strictly increasing.
+            controls: for a system with controls, the B experiments' input profiles
+                (:class:`~torchmisspec.signals.Controls`; each experiment its own, still one solve).
             method: torchdiffeq method (dopri5 by default).
             rtol: relative tolerance (the package's prediction tolerance by default: see :mod:`torchmisspec._ode`).
             atol: absolute tolerance (likewise).
@@ -122,10 +128,12 @@ class CorrectedODE(nn.Module):
         # refreshed here if the GP changed since its last prediction; with the graph to the hyperparameters when
         # one of them requires grad
         cache = self.gp.posterior(differentiable=hyper)
+        controls = self._controls(controls, y0)
 
-        def field(y: torch.Tensor) -> torch.Tensor:
-            return self.system.known_rhs(y) + self._correction(y, cache)
+        def rhs(y: torch.Tensor, t, u) -> torch.Tensor:
+            return self.system.known_rhs(y, t, u) + self._correction(y, cache, u)
 
+        field, timed, jumps = self.system.solver_field(rhs, controls)
         with torch.set_grad_enabled(_wants_graph(y0, times) or hyper):
             states, self.nfe = solve(
                 field,
@@ -137,6 +145,8 @@ class CorrectedODE(nn.Module):
                 options=options,
                 max_steps=max_steps,
                 what="CorrectedODE.predict",
+                timed=timed,
+                jumps=jumps,
             )
         return states
 
@@ -160,6 +170,7 @@ class CorrectedODE(nn.Module):
         hyperparameters: str = "fixed",
         hyperparameter_samples: int = 8,
         scale: float | None = None,
+        controls=None,
     ) -> TrajectoryPosterior:
         """Trajectories under posterior draws of F: uncertainty bands on the predicted paths.
 
@@ -196,6 +207,7 @@ class CorrectedODE(nn.Module):
                 posterior (``CorrectionGP.hyperparameter_samples``), so the bands allow for the hyperparameters'
                 own uncertainty (ML-II alone is overconfident with few experiments; ``docs/studies/calibration.md``).
             hyperparameter_samples: the number of hyperparameter sets with ``"laplace"`` (at most ``num_samples``).
+            controls: for a system with controls, the B experiments' input profiles, as for :meth:`predict`.
             scale: a factor c > 0 on every path's deviation from the mean path, y_c = y_mean + c (y_s - y_mean);
                 default: the scale found by :meth:`calibrate`, or 1 (the GP's own bands) before any calibration. To
                 first order in the draws' deviation this is the path of F_c = mu + c (F_s - mu) (the posterior
@@ -249,15 +261,21 @@ class CorrectedODE(nn.Module):
             gps = self.gp.hyperparameter_samples(M, generator=generator)
             sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
             draws = _Mixture([g.sample_functions(n, **options_f) for g, n in zip(gps, sizes, strict=True)])
-        mean_path = self.predict(y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
+        controls = self._controls(controls, y0)
+        mean_path = self.predict(
+            y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, controls=controls
+        )
         system = self.system
 
-        def field(y: torch.Tensor) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
-            x = system.select_inputs(y).reshape(S, B, -1)
-            return system.known_rhs(y) + system.embed(draws(x).reshape(S * B, -1))
+        def rhs(y: torch.Tensor, t, u) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
+            x = system.select_inputs(y, u).reshape(S, B, -1)
+            return system.known_rhs(y, t, u) + system.embed(draws(x).reshape(S * B, -1))
 
+        field, timed, jumps = system.solver_field(rhs, None if controls is None else controls.repeat(S))
         grid = times if times.dim() == 1 else times.repeat(S, 1)
-        settings = dict(method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
+        settings = dict(
+            method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, timed=timed, jumps=jumps
+        )
         with torch.set_grad_enabled(_wants_graph(y0, times)):
             paths, nfe, diverged = _solve_draws(field, y0.repeat(S, 1), grid, settings, B)
         self.nfe = nfe
@@ -272,7 +290,8 @@ class CorrectedODE(nn.Module):
                 "nearer those states",
                 TorchMisspecWarning,
             )
-        support = self._support(mean_path.detach())
+        times_out = times if times.dim() == 2 else times.expand(B, -1)
+        support = self._support(mean_path.detach(), None if controls is None else controls.at(times_out.detach()))
         extrapolating = support.amax(dim=-1) > threshold
         if bool(extrapolating.any()):
             n = int(extrapolating.sum())
@@ -284,7 +303,6 @@ class CorrectedODE(nn.Module):
                 "bands are as wide as the prior. Collect data nearer those states, or trust those paths less",
                 TorchMisspecWarning,
             )
-        times_out = times if times.dim() == 2 else times.expand(B, -1)
         samples = paths.reshape(S, B, *paths.shape[1:])
         if scale != 1.0:  # the paths' deviations from the mean path, scaled (never a re-integration)
             samples = mean_path + scale * (samples - mean_path)
@@ -322,9 +340,14 @@ class CorrectedODE(nn.Module):
         self.gp.calibration_ = result
         return result
 
-    def _support(self, states: torch.Tensor) -> torch.Tensor:
+    def _controls(self, controls, y0: torch.Tensor):
+        """The batch's controls, checked against the system, in the GP's dtype and on its device."""
+        controls = self.system.check_controls(controls, y0.shape[0])
+        return None if controls is None else controls.to(dtype=y0.dtype, device=y0.device)
+
+    def _support(self, states: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         """``(B, T)``: posterior over prior standard deviation of F at the states ``(B, T, d)`` (largest output)."""
-        x = self.system.select_inputs(states)
+        x = self.system.select_inputs(states, u)
         flat = x.reshape(-1, x.shape[-1]).to(self.gp.device, self.gp.dtype)
         return self.gp.posterior().sd_ratio(flat).reshape(states.shape[:-1])
 
@@ -359,12 +382,19 @@ def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B:
     diverged: list[int] = []
     n_rows = y0.shape[0]
 
+    timed = settings.get("timed", False)
+
     def run(rows: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
         nonlocal nfe
         sub = times if times.dim() == 1 else times[rows]
 
-        def part(y: torch.Tensor) -> torch.Tensor:  # the rows' own draws: field sees the whole batch's layout
-            return field(y0.new_zeros(y0.shape).index_copy(0, rows, y))[rows]
+        def part(*args: torch.Tensor) -> torch.Tensor:  # the rows' own draws: field sees the whole batch's layout
+            y = args[-1]
+            full = y0.new_zeros(y0.shape).index_copy(0, rows, y)
+            if not timed:
+                return field(full)[rows]
+            t = args[0].new_zeros(n_rows).index_copy(0, rows, args[0])  # the other rows' times are not read
+            return field(t, full)[rows]
 
         out, n = solve(
             field if rows.numel() == n_rows else part,

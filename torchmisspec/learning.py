@@ -48,6 +48,7 @@ from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._exact import median_distance
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
+from .gp._selection import fit_and_score
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
@@ -55,6 +56,7 @@ from .trajectory_fit import fit_trajectories
 __all__ = [
     "FEATURE_DEGREE",
     "LENGTHSCALE_GRID",
+    "SELECTION",
     "SIGNIFICANCE",
     "CrossValidation",
     "cross_validate",
@@ -67,6 +69,8 @@ __all__ = [
 #: Candidate lengthscales of the cross-validation, as multiples of the median distance between the samples' inputs
 #: (the marginal-likelihood lengthscale is always added to them).
 LENGTHSCALE_GRID = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
+#: The rules :func:`fit_correction` chooses a model by (its ``select``).
+SELECTION = ("cv", "evidence")
 #: Highest degree of the monomials of the feature-kernel candidate of :func:`fit_correction`.
 FEATURE_DEGREE = 3
 #: Solver steps allowed for one held-out prediction (a candidate whose prediction blows up scores infinity).
@@ -159,18 +163,21 @@ def student_t_quantile(p: float, df: int) -> float:
 def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, field=None) -> torch.Tensor:
     """``(K,)`` sums of squared errors of a model from each experiment's first observed state over its own times.
 
-    ``field(y, rows)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each experiment may
-    have its own model: the folds of the cross-validation); ``None``: the known model G alone. One batched solve of
-    every experiment (ragged ones on their own times, padded at their end)."""
+    ``field(y, rows, t, u)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each
+    experiment may have its own model: the folds of the cross-validation), at times ``t`` and controls ``u`` (``None``
+    for an autonomous system); ``None``: the known model G alone. One batched solve of every experiment (ragged ones
+    on their own times, padded at their end), each under its own controls."""
     rtol, atol = FITTING_TOLERANCES
     out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
     times, states, mask = trajectories.padded()
     first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
     if times.dim() == 1:
         times = times.expand(states.shape[0], -1)
+    controls = trajectories.controls
     if field is None:
+        known, timed, jumps = system.solver_field(system.known_rhs, controls)
         try:
-            pred = solve(system.known_rhs, first, times, rtol=rtol, atol=atol, what="the known model")[0]
+            pred = solve(known, first, times, rtol=rtol, atol=atol, what="the known model", timed=timed, jumps=jumps)[0]
         except IntegrationError:
             # the known model alone diverges from some of these states (what a correction may exist to fix):
             # each experiment alone, and an infinite error where G cannot be integrated
@@ -180,14 +187,17 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
             return out
     else:
         rows = torch.arange(states.shape[0], device=states.device)
+        model, timed, jumps = system.solver_field(lambda y, t, u: field(y, rows, t, u), controls)
         pred, _ = solve(
-            lambda y: field(y, rows),
+            model,
             first,
             times,
             rtol=rtol,
             atol=atol,
             max_steps=_CV_MAX_STEPS,
             what="cross-validation",
+            timed=timed,
+            jumps=jumps,
         )
     sq = (pred - states).nan_to_num(nan=0.0).pow(2).sum(-1) * mask  # missing entries (NaN) are not compared
     return sq.sum(-1).detach().cpu().to(torch.float64)
@@ -210,15 +220,15 @@ def _fold_field(system: MisspecifiedSystem, gp: CorrectionGP, alphas: torch.Tens
     params = detached(kernel_hyperparameters(gp))
     X = gp.train_inputs_
 
-    def field(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        x = system.select_inputs(y).to(X)  # the GP's dtype and device (float32 data with a float64 GP)
+    def field(y: torch.Tensor, rows: torch.Tensor, t=None, u=None) -> torch.Tensor:
+        x = system.select_inputs(y, u).to(X)  # the GP's dtype and device (float32 data with a float64 GP)
         Kx = kernel_matrix(gp.kernel_spec, x, X, params, gp.degree)  # (1 or d_out, B, N)
         a = alphas[fold_of[rows]]  # (B, N, d_out)
         if Kx.shape[0] == 1:
             mu = (Kx[0].unsqueeze(1) @ a).squeeze(1)  # (B, d_out)
         else:
             mu = torch.einsum("obn,bno->bo", Kx, a)
-        return system.known_rhs(y) + system.embed(mu.to(y))
+        return system.known_rhs(y, t, u) + system.embed(mu.to(y))
 
     return field
 
@@ -388,6 +398,28 @@ def default_candidates(samples: CorrectionSamples) -> list[CorrectionGP]:
     return [*rbf, CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True)]
 
 
+def _by_evidence(pool: list[CorrectionGP], samples: CorrectionSamples) -> CorrectionGP:
+    """The candidate of highest evidence score (:attr:`CorrectionGP.evidence_score`), each fitted by marginal
+    likelihood on the samples; one candidate is fitted alone (``kernel="auto"`` then chooses among its own kernels).
+    ``result.model_selection_`` records every candidate (as ``kernel="auto"`` does)."""
+    if len(pool) == 1:
+        return copy.deepcopy(pool[0]).fit(samples)
+    fitted = [copy.deepcopy(c) for c in pool]
+    records = [fit_and_score(c, samples) for c in fitted]
+    ok = [i for i, r in enumerate(records) if r["score"] is not None]
+    if not ok:
+        raise FittingError(
+            "fit_correction: every candidate failed to fit: "
+            + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
+        )
+    best = max(ok, key=lambda i: records[i]["score"])
+    for i, r in enumerate(records):
+        r["chosen"] = i == best
+    result = fitted[best]
+    result.model_selection_ = records
+    return result
+
+
 @adaptive_threads()
 def fit_correction(
     trajectories: Trajectories,
@@ -395,84 +427,80 @@ def fit_correction(
     *,
     gp: CorrectionGP | None = None,
     candidates=None,
+    select: str = "cv",
     derivative: str = "auto",
-    lengthscale: str | float = "cv",
     folds: int = 5,
     refine: bool | None = None,
     progress: bool = True,
     **estimator,
 ) -> CorrectionGP:
-    """Learn the correction from observed states: samples, a GP chosen by cross-validation, optionally refined.
+    """Learn the correction from observed states: samples, a model chosen among candidates, optionally refined.
+
+    The package's one entry point for choosing a model. Its steps:
 
     1. ``samples = correction_samples(trajectories, system, derivative=derivative, **estimator)`` (its warning
        when the derivative estimator is unreliable applies);
-    2. a GP is fitted on the samples and chosen by :func:`cross_validate` on held-out experiments
-       (``lengthscale="cv"``, default) among
+    2. a model is fitted on the samples and chosen among candidates by the rule ``select`` names:
 
-       * with neither ``gp`` nor ``candidates`` given: :func:`default_candidates`, RBF kernels over a grid of
-         lengthscales and a feature kernel with automatic relevance (a sparse polynomial correction, which
-         extrapolates where a polynomial F is right);
-       * with a ``gp`` template of an RBF or Matern kernel with a free lengthscale: that kernel at each of
-         :func:`lengthscale_candidates`; any other template: that model alone (scored, for the warning below);
-       * ``candidates``: the given unfitted templates;
-
-       each candidate's other hyperparameters by marginal likelihood. With ``lengthscale="ml"`` the template
-       (default ``CorrectionGP()``) is fitted by marginal likelihood alone, with a number its lengthscale is fixed;
+       * ``"cv"`` (default): by :func:`cross_validate`, the error of the corrected model's predictions of held-out
+         experiments (robust to the derivative estimator's correlated errors, see the module's notes). Candidates:
+         with neither ``gp`` nor ``candidates`` given, :func:`default_candidates` (RBF kernels over a grid of
+         lengthscales and a feature kernel with automatic relevance, a sparse polynomial correction); with a ``gp``
+         template of an RBF or Matern kernel with a free lengthscale, that kernel at each of
+         :func:`lengthscale_candidates`; any other template, that model alone (scored, for the warning below);
+         ``candidates``, the given unfitted templates. Each candidate's other hyperparameters by marginal
+         likelihood. With fewer than 2 experiments there is nothing to hold out, and ``"evidence"`` is used;
+       * ``"evidence"``: by the marginal likelihood of the samples alone (:attr:`CorrectionGP.evidence_score`, no
+         solve): with neither ``gp`` nor ``candidates``, ``CorrectionGP(kernel="auto")`` (RBF, Matern, feature
+         kernels and the library check, see :mod:`torchmisspec.gp`); a ``gp`` template is fitted as it is; among
+         ``candidates`` the highest score wins. Cheaper, and right when the samples' errors are independent (exact
+         or GP-in-time derivatives of dense data); a fixed lengthscale is a template's:
+         ``gp=CorrectionGP(lengthscale=0.5)``.
     3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE; by default
        (``refine=None``) exactly when the chosen model is a feature kernel, whose term weights are then re-learned
        from the trajectories (the derivative estimator's bias shows up in the samples as spurious terms, which
-       the trajectories do not support).
+       the trajectories do not support); not for a system with controls or time (the fit through the ODE takes
+       autonomous systems only, for now).
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
     not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).
-    Cross-validation falls back to the marginal likelihood when there are fewer than 2 experiments.
 
-    Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and one batched solve of the
-    held-out experiments per candidate; about 13 candidates by default. ``progress`` (default on) shows bars over
-    the candidates and the refinement's rounds; ``progress=False`` is silent.
+    Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and, with ``"cv"``, one batched
+    solve of the held-out experiments per candidate; about 13 candidates by default. ``progress`` (default on) shows
+    bars over the candidates and the refinement's rounds; ``progress=False`` is silent.
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
         :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
     """
     _check_trajectories_and_system(trajectories, system)
-    template = CorrectionGP() if gp is None else gp
-    if not isinstance(template, CorrectionGP):
-        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
+    if gp is not None and not isinstance(gp, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
     if candidates is not None and gp is not None:
         raise InputError("candidates: pass either a gp template or a list of candidates, not both")
-    number = isinstance(lengthscale, (int, float)) and not isinstance(lengthscale, bool)
-    if not (number or lengthscale in ("cv", "ml")) or (number and not (math.isfinite(lengthscale) and lengthscale > 0)):
-        raise InputError(f"lengthscale: expected 'cv', 'ml' or a positive number, got {lengthscale!r}")
+    if not (isinstance(select, str) and select in SELECTION):
+        raise InputError(
+            f"select: expected 'cv' (held-out experiments) or 'evidence' (marginal likelihood), got {select!r}"
+        )
     user_candidates = candidates is not None
     if user_candidates:
         candidates = _check_candidates(candidates)
-        if lengthscale != "cv":
-            raise InputError(f"candidates: are chosen by cross-validation (lengthscale='cv'), got {lengthscale!r}")
-    if user_candidates and trajectories.num_experiments < 2 and len(candidates) != 1:
-        raise InputError(
-            f"candidates: cross-validation compares them on held-out experiments and needs at least 2, got "
-            f"{trajectories.num_experiments} experiment and {len(candidates)} candidates; pass one candidate (it is "
-            "then fitted by marginal likelihood) or more experiments"
-        )
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
-    kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
     cv = None
     result = None
-    if lengthscale == "cv" and trajectories.num_experiments >= 2:
+    if select == "cv" and trajectories.num_experiments >= 2:
         if candidates is None and gp is None:
             candidates = default_candidates(samples)
         elif candidates is None:
             # auto: scored as it is
-            free = not template.auto and template.kernel_spec.stationary and template.fixed["lengthscale"] is None
-            if free and not template.per_output:
+            free = not gp.auto and gp.kernel_spec.stationary and gp.fixed["lengthscale"] is None
+            if free and not gp.per_output:
                 candidates = [
-                    template.clone(kernel=template.kernel_spec, lengthscale=ell)
-                    for ell in lengthscale_candidates(samples, gp)
+                    gp.clone(kernel=gp.kernel_spec, lengthscale=ell) for ell in lengthscale_candidates(samples, gp)
                 ]
             else:
-                candidates = [template]
+                candidates = [gp]
         cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds, progress=progress)
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if not cv.significant:
@@ -484,25 +512,17 @@ def fit_correction(
                 "Collect more experiments, sample the states more densely or with less noise, or check the known model",
                 TorchMisspecWarning,
             )
-    if result is None and user_candidates:  # one experiment, or every candidate failed its cross-validation
-        if cv is not None:
+        if result is None:
             warn(
                 f"fit_correction: every candidate failed cross-validation (a fit or a held-out prediction failed: "
-                f"{', '.join(cv.candidates)}); fitted the first, {cv.candidates[0]}, by marginal likelihood instead",
+                f"{', '.join(cv.candidates)}); chose among them by evidence instead",
                 TorchMisspecWarning,
             )
-        result = copy.deepcopy(candidates[0]).fit(samples)
-    if result is None:
-        given = {"lengthscale": float(lengthscale)} if number else {}
-        if given and (template.auto or not template.kernel_spec.stationary):
-            raise InputError(f"lengthscale: the {kernel} kernel has no lengthscale, got {lengthscale!r}")
-        result = (
-            template.clone(kernel=template.kernel_spec, **given).fit(samples)
-            if given
-            else copy.deepcopy(template).fit(samples)
-        )
-    if refine is None:
-        refine = result.kernel_spec.feature_space  # the feature kernel's terms, refined through the ODE
+    if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
+        pool = candidates if user_candidates else [CorrectionGP(kernel="auto") if gp is None else gp]
+        result = _by_evidence(pool, samples)
+    if refine is None:  # the feature kernel's terms, refined through the ODE (autonomous systems: fit_trajectories)
+        refine = result.kernel_spec.feature_space and system.autonomous
     if refine:
         result = fit_trajectories(result, system, trajectories, progress=progress)
     result.cross_validation_ = cv

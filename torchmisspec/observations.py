@@ -51,6 +51,7 @@ from ._estimators import (
     _sample_rows,
     choose_derivative,
     estimator_error,
+    known_flat,
 )
 from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_derivative, observed_variance
 from ._stencils import finite_difference, smoothed_derivative
@@ -206,7 +207,11 @@ def correction_samples(
             )
         flat_states = trajectories.filled().flat_states()
         check_finite(flat_states, "trajectories.states")
-        dydt = system.true_rhs(flat_states)
+        if system.autonomous:
+            dydt = system.true_rhs(flat_states)
+        else:
+            flat_t = trajectories.flat_times().to(flat_states)
+            dydt = system.true_rhs(flat_states, flat_t, trajectories.flat_controls())
     elif derivative == "auto":
         name, options, errors = choose_derivative(trajectories, system)
         ratio = errors[(name, tuple(sorted(options.items())))]
@@ -229,6 +234,8 @@ def correction_samples(
 
     lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
     experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
+    g = known_flat(system, trajectories, flat_states)
+    u = trajectories.flat_controls()
     if trajectories.has_missing:
         keep = _sample_rows(trajectories, system)
         if not bool(keep.any()):
@@ -236,9 +243,10 @@ def correction_samples(
                 f"trajectories: expected some time at which every output component {list(system.correction_outputs)} "
                 "of the correction is observed (a sample needs them all), got none"
             )
-        dydt, flat_states, experiment = dydt[keep], flat_states[keep], experiment[keep]
+        dydt, flat_states, experiment, g = dydt[keep], flat_states[keep], experiment[keep], g[keep]
         variance = None if variance is None else variance[keep]
-    targets = system.select_outputs(dydt - system.known_rhs(flat_states))
+        u = None if u is None else u[keep]
+    targets = system.select_outputs(dydt - g)
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     sample_noise = None if variance is None else system.select_outputs(variance)
     if noise > 0:
@@ -248,7 +256,7 @@ def correction_samples(
         if sample_noise is not None:
             sample_noise = sample_noise + noise**2
     return CorrectionSamples(
-        inputs=system.select_inputs(flat_states),
+        inputs=system.select_inputs(flat_states, u),
         targets=targets,
         states=flat_states,
         experiment=experiment,

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ._errors import InputError, ShapeError
-from ._validation import as_tensor, check_domain, check_finite, check_indices, check_positive_int
+from ._validation import as_tensor, check_domain, check_finite, check_indices, check_names, check_positive_int
 
 __all__ = [
     "MisspecifiedSystem",
@@ -32,15 +32,26 @@ __all__ = [
 
 
 class MisspecifiedSystem:
-    """An ODE dy/dt = G(y) + F(y) whose G is known and whose F is the correction to learn.
+    """An ODE dy/dt = G(y) + F(x) whose G is known and whose F is the correction to learn.
+
+    x are the *correction inputs*: some state components and, for a system with controls, some of the known input
+    signals u(t) of the experiments (a dilution rate, a dose; :class:`~torchmisspec.signals.Controls`).
 
     Args:
-        known: G, maps states ``(..., d)`` to ``(..., d)``.
+        known: G. For an autonomous system without controls (the default), ``G(y)`` maps states ``(..., d)`` to
+            ``(..., d)``. With ``num_controls > 0`` or ``time_dependent=True`` it is ``G(t, y, u)``: times
+            ``(...)`` (broadcast against the states' leading dimensions, possibly a scalar), states ``(..., d)`` and
+            controls ``(..., m)`` (``m = 0``: an empty last axis) to ``(..., d)``.
         state_dim: d.
         correction: the true F (simulation and benchmarks only); maps ``(..., len(correction_inputs))`` to
             ``(..., len(correction_outputs))``. ``None`` for a system whose true correction is unknown.
-        correction_inputs: the state components F depends on (default: all).
+        correction_inputs: what F depends on (default: every state component): indices into the states followed by
+            the controls (``0 .. d - 1`` the states, ``d .. d + m - 1`` the controls), or their names
+            (``state_names`` / ``control_names``).
         correction_outputs: the state components F acts on (default: all).
+        num_controls: m, the number of known input signals of every experiment (default 0).
+        control_names: the m controls' names (default ``u0, u1, ...``).
+        time_dependent: G depends on time itself (then it is called ``G(t, y, u)``).
         domain: optional box ``(lo, hi)`` per correction input, the region D where the correction is assessed.
         known_matrix: optional ``(d, d)`` matrix A when G(y) = A y, so proxies can use ``matrix_exp``.
         name: a label for printing.
@@ -64,6 +75,9 @@ class MisspecifiedSystem:
         known_matrix: torch.Tensor | None = None,
         name: str = "system",
         state_names: Sequence[str] | None = None,
+        num_controls: int = 0,
+        control_names: Sequence[str] | None = None,
+        time_dependent: bool = False,
     ) -> None:
         if not callable(known):
             raise InputError(f"known: expected a callable G(y), got {type(known).__name__}")
@@ -73,7 +87,18 @@ class MisspecifiedSystem:
         self.known = known
         self.state_dim = state_dim
         self.correction = correction
-        self.correction_inputs = check_indices(correction_inputs, state_dim, "correction_inputs")
+        self.num_controls = check_positive_int(num_controls, "num_controls", minimum=0)
+        if not isinstance(time_dependent, bool):
+            raise InputError(f"time_dependent: expected True or False, got {time_dependent!r}")
+        self.time_dependent = time_dependent
+        self.control_names = check_names(control_names, self.num_controls, "control_names", default="u")
+        self.state_names = check_names(state_names, state_dim, "state_names")
+        correction_inputs = self._resolve(correction_inputs)
+        self.correction_inputs = check_indices(
+            tuple(range(state_dim)) if correction_inputs is None else correction_inputs,
+            state_dim + self.num_controls,
+            "correction_inputs" if self.num_controls == 0 else "correction_inputs (the states, then the controls)",
+        )
         self.correction_outputs = check_indices(correction_outputs, state_dim, "correction_outputs")
         if domain is not None:
             domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=len(self.correction_inputs))
@@ -86,20 +111,38 @@ class MisspecifiedSystem:
                 )
         self.known_matrix = known_matrix
         self.name = name
-        if state_names is not None:
-            names = list(state_names) if not isinstance(state_names, str) else [state_names]
-            if len(names) != state_dim or not all(isinstance(n, str) and n.strip() for n in names):
-                raise ShapeError(
-                    f"state_names: expected {state_dim} non-empty strings (one per state component), got "
-                    f"{state_names!r:.200}"
-                )
-            if len(set(names)) != len(names):
-                raise InputError(f"state_names: expected distinct names, got {names}")
-            state_names = tuple(names)
-        self.state_names = state_names
         self._vectorised = {"G": False, "F": False}  # the first batched call of each is checked
 
+    def _resolve(self, items):
+        """``correction_inputs`` given by name: their positions among the states, then the controls."""
+        if items is None or isinstance(items, torch.Tensor) or not any(isinstance(i, str) for i in items):
+            return items
+        known = list(self.state_names or ()) + [None] * (self.state_dim - len(self.state_names or ()))
+        known += list(self.control_names)
+        out = []
+        for i in items:
+            if isinstance(i, str):
+                if i not in known:
+                    raise InputError(
+                        f"correction_inputs: expected state or control names among {[k for k in known if k]}, or "
+                        f"indices, got {i!r}"
+                    )
+                out.append(known.index(i))
+            else:
+                out.append(i)
+        return out
+
     # ----------------------------------------------------------------------------------------------------------
+    @property
+    def autonomous(self) -> bool:
+        """Whether G is G(y) (no controls, no time); otherwise it is called G(t, y, u)."""
+        return self.num_controls == 0 and not self.time_dependent
+
+    @property
+    def uses_controls(self) -> bool:
+        """Whether F depends on a control (then every evaluation of F needs the experiments' controls)."""
+        return any(i >= self.state_dim for i in self.correction_inputs)
+
     @property
     def has_correction(self) -> bool:
         """Whether the true correction F is known (simulation / benchmark systems)."""
@@ -121,11 +164,21 @@ class MisspecifiedSystem:
             )
         return y
 
-    def select_inputs(self, y: torch.Tensor) -> torch.Tensor:
-        """The correction's inputs ``(..., d_in)`` from states ``(..., d)``."""
+    def select_inputs(self, y: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+        """The correction's inputs ``(..., d_in)`` from states ``(..., d)`` and, when F depends on controls, the
+        controls ``(..., m)`` at the same times."""
         if self.correction_inputs == tuple(range(self.state_dim)):
             return y
-        return y[..., list(self.correction_inputs)]
+        if not self.uses_controls:
+            return y[..., list(self.correction_inputs)]
+        if u is None or u.shape[:-1] != y.shape[:-1] or u.shape[-1] != self.num_controls:
+            got = None if u is None else tuple(u.shape)
+            raise ShapeError(
+                f"system '{self.name}': F depends on the controls; expected controls of shape "
+                f"{tuple(y.shape[:-1]) + (self.num_controls,)} with the states {tuple(y.shape)}, got {got}. Pass "
+                "each experiment's controls (Trajectories(..., controls=...), predict(..., controls=...))"
+            )
+        return torch.cat([y, u.to(y)], dim=-1)[..., list(self.correction_inputs)]
 
     def select_outputs(self, v: torch.Tensor) -> torch.Tensor:
         """The correction's output components ``(..., d_out)`` of a full vector field ``(..., d)``."""
@@ -142,14 +195,54 @@ class MisspecifiedSystem:
         return out
 
     def input_names(self, trajectories=None) -> tuple[str, ...] | None:
-        """The names of the correction's inputs: from ``trajectories.state_names`` when they are not the defaults
-        ``y0, y1, ...``, else from this system's ``state_names``; ``None`` when neither has names."""
+        """The names of the correction's inputs: the states' from ``trajectories.state_names`` when they are not the
+        defaults ``y0, y1, ...``, else from this system's ``state_names`` (``None`` when neither has names); the
+        controls' from the trajectories' controls, else from ``control_names``."""
         names = getattr(trajectories, "state_names", None)
         if names is None or tuple(names) == tuple(f"y{i}" for i in range(len(names))):
             names = self.state_names
         if names is None or len(names) != self.state_dim:
             return None
-        return tuple(names[i] for i in self.correction_inputs)
+        controls = getattr(trajectories, "controls", None)
+        every = tuple(names) + (self.control_names if controls is None else tuple(controls.names))
+        return tuple(every[i] for i in self.correction_inputs)
+
+    def check_controls(self, controls, batch: int, name: str = "controls"):
+        """``controls`` for a batch of ``batch`` experiments: a :class:`~torchmisspec.signals.Controls` with one
+        profile each when this system has controls, ``None`` when it has none (each refused otherwise)."""
+        from .signals import Controls
+
+        if self.num_controls == 0:
+            if controls is not None:
+                raise InputError(
+                    f"{name}: system '{self.name}' has no controls (num_controls=0), got {type(controls).__name__}; "
+                    "declare them with MisspecifiedSystem(..., num_controls=m)"
+                )
+            return None
+        if not isinstance(controls, Controls):
+            raise InputError(
+                f"{name}: system '{self.name}' has {self.num_controls} control(s) {list(self.control_names)}; expected "
+                f"a torchmisspec.signals.Controls with one profile per experiment, got {type(controls).__name__}"
+            )
+        if controls.num_controls != self.num_controls or controls.num_experiments != batch:
+            raise ShapeError(
+                f"{name}: expected {batch} profile(s) of {self.num_controls} control(s), got "
+                f"{controls.num_experiments} "
+                f"of {controls.num_controls}"
+            )
+        return controls
+
+    def solver_field(self, rhs, controls=None) -> tuple:
+        """``(field, timed, jumps)`` for the package's solve: ``rhs(y, t, u)`` (states ``(B, d)``, times ``(B,)`` or
+        ``None``, controls ``(B, m)`` or ``None``) as the solver's field; an autonomous system's is ``field(y)``,
+        any other's ``field(t, y)`` with the controls of ``controls`` at every row's time, and the profiles' jumps."""
+        if self.autonomous:
+            return (lambda y: rhs(y, None, None)), False, None
+
+        def field(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+            return rhs(y, t, None if controls is None else controls.at(t))
+
+        return field, True, None if controls is None else controls.jumps
 
     def true_correction(self, x: torch.Tensor) -> torch.Tensor:
         """F at correction inputs ``x (..., d_in)``; raises if this system has no true correction."""
@@ -161,18 +254,37 @@ class MisspecifiedSystem:
         what = f"system '{self.name}': F"
         return self._call("F", self.correction, x, x.shape[:-1] + (self.output_dim,), what)
 
-    def known_rhs(self, y: torch.Tensor) -> torch.Tensor:
-        """G(y) for states ``(..., d)``, with its output shape checked (a G that returns the wrong shape would be
-        broadcast silently by the sums that follow)."""
-        return self._call("G", self.known, y, y.shape, f"system '{self.name}': G")
+    def known_rhs(self, y: torch.Tensor, t=None, u: torch.Tensor | None = None) -> torch.Tensor:
+        """G for states ``(..., d)``, with its output shape checked (a G that returns the wrong shape would be
+        broadcast silently by the sums that follow): ``G(y)`` for an autonomous system, else ``G(t, y, u)`` with the
+        times ``t`` (a scalar or ``(...)``) and controls ``u (..., m)`` at those states (checked to be given)."""
+        what = f"system '{self.name}': G"
+        if self.autonomous:
+            return self._call("G", self.known, y, y.shape, what)
+        t, u = self._time_and_controls(y, t, u)
+        return self._call("G", lambda z: self.known(t, z, u), y, y.shape, what)
+
+    def _time_and_controls(self, y: torch.Tensor, t, u):
+        if self.time_dependent and t is None:
+            raise InputError(f"system '{self.name}': G depends on time; expected the times t with the states, got None")
+        if self.num_controls and (u is None or u.shape[:-1] != y.shape[:-1] or u.shape[-1] != self.num_controls):
+            got = None if u is None else tuple(u.shape)
+            raise ShapeError(
+                f"system '{self.name}': G depends on {self.num_controls} control(s); expected controls of shape "
+                f"{tuple(y.shape[:-1]) + (self.num_controls,)} with the states {tuple(y.shape)}, got {got}. Pass "
+                "each experiment's controls (Trajectories(..., controls=...), predict(..., controls=...))"
+            )
+        t = y.new_zeros(()) if t is None else torch.as_tensor(t, dtype=y.dtype, device=y.device)
+        u = y.new_zeros(y.shape[:-1] + (0,)) if u is None else u.to(y)
+        return t, u
 
     def _call(self, key: str, fn, x: torch.Tensor, shape, what: str) -> torch.Tensor:
         """``fn(x)`` with its output checked; the first batched call also checks that ``fn`` broadcasts over the
         leading dimensions: a function written for one state (``y[0]``, ``torch.stack([...])`` along the first axis)
         can return the right shape for a batch whose size equals d and silently mix its rows."""
         out = _checked(_call(fn, x, what), shape, what, x)
-        if self._vectorised[key] or x.dim() < 2 or x[..., :1].numel() == 0:
-            return out
+        if self._vectorised[key] or x.dim() < 2 or x[..., :1].numel() == 0 or (key == "G" and not self.autonomous):
+            return out  # G(t, y, u) reads per-row times and controls: a one-state call would need them too
         with torch.no_grad():
             try:
                 single = fn(x.reshape(-1, x.shape[-1])[0])
@@ -193,16 +305,19 @@ class MisspecifiedSystem:
         self._vectorised[key] = True
         return out
 
-    def true_rhs(self, y: torch.Tensor) -> torch.Tensor:
-        """G(y) + F(y) (just G(y) when the system has no true correction)."""
-        g = self.known_rhs(y)
+    def true_rhs(self, y: torch.Tensor, t=None, u: torch.Tensor | None = None) -> torch.Tensor:
+        """G + F at states ``(..., d)`` (just G when the system has no true correction); ``t`` and ``u`` as for
+        :meth:`known_rhs`."""
+        g = self.known_rhs(y, t, u)
         if self.correction is None:
             return g
-        return g + self.embed(self.true_correction(self.select_inputs(y)))
+        return g + self.embed(self.true_correction(self.select_inputs(y, u)))
 
     def __repr__(self) -> str:
+        controls = f"num_controls={self.num_controls}, " if self.num_controls else ""
+        timed = "time_dependent=True, " if self.time_dependent else ""
         return (
-            f"MisspecifiedSystem(name={self.name!r}, state_dim={self.state_dim}, "
+            f"MisspecifiedSystem(name={self.name!r}, state_dim={self.state_dim}, {controls}{timed}"
             f"correction_inputs={list(self.correction_inputs)}, correction_outputs={list(self.correction_outputs)}, "
             f"has_correction={self.has_correction})"
         )

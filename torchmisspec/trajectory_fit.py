@@ -88,6 +88,12 @@ def _check(gp, system, trajectories) -> None:
     if not gp.is_fitted:
         raise NotFittedError("gp: expected a fitted CorrectionGP (fit it on derivative-based samples first)")
     _check_trajectories_and_system(trajectories, system)
+    if not system.autonomous:
+        raise InputError(
+            f"fit_trajectories: system '{system.name}' has controls or depends on time, and the fit through the ODE "
+            "takes autonomous systems only (for now); use the GP fitted on the correction samples "
+            "(fit_correction(..., refine=False))"
+        )
     if gp.input_dim != system.input_dim or gp.output_dim != system.output_dim:
         raise ShapeError(
             f"gp: expected {system.input_dim} inputs and {system.output_dim} outputs (the system's correction), got "

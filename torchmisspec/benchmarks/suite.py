@@ -25,7 +25,7 @@ BENCHMARKS = {
     "realdata": states.bench_realdata,
 }
 WORKERS = {"design": design._design_worker, "contention": contention._contention_worker}
-STUDY_BLOCK = re.compile(r"<!-- study:([\w-]+):start -->.*?<!-- study:\1:end -->", re.S)
+STUDY_BLOCK = re.compile(r"<!-- (study|bench):([\w-]+):start -->.*?<!-- \1:\2:end -->", re.S)
 
 
 def machine() -> dict:

@@ -46,6 +46,17 @@ def add_column_options(parser: argparse.ArgumentParser) -> None:
         "--state-columns",
         help="comma separated state column names, in the system's order (default: every other column)",
     )
+    parser.add_argument(
+        "--input-columns",
+        help="comma separated names of the columns holding known inputs u(t) (the system's controls, in its order): "
+        "each experiment's rows sample its input profile, known at every row",
+    )
+    parser.add_argument(
+        "--input-kind",
+        default="previous",
+        choices=["previous", "linear"],
+        help="how an input runs between its rows: previous (piecewise constant, default) or linear",
+    )
 
 
 def add_data_options(parser: argparse.ArgumentParser, *, required: bool, help: str) -> None:
@@ -54,12 +65,14 @@ def add_data_options(parser: argparse.ArgumentParser, *, required: bool, help: s
     add_column_options(parser)
 
 
-def state_columns(args: argparse.Namespace) -> list[str] | None:
-    if getattr(args, "state_columns", None) is None:
+def state_columns(args: argparse.Namespace, option: str = "state_columns") -> list[str] | None:
+    text = getattr(args, option, None)
+    if text is None:
         return None
-    names = [c.strip() for c in args.state_columns.split(",")]
+    names = [c.strip() for c in text.split(",")]
+    flag = "--" + option.replace("_", "-")
     if not all(names) or len(set(names)) != len(names):
-        raise InputError(f"--state-columns: expected distinct comma separated column names, got {args.state_columns!r}")
+        raise InputError(f"{flag}: expected distinct comma separated column names, got {text!r}")
     return names
 
 
@@ -72,6 +85,8 @@ def read_observations(args: argparse.Namespace):
         time_column=args.time_column,
         experiment_column=args.experiment_column or None,  # '' = no experiment column: one experiment
         state_columns=state_columns(args),
+        control_columns=state_columns(args, "input_columns"),
+        control_kind=getattr(args, "input_kind", "previous"),
     )
 
 
@@ -180,17 +195,23 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
 def check_names(gp, names, system, option: str) -> list[str]:
     """The state names to write; the model's input names (the data's columns it was fitted on) must match."""
     model_names = getattr(gp, "input_names_", None)
+    # the states among the correction's inputs (the others are controls, named by their own columns)
+    states = (
+        []
+        if model_names is None
+        else [(i, n) for i, n in zip(system.correction_inputs, model_names, strict=True) if i < system.state_dim]
+    )
     if names is not None and model_names is not None:
-        got = tuple(names[i] for i in system.correction_inputs)
-        if got != tuple(model_names):
+        got = tuple(names[i] for i, _ in states)
+        if got != tuple(n for _, n in states):
             raise InputError(
-                f"{option}: the model's correction was fitted on states named {list(model_names)}, but the columns "
-                f"give {list(got)} in their place; name (or order) the columns as in the fitted data, or pass "
-                "--state-columns"
+                f"{option}: the model's correction was fitted on states named {[n for _, n in states]}, but the "
+                f"columns give {list(got)} in their place; name (or order) the columns as in the fitted data, or "
+                "pass --state-columns"
             )
     if names is None and model_names is not None and getattr(system, "state_names", None) is None:
         names = [f"y{j}" for j in range(system.state_dim)]
-        for i, n in zip(system.correction_inputs, model_names, strict=True):
+        for i, n in states:
             names[i] = n
         return names
     return list(names) if names is not None else default_names(system)

@@ -45,7 +45,7 @@ def _gp(args: argparse.Namespace, system, observed=None):
             from ..observations import correction_samples
 
             samples = correction_samples(observed, system, derivative=args.derivative)
-            return CorrectionGP(kernel=args.kernel, **given).fit(samples), f"the given prior and {args.data}"
+            return CorrectionGP(kernel=args.kernel, **given).condition(samples), f"the given prior and {args.data}"
         from ..learning import fit_correction
 
         gp = fit_correction(observed, system, derivative=args.derivative, progress=not args.quiet)

@@ -38,6 +38,11 @@ def _predict(args: argparse.Namespace) -> int:
         raise InputError(f"--samples: expected at least 2 posterior draws for a band, got {args.samples}")
     times = parse_times(args.times)
     system = load_system(args.system)
+    if system.num_controls:
+        raise InputError(
+            f"--system: '{system.name}' has inputs u(t) (controls); predict takes their profiles in the Python API "
+            "(CorrectedODE(system, gp).predict(y0, times, controls=...)), not yet on the command line"
+        )
     gp = load_model(args.model, system)
     y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
     names = check_names(gp, names, system, "--initial")

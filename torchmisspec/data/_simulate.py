@@ -20,6 +20,7 @@ def simulate(
     times,
     *,
     known_only: bool = False,
+    controls=None,
     method: str = "dopri5",
     rtol: float = SIMULATION_TOLERANCES[0],
     atol: float = SIMULATION_TOLERANCES[1],
@@ -33,6 +34,8 @@ def simulate(
         times: ``(T,)`` shared, ``(K, T)`` per experiment, or a list of K ``(T_k,)`` arrays of different lengths
             (ragged: one batched solve per distinct length); strictly increasing.
         known_only: integrate the misspecified model G alone (the proxy / baseline trajectories).
+        controls: for a system with controls, the K experiments' input profiles
+            (:class:`~torchmisspec.signals.Controls`); they are kept on the result.
         method: torchdiffeq method (dopri5 by default).
         rtol: relative tolerance (the package's simulation tolerance by default, see :mod:`torchmisspec._ode`:
             this is the ground truth).
@@ -58,23 +61,40 @@ def simulate(
         if len({len(t) for t in grids}) == 1:
             times = torch.stack(grids)
         else:
+            controls = system.check_controls(controls, len(grids))
             options = dict(known_only=known_only, method=method, rtol=rtol, atol=atol, max_steps=max_steps)
             groups: dict[int, list[int]] = {}
             for k, t in enumerate(grids):
                 groups.setdefault(len(t), []).append(k)
             states: list = [None] * len(grids)
             for idx in groups.values():
-                part = simulate(system, y0[idx], torch.stack([grids[k] for k in idx]), **options)
+                part_controls = None if controls is None else controls[idx]
+                part = simulate(
+                    system, y0[idx], torch.stack([grids[k] for k in idx]), controls=part_controls, **options
+                )
                 for i, k in enumerate(idx):
                     states[k] = part.states[i]
-            return Trajectories(grids, states)
+            return Trajectories(grids, states, controls=controls)
     y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
-    field = system.known_rhs if known_only else system.true_rhs
+    controls = system.check_controls(controls, y0.shape[0])
+    if controls is not None:
+        controls = controls.to(dtype=y0.dtype, device=y0.device)
+    rhs = system.known_rhs if known_only else system.true_rhs
+    field, timed, jumps = system.solver_field(rhs, controls)
     with torch.no_grad():
         states, _ = solve(
-            field, y0, times, method=method, rtol=rtol, atol=atol, max_steps=max_steps, what=f"simulate({system.name})"
+            field,
+            y0,
+            times,
+            method=method,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            what=f"simulate({system.name})",
+            timed=timed,
+            jumps=jumps,
         )
-    return Trajectories(times, states)
+    return Trajectories(times, states, controls=controls)
 
 
 def simulate_known_each(system: MisspecifiedSystem, trajectories: Trajectories, **options) -> list[torch.Tensor | None]:
@@ -84,9 +104,11 @@ def simulate_known_each(system: MisspecifiedSystem, trajectories: Trajectories, 
     correction may exist to fix. ``options``: as for :func:`simulate`."""
     out: list[torch.Tensor | None] = []
     first = trajectories.initial_conditions  # missing entries estimated
+    controls = trajectories.controls
     for k, (times, _) in enumerate(trajectories.experiments()):
+        own = None if controls is None else controls[[k]]
         try:
-            out.append(simulate(system, first[k : k + 1], times, known_only=True, **options).states[0])
+            out.append(simulate(system, first[k : k + 1], times, known_only=True, controls=own, **options).states[0])
         except IntegrationError:
             out.append(None)
     return out

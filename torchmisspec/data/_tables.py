@@ -62,9 +62,12 @@ def _columns_to_arrays(
     time_column: str,
     experiment_column: str | None,
     state_columns: Sequence[str] | None,
+    control_columns: Sequence[str] | None = None,
 ) -> tuple:
-    """``times (T,) or (K, T)``, ``states (K, T, d)`` (NaN where a cell is missing) and the state names from the named
-    columns of a table (lists of per-experiment arrays when the experiments' lengths differ)."""
+    """``times (T,) or (K, T)``, ``states (K, T, d)`` (NaN where a cell is missing), the state names and the controls
+    ``(knots, values, names)`` (``None`` without control columns) from the named columns of a table (lists of
+    per-experiment arrays when the experiments' lengths differ). A control is known at every row: an empty control
+    cell is an error."""
     _check_distinct(header, "column names in the header", str(path))
     if not isinstance(time_column, str):
         raise InputError(f"time_column: expected a column name, got {type(time_column).__name__}")
@@ -79,6 +82,21 @@ def _columns_to_arrays(
     if experiment_column == time_column:
         raise InputError(f"experiment_column: expected a column other than the time column, got {time_column!r}")
     index_columns = [time_column] + ([experiment_column] if experiment_column is not None else [])
+    controls = []
+    if control_columns is not None:
+        if isinstance(control_columns, str):
+            raise InputError(f"control_columns: expected a list of column names, got the string {control_columns!r}")
+        controls = list(control_columns)
+        _check_distinct(controls, "control_columns", "control_columns")
+        absent = [c for c in controls if c not in header]
+        if absent:
+            raise InputError(f"{path}: expected control columns {controls}, missing {absent}; the file has {header}")
+        clash = [c for c in controls if c in index_columns or (state_columns is not None and c in state_columns)]
+        if clash:
+            raise InputError(
+                f"control_columns: expected columns other than the time, experiment and states, got {clash}"
+            )
+        index_columns = index_columns + controls
     if state_columns is None:
         names = [c for c in header if c not in index_columns]
     else:
@@ -95,8 +113,9 @@ def _columns_to_arrays(
     if not names:
         raise InputError(f"{path}: expected at least one state column besides {index_columns}, got columns {header}")
 
-    value_columns = [time_column, *names]
+    value_columns = [time_column, *names, *controls]
     where = [header.index(c) for c in value_columns]
+    first_control = 1 + len(names)
     values = np.empty((len(body), len(value_columns)), dtype=np.float64)
     for r, (line, row) in enumerate(body):
         for c, col in enumerate(where):
@@ -122,6 +141,11 @@ def _columns_to_arrays(
                 raise InputError(
                     f"{path}: expected a finite time in column {header[col]!r} on line {line}, got {cell!r} (times "
                     "cannot be missing: drop the row, or fill in its time)"
+                )
+            if c >= first_control and not math.isfinite(value):
+                raise InputError(
+                    f"{path}: expected a value of the control {header[col]!r} on line {line}, got {cell!r} (a control "
+                    "is known at every row: fill it in, e.g. repeat the last value of a piecewise-constant input)"
                 )
             if math.isinf(value):
                 raise InputError(
@@ -169,14 +193,18 @@ def _columns_to_arrays(
                 f"more than once{what}"
             )
         per.append(block)
+    control = None
+    if controls:
+        knots = [torch.from_numpy(p[:, 0].copy()) for p in per]
+        control = (knots, [torch.from_numpy(p[:, first_control:].copy()) for p in per], controls)
     if len({len(p) for p in per}) > 1:  # ragged: one array per experiment
         times_list = [torch.from_numpy(p[:, 0].copy()) for p in per]
-        return times_list, [torch.from_numpy(p[:, 1:].copy()) for p in per], names
+        return times_list, [torch.from_numpy(p[:, 1:first_control].copy()) for p in per], names, control
     times = np.stack([p[:, 0] for p in per])
-    states = np.stack([p[:, 1:] for p in per])
+    states = np.stack([p[:, 1:first_control] for p in per])
     if np.all(times == times[:1]):
         times = times[0]
-    return torch.from_numpy(times), torch.from_numpy(states), names
+    return torch.from_numpy(times), torch.from_numpy(states), names, control
 
 
 def _split_ragged(path: Path, times: np.ndarray, states: np.ndarray, lengths: np.ndarray) -> tuple[list, list]:
@@ -236,13 +264,36 @@ def write(
             raise InputError(f"column names: expected non-empty strings without surrounding spaces, got {name!r}")
         if path.suffix == ".txt" and len(name.split()) != 1:
             raise InputError(f"column names: a .txt table is space separated, so names cannot hold spaces: {name!r}")
+    controls = trajectories.controls
+    if controls is not None:
+        if controls.is_function:
+            raise InputError(
+                "controls: a profile given as a function u(t) cannot be written to a table; sample it "
+                "(Controls(knots, values)) first"
+            )
+        header += list(controls.names)
     _check_distinct(header, "column names", str(path))
     gap = "NaN" if path.suffix == ".txt" else ""
-    rows = (
-        [str(k), repr(float(t_j))] + [gap if v != v else repr(float(v)) for v in y_j]
-        for k, (t, y) in enumerate(trajectories.experiments())
-        for t_j, y_j in zip(t.detach().cpu().tolist(), y.detach().cpu().tolist(), strict=True)
-    )
+
+    def cells(values) -> list[str]:
+        return [gap if v != v else repr(float(v)) for v in values]
+
+    def rows_of(k: int, t: torch.Tensor, y: torch.Tensor):
+        if controls is None:
+            for t_j, y_j in zip(t.detach().cpu().tolist(), y.detach().cpu().tolist(), strict=True):
+                yield [str(k), repr(float(t_j))] + cells(y_j)
+            return
+        knots = controls.profiles()[k][0]
+        every = torch.unique(torch.cat([t.detach(), knots.to(t)]))  # observation times and the profile's knots
+        u = controls[k].at(every.unsqueeze(0))[0].detach().cpu().tolist()
+        at = {float(v): j for j, v in enumerate(t.detach().cpu().tolist())}
+        y = y.detach().cpu().tolist()
+        for t_j, u_j in zip(every.cpu().tolist(), u, strict=True):
+            j = at.get(float(t_j))
+            state = y[j] if j is not None else [math.nan] * len(names)  # a knot between measurements
+            yield [str(k), repr(float(t_j))] + cells(state) + cells(u_j)
+
+    rows = (row for k, (t, y) in enumerate(trajectories.experiments()) for row in rows_of(k, t, y))
     with path.open("w", newline="", encoding="utf-8") as fh:
         if path.suffix == ".txt":
             fh.write(" ".join(header) + "\n")
@@ -261,9 +312,11 @@ def read(
     time_column: str,
     experiment_column: str | None,
     state_columns: Sequence[str] | None,
+    control_columns: Sequence[str] | None = None,
 ) -> tuple:
-    """``(times, states, state_names)`` for :meth:`Trajectories.load <torchmisspec.data.Trajectories.load>` (see
-    there): tensors, or lists of per-experiment tensors for ragged data."""
+    """``(times, states, state_names, controls)`` for :meth:`Trajectories.load
+    <torchmisspec.data.Trajectories.load>` (see there): tensors, or lists of per-experiment tensors for ragged
+    data."""
     path = Path(path)
     if path.suffix != ".npz" and path.suffix not in _TEXT_FORMATS:
         raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
@@ -289,9 +342,11 @@ def read(
             if names.dtype.kind != "U" or names.ndim != 1:
                 raise InputError(f"{path}: expected 'state_names' to be a 1-D array of strings, got {names!r:.80}")
             names = names.tolist()
+        if control_columns is not None:
+            raise InputError(f"control_columns: name the columns of a text table; {path} is an .npz archive")
         if lengths is not None:
-            return (*_split_ragged(path, times, states, lengths), names)
-        return as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"), names
+            return (*_split_ragged(path, times, states, lengths), names, None)
+        return as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"), names, None
     header, body = _read_table(path)
     columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-    return _columns_to_arrays(path, header, body, **columns)
+    return _columns_to_arrays(path, header, body, control_columns=control_columns, **columns)

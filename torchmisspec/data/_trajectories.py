@@ -12,6 +12,7 @@ import torch
 from .._errors import InputError, ShapeError
 from .._missing import fill
 from .._validation import states_and_times
+from ..signals import Controls
 from . import _tables
 from ._input import _check_state_names, _default_names, _describe_lengths, _drop_empty_rows, _is_number, _per_experiment
 
@@ -47,11 +48,15 @@ class Trajectories:
         states: ``(K, T, d)``, or a tuple of K ``(T_k, d)`` tensors (ragged); NaN where an entry is missing.
         state_names: the names of the d state components (the table's column names for :meth:`load`; default
             ``y0, ..., y{d-1}``); kept by indexing, :meth:`to`, :meth:`save` and :meth:`load`.
+        controls: the experiments' known input signals u(t), a :class:`~torchmisspec.signals.Controls` with one
+            profile per experiment (``None``: the system has none); kept by indexing, :meth:`to`, :meth:`save` and
+            :meth:`load` (a table's ``control_columns``).
     """
 
     times: torch.Tensor | tuple[torch.Tensor, ...]
     states: torch.Tensor | tuple[torch.Tensor, ...]
     state_names: tuple[str, ...] | None = None
+    controls: Controls | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.states, (list, tuple)):
@@ -66,6 +71,18 @@ class Trajectories:
         d = states[0].shape[-1]
         names = _check_state_names(self.state_names, d)
         states, times = _drop_empty_rows(states, times, names)
+        if self.controls is not None:
+            if not isinstance(self.controls, Controls):
+                raise InputError(
+                    f"controls: expected a torchmisspec.signals.Controls (one profile per experiment) or None, got "
+                    f"{type(self.controls).__name__}"
+                )
+            K = len(states) if isinstance(states, tuple) else states.shape[0]
+            if self.controls.num_experiments != K:
+                raise ShapeError(
+                    f"controls: expected profiles of the {K} experiments, got {self.controls.num_experiments}"
+                )
+            object.__setattr__(self, "controls", self.controls.to(dtype=states[0].dtype, device=states[0].device))
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "state_names", names)
@@ -153,9 +170,9 @@ class Trajectories:
         times, states, mask = self.padded()
         out = fill(states, times, torch.isfinite(states) & mask.unsqueeze(-1))
         if not self.is_ragged:
-            return Trajectories(self.times, out, state_names=self.state_names)
+            return Trajectories(self.times, out, state_names=self.state_names, controls=self.controls)
         rows = [out[k, :n] for k, n in enumerate(self.lengths)]
-        return Trajectories(list(self.times), rows, state_names=self.state_names)
+        return Trajectories(list(self.times), rows, state_names=self.state_names, controls=self.controls)
 
     @property
     def initial_conditions(self) -> torch.Tensor:
@@ -177,6 +194,19 @@ class Trajectories:
         if self.is_ragged:
             return torch.cat(self.states)
         return self.states.reshape(-1, self.state_dim)
+
+    def flat_times(self) -> torch.Tensor:
+        """``(N,)``: the time of every observed state, aligned with :meth:`flat_states`."""
+        if self.is_ragged:
+            return torch.cat(self.times)
+        return self.time_grid.reshape(-1)
+
+    def flat_controls(self) -> torch.Tensor | None:
+        """``(N, m)``: the controls at every observed state, aligned with :meth:`flat_states` (``None`` without)."""
+        values = self.control_values()
+        if values is None:
+            return None
+        return torch.cat(values) if self.is_ragged else values.reshape(-1, values.shape[-1])
 
     def padded(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(times (K, T_max), states (K, T_max, d), mask (K, T_max))``, each experiment padded at its end.
@@ -208,6 +238,7 @@ class Trajectories:
                     torch.stack([self.times[k] for k in idx]),
                     torch.stack([self.states[k] for k in idx]),
                     state_names=self.state_names,
+                    controls=None if self.controls is None else self.controls[idx],
                 ),
             )
             for _, idx in sorted(groups.items())
@@ -220,24 +251,43 @@ class Trajectories:
         """A subset of experiments (int, slice, index list or boolean mask)."""
         if isinstance(index, numbers.Integral) or (isinstance(index, torch.Tensor) and index.dim() == 0):
             index = [int(index)]
+        picked = torch.arange(self.num_experiments)[index].reshape(-1).tolist()
+        controls = None if self.controls is None else self.controls[picked]
         if self.is_ragged:
-            picked = torch.arange(self.num_experiments)[index].tolist()
             return Trajectories(
-                [self.times[k] for k in picked], [self.states[k] for k in picked], state_names=self.state_names
+                [self.times[k] for k in picked],
+                [self.states[k] for k in picked],
+                state_names=self.state_names,
+                controls=controls,
             )
         times = self.times if self.times.dim() == 1 else self.times[index]
-        return Trajectories(times, self.states[index], state_names=self.state_names)
+        return Trajectories(times, self.states[index], state_names=self.state_names, controls=controls)
 
     def to(self, *args, **kwargs) -> Trajectories:
+        controls = None if self.controls is None else self.controls.to(*args, **kwargs)
         if self.is_ragged:
             return Trajectories(
                 [t.to(*args, **kwargs) for t in self.times],
                 [s.to(*args, **kwargs) for s in self.states],
                 state_names=self.state_names,
+                controls=controls,
             )
         return Trajectories(
-            self.times.to(*args, **kwargs), self.states.to(*args, **kwargs), state_names=self.state_names
+            self.times.to(*args, **kwargs),
+            self.states.to(*args, **kwargs),
+            state_names=self.state_names,
+            controls=controls,
         )
+
+    def control_values(self) -> torch.Tensor | tuple[torch.Tensor, ...] | None:
+        """The controls at the observation times: ``(K, T, m)``, a tuple of ``(T_k, m)`` (ragged), or ``None``."""
+        if self.controls is None:
+            return None
+        times, _, _ = self.padded()
+        values = self.controls.at(times)
+        if self.is_ragged:
+            return tuple(values[k, :n] for k, n in enumerate(self.lengths))
+        return values
 
     def __repr__(self) -> str:
         if self.is_ragged:
@@ -253,10 +303,11 @@ class Trajectories:
         names = "" if self.state_names == _default_names(self.state_dim) else f" ({', '.join(self.state_names)})"
         missing = self.num_missing
         gaps = f", {missing} missing entr{'y' if missing == 1 else 'ies'}" if missing else ""
+        controls = "" if self.controls is None else f", controls {', '.join(self.controls.names)}"
         return (
             f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
             f"{count} on [{lo:.6g}, {hi:.6g}] ({grid}), "
-            f"d={self.state_dim}{names}{gaps}, {str(self.dtype).removeprefix('torch.')}{device})"
+            f"d={self.state_dim}{names}{gaps}{controls}, {str(self.dtype).removeprefix('torch.')}{device})"
         )
 
     # ----------------------------------------------------------------------------------------------------------
@@ -289,6 +340,8 @@ class Trajectories:
         time_column: str = "time",
         experiment_column: str | None = "experiment",
         state_columns: Sequence[str] | None = None,
+        control_columns: Sequence[str] | None = None,
+        control_kind: str = "previous",
     ) -> Trajectories:
         """Read trajectories from ``.npz`` (arrays ``times`` and ``states``) or a text table with a header row.
 
@@ -303,6 +356,11 @@ class Trajectories:
                 one experiment; a name other than the default that is not in the file is an error.
             state_columns: names of the state columns, in the order of the state components (default: every
                 other column, in file order). They become :attr:`state_names`.
+            control_columns: names of the columns holding the known input signals u(t) (a text table's only): each
+                experiment's rows are the samples of its profile (:class:`~torchmisspec.signals.Controls`), known at
+                every row, also where no state was measured (a dose given between measurements).
+            control_kind: how a profile runs between its samples: ``"previous"`` (piecewise constant, default) or
+                ``"linear"``.
 
         A state cell that is empty or reads ``NaN``, ``NA`` or ``N/A`` (any case) is a missing entry (see the class
         docstring); a missing time or experiment label is an error, and so is an experiment with no value at all in
@@ -317,5 +375,8 @@ class Trajectories:
         and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
         """
         columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-        times, states, names = _tables.read(path, **columns)
-        return cls(times, states, state_names=names)
+        times, states, names, controls = _tables.read(path, control_columns=control_columns, **columns)
+        if controls is not None:
+            knots, values, control_names = controls
+            controls = Controls(knots, values, kind=control_kind, names=control_names)
+        return cls(times, states, state_names=names, controls=controls)

@@ -367,6 +367,11 @@ def pivots(kern, X: torch.Tensor, max_rank: int, tol: float, *, factor: bool = F
 def check_system(system) -> MisspecifiedSystem:
     if not isinstance(system, MisspecifiedSystem):
         raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
+    if not system.autonomous:
+        raise InputError(
+            f"system: '{system.name}' has controls or depends on time; the design chooses among initial conditions "
+            "of autonomous systems only (for now): designing input profiles and sampling times is not built yet"
+        )
     return system
 
 

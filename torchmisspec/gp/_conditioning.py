@@ -18,7 +18,7 @@ from ._exact import IndependentOutputsGP
 from ._inputs import check_inputs, check_samples
 from ._kernels import as_kernel
 
-__all__ = ["clone", "condition", "fixed_copy"]
+__all__ = ["clone", "condition"]
 
 
 def condition(gp, inputs, targets=None, *, noise=None):
@@ -96,29 +96,3 @@ def clone(gp, **overrides):
         args.update({name: None for name, drop in dropped.items() if drop})
     args.update(overrides)
     return type(gp)(**args)
-
-
-def fixed_copy(gp):
-    """:meth:`CorrectionGP.fixed_copy <torchmisspec.gp.CorrectionGP.fixed_copy>`: an unfitted model with every
-    hyperparameter fixed at ``gp``'s values."""
-    values = {
-        "lengthscale": gp.lengthscale,
-        "outputscale": gp.outputscale,
-        "noise_variance": gp.noise_variance,
-    }
-    if gp.kernel_spec.terms:
-        raise InputError(
-            "fixed_copy: the feature kernel's weights cannot be fixed by value; use gp.condition(inputs, targets) "
-            "to condition these hyperparameters on other samples"
-        )
-    if not gp.kernel_spec.has_lengthscale:
-        values.pop("lengthscale")
-    missing = [k for k, v in values.items() if v is None]
-    if missing:
-        raise NotFittedError(
-            f"fixed_copy: expected every hyperparameter to be set, but {missing} are not; pass them to "
-            "CorrectionGP(...) or fit first"
-        )
-    if gp.per_output:
-        raise InputError("fixed_copy: per-output hyperparameters cannot be fixed by value; use per_output=False")
-    return gp.clone(kernel=gp.kernel_spec, **{k: float(v) for k, v in values.items()})

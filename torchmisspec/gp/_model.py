@@ -540,16 +540,6 @@ class CorrectionGP(Readout):
         """
         return _conditioning.clone(self, **overrides)
 
-    def fixed_copy(self) -> CorrectionGP:
-        """A new, unfitted CorrectionGP with every hyperparameter fixed at this one's values in use.
-
-        A template: ``gp.fixed_copy().fit(inputs, targets)`` is ``gp.condition(inputs, targets)`` (the paper's
-        studies fit every realization with the same prior). Known per-sample noise is data, not a hyperparameter:
-        it is not copied (pass it again to ``fit``); the copy's ``noise_variance`` is this one's (floor). Needs every
-        hyperparameter to be set (given or fitted).
-        """
-        return _conditioning.fixed_copy(self)
-
     def condition(self, inputs, targets=None, *, noise=None) -> CorrectionGP:
         """A new CorrectionGP with exactly this one's hyperparameters (every kind of kernel, per-output ones too)
         conditioned on other samples: nothing is re-learned; the one way to condition a model on data.

@@ -13,7 +13,7 @@ import time
 from .._errors import FittingError, LinearAlgebraError
 from ._kernels import REGISTRY
 
-__all__ = ["AUTO_KERNELS", "EVIDENCE_MARGIN", "auto_choice", "fit_auto", "library_check"]
+__all__ = ["AUTO_KERNELS", "EVIDENCE_MARGIN", "auto_choice", "fit_and_score", "fit_auto", "library_check"]
 
 #: the candidates of kernel="auto", fitted in this order (:func:`auto_choice` chooses among them)
 AUTO_KERNELS = ("rbf", "matern52", "features", "features+rbf")
@@ -96,6 +96,32 @@ def auto_choice(
     return best, eligible, suffices
 
 
+def fit_and_score(candidate, inputs, targets=None, noise=None, **options) -> dict:
+    """Fit one unfitted candidate by marginal likelihood, in place, and record it: kernel, log marginal likelihood,
+    number of learned hyperparameters, :attr:`evidence_score`, seconds, and the error of a fit that failed
+    numerically (bad input still raises). Shared by ``kernel="auto"`` and ``fit_correction(select="evidence")``."""
+    start = time.perf_counter()
+    try:
+        candidate.fit(inputs, targets, noise=noise, **options)
+    except (FittingError, LinearAlgebraError) as exc:
+        return {
+            "kernel": candidate.kernel,
+            "log_marginal_likelihood": None,
+            "hyperparameters": None,
+            "score": None,
+            "seconds": time.perf_counter() - start,
+            "error": f"{type(exc).__name__}: {exc}",
+        }
+    return {
+        "kernel": candidate.kernel,
+        "log_marginal_likelihood": float(candidate.log_marginal_likelihood_),
+        "hyperparameters": candidate.num_hyperparameters,
+        "score": candidate.evidence_score,
+        "seconds": time.perf_counter() - start,
+        "error": None,
+    }
+
+
 def fit_auto(gp, inputs, targets, noise, **options):
     """``kernel="auto"``: fit every kernel of :data:`AUTO_KERNELS` by marginal likelihood, score each by
     :attr:`evidence_score` (its evidence given its own ML-II hyperparameters, less BIC's price of those) and keep
@@ -112,26 +138,7 @@ def fit_auto(gp, inputs, targets, noise, **options):
         return gp.clone(kernel=REGISTRY[kernel](), per_output=per_output)
 
     def attempt(cand) -> dict:
-        start = time.perf_counter()
-        try:
-            cand.fit(inputs, targets, noise=noise, **options)
-        except (FittingError, LinearAlgebraError) as exc:
-            return {
-                "kernel": cand.kernel,
-                "log_marginal_likelihood": None,
-                "hyperparameters": None,
-                "score": None,
-                "seconds": time.perf_counter() - start,
-                "error": f"{type(exc).__name__}: {exc}",
-            }
-        return {
-            "kernel": cand.kernel,
-            "log_marginal_likelihood": float(cand.log_marginal_likelihood_),
-            "hyperparameters": cand.num_hyperparameters,
-            "score": cand.evidence_score,
-            "seconds": time.perf_counter() - start,
-            "error": None,
-        }
+        return fit_and_score(cand, inputs, targets, noise, **options)
 
     records, fitted = [], {}
     for kernel in AUTO_KERNELS:

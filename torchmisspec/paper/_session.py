@@ -151,7 +151,7 @@ def _compare_designs(
         samples = correction_samples(obs, system, derivative="oracle", noise_std=NOISE_STD, generator=gen)
         traj_obs[name] = obs.states
         traj_fine[name] = simulate(system, y0, fine).states
-        gps[name] = prior.fixed_copy().fit(samples.inputs, samples.targets)
+        gps[name] = prior.condition(samples.inputs, samples.targets)
     test_idx = None
     if y_test is None:
         chosen = set(torch.cat([p.indices for p in plans.values()]).tolist())

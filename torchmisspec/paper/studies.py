@@ -8,8 +8,8 @@
 
 A realization draws new observation noise (and new random sets); the designs depend only on the prior and are
 computed once (greedy designs are nested, so the design of size K is the first K picks of the largest one). The
-true trajectories of every candidate are simulated once and reused. Every GP is the prior's
-:meth:`~torchmisspec.CorrectionGP.fixed_copy` conditioned on the samples (the paper's hyperparameters, not
+true trajectories of every candidate are simulated once and reused. Every GP is the prior
+conditioned on the samples (:meth:`~torchmisspec.CorrectionGP.condition`: the paper's hyperparameters, not
 re-learned).
 """
 
@@ -204,7 +204,6 @@ def linear_study(
     times = _setup.linear_times()
     prior = CorrectionGP(lengthscale=lengthscale, outputscale=outputscale, noise_variance=noise_std**2)
     prior_dd = CorrectionGP(lengthscale=lengthscale, outputscale=data_driven_outputscale, noise_variance=noise_std**2)
-    gp_f, gp_dd = prior.fixed_copy(), prior_dd.fixed_copy()  # refitted to every sample set (nothing re-learned)
     plan = _design.greedy(candidates, ks[-1], system=system, times=times, gp=prior)
     design_idx = plan.indices
 
@@ -226,15 +225,14 @@ def linear_study(
             random_idx = torch.randperm(candidates.shape[0], generator=gen)
             for j, k in enumerate(ks):
                 for name, idx, gp, targets in (
-                    ("design", design_idx[:k], gp_f, targets_f),
-                    ("random", random_idx[:k], gp_f, targets_f),
-                    ("data-driven", design_idx[:k], gp_dd, targets_h),
+                    ("design", design_idx[:k], prior, targets_f),
+                    ("random", random_idx[:k], prior, targets_f),
+                    ("data-driven", design_idx[:k], prior_dd, targets_h),
                 ):
                     x = inputs[idx].reshape(-1, inputs.shape[-1])
                     y = targets[idx].reshape(-1, targets.shape[-1])
-                    gp.fit(x, y)
                     offset = known_at_points if name == "data-driven" else None
-                    errors[name][r, j] = _grid_error(gp, truth_f, points, weights, offset=offset)
+                    errors[name][r, j] = _grid_error(gp.condition(x, y), truth_f, points, weights, offset=offset)
                 bar.update(1)
     references = {
         "energy of F": integrated_norm(system.true_correction, system.domain, resolution=resolution),
@@ -295,7 +293,6 @@ def gravity_study(
     ks = _check_ks(ks, n_candidates)
     times = _setup.gravity_times()
     prior = CorrectionGP(lengthscale=lengthscale, outputscale=outputscale, noise_variance=noise_std**2)
-    gp = prior.fixed_copy()  # refitted to every sample set (nothing re-learned)
     seeds = [seed + r for r in range(realizations)] if redraw_candidates else [seed]
     candidates = torch.stack(
         [_candidates.orbits(n_candidates, generator=torch.Generator().manual_seed(s)) for s in seeds]
@@ -334,7 +331,7 @@ def gravity_study(
                     idx = order[name][:k]
                     x = inputs[i, idx].reshape(-1, inputs.shape[-1])
                     y = targets[idx].reshape(-1, targets.shape[-1])
-                    errors[name][r, j] = _grid_error(gp.fit(x, y), truth, points, weights, squared=True)
+                    errors[name][r, j] = _grid_error(prior.condition(x, y), truth, points, weights, squared=True)
             bar.update(1)
     references = {"mean energy of F": float((truth.pow(2).sum(-1) * weights).sum())}
     designs = {name: [p[name].indices.tolist() for p in plans] for name in plans[0]}
@@ -416,7 +413,6 @@ def sequential_study(
     sequential = [(c, check_positive_int(b, "batch size")) for c, b in sequential]
     kmax = ks[-1]
     prior = CorrectionGP(**prior_kw)
-    estimator = prior.fixed_copy()
     plans = {
         "paper design": _design.greedy(candidates, kmax, system=system, times=times, gp=prior),
         "domain design": _design.greedy(candidates, kmax, system=system, times=times, gp=prior, criterion="domain"),
@@ -449,7 +445,7 @@ def sequential_study(
                 for j, k in enumerate(ks):
                     x = inputs[idx[:k]].reshape(-1, inputs.shape[-1])
                     y = targets[idx[:k]].reshape(-1, targets.shape[-1])
-                    errors[name][r, j] = error(estimator.fit(x, y))
+                    errors[name][r, j] = error(prior.condition(x, y))
             for name, (crit, b) in zip(seq, sequential, strict=True):
                 camp = _design.Campaign(
                     system,
@@ -470,7 +466,7 @@ def sequential_study(
                 X, Y = torch.cat(camp._inputs), torch.cat(camp._targets)
                 T = times.numel()
                 for j, k in enumerate(ks):
-                    errors[name][r, j] = error(estimator.fit(X[: k * T], Y[: k * T]))
+                    errors[name][r, j] = error(prior.condition(X[: k * T], Y[: k * T]))
                     if learned and name == seq[0]:
                         errors[learned][r, j] = own[k]
                 picks[name].append(camp.asked[:kmax])
