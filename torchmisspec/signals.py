@@ -10,7 +10,8 @@ correction's own inputs x are already called inputs) and takes them as samples o
 * ``"linear"``: linear interpolation between the knots.
 
 Before the first knot and after the last, the profile keeps its first / last value. A callable ``u(t)``, the same
-profile for every experiment, is accepted too (:meth:`Controls.from_function`). Every evaluation is vectorised over
+profile for every experiment, is accepted too
+(:meth:`Controls.from_function <torchmisspec.signals.Controls.from_function>`). Every evaluation is vectorised over
 the experiments, so a batch of experiments with different profiles is still one solve.
 """
 
@@ -128,7 +129,8 @@ class Controls:
 
     @property
     def is_function(self) -> bool:
-        """Whether the profile is a function u(t) (:meth:`from_function`) rather than samples."""
+        """Whether the profile is a function u(t) (:meth:`~torchmisspec.signals.Controls.from_function`) rather than
+        samples."""
         return self._function is not None
 
     @property
