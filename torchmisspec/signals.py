@@ -129,7 +129,7 @@ class Controls:
 
     @property
     def is_function(self) -> bool:
-        """Whether the profile is a function u(t) (:meth:`~torchmisspec.signals.Controls.from_function`) rather than
+        """Whether the profile is a function u(t) (:meth:`from_function <torchmisspec.signals.Controls.from_function>`) rather than
         samples."""
         return self._function is not None
 
