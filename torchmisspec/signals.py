@@ -129,8 +129,8 @@ class Controls:
 
     @property
     def is_function(self) -> bool:
-        """Whether the profile is a function u(t) (:meth:`from_function <torchmisspec.signals.Controls.from_function>`) rather than
-        samples."""
+        """Whether the profile is a function u(t)
+        (:meth:`from_function <torchmisspec.signals.Controls.from_function>`) rather than samples."""
         return self._function is not None
 
     @property
