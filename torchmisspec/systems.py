@@ -14,6 +14,7 @@ from torch import nn
 
 from ._errors import InputError, ShapeError
 from ._validation import as_tensor, check_domain, check_finite, check_indices, check_names, check_positive_int
+from .signals import Controls
 
 __all__ = [
     "MisspecifiedSystem",
@@ -210,8 +211,6 @@ class MisspecifiedSystem:
     def check_controls(self, controls, batch: int, name: str = "controls"):
         """``controls`` for a batch of ``batch`` experiments: a :class:`~torchmisspec.signals.Controls` with one
         profile each when this system has controls, ``None`` when it has none (each refused otherwise)."""
-        from .signals import Controls
-
         if self.num_controls == 0:
             if controls is not None:
                 raise InputError(
