@@ -16,6 +16,7 @@ from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
 from .calibration import calibrate_bands
 from .gp import CorrectionGP
+from .parameters import ParameterPosterior
 from .systems import MisspecifiedSystem
 
 __all__ = ["SUPPORT_THRESHOLD", "UPDATE_ERROR", "CorrectedODE", "TrajectoryPosterior"]
@@ -55,6 +56,18 @@ class CorrectedODE(nn.Module):
             )
         self.system = system
         self.gp = gp
+        #: G's uncertain parameters: their posterior from the fit (``gp.parameters_``), or the prior when the GP was
+        #: not fitted with them; G runs at its mean (``system.at``) and each posterior draw at a draw of theta
+        self.parameters_ = None
+        if system.parameters is not None:
+            record = getattr(gp, "parameters_", None)
+            if record is None or tuple(record.names) != system.parameters.names:
+                record = ParameterPosterior.prior(
+                    system.parameters, len(gp.train_inputs_), gp.output_dim, gp.train_inputs_
+                )
+            self.parameters_ = record
+            system = system.at(record.mean)
+        self._known = system  # G at the parameters' posterior mean (the system itself when it has none)
         self.nfe = 0  # right-hand-side evaluations of the last predict()
 
     @property
@@ -79,7 +92,7 @@ class CorrectedODE(nn.Module):
     def field(self, y: torch.Tensor, t=None, u: torch.Tensor | None = None) -> torch.Tensor:
         """G + mu for states ``(..., d)``; ``t`` and ``u`` as for :meth:`MisspecifiedSystem.known_rhs
         <torchmisspec.MisspecifiedSystem.known_rhs>` (needed when the system has time or controls)."""
-        return self.system.known_rhs(y, t, u) + self.correction(y, u)
+        return self._known.known_rhs(y, t, u) + self.correction(y, u)
 
     def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """torchdiffeq's ``func(t, y)`` for a system without controls (with controls, use :meth:`predict`)."""
@@ -131,7 +144,7 @@ class CorrectedODE(nn.Module):
         controls = self._controls(controls, y0)
 
         def rhs(y: torch.Tensor, t, u) -> torch.Tensor:
-            return self.system.known_rhs(y, t, u) + self._correction(y, cache, u)
+            return self._known.known_rhs(y, t, u) + self._correction(y, cache, u)
 
         field, timed, jumps = self.system.solver_field(rhs, controls)
         with torch.set_grad_enabled(_wants_graph(y0, times) or hyper):
@@ -265,11 +278,16 @@ class CorrectedODE(nn.Module):
         mean_path = self.predict(
             y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, controls=controls
         )
-        system = self.system
+        system, known = self.system, self._known
+        theta = None
+        if self.parameters_ is not None:  # a draw of theta with each draw of F (parameters.py)
+            p = self.parameters_
+            theta = p.draw_field(system, self.gp, p.sample(S, generator=generator) - p.mean, B)
 
         def rhs(y: torch.Tensor, t, u) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
-            x = system.select_inputs(y, u).reshape(S, B, -1)
-            return system.known_rhs(y, t, u) + system.embed(draws(x).reshape(S * B, -1))
+            x = system.select_inputs(y, u)
+            out = known.known_rhs(y, t, u) + system.embed(draws(x.reshape(S, B, -1)).reshape(S * B, -1))
+            return out if theta is None else out + theta(y, t, u, x)
 
         field, timed, jumps = system.solver_field(rhs, None if controls is None else controls.repeat(S))
         grid = times if times.dim() == 1 else times.repeat(S, 1)

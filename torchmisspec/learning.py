@@ -50,6 +50,7 @@ from .gp._exact import median_distance
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .gp._selection import fit_and_score
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
+from .parameters import condition_with_parameters, parameter_posterior
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
 
@@ -420,6 +421,23 @@ def _by_evidence(pool: list[CorrectionGP], samples: CorrectionSamples) -> Correc
     return result
 
 
+#: passes of the fit of G's uncertain parameters before the model is chosen: each fits the GP's hyperparameters on
+#: the samples at the current estimate of theta and updates theta's posterior (its mean moves the targets)
+PARAMETER_PASSES = 3
+
+
+def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, template: CorrectionGP):
+    """theta's posterior after :data:`PARAMETER_PASSES` alternations of the GP's hyperparameters (``template``, by
+    marginal likelihood on the samples at the current theta) and theta's closed-form posterior given them."""
+    outputs, posterior = system.correction_outputs, None
+    for _ in range(PARAMETER_PASSES):
+        delta = None if posterior is None else posterior.mean - system.theta
+        moved = samples if delta is None else samples.shifted(delta, outputs)
+        model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
+        posterior = parameter_posterior(model, samples.residuals, samples.basis, outputs, system.parameters, delta)
+    return posterior
+
+
 @adaptive_threads()
 def fit_correction(
     trajectories: Trajectories,
@@ -475,6 +493,7 @@ def fit_correction(
         :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
     """
     _check_trajectories_and_system(trajectories, system)
+    system0 = system
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
     if candidates is not None and gp is not None:
@@ -487,6 +506,15 @@ def fit_correction(
     if user_candidates:
         candidates = _check_candidates(candidates)
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
+    posterior = None
+    if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
+        if refine:
+            raise InputError(
+                "refine=True: the fit through the ODE does not learn G's uncertain parameters yet; use refine=None"
+            )
+        refine, outputs = False, system.correction_outputs
+        posterior = _parameter_passes(samples, system, CorrectionGP() if gp is None or gp.auto else gp)
+        system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
     cv = None
     result = None
     if select == "cv" and trajectories.num_experiments >= 2:
@@ -525,6 +553,10 @@ def fit_correction(
         refine = result.kernel_spec.feature_space and system.autonomous
     if refine:
         result = fit_trajectories(result, system, trajectories, progress=progress)
+    if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
+        delta = posterior.mean - posterior.prior_mean
+        result, samples = condition_with_parameters(result, samples, system0.parameters, outputs, delta)
+        result.parameters_.warn_if_unidentified("fit_correction")
     result.cross_validation_ = cv
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs

@@ -57,6 +57,7 @@ from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_
 from ._stencils import finite_difference, smoothed_derivative
 from ._validation import check_finite, check_real
 from .data import Trajectories
+from .parameters import linear_basis
 from .systems import MisspecifiedSystem
 
 __all__ = [  # in the order of the API page
@@ -94,6 +95,10 @@ class CorrectionSamples:
         experiment: ``(N,)`` long tensor, the experiment index k of each sample.
         noise: known per-sample noise variances of the targets, ``(N, d_out)``, or ``None`` when unknown (the
             correction GP then learns one noise variance).
+        residuals: for a system with uncertain parameters, dy/dt - G(y; prior mean) on every state component
+            ``(N, d)`` (``targets`` are its corrected components); ``None`` otherwise.
+        basis: for a system with uncertain parameters, G's basis g_k = dG/dtheta_k at the samples ``(N, d, k)``
+            (:mod:`torchmisspec.parameters`); ``None`` otherwise.
     """
 
     inputs: torch.Tensor
@@ -101,6 +106,19 @@ class CorrectionSamples:
     states: torch.Tensor
     experiment: torch.Tensor
     noise: torch.Tensor | None = None
+    residuals: torch.Tensor | None = None
+    basis: torch.Tensor | None = None
+
+    def subset(self, rows: torch.Tensor) -> CorrectionSamples:
+        """The samples at ``rows`` (a boolean mask or indices)."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return CorrectionSamples(**{k: None if v is None else v[rows] for k, v in fields.items()})
+
+    def shifted(self, delta: torch.Tensor, outputs) -> CorrectionSamples:
+        """These samples with the parameters moved by ``delta`` ``(k,)`` from the prior mean: the targets
+        r - H delta on the corrected components ``outputs`` (G is linear in them)."""
+        moved = self.residuals - self.basis @ delta.to(self.basis)
+        return dataclasses.replace(self, targets=moved[:, list(outputs)].contiguous())
 
     def __len__(self) -> int:
         return self.inputs.shape[0]
@@ -246,6 +264,19 @@ def correction_samples(
         dydt, flat_states, experiment, g = dydt[keep], flat_states[keep], experiment[keep], g[keep]
         variance = None if variance is None else variance[keep]
         u = None if u is None else u[keep]
+    residuals = basis = None
+    if system.parameters is not None:  # every component (theta's information), and G's basis in theta
+        residuals = dydt - g
+        t = None if system.autonomous else trajectories.flat_times().to(flat_states)
+        if trajectories.has_missing and t is not None:
+            t = t[keep]
+        basis = linear_basis(
+            lambda theta: system.at(theta).known_rhs(flat_states, t, u),
+            system.theta.to(flat_states),
+            system.parameters.scale.to(flat_states),
+            system.parameters.names,
+            f"system '{system.name}'",
+        )
     targets = system.select_outputs(dydt - g)
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     sample_noise = None if variance is None else system.select_outputs(variance)
@@ -261,4 +292,6 @@ def correction_samples(
         states=flat_states,
         experiment=experiment,
         noise=sample_noise,
+        residuals=residuals,
+        basis=basis,
     )

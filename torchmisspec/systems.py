@@ -7,13 +7,16 @@ others (``correction_inputs``), as in the gravity set-up of paper §5.3 where F 
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import nn
 
 from ._errors import InputError, ShapeError
+from ._user_code import import_module, one_line
 from ._validation import as_tensor, check_domain, check_finite, check_indices, check_names, check_positive_int
+from .parameters import check_priors
 from .signals import Controls
 
 __all__ = [
@@ -53,6 +56,10 @@ class MisspecifiedSystem:
         num_controls: m, the number of known input signals of every experiment (default 0).
         control_names: the m controls' names (default ``u0, u1, ...``).
         time_dependent: G depends on time itself (then it is called ``G(t, y, u)``).
+        parameters: G's uncertain parameters, ``{name: (value, scale)}``, a Gaussian prior each (mean, standard
+            deviation): G then takes them last, ``G(y, theta)`` or ``G(t, y, u, theta)``, ``theta`` a tensor ``(k,)``
+            in this order; :func:`~torchmisspec.fit_correction` learns them with F (see
+            :mod:`torchmisspec.parameters`); elsewhere G uses ``theta``, the prior mean until :meth:`at` fixes it.
         domain: optional box ``(lo, hi)`` per correction input, the region D where the correction is assessed.
         known_matrix: optional ``(d, d)`` matrix A when G(y) = A y, so proxies can use ``matrix_exp``.
         name: a label for printing.
@@ -79,6 +86,7 @@ class MisspecifiedSystem:
         num_controls: int = 0,
         control_names: Sequence[str] | None = None,
         time_dependent: bool = False,
+        parameters=None,
     ) -> None:
         if not callable(known):
             raise InputError(f"known: expected a callable G(y), got {type(known).__name__}")
@@ -112,6 +120,8 @@ class MisspecifiedSystem:
                 )
         self.known_matrix = known_matrix
         self.name = name
+        self.parameters = check_priors(parameters)
+        self.theta = None if self.parameters is None else self.parameters.mean  # the value G is called with
         self._vectorised = {"G": False, "F": False}  # the first batched call of each is checked
 
     def _resolve(self, items):
@@ -258,10 +268,24 @@ class MisspecifiedSystem:
         broadcast silently by the sums that follow): ``G(y)`` for an autonomous system, else ``G(t, y, u)`` with the
         times ``t`` (a scalar or ``(...)``) and controls ``u (..., m)`` at those states (checked to be given)."""
         what = f"system '{self.name}': G"
+        theta = () if self.theta is None else (self.theta.to(y),)
         if self.autonomous:
-            return self._call("G", self.known, y, y.shape, what)
+            return self._call("G", lambda z: self.known(z, *theta), y, y.shape, what)
         t, u = self._time_and_controls(y, t, u)
-        return self._call("G", lambda z: self.known(t, z, u), y, y.shape, what)
+        return self._call("G", lambda z: self.known(t, z, u, *theta), y, y.shape, what)
+
+    def at(self, theta) -> MisspecifiedSystem:
+        """This system with its uncertain parameters fixed at ``theta`` ``(k,)`` (a system without uncertain ones)."""
+        if self.theta is None:
+            raise InputError(f"system '{self.name}': at(theta): this system has no uncertain parameters to fix")
+        theta = check_finite(as_tensor(theta, "theta", dtype=torch.float64), "theta").detach()
+        if theta.shape != self.theta.shape:
+            raise ShapeError(
+                f"theta: expected shape {tuple(self.theta.shape)} (one value per parameter), got {tuple(theta.shape)}"
+            )
+        fixed = copy.copy(self)
+        fixed.theta, fixed.parameters, fixed._vectorised = theta, None, dict(self._vectorised)
+        return fixed
 
     def _time_and_controls(self, y: torch.Tensor, t, u):
         if self.time_dependent and t is None:
@@ -315,6 +339,7 @@ class MisspecifiedSystem:
     def __repr__(self) -> str:
         controls = f"num_controls={self.num_controls}, " if self.num_controls else ""
         timed = "time_dependent=True, " if self.time_dependent else ""
+        timed += f"parameters={list(self.parameters.names)}, " if self.parameters is not None else ""
         return (
             f"MisspecifiedSystem(name={self.name!r}, state_dim={self.state_dim}, {controls}{timed}"
             f"correction_inputs={list(self.correction_inputs)}, correction_outputs={list(self.correction_outputs)}, "
@@ -519,7 +544,7 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
     module_name, _, function_name = spec.rpartition(":")
     if not module_name or not function_name.isidentifier():
         raise InputError(f"system: expected 'module:function' with a function name after the colon, got {spec!r}")
-    module = _import_module(module_name, spec)
+    module = import_module(module_name, spec)
     if not hasattr(module, function_name):
         public = sorted(n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n, None)))
         raise InputError(
@@ -532,51 +557,10 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
     try:
         system = function()
     except Exception as exc:
-        raise InputError(f"system {spec!r}: calling {function_name}() raised {_one_line(exc)}") from exc
+        raise InputError(f"system {spec!r}: calling {function_name}() raised {one_line(exc)}") from exc
     if not isinstance(system, MisspecifiedSystem):
         raise InputError(
             f"system {spec!r}: expected {function_name}() to return a torchmisspec MisspecifiedSystem, got "
             f"{type(system).__name__}"
         )
     return system
-
-
-def _import_module(module_name: str, spec: str):
-    """Import a dotted module name, or a ``.py`` file by path (registered under a private name)."""
-    import hashlib
-    import importlib
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    try:
-        if module_name.endswith(".py"):
-            path = Path(module_name)
-            if not path.is_file():
-                raise InputError(f"system {spec!r}: expected an existing Python file, got {module_name!r}")
-            path = path.resolve()
-            name = "_torchmisspec_user_" + hashlib.sha1(str(path).encode()).hexdigest()[:12]
-            loader_spec = importlib.util.spec_from_file_location(name, path)
-            if loader_spec is None or loader_spec.loader is None:
-                raise InputError(f"system {spec!r}: expected a Python file, got {module_name!r}")
-            module = importlib.util.module_from_spec(loader_spec)
-            sys.modules[name] = module  # so dataclasses and pickling inside the module find it
-            try:
-                loader_spec.loader.exec_module(module)
-            except BaseException:
-                sys.modules.pop(name, None)
-                raise
-            return module
-        return importlib.import_module(module_name)
-    except InputError:
-        raise
-    except Exception as exc:
-        raise InputError(
-            f"system {spec!r}: expected an importable module {module_name!r}, but importing it raised {_one_line(exc)}"
-        ) from exc
-
-
-def _one_line(exc: BaseException) -> str:
-    """``Type: message`` on one line, at most 300 characters (for one-line command-line errors)."""
-    text = " ".join(f"{type(exc).__name__}: {exc}".split())
-    return text if len(text) <= 300 else text[:297] + "..."

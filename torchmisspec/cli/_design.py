@@ -101,6 +101,8 @@ def _design(args: argparse.Namespace) -> int:
     partition, capacities = _capacities(args, candidates.shape[0])
     gp, source = early or _gp(args, system, observed)  # a fit on --data comes last: after every cheap check
     names = check_names(gp, names, system, "--candidates")
+    if system.parameters is not None and getattr(gp, "parameters_", None) is not None:
+        system = system.at(gp.parameters_.mean)  # G's uncertain parameters at their posterior mean for the proxies
     if args.criterion != "information" and args.method not in ("lazy", "plain", "naive"):
         raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")
     common = dict(

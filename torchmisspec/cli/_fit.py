@@ -65,6 +65,8 @@ def _fit(args: argparse.Namespace) -> int:
             f"cross-validation ({cv.folds} folds): chose {cv.best}; held-out error {min(cv.scores):.4g} against "
             f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
         )
+    if getattr(gp, "parameters_", None) is not None:  # G's uncertain parameters, learned with F
+        print("uncertain parameters of G, posterior mean +- sd:\n  " + gp.parameters_.summary().replace("\n", "\n  "))
     if gp.weights is not None:  # a feature kernel: its terms, in the data's names
         names = list(observed.state_names)
         terms = list(gp.terms([names[i] for i in system.correction_inputs], all_terms=True))

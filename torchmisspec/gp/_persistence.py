@@ -17,6 +17,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_real
+from ..parameters import ParameterPosterior
 from ._calibration import BandCalibration
 from ._exact import IndependentOutputsGP
 from ._kernels import as_kernel
@@ -123,6 +124,8 @@ def to_blob(gp) -> dict:
         blob["system"] = dict(gp.system_)
     if getattr(gp, "refinement_", None) is not None:  # additive: how it was refined through the ODE
         blob["refinement"] = dict(gp.refinement_)
+    if getattr(gp, "parameters_", None) is not None:  # additive: the posterior of G's uncertain parameters
+        blob["parameters"] = gp.parameters_.to_dict()
     calibration = getattr(gp, "calibration_", None)
     if calibration is not None:  # the bands' calibrated spread travels with the model (absent in older files)
         blob["calibration"] = calibration.to_dict()
@@ -222,6 +225,11 @@ def from_blob(cls, blob, path, *, device=None):
     gp.system_ = system
     gp.refinement_ = _refinement(blob.get("refinement"), path)
     gp.posterior()
+    if blob.get("parameters") is not None:
+        record = blob["parameters"]
+        gp.parameters_ = ParameterPosterior.from_dict(
+            record, path, num_samples=X.shape[0], output_dim=Y.shape[1], like=X
+        )
     if blob.get("calibration") is not None:
         gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
     return gp

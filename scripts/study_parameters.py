@@ -1,0 +1,20 @@
+"""Command line of :mod:`torchmisspec.paper.study_parameters` (``--help`` prints that docstring first).
+
+Usage::
+
+    python scripts/study_parameters.py --markdown          # full: JSON, docs/studies/parameters.md, BENCHMARKS.md
+    python scripts/study_parameters.py --smoke --json /tmp/p.json   # 2 realizations per case, never writes docs
+"""
+
+from __future__ import annotations
+
+from torchmisspec.benchmarks.reporting import study_arguments
+from torchmisspec.paper import study_parameters as study
+
+
+def main(argv: list[str] | None = None) -> int:
+    return study.run(study_arguments(study.__doc__ + __doc__, argv, study.DEFAULT_JSON))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

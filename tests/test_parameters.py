@@ -1,0 +1,221 @@
+"""Uncertain parameters of G: the closed-form posterior against brute force, and the fit on a damped oscillator."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.parameters import ParameterPosterior, check_priors, linear_basis, parameter_posterior
+
+D = torch.float64
+
+
+def _gp(X, Y):
+    return tms.CorrectionGP(lengthscale=0.7, outputscale=0.5, noise_variance=0.01).fit(X, Y)
+
+
+def _brute(gp, X, residuals, basis, outputs, prior_mean, prior_sd, other_var):
+    """Everything stacked: r (over samples and components) ~ N(0, C + H S H^T), C the GP's block on the corrected
+    components and other_var on the others; a hand-written Gaussian conditioning."""
+    N, d, k = basis.shape
+    comps = list(outputs) + [j for j in other_var]
+    blocks = []
+    K = gp.covar_module(X, X).to_dense().detach() + gp.noise_variance * torch.eye(N, dtype=D)
+    for j in comps:
+        blocks.append(K if j in outputs else other_var[j] * torch.eye(N, dtype=D))
+    C = torch.block_diag(*blocks)
+    H = torch.cat([basis[:, j, :] for j in comps])  # (N * c, k)
+    r = torch.cat([residuals[:, j] for j in comps])
+    S = torch.diag(prior_sd**2)
+    total = C + H @ S @ H.T
+    L = torch.linalg.cholesky(total)
+    solve = torch.cholesky_solve(r[:, None], L)[:, 0]
+    mean = prior_mean + S @ H.T @ solve
+    cov = S - S @ H.T @ torch.cholesky_solve(H @ S, L)
+    evidence = torch.distributions.MultivariateNormal(torch.zeros_like(r), scale_tril=L).log_prob(r)
+    return mean, cov, evidence, total, r, H, K
+
+
+@pytest.fixture
+def problem():
+    g = torch.Generator().manual_seed(3)
+    N, d, k = 30, 3, 2
+    X = torch.rand(N, 1, generator=g, dtype=D) * 4 - 2
+    basis = torch.randn(N, d, k, generator=g, dtype=D)
+    basis[:, 2, :] = 0  # a component G does not make depend on theta: ignored
+    residuals = torch.randn(N, d, generator=g, dtype=D) * 0.3 + torch.sin(2 * X)
+    priors = check_priors({"a": (0.5, 0.3), "b": (-1.0, 2.0)})
+    return X, residuals, basis, priors
+
+
+def test_closed_form_posterior_and_evidence_match_brute_force(problem):
+    X, residuals, basis, priors = problem
+    gp = _gp(X, residuals[:, [1]])
+    delta = torch.tensor([0.1, -0.2], dtype=D)
+    post = parameter_posterior(gp, residuals, basis, [1], priors, delta)
+    other = {0: float(((residuals[:, 0] - basis[:, 0] @ delta) ** 2).sum()) / (X.shape[0] - 2)}
+    mean, cov, evidence, *_ = _brute(gp, X, residuals, basis, [1], priors.mean, priors.scale, other)
+    torch.testing.assert_close(post.mean, mean, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(post.covariance, cov, rtol=1e-8, atol=1e-12)
+    assert post.log_evidence == pytest.approx(float(evidence), rel=1e-10)
+    # no correction at all: the noise alone (the GP's noise on the corrected component)
+    _, cov0, *_ = _brute(
+        tms.CorrectionGP(lengthscale=0.7, outputscale=1e-300, noise_variance=0.01).fit(X, residuals[:, [1]]),
+        X,
+        residuals,
+        basis,
+        [1],
+        priors.mean,
+        priors.scale,
+        other,
+    )
+    torch.testing.assert_close(post.sd_without_correction, cov0.diagonal().sqrt(), rtol=1e-6, atol=1e-12)
+
+
+def test_f_posterior_with_theta_integrated_matches_brute_force(problem):
+    """Conditioning F on r - H theta_bar gives the mean of F given r with theta integrated out, and the GP's
+    covariance plus M A^-1 M^T (M: F's absorption of each basis, what the draws use) its covariance."""
+    X, residuals, basis, priors = problem
+    basis = basis[:, [1], :]  # F acts on the only component: every component is F's
+    residuals = residuals[:, [1]]
+    gp = _gp(X, residuals)
+    conditioned, _ = tms.parameters.condition_with_parameters(gp, _samples(X, residuals, basis), priors, [0])
+    post = conditioned.parameters_
+    mean, cov, _, total, r, H, K = _brute(gp, X, residuals, basis, [0], priors.mean, priors.scale, {})
+    xs = torch.linspace(-2.5, 2.5, 7, dtype=D)[:, None]
+    Ks = gp.covar_module(xs, X).to_dense().detach()
+    L = torch.linalg.cholesky(total)
+    f_mean = Ks @ torch.cholesky_solve(r[:, None], L)[:, 0]  # r: residuals at the prior mean
+    f_cov = gp.covar_module(xs, xs).to_dense().detach() - Ks @ torch.cholesky_solve(Ks.T, L)
+    torch.testing.assert_close(conditioned.predict_mean(xs)[:, 0], f_mean, rtol=1e-8, atol=1e-10)
+    M = post.draw_terms(conditioned)(xs)[:, 0, :]  # (M, k)
+    cov_draws = _gp_cov(conditioned, xs)
+    torch.testing.assert_close(cov_draws + M @ post.covariance @ M.T, f_cov, rtol=1e-7, atol=1e-10)
+    torch.testing.assert_close(post.mean, mean, rtol=1e-9, atol=1e-10)
+
+
+def _gp_cov(gp, xs):
+    out = gp.posterior().covariance(xs)
+    return out.reshape(xs.shape[0], xs.shape[0], -1)[..., 0] if out.dim() == 3 else out
+
+
+def _samples(X, residuals, basis):
+    return tms.CorrectionSamples(
+        inputs=X,
+        targets=residuals.clone(),
+        states=X,
+        experiment=torch.zeros(X.shape[0], dtype=torch.long),
+        residuals=residuals,
+        basis=basis,
+    )
+
+
+def test_priors_and_linearity_are_checked():
+    with pytest.raises(tms.InputError, match="value, scale"):
+        check_priors({"a": 0.3})
+    with pytest.raises(tms.InputError, match="finite positive scale"):
+        check_priors({"a": (0.3, 0.0)})
+    with pytest.raises(tms.InputError, match="non-empty mapping"):
+        check_priors([("a", (0.3, 0.1))])
+    y = torch.rand(10, 2, dtype=D)
+    theta, scale = torch.tensor([1.0, 2.0], dtype=D), torch.tensor([0.1, 0.2], dtype=D)
+    basis = linear_basis(lambda th: torch.stack([th[0] * y[:, 0], th[1] * y[:, 1] ** 2], -1), theta, scale, "ab", "G")
+    torch.testing.assert_close(basis[:, 0, 0], y[:, 0])
+    torch.testing.assert_close(basis[:, 1, 1], y[:, 1] ** 2)
+    with pytest.raises(tms.InputError, match=r"not linear in its uncertain parameter\(s\) \['a'\].*reparametrise"):
+        linear_basis(lambda th: torch.stack([th[0] ** 2 * y[:, 0], th[1] * y[:, 1]], -1), theta, scale, "ab", "G")
+    with pytest.raises(tms.InputError, match=r"\['a', 'b'\]"):
+        linear_basis(lambda th: torch.stack([th[0] * th[1] * y[:, 0], y[:, 1]], -1), theta, scale, "ab", "G")
+
+
+# ------------------------------------------------------------------------------- the fit on a damped oscillator
+def _oscillator(c: float, absorb: bool):
+    """x' = v, v' = -x - c v + F: F(x) a missing force (identifiable), or F(v) a drag that can absorb c v."""
+    inputs = [1] if absorb else [0]
+
+    def G(y, theta):
+        return torch.stack([y[..., 1], -y[..., 0] - theta[0] * y[..., 1]], -1)
+
+    def F(x):
+        return -0.3 * x**3 if absorb else -0.5 * torch.sin(2 * x)
+
+    truth = tms.MisspecifiedSystem(
+        lambda y: G(y, torch.tensor([c], dtype=D)), 2, correction=F, correction_inputs=inputs, correction_outputs=[1]
+    )
+    system = tms.MisspecifiedSystem(
+        G, 2, correction_inputs=inputs, correction_outputs=[1], parameters={"c": (1.3 * c, 0.5 * c)}
+    )
+    return truth, system
+
+
+def _data(truth, seed, K=8):
+    g = torch.Generator().manual_seed(seed)
+    y0 = torch.rand(K, 2, generator=g, dtype=D) * 4 - 2
+    t = torch.linspace(0, 6, 25, dtype=D)
+    clean = tms.simulate(truth, y0, t)
+    return tms.Trajectories(t, clean.states + 0.01 * torch.randn(clean.states.shape, generator=g, dtype=D))
+
+
+def test_oscillator_damping_is_recovered_and_predicts_as_well_as_known(tmp_path):
+    truth, system = _oscillator(0.3, absorb=False)
+    data = _data(truth, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tms.TorchMisspecWarning)  # identified: no warning
+        gp = tms.fit_correction(data, system, progress=False)
+    post = gp.parameters_
+    assert post.names == ("c",) and post.identified == (True,)
+    assert abs(float(post.mean[0]) - 0.3) <= 2 * float(post.stddev[0])
+    assert float(post.stddev[0]) < 0.1 * 0.15  # far inside the prior
+    model = tms.CorrectedODE(system, gp)
+    g = torch.Generator().manual_seed(9)
+    y0 = torch.rand(10, 2, generator=g, dtype=D) * 4 - 2
+    t = torch.linspace(0, 6, 25, dtype=D)
+    ref = tms.simulate(truth, y0, t).states
+    known_error = tms.trajectory_rmse(tms.simulate(system, y0, t, known_only=True).states, ref)
+    assert tms.trajectory_rmse(model.predict(y0, t), ref) <= 0.1 * known_error
+    # saved and loaded, it predicts the same
+    gp.save(tmp_path / "m.pt")
+    loaded = tms.CorrectionGP.load(tmp_path / "m.pt")
+    torch.testing.assert_close(loaded.parameters_.covariance, post.covariance, rtol=0, atol=0)
+    torch.testing.assert_close(tms.CorrectedODE(system, loaded).predict(y0, t), model.predict(y0, t))
+    # the bands' draws carry theta's posterior: each draw a draw of theta too
+    bands = model.posterior(y0[:3], t, num_samples=16, scale=1.0, generator=torch.Generator().manual_seed(1))
+    assert bool(torch.isfinite(bands.samples).all())
+
+
+def test_oscillator_damping_absorbed_by_a_drag_is_reported():
+    truth, system = _oscillator(0.3, absorb=True)
+    with pytest.warns(tms.TorchMisspecWarning, match=r"c: posterior sd .* F can absorb its effect"):
+        gp = tms.fit_correction(_data(truth, 1), system, progress=False)
+    post = gp.parameters_
+    assert post.identified == (False,)
+    assert float(post.sd_without_correction[0]) < 0.5 * float(post.prior_scale[0])
+    assert "NOT identified" in post.summary()
+
+
+def test_prior_only_model_and_refusals():
+    truth, system = _oscillator(0.3, absorb=False)
+    data = _data(truth, 2, K=4)
+    plain = tms.fit_correction(data, system.at([0.39]), select="evidence", progress=False)  # theta fixed
+    model = tms.CorrectedODE(system, plain)  # not fitted with theta: the prior, nothing absorbed
+    assert isinstance(model.parameters_, ParameterPosterior)
+    torch.testing.assert_close(model.parameters_.mean, system.parameters.mean)
+    assert math.isnan(model.parameters_.log_evidence)
+    # each draw of the bands is a draw of theta too: wider than with theta fixed at the same value
+    y0, t = torch.tensor([[1.0, 0.5]], dtype=D), torch.linspace(0, 4, 9, dtype=D)
+    kw = dict(num_samples=32, scale=1.0)
+    spread = model.posterior(y0, t, generator=torch.Generator().manual_seed(0), **kw).stddev
+    fixed = tms.CorrectedODE(system.at([0.39]), plain).posterior(
+        y0, t, generator=torch.Generator().manual_seed(0), **kw
+    )
+    assert float(spread[0, -1].norm()) > 3 * float(fixed.stddev[0, -1].norm())
+    with pytest.raises(tms.InputError, match="refine=True"):
+        tms.fit_correction(data, system, refine=True, progress=False)
+    with pytest.raises(tms.InputError, match="no uncertain parameters"):
+        truth.at([0.3])
+    with pytest.raises(tms.ShapeError, match="one value per parameter"):
+        system.at([0.3, 0.1])

@@ -1,0 +1,414 @@
+"""Uncertain parameters of the known model G, learned with the correction F.
+
+A system marks parameters of G as uncertain with a prior, a value and a scale
+(``MisspecifiedSystem(G, d, parameters={"c": (0.4, 0.2)})``); G then takes them as its last argument,
+``G(y, theta)`` or ``G(t, y, u, theta)``, ``theta`` a tensor ``(k,)`` in the order given.
+
+**G linear in theta** (G(y; theta) = G(y; m) + sum_k (theta_k - m_k) g_k(y), checked numerically at the data):
+the samples of the residual r = dy/dt - G(y; m) over every state component are
+
+    r = H delta + F + eps,     delta = theta - m ~ N(0, S),   F ~ GP(0, K) on the corrected components,
+
+with H the basis g_k at the samples, eps the samples' noise (the GP's on the corrected components; on components
+that F does not act on, a variance estimated from the residuals). theta is a Gaussian linear model in F's noise,
+so it integrates out in closed form (Rasmussen & Williams 2006, §2.7, "explicit basis functions"): with C the GP's
+training covariance (K + noise; a noise variance alone on the other components),
+
+    A = S^-1 + H^T C^-1 H,      posterior of delta = N(A^-1 H^T C^-1 r, A^-1),
+    log p(r) = log N(r; 0, C) - 1/2 log|S| - 1/2 log|A| + 1/2 b^T A^-1 b,   b = H^T C^-1 r,
+
+and F's posterior given the data, theta integrated out, is the GP's posterior given the targets r - H delta_bar
+with the extra covariance (k(x, X) C^-1 H) A^-1 (...)^T. A posterior draw of the corrected model is then exact as a
+pair: delta_s ~ N(delta_bar, A^-1), and F_s the GP's draw given r - H delta_s, which is the draw given
+r - H delta_bar minus k(x, X) C^-1 H (delta_s - delta_bar): each draw's right-hand side is
+G(y; theta_bar) + F_s(x) + sum_k (delta_s - delta_bar)_k (g_k(y) - m_k(x)), m_k the GP's posterior mean given the
+targets g_k: the part of g_k that F would absorb (:meth:`ParameterPosterior.draw_terms`).
+
+**Telling theta from F.** F and theta trade off exactly where the kernel can represent g_k. The data then leave
+theta_k near its prior: :attr:`ParameterPosterior.identified` is ``False`` where the posterior standard deviation
+exceeds :data:`IDENTIFIED_RATIO` times the prior's, and the warning says whether F is the reason (without a
+correction the same data would give :attr:`~ParameterPosterior.sd_without_correction`, well inside the prior) or
+the data hardly depend on theta_k. A parameter error and a missing term can look alike; saying so is part of the
+answer. Parameters whose posteriors correlate beyond :data:`CORRELATION_LIMIT` are reported too (only a
+combination is determined).
+
+**G nonlinear in theta**: refused for now (the MAP-Laplace fit through the ODE is not built); reparametrise
+(e.g. 1 / Y instead of a yield Y) so that G is linear in what is uncertain, or fix the parameter.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+
+from ._errors import InputError, TorchMisspecWarning, warn
+from ._validation import DEFAULT_DTYPE
+
+__all__ = [
+    "Priors",
+    "ParameterPosterior",
+    "check_priors",
+    "linear_basis",
+    "parameter_posterior",
+    "condition_with_parameters",
+    "IDENTIFIED_RATIO",
+    "CORRELATION_LIMIT",
+    "LINEARITY_TOLERANCE",
+]
+
+#: theta_k counts as identified from the data when its posterior standard deviation is at most this fraction of its
+#: prior's (the data removed at least 3/4 of the prior variance)
+IDENTIFIED_RATIO = 0.5
+#: parameters whose posterior correlation exceeds this in absolute value are reported as only jointly determined
+CORRELATION_LIMIT = 0.95
+#: relative tolerance of the numerical check that G is linear in its uncertain parameters
+LINEARITY_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class Priors:
+    """Independent Gaussian priors of G's uncertain parameters: ``names`` ``(k,)``, ``mean`` and ``scale`` (standard
+    deviations), float64 tensors ``(k,)``."""
+
+    names: tuple[str, ...]
+    mean: torch.Tensor
+    scale: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def check_priors(parameters) -> Priors | None:
+    """``parameters`` as :class:`Priors`: a mapping ``name -> (value, scale)`` (the prior mean and standard deviation,
+    finite, the scale positive), or ``None`` (no uncertain parameter)."""
+    if parameters is None or isinstance(parameters, Priors):
+        return parameters
+    if not isinstance(parameters, Mapping) or not parameters:
+        raise InputError(
+            "parameters: expected a non-empty mapping of names to (value, scale) priors, e.g. "
+            f"{{'c': (0.4, 0.2)}}, got {type(parameters).__name__} {parameters!r:.80}"
+        )
+    means, scales = [], []
+    for name, prior in parameters.items():
+        if not isinstance(name, str) or not name:
+            raise InputError(f"parameters: expected non-empty string names, got {name!r}")
+        ok = isinstance(prior, (tuple, list)) and len(prior) == 2
+        ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in prior)
+        if not ok:
+            raise InputError(
+                f"parameters[{name!r}]: expected (value, scale), two real numbers (the prior mean and standard "
+                f"deviation), got {prior!r:.80}"
+            )
+        value, scale = float(prior[0]), float(prior[1])
+        if not (math.isfinite(value) and math.isfinite(scale) and scale > 0):
+            raise InputError(
+                f"parameters[{name!r}]: expected a finite value and a finite positive scale, got ({value}, {scale})"
+            )
+        means.append(value)
+        scales.append(scale)
+    return Priors(
+        tuple(parameters), torch.tensor(means, dtype=DEFAULT_DTYPE), torch.tensor(scales, dtype=DEFAULT_DTYPE)
+    )
+
+
+def linear_basis(rhs, theta: torch.Tensor, scale: torch.Tensor, names, where: str) -> torch.Tensor:
+    """The basis g_k = dG/dtheta_k ``(..., d, k)`` of a G linear in theta, from ``rhs(theta) -> (..., d)`` (G at the
+    data with the parameters ``theta``), by differences of one prior scale, with linearity checked (a step back, and
+    the steps of each pair at once, must agree with the basis). ``names`` and ``where`` word the error."""
+    base = rhs(theta)
+    k = theta.shape[0]
+    steps = torch.eye(k, dtype=theta.dtype, device=theta.device) * scale.to(theta)
+    ups = [rhs(theta + steps[j]) for j in range(k)]
+    basis = torch.stack([(ups[j] - base) / scale[j].item() for j in range(k)], dim=-1)
+    size = base.abs().amax() + sum(float((u - base).abs().amax()) for u in ups) + 1e-300
+    checks = [(rhs(theta - steps[j]), base - (ups[j] - base), (names[j],)) for j in range(k)]
+    checks += [
+        (rhs(theta + steps[i] + steps[j]), ups[i] + ups[j] - base, (names[i], names[j]))
+        for i in range(k)
+        for j in range(i + 1, k)
+    ]
+    for got, linear, which in checks:
+        err = float((got - linear).abs().amax())
+        if not err <= LINEARITY_TOLERANCE * float(size):
+            raise InputError(
+                f"{where}: G is not linear in its uncertain parameter(s) {list(which)} (a step of one prior scale "
+                f"differs from the linear prediction by {err:.3g} at the data, relative {err / float(size):.2g}); "
+                "expected G(y; theta) = G(y; m) + sum_k (theta_k - m_k) g_k(y). Uncertain parameters that enter G "
+                "nonlinearly are not built yet (the fit through the ODE with a Laplace posterior): reparametrise so "
+                "that G is linear in them (e.g. 1/Y instead of a yield Y, a rate instead of a time constant), or fix "
+                "them at a value"
+            )
+    return basis
+
+
+@dataclass(frozen=True)
+class ParameterPosterior:
+    """The posterior of G's uncertain parameters given the data, F integrated out (see the module's notes).
+
+    Attributes:
+        names: the parameters' names ``(k,)``.
+        prior_mean, prior_scale: their priors ``(k,)``.
+        mean: the posterior mean ``(k,)``.
+        covariance: the posterior covariance ``(k, k)``.
+        sd_without_correction: the posterior standard deviation the same samples would give with no correction F
+            (noise only), ``(k,)``: far below :attr:`stddev` when F can absorb the parameter's effect.
+        log_evidence: log p(r) of the residual samples with theta integrated out (nats).
+        basis_targets: the basis g_k at the GP's training inputs on the corrected components ``(N, d_out, k)``
+            (F's absorption of each, :meth:`draw_terms`).
+    """
+
+    names: tuple[str, ...]
+    prior_mean: torch.Tensor
+    prior_scale: torch.Tensor
+    mean: torch.Tensor
+    covariance: torch.Tensor
+    sd_without_correction: torch.Tensor
+    log_evidence: float
+    basis_targets: torch.Tensor
+
+    @property
+    def stddev(self) -> torch.Tensor:
+        """Posterior standard deviations ``(k,)``."""
+        return self.covariance.diagonal().clamp_min(0).sqrt()
+
+    @property
+    def correlation(self) -> torch.Tensor:
+        """Posterior correlation matrix ``(k, k)``."""
+        sd = self.stddev.clamp_min(1e-300)
+        return self.covariance / (sd[:, None] * sd[None, :])
+
+    @property
+    def identified(self) -> tuple[bool, ...]:
+        """Per parameter: whether the data determined it (posterior sd at most :data:`IDENTIFIED_RATIO` of the
+        prior's)."""
+        return tuple(bool(v) for v in (self.stddev <= IDENTIFIED_RATIO * self.prior_scale.to(self.stddev)))
+
+    def as_dict(self) -> dict[str, tuple[float, float]]:
+        """``{name: (posterior mean, posterior sd)}``."""
+        return {n: (float(m), float(s)) for n, m, s in zip(self.names, self.mean, self.stddev, strict=True)}
+
+    def summary(self) -> str:
+        """One line per parameter: prior, posterior, and whether the data determined it."""
+        lines = []
+        for j, name in enumerate(self.names):
+            tag = "" if self.identified[j] else "  NOT identified from these data"
+            lines.append(
+                f"{name} = {float(self.mean[j]):.4g} +- {float(self.stddev[j]):.2g} (prior "
+                f"{float(self.prior_mean[j]):.4g} +- {float(self.prior_scale[j]):.2g}; without a correction "
+                f"+- {float(self.sd_without_correction[j]):.2g}){tag}"
+            )
+        return "\n".join(lines)
+
+    def problems(self) -> list[str]:
+        """What the data leave undetermined, in words (empty when every parameter is identified)."""
+        out = []
+        s0 = self.prior_scale.to(self.stddev)
+        for j, name in enumerate(self.names):
+            if self.identified[j]:
+                continue
+            ratio = float(self.stddev[j] / s0[j])
+            without = float(self.sd_without_correction[j] / s0[j])
+            reason = (
+                f"the correction F can absorb its effect on G (without F the same data would determine it to "
+                f"{without:.2f} of the prior's sd): a parameter error and a missing term look alike here"
+                if without <= IDENTIFIED_RATIO
+                else "these data hardly depend on it"
+            )
+            out.append(f"{name}: posterior sd {ratio:.2f} of the prior's, so it stays close to its prior; {reason}")
+        corr = self.correlation
+        k = len(self.names)
+        for i in range(k):
+            for j in range(i + 1, k):
+                if abs(float(corr[i, j])) > CORRELATION_LIMIT:
+                    out.append(
+                        f"{self.names[i]} and {self.names[j]}: posterior correlation {float(corr[i, j]):+.3f}, only a "
+                        "combination of the two is determined"
+                    )
+        return out
+
+    def warn_if_unidentified(self, where: str) -> None:
+        problems = self.problems()
+        if problems:
+            warn(
+                f"{where}: uncertain parameters not determined by the data ({'; '.join(problems)}). Their posterior "
+                "stays wide and the bands include it; to tell them apart, measure where G's dependence on them differs "
+                "from what F may depend on (other states, inputs or times), or tighten their priors",
+                TorchMisspecWarning,
+            )
+
+    def sample(self, num_samples: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``num_samples`` draws of theta ``(S, k)`` from the posterior."""
+        L = torch.linalg.cholesky(
+            self.covariance + 1e-12 * self.covariance.diagonal().max() * torch.eye(len(self.names)).to(self.covariance)
+        )
+        eps = torch.randn(num_samples, len(self.names), generator=generator, dtype=L.dtype, device=L.device)
+        return self.mean + eps @ L.T
+
+    def draw_terms(self, gp):
+        """The functions m_k of the module's notes: ``x (M, d_in) -> (M, d_out, k)``, F's posterior mean given the
+        targets g_k (what F absorbs of each parameter's effect), from ``gp``'s current factor."""
+        post = gp.posterior()
+        parts = [post.with_targets(self.basis_targets[:, :, j].to(post.weights)) for j in range(len(self.names))]
+        return lambda x: torch.stack([p.mean(x, check=False) for p in parts], dim=-1)
+
+    def draw_field(self, system, gp, deltas: torch.Tensor, batch: int):
+        """The term each posterior draw adds to the right-hand side (the module's notes): for draws ``deltas``
+        ``(S, k)`` of theta - :attr:`mean`, a function ``(y, t, u, x) -> (S * batch, d)`` of the states, times, controls
+        and correction inputs of the rows (draw s drives rows s * batch ... s * batch + batch - 1)."""
+        absorbed = self.draw_terms(gp)
+        base_system = system.at(self.mean)
+        scale = self.prior_scale.to(self.mean)
+        steps = [
+            system.at(self.mean + scale[j] * torch.eye(len(self.names)).to(self.mean)[j]) for j in range(len(scale))
+        ]
+        rows = deltas.repeat_interleave(batch, dim=0)
+
+        def term(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
+            base = base_system.known_rhs(y, t, u)
+            g = torch.stack([(s.known_rhs(y, t, u) - base) / scale[j].to(y) for j, s in enumerate(steps)], dim=-1)
+            m = absorbed(x.to(gp.device, gp.dtype)).to(y)  # (rows, d_out, k)
+            m = system.embed(m.transpose(-1, -2)).transpose(-1, -2)
+            return ((g - m) * rows.to(y).unsqueeze(1)).sum(-1)
+
+        return term
+
+    @classmethod
+    def prior(cls, priors: Priors, num_samples: int, output_dim: int, like: torch.Tensor) -> ParameterPosterior:
+        """The prior as a posterior (a model whose fit did not learn theta): F absorbs nothing of it."""
+        mean, scale = priors.mean.to(like), priors.scale.to(like)
+        return cls(
+            names=priors.names,
+            prior_mean=mean,
+            prior_scale=scale,
+            mean=mean,
+            covariance=torch.diag(scale**2),
+            sd_without_correction=scale,
+            log_evidence=math.nan,
+            basis_targets=like.new_zeros(num_samples, output_dim, len(priors)),
+        )
+
+    def to_dict(self) -> dict:
+        """Plain values and CPU tensors for a model file."""
+        return {
+            "names": list(self.names),
+            "prior_mean": self.prior_mean.detach().cpu(),
+            "prior_scale": self.prior_scale.detach().cpu(),
+            "mean": self.mean.detach().cpu(),
+            "covariance": self.covariance.detach().cpu(),
+            "sd_without_correction": self.sd_without_correction.detach().cpu(),
+            "log_evidence": float(self.log_evidence),
+            "basis_targets": self.basis_targets.detach().cpu(),
+        }
+
+    @classmethod
+    def from_dict(cls, values, path, *, num_samples: int, output_dim: int, like: torch.Tensor) -> ParameterPosterior:
+        """The record of :meth:`to_dict`, checked (``path`` names the file in errors)."""
+        fields = ("names", "prior_mean", "prior_scale", "mean", "covariance", "sd_without_correction")
+        if not isinstance(values, dict) or not all(f in values for f in (*fields, "basis_targets", "log_evidence")):
+            raise InputError(
+                f"{path}: expected an uncertain-parameter record with fields {list(fields)}, got {values!r:.80}"
+            )
+        names = values["names"]
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+            raise InputError(f"{path}: expected the parameters' names as a list of strings, got {names!r:.80}")
+        k = len(names)
+        shapes = {
+            "prior_mean": (k,),
+            "prior_scale": (k,),
+            "mean": (k,),
+            "covariance": (k, k),
+            "sd_without_correction": (k,),
+            "basis_targets": (num_samples, output_dim, k),
+        }
+        for key, shape in shapes.items():
+            t = values[key]
+            if not (isinstance(t, torch.Tensor) and t.is_floating_point() and tuple(t.shape) == shape):
+                raise InputError(f"{path}: expected {key!r} a float tensor of shape {shape}, got {t!r:.60}")
+            if not bool(torch.isfinite(t).all()):
+                raise InputError(f"{path}: {key!r} holds non-finite values (the file is damaged)")
+        try:
+            evidence = float(values["log_evidence"])
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{path}: expected 'log_evidence' a number ({exc})") from exc
+        return cls(tuple(names), **{key: values[key].to(like) for key in shapes}, log_evidence=evidence)
+
+
+def parameter_posterior(gp, residuals: torch.Tensor, basis: torch.Tensor, outputs, priors: Priors, delta=None):
+    """The posterior of theta given the residual samples, F integrated out (the module's notes).
+
+    Args:
+        gp: the correction GP, fitted on the corrected components of these samples (its training covariance C is
+            used; its targets are not).
+        residuals: ``(N, d)`` dy/dt - G(y; prior mean) at the samples, every state component.
+        basis: ``(N, d, k)`` the basis g_k at the samples.
+        outputs: the components F acts on (``gp``'s outputs, in order).
+        priors: the :class:`Priors`.
+        delta: the current estimate of theta - m ``(k,)`` (``None``: 0), for the noise of the components F does not
+            act on (estimated from the residuals r - H delta there).
+    """
+    dtype, device = residuals.dtype, residuals.device
+    k = len(priors)
+    outputs = list(outputs)
+    others = [j for j in range(residuals.shape[1]) if j not in outputs and bool(basis[:, j].abs().amax() > 0)]
+    S = priors.scale.to(dtype=dtype, device=device) ** 2
+    delta = torch.zeros(k, dtype=dtype, device=device) if delta is None else delta.to(residuals)
+    post = gp.posterior()
+    Hc = basis[:, outputs, :]  # (N, d_out, k)
+    rc = residuals[:, outputs]
+    fit_r = post.with_targets(rc)
+    solves = [post.with_targets(Hc[:, :, j]).weights for j in range(k)]  # C^-1 g_j, (N, d_out) each
+    CinvH = torch.stack(solves, dim=-1)  # (N, d_out, k)
+    info = torch.einsum("njk,njl->kl", CinvH, Hc)
+    b = torch.einsum("njk,nj->k", CinvH, rc)
+    noise = _noise(gp, Hc)
+    info0 = torch.einsum("njk,njl->kl", Hc / noise.unsqueeze(-1), Hc)
+    evidence = fit_r.log_marginal_likelihood
+    n = residuals.shape[0]
+    for j in others:  # components F does not act on: r_j = g_j^T delta + noise, the noise estimated at delta
+        Hj, rj = basis[:, j, :], residuals[:, j]
+        var = float(((rj - Hj @ delta) ** 2).sum()) / max(n - k, 1)
+        var = max(var, 1e-12 * float((rj**2).mean()) + 1e-300)
+        info = info + Hj.T @ Hj / var
+        info0 = info0 + Hj.T @ Hj / var
+        b = b + Hj.T @ rj / var
+        evidence += -0.5 * (float((rj**2).sum()) / var + n * math.log(2 * math.pi * var))
+    A = torch.diag(1 / S) + info
+    LA = torch.linalg.cholesky(A)
+    cov = torch.cholesky_inverse(LA)
+    mean = cov @ b
+    cov0 = torch.cholesky_inverse(torch.linalg.cholesky(torch.diag(1 / S) + info0))
+    evidence += float(-0.5 * S.log().sum() - LA.diagonal().log().sum() + 0.5 * b @ mean)
+    return ParameterPosterior(
+        names=priors.names,
+        prior_mean=priors.mean.to(residuals),
+        prior_scale=priors.scale.to(residuals),
+        mean=priors.mean.to(residuals) + mean,
+        covariance=0.5 * (cov + cov.T),
+        sd_without_correction=cov0.diagonal().clamp_min(0).sqrt(),
+        log_evidence=float(evidence),
+        basis_targets=Hc.detach().clone(),
+    )
+
+
+def condition_with_parameters(gp, samples, priors: Priors, outputs, delta=None):
+    """``(gp conditioned on r - H theta_bar, theta's posterior)``: theta's posterior under ``gp``'s hyperparameters
+    (``gp`` trained on ``samples``' inputs), and ``gp``'s hyperparameters conditioned on the samples at its mean,
+    the posterior kept as ``parameters_``. ``samples``: :class:`~torchmisspec.CorrectionSamples` with ``residuals``
+    and ``basis``; ``delta`` the current estimate of theta - m (for the noise of components F does not act on)."""
+    posterior = parameter_posterior(gp, samples.residuals, samples.basis, outputs, priors, delta)
+    moved = samples.shifted(posterior.mean - posterior.prior_mean, outputs)
+    out = gp.condition(moved.inputs, moved.targets, noise=moved.noise)
+    out.parameters_ = posterior
+    return out, moved
+
+
+def _noise(gp, Hc: torch.Tensor) -> torch.Tensor:
+    """The GP's noise variance per sample and output ``(N, d_out)`` (the learned floor plus known noise)."""
+    floor = torch.as_tensor(gp.noise_variance, dtype=Hc.dtype, device=Hc.device).reshape(-1)
+    noise = floor.expand(Hc.shape[1]).expand(Hc.shape[0], -1)
+    if gp.train_noise_ is not None:
+        noise = noise + gp.train_noise_.to(Hc)
+    return noise
