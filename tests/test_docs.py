@@ -174,12 +174,27 @@ def check_overview(ns: dict) -> None:
     assert campaign.num_experiments == 6 and Path("campaign.pt").is_file()
 
 
+def check_chemostat(ns: dict) -> None:
+    # "Both come back close to the truth ... with standard deviations far inside their priors"
+    for name, true, prior_sd in (("kd", 0.05, 0.03), ("q", 2.0, 1.0)):
+        mean, sd = ns[name]
+        assert abs(mean - true) <= 3 * sd and sd < 0.25 * prior_sd
+    assert ns["gp"].parameters_.identified == (True, True)
+    # "The corrected model's error is a small fraction of the known model's"
+    assert ns["error_corrected"] < 0.3 * ns["error_known"]
+    assert ns["bands"].samples.shape == (32, 10, 30, 2)
+    # "kd is flagged not identified ... q ... is still determined"
+    assert ns["gp_absorbing"].parameters_.identified == (False, True)
+    assert any("kd: posterior sd" in str(w.message) for w in ns["caught"])
+
+
 PAGES = {
     "index.md": check_index,
     "overview.md": check_overview,
     "tutorials/learn-and-predict.md": check_learn_and_predict,
     "tutorials/design.md": check_design,
     "tutorials/own-system.md": check_own_system,
+    "tutorials/chemostat.md": check_chemostat,
     "tutorials/sequential.md": check_sequential,
     "tutorials/kernels.md": check_kernels,
 }

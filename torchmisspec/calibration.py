@@ -50,12 +50,12 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
+from ._parameters_ode import fit_parameters
 from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp._calibration import BandCalibration
 from .learning import _check_cv_inputs
 from .observations import CorrectionSamples, _check_trajectories_and_system, estimate_state_noise
-from .parameters import condition_with_parameters
 from .trajectory_fit import fit_trajectories
 
 __all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
@@ -199,10 +199,8 @@ def calibrate_bands(
                     fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
                 if getattr(model, "parameters_", None) is not None and samples.basis is not None:  # G's theta too
                     delta = model.parameters_.mean - model.parameters_.prior_mean
-                    fold = samples.subset(keep)
-                    fold_gp = condition_with_parameters(
-                        fold_gp, fold, system.parameters, system.correction_outputs, delta
-                    )[0]
+                    rest = trajectories[[k for k in range(K) if k % folds != f]]
+                    fold_gp = fit_parameters(fold_gp, samples.subset(keep), system, rest, delta)[0]
                 if refinement is not None:  # the model was refined through the ODE: so is each fold, on its data
                     rest = trajectories[[k for k in range(K) if k % folds != f]]
                     fold_gp = fit_trajectories(fold_gp, system, rest, **refinement)

@@ -42,6 +42,7 @@ from ._errors import (
     warn,
 )
 from ._ode import FITTING_TOLERANCES, solve
+from ._parameters_ode import fit_parameters
 from ._threads import adaptive_threads
 from ._validation import check_positive_int, progress_bar
 from .data import Trajectories, simulate_known_each
@@ -50,7 +51,7 @@ from .gp._exact import median_distance
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .gp._selection import fit_and_score
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
-from .parameters import condition_with_parameters, parameter_posterior
+from .parameters import parameter_posterior
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
 
@@ -555,7 +556,7 @@ def fit_correction(
         result = fit_trajectories(result, system, trajectories, progress=progress)
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
         delta = posterior.mean - posterior.prior_mean
-        result, samples = condition_with_parameters(result, samples, system0.parameters, outputs, delta)
+        result, samples = fit_parameters(result, samples, system0, trajectories, delta)
         result.parameters_.warn_if_unidentified("fit_correction")
     result.cross_validation_ = cv
     result.samples_ = samples
