@@ -84,3 +84,16 @@ def test_end_to_end_study_smoke(tmp_path):
     for run in result["runs"]:
         assert 0 < run["rmse_ratio"] < 1 and 0 <= run["coverage"] <= 1 and run["greedy"] and run["campaign"]
     assert "calibrated 90 % band: coverage of the true states" in stdout
+
+
+@pytest.mark.slow
+def test_parameters_study_smoke(tmp_path):
+    out = tmp_path / "p.json"
+    stdout = _script("study_parameters.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["smoke"] and set(result["runs"]) == {"identifiable", "absorbable"}
+    for run in result["runs"]["absorbable"]:
+        assert run["warned_kd"] and not run["identified"][0]  # F can absorb kd: said every time
+    for run in result["runs"]["identifiable"]:
+        assert all(s > 0 for s in run["sd"]) and run["rmse"] < run["rmse_known_model"]
+    assert "truth within 2 posterior sd" in stdout

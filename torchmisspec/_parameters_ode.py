@@ -38,6 +38,8 @@ __all__ = ["fit_parameters", "refine_through_ode", "ITERATIONS"]
 ITERATIONS = 6
 #: posterior draws of F whose trajectories give F's covariance in trajectory space
 DRAWS = 32
+#: the iterations stop once a step moves every parameter by less than this fraction of its standard deviation
+CONVERGED = 0.05
 _MAX_STEPS = 4000
 
 
@@ -112,40 +114,45 @@ def refine_through_ode(
         return float(((theta - prior_mean) ** 2 / prior_var).sum())
 
     theta = posterior.mean.clone()
+    d = states.shape[-1]
+
+    def variants(theta):  # theta and a step along each parameter: the Jacobian's columns in the same solve
+        return predict(torch.cat([theta[None], theta[None] + torch.diag(step)]))
+
     try:
         # F's posterior in trajectory space: num_draws draws of F at theta_0 (their spread does not depend on theta)
         g = generator if generator is not None else torch.Generator(device=gp.device).manual_seed(0)
         paths = predict(theta.expand(num_draws, -1), gp.sample_functions(num_draws, generator=g))
         U = ((paths - paths.mean(0)) / (num_draws - 1) ** 0.5).T  # (n, S)
+        pred = variants(theta)
         for _ in range(iterations):
-            pred = predict(torch.cat([theta[None], theta[None] + torch.diag(step)]))
             res = target - pred[0]
-            W = _weights(res, comp, U, states.shape[-1])
+            W = _weights(res, comp, U, d)
             J = ((pred[1:] - pred[0]) / step[:, None]).T  # (n, k)
             WJ = W(J)
             A = J.T @ WJ + torch.diag(1 / prior_var)
             delta = torch.linalg.solve(A, WJ.T @ res - (theta - prior_mean) / prior_var)
             base = float(res @ W(res[:, None])[:, 0]) + penalty(theta)
-            for _ in range(8):  # halve until the penalised misfit decreases
-                trial = theta + delta
+            accepted = False
+            for _ in range(6):  # halve until the penalised misfit decreases
                 try:
-                    r = target - predict(trial[None])[0]
-                    value = float(r @ W(r[:, None])[:, 0]) + penalty(trial)
+                    trial = variants(theta + delta)
+                    r = target - trial[0]
+                    accepted = float(r @ W(r[:, None])[:, 0]) + penalty(theta + delta) < base
                 except IntegrationError:
-                    value = float("inf")
-                if value < base:
+                    accepted = False
+                if accepted:
                     break
                 delta = delta / 2
-            else:
+            if not accepted:
                 break
-            theta = trial
-            if bool((delta.abs() <= 1e-3 * posterior.stddev.clamp_min(1e-12)).all()):
+            theta, pred = theta + delta, trial
+            if bool((delta.abs() <= CONVERGED * posterior.stddev).all()):
                 break
-        # the Laplace posterior at the last point: a fresh Jacobian there
-        pred = predict(torch.cat([theta[None], theta[None] + torch.diag(step)]))
+        # the Laplace posterior at the last point
         res = target - pred[0]
         J = ((pred[1:] - pred[0]) / step[:, None]).T
-        A = J.T @ _weights(res, comp, U, states.shape[-1])(J) + torch.diag(1 / prior_var)
+        A = J.T @ _weights(res, comp, U, d)(J) + torch.diag(1 / prior_var)
         cov = torch.cholesky_inverse(torch.linalg.cholesky(A))
     except (IntegrationError, LinearAlgebraError, torch.linalg.LinAlgError) as exc:
         warn(
