@@ -17,9 +17,15 @@ Gauss-Newton step on
 
     sum (observed - predicted)^2 / sigma_j^2 + (theta - m)^T S^-1 (theta - m),
 
-with step halving where a trial does not decrease it or cannot be integrated. The Laplace posterior is
-N(theta_hat, (J^T W J + S^-1)^-1). F's ability to absorb theta shows as a small J (the trajectories hardly move when
-F follows theta), and the posterior stays near the prior, as the closed form says.
+with step halving where a trial does not decrease it or cannot be integrated, W = (D + U U^T)^-1 (D the residual
+variance of each component, U U^T F's posterior covariance of the trajectories, from draws of F). The posterior's
+covariance is the Laplace one, A^-1 = (J^T W J + S^-1)^-1, or, when it is wider on average (trace(A R) > k), the
+cluster-robust sandwich over experiments (Liang & Zeger 1986) A^-1 (K / (K - 1) sum_e s_e s_e^T + S^-1) A^-1,
+s_e = J_e^T (W r)_e the experiment's score: what F's error leaves in the residuals is shared by the times of an
+experiment and is not independent noise, and the sandwich counts it once per experiment instead of once per time
+(on the chemostat study the Laplace standard deviations were 2 to 3 times too narrow). F's ability to absorb theta
+shows as a small J (the trajectories hardly move when F follows theta), and the posterior stays near the prior, as the
+closed form says.
 """
 
 from __future__ import annotations
@@ -104,6 +110,7 @@ def refine_through_ode(
     observed[:, 0] = False  # the first state is where each solve starts
     target = states[observed]
     comp = torch.arange(states.shape[-1], device=states.device).expand_as(states)[observed]
+    exp = torch.arange(states.shape[0], device=states.device).view(-1, 1, 1).expand_as(states)[observed]
     prior_mean, prior_var = posterior.prior_mean, posterior.prior_scale**2
     step = (0.05 * posterior.stddev).clamp_min(1e-6 * posterior.prior_scale)
 
@@ -114,7 +121,7 @@ def refine_through_ode(
         return float(((theta - prior_mean) ** 2 / prior_var).sum())
 
     theta = posterior.mean.clone()
-    d = states.shape[-1]
+    d, k = states.shape[-1], posterior.mean.shape[0]
 
     def variants(theta):  # theta and a step along each parameter: the Jacobian's columns in the same solve
         return predict(torch.cat([theta[None], theta[None] + torch.diag(step)]))
@@ -152,8 +159,15 @@ def refine_through_ode(
         # the Laplace posterior at the last point
         res = target - pred[0]
         J = ((pred[1:] - pred[0]) / step[:, None]).T
-        A = J.T @ _weights(res, comp, U, d)(J) + torch.diag(1 / prior_var)
+        W = _weights(res, comp, U, d)
+        A = J.T @ W(J) + torch.diag(1 / prior_var)
         cov = torch.cholesky_inverse(torch.linalg.cholesky(A))
+        # the experiments' scores: their spread is the sandwich's meat (errors shared within an experiment count once)
+        scores = torch.zeros(states.shape[0], k, dtype=J.dtype, device=J.device).index_add_(0, exp, J * W(res[:, None]))
+        meat = scores.shape[0] / max(scores.shape[0] - 1, 1) * scores.T @ scores + torch.diag(1 / prior_var)
+        robust = cov @ meat @ cov
+        if float(torch.trace(torch.linalg.solve(cov, robust))) > k:  # wider on average: the data say so
+            cov = robust
     except (IntegrationError, LinearAlgebraError, torch.linalg.LinAlgError) as exc:
         warn(
             "fit_correction: the fit of G's uncertain parameters through the ODE failed near the estimate from the "
