@@ -191,6 +191,12 @@ def feed_tank():
 """
 
 
+def feed_tank():
+    namespace: dict = {}
+    exec(SYSTEM_FILE, namespace)
+    return namespace["feed_tank"]()
+
+
 def test_a_lab_csv_with_an_input_column_through_the_cli(tmp_path, capsys):
     """A lab's table as it comes: named columns, ragged irregular times, noise, the input set between
     measurements; fit and calibrate on the command line with the defaults, the input named by --input-columns."""
@@ -222,6 +228,28 @@ def test_a_lab_csv_with_an_input_column_through_the_cli(tmp_path, capsys):
     assert main(["fit", *common, "--input-columns", "feed", "--out", str(model), "--quiet"]) == 0
     assert model.is_file()
     assert main(["calibrate", "--model", str(model), *common, "--input-columns", "feed", "--quiet"]) == 0
+    # predict new flasks under new feed profiles, given as a table of each flask's profile
+    (tmp_path / "initial.csv").write_text("flask,level\nN1,0.5\nN2,1.5\n")
+    (tmp_path / "feeds.csv").write_text("flask,day,feed\nN1,0,0.2\nN1,2,1.0\nN2,0,0.8\n")
+    pred = tmp_path / "pred.csv"
+    args = ["predict", "--model", str(model), "--system", system, "--initial", str(tmp_path / "initial.csv")]
+    args += ["--experiment-column", "flask", "--time-column", "day", "--times", "0:4:9", "--out", str(pred)]
+    assert main([*args, "--controls", str(tmp_path / "feeds.csv"), "--quiet"]) == 0
+    table = [line.split(",") for line in pred.read_text().splitlines()]
+    assert table[0][:3] == ["flask", "day", "level_mean"] and len(table) == 1 + 2 * 9
+    gp = tms.CorrectionGP.load(model)
+    feeds = Controls(
+        [torch.tensor([0.0, 2.0], dtype=DT), torch.tensor([0.0], dtype=DT)],
+        [torch.tensor([[0.2], [1.0]], dtype=DT), torch.tensor([[0.8]], dtype=DT)],
+    )
+    y0 = torch.tensor([[0.5], [1.5]], dtype=DT)
+    mean = tms.CorrectedODE(feed_tank(), gp).predict(y0, torch.linspace(0, 4, 9, dtype=DT), controls=feeds)
+    got = torch.tensor([float(row[2]) for row in table[1:]], dtype=DT).reshape(2, 9)
+    torch.testing.assert_close(got, mean[..., 0], rtol=1e-9, atol=1e-12)  # the mean path the Python API predicts
+    capsys.readouterr()
+    assert main([*args, "--quiet"]) == 2  # the inputs' profiles are needed: one line saying how to give them
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--controls profiles.csv" in err[0]
     # without the input column: one line naming what the system needs, exit 2
     capsys.readouterr()
     assert main(["fit", *common, "--out", str(tmp_path / "m2.pt"), "--quiet"]) == 2

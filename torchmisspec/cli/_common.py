@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from .._errors import InputError
@@ -16,6 +17,7 @@ __all__ = [
     "describe_system",
     "known_state_names",
     "load_model",
+    "read_controls",
     "parse_times",
     "read_observations",
     "read_states",
@@ -347,3 +349,61 @@ def write_csv(path: Path, header: list[str], rows) -> None:
         writer = csv.writer(fh)
         writer.writerow(header)
         writer.writerows(rows)
+
+
+def read_controls(path: str, args: argparse.Namespace, system, labels: list[str]):
+    """The input profiles u(t) of the rows of ``--initial`` (their ``labels``) from a table ``path``: an
+    ``--experiment-column`` naming each row's experiment (as in ``--initial``; without it, one profile for every row),
+    the ``--time-column``, and one column per input named as the system's controls (or ``--input-columns``), each
+    experiment's rows the profile's samples (``--input-kind``: piecewise constant or linear between them)."""
+    import torch
+
+    from ..data._tables import _TEXT_FORMATS, _read_table
+    from ..signals import Controls
+
+    p = Path(path)
+    if p.suffix not in _TEXT_FORMATS or not p.is_file():
+        raise InputError(f"--controls: expected an existing CSV/TSV/TXT table of input profiles, got {path!r}")
+    header, body = _read_table(p)
+    names = state_columns(args, "input_columns") or list(system.control_names)
+    if len(names) != system.num_controls:
+        raise InputError(
+            f"--input-columns: expected {system.num_controls} input column(s) (the system's controls "
+            f"{list(system.control_names)}), got {names}"
+        )
+    needed = [args.time_column, *names]
+    missing = [c for c in needed if c not in header]
+    if missing:
+        raise InputError(
+            f"--controls: expected columns {needed} (the time and the system's inputs; name them with --time-column "
+            f"and --input-columns), missing {missing}; {path!r} has {header}"
+        )
+    by_label = args.experiment_column and args.experiment_column in header
+    profiles: dict[str, list[list[float]]] = {}
+    for line, row in body:
+        label = row[header.index(args.experiment_column)] if by_label else ""
+        try:
+            values = [float(row[header.index(c)]) for c in needed]
+        except ValueError:
+            raise InputError(
+                f"--controls: expected numbers in columns {needed} on line {line} of {path!r}, got "
+                f"{[row[header.index(c)] for c in needed]}"
+            ) from None
+        if not all(math.isfinite(v) for v in values):
+            raise InputError(f"--controls: expected finite times and inputs on line {line} of {path!r}, got {values}")
+        profiles.setdefault(label, []).append(values)
+    wanted = labels if by_label else [""] * len(labels)
+    absent = sorted({w for w in wanted if w not in profiles})
+    if absent:
+        raise InputError(
+            f"--controls: expected a profile for every initial condition ({args.experiment_column!r} labels "
+            f"{sorted(set(wanted))}), missing {absent} in {path!r}"
+        )
+    knots, values = [], []
+    for w in wanted:
+        rows = torch.tensor(sorted(profiles[w]), dtype=torch.float64)
+        if bool((rows[1:, 0] == rows[:-1, 0]).any()):
+            raise InputError(f"--controls: expected one row per time in the profile of {w or 'the experiments'!r}")
+        knots.append(rows[:, 0])
+        values.append(rows[:, 1:])
+    return Controls(knots, values, kind=args.input_kind, names=names)

@@ -15,6 +15,7 @@ from ._common import (
     known_state_names,
     load_model,
     parse_times,
+    read_controls,
     read_states,
     write_csv,
 )
@@ -38,22 +39,30 @@ def _predict(args: argparse.Namespace) -> int:
         raise InputError(f"--samples: expected at least 2 posterior draws for a band, got {args.samples}")
     times = parse_times(args.times)
     system = load_system(args.system)
-    if system.num_controls:
+    if system.num_controls and args.controls is None:
         raise InputError(
-            f"--system: '{system.name}' has inputs u(t) (controls); predict takes their profiles in the Python API "
-            "(CorrectedODE(system, gp).predict(y0, times, controls=...)), not yet on the command line"
+            f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; pass their profiles for the "
+            "initial conditions with --controls profiles.csv (columns: experiment, time, the inputs)"
         )
+    if args.controls is not None and not system.num_controls:
+        raise InputError(f"--controls: system '{system.name}' has no inputs u(t); drop --controls")
     gp = load_model(args.model, system)
     y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
     names = check_names(gp, names, system, "--initial")
     labels = labels if labels is not None else [str(b) for b in range(y0.shape[0])]
+    controls = None if args.controls is None else read_controls(args.controls, args, system, labels)
     model = CorrectedODE(system, gp)
     calibrated = model.calibration_ is not None
     with warnings.catch_warnings():
         # the command says itself, once, whether the bands are calibrated
         warnings.filterwarnings("ignore", message=".*not calibrated.*")
         post = model.posterior(
-            y0, times, num_samples=args.samples, generator=torch.Generator().manual_seed(args.seed), scale=None
+            y0,
+            times,
+            num_samples=args.samples,
+            generator=torch.Generator().manual_seed(args.seed),
+            scale=None,
+            controls=controls,
         )
     lower, upper = post.interval(args.level)
     mean = post.mean_path
@@ -137,6 +146,12 @@ def add_predict(sub) -> None:
     )
     pre.add_argument(
         "--times", required=True, help="output times: 'start:stop:count', a comma list, or a file of times"
+    )
+    pre.add_argument(
+        "--controls",
+        help="for a system with inputs u(t): their profiles, a CSV/TSV/TXT with the --experiment-column (labels as "
+        "in --initial; without it, one profile for all), the --time-column and one column per input (named as the "
+        "system's controls, or --input-columns), each experiment's rows the profile's samples (--input-kind)",
     )
     add_column_options(pre)
     pre.add_argument("--level", type=float, default=0.9, help="the central band written (default: %(default)s)")
