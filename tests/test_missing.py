@@ -268,7 +268,7 @@ def test_shooting_residuals_compare_observed_entries_only(sir):
     traj = tms.Trajectories(times, _with_holes(states, 0.1))
     solver = dict(rtol=1e-6, atol=1e-8, max_steps=None, what="test")
     for shooting in ("single", "multiple"):
-        residuals, n_obs, _ = _shooting(traj, shooting, solver)
+        residuals, n_obs, _ = _shooting(traj, shooting, solver, system)
         r = residuals(system.known_rhs, None, None)
         first_rows = sum(int(torch.isfinite(y[0]).sum()) for y in traj.states) if shooting == "multiple" else 0
         assert n_obs == int(torch.isfinite(traj.flat_states()).sum()) - first_rows

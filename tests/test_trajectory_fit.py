@@ -98,17 +98,17 @@ def test_batched_jacobian_columns_equal_one_solve_per_column():
     ragged = tms.Trajectories(
         [full.times[: 11 - 2 * k] for k in range(3)], [full.states[k, : 11 - 2 * k] for k in range(3)]
     )
-    residuals, _, offsets = tf._shooting(ragged, "single", dict(rtol=1e-10, atol=1e-12, what="test"))
+    residuals, _, offsets = tf._shooting(ragged, "single", dict(rtol=1e-10, atol=1e-12, what="test"), system)
     features = FeatureKernel(2, 2).to(torch.float64).features
     p = features(y0).shape[1]
     beta = 0.01 * torch.randn(p, 2, generator=g, dtype=torch.float64)
     active = torch.rand(p, 2, generator=g) > 0.3
 
     def make_field(b):
-        return lambda y: system.known_rhs(y) + features(y) @ b
+        return lambda y, t=None, u=None: system.known_rhs(y) + features(y) @ b  # rhs(y, t, u)
 
     def make_fields(bs):
-        def field(y):
+        def field(y, t=None, u=None):
             f = features(y).reshape(bs.shape[0], -1, p)
             return system.known_rhs(y) + torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
 

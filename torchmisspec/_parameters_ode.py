@@ -167,7 +167,8 @@ def refine_through_ode(
         meat = scores.shape[0] / max(scores.shape[0] - 1, 1) * scores.T @ scores + torch.diag(1 / prior_var)
         robust = cov @ meat @ cov
         if float(torch.trace(torch.linalg.solve(cov, robust))) > k:  # wider on average: the data say so
-            cov = robust
+            shrink = (posterior.prior_scale / robust.diagonal().sqrt()).clamp_max(1.0)  # never wider than the prior
+            cov = shrink[:, None] * robust * shrink[None, :]
     except (IntegrationError, LinearAlgebraError, torch.linalg.LinAlgError) as exc:
         warn(
             "fit_correction: the fit of G's uncertain parameters through the ODE failed near the estimate from the "

@@ -126,16 +126,17 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     W = torch.where(W > 0, W, (second / (p * phi2)).expand_as(W))
 
     def make_field(b):
-        def field(y):
-            x = system.select_inputs(y)
-            return system.known_rhs(y) + system.embed(base.features(x) @ b)
+        def field(y, t=None, u=None):
+            x = system.select_inputs(y, u)
+            return system.known_rhs(y, t, u) + system.embed(base.features(x) @ b)
 
         return field
 
     def make_fields(bs):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
-        def field(y):
-            f = base.features(system.select_inputs(y)).reshape(bs.shape[0], -1, p)  # (m, K, p)
-            return system.known_rhs(y) + system.embed(torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1))
+        def field(y, t=None, u=None):
+            f = base.features(system.select_inputs(y, u)).reshape(bs.shape[0], -1, p)  # (m, K, p)
+            mixed = torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
+            return system.known_rhs(y, t, u) + system.embed(mixed)
 
         return field
 

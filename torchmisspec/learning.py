@@ -478,8 +478,9 @@ def fit_correction(
     3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE; by default
        (``refine=None``) exactly when the chosen model is a feature kernel, whose term weights are then re-learned
        from the trajectories (the derivative estimator's bias shows up in the samples as spurious terms, which
-       the trajectories do not support); not for a system with controls or time (the fit through the ODE takes
-       autonomous systems only, for now).
+       the trajectories do not support), for autonomous systems (with inputs or time the fit through the ODE runs
+       each experiment under its own profile, but is not yet validated by a study: ask for it with ``refine=True``);
+       never for a system with uncertain parameters (theta's own fit through the ODE follows instead).
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
@@ -550,7 +551,7 @@ def fit_correction(
     if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
         pool = candidates if user_candidates else [CorrectionGP(kernel="auto") if gp is None else gp]
         result = _by_evidence(pool, samples)
-    if refine is None:  # the feature kernel's terms, refined through the ODE (autonomous systems: fit_trajectories)
+    if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
         refine = result.kernel_spec.feature_space and system.autonomous
     if refine:
         result = fit_trajectories(result, system, trajectories, progress=progress)

@@ -28,39 +28,48 @@ from .systems import MisspecifiedSystem
 __all__ = ["SHOOTING", "fit_trajectories", "shooting_misfit"]
 
 
-def _intervals(trajectories: Trajectories) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Start states ``(B, d)``, interval grids ``(B, 2)`` and end states ``(B, d)`` of all sum_k (T_k - 1)
-    intervals (experiment after experiment; ragged data too). Missing entries of the start states are estimated
-    (:meth:`Trajectories.filled`); those of the end states stay NaN (the residuals skip them)."""
+def _intervals(trajectories: Trajectories):
+    """Start states ``(B, d)``, interval grids ``(B, 2)``, end states ``(B, d)`` and the experiment of each ``(B,)``
+    of all sum_k (T_k - 1) intervals (experiment after experiment; ragged data too). Missing entries of the start
+    states are estimated (:meth:`Trajectories.filled`); those of the end states stay NaN (the residuals skip them)."""
     if min(trajectories.lengths) < 2:
         raise InputError(
             f"trajectories: expected at least 2 times per experiment to shoot between, got T = "
             f"{min(trajectories.lengths)}"
         )
     filled = trajectories.filled()
+    rows = torch.arange(trajectories.num_experiments, device=trajectories.device).repeat_interleave(
+        torch.tensor(trajectories.lengths, device=trajectories.device) - 1
+    )
     if trajectories.is_ragged:
         parts = [
             (f[:-1], torch.stack([t[:-1], t[1:]], dim=-1), y[1:])
             for (t, y), f in zip(trajectories.experiments(), filled.states, strict=True)
         ]
-        return tuple(torch.cat(p) for p in zip(*parts, strict=True))
+        return (*(torch.cat(p) for p in zip(*parts, strict=True)), rows)
     states, grid = trajectories.states, trajectories.time_grid  # (K, T, d), (K, T)
     d = states.shape[-1]
     starts = filled.states[:, :-1].reshape(-1, d)
     ends = states[:, 1:].reshape(-1, d)
     times = torch.stack([grid[:, :-1], grid[:, 1:]], dim=-1).reshape(-1, 2)
-    return starts, times, ends
+    return starts, times, ends, rows
+
+
+def _solve_rhs(system, rhs, y0, times, controls, **solver):
+    """``solve`` of a right-hand side ``rhs(y, t, u)`` under ``controls`` (one profile per row, or None)."""
+    field, timed, jumps = system.solver_field(rhs, controls)
+    return solve(field, y0, times, timed=timed, jumps=jumps, **solver)
 
 
 def _mean_field(system: MisspecifiedSystem, posterior: Posterior):
     """G(y) + the posterior mean of F: the corrected right-hand side (differentiable through ``posterior``'s solve
     when it was built from pseudo-targets, :meth:`Posterior.with_targets`)."""
 
-    def field(y: torch.Tensor) -> torch.Tensor:
-        x = system.select_inputs(y)
+    def field(y: torch.Tensor, t=None, u=None) -> torch.Tensor:
+        x = system.select_inputs(y, u)
         shape = x.shape[:-1]
         mu = posterior.mean(x.reshape(-1, x.shape[-1]), check=False)
-        return system.known_rhs(y) + system.embed(mu.reshape(*shape, -1))
+        return system.known_rhs(y, t, u) + system.embed(mu.reshape(*shape, -1))
 
     return field
 
@@ -75,9 +84,19 @@ def shooting_misfit(
     compared (a missing start entry is estimated by :meth:`Trajectories.filled`).
     """
     _check(gp, system, trajectories)
-    starts, times, ends = _intervals(trajectories.to(dtype=gp.dtype, device=gp.device))
+    trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
+    starts, times, ends, rows = _intervals(trajectories)
+    controls = None if trajectories.controls is None else trajectories.controls[rows.tolist()]
     with torch.no_grad():
-        pred, _ = solve(_mean_field(system, gp.posterior()), starts, times, max_steps=max_steps, what="shooting_misfit")
+        pred, _ = _solve_rhs(
+            system,
+            _mean_field(system, gp.posterior()),
+            starts,
+            times,
+            controls,
+            max_steps=max_steps,
+            what="shooting_misfit",
+        )
     seen = torch.isfinite(ends)
     return float((pred[:, -1] - ends)[seen].pow(2).mean().sqrt())
 
@@ -88,12 +107,6 @@ def _check(gp, system, trajectories) -> None:
     if not gp.is_fitted:
         raise NotFittedError("gp: expected a fitted CorrectionGP (fit it on derivative-based samples first)")
     _check_trajectories_and_system(trajectories, system)
-    if not system.autonomous:
-        raise InputError(
-            f"fit_trajectories: system '{system.name}' has controls or depends on time, and the fit through the ODE "
-            "takes autonomous systems only (for now); use the GP fitted on the correction samples "
-            "(fit_correction(..., refine=False))"
-        )
     if gp.input_dim != system.input_dim or gp.output_dim != system.output_dim:
         raise ShapeError(
             f"gp: expected {system.input_dim} inputs and {system.output_dim} outputs (the system's correction), got "
@@ -196,7 +209,7 @@ def fit_trajectories(
             f"{min(trajectories.lengths)}"
         )
     solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="fit_trajectories")
-    residuals, n_obs, offsets = _shooting(trajectories, shooting, solver)
+    residuals, n_obs, offsets = _shooting(trajectories, shooting, solver, system)
     kd = dict(dtype=gp.dtype, device=gp.device)
     s2 = _state_noise(state_noise, trajectories, d, kd)
     # how this refinement was made: calibrate_bands repeats it on each fold (a fold fitted to the samples alone is a
@@ -242,20 +255,20 @@ def fit_trajectories(
     return refined
 
 
-def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
+def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: MisspecifiedSystem):
     """``residuals(field, off, sd)``: the state errors (prediction - observation) ``(n, d)`` of a right-hand side
     ``field`` (single shooting: from the observed first states moved by ``off * sd``, its rows experiment after
     experiment within each length group, ``residuals.experiment (n,)`` naming each row's experiment); the number of
     observations compared; the initial-state offsets to optimise (single shooting) or ``None``."""
     d = trajectories.state_dim
     if shooting == "multiple":
-        starts, times, ends = _intervals(trajectories)
-
+        starts, times, ends, rows = _intervals(trajectories)
+        controls = None if trajectories.controls is None else trajectories.controls[rows.tolist()]
         seen = torch.isfinite(ends)
         zero = torch.zeros((), dtype=ends.dtype, device=ends.device)
 
         def residuals(field, off, sd):  # noqa: ARG001 - the same signature as single shooting's
-            pred, nfe = solve(field, starts, times, **solver)
+            pred, nfe = _solve_rhs(system, field, starts, times, controls, **solver)
             residuals.nfe += nfe
             return torch.where(seen, pred[:, -1] - ends, zero)  # missing entries: 0
 
@@ -269,13 +282,14 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
     if times.dim() == 1:
         times = times.expand(states.shape[0], -1)
     first = trajectories.initial_conditions  # (K, d), missing entries estimated (Trajectories.filled)
+    controls = trajectories.controls
     offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
     zero = torch.zeros((), dtype=first.dtype, device=first.device)
     seen = torch.isfinite(states)  # missing entries (NaN) are compared as 0
 
     def residuals(field, off, sd):
         y0 = first if off is None else first + off * sd
-        pred, nfe = solve(field, y0, times, **solver)
+        pred, nfe = _solve_rhs(system, field, y0, times, controls, **solver)
         residuals.nfe += nfe
         return torch.where(seen, pred - states, zero)[mask]  # (n, d), experiment after experiment
 
@@ -287,7 +301,8 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict):
         experiments in rows c K ... c K + K - 1 (one batched solve instead of ``copies``)."""
         y0 = first if off is None else first + off * sd  # off (K, d), or (copies, K, d): one per copy
         y0 = y0.reshape(-1, d) if y0.dim() == 3 else y0.repeat(copies, 1)
-        pred, nfe = solve(field, y0, times.repeat(copies, 1), **solver)
+        repeated = None if controls is None else controls.repeat(copies)
+        pred, nfe = _solve_rhs(system, field, y0, times.repeat(copies, 1), repeated, **solver)
         residuals.nfe += nfe
         return torch.where(seen, pred.reshape(copies, *states.shape) - states, zero)[:, mask]
 
