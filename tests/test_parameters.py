@@ -213,8 +213,14 @@ def test_prior_only_model_and_refusals():
         y0, t, generator=torch.Generator().manual_seed(0), **kw
     )
     assert float(spread[0, -1].norm()) > 3 * float(fixed.stddev[0, -1].norm())
-    with pytest.raises(tms.InputError, match="refine=True"):
-        tms.fit_correction(data, system, refine=True, progress=False)
+    # refine=True: F refined through the ODE at theta's mean, after theta's fit; theta's posterior kept
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        plain_fit = tms.fit_correction(data, system, progress=False)
+        refined = tms.fit_correction(data, system, refine=True, progress=False)
+    assert refined.refinement_ is not None and plain_fit.refinement_ is None
+    torch.testing.assert_close(refined.parameters_.mean, plain_fit.parameters_.mean)
+    assert not torch.equal(refined.train_targets_, plain_fit.train_targets_)
     with pytest.raises(tms.InputError, match="no uncertain parameters"):
         truth.at([0.3])
     with pytest.raises(tms.ShapeError, match="one value per parameter"):

@@ -480,7 +480,8 @@ def fit_correction(
        from the trajectories (the derivative estimator's bias shows up in the samples as spurious terms, which
        the trajectories do not support), for autonomous systems (with inputs or time the fit through the ODE runs
        each experiment under its own profile, but is not yet validated by a study: ask for it with ``refine=True``);
-       never for a system with uncertain parameters (theta's own fit through the ODE follows instead).
+       with uncertain parameters, ``refine=True`` refines F at theta's posterior mean after theta's own fit through
+       the ODE (by default it does not).
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
@@ -510,11 +511,7 @@ def fit_correction(
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
     posterior = None
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
-        if refine:
-            raise InputError(
-                "refine=True: the fit through the ODE does not learn G's uncertain parameters yet; use refine=None"
-            )
-        refine, outputs = False, system.correction_outputs
+        refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
         posterior = _parameter_passes(samples, system, CorrectionGP() if gp is None or gp.auto else gp)
         system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
     cv = None
@@ -559,6 +556,10 @@ def fit_correction(
         delta = posterior.mean - posterior.prior_mean
         result, samples = fit_parameters(result, samples, system0, trajectories, delta)
         result.parameters_.warn_if_unidentified("fit_correction")
+        if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
+            found = result.parameters_
+            result = fit_trajectories(result, system0.at(found.mean), trajectories, progress=progress)
+            result.parameters_ = found
     result.cross_validation_ = cv
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
