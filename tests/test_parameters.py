@@ -279,3 +279,11 @@ def test_a_lab_csv_of_a_system_with_an_uncertain_parameter_through_the_cli(tmp_p
     design = ["design", "--model", model, "--system", system, "--candidates", str(tmp_path / "candidates.csv")]
     assert main([*design, "--times", "0:6:13", "--budget", "2", "--out", str(tmp_path / "next.csv"), "--quiet"]) == 0
     assert len((tmp_path / "next.csv").read_text().splitlines()) == 3
+
+
+def test_a_campaign_refuses_uncertain_parameters_with_the_fix():
+    _, system = _oscillator(0.3, absorb=False)
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=0.1, noise_variance=1e-4)
+    with pytest.raises(tms.InputError, match=r"Campaign\(system.at\(gp.parameters_.mean\)"):
+        tms.design.Campaign(system, torch.rand(5, 2, dtype=D), torch.linspace(0, 1, 5, dtype=D), gp)
+    assert tms.parameters.ParameterPosterior is ParameterPosterior

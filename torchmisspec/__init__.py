@@ -18,7 +18,7 @@ Typical use::
 from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
 from importlib.metadata import version as _version
 
-from . import design, metrics, signals, systems
+from . import design, metrics, parameters, signals, systems
 from ._errors import (
     BudgetError,
     FittingError,
@@ -82,6 +82,7 @@ __all__ = [
     "integrated_error",
     "integrated_norm",
     "metrics",
+    "parameters",
     "signals",
     "simulate",
     "smoothed_derivative",

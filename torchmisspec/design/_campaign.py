@@ -101,6 +101,12 @@ class Campaign:
         seed: int = 0,
     ) -> None:
         self.system = check_system(system)
+        if system.parameters is not None:
+            raise InputError(
+                f"system: '{system.name}' has uncertain parameters {list(system.parameters.names)}, and a Campaign "
+                "learns F only (not built yet: theta with F between rounds); fix them, e.g. at the fit's posterior "
+                "mean: Campaign(system.at(gp.parameters_.mean), ...)"
+            )
         if not isinstance(gp, CorrectionGP):
             raise InputError(f"gp: expected a CorrectionGP (the prior), got {type(gp).__name__}")
         if criterion not in CRITERIA:
