@@ -159,8 +159,10 @@ def test_systems_without_controls_refuse_them_and_the_design_says_what_is_not_bu
     plain = tms.systems.paper_linear()
     with pytest.raises(tms.InputError, match=r"has no controls \(num_controls=0\)"):
         tms.simulate(plain, torch.ones(2, 2, dtype=DT), torch.linspace(0, 1, 3, dtype=DT), controls=traj.controls)
-    with pytest.raises(tms.InputError, match=r"designing input profiles and sampling times is not built yet"):
+    with pytest.raises(tms.InputError, match=r"pass controls=\.\.\. \(one input profile per candidate\)"):
         tms.design.greedy(torch.ones(3, 1, dtype=DT), 1, system=system, times=torch.linspace(0, 1, 3), gp=None)
+    with pytest.raises(tms.InputError, match=r"use design.greedy.*sampling times is not built yet"):
+        tms.design.random(torch.ones(3, 1, dtype=DT), 1, system=system, times=torch.linspace(0, 1, 3), gp=None)
     with pytest.raises(tms.InputError, match=r"correction_inputs: expected state or control names"):
         tms.MisspecifiedSystem(lambda t, y, u: y, 1, num_controls=1, correction_inputs=["flow"])
 
@@ -272,3 +274,29 @@ def test_the_fit_through_the_ode_runs_each_experiment_under_its_own_inputs(shoot
     stripped = tms.Trajectories(traj.time_grid, traj.states)
     with pytest.raises(tms.InputError):
         tms.fit_trajectories(gp, known, stripped)
+
+
+def test_greedy_chooses_among_input_profiles_where_the_data_leave_f_unknown():
+    """A candidate experiment is an initial state and an input profile. F depends on the inflow; the data saw inflows
+    below 1 only, so the design given the data must pick profiles that reach high inflows first (it cannot if it
+    ignores the profiles: every candidate has the same initial state, and they would all tie)."""
+    system, traj = lab(12, K=6, T=17)
+    low = Controls(traj.controls.knots, 0.5 * traj.controls.values)  # inflows in [0, 1)
+    data = tms.simulate(system, traj.states[:, 0], traj.time_grid, controls=low)
+    gp = tms.fit_correction(data, system, select="evidence", derivative="central", progress=False)
+    levels = torch.tensor([[0.2], [0.5], [0.8], [1.5], [1.8], [0.3]], dtype=DT)  # constant profiles
+    profiles = Controls(torch.tensor([0.0], dtype=DT), levels.unsqueeze(1))
+    y0 = torch.full((6, 1), 1.0, dtype=DT)
+    times = torch.linspace(0, 4, 9, dtype=DT)
+    plan = tms.design.greedy(y0, 2, system=system, times=times, gp=gp, controls=profiles)
+    assert set(plan.indices.tolist()) == {3, 4}, plan.indices  # the two high inflows, where F is unknown
+    assert plan.diagnostics["conditioned"] == gp.train_inputs_.shape[0]
+    # the proxies ran under each pick's profile: the corrected model's paths (a fitted GP's default proxy) ...
+    picks = plan.indices.tolist()
+    corrected = tms.CorrectedODE(system, gp).predict(y0[picks], times, controls=profiles[picks])
+    torch.testing.assert_close(plan.proxies, corrected, rtol=1e-4, atol=1e-5)
+    # ... and G's alone: u/a + (1 - u/a) exp(-a t) from 1.0 under a constant inflow u
+    known = tms.design.proxy_trajectories(system, y0, times, controls=profiles)
+    a = 0.7
+    expected = levels / a + (1 - levels / a) * torch.exp(-a * times)
+    torch.testing.assert_close(known[..., 0], expected, rtol=1e-5, atol=1e-6)

@@ -91,6 +91,11 @@ def _design(args: argparse.Namespace) -> int:
 
     out = check_output(args.out, (".csv", ".json"))
     system = load_system(args.system)
+    if system.num_controls:
+        raise InputError(
+            f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; the command line does not read "
+            "candidate input profiles yet: design them in Python, design.greedy(states, budget, ..., controls=...)"
+        )
     times = parse_times(args.times)
     early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
     observed = read_observations(args) if args.data is not None and early is None else None  # read before the fit

@@ -91,12 +91,15 @@ class _Problem:
         criterion="information",
         domain=None,
         domain_size=None,
+        controls=None,
     ) -> None:
         if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
             raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
         self.tie_tol = float(tie_tol)
-        self.system = check_system(system)
+        self.system = check_system(system, controls, with_controls=True)
         self.criterion = criterion
+        if controls is not None and criterion == "domain":
+            raise InputError("criterion='domain' with input profiles is not built yet; use criterion='information'")
         if criterion not in CRITERIA:
             raise InputError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
         self.kern = GPKernel(gp, input_dim=self.system.input_dim, condition=condition)
@@ -107,6 +110,7 @@ class _Problem:
             raise InputError("domain / domain_size: only used by criterion='domain', got criterion='information'")
         self.candidates = check_candidates(candidates, self.system)
         n = self.candidates.shape[0]
+        controls = self.system.check_controls(controls, n)  # one profile per candidate (a system with inputs)
         self.budget = check_budget(budget, n)
         self.partition = check_partition(partition, capacities, n, self.budget, self.kern.device)
         kd = {"dtype": self.kern.dtype, "device": self.kern.device}
@@ -124,15 +128,19 @@ class _Problem:
                     "None (pass times=..., or proxies=(N, T, d))"
                 )
             self.times = check_times(times, **kd)
+            y0 = self.candidates.to(**kd)
             if proxy == "known":
-                self.proxies = proxy_trajectories(self.system, self.candidates.to(**kd), self.times)
+                self.proxies = proxy_trajectories(self.system, y0, self.times, controls=controls)
             else:  # G + the posterior mean of F: closer to the truth than G alone once data are in
-                self.proxies = corrected_proxies(self.system, gp, self.candidates.to(**kd), self.times)
+                self.proxies = corrected_proxies(self.system, gp, y0, self.times, controls)
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)
         # (N, T, d_in), or (N, d_out T, d_in + 1) when each output is informed by its own data (GPKernel.expand)
-        self.points = self.kern.expand(self.system.select_inputs(self.proxies)).contiguous()
+        if controls is not None and self.times is None:
+            raise InputError("times: expected the observation times with controls (the inputs at those times)")
+        u = None if controls is None else controls.at(self.times.expand(n, -1)).to(**kd)  # (N, T, m)
+        self.points = self.kern.expand(self.system.select_inputs(self.proxies, u)).contiguous()
         self.d_out = self.kern.multiplicity(self.system.output_dim)  # the factor on (1 / 2) logdet
 
     @property
@@ -470,6 +478,7 @@ def greedy(
     criterion: str = "information",
     domain=None,
     domain_size: int | None = None,
+    controls=None,
 ) -> DesignResult:
     """Choose ``budget`` initial conditions among ``candidates`` maximising the proxy information gain.
 
@@ -530,6 +539,10 @@ def greedy(
             ``system.domain``).
         domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all,
             at least 2 per axis).
+        controls: for a system with inputs u(t), each candidate's input profile (a
+            :class:`~torchmisspec.signals.Controls` of N profiles): a candidate experiment is an initial state and a
+            profile (repeat a state with several profiles to choose among profiles); the proxies run under them and
+            the samples' inputs include u where F depends on it. ``criterion="information"`` only.
 
     Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"plain"`` O(N T^2 K), about
     ``8 N K T^2`` bytes, so 1.6 GB for N = 10,000, K = 50, T = 20; ``"naive"`` O(N T^2 + chunk).
@@ -551,6 +564,7 @@ def greedy(
     prob = _Problem(
         candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
         condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
+        controls=controls,
     )  # fmt: skip
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES

@@ -16,9 +16,12 @@ __all__ = ["proxy_trajectories", "corrected_proxies", "PROXY_TOLERANCES"]
 PROXY_TOLERANCES = (1e-6, 1e-8)
 
 
-def corrected_proxies(system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
-    """The corrected model's trajectories (G + the fitted GP's posterior mean) from ``y0 (N, d)``: the proxies a
-    design with data uses (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`)."""
+def corrected_proxies(
+    system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor, controls=None
+) -> torch.Tensor:
+    """The corrected model's trajectories (G + the fitted GP's posterior mean) from ``y0 (N, d)`` (under
+    ``controls``, one profile each, for a system with inputs): the proxies a design with data uses
+    (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`)."""
     from ..dynamics import CorrectedODE
 
     model = CorrectedODE(system, gp)
@@ -29,11 +32,12 @@ def corrected_proxies(system: MisspecifiedSystem, gp, y0: torch.Tensor, times: t
         posterior mean far from the data can grow without bound), the halves are solved apart until the failing
         candidates are found, and those get G's proxy."""
         try:
-            return model.predict(y0[rows], times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1])
+            u = None if controls is None else controls[rows.tolist()]
+            return model.predict(y0[rows], times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1], controls=u)
         except IntegrationError:
             if rows.numel() == 1:
                 failed.append(int(rows[0]))
-                return proxy_trajectories(system, y0[rows], times)
+                return proxy_trajectories(system, y0[rows], times, controls=None if controls is None else u)
             half = rows.numel() // 2
             return torch.cat([solve(rows[:half]), solve(rows[half:])])
 
@@ -55,6 +59,7 @@ def proxy_trajectories(
     times,
     *,
     known_only: bool = True,
+    controls=None,
     method: str = "dopri5",
     rtol: float = SIMULATION_TOLERANCES[0],
     atol: float = SIMULATION_TOLERANCES[1],
@@ -76,19 +81,21 @@ def proxy_trajectories(
         rtol: relative tolerance (the package's simulation tolerance by default: see :mod:`torchmisspec._ode`).
         atol: absolute tolerance (likewise).
         max_steps: most solver steps (default 10,000).
+        controls: for a system with inputs, one profile per candidate (:class:`~torchmisspec.signals.Controls`).
 
     Returns:
         ``(N, T, d)`` states, in the candidates' dtype and on their device.
     """
-    system = check_system(system)
+    system = check_system(system, controls, with_controls=True)
     y0 = check_candidates(candidates, system)
+    controls = system.check_controls(controls, y0.shape[0])
     t = check_times(times, dtype=y0.dtype, device=y0.device)
     if not known_only and not system.has_correction:
         raise InputError(
             f"known_only=False: system '{system.name}' has no true correction F to integrate; pass "
             "known_only=True for the proxy of the known model"
         )
-    if known_only and system.known_matrix is not None:
+    if known_only and system.known_matrix is not None and system.autonomous:
         A = system.known_matrix.to(dtype=y0.dtype, device=y0.device)
         E = torch.linalg.matrix_exp(A.unsqueeze(0) * (t - t[0]).reshape(-1, 1, 1))  # (T, d, d)
         out = torch.einsum("tij,nj->nti", E, y0)
@@ -99,5 +106,13 @@ def proxy_trajectories(
             )
         return out
     return simulate(
-        system, y0, t, known_only=known_only, method=method, rtol=rtol, atol=atol, max_steps=max_steps
+        system,
+        y0,
+        t,
+        known_only=known_only,
+        controls=controls,
+        method=method,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
     ).states
