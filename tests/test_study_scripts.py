@@ -97,3 +97,15 @@ def test_parameters_study_smoke(tmp_path):
     for run in result["runs"]["identifiable"]:
         assert all(s > 0 for s in run["sd"]) and run["rmse"] < run["rmse_known_model"]
     assert "truth within 2 posterior sd" in stdout
+
+
+@pytest.mark.slow
+def test_input_design_study_smoke(tmp_path):
+    out = tmp_path / "i.json"
+    stdout = _script("study_input_design.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["smoke"] and len(result["runs"]) == 2
+    for run in result["runs"]:
+        for arm in ("designed", "domain", "random"):
+            assert set(run[arm]) == {"2", "4"} and all(0 < v < float("inf") for v in run[arm].values())
+    assert "experiments needed for random's error" in stdout

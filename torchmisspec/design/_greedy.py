@@ -98,8 +98,6 @@ class _Problem:
         self.tie_tol = float(tie_tol)
         self.system = check_system(system, controls, with_controls=True)
         self.criterion = criterion
-        if controls is not None and criterion == "domain":
-            raise InputError("criterion='domain' with input profiles is not built yet; use criterion='information'")
         if criterion not in CRITERIA:
             raise InputError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
         self.kern = GPKernel(gp, input_dim=self.system.input_dim, condition=condition)
