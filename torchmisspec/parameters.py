@@ -261,9 +261,8 @@ class ParameterPosterior:
         absorbed = self.draw_terms(gp)
         base_system = system.at(self.mean)
         scale = self.prior_scale.to(self.mean)
-        steps = [
-            system.at(self.mean + scale[j] * torch.eye(len(self.names)).to(self.mean)[j]) for j in range(len(scale))
-        ]
+        eye = torch.eye(len(self.names), dtype=self.mean.dtype, device=self.mean.device)
+        steps = [system.at(self.mean + scale[j] * eye[j]) for j in range(len(scale))]
         rows = deltas.repeat_interleave(batch, dim=0)
 
         def term(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:

@@ -216,3 +216,28 @@ def worker_main(work) -> None:
     threads, payload = int(sys.argv[2]), json.loads(sys.argv[3])
     torch.set_num_threads(threads)
     print(json.dumps(work(*payload)))
+
+
+def run_study(args, module) -> int:
+    """A study's command line run (``args`` from :func:`study_arguments`) for a study ``module`` defining ``study``,
+    ``FULL``, ``SMOKE``, ``DEFAULT_JSON``, ``DOC_PAGE``, ``MARK_START``, ``MARK_END``, ``table``, ``render_page`` and
+    ``render_block``: the study (or the saved run of ``--from-json``), its JSON, its table printed, and with
+    ``--markdown`` the docs page and the study's block of BENCHMARKS.md."""
+    import time
+
+    if args.saved is not None:
+        result, wall = args.saved, args.saved["wall_seconds"]
+        json_path = module.DEFAULT_JSON if args.markdown else None
+    else:
+        t0 = time.perf_counter()
+        result = module.study(module.SMOKE if args.smoke else module.FULL)
+        wall = time.perf_counter() - t0
+        result["machine"], result["wall_seconds"], result["smoke"] = machine(), wall, args.smoke
+        json_path = run_json(args, module.DEFAULT_JSON)
+    write_json(result, json_path)
+    print(module.table(result))
+    if args.markdown:
+        write_page(module.DOC_PAGE, module.render_page(result, wall))
+        update_benchmarks(module.render_block(result, wall), module.MARK_START, module.MARK_END, BENCHMARKS_MD)
+        print(f"wrote {module.DOC_PAGE} and its block of {BENCHMARKS_MD}")
+    return 0

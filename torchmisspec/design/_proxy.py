@@ -37,7 +37,7 @@ def corrected_proxies(
         except IntegrationError:
             if rows.numel() == 1:
                 failed.append(int(rows[0]))
-                return proxy_trajectories(system, y0[rows], times, controls=None if controls is None else u)
+                return proxy_trajectories(system, y0[rows], times, controls=u)
             half = rows.numel() // 2
             return torch.cat([solve(rows[:half]), solve(rows[half:])])
 

@@ -27,13 +27,8 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec.benchmarks.reporting import (
-    BENCHMARKS_MD,
     ROOT,
-    machine,
-    run_json,
-    update_benchmarks,
-    write_json,
-    write_page,
+    run_study,
 )
 from torchmisspec.metrics import mean_and_standard_error
 
@@ -255,24 +250,7 @@ numbers: `benchmarks/study_end_to_end.json`). Machine: {info["cpu"]}, {info["log
 
 
 def run(args) -> int:
-    """The study's command line run (``args`` from :func:`~torchmisspec.benchmarks.reporting.study_arguments`):
-    the study, or the saved run of ``--from-json``; its JSON, its summary printed, and with ``--markdown`` the
-    docs page and the block of BENCHMARKS.md."""
-    if args.saved is not None:
-        result = args.saved
-        wall = result["wall_seconds"]
-        json_path = DEFAULT_JSON if args.markdown else None
-    else:
-        cfg = SMOKE if args.smoke else FULL
-        t0 = time.perf_counter()
-        result = study(cfg)
-        wall = time.perf_counter() - t0
-        result["machine"], result["wall_seconds"], result["smoke"] = machine(), wall, args.smoke
-        json_path = run_json(args, DEFAULT_JSON)
-    write_json(result, json_path)
-    print(table(result))
-    if args.markdown:
-        write_page(DOC_PAGE, render_page(result, wall))
-        update_benchmarks(render_block(result, wall), MARK_START, MARK_END, BENCHMARKS_MD)
-        print(f"wrote {DOC_PAGE} and the end-to-end block of {BENCHMARKS_MD}")
-    return 0
+    """The study's command line run (:func:`~torchmisspec.benchmarks.reporting.run_study`)."""
+    import sys
+
+    return run_study(args, sys.modules[__name__])

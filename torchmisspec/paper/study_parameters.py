@@ -34,13 +34,8 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec.benchmarks.reporting import (
-    BENCHMARKS_MD,
     ROOT,
-    machine,
-    run_json,
-    update_benchmarks,
-    write_json,
-    write_page,
+    run_study,
 )
 from torchmisspec.metrics import mean_and_standard_error
 
@@ -295,21 +290,7 @@ numbers: `benchmarks/study_parameters.json`). Machine: {info["cpu"]}, {info["log
 
 
 def run(args) -> int:
-    """The study's command line run: the study (or ``--from-json``), its JSON, its table, and with ``--markdown``
-    the docs page and the block of BENCHMARKS.md."""
-    if args.saved is not None:
-        result, wall = args.saved, args.saved["wall_seconds"]
-        json_path = DEFAULT_JSON if args.markdown else None
-    else:
-        t0 = time.perf_counter()
-        result = study(SMOKE if args.smoke else FULL)
-        wall = time.perf_counter() - t0
-        result["machine"], result["wall_seconds"], result["smoke"] = machine(), wall, args.smoke
-        json_path = run_json(args, DEFAULT_JSON)
-    write_json(result, json_path)
-    print(table(result))
-    if args.markdown:
-        write_page(DOC_PAGE, render_page(result, wall))
-        update_benchmarks(render_block(result, wall), MARK_START, MARK_END, BENCHMARKS_MD)
-        print(f"wrote {DOC_PAGE} and the parameters block of {BENCHMARKS_MD}")
-    return 0
+    """The study's command line run (:func:`~torchmisspec.benchmarks.reporting.run_study`)."""
+    import sys
+
+    return run_study(args, sys.modules[__name__])
