@@ -221,6 +221,20 @@ def test_prior_only_model_and_refusals():
     assert refined.refinement_ is not None and plain_fit.refinement_ is None
     torch.testing.assert_close(refined.parameters_.mean, plain_fit.parameters_.mean)
     assert not torch.equal(refined.train_targets_, plain_fit.train_targets_)
+    # its calibration folds refine F the same way at their own theta, which they keep (not the prior)
+    seen = []
+    original = tms.calibration.fit_trajectories
+
+    def spy(gp, system, *args, **kw):
+        seen.append(system.parameters is None)
+        return original(gp, system, *args, **kw)
+
+    tms.calibration.fit_trajectories = spy
+    try:
+        tms.CorrectedODE(system, refined).calibrate(data, folds=2, progress=False)
+    finally:
+        tms.calibration.fit_trajectories = original
+    assert seen and all(seen)  # each fold's F refined with theta fixed at the fold's estimate
     with pytest.raises(tms.InputError, match="no uncertain parameters"):
         truth.at([0.3])
     with pytest.raises(tms.ShapeError, match="one value per parameter"):

@@ -203,7 +203,11 @@ def calibrate_bands(
                     fold_gp = fit_parameters(fold_gp, samples.subset(keep), system, rest, delta)[0]
                 if refinement is not None:  # the model was refined through the ODE: so is each fold, on its data
                     rest = trajectories[[k for k in range(K) if k % folds != f]]
-                    fold_gp = fit_trajectories(fold_gp, system, rest, **refinement)
+                    found = getattr(fold_gp, "parameters_", None)  # G's theta: F refined at its mean, kept
+                    at = system if found is None else system.at(found.mean)
+                    fold_gp = fit_trajectories(fold_gp, at, rest, **refinement)
+                    if found is not None:
+                        fold_gp.parameters_ = found
             fold_warnings += [str(w.message) for w in caught if issubclass(w.category, NumericalWarning)]
             for w in caught:  # anything else reaches the user as it was
                 if not issubclass(w.category, NumericalWarning):
