@@ -235,6 +235,8 @@ def test_prior_only_model_and_refusals():
     finally:
         tms.calibration.fit_trajectories = original
     assert seen and all(seen)  # each fold's F refined with theta fixed at the fold's estimate
+    with pytest.raises(tms.InputError, match=r"system.at\(gp.parameters_.mean\)"):
+        tms.fit_trajectories(refined, system, data)  # G would run at the prior mean: refused, with the fix
     with pytest.raises(tms.InputError, match="no uncertain parameters"):
         truth.at([0.3])
     with pytest.raises(tms.ShapeError, match="one value per parameter"):

@@ -107,6 +107,12 @@ def _check(gp, system, trajectories) -> None:
     if not gp.is_fitted:
         raise NotFittedError("gp: expected a fitted CorrectionGP (fit it on derivative-based samples first)")
     _check_trajectories_and_system(trajectories, system)
+    if system.parameters is not None:
+        raise InputError(
+            f"system: '{system.name}' has uncertain parameters {list(system.parameters.names)}, which the fit through "
+            "the ODE does not learn; fix them, e.g. at the fit's posterior mean: system.at(gp.parameters_.mean) (or "
+            "fit_correction(..., refine=True), which does so)"
+        )
     if gp.input_dim != system.input_dim or gp.output_dim != system.output_dim:
         raise ShapeError(
             f"gp: expected {system.input_dim} inputs and {system.output_dim} outputs (the system's correction), got "
