@@ -99,12 +99,27 @@ def test_a_row_missing_everything_is_the_row_deleted():
     assert both.times.shape == (8,) and both.states.shape == (2, 8, 2)
 
 
-def test_an_experiment_that_never_observes_a_component_is_named():
+def test_a_component_an_experiment_does_not_measure_is_partial_data():
     y = torch.rand(2, 5, 3, dtype=DT)
-    y[1, :, 2] = math.nan
-    msg = r"at least one observed value of every state component .* none of component 2 \('c'\) in experiment 1"
-    with pytest.raises(tms.InputError, match=msg):
-        tms.Trajectories(torch.arange(5.0), y, state_names=["a", "b", "c"])
+    y[1, :, 2] = math.nan  # never observed in experiment 1
+    y[0, 1:, 1] = math.nan  # observed once (its first value): not measured either
+    traj = tms.Trajectories(torch.arange(5.0), y, state_names=["a", "b", "c"])
+    assert traj.is_partial
+    assert traj.measured.tolist() == [[True, False, True], [True, True, False]]
+    filled = traj.filled()
+    assert torch.isnan(filled.states[1, :, 2]).all()  # nothing to fill from: stays missing
+    assert torch.equal(filled.states[0, :, 1], y[0, 0, 1].expand(5))  # one value: a constant
+    first = traj.initial_conditions
+    assert torch.isnan(first[1, 2]) and torch.equal(first[0], y[0, 0])
+    y0 = torch.ones(2, 3, dtype=DT)
+    given = traj.with_initial_states(y0)
+    assert torch.equal(given.initial_conditions, y0) and torch.equal(given[1].initial_conditions, y0[1:])
+    assert not tms.Trajectories(torch.arange(5.0), torch.rand(2, 5, 3, dtype=DT)).is_partial
+    with pytest.raises(tms.ShapeError, match=r"initial_states: expected finite \(2, 3\) states"):
+        traj.with_initial_states(torch.ones(3, 3, dtype=DT))
+    y[1] = math.nan
+    with pytest.raises(tms.InputError, match="expected at least one observed value in every experiment, got none in "):
+        tms.Trajectories(torch.arange(5.0), y)
 
 
 def test_text_tables_read_and_write_missing_cells(tmp_path):
@@ -128,7 +143,6 @@ def test_text_tables_read_and_write_missing_cells(tmp_path):
         "experiment,day,S\nrun1,,0.9\nrun1,1,0.8\n": r"expected a finite time in column 'day' on line 2, got ''",
         "experiment,day,S\n,0,0.9\nrun1,1,0.8\n": r"expected an experiment label in column 'experiment' on line 2",
         "experiment,day,S\nrun1,0,inf\n": r"got 'inf' \(an empty cell, NaN or NA is a missing value",
-        "experiment,day,S,I\nrun1,0,0.9,\nrun1,1,0.8,NA\n": r"none of component 1 \('I'\) in experiment 0",
     }
     for text, message in bad.items():
         path.write_text(text)

@@ -243,6 +243,24 @@ def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:
     observations are compared with bands of noisy observations (the bands it calibrates are for the states)."""
     if min(trajectories.lengths) < GP_MIN_SAMPLES:
         return None
+    if trajectories.is_partial:  # each component from the experiments that measure it; 0 where none does
+        measured = trajectories.measured
+        parts = []
+        for j in range(trajectories.state_dim):
+            ks = measured[:, j].nonzero().flatten().tolist()
+            if not ks:
+                parts.append(torch.zeros(1, dtype=trajectories.dtype, device=trajectories.device))
+                continue
+            sub = trajectories[ks]
+            one = Trajectories(
+                list(sub.times) if sub.is_ragged else sub.times,
+                [y[:, j : j + 1] for y in sub.states] if sub.is_ragged else sub.states[..., j : j + 1],
+            )
+            std = estimate_state_noise(one)
+            if std is None:
+                return None
+            parts.append(std)
+        return torch.cat(parts)
     times, states, mask = trajectories.padded()
     if trajectories.has_missing:
         mask = torch.isfinite(states) & mask.unsqueeze(-1)

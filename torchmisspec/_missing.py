@@ -119,13 +119,14 @@ FILL_WINDOW = 5
 def fill(states: torch.Tensor, times: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
     """``states (K, T, d)`` with every missing entry replaced by the value of a local quadratic least-squares fit
     through the :data:`FILL_WINDOW` nearest observed samples of its component (fewer when the component has fewer:
-    the interpolant of degree one less than their number, a constant for one). Observed entries are unchanged."""
+    the interpolant of degree one less than their number, a constant for one; a component never observed in an
+    experiment stays NaN there). Observed entries are unchanged."""
     if bool(observed.all()):
         return states
     counts = observed.sum(1)  # (K, d)
     out = states.clone()
     missing = ~observed
-    for width in sorted({min(int(c), FILL_WINDOW) for c in counts.flatten().tolist()}):
+    for width in sorted({min(int(c), FILL_WINDOW) for c in counts.flatten().tolist()} - {0}):  # 0: stays NaN
         series = (counts.clamp_max(FILL_WINDOW) == width).unsqueeze(1)  # (K, 1, d)
         values, _ = local_fit(
             torch.where(observed, states, 0.0), times, observed, kind="poly", width=width, degree=min(2, width - 1)

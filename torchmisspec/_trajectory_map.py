@@ -94,7 +94,9 @@ RELEVANCE_ROUNDS = 10
 _LATER_ITERATIONS = 10
 
 
-def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int, progress: bool = False):
+def _fit_relevance(
+    gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int, progress: bool = False, start=None
+):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
     F(x) = sum_j beta_j phi_j(x) with beta_j ~ N(0, w_j). Each round (i) finds the MAP coefficients (and initial
@@ -102,7 +104,9 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     Hessian of the state misfit (its Jacobian by central differences: every coefficient, and each state component
     of all initial states at once, since experiments are independent), and (iii) updates the weights by MacKay's
     rule w_j = sum_o beta_oj^2 / sum_o gamma_oj, gamma_oj = 1 - Sigma_oj / w_j (removing terms that fall below
-    :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle.
+    :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle. ``start`` (a mean
+    square of F per output, ``(d_out,)``): start from F = 0 with every term's prior variance an equal share of it
+    instead of from ``gp``'s fit (partly measured data, whose samples do not see F on an unmeasured component).
     """
     from .gp._features import PRUNE
 
@@ -124,6 +128,9 @@ def _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, *, m
     # every term starts active: the derivative samples may have removed a term the trajectories support (their
     # estimator's bias is not the trajectories'); a removed term starts with an equal share of the samples' size
     W = torch.where(W > 0, W, (second / (p * phi2)).expand_as(W))
+    if start is not None:
+        W = (start.to(**kd).reshape(1, -1) / (p * phi2)).expand(p, d_out).clone()
+        beta = torch.zeros_like(W)
 
     def make_field(b):
         def field(y, t=None, u=None):

@@ -17,7 +17,9 @@ from ._validation import as_tensor, check_positive_int, check_real
 from .calibration import calibrate_bands
 from .gp import CorrectionGP
 from .parameters import ParameterPosterior
+from .partial import complete, estimate_initial_states, initial_guess
 from .systems import MisspecifiedSystem
+from .trajectory_fit import _mean_field
 
 __all__ = ["SUPPORT_THRESHOLD", "UPDATE_ERROR", "CorrectedODE", "TrajectoryPosterior"]
 
@@ -334,6 +336,38 @@ class CorrectedODE(nn.Module):
             update_error=draws.update_error,
         )
 
+    def initial_states(self, trajectories) -> torch.Tensor:
+        """``(K, d)`` every experiment's initial state under this model: the first observed states, with each
+        component an experiment does not measure (:attr:`Trajectories.measured
+        <torchmisspec.Trajectories.measured>`) estimated by fitting this model's mean path to the measured values
+        (:func:`torchmisspec.partial.estimate_initial_states`). What :meth:`calibrate` starts partly measured
+        held-out experiments from; for a new experiment, pass its measured states (and any first values known).
+        """
+        from .data import Trajectories
+
+        if not isinstance(trajectories, Trajectories):
+            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
+        trajectories = trajectories.to(dtype=self.gp.dtype, device=self.gp.device)
+        if not trajectories.is_partial:
+            return trajectories.initial_conditions
+        start = trajectories.with_initial_states(initial_guess(trajectories))
+        rhs = _mean_field(self._known, self.gp.posterior())
+        return estimate_initial_states(self._known, rhs, start, ~trajectories.measured)
+
+    def complete(self, trajectories):
+        """``trajectories`` with every component an experiment does not measure filled in by this model's mean path
+        from :meth:`initial_states` (what :func:`~torchmisspec.correction_samples` needs of partly measured data);
+        fully measured trajectories are returned as they are."""
+        from .data import Trajectories
+
+        if not isinstance(trajectories, Trajectories):
+            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
+        if not trajectories.is_partial:
+            return trajectories
+        trajectories = trajectories.to(dtype=self.gp.dtype, device=self.gp.device)
+        rhs = _mean_field(self._known, self.gp.posterior())
+        return complete(self._known, rhs, trajectories, self.initial_states(trajectories))
+
     def calibrate(self, trajectories, samples=None, **options):
         """Calibrate the bands of :meth:`posterior` on held-out experiments and make the result its default scale.
 
@@ -354,6 +388,11 @@ class CorrectedODE(nn.Module):
                     "samples: expected the correction samples the GP was fitted on; this GP has none recorded (only "
                     "fit_correction records them, as gp.samples_): pass calibrate(trajectories, samples)"
                 )
+        if getattr(trajectories, "is_partial", False) and trajectories.initial_states is None:
+            # a held-out experiment starts where a prediction of a new one would: at its first observed values
+            # (an unmeasured component never observed there at its mean over the others), not at values fitted to
+            # its own later data, which would hide the initial states' uncertainty from the bands
+            trajectories = trajectories.with_initial_states(initial_guess(trajectories))
         result = calibrate_bands(self, trajectories, samples, **options)  # a failure keeps the previous one
         self.gp.calibration_ = result
         return result

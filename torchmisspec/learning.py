@@ -48,10 +48,12 @@ from ._validation import check_positive_int, progress_bar
 from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._exact import median_distance
+from .gp._features import FEATURE_DEGREE
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .gp._selection import fit_and_score
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .parameters import parameter_posterior
+from .partial import fit_partly_measured
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
 
@@ -73,8 +75,6 @@ __all__ = [
 LENGTHSCALE_GRID = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 #: The rules :func:`fit_correction` chooses a model by (its ``select``).
 SELECTION = ("cv", "evidence")
-#: Highest degree of the monomials of the feature-kernel candidate of :func:`fit_correction`.
-FEATURE_DEGREE = 3
 #: Solver steps allowed for one held-out prediction (a candidate whose prediction blows up scores infinity).
 _CV_MAX_STEPS = 2000
 
@@ -496,6 +496,14 @@ def fit_correction(
         :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
     """
     _check_trajectories_and_system(trajectories, system)
+    if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
+        if system.parameters is not None:
+            raise InputError(
+                f"system '{system.name}': uncertain parameters {list(system.parameters.names)} with partly measured "
+                "states are not supported yet; fix them (system.at(values)) or measure every component"
+            )
+        options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, **estimator)
+        return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options)
     system0 = system
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")

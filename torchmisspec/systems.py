@@ -52,7 +52,7 @@ class MisspecifiedSystem:
         correction_inputs: what F depends on (default: every state component): indices into the states followed by
             the controls (``0 .. d - 1`` the states, ``d .. d + m - 1`` the controls), or their names
             (``state_names`` / ``control_names``).
-        correction_outputs: the state components F acts on (default: all).
+        correction_outputs: the state components F acts on, by index or by name (default: all).
         num_controls: m, the number of known input signals of every experiment (default 0).
         control_names: the m controls' names (default ``u0, u1, ...``).
         time_dependent: G depends on time itself (then it is called ``G(t, y, u)``).
@@ -108,7 +108,18 @@ class MisspecifiedSystem:
             state_dim + self.num_controls,
             "correction_inputs" if self.num_controls == 0 else "correction_inputs (the states, then the controls)",
         )
-        self.correction_outputs = check_indices(correction_outputs, state_dim, "correction_outputs")
+        outputs = correction_outputs
+        if (
+            outputs is not None
+            and not isinstance(outputs, (str, torch.Tensor))
+            and any(isinstance(i, str) for i in outputs)
+        ):
+            names = list(self.state_names or ())
+            unknown = [i for i in outputs if isinstance(i, str) and i not in names]
+            if unknown:
+                raise InputError(f"correction_outputs: expected state names among {names}, or indices, got {unknown}")
+            outputs = [names.index(i) if isinstance(i, str) else i for i in outputs]
+        self.correction_outputs = check_indices(outputs, state_dim, "correction_outputs")
         if domain is not None:
             domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=len(self.correction_inputs))
         self.domain = domain

@@ -338,4 +338,16 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> t
             )
         return value
     std = estimate_state_noise(trajectories)  # None with fewer than 4 samples or a constant component
-    return None if std is None else std.to(**kd).pow(2)
+    if std is None:
+        return None
+    var = std.to(**kd).pow(2)
+    if trajectories.is_partial:  # a component no experiment measures: its few values taken as 1 % accurate (of
+        # its size, or of the largest component's when they are all 0)
+        flat = trajectories.flat_states().to(**kd)
+        seen = torch.isfinite(flat)
+        zero = torch.zeros((), **kd)
+        rms = (torch.where(seen, flat, zero).pow(2).sum(0) / seen.sum(0).clamp_min(1)).sqrt()
+        rms = torch.where(rms > 0, rms, rms.max())  # values all 0 (e.g. an empty compartment at the start)
+        floor = torch.finfo(var.dtype).tiny
+        var = torch.where(trajectories.measured.any(0), var, (1e-2 * rms).pow(2).clamp_min(floor))
+    return var

@@ -78,18 +78,50 @@ def state_columns(args: argparse.Namespace, option: str = "state_columns") -> li
     return names
 
 
-def read_observations(args: argparse.Namespace):
-    """The ``Trajectories`` of ``--data`` with the column options."""
+def read_observations(args: argparse.Namespace, system=None):
+    """The ``Trajectories`` of ``--data`` with the column options. With a ``system`` that names its states and no
+    ``--state-columns``, a text table's columns are read by those names, in the system's order, and a state whose
+    column is absent is *not measured* (all missing: partial measurements, learned through the ODE)."""
     from ..data import Trajectories
 
-    return Trajectories.load(
+    wanted = state_columns(args)
+    names = list(getattr(system, "state_names", None) or [])
+    header = _header(args.data) if names and wanted is None else None
+    present = [n for n in names if header is not None and n in header]
+    read = present if present and len(present) < len(names) else wanted
+    observed = Trajectories.load(
         args.data,
         time_column=args.time_column,
         experiment_column=args.experiment_column or None,  # '' = no experiment column: one experiment
-        state_columns=state_columns(args),
+        state_columns=read,
         control_columns=state_columns(args, "input_columns"),
         control_kind=getattr(args, "input_kind", "previous"),
     )
+    if read is not present:
+        return observed
+    import torch
+
+    rows = []
+    for _, y in observed.experiments():  # the absent states as columns of missing values, in the system's order
+        full = torch.full((y.shape[0], len(names)), float("nan"), dtype=y.dtype, device=y.device)
+        full[:, [names.index(n) for n in present]] = y
+        rows.append(full)
+    times = [t for t, _ in observed.experiments()]
+    return Trajectories(times, rows, state_names=names, controls=observed.controls)
+
+
+def _header(path: str) -> list[str] | None:
+    """The column names of a CSV/TSV/TXT table's first line (``None`` for other files or no readable header)."""
+    p = Path(path)
+    if p.suffix not in (".csv", ".tsv", ".txt") or not p.is_file():
+        return None
+    try:
+        with p.open(encoding="utf-8") as f:
+            first = f.readline()
+    except (OSError, UnicodeDecodeError):
+        return None  # the loader reports it
+    sep = "\t" if "\t" in first else ("," if "," in first else None)
+    return [c.strip() for c in first.split(sep)]
 
 
 def default_names(system) -> list[str]:

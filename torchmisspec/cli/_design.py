@@ -40,7 +40,7 @@ def _gp(args: argparse.Namespace, system, observed=None):
             f"the prior: expected --lengthscale, --outputscale and --noise-variance together; missing {missing}"
         )
     if args.data is not None:
-        observed = read_observations(args) if observed is None else observed
+        observed = read_observations(args, system) if observed is None else observed
         if given:  # the user's prior, conditioned on the data
             from ..observations import correction_samples
 
@@ -98,7 +98,7 @@ def _design(args: argparse.Namespace) -> int:
         )
     times = parse_times(args.times)
     early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
-    observed = read_observations(args) if args.data is not None and early is None else None  # read before the fit
+    observed = read_observations(args, system) if args.data is not None and early is None else None  # read first
     known = known_state_names(system, None if early is None else early[0])
     if observed is not None and tuple(observed.state_names) != tuple(f"y{j}" for j in range(system.state_dim)):
         known = list(observed.state_names)  # the data's names: the candidates are read by them

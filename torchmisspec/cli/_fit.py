@@ -50,7 +50,7 @@ def _fit(args: argparse.Namespace) -> int:
     out = check_output(args.out, (".pt",))
     _state_noise(args.state_noise)  # checked before the work
     system = load_system(args.system)
-    observed = read_observations(args)
+    observed = read_observations(args, system)
     gp = fit_correction(
         observed, system, derivative=args.derivative, refine=True if args.refine else None, progress=not args.quiet
     )
@@ -65,6 +65,11 @@ def _fit(args: argparse.Namespace) -> int:
             f"cross-validation ({cv.folds} folds): chose {cv.best}; held-out error {min(cv.scores):.4g} against "
             f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
         )
+    report = getattr(gp, "identifiability_", None)
+    if report is not None:  # partly measured states: what the measurements see
+        unmeasured = ", ".join(report.unmeasured)
+        summary = report.summary().replace("\n", "\n  ")
+        print(f"not measured: {unmeasured} (estimated through the ODE from the measured states)\n  {summary}")
     if getattr(gp, "parameters_", None) is not None:  # G's uncertain parameters, learned with F
         print("uncertain parameters of G, posterior mean +- sd:\n  " + gp.parameters_.summary().replace("\n", "\n  "))
     if gp.weights is not None:  # a feature kernel: its terms, in the data's names
@@ -98,11 +103,13 @@ def _recalibrate(args: argparse.Namespace) -> int:
     _state_noise(args.state_noise)  # checked before the work
     system = load_system(args.system)
     gp = load_model(args.model, system)
-    observed = read_observations(args)
+    observed = read_observations(args, system)
     if tuple(observed.state_names) != tuple(f"y{j}" for j in range(observed.state_dim)):
         check_names(gp, list(observed.state_names), system, "--data")
-    samples = correction_samples(observed, system, derivative=args.derivative)
-    result = CorrectedODE(system, gp).calibrate(
+    model = CorrectedODE(system, gp)
+    # partly measured data: the samples of the data completed by the model (its paths where nothing was measured)
+    samples = correction_samples(model.complete(observed), system, derivative=args.derivative)
+    result = model.calibrate(
         observed, samples, level=args.level, state_noise=_state_noise(args.state_noise), progress=not args.quiet
     )
     gp.save(out)

@@ -1,5 +1,5 @@
 """The checks of what ``Trajectories(times, states)`` is given: per-experiment (possibly ragged) lists, state names,
-experiments that never observe a component, and times at which nothing was observed."""
+and times at which nothing was observed."""
 
 from __future__ import annotations
 
@@ -47,17 +47,14 @@ def _check_state_names(names, d: int) -> tuple[str, ...]:
     return names
 
 
-def _drop_empty_rows(states, times, names):
-    """Check that every experiment observes every component, and drop the times at which nothing was observed."""
+def _drop_empty_rows(states, times):
+    """Drop the times at which nothing was observed (an experiment with no observed value at all is refused)."""
     per = list(states) if isinstance(states, tuple) else list(states.unbind(0))
     for k, y in enumerate(per):
-        never = (~torch.isfinite(y)).all(0).nonzero().flatten().tolist()
-        if never:
-            what = ", ".join(f"{j} ({names[j]!r})" for j in never)
+        if not bool(torch.isfinite(y).any()):
             raise InputError(
-                f"states: expected at least one observed value of every state component in every experiment, got "
-                f"none of component{'s' * (len(never) > 1)} {what} in experiment {k} (all {y.shape[0]} entries "
-                "missing); drop that experiment, or that component from the data and the system"
+                f"states: expected at least one observed value in every experiment, got none in experiment {k} (all "
+                f"{y.numel()} entries missing); drop that experiment"
             )
     empty = [torch.isnan(y).all(-1) for y in per]
     if not any(bool(e.any()) for e in empty):

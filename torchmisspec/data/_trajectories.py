@@ -11,10 +11,14 @@ import torch
 
 from .._errors import InputError, ShapeError
 from .._missing import fill
-from .._validation import states_and_times
+from .._validation import as_tensor, states_and_times
 from ..signals import Controls
 from . import _tables
 from ._input import _check_state_names, _default_names, _describe_lengths, _drop_empty_rows, _is_number, _per_experiment
+
+#: A component observed fewer times than this in an experiment is *not measured* there (too few values for a
+#: derivative estimate: every estimator needs 3); its few values still enter the fit through the ODE.
+MIN_MEASURED = 3
 
 
 @dataclass(frozen=True)
@@ -34,10 +38,13 @@ class Trajectories:
       :meth:`padded`). Everything in the package that takes trajectories accepts ragged ones.
 
     **Missing values.** A NaN state entry is a component that was not observed at that time (an empty cell of a
-    table read by :meth:`load`); :attr:`observed` is the mask of the others. Every experiment must observe every
-    component at least once (else :class:`~torchmisspec.InputError`), times can never be missing, and infinite
-    values are refused. A time at which no component was observed carries no data and is dropped (so masking a whole
-    row is the same as deleting it; the experiment may then become shorter than the others, i.e. ragged). The
+    table read by :meth:`load`); :attr:`observed` is the mask of the others. Times can never be missing, and infinite
+    values are refused. A component an experiment never observes (or observes fewer than
+    :data:`MIN_MEASURED` times: too few for a derivative) is *not measured* there (:attr:`measured`): partial
+    measurements, e.g. biomass measured and substrate not; :func:`~torchmisspec.fit_correction` learns through the
+    ODE then (see :mod:`torchmisspec.partial`), estimating what was not measured. An experiment must observe
+    something. A time at which no component was observed carries no data and is dropped (so masking a whole row is
+    the same as deleting it; the experiment may then become shorter than the others, i.e. ragged). The
     package's functions use only observed entries: the derivative estimators fit each component from its own
     observed times, :func:`~torchmisspec.correction_samples` fills what a sample's G(y) and inputs need from the
     estimator's fit, and the comparisons with the data (cross-validation, :func:`~torchmisspec.fit_trajectories`,
@@ -51,12 +58,17 @@ class Trajectories:
         controls: the experiments' known input signals u(t), a :class:`~torchmisspec.signals.Controls` with one
             profile per experiment (``None``: the system has none); kept by indexing, :meth:`to`, :meth:`save` and
             :meth:`load` (a table's ``control_columns``).
+        initial_states: ``(K, d)`` estimates of every experiment's state at its first time, used by
+            :attr:`initial_conditions` instead of the first observed states (``None``: those). Set by the fit of
+            partly measured data (:meth:`with_initial_states`), where a component that is not measured has no
+            first value of its own; kept by indexing and :meth:`to`, not saved in tables.
     """
 
     times: torch.Tensor | tuple[torch.Tensor, ...]
     states: torch.Tensor | tuple[torch.Tensor, ...]
     state_names: tuple[str, ...] | None = None
     controls: Controls | None = None
+    initial_states: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.states, (list, tuple)):
@@ -70,7 +82,7 @@ class Trajectories:
             states, times = states_and_times(self.states, self.times, missing=True)
         d = states[0].shape[-1]
         names = _check_state_names(self.state_names, d)
-        states, times = _drop_empty_rows(states, times, names)
+        states, times = _drop_empty_rows(states, times)
         if self.controls is not None:
             if not isinstance(self.controls, Controls):
                 raise InputError(
@@ -86,6 +98,15 @@ class Trajectories:
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "state_names", names)
+        if self.initial_states is not None:
+            K = len(states) if isinstance(states, tuple) else states.shape[0]
+            y0 = as_tensor(self.initial_states, "initial_states", dtype=states[0].dtype, device=states[0].device)
+            if y0.shape != (K, d) or not bool(torch.isfinite(y0).all()):
+                raise ShapeError(
+                    f"initial_states: expected finite ({K}, {d}) states (one per experiment), got "
+                    f"{'shape ' + str(tuple(y0.shape)) if y0.shape != (K, d) else 'non-finite values'}"
+                )
+            object.__setattr__(self, "initial_states", y0)
 
     # ----------------------------------------------------------------------------------------------------------
     @property
@@ -169,14 +190,41 @@ class Trajectories:
             return self
         times, states, mask = self.padded()
         out = fill(states, times, torch.isfinite(states) & mask.unsqueeze(-1))
+        kept = dict(state_names=self.state_names, controls=self.controls, initial_states=self.initial_states)
         if not self.is_ragged:
-            return Trajectories(self.times, out, state_names=self.state_names, controls=self.controls)
+            return Trajectories(self.times, out, **kept)
         rows = [out[k, :n] for k, n in enumerate(self.lengths)]
-        return Trajectories(list(self.times), rows, state_names=self.state_names, controls=self.controls)
+        return Trajectories(list(self.times), rows, **kept)
+
+    @property
+    def measured(self) -> torch.Tensor:
+        """``(K, d)`` boolean: whether experiment k measures component j (at least :data:`MIN_MEASURED` observed
+        values; see the class notes on partial measurements)."""
+        _, states, mask = self.padded()
+        return (torch.isfinite(states) & mask.unsqueeze(-1)).sum(1) >= MIN_MEASURED
+
+    @property
+    def is_partial(self) -> bool:
+        """Whether some experiment does not measure some component (:attr:`measured`)."""
+        return not bool(self.measured.all())
+
+    def with_initial_states(self, initial_states: torch.Tensor | None) -> Trajectories:
+        """These trajectories with :attr:`initial_states` set (``None``: cleared)."""
+        return Trajectories(
+            self.times if not self.is_ragged else list(self.times),
+            self.states if not self.is_ragged else list(self.states),
+            state_names=self.state_names,
+            controls=self.controls,
+            initial_states=initial_states,
+        )
 
     @property
     def initial_conditions(self) -> torch.Tensor:
-        """``(K, d)``: every experiment's first observed state (missing entries estimated as by :meth:`filled`)."""
+        """``(K, d)``: every experiment's first observed state (missing entries estimated as by :meth:`filled`), or
+        :attr:`initial_states` when set. NaN where a component is never observed in an experiment and no initial
+        states are set."""
+        if self.initial_states is not None:
+            return self.initial_states
         source = self.filled() if self.has_missing else self
         if source.is_ragged:
             return torch.stack([s[0] for s in source.states])
@@ -253,30 +301,37 @@ class Trajectories:
             index = [int(index)]
         picked = torch.arange(self.num_experiments)[index].reshape(-1).tolist()
         controls = None if self.controls is None else self.controls[picked]
+        y0 = None if self.initial_states is None else self.initial_states[picked]
         if self.is_ragged:
             return Trajectories(
                 [self.times[k] for k in picked],
                 [self.states[k] for k in picked],
                 state_names=self.state_names,
                 controls=controls,
+                initial_states=y0,
             )
         times = self.times if self.times.dim() == 1 else self.times[index]
-        return Trajectories(times, self.states[index], state_names=self.state_names, controls=controls)
+        return Trajectories(
+            times, self.states[index], state_names=self.state_names, controls=controls, initial_states=y0
+        )
 
     def to(self, *args, **kwargs) -> Trajectories:
         controls = None if self.controls is None else self.controls.to(*args, **kwargs)
+        y0 = None if self.initial_states is None else self.initial_states.to(*args, **kwargs)
         if self.is_ragged:
             return Trajectories(
                 [t.to(*args, **kwargs) for t in self.times],
                 [s.to(*args, **kwargs) for s in self.states],
                 state_names=self.state_names,
                 controls=controls,
+                initial_states=y0,
             )
         return Trajectories(
             self.times.to(*args, **kwargs),
             self.states.to(*args, **kwargs),
             state_names=self.state_names,
             controls=controls,
+            initial_states=y0,
         )
 
     def control_values(self) -> torch.Tensor | tuple[torch.Tensor, ...] | None:

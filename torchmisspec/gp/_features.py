@@ -87,6 +87,10 @@ __all__ = [
     "coefficient_posterior",
 ]
 
+#: Highest degree of the monomials of the feature-kernel candidate of :func:`~torchmisspec.fit_correction` (and
+#: of the first model of partly measured data, :mod:`torchmisspec.partial`).
+FEATURE_DEGREE = 3
+
 #: A term is removed when ``w_j mean(phi_j^2)`` (its share of the prior variance) falls below this fraction of the
 #: targets' second moment.
 PRUNE = 1e-12

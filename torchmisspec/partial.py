@@ -1,0 +1,344 @@
+"""Partly measured states: which corrections the measurements see, and the states that were not measured.
+
+A lab rarely measures every state: biomass but not substrate, infected but not susceptible. An experiment that
+observes component j fewer than :data:`~torchmisspec.data.MIN_MEASURED` times does not *measure* it
+(:attr:`Trajectories.measured <torchmisspec.Trajectories.measured>`). Derivatives of such a component cannot be
+estimated, so the correction is learned through the ODE (:func:`~torchmisspec.fit_correction` does this by itself):
+
+1. every experiment's unmeasured initial values are estimated with the known model G alone
+   (:func:`estimate_initial_states`: Levenberg-Marquardt on the measured values, one batched solve per step);
+2. the unmeasured components are filled with the model's path (:func:`complete`), so that F's inputs are known;
+3. F is fitted through the ODE to what was measured, the initial states with it
+   (:func:`~torchmisspec.fit_trajectories` with the unmeasured entries left out of the misfit), the data completed
+   again with that model, and the usual model choice made on the completed data before a last fit through the ODE.
+
+Whether the measurements can tell anything about F is structural (:func:`identifiability`): F acting on component
+j is seen by the measurements when j is measured, or when j drives a measured component through G or F (a path in
+the dependency graph of the right-hand side, found numerically from G's Jacobian at the data). A correction output
+that no measured component sees cannot be learned from these data, and the fit refuses it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ._errors import FittingError, InputError
+from ._ode import FITTING_TOLERANCES, PREDICTION_TOLERANCES
+from ._trajectory_map import _fit_relevance
+from .data import Trajectories
+from .gp import CorrectionGP
+from .gp._features import FEATURE_DEGREE
+from .observations import correction_samples
+from .systems import MisspecifiedSystem
+from .trajectory_fit import _mean_field, _shooting, _solve_rhs, _state_noise
+
+__all__ = [
+    "Identifiability",
+    "complete",
+    "estimate_initial_states",
+    "fit_partly_measured",
+    "identifiability",
+    "initial_guess",
+]
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """Which measured components see each component F acts on (:func:`identifiability`).
+
+    Attributes:
+        outputs: the names of the components F acts on (``system.correction_outputs``).
+        seen_by: for each output, the measured components through which the data see it (itself first when it
+            is measured); empty when none does.
+        unmeasured: the state components some experiment does not measure.
+        unmeasured_inputs: F's inputs among them (their values come from the fitted paths).
+    """
+
+    outputs: tuple[str, ...]
+    seen_by: tuple[tuple[str, ...], ...]
+    unmeasured: tuple[str, ...]
+    unmeasured_inputs: tuple[str, ...]
+
+    @property
+    def unseen(self) -> tuple[str, ...]:
+        """The outputs of F that no measured component sees: not identifiable from these data."""
+        return tuple(o for o, s in zip(self.outputs, self.seen_by, strict=True) if not s)
+
+    def summary(self) -> str:
+        """One line per output of F: measured, seen through which measured components, or not identifiable."""
+        lines = []
+        for out, seen in zip(self.outputs, self.seen_by, strict=True):
+            if not seen:
+                lines.append(f"F on d{out}/dt: not identifiable ({out} is not measured and drives no measured state)")
+            elif seen[0] == out:
+                lines.append(f"F on d{out}/dt: measured directly")
+            else:
+                lines.append(f"F on d{out}/dt: seen through {', '.join(seen)} ({out} is not measured)")
+        if self.unmeasured_inputs:
+            lines.append(
+                f"F's inputs {', '.join(self.unmeasured_inputs)} are not measured: taken from the fitted paths"
+            )
+        return "\n".join(lines)
+
+    def check(self, system_name: str) -> None:
+        """Raise :class:`InputError` when some output of F is not identifiable."""
+        if self.unseen:
+            names = ", ".join(self.unseen)
+            raise InputError(
+                f"system '{system_name}': the correction acts on {names}, which no experiment measures and which drive "
+                f"no measured component through G or F, so these data cannot inform it (measured: "
+                f"{', '.join(s for s in self._measured) or 'nothing'}); measure {names} in some experiment, or drop "
+                "it from correction_outputs"
+            )
+
+    @property
+    def _measured(self) -> tuple[str, ...]:
+        return tuple(sorted({s for seen in self.seen_by for s in seen}))
+
+
+def _names(system: MisspecifiedSystem, trajectories: Trajectories) -> list[str]:
+    default = tuple(f"y{i}" for i in range(system.state_dim))
+    if trajectories.state_names != default:
+        return list(trajectories.state_names)
+    return list(system.state_names or default)
+
+
+def _dependencies(system: MisspecifiedSystem, states: torch.Tensor, times, controls) -> torch.Tensor:
+    """``(d, d)`` boolean: entry (a, b) when dy_b/dt depends on y_a through G (its Jacobian at the states, nonzero
+    somewhere) or through F (a an input of F and b one of its outputs)."""
+    d = system.state_dim
+    y = states.detach().clone().requires_grad_(True)
+    out = system.known_rhs(y, times, controls)
+    depends = torch.zeros(d, d, dtype=torch.bool)
+    for b in range(d):
+        (grad,) = torch.autograd.grad(out[..., b].sum(), y, retain_graph=b < d - 1, allow_unused=True)
+        if grad is not None:
+            scale = grad.abs().amax().clamp_min(torch.finfo(grad.dtype).tiny)
+            depends[:, b] = (grad.abs() > 1e-10 * scale).any(0).cpu()
+    for a in system.correction_inputs:
+        if a < d:
+            for b in system.correction_outputs:
+                depends[a, b] = True
+    return depends
+
+
+def identifiability(
+    system: MisspecifiedSystem, trajectories: Trajectories, *, completed: Trajectories | None = None
+) -> Identifiability:
+    """Which measured components see each output of F, from the dependency graph of G + F at the data.
+
+    Component j is *seen* by measured component m when a chain j -> ... -> m of dependencies (dy_b/dt depending on
+    y_a) exists; the dependencies of G are read off its Jacobian at every state of ``completed`` (so a dependence
+    that vanishes at all the data is missed). ``completed``: the data with the unmeasured components filled in
+    (:func:`complete`); by default the paths of G alone from initial states estimated by
+    :func:`estimate_initial_states`."""
+    measured = trajectories.measured.any(0).cpu()  # (d,): measured in some experiment
+    if completed is None:
+        completed = _completed_by_g(system, trajectories)
+    filled = completed.filled()
+    states = filled.flat_states()
+    keep = torch.isfinite(states).all(-1)
+    times = filled.flat_times()[keep]
+    controls = filled.flat_controls()
+    controls = None if controls is None else controls[keep]
+    depends = _dependencies(system, states[keep], times, controls)
+    d = system.state_dim
+    reach = depends | torch.eye(d, dtype=torch.bool)
+    for _ in range(d):  # transitive closure: reach[a, b] when a chain a -> ... -> b exists
+        reach = reach | ((reach.to(torch.int64) @ reach.to(torch.int64)) > 0)
+    names = _names(system, trajectories)
+    seen_by = []
+    for j in system.correction_outputs:
+        seen = [names[m] for m in range(d) if measured[m] and reach[j, m]]
+        if measured[j]:  # itself first
+            seen = [names[j]] + [s for s in seen if s != names[j]]
+        seen_by.append(tuple(seen))
+    unmeasured = [names[j] for j in range(d) if not bool(trajectories.measured[:, j].all())]
+    inputs = [names[i] for i in system.correction_inputs if i < d and names[i] in unmeasured]
+    return Identifiability(
+        outputs=tuple(names[j] for j in system.correction_outputs),
+        seen_by=tuple(seen_by),
+        unmeasured=tuple(unmeasured),
+        unmeasured_inputs=tuple(inputs),
+    )
+
+
+def initial_guess(trajectories: Trajectories) -> torch.Tensor:
+    """``(K, d)`` starting values of the initial states: the first observed states (missing entries estimated by
+    :meth:`Trajectories.filled`); a component never observed in an experiment starts at its mean over the
+    experiments that observe it. Raises :class:`InputError` for a component no experiment observes at all."""
+    first = trajectories.initial_conditions
+    flat = trajectories.flat_states()
+    seen = torch.isfinite(flat)
+    never = (~seen.any(0)).nonzero().flatten().tolist()
+    if never:
+        names = ", ".join(repr(trajectories.state_names[j]) for j in never)
+        raise InputError(
+            f"trajectories: component {names} is never observed in any experiment, so its initial values have "
+            "nothing to start from; give each experiment's initial value of it in the first row (an estimate is "
+            "enough: it is refined from the other measurements), or measure it at least once"
+        )
+    zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
+    mean = torch.where(seen, flat, zero).sum(0) / seen.sum(0)
+    return torch.where(torch.isfinite(first), first, mean.expand_as(first))
+
+
+def _scale(trajectories: Trajectories, y0: torch.Tensor) -> torch.Tensor:
+    """``(d,)`` a size of each component (its RMS over the observations and ``y0``), for steps and weights."""
+    flat = torch.cat([trajectories.flat_states(), y0])
+    seen = torch.isfinite(flat)
+    zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
+    rms = (torch.where(seen, flat, zero).pow(2).sum(0) / seen.sum(0).clamp_min(1)).sqrt()
+    rms = torch.where(rms > 0, rms, rms.max())  # values all 0 (an empty compartment): the largest component's
+    return rms.clamp_min(torch.finfo(rms.dtype).tiny)
+
+
+def estimate_initial_states(
+    system: MisspecifiedSystem,
+    rhs,
+    trajectories: Trajectories,
+    free: torch.Tensor,
+    *,
+    noise: torch.Tensor | None = None,
+    iterations: int = 20,
+    max_steps: int | None = None,
+) -> torch.Tensor:
+    """``(K, d)`` initial states whose ``free (K, d)`` entries minimise the squared misfit of the path of ``rhs``
+    (``rhs(y, t, u)``, e.g. the known model G) to every observed value, each component weighted by ``noise``
+    (``(d,)`` standard deviations of its observations; default: the state noise the fit through the ODE assumes,
+    :func:`~torchmisspec.fit_trajectories`); the other entries stay at ``trajectories.initial_conditions`` (set
+    :attr:`Trajectories.initial_states` to start elsewhere). Levenberg-Marquardt per experiment (experiments are
+    independent), the Jacobian by forward differences of all free components at once in one batched solve per
+    step."""
+    K, d = free.shape
+    start = trajectories.initial_conditions
+    if not bool(torch.isfinite(start).all()):  # unmeasured entries without a value: from the other experiments
+        start = initial_guess(trajectories)
+    trajectories = trajectories.with_initial_states(start)
+    if not bool(free.any()):
+        return trajectories.initial_conditions
+    solver = dict(rtol=FITTING_TOLERANCES[0], atol=FITTING_TOLERANCES[1], max_steps=max_steps)
+    residuals, _, _ = _shooting(trajectories, "single", dict(solver, what="estimate_initial_states"), system)
+    kd = dict(dtype=trajectories.dtype, device=trajectories.device)
+    if noise is None:
+        variance = _state_noise(None, trajectories, d, kd)
+        noise = _scale(trajectories, trajectories.initial_conditions) if variance is None else variance.sqrt()
+    sd = noise.to(**kd)  # offsets and residuals in units of each component's noise
+    experiment = residuals.experiment  # (n,)
+    cols = free.any(0).nonzero().flatten().tolist()
+    m = len(cols)
+    step = 1e-4
+    off = torch.zeros(K, d, dtype=sd.dtype, device=sd.device)
+    lam = torch.full((K,), 1e-3, dtype=sd.dtype, device=sd.device)
+
+    def per_experiment_cost(r: torch.Tensor) -> torch.Tensor:  # r (n, d) weighted residuals
+        return torch.zeros(K, dtype=r.dtype, device=r.device).index_add_(0, experiment, r.pow(2).sum(-1))
+
+    with torch.no_grad():
+        for _ in range(iterations):
+            offs = off.expand(m + 1, K, d).clone()
+            for c, j in enumerate(cols):
+                offs[c + 1, :, j] += step * free[:, j].to(off)
+            R = residuals.many(rhs, m + 1, offs, sd) / sd  # (m + 1, n, d)
+            r0 = R[0]
+            J = ((R[1:] - r0) / step).permute(1, 2, 0)  # (n, d, m)
+            A = torch.zeros(K, m, m, dtype=r0.dtype, device=r0.device).index_add_(
+                0, experiment, J.transpose(-1, -2) @ J
+            )
+            b = torch.zeros(K, m, dtype=r0.dtype, device=r0.device).index_add_(
+                0, experiment, (J.transpose(-1, -2) @ r0.unsqueeze(-1)).squeeze(-1)
+            )
+            mask = free[:, cols].to(A)  # entries that are not free: identity rows, no step
+            A = A * mask.unsqueeze(-1) * mask.unsqueeze(-2) + torch.diag_embed(1 - mask)
+            diag = torch.diagonal(A, dim1=-2, dim2=-1)
+            A = A + torch.diag_embed(lam.unsqueeze(-1) * (diag + 1e-12))
+            delta = -torch.linalg.solve(A, (b * mask).unsqueeze(-1)).squeeze(-1) * mask
+            trial = off.clone()
+            trial[:, cols] += delta
+            cost0 = per_experiment_cost(r0)
+            cost1 = per_experiment_cost(residuals.many(rhs, 1, trial.unsqueeze(0), sd)[0] / sd)
+            better = torch.isfinite(cost1) & (cost1 < cost0)
+            off = torch.where(better.unsqueeze(-1), trial, off)
+            lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-9, 1e9)
+            gain = torch.where(better, (cost0 - cost1) / cost0.clamp_min(torch.finfo(cost0.dtype).tiny), 0.0)
+            if float(gain.max()) < 1e-6 and bool(better.any()):  # every experiment has settled
+                break
+    y0 = trajectories.initial_conditions + off * sd
+    if not bool(torch.isfinite(y0).all()):
+        raise FittingError("estimate_initial_states: the estimate is not finite (the model's paths blow up)")
+    return y0
+
+
+def complete(system: MisspecifiedSystem, rhs, trajectories: Trajectories, initial_states: torch.Tensor) -> Trajectories:
+    """``trajectories`` with every component an experiment does not measure replaced by the path of ``rhs`` from
+    ``initial_states`` at its times (its few observed values too: the path is fitted to them), and
+    :attr:`Trajectories.initial_states` set; measured components are unchanged."""
+    times, states, mask = trajectories.padded()
+    if times.dim() == 1:
+        times = times.expand(states.shape[0], -1)
+    with torch.no_grad():
+        path, _ = _solve_rhs(
+            system,
+            rhs,
+            initial_states,
+            times,
+            trajectories.controls,
+            rtol=PREDICTION_TOLERANCES[0],
+            atol=PREDICTION_TOLERANCES[1],
+            what="complete",
+        )
+    unmeasured = ~trajectories.measured  # (K, d)
+    out = torch.where(unmeasured.unsqueeze(1), path, states)
+    kept = dict(state_names=trajectories.state_names, controls=trajectories.controls, initial_states=initial_states)
+    if not trajectories.is_ragged:
+        return Trajectories(trajectories.times, out, **kept)
+    rows = [out[k, :n] for k, n in enumerate(trajectories.lengths)]
+    return Trajectories(list(trajectories.times), rows, **kept)
+
+
+def _through_the_ode(system: MisspecifiedSystem, trajectories: Trajectories, completed, samples, noise, progress):
+    """The first model of F and the initial states, fitted to what was measured: the feature kernel (monomials up to
+    :data:`~torchmisspec.learning.FEATURE_DEGREE`, one set of relevance weights per output) through the ODE, its
+    term weights by sparse Bayesian learning (:func:`~torchmisspec.fit_trajectories`' relevance fit), starting
+    from F = 0 with a prior as large as G on F's outputs (the missing term may be as large as the known one)."""
+    filled = completed.filled()
+    g = system.select_outputs(system.known_rhs(filled.flat_states(), filled.flat_times(), filled.flat_controls()))
+    start = g.pow(2).mean(0).clamp_min(torch.finfo(g.dtype).tiny)  # (d_out,)
+    gp = CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True).fit(samples)
+    solver = dict(rtol=FITTING_TOLERANCES[0], atol=FITTING_TOLERANCES[1], max_steps=None, what="fit_correction")
+    residuals, n_obs, offsets = _shooting(trajectories, "single", solver, system)
+    return _fit_relevance(
+        gp, system, trajectories, residuals, n_obs, offsets, noise, max_iter=30, progress=progress, start=start
+    )
+
+
+def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories) -> Trajectories:
+    """The data completed with G alone, from initial states fitted to the measurements (step 1 of the module)."""
+
+    def known(y, t, u):
+        return system.known_rhs(y, t, u)
+
+    start = trajectories.with_initial_states(initial_guess(trajectories))
+    y0 = estimate_initial_states(system, known, start, ~trajectories.measured)
+    return complete(system, known, trajectories, y0)
+
+
+def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, **options):
+    """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
+    is ``fit_correction`` itself (called on the completed data for the model choice), ``options`` its keywords."""
+    completed = _completed_by_g(system, trajectories)
+    report = identifiability(system, trajectories, completed=completed)
+    report.check(system.name)
+    samples = correction_samples(completed, system, derivative="central")  # only their inputs are used
+    noise = _state_noise(None, trajectories, system.state_dim, dict(dtype=completed.dtype, device=completed.device))
+    data = trajectories.with_initial_states(completed.initial_states)
+    first = _through_the_ode(system, data, completed, samples, noise, progress)
+    y0 = first.initial_states_
+    completed = complete(system, _mean_field(system, first.posterior()), trajectories, y0)
+    result = fit(completed, system, progress=progress, **options)
+    result.initial_states_ = y0
+    result.identifiability_ = report
+    result.first_fit_ = first
+    return result
