@@ -188,6 +188,20 @@ def check_chemostat(ns: dict) -> None:
     assert any("kd: posterior sd" in str(w.message) for w in ns["caught"])
 
 
+def check_partial_measurements(ns: dict) -> None:
+    # "F on dcentral/dt: measured directly"; "the tissue's stay near 0"
+    assert ns["gp"].identifiability_.summary().startswith("F on dcentral/dt: measured directly")
+    assert float(ns["gp"].initial_states_[:, 1].abs().max()) < 0.05
+    # "Both compartments are predicted far better than by the known model, the tissue too"
+    for j in range(2):
+        known = float(tms.trajectory_rmse(ns["known_only"][..., j : j + 1], ns["reference"][..., j : j + 1]))
+        corrected = float(tms.trajectory_rmse(ns["bands"].mean_path[..., j : j + 1], ns["reference"][..., j : j + 1]))
+        assert corrected < 0.2 * known
+    assert 0.85 <= ns["calibration"].coverage <= 0.95
+    # "The message names the component, what is measured, and the fixes"
+    assert "acts on y1" in ns["message"] and "measured: y0" in ns["message"] and "correction_outputs" in ns["message"]
+
+
 PAGES = {
     "index.md": check_index,
     "overview.md": check_overview,
@@ -195,6 +209,7 @@ PAGES = {
     "tutorials/design.md": check_design,
     "tutorials/own-system.md": check_own_system,
     "tutorials/chemostat.md": check_chemostat,
+    "tutorials/partial-measurements.md": check_partial_measurements,
     "tutorials/sequential.md": check_sequential,
     "tutorials/kernels.md": check_kernels,
 }

@@ -214,3 +214,23 @@ def test_the_whole_loop_with_a_compartment_not_measured(tmp_path):
     # a table without the peripheral column at all: nothing to start it from, one line and exit 2
     (tmp_path / "central.csv").write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
     assert main(["fit", "--data", str(tmp_path / "central.csv"), *common, "--out", str(tmp_path / "x.pt")]) == 2
+
+
+def test_functions_that_need_every_component_say_what_to_do_with_partial_data():
+    t = torch.linspace(0, 2, 8, dtype=DT)
+    y = tms.simulate(tms.MisspecifiedSystem(chain, 2), torch.tensor([[1.0, 0.5], [2.0, 0.1]], dtype=DT), t).states
+    y[1, :, 1] = math.nan  # experiment 1 never observes y1
+    data = tms.Trajectories(t, y)
+    system = tms.MisspecifiedSystem(chain, 2)
+    with pytest.raises(tms.InputError, match=r"got 0 of component 1 in experiment 1 .* fit_correction learns such"):
+        tms.correction_samples(data, system, derivative="central")
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1.0, noise_variance=1e-4).fit(
+        torch.rand(5, 2, dtype=DT), torch.zeros(5, 2, dtype=DT)
+    )
+    with pytest.raises(tms.InputError, match=r"component 1 of experiment 1 is never observed there.*with_initial_states"):
+        tms.fit_trajectories(gp, system, data)
+    with pytest.raises(tms.InputError, match=r"multiple shooting .* use single shooting"):
+        tms.fit_trajectories(gp, system, data, shooting="multiple")
+    y0 = torch.tensor([[1.0, 0.5], [2.0, 0.1]], dtype=DT)
+    refined = tms.fit_trajectories(gp, system, data.with_initial_states(y0), max_iter=2)
+    assert torch.isfinite(refined.initial_states_).all()

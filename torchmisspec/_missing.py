@@ -84,10 +84,15 @@ def check_counts(observed: torch.Tensor, need: int, what: str, experiment_names=
     if int(counts.min()) >= need:
         return
     k, j = (int(i) for i in (counts < need).nonzero()[0])
+    fix = "use an estimator with a smaller stencil or drop that experiment"
+    if int(counts[k, j]) < 3:  # not measured there (Trajectories.measured): the fit through the ODE handles it
+        fix = (
+            "a component an experiment does not measure has no derivative samples: fit_correction learns such data "
+            "through the ODE (torchmisspec.partial)"
+        )
     raise InputError(
         f"{what} needs at least {need} observed values of every state component in every experiment, got "
-        f"{int(counts[k, j])} of component {j} in experiment {k} (its other values are missing); use an estimator "
-        "with a smaller stencil or drop that experiment"
+        f"{int(counts[k, j])} of component {j} in experiment {k} (its other values are missing); {fix}"
     )
 
 

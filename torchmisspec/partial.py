@@ -52,12 +52,14 @@ class Identifiability:
         outputs: the names of the components F acts on (``system.correction_outputs``).
         seen_by: for each output, the measured components through which the data see it (itself first when it
             is measured); empty when none does.
+        measured: the state components some experiment measures.
         unmeasured: the state components some experiment does not measure.
         unmeasured_inputs: F's inputs among them (their values come from the fitted paths).
     """
 
     outputs: tuple[str, ...]
     seen_by: tuple[tuple[str, ...], ...]
+    measured: tuple[str, ...]
     unmeasured: tuple[str, ...]
     unmeasured_inputs: tuple[str, ...]
 
@@ -86,16 +88,13 @@ class Identifiability:
         """Raise :class:`InputError` when some output of F is not identifiable."""
         if self.unseen:
             names = ", ".join(self.unseen)
+            one = len(self.unseen) == 1
             raise InputError(
-                f"system '{system_name}': the correction acts on {names}, which no experiment measures and which drive "
-                f"no measured component through G or F, so these data cannot inform it (measured: "
-                f"{', '.join(s for s in self._measured) or 'nothing'}); measure {names} in some experiment, or drop "
-                "it from correction_outputs"
+                f"system '{system_name}': the correction acts on {names}, which no experiment measures and which "
+                f"drive{'s' if one else ''} no measured component through G or F, so these data cannot inform it "
+                f"(measured: {', '.join(self.measured) or 'nothing'}); measure {names} in some experiment, or drop "
+                f"{'it' if one else 'them'} from correction_outputs"
             )
-
-    @property
-    def _measured(self) -> tuple[str, ...]:
-        return tuple(sorted({s for seen in self.seen_by for s in seen}))
 
 
 def _names(system: MisspecifiedSystem, trajectories: Trajectories) -> list[str]:
@@ -160,6 +159,7 @@ def identifiability(
     return Identifiability(
         outputs=tuple(names[j] for j in system.correction_outputs),
         seen_by=tuple(seen_by),
+        measured=tuple(names[j] for j in range(d) if measured[j]),
         unmeasured=tuple(unmeasured),
         unmeasured_inputs=tuple(inputs),
     )

@@ -269,6 +269,7 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
     d = trajectories.state_dim
     if shooting == "multiple":
         starts, times, ends, rows = _intervals(trajectories)
+        _check_starts(starts, "multiple shooting starts every interval at the observed states: ", "use single shooting")
         controls = None if trajectories.controls is None else trajectories.controls[rows.tolist()]
         seen = torch.isfinite(ends)
         zero = torch.zeros((), dtype=ends.dtype, device=ends.device)
@@ -288,6 +289,7 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
     if times.dim() == 1:
         times = times.expand(states.shape[0], -1)
     first = trajectories.initial_conditions  # (K, d), missing entries estimated (Trajectories.filled)
+    _check_starts(first)
     controls = trajectories.controls
     offsets = torch.zeros_like(first, requires_grad=True)  # (y0_hat - y0) / s, per component
     zero = torch.zeros((), dtype=first.dtype, device=first.device)
@@ -315,6 +317,20 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
     residuals.many = many
     residuals.seen = seen[mask]
     return residuals, int(residuals.seen.sum()), offsets
+
+
+def _check_starts(first: torch.Tensor, why: str = "", fix: str | None = None) -> None:
+    """Refuse start states with a component that was never observed (partly measured data without initial states)."""
+    if bool(torch.isfinite(first).all()):
+        return
+    k, j = (int(i) for i in (~torch.isfinite(first)).nonzero()[0])
+    fix = fix or (
+        "set the initial states (trajectories.with_initial_states(model.initial_states(trajectories))), or let "
+        "fit_correction estimate them (it learns partly measured data through the ODE)"
+    )
+    raise InputError(
+        f"trajectories: {why}component {j} of experiment {k} is never observed there, so its path has no start; {fix}"
+    )
 
 
 def _recorded(state_noise):
