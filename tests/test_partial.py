@@ -227,7 +227,8 @@ def test_functions_that_need_every_component_say_what_to_do_with_partial_data():
     gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1.0, noise_variance=1e-4).fit(
         torch.rand(5, 2, dtype=DT), torch.zeros(5, 2, dtype=DT)
     )
-    with pytest.raises(tms.InputError, match=r"component 1 of experiment 1 is never observed there.*with_initial_states"):
+    never = r"component 1 of experiment 1 is never observed there.*with_initial_states"
+    with pytest.raises(tms.InputError, match=never):
         tms.fit_trajectories(gp, system, data)
     with pytest.raises(tms.InputError, match=r"multiple shooting .* use single shooting"):
         tms.fit_trajectories(gp, system, data, shooting="multiple")

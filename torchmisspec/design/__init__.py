@@ -17,6 +17,7 @@ Public functions:
 * :func:`variance_reduction` - the domain criterion (``greedy(..., criterion="domain")``): the mean posterior variance
   of F over the domain D that a set of samples removes.
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
+* :func:`sampling_times` - which times to measure in given experiments under a per-experiment sample budget.
 * :class:`Campaign` - the sequential loop: ``ask`` for experiments designed given the data so far, ``tell`` the
   measured trajectories (refit), ``history``, ``save`` / ``load``.
 * :func:`random`, :func:`agnostic` - baseline designs (random; ignore G, i.e. constant proxy trajectories).
@@ -39,12 +40,14 @@ from ._gain import (
 )
 from ._greedy import greedy
 from ._proxy import proxy_trajectories
+from ._times import SamplingTimes, sampling_times
 
 __all__ = [
     "CRITERIA",
     "Campaign",
     "DesignResult",
     "ProxyCheck",
+    "SamplingTimes",
     "agnostic",
     "candidates",
     "greedy",
@@ -54,6 +57,7 @@ __all__ = [
     "proxy_gap_bound",
     "proxy_trajectories",
     "random",
+    "sampling_times",
     "true_information_gain",
     "variance_reduction",
 ]

@@ -1,0 +1,99 @@
+"""Which times to measure (issue 24 part 4): ``design.sampling_times`` against brute force on tiny problems."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec import design
+
+DT = torch.float64
+
+
+def two_compartments(y):
+    c, p = y[..., 0], y[..., 1]
+    return torch.stack([-0.8 * c + 0.2 * p, 0.5 * c - 0.2 * p], dim=-1)
+
+
+def pk() -> tms.MisspecifiedSystem:
+    return tms.MisspecifiedSystem(two_compartments, 2, correction_inputs=[0], correction_outputs=[0], name="pk")
+
+
+def rbf_gain(x: torch.Tensor, outputscale: float, lengthscale: float, noise: float) -> float:
+    """(1/2) logdet(I + K / noise) by hand, for one output."""
+    K = outputscale * torch.exp(-0.5 * torch.cdist(x, x).pow(2) / lengthscale**2)
+    return 0.5 * float(torch.logdet(torch.eye(len(x), dtype=DT) + K / noise))
+
+
+def test_the_times_chosen_are_at_least_half_the_best_and_respect_every_budget():
+    """Brute force over every choice of 2 of 6 times in each of 2 experiments (225 sets): the greedy's gain is the
+    criterion of its picks (recomputed by hand), at least 1/2 of the optimum (Fisher et al. 1978 for a partition
+    matroid), and here equal to it."""
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    y0 = torch.tensor([[1.0, 0.0], [3.5, 0.0]], dtype=DT)
+    t = torch.linspace(0, 8, 6, dtype=DT)
+    result = design.sampling_times(y0, t, 2, system=pk(), gp=gp)
+    assert [len(c) for c in result.times] == [2, 2]
+    paths = tms.simulate(pk(), y0, t, known_only=True).states[..., :1]  # F's input: the central compartment
+    for k in range(2):
+        assert torch.equal(result.times[k], t[result.indices[k]])
+        assert bool((result.indices[k][1:] > result.indices[k][:-1]).all())
+    picked = torch.cat([paths[k, result.indices[k]] for k in range(2)])
+    assert math.isclose(result.design.information_gain, rbf_gain(picked, 0.1, 0.5, 1e-3), rel_tol=1e-6)
+    best = max(
+        rbf_gain(torch.cat([paths[0, list(a)], paths[1, list(b)]]), 0.1, 0.5, 1e-3)
+        for a in itertools.combinations(range(6), 2)
+        for b in itertools.combinations(range(6), 2)
+    )
+    assert result.design.information_gain >= 0.5 * best
+    assert math.isclose(result.design.information_gain, best, rel_tol=1e-9)
+
+
+def test_times_are_spread_where_the_path_moves_and_conditioned_on_data():
+    """A decaying dose: most of the picks fall early, where the central concentration changes; once data cover
+    the early states (a fitted GP), the design moves to where they do not."""
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    y0 = torch.tensor([[3.5, 0.0]], dtype=DT)
+    t = torch.linspace(0, 8, 33, dtype=DT)
+    prior = design.sampling_times(y0, t, 4, system=pk(), gp=gp)
+    assert float(prior.times[0].median()) < 2.0  # the path moves fastest at the start
+    x = torch.linspace(1.5, 3.5, 20, dtype=DT).unsqueeze(-1)  # data already cover concentrations 1.5-3.5
+    fitted = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3).fit(x, torch.zeros_like(x))
+    after = design.sampling_times(y0, t, 4, system=pk(), gp=fitted, proxy="known")
+    paths = tms.simulate(pk(), y0, t, known_only=True).states[0, :, 0]
+    assert float(paths[after.indices[0]].max()) < 1.5  # none where the data already are
+
+
+def test_a_system_with_inputs_runs_its_proxies_under_each_profile():
+    def tank(t, y, u):
+        return -0.7 * y + u
+
+    system = tms.MisspecifiedSystem(tank, 1, num_controls=1, correction_inputs=[0], name="tank")
+    profiles = tms.Controls(torch.tensor([0.0, 2.0], dtype=DT), torch.tensor([[[0.0], [2.0]], [[1.0], [0.0]]]))
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    t = torch.linspace(0, 4, 9, dtype=DT)
+    result = design.sampling_times(
+        torch.tensor([[0.5], [0.5]], dtype=DT), t, 3, system=system, gp=gp, controls=profiles
+    )
+    assert [len(c) for c in result.times] == [3, 3]
+    uses_u = tms.MisspecifiedSystem(tank, 1, num_controls=1, correction_inputs=[0, 1], name="tank")
+    with pytest.raises(tms.InputError, match=r"F depends on the inputs \['u0'\]; choosing times for such a"):
+        design.sampling_times(torch.tensor([[0.5]], dtype=DT), t, 3, system=uses_u, gp=gp, controls=profiles[[0]])
+
+
+def test_bad_budgets_and_times_are_refused_with_the_fix():
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    y0 = torch.tensor([[1.0, 0.0]], dtype=DT)
+    t = torch.linspace(0, 8, 5, dtype=DT)
+    with pytest.raises(tms.InputError, match=r"per_experiment: expected at most the 5 candidate times, got 6"):
+        design.sampling_times(y0, t, 6, system=pk(), gp=gp)
+    with pytest.raises(tms.InputError, match=r"times: expected a \(T,\) strictly increasing"):
+        design.sampling_times(y0, t.flip(0), 2, system=pk(), gp=gp)
+    with pytest.raises(tms.InputError, match=r"initial_states: expected a \(K, 2\) tensor"):
+        design.sampling_times(torch.ones(3, dtype=DT), t, 2, system=pk(), gp=gp)
+    with pytest.raises(tms.InputError, match=r"partition: set by sampling_times itself"):
+        design.sampling_times(y0, t, 2, system=pk(), gp=gp, partition=[0] * 5)

@@ -1,0 +1,147 @@
+"""Which times to measure: a per-experiment sample budget spent where the samples teach the most about F.
+
+For experiments already chosen (initial states, and input profiles for a system with inputs), each candidate time
+t_i of experiment k is one candidate *sample*: the state of the proxy trajectory of k at t_i (G alone, or G + the
+GP's mean once data are in). Choosing at most ``per_experiment`` of them in every experiment is a partition matroid
+over the K x T candidate samples, and the criterion is the one :func:`~torchmisspec.design.greedy` maximises
+(information about F, or the domain criterion), conditioned on the GP's data: so this is ``greedy`` over one-point
+proxies with one region per experiment. Nearby times along one trajectory carry nearly the same information, so the
+picks spread along each path where it moves through new states, and thin out where it rests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import InputError
+from .._validation import as_tensor, check_positive_int
+from ..gp import CorrectionGP
+from ..systems import MisspecifiedSystem
+from ._common import DesignResult, check_system
+from ._greedy import greedy
+from ._proxy import corrected_proxies, proxy_trajectories
+
+__all__ = ["SamplingTimes", "sampling_times"]
+
+
+@dataclass(frozen=True)
+class SamplingTimes:
+    """The times chosen for each experiment (:func:`sampling_times`).
+
+    Attributes:
+        times: one ``(n_k,)`` tensor of chosen times per experiment, increasing.
+        indices: one ``(n_k,)`` tensor of their positions in the candidate times per experiment.
+        design: the underlying :class:`DesignResult` over the K x T candidate samples (candidate ``k * T + i`` is
+            time ``i`` of experiment ``k``; its gains, information gain and diagnostics).
+    """
+
+    times: tuple[torch.Tensor, ...]
+    indices: tuple[torch.Tensor, ...]
+    design: DesignResult
+
+    def __repr__(self) -> str:
+        counts = [len(t) for t in self.times]
+        return (
+            f"SamplingTimes({len(counts)} experiments, {sum(counts)} times, {min(counts)}-{max(counts)} each; "
+            f"{self.design.diagnostics.get('criterion', 'information')} gain {self.design.information_gain:.4g})"
+        )
+
+
+def sampling_times(
+    initial_states,
+    times,
+    per_experiment: int,
+    *,
+    system: MisspecifiedSystem,
+    gp: CorrectionGP,
+    controls=None,
+    criterion: str = "information",
+    proxy: str | None = None,
+    progress: bool = False,
+    **options,
+) -> SamplingTimes:
+    """Choose at most ``per_experiment`` of the candidate ``times`` to measure in each experiment.
+
+    Args:
+        initial_states: ``(K, d)`` the experiments' initial states (e.g. a design's picks).
+        times: ``(T,)`` candidate measurement times, strictly increasing; the first is the time of the initial state.
+        per_experiment: the sample budget of each experiment, 1 <= per_experiment <= T.
+        system: the misspecified system.
+        gp: the correction GP (a prior with its hyperparameters set, or fitted: the choice is then conditioned on its
+            data, see :func:`~torchmisspec.design.greedy`'s ``condition``).
+        controls: for a system with inputs, the K experiments' input profiles (F itself may not depend on the
+            inputs here: the samples' inputs would need each candidate's own time; refused with a message).
+        criterion: ``"information"`` or ``"domain"``, as for :func:`~torchmisspec.design.greedy`.
+        proxy: ``"known"`` or ``"corrected"`` (default: corrected for a fitted GP), as for ``greedy``.
+        progress: a progress bar over the picks.
+        **options: further keywords of :func:`~torchmisspec.design.greedy` (``method``, ``condition``, ``domain``,
+            ...).
+
+    Returns:
+        :class:`SamplingTimes`: every experiment's chosen times, increasing (each experiment gets exactly
+        ``per_experiment``: the criterion is monotone, so the budget is always spent).
+    """
+    system = check_system(system, controls, with_controls=True)
+    if system.uses_controls:
+        raise InputError(
+            f"system '{system.name}': F depends on the inputs {list(system.control_names)}; choosing times for such a "
+            "correction is not supported yet (choose among profiles with design.greedy(..., controls=...))"
+        )
+    if not isinstance(gp, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
+    for key in ("partition", "capacities", "proxies", "times", "candidates"):
+        if key in options:
+            raise InputError(f"{key}: set by sampling_times itself (one region of candidate times per experiment)")
+    kd = dict(dtype=gp.dtype, device=gp.device)
+    y0 = as_tensor(initial_states, "initial_states", **kd)
+    if y0.dim() != 2 or y0.shape[-1] != system.state_dim or y0.shape[0] < 1:
+        raise InputError(
+            f"initial_states: expected a (K, {system.state_dim}) tensor of initial states, got shape {tuple(y0.shape)}"
+        )
+    grid = as_tensor(times, "times", **kd)
+    if grid.dim() != 1 or grid.numel() < 1 or not bool((grid[1:] > grid[:-1]).all()):
+        raise InputError(f"times: expected a (T,) strictly increasing tensor of candidate times, got {times!r:.80}")
+    K, T = y0.shape[0], grid.numel()
+    per_experiment = check_positive_int(per_experiment, "per_experiment")
+    if per_experiment > T:
+        raise InputError(
+            f"per_experiment: expected at most the {T} candidate times, got {per_experiment}; pass more candidate times"
+        )
+    if controls is not None:
+        controls = system.check_controls(controls, K)
+    if proxy is None:
+        proxy = "corrected" if gp.is_fitted else "known"
+    if proxy == "corrected":
+        paths = corrected_proxies(system, gp, y0, grid, controls)
+    elif proxy == "known":
+        paths = proxy_trajectories(system, y0, grid, controls=controls)
+    else:
+        raise InputError(f"proxy: expected 'known' or 'corrected', got {proxy!r}")
+    samples = paths.reshape(K * T, 1, system.state_dim)  # candidate k T + i: time i of experiment k
+    region = torch.arange(K, device=samples.device).repeat_interleave(T)
+    # the samples' view of the system: F's inputs and outputs; G and the inputs u(t) are in the proxies already
+    view = MisspecifiedSystem(
+        lambda y: torch.zeros_like(y),
+        system.state_dim,
+        correction_inputs=system.correction_inputs,
+        correction_outputs=system.correction_outputs,
+        domain=system.domain,
+        name=system.name,
+    )
+    design = greedy(
+        samples[:, 0],
+        K * per_experiment,
+        system=view,
+        gp=gp,
+        partition=region,
+        capacities=[per_experiment] * K,
+        proxies=samples,
+        criterion=criterion,
+        progress=progress,
+        **options,
+    )
+    picked = design.indices.to(samples.device)
+    chosen = [torch.sort(picked[picked // T == k] % T).values for k in range(K)]
+    return SamplingTimes(tuple(grid[c] for c in chosen), tuple(chosen), design)
