@@ -109,3 +109,27 @@ def test_input_design_study_smoke(tmp_path):
         for arm in ("designed", "domain", "random"):
             assert set(run[arm]) == {"2", "4"} and all(0 < v < float("inf") for v in run[arm].values())
     assert "experiments needed for random's error" in stdout
+
+
+@pytest.mark.slow
+def test_partial_study_smoke(tmp_path):
+    out = tmp_path / "pm.json"
+    stdout = _script("study_partial.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["smoke"] and set(result["runs"]) == {"pk", "chemostat"}
+    for runs in result["runs"].values():
+        for run in runs:
+            assert all(0 < r < 1 for r in run["ratio"] + run["ratio_fully_measured"])  # better than the known model
+    assert "corrected / known RMSE, one measured" in stdout
+
+
+@pytest.mark.slow
+def test_sampling_times_study_smoke(tmp_path):
+    out = tmp_path / "st.json"
+    stdout = _script("study_sampling_times.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["smoke"] and set(result["runs"]) == {"2"}
+    for run in result["runs"]["2"]:
+        assert all(0 < run[arm] < float("inf") for arm in ("all", "half", "chosen"))
+        assert [len(t) for t in run["chosen_times"]] == [6, 6]  # T / 2 each
+    assert "chosen / all 12" in stdout
