@@ -97,3 +97,27 @@ def test_bad_budgets_and_times_are_refused_with_the_fix():
         design.sampling_times(torch.ones(3, dtype=DT), t, 2, system=pk(), gp=gp)
     with pytest.raises(tms.InputError, match=r"partition: set by sampling_times itself"):
         design.sampling_times(y0, t, 2, system=pk(), gp=gp, partition=[0] * 5)
+
+
+def test_the_command_line_writes_the_times_to_measure(tmp_path, capsys):
+    from torchmisspec.cli import main
+
+    (tmp_path / "pk.py").write_text(
+        "import torch\nimport torchmisspec as tms\n\n\ndef pk():\n    return tms.MisspecifiedSystem(\n"
+        "        lambda y: torch.stack([-0.8 * y[..., 0] + 0.2 * y[..., 1], 0.5 * y[..., 0] - 0.2 * y[..., 1]], -1),\n"
+        "        2, state_names=['central', 'peripheral'], correction_inputs=[0], correction_outputs=[0], name='pk')\n"
+    )
+    (tmp_path / "doses.csv").write_text("central,peripheral\n" + "".join(f"{0.5 + 0.5 * i},0\n" for i in range(8)))
+    prior = ["--lengthscale", "0.5", "--outputscale", "0.1", "--noise-variance", "1e-3"]
+    common = ["design", "--system", f"{tmp_path / 'pk.py'}:pk", "--candidates", str(tmp_path / "doses.csv")]
+    out = tmp_path / "plan.csv"
+    args = [*common, "--budget", "2", "--times", "0:8:17", *prior, "--out", str(out), "--quiet"]
+    assert main([*args, "--samples-per-experiment", "4"]) == 0
+    header, *rows = out.read_text().splitlines()
+    assert header.endswith(",measure_at") and len(rows) == 2
+    for row in rows:
+        times = [float(v) for v in row.rsplit(",", 1)[1].split()]
+        assert len(times) == 4 and times == sorted(times) and all(0 <= v <= 8 for v in times)
+    assert "4 of the 17 times chosen in each" in capsys.readouterr().out
+    assert main([*args, "--samples-per-experiment", "18"]) == 2
+    assert "--samples-per-experiment: expected 1 to 17 (the number of --times), got 18" in capsys.readouterr().err

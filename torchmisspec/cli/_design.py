@@ -97,6 +97,11 @@ def _design(args: argparse.Namespace) -> int:
             "candidate input profiles yet: design them in Python, design.greedy(states, budget, ..., controls=...)"
         )
     times = parse_times(args.times)
+    if args.samples_per_experiment is not None and not 1 <= args.samples_per_experiment <= len(times):
+        raise InputError(
+            f"--samples-per-experiment: expected 1 to {len(times)} (the number of --times), got "
+            f"{args.samples_per_experiment}"
+        )
     early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
     observed = read_observations(args, system) if args.data is not None and early is None else None  # read first
     known = known_state_names(system, None if early is None else early[0])
@@ -121,6 +126,19 @@ def _design(args: argparse.Namespace) -> int:
         plan = design.greedy(
             candidates, args.budget, method=args.method, criterion=args.criterion, proxy=args.proxy, **common
         )
+    when = None  # with --samples-per-experiment: the times to measure in each chosen experiment
+    if args.samples_per_experiment is not None:
+        picked = design.sampling_times(
+            plan.points,
+            times,
+            args.samples_per_experiment,
+            system=system,
+            gp=gp,
+            criterion=args.criterion,
+            proxy=args.proxy,
+            progress=not args.quiet,
+        )
+        when = [[float(x) for x in t.tolist()] for t in picked.times]
     units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
     conditioned = plan.diagnostics.get("conditioned", 0)
     if out.suffix == ".json":
@@ -140,6 +158,7 @@ def _design(args: argparse.Namespace) -> int:
                     "conditioned_on_samples": conditioned,
                     "proxy": plan.diagnostics.get("proxy"),
                     "units": units,
+                    "times": when,
                 },
                 indent=2,
             )
@@ -147,20 +166,27 @@ def _design(args: argparse.Namespace) -> int:
     else:
         label = [] if labels is None else [args.experiment_column]  # the candidates' own labels, when they have them
         rows = [
-            [i, c, *([] if labels is None else [labels[c]]), g, *p]
+            [i, c, *([] if labels is None else [labels[c]]), g, *p, *([] if when is None else [_times(when[i])])]
             for i, (c, g, p) in enumerate(
                 zip(plan.indices.tolist(), plan.gains.tolist(), plan.points.tolist(), strict=True)
             )
         ]
-        write_csv(out, ["order", "index", *label, "gain", *names], rows)
+        extra = [] if when is None else ["measure_at"]
+        write_csv(out, ["order", "index", *label, "gain", *names, *extra], rows)
     print(
         f"{plan.method} design of {len(plan)} experiments from {candidates.shape[0]} candidates on {system.name} "
         f"with {source}"
         + (f" (conditioned on {conditioned} samples)" if conditioned else "")
         + f": criterion {args.criterion} {plan.information_gain:.4g} {units}; indices {plan.indices.tolist()}; "
-        f"written to {out}"
+        + ("" if when is None else f"{args.samples_per_experiment} of the {len(times)} times chosen in each; ")
+        + f"written to {out}"
     )
     return 0
+
+
+def _times(values: list[float]) -> str:
+    """A cell of measurement times, space separated (the CSV's cells are comma separated)."""
+    return " ".join(f"{v:.6g}" for v in values)
 
 
 def add_design(sub) -> None:
@@ -186,6 +212,12 @@ def add_design(sub) -> None:
         help="observation times: 'start:stop:count' (equally spaced, e.g. 0:6:11) or a comma list",
     )
     des.add_argument("--budget", type=int, required=True, help="number of experiments K to choose")
+    des.add_argument(
+        "--samples-per-experiment",
+        type=int,
+        help="measure only this many of --times in each chosen experiment, chosen by the same criterion "
+        "(design.sampling_times; written as a column measure_at of space separated times)",
+    )
     des.add_argument("--model", help="a model file written by 'fit' (its data condition the design)")
     add_data_options(des, required=False, help="experiments already run, as for 'fit': a model is fitted on them")
     des.add_argument("--derivative", default="auto", help="with --data: how dy/dt is estimated (default: auto)")
