@@ -80,9 +80,12 @@ def test_a_system_with_inputs_runs_its_proxies_under_each_profile():
         torch.tensor([[0.5], [0.5]], dtype=DT), t, 3, system=system, gp=gp, controls=profiles
     )
     assert [len(c) for c in result.times] == [3, 3]
+    # F depending on the input: the samples' inputs are (level, inflow at the sample's time); an inflow that jumps
+    # makes the states after the jump new information even where the level barely moves
     uses_u = tms.MisspecifiedSystem(tank, 1, num_controls=1, correction_inputs=[0, 1], name="tank")
-    with pytest.raises(tms.InputError, match=r"F depends on the inputs \['u0'\]; choosing times for such a"):
-        design.sampling_times(torch.tensor([[0.5]], dtype=DT), t, 3, system=uses_u, gp=gp, controls=profiles[[0]])
+    both = design.sampling_times(torch.tensor([[0.5]], dtype=DT), t, 2, system=uses_u, gp=gp, controls=profiles[[0]])
+    inflow = profiles[[0]].at(both.times[0].unsqueeze(0))[0, :, 0]
+    assert set(inflow.tolist()) == {0.0, 2.0}  # one sample under each inflow level
 
 
 def test_bad_budgets_and_times_are_refused_with_the_fix():
@@ -121,3 +124,42 @@ def test_the_command_line_writes_the_times_to_measure(tmp_path, capsys):
     assert "4 of the 17 times chosen in each" in capsys.readouterr().out
     assert main([*args, "--samples-per-experiment", "18"]) == 2
     assert "--samples-per-experiment: expected 1 to 17 (the number of --times), got 18" in capsys.readouterr().err
+
+
+def test_the_command_line_designs_initial_states_with_input_profiles(tmp_path, capsys):
+    from torchmisspec.cli import main
+
+    (tmp_path / "tank.py").write_text(
+        "import torchmisspec as tms\n\n\ndef tank():\n    return tms.MisspecifiedSystem(\n"
+        "        lambda t, y, u: -0.7 * y + u, 1, num_controls=1, control_names=['inflow'], state_names=['level'],\n"
+        "        correction_inputs=['level', 'inflow'], name='tank')\n"
+    )
+    g = torch.Generator().manual_seed(0)
+    rows, profiles = ["run,level"], ["run,time,inflow"]
+    for i in range(6):
+        rows.append(f"c{i},{0.2 + 0.3 * (i % 3):.2f}")
+        profiles += [f"c{i},{t},{float(2 * torch.rand(1, generator=g)):.3f}" for t in (0, 2, 4)]
+    (tmp_path / "cands.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "profiles.csv").write_text("\n".join(profiles) + "\n")
+    prior = ["--lengthscale", "0.7", "--outputscale", "0.1", "--noise-variance", "1e-4"]
+    common = ["design", "--system", f"{tmp_path / 'tank.py'}:tank", "--candidates", str(tmp_path / "cands.csv")]
+    common += ["--experiment-column", "run", "--budget", "2", "--times", "0:6:13", *prior, "--quiet"]
+    out = tmp_path / "plan.csv"
+    assert main([*common, "--controls", str(tmp_path / "profiles.csv"), "--out", str(out)]) == 0
+    header, *picked = out.read_text().splitlines()
+    assert header == "order,index,run,gain,level" and len(picked) == 2
+    # the same choice as design.greedy with the profiles read back
+    system = tms.MisspecifiedSystem(
+        lambda t, y, u: -0.7 * y + u, 1, num_controls=1, correction_inputs=[0, 1], name="tank"
+    )
+    knots = torch.tensor([0.0, 2.0, 4.0], dtype=DT)
+    levels = torch.tensor([[float(p.split(",")[2])] for p in profiles[1:]], dtype=DT).reshape(6, 3, 1)
+    states = torch.tensor([[float(r.split(",")[1])] for r in rows[1:]], dtype=DT)
+    gp = tms.CorrectionGP(lengthscale=0.7, outputscale=0.1, noise_variance=1e-4)
+    plan = design.greedy(
+        states, 2, system=system, times=torch.linspace(0, 6, 13, dtype=DT), gp=gp, controls=tms.Controls(knots, levels)
+    )
+    assert [int(r.split(",")[1]) for r in picked] == plan.indices.tolist()
+    capsys.readouterr()
+    assert main([*common, "--out", str(out)]) == 2
+    assert "pass --controls profiles.csv" in capsys.readouterr().err

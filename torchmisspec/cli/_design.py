@@ -14,6 +14,7 @@ from ._common import (
     known_state_names,
     load_model,
     parse_times,
+    read_controls,
     read_observations,
     read_states,
     read_table,
@@ -91,10 +92,18 @@ def _design(args: argparse.Namespace) -> int:
 
     out = check_output(args.out, (".csv", ".json"))
     system = load_system(args.system)
-    if system.num_controls:
+    if system.num_controls and args.controls is None:
         raise InputError(
-            f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; the command line does not read "
-            "candidate input profiles yet: design them in Python, design.greedy(states, budget, ..., controls=...)"
+            f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is an "
+            "initial state and an input profile: pass --controls profiles.csv (columns: the --experiment-column "
+            "labelling the rows of --candidates, the time, the inputs)"
+        )
+    if args.controls is not None and not system.num_controls:
+        raise InputError(f"--controls: system '{system.name}' has no inputs u(t); drop --controls")
+    if args.controls is not None and (args.method in ("random", "agnostic") or args.criterion != "information"):
+        raise InputError(
+            "--controls: candidate input profiles are designed by the greedy methods with the information criterion; "
+            f"got --method {args.method} --criterion {args.criterion}"
         )
     times = parse_times(args.times)
     if args.samples_per_experiment is not None and not 1 <= args.samples_per_experiment <= len(times):
@@ -109,6 +118,14 @@ def _design(args: argparse.Namespace) -> int:
         known = list(observed.state_names)  # the data's names: the candidates are read by them
     candidates, names, labels = read_states(args.candidates, "--candidates", args, system, known)
     partition, capacities = _capacities(args, candidates.shape[0])
+    controls = None
+    if args.controls is not None:
+        if labels is None:
+            raise InputError(
+                f"--candidates: expected an --experiment-column ({args.experiment_column!r}) labelling each candidate, "
+                "so that its profile in --controls can be found"
+            )
+        controls = read_controls(args.controls, args, system, labels)
     gp, source = early or _gp(args, system, observed)  # a fit on --data comes last: after every cheap check
     names = check_names(gp, names, system, "--candidates")
     if system.parameters is not None and getattr(gp, "parameters_", None) is not None:
@@ -124,7 +141,13 @@ def _design(args: argparse.Namespace) -> int:
         plan = design.agnostic(candidates, args.budget, **common)
     else:
         plan = design.greedy(
-            candidates, args.budget, method=args.method, criterion=args.criterion, proxy=args.proxy, **common
+            candidates,
+            args.budget,
+            method=args.method,
+            criterion=args.criterion,
+            proxy=args.proxy,
+            controls=controls,
+            **common,
         )
     when = None  # with --samples-per-experiment: the times to measure in each chosen experiment
     if args.samples_per_experiment is not None:
@@ -137,6 +160,7 @@ def _design(args: argparse.Namespace) -> int:
             criterion=args.criterion,
             proxy=args.proxy,
             progress=not args.quiet,
+            controls=None if controls is None else controls[plan.indices.tolist()],
         )
         when = [[float(x) for x in t.tolist()] for t in picked.times]
     units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
@@ -217,6 +241,12 @@ def add_design(sub) -> None:
         type=int,
         help="measure only this many of --times in each chosen experiment, chosen by the same criterion "
         "(design.sampling_times; written as a column measure_at of space separated times)",
+    )
+    des.add_argument(
+        "--controls",
+        help="for a system with inputs u(t): each candidate's input profile, a CSV/TSV/TXT with the "
+        "--experiment-column (the labels of --candidates' rows; a state may be listed with several profiles), the "
+        "--time-column and one column per input (--input-columns), each profile's rows its samples (--input-kind)",
     )
     des.add_argument("--model", help="a model file written by 'fit' (its data condition the design)")
     add_data_options(des, required=False, help="experiments already run, as for 'fit': a model is fitted on them")

@@ -71,8 +71,8 @@ def sampling_times(
         system: the misspecified system.
         gp: the correction GP (a prior with its hyperparameters set, or fitted: the choice is then conditioned on its
             data, see :func:`~torchmisspec.design.greedy`'s ``condition``).
-        controls: for a system with inputs, the K experiments' input profiles (F itself may not depend on the
-            inputs here: the samples' inputs would need each candidate's own time; refused with a message).
+        controls: for a system with inputs, the K experiments' input profiles (the proxies run under them; where F
+            depends on an input, each sample's inputs are the profile's values at its time).
         criterion: ``"information"`` or ``"domain"``, as for :func:`~torchmisspec.design.greedy`.
         proxy: ``"known"`` or ``"corrected"`` (default: corrected for a fitted GP), as for ``greedy``.
         progress: a progress bar over the picks.
@@ -84,11 +84,6 @@ def sampling_times(
         ``per_experiment``: the criterion is monotone, so the budget is always spent).
     """
     system = check_system(system, controls, with_controls=True)
-    if system.uses_controls:
-        raise InputError(
-            f"system '{system.name}': F depends on the inputs {list(system.control_names)}; choosing times for such a "
-            "correction is not supported yet (choose among profiles with design.greedy(..., controls=...))"
-        )
     if not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
     for key in ("partition", "capacities", "proxies", "times", "candidates"):
@@ -119,12 +114,16 @@ def sampling_times(
         paths = proxy_trajectories(system, y0, grid, controls=controls)
     else:
         raise InputError(f"proxy: expected 'known' or 'corrected', got {proxy!r}")
-    samples = paths.reshape(K * T, 1, system.state_dim)  # candidate k T + i: time i of experiment k
+    width = system.state_dim
+    if system.uses_controls:  # F's inputs include u: each sample carries the inputs at its own time
+        paths = torch.cat([paths, controls.at(grid.expand(K, -1)).to(paths)], dim=-1)
+        width += system.num_controls
+    samples = paths.reshape(K * T, 1, width)  # candidate k T + i: time i of experiment k
     region = torch.arange(K, device=samples.device).repeat_interleave(T)
-    # the samples' view of the system: F's inputs and outputs; G and the inputs u(t) are in the proxies already
+    # the samples' view of the system: F's inputs (states, then inputs u) and outputs; G is in the proxies already
     view = MisspecifiedSystem(
         lambda y: torch.zeros_like(y),
-        system.state_dim,
+        width,
         correction_inputs=system.correction_inputs,
         correction_outputs=system.correction_outputs,
         domain=system.domain,
