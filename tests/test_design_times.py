@@ -163,3 +163,38 @@ def test_the_command_line_designs_initial_states_with_input_profiles(tmp_path, c
     capsys.readouterr()
     assert main([*common, "--out", str(out)]) == 2
     assert "pass --controls profiles.csv" in capsys.readouterr().err
+
+
+def test_refine_climbs_the_criterion_inside_the_box():
+    """One experiment of a decay y' = -y with F(y): the trajectory from the largest y0 sweeps every smaller state,
+    so the criterion is largest at the top of the box, where refine must go from the middle; the criterion it reports
+    is the one information_gain computes on the proxies of its points."""
+    system = tms.MisspecifiedSystem(lambda y: -y, 1, name="decay")
+    gp = tms.CorrectionGP(lengthscale=0.3, outputscale=0.1, noise_variance=1e-3)
+    t = torch.linspace(0, 3, 16, dtype=DT)
+    result = design.refine(torch.tensor([[1.0]], dtype=DT), system=system, times=t, gp=gp, box=[(0.1, 3.0)], steps=80)
+    assert float(result.points[0, 0]) > 2.9 and result.information_gain > result.start_gain
+    paths = design.proxy_trajectories(system, result.points, t)
+    again = design.information_gain(paths.reshape(-1, 1), gp, d_out=1)
+    assert math.isclose(result.information_gain, again, rel_tol=1e-5)
+    with pytest.raises(tms.InputError, match=r"initial_states: expected every state inside box"):
+        design.refine(torch.tensor([[5.0]], dtype=DT), system=system, times=t, gp=gp, box=[(0.1, 3.0)])
+
+
+def test_refine_never_returns_worse_than_the_greedy_picks():
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    g = torch.Generator().manual_seed(0)
+    candidates = torch.stack(
+        [0.5 + 3.5 * torch.rand(12, generator=g, dtype=DT), 2 * torch.rand(12, generator=g, dtype=DT)], -1
+    )
+    t = torch.linspace(0, 8, 20, dtype=DT)
+    plan = design.greedy(candidates, 3, system=pk(), times=t, gp=gp)
+    result = design.refine(plan.points, system=pk(), times=t, gp=gp, box=[(0.5, 4.0), (0.0, 2.0)], steps=20)
+    assert math.isclose(result.start_gain, plan.information_gain, rel_tol=1e-5)
+    assert result.information_gain >= result.start_gain and len(result.history) == 21
+    assert bool(
+        (
+            (result.points >= torch.tensor([0.5, 0.0], dtype=DT))
+            & (result.points <= torch.tensor([4.0, 2.0], dtype=DT))
+        ).all()
+    )

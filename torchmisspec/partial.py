@@ -5,8 +5,9 @@ observes component j fewer than :data:`~torchmisspec.data.MIN_MEASURED` times do
 (:attr:`Trajectories.measured <torchmisspec.Trajectories.measured>`). Derivatives of such a component cannot be
 estimated, so the correction is learned through the ODE (:func:`~torchmisspec.fit_correction` does this by itself):
 
-1. every experiment's unmeasured initial values are estimated with the known model G alone
-   (:func:`estimate_initial_states`: Levenberg-Marquardt on the measured values, one batched solve per step);
+1. every experiment's unmeasured initial values that its first row does not give are estimated with the known
+   model G alone (:func:`estimate_initial_states`: Levenberg-Marquardt on the measured values, one batched solve per
+   step; the given ones are kept until the next step);
 2. the unmeasured components are filled with the model's path (:func:`complete`), so that F's inputs are known;
 3. F is fitted through the ODE to what was measured, the initial states with it
    (:func:`~torchmisspec.fit_trajectories` with the unmeasured entries left out of the misfit), the data completed
@@ -315,13 +316,16 @@ def _through_the_ode(system: MisspecifiedSystem, trajectories: Trajectories, com
 
 
 def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories) -> Trajectories:
-    """The data completed with G alone, from initial states fitted to the measurements (step 1 of the module)."""
+    """The data completed with G alone (step 1 of the module): the unmeasured initial values that no first row gives
+    are fitted to the measurements; the given ones are kept (G is wrong: fitting them with G alone would move them to
+    wherever G's error is best hidden, and the fit through the ODE that follows refines them with F)."""
 
     def known(y, t, u):
         return system.known_rhs(y, t, u)
 
     start = trajectories.with_initial_states(initial_guess(trajectories))
-    y0 = estimate_initial_states(system, known, start, ~trajectories.measured)
+    given = torch.isfinite(trajectories.initial_conditions)
+    y0 = estimate_initial_states(system, known, start, ~trajectories.measured & ~given)
     return complete(system, known, trajectories, y0)
 
 

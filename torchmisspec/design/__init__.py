@@ -17,6 +17,7 @@ Public functions:
 * :func:`variance_reduction` - the domain criterion (``greedy(..., criterion="domain")``): the mean posterior variance
   of F over the domain D that a set of samples removes.
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
+* :func:`refine` - a design's initial states moved by gradients of the criterion, beyond the candidate list.
 * :func:`sampling_times` - which times to measure in given experiments under a per-experiment sample budget.
 * :class:`Campaign` - the sequential loop: ``ask`` for experiments designed given the data so far, ``tell`` the
   measured trajectories (refit), ``history``, ``save`` / ``load``.
@@ -40,6 +41,7 @@ from ._gain import (
 )
 from ._greedy import greedy
 from ._proxy import proxy_trajectories
+from ._refine import Refinement, refine
 from ._times import SamplingTimes, sampling_times
 
 __all__ = [
@@ -47,6 +49,7 @@ __all__ = [
     "Campaign",
     "DesignResult",
     "ProxyCheck",
+    "Refinement",
     "SamplingTimes",
     "agnostic",
     "candidates",
@@ -57,6 +60,7 @@ __all__ = [
     "proxy_gap_bound",
     "proxy_trajectories",
     "random",
+    "refine",
     "sampling_times",
     "true_information_gain",
     "variance_reduction",

@@ -317,6 +317,16 @@ class GPKernel:
             V2 = V1 if x2 is None else self._explained(x2)
             return K - V1.transpose(-1, -2) @ V2
 
+    def differentiable(self, x: torch.Tensor) -> torch.Tensor:
+        """The block ``k(x, x)`` ``(..., M, M)`` (conditioned like :meth:`__call__`) with autograd through ``x``, for
+        gradients of the criterion in the experiments (:func:`~torchmisspec.design.refine`); the data's factor is
+        a constant."""
+        K = self.module.forward(x, x)
+        if self.chol is None:
+            return K
+        V = self._G.T @ self.module.forward(self._Z, x)
+        return K - V.transpose(-1, -2) @ V
+
     def diag(self, x: torch.Tensor) -> torch.Tensor:
         """k(x_i, x_i) for ``x (M, d_in)``: ``(M,)`` (conditioned like the blocks)."""
         with torch.no_grad():

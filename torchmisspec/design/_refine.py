@@ -1,0 +1,162 @@
+"""Beyond a finite candidate list: the chosen initial states moved by gradients of the criterion.
+
+A greedy design picks from the candidates it is given; the best experiments may lie between them. The information
+gain f(S) = (d_out / 2) logdet(I + K(P_S, P_S) / sigma^2) is differentiable in the initial states: the proxy
+trajectories P_S come from a differentiable solve (G alone, or G + the GP's posterior mean once data are in) and the
+kernel is smooth. :func:`refine` starts from a design's points and climbs f with Adam, all K initial states at
+once, inside a box (each state is ``lo + (hi - lo) * sigmoid(z)``, so the box is never left), conditioned on the
+GP's data like :func:`~torchmisspec.design.greedy`. f is not concave in the states: the result is a local
+improvement of the greedy's set (never worse: the best iterate is kept, the start included).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import InputError
+from .._linalg import logdet_identity_plus
+from .._ode import FITTING_TOLERANCES, solve
+from .._validation import as_tensor, check_domain, check_positive_int, check_real, progress_bar
+from ..gp import CorrectionGP
+from ..systems import MisspecifiedSystem
+from ._common import GPKernel, check_system, check_times
+
+__all__ = ["Refinement", "refine"]
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Initial states moved by gradients of the criterion (:func:`refine`).
+
+    Attributes:
+        points: ``(K, d)`` the refined initial states.
+        start: ``(K, d)`` the states it started from.
+        information_gain: the criterion at ``points`` (nats, real-Gaussian convention).
+        start_gain: the criterion at ``start``.
+        history: the criterion at every step.
+    """
+
+    points: torch.Tensor
+    start: torch.Tensor
+    information_gain: float
+    start_gain: float
+    history: tuple[float, ...]
+
+
+def _objective(system, gp, kern, times, controls, proxy):
+    """``f(y0 (K, d)) -> information gain`` (a differentiable scalar)."""
+    if proxy == "corrected":
+        from ..trajectory_fit import _mean_field
+
+        rhs = _mean_field(system, gp.posterior())
+    else:
+
+        def rhs(y, t, u):
+            return system.known_rhs(y, t, u)
+
+    field, timed, jumps = system.solver_field(rhs, controls)
+    K_u = None if controls is None or not system.uses_controls else controls.at
+
+    def gain(y0: torch.Tensor) -> torch.Tensor:
+        paths, _ = solve(
+            field,
+            y0,
+            times,
+            timed=timed,
+            jumps=jumps,
+            rtol=FITTING_TOLERANCES[0],
+            atol=FITTING_TOLERANCES[1],
+            what="design.refine",
+        )
+        u = None if K_u is None else K_u(times.expand(y0.shape[0], -1)).to(paths)
+        x = kern.expand(system.select_inputs(paths, u).reshape(-1, system.input_dim))
+        logdet, _ = logdet_identity_plus(kern.differentiable(x), kern.noise, "I + K / noise_variance (design.refine)")
+        return 0.5 * kern.multiplicity(system.output_dim) * logdet
+
+    return gain
+
+
+def refine(
+    initial_states,
+    *,
+    system: MisspecifiedSystem,
+    times,
+    gp: CorrectionGP,
+    box,
+    controls=None,
+    steps: int = 60,
+    lr: float = 0.1,
+    proxy: str | None = None,
+    condition: bool | None = None,
+    progress: bool = False,
+) -> Refinement:
+    """Move ``initial_states`` within ``box`` to raise the information gain of their experiments.
+
+    Args:
+        initial_states: ``(K, d)`` the states to start from (e.g. ``design.greedy(...).points``), inside ``box``.
+        system: the misspecified system.
+        times: ``(T,)`` observation times.
+        gp: the correction GP (a prior with its hyperparameters set, or fitted: then conditioned on its data).
+        box: where the initial states may go, one ``(lo, hi)`` per state component (e.g. the candidates' range).
+        controls: for a system with inputs, the K experiments' profiles (kept fixed).
+        steps: Adam steps.
+        lr: Adam's step size in the box's logit coordinates.
+        proxy: ``"known"`` (G alone) or ``"corrected"`` (G + the GP's mean; default for a fitted GP).
+        condition: condition on the GP's training samples (default: when it is fitted), as ``greedy`` does.
+        progress: a progress bar over the steps.
+
+    Returns:
+        :class:`Refinement`: the best states met (the start included), their criterion and the history.
+    """
+    system = check_system(system, controls, with_controls=True)
+    if not isinstance(gp, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
+    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition)
+    kd = dict(dtype=kern.dtype, device=kern.device)
+    y0 = as_tensor(initial_states, "initial_states", **kd)
+    if y0.dim() != 2 or y0.shape[-1] != system.state_dim or y0.shape[0] < 1:
+        raise InputError(
+            f"initial_states: expected a (K, {system.state_dim}) tensor of initial states, got shape {tuple(y0.shape)}"
+        )
+    bounds = torch.tensor(check_domain(box, "box (one (lo, hi) per state component)", dim=system.state_dim), **kd)
+    lo, hi = bounds[:, 0], bounds[:, 1]
+    if not bool(((y0 >= lo) & (y0 <= hi)).all()):
+        raise InputError("initial_states: expected every state inside box; clamp them or widen the box")
+    t = check_times(times, **kd)
+    steps = check_positive_int(steps, "steps")
+    lr = check_real(lr, "lr", positive=True)
+    if controls is not None:
+        controls = system.check_controls(controls, y0.shape[0])
+    if proxy is None:
+        proxy = "corrected" if gp.is_fitted else "known"
+    if proxy not in ("known", "corrected") or (proxy == "corrected" and not gp.is_fitted):
+        raise InputError(f"proxy: expected 'known', or 'corrected' with a fitted gp, got {proxy!r}")
+    gain = _objective(system, gp, kern, t, controls, proxy)
+    span = (hi - lo).clamp_min(torch.finfo(y0.dtype).tiny)
+    frac = ((y0 - lo) / span).clamp(1e-6, 1 - 1e-6)
+    z = torch.logit(frac).detach().requires_grad_(True)
+    opt = torch.optim.Adam([z], lr=lr)
+    best_value, best = None, y0.detach().clone()
+    history = []
+    bar = progress_bar(progress, steps, "design.refine: climbing the criterion", "step")
+    for _ in range(steps + 1):
+        opt.zero_grad()
+        states = lo + span * torch.sigmoid(z)
+        value = gain(states)
+        history.append(float(value.detach()))
+        if best_value is None or history[-1] > best_value:
+            best_value, best = history[-1], states.detach().clone()
+        if len(history) == steps + 1:
+            break
+        (grad,) = torch.autograd.grad(-value, z)  # to the states only (the GP's hyperparameters stay untouched)
+        z.grad = grad
+        opt.step()
+        bar.update()
+    bar.close()
+    with torch.no_grad():
+        start_gain = float(gain(y0))
+    if start_gain >= best_value:  # the logit start is the start up to 1e-6 of the box: keep the exact one
+        best_value, best = start_gain, y0.detach().clone()
+    return Refinement(best, y0.detach().clone(), best_value, start_gain, tuple(history))
