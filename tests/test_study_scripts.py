@@ -133,3 +133,14 @@ def test_sampling_times_study_smoke(tmp_path):
         assert all(0 < run[arm] < float("inf") for arm in ("all", "half", "chosen"))
         assert [len(t) for t in run["chosen_times"]] == [6, 6]  # T / 2 each
     assert "chosen / all 12" in stdout
+
+
+@pytest.mark.slow
+def test_continuous_design_study_smoke(tmp_path):
+    out = tmp_path / "cd.json"
+    stdout = _script("study_continuous_design.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    for run in result["runs"]["2"]:
+        assert run["gain"]["refined"] >= run["gain"]["greedy"] > 0  # refine never returns a worse design
+        assert all(0 < e < float("inf") for e in run["error"].values())
+    assert "refined / greedy" in stdout
