@@ -503,6 +503,7 @@ def fit_correction(
                 "states are not supported yet; fix them (system.at(values)) or measure every component"
             )
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, **estimator)
+        options["refine"] = refine
         return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options)
     system0 = system
     if gp is not None and not isinstance(gp, CorrectionGP):

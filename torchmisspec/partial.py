@@ -11,7 +11,8 @@ estimated, so the correction is learned through the ODE (:func:`~torchmisspec.fi
 2. the unmeasured components are filled with the model's path (:func:`complete`), so that F's inputs are known;
 3. F is fitted through the ODE to what was measured, the initial states with it
    (:func:`~torchmisspec.fit_trajectories` with the unmeasured entries left out of the misfit), the data completed
-   again with that model, and the usual model choice made on the completed data before a last fit through the ODE.
+   again with that model, and the usual model choice made on the completed data; a refinement through the ODE
+   (``refine``, by :func:`~torchmisspec.fit_correction`'s rule) then fits the chosen model to the *measured* values.
 
 Whether the measurements can tell anything about F is structural (:func:`identifiability`): F acting on component
 j is seen by the measurements when j is measured, or when j drives a measured component through G or F (a path in
@@ -21,11 +22,12 @@ that no measured component sees cannot be learned from these data, and the fit r
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
 
-from ._errors import FittingError, InputError
+from ._errors import FittingError, InputError, TorchMisspecWarning
 from ._ode import FITTING_TOLERANCES, PREDICTION_TOLERANCES
 from ._trajectory_map import _fit_relevance
 from .data import Trajectories
@@ -33,7 +35,7 @@ from .gp import CorrectionGP
 from .gp._features import FEATURE_DEGREE
 from .observations import correction_samples
 from .systems import MisspecifiedSystem
-from .trajectory_fit import _mean_field, _shooting, _solve_rhs, _state_noise
+from .trajectory_fit import _mean_field, _shooting, _solve_rhs, _state_noise, fit_trajectories
 
 __all__ = [
     "Identifiability",
@@ -341,7 +343,24 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     first = _through_the_ode(system, data, completed, samples, noise, progress)
     y0 = first.initial_states_
     completed = complete(system, _mean_field(system, first.posterior()), trajectories, y0)
-    result = fit(completed, system, progress=progress, **options)
+    refine = options.pop("refine", None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TorchMisspecWarning)
+        result = fit(completed, system, progress=progress, refine=False, **options)
+    for w in caught:  # the estimator's advice, for data whose unmeasured components are the first model's paths
+        text = str(w.message).replace(
+            "or fit the correction through the ODE with tms.fit_trajectories",
+            "or refit with refine=True (F then matches the measured states through the ODE)",
+        )
+        warnings.warn_explicit(text, w.category, w.filename, w.lineno)
+    if refine is None:  # fit_correction's rule: the feature kernel's terms are re-learned through the ODE
+        refine = result.kernel_spec.feature_space and system.autonomous
+    if refine:  # F through the ODE on what was measured (not on the completed paths), the initial states with it
+        chosen = result
+        result = fit_trajectories(chosen, system, trajectories.with_initial_states(y0), progress=progress)
+        result.cross_validation_, result.samples_ = chosen.cross_validation_, chosen.samples_
+        result.input_names_ = chosen.input_names_
+        y0 = result.initial_states_
     result.initial_states_ = y0
     result.identifiability_ = report
     result.first_fit_ = first
