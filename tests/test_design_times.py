@@ -198,3 +198,28 @@ def test_refine_never_returns_worse_than_the_greedy_picks():
             & (result.points <= torch.tensor([4.0, 2.0], dtype=DT))
         ).all()
     )
+
+
+def test_random_and_agnostic_designs_take_input_profiles():
+    def tank(t, y, u):
+        return -0.7 * y + u
+
+    system = tms.MisspecifiedSystem(tank, 1, num_controls=1, correction_inputs=[0, 1], name="tank")
+    profiles = tms.Controls(
+        torch.tensor([0.0, 2.0], dtype=DT), torch.rand(5, 2, 1, generator=torch.Generator().manual_seed(0), dtype=DT)
+    )
+    states = torch.linspace(0.2, 1.0, 5, dtype=DT).unsqueeze(-1)
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    t = torch.linspace(0, 4, 9, dtype=DT)
+    chance = design.random(
+        states, 2, system=system, times=t, gp=gp, controls=profiles, generator=torch.Generator().manual_seed(1)
+    )
+    # its gains are the greedy's criterion of the same picks (the profiles' inputs included)
+    same = design.marginal_gains(chance.indices, states, system=system, times=t, gp=gp, controls=profiles)
+    assert torch.allclose(chance.gains, same) and math.isfinite(chance.information_gain)
+    paths = design.proxy_trajectories(system, states[chance.indices], t, controls=profiles[chance.indices.tolist()])
+    u = profiles[chance.indices.tolist()].at(t.expand(2, -1))
+    points = torch.cat([paths, u], dim=-1).reshape(-1, 2)
+    assert math.isclose(chance.information_gain, design.information_gain(points, gp, d_out=1), rel_tol=1e-9)
+    blind = design.agnostic(states, 2, system=system, times=t, gp=gp, controls=profiles)
+    assert blind.method == "agnostic-lazy" and len(blind) == 2

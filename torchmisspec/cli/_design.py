@@ -100,11 +100,8 @@ def _design(args: argparse.Namespace) -> int:
         )
     if args.controls is not None and not system.num_controls:
         raise InputError(f"--controls: system '{system.name}' has no inputs u(t); drop --controls")
-    if args.controls is not None and (args.method in ("random", "agnostic") or args.criterion != "information"):
-        raise InputError(
-            "--controls: candidate input profiles are designed by the greedy methods with the information criterion; "
-            f"got --method {args.method} --criterion {args.criterion}"
-        )
+    if args.controls is not None and args.criterion != "information":
+        raise InputError(f"--controls: candidate input profiles are designed by information; got {args.criterion}")
     times = parse_times(args.times)
     if args.samples_per_experiment is not None and not 1 <= args.samples_per_experiment <= len(times):
         raise InputError(
@@ -136,9 +133,10 @@ def _design(args: argparse.Namespace) -> int:
         system=system, times=times, gp=gp, progress=not args.quiet, partition=partition, capacities=capacities
     )
     if args.method == "random":
-        plan = design.random(candidates, args.budget, generator=torch.Generator().manual_seed(args.seed), **common)
+        seed = torch.Generator().manual_seed(args.seed)
+        plan = design.random(candidates, args.budget, generator=seed, controls=controls, **common)
     elif args.method == "agnostic":
-        plan = design.agnostic(candidates, args.budget, **common)
+        plan = design.agnostic(candidates, args.budget, controls=controls, **common)
     else:
         plan = design.greedy(
             candidates,

@@ -27,18 +27,19 @@ __all__ = ["random", "agnostic", "marginal_gains"]
 
 
 def marginal_gains(
-    indices, candidates, *, system: MisspecifiedSystem, times=None, gp: CorrectionGP, proxies=None
+    indices, candidates, *, system: MisspecifiedSystem, times=None, gp: CorrectionGP, proxies=None, controls=None
 ) -> torch.Tensor:
     """Marginal proxy information gains (nats) of the candidates ``indices`` taken in the given order.
 
     One Cholesky factorization of ``I + K / sigma^2`` over all K T proxy points of the design: the log-diagonal of
     its k-th T x T diagonal block is the gain of the k-th pick given the earlier ones. Their sum is the design's
-    :func:`information_gain`.
+    :func:`information_gain`. ``controls``: for a system with inputs, every candidate's profile (as for
+    :func:`greedy`).
 
     Returns:
         ``(K,)`` gains on the candidates' device.
     """
-    cand = check_candidates(candidates, check_system(system))
+    cand = check_candidates(candidates, check_system(system, controls, with_controls=True))
     if isinstance(indices, DesignResult):
         indices = indices.indices
     idx = torch.as_tensor(indices, dtype=torch.long).reshape(-1).cpu()
@@ -49,7 +50,10 @@ def marginal_gains(
         raise InputError(f"indices: expected indices in [0, {n - 1}], got {idx.tolist()}")
     sel_prox = None if proxies is None else torch.as_tensor(proxies)[idx]
     # budget = K distinct candidates of the sub-problem; duplicates in ``indices`` are allowed here
-    sub = _Problem(cand[idx.to(cand.device)], idx.numel(), system, times, gp, None, None, sel_prox, 1e-9)
+    picked = None if controls is None else system.check_controls(controls, n)[idx.tolist()]
+    sub = _Problem(
+        cand[idx.to(cand.device)], idx.numel(), system, times, gp, None, None, sel_prox, 1e-9, controls=picked
+    )
     K, T, d_in = sub.points.shape
     _, L = logdet_identity_plus(sub.kern(sub.points.reshape(K * T, d_in)), sub.kern.noise, "I + K / noise_variance")
     logs = torch.log(L.diagonal()).reshape(K, T).sum(-1)
@@ -84,6 +88,7 @@ def random(
     capacities=None,
     proxies=None,
     progress: bool = False,
+    controls=None,
 ) -> DesignResult:
     """A random design: ``budget`` distinct candidates drawn uniformly (respecting region capacities if given).
 
@@ -105,10 +110,11 @@ def random(
         capacities: as for :func:`greedy`.
         proxies: as for :func:`greedy`.
         progress: accepted for a signature uniform with :func:`greedy`; a random draw has nothing to show.
+        controls: as for :func:`greedy` (a candidate is an initial state and a profile); for the gains.
     """
     start = time.perf_counter()
     if system is not None:
-        cand = check_candidates(candidates, check_system(system))
+        cand = check_candidates(candidates, check_system(system, controls, with_controls=True))
     else:
         cand = check_ndim(as_tensor(candidates, "candidates"), 2, "candidates", "(N, d)")
         if cand.shape[0] < 1:
@@ -121,7 +127,7 @@ def random(
     have_all = system is not None and gp is not None and (times is not None or proxies is not None)
     prox = None
     if have_all:
-        gains = marginal_gains(idx, cand, system=system, times=times, gp=gp, proxies=proxies)
+        gains = marginal_gains(idx, cand, system=system, times=times, gp=gp, proxies=proxies, controls=controls)
         info = float(gains.sum())
         if proxies is not None:
             prox = torch.as_tensor(proxies)[idx.cpu()].to(cand.device)
@@ -158,9 +164,10 @@ def agnostic(
     Every one of the T proxy points of a candidate is the candidate itself (the trajectories of G = 0), so the
     criterion only sees where experiments start, not where the dynamics take them (paper §5.3's "agnostic"
     design). Same arguments and result as :func:`greedy` (``method`` is ``"agnostic-lazy"`` / ``"agnostic-plain"``
-    / ``"agnostic-naive"``); gains are those of the constant proxies.
+    / ``"agnostic-naive"``); gains are those of the constant proxies. With ``controls`` (a system with inputs), the
+    inputs of F are still the profiles' values at each time.
     """
-    system = check_system(system)
+    system = check_system(system, kwargs.get("controls"), with_controls=True)
     cand = check_candidates(candidates, system)
     t = check_times(times, dtype=cand.dtype, device=cand.device)
     proxies = cand.unsqueeze(1).expand(-1, t.shape[0], -1)

@@ -375,21 +375,22 @@ def pivots(kern, X: torch.Tensor, max_rank: int, tol: float, *, factor: bool = F
 
 # ---------------------------------------------------------------------------------------------------- input checks
 def check_system(system, controls=None, *, with_controls: bool = False) -> MisspecifiedSystem:
-    """The system a design runs on; one with inputs needs ``controls`` (one profile per candidate), which only
-    :func:`~torchmisspec.design.greedy` takes (``with_controls``)."""
+    """The system a design runs on; one with inputs needs ``controls`` (one profile per candidate), which the design
+    functions built for them take (``with_controls``)."""
     if not isinstance(system, MisspecifiedSystem):
         raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
     if system.num_controls and (controls is None or not with_controls):
-        where = "pass controls=... (one input profile per candidate)" if with_controls else "use design.greedy"
+        where = "pass controls=... (one input profile per candidate)"
+        if not with_controls:
+            where = "use design.greedy, random, agnostic, sampling_times or refine with controls=..."
         raise InputError(
             f"system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is then an "
-            f"initial state and an input profile: {where}. Designing input levels continuously and the sampling "
-            "times is not built yet"
+            f"initial state and an input profile: {where} (the sequential Campaign and input levels optimised "
+            "continuously are not built yet)"
         )
     if not system.autonomous and not system.num_controls:
         raise InputError(
-            f"system: '{system.name}' depends on time; the design of such systems (and of sampling times) is not "
-            "built yet"
+            f"system: '{system.name}' depends on time without inputs; designing for such systems is not built yet"
         )
     return system
 
