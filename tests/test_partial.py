@@ -235,3 +235,30 @@ def test_functions_that_need_every_component_say_what_to_do_with_partial_data():
     y0 = torch.tensor([[1.0, 0.5], [2.0, 0.1]], dtype=DT)
     refined = tms.fit_trajectories(gp, system, data.with_initial_states(y0), max_iter=2)
     assert torch.isfinite(refined.initial_states_).all()
+
+
+@pytest.mark.slow
+def test_experiments_may_measure_different_components():
+    """A chemostat: the first half of the experiments measures the biomass X, the second half the substrate S (each
+    with the other's first value); F(X) acts on dS/dt. Both are learned: the corrected model predicts both far better
+    than the known one."""
+    from torchmisspec.paper import study_partial as study
+
+    g = torch.Generator().manual_seed(5)
+    _, full, _ = study.data("chemostat", {"experiments": 8}, g)
+    states = full.states.clone()
+    states[:4, 1:, 1] = math.nan
+    states[4:, 1:, 0] = math.nan
+    observed = tms.Trajectories(full.times, states, controls=full.controls, state_names=["X", "S"])
+    assert observed.measured[:, 0].tolist() == [True] * 4 + [False] * 4
+    declared = study.system("chemostat")
+    gp = tms.fit_correction(observed, declared, progress=False)
+    assert "F's inputs X: not measured in every experiment" in gp.identifiability_.summary()
+    y0, profiles = study._starts("chemostat", 10, g)
+    t = torch.linspace(0, 12, 30, dtype=DT)
+    reference = tms.simulate(study.system("chemostat", truth=True), y0, t, controls=profiles).states
+    known = tms.simulate(declared, y0, t, controls=profiles, known_only=True).states
+    predicted = tms.CorrectedODE(declared, gp).predict(y0, t, controls=profiles)
+    for j in range(2):
+        error = float(tms.trajectory_rmse(predicted[..., j : j + 1], reference[..., j : j + 1]))
+        assert error < 0.2 * float(tms.trajectory_rmse(known[..., j : j + 1], reference[..., j : j + 1]))

@@ -83,7 +83,8 @@ class Identifiability:
                 lines.append(f"F on d{out}/dt: seen through {', '.join(seen)} ({out} is not measured)")
         if self.unmeasured_inputs:
             lines.append(
-                f"F's inputs {', '.join(self.unmeasured_inputs)} are not measured: taken from the fitted paths"
+                f"F's inputs {', '.join(self.unmeasured_inputs)}: not measured in every experiment, taken from the "
+                "fitted paths where not"
             )
         return "\n".join(lines)
 
