@@ -116,7 +116,7 @@ def test_partial_study_smoke(tmp_path):
     out = tmp_path / "pm.json"
     stdout = _script("study_partial.py", "--smoke", "--json", str(out))
     result = json.loads(out.read_text())
-    assert result["smoke"] and set(result["runs"]) == {"pk", "chemostat"}
+    assert result["smoke"] and set(result["runs"]) == {"pk"}  # the chemostat's fit: tests/test_partial.py
     for runs in result["runs"].values():
         for run in runs:
             assert all(0 < r < 1 for r in run["ratio"] + run["ratio_fully_measured"])  # better than the known model
