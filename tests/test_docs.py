@@ -62,6 +62,12 @@ def check_learn_and_predict(ns: dict) -> None:
 
 def check_design(ns: dict) -> None:
     plan, plain, constrained = ns["plan"], ns["plain"], ns["constrained"]
+    # "at most 4 per experiment ... every experiment keeps its first state ... few samples go late"
+    chosen = torch.stack(ns["when"].times)
+    assert chosen.shape == (9, 4) and bool((chosen[:, 0] == 0).all())
+    assert float((chosen > 3.0).double().mean()) < 0.25
+    # "never returns a worse design than it was given"
+    assert ns["better"].information_gain >= ns["better"].start_gain
     assert ns["candidates"].shape == (169, 2)
     assert len(plan) == 9
     # "the marginal gains in plan.gains never increase"
