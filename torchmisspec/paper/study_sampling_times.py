@@ -118,10 +118,13 @@ def table(result: dict) -> str:
         for name in ("all", "half", "chosen"):
             m, se, _, _ = _summary([r[name] for r in runs])
             cells.append(f"{m:.4f} ± {se:.4f}")
-        m, se, lo, hi = _summary([r["chosen"] / r["all"] for r in runs])
+        ratios = [r["chosen"] / r["all"] for r in runs]
+        m, se, lo, hi = _summary(ratios)
+        median = float(torch.tensor(ratios, dtype=DT).median())
         ok = "met" if m <= result["goal"] else "**not met**"
         lines.append(
-            f"| {K} | {' | '.join(cells)} | {m:.3f} ± {se:.3f} ({lo:.3f}-{hi:.3f}) | <= {result['goal']}: {ok} |"
+            f"| {K} | {' | '.join(cells)} | {m:.3f} ± {se:.3f}, median {median:.3f} ({lo:.3f}-{hi:.3f}) | "
+            f"<= {result['goal']}: {ok} |"
         )
     return "\n".join(lines) + "\n"
 
