@@ -102,7 +102,8 @@ def _summary(values, digits: int = 4) -> str:
 def _range(values) -> str:
     x = torch.tensor(values, dtype=DT)
     m, se = mean_and_standard_error(x)
-    return f"{float(m):.3f} ± {float(se):.3f}, median {float(x.median()):.3f} ({float(x.min()):.3f}-{float(x.max()):.3f})"
+    spread = f"({float(x.min()):.3f}-{float(x.max()):.3f})"
+    return f"{float(m):.3f} ± {float(se):.3f}, median {float(x.median()):.3f} {spread}"
 
 
 def table(result: dict) -> str:
