@@ -223,3 +223,29 @@ def test_random_and_agnostic_designs_take_input_profiles():
     assert math.isclose(chance.information_gain, design.information_gain(points, gp, d_out=1), rel_tol=1e-9)
     blind = design.agnostic(states, 2, system=system, times=t, gp=gp, controls=profiles)
     assert blind.method == "agnostic-lazy" and len(blind) == 2
+
+
+def test_refine_moves_input_levels_within_their_box_too():
+    """A tank whose correction depends on the inflow: the profiles' levels are refined with the initial levels,
+    inside the control box, and the criterion reported is the greedy's criterion of the refined experiments."""
+
+    def tank(t, y, u):
+        return -0.7 * y + u
+
+    system = tms.MisspecifiedSystem(tank, 1, num_controls=1, correction_inputs=[0, 1], name="tank")
+    profiles = tms.Controls(torch.tensor([0.0, 2.0], dtype=DT), torch.full((2, 2, 1), 0.5, dtype=DT))
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    t = torch.linspace(0, 4, 9, dtype=DT)
+    y0 = torch.tensor([[0.5], [0.6]], dtype=DT)
+    kept = design.refine(y0, system=system, times=t, gp=gp, box=[(0.0, 2.0)], controls=profiles, steps=15)
+    moved = design.refine(
+        y0, system=system, times=t, gp=gp, box=[(0.0, 2.0)], controls=profiles, control_box=[(0.0, 2.0)], steps=15
+    )
+    assert torch.equal(kept.controls.values, profiles.values)
+    assert moved.information_gain > kept.information_gain  # the levels were all 0.5: spreading them informs F(y, u)
+    levels = moved.controls.values
+    assert bool(((levels >= 0) & (levels <= 2)).all()) and float((levels - 0.5).abs().max()) > 0.1
+    again = design.marginal_gains([0, 1], moved.points, system=system, times=t, gp=gp, controls=moved.controls)
+    assert math.isclose(float(again.sum()), moved.information_gain, rel_tol=1e-4)
+    with pytest.raises(tms.InputError, match=r"expected every level inside control_box"):
+        design.refine(y0, system=system, times=t, gp=gp, box=[(0.0, 2.0)], controls=profiles, control_box=[(1.0, 2.0)])

@@ -385,8 +385,8 @@ def check_system(system, controls=None, *, with_controls: bool = False) -> Missp
             where = "use design.greedy, random, agnostic, sampling_times or refine with controls=..."
         raise InputError(
             f"system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is then an "
-            f"initial state and an input profile: {where} (the sequential Campaign and input levels optimised "
-            "continuously are not built yet)"
+            f"initial state and an input profile: {where} (the sequential Campaign with input profiles is not built "
+            "yet)"
         )
     if not system.autonomous and not system.num_controls:
         raise InputError(

@@ -4,9 +4,10 @@ A greedy design picks from the candidates it is given; the best experiments may 
 gain f(S) = (d_out / 2) logdet(I + K(P_S, P_S) / sigma^2) is differentiable in the initial states: the proxy
 trajectories P_S come from a differentiable solve (G alone, or G + the GP's posterior mean once data are in) and the
 kernel is smooth. :func:`refine` starts from a design's points and climbs f with Adam, all K initial states at
-once, inside a box (each state is ``lo + (hi - lo) * sigmoid(z)``, so the box is never left), conditioned on the
-GP's data like :func:`~torchmisspec.design.greedy`. f is not concave in the states: the result is a local
-improvement of the greedy's set (never worse: the best iterate is kept, the start included).
+once (and, with ``control_box``, the levels of their input profiles), inside a box (each state is
+``lo + (hi - lo) * sigmoid(z)``, so the box is never left), conditioned on the GP's data like
+:func:`~torchmisspec.design.greedy`. f is not concave in the states: the result is a local improvement of the
+greedy's set (never worse: the best iterate is kept, the start included).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from .._linalg import logdet_identity_plus
 from .._ode import FITTING_TOLERANCES, solve
 from .._validation import as_tensor, check_domain, check_positive_int, check_real, progress_bar
 from ..gp import CorrectionGP
+from ..signals import Controls
 from ..systems import MisspecifiedSystem
 from ._common import GPKernel, check_system, check_times
 
@@ -36,6 +38,8 @@ class Refinement:
         information_gain: the criterion at ``points`` (nats, real-Gaussian convention).
         start_gain: the criterion at ``start``.
         history: the criterion at every step.
+        controls: with ``control_box``, the refined input profiles (the same knots, new levels); else the ones
+            given (or ``None``).
     """
 
     points: torch.Tensor
@@ -43,10 +47,12 @@ class Refinement:
     information_gain: float
     start_gain: float
     history: tuple[float, ...]
+    controls: object = None
 
 
-def _objective(system, gp, kern, times, controls, proxy):
-    """``f(y0 (K, d)) -> information gain`` (a differentiable scalar)."""
+def _objective(system, gp, kern, times, proxy):
+    """``f(y0 (K, d), controls) -> information gain`` (a differentiable scalar, in the states and the profiles'
+    levels)."""
     if proxy == "corrected":
         from ..trajectory_fit import _mean_field
 
@@ -56,10 +62,8 @@ def _objective(system, gp, kern, times, controls, proxy):
         def rhs(y, t, u):
             return system.known_rhs(y, t, u)
 
-    field, timed, jumps = system.solver_field(rhs, controls)
-    K_u = None if controls is None or not system.uses_controls else controls.at
-
-    def gain(y0: torch.Tensor) -> torch.Tensor:
+    def gain(y0: torch.Tensor, controls=None) -> torch.Tensor:
+        field, timed, jumps = system.solver_field(rhs, controls)
         paths, _ = solve(
             field,
             y0,
@@ -70,7 +74,7 @@ def _objective(system, gp, kern, times, controls, proxy):
             atol=FITTING_TOLERANCES[1],
             what="design.refine",
         )
-        u = None if K_u is None else K_u(times.expand(y0.shape[0], -1)).to(paths)
+        u = None if controls is None or not system.uses_controls else controls.at(times.expand(y0.shape[0], -1))
         x = kern.expand(system.select_inputs(paths, u).reshape(-1, system.input_dim))
         logdet, _ = logdet_identity_plus(kern.differentiable(x), kern.noise, "I + K / noise_variance (design.refine)")
         return 0.5 * kern.multiplicity(system.output_dim) * logdet
@@ -86,6 +90,7 @@ def refine(
     gp: CorrectionGP,
     box,
     controls=None,
+    control_box=None,
     steps: int = 60,
     lr: float = 0.1,
     proxy: str | None = None,
@@ -100,7 +105,9 @@ def refine(
         times: ``(T,)`` observation times.
         gp: the correction GP (a prior with its hyperparameters set, or fitted: then conditioned on its data).
         box: where the initial states may go, one ``(lo, hi)`` per state component (e.g. the candidates' range).
-        controls: for a system with inputs, the K experiments' profiles (kept fixed).
+        controls: for a system with inputs, the K experiments' profiles (kept fixed unless ``control_box``).
+        control_box: one ``(lo, hi)`` per input: the profiles' levels (their sampled values, at the same knots) are
+            refined too, within these bounds; needs sample-based ``controls`` (not a function).
         steps: Adam steps.
         lr: Adam's step size in the box's logit coordinates.
         proxy: ``"known"`` (G alone) or ``"corrected"`` (G + the GP's mean; default for a fitted GP).
@@ -129,34 +136,58 @@ def refine(
     lr = check_real(lr, "lr", positive=True)
     if controls is not None:
         controls = system.check_controls(controls, y0.shape[0])
+    levels = None
+    if control_box is not None:
+        if controls is None or getattr(controls, "_function", None) is not None:
+            raise InputError(
+                "control_box: refining input levels needs controls given as samples (Controls(knots, values))"
+            )
+        cb = torch.tensor(
+            check_domain(control_box, "control_box (one (lo, hi) per input)", dim=system.num_controls), **kd
+        )
+        values = controls.values.to(**kd)
+        if not bool(((values >= cb[:, 0]) & (values <= cb[:, 1])).all()):
+            raise InputError("controls: expected every level inside control_box; clamp them or widen the box")
+        c_span = (cb[:, 1] - cb[:, 0]).clamp_min(torch.finfo(values.dtype).tiny)
+        levels = torch.logit(((values - cb[:, 0]) / c_span).clamp(1e-6, 1 - 1e-6)).detach().requires_grad_(True)
+
+        def profiles(w: torch.Tensor):
+            return Controls(
+                controls.knots, cb[:, 0] + c_span * torch.sigmoid(w), kind=controls.kind, names=controls.names
+            )
+
     if proxy is None:
         proxy = "corrected" if gp.is_fitted else "known"
     if proxy not in ("known", "corrected") or (proxy == "corrected" and not gp.is_fitted):
         raise InputError(f"proxy: expected 'known', or 'corrected' with a fitted gp, got {proxy!r}")
-    gain = _objective(system, gp, kern, t, controls, proxy)
+    gain = _objective(system, gp, kern, t, proxy)
     span = (hi - lo).clamp_min(torch.finfo(y0.dtype).tiny)
     frac = ((y0 - lo) / span).clamp(1e-6, 1 - 1e-6)
     z = torch.logit(frac).detach().requires_grad_(True)
-    opt = torch.optim.Adam([z], lr=lr)
-    best_value, best = None, y0.detach().clone()
+    params = [z] if levels is None else [z, levels]
+    opt = torch.optim.Adam(params, lr=lr)
+    best_value, best, best_controls = None, y0.detach().clone(), controls
     history = []
     bar = progress_bar(progress, steps, "design.refine: climbing the criterion", "step")
     for _ in range(steps + 1):
         opt.zero_grad()
         states = lo + span * torch.sigmoid(z)
-        value = gain(states)
+        current = controls if levels is None else profiles(levels)
+        value = gain(states, current)
         history.append(float(value.detach()))
         if best_value is None or history[-1] > best_value:
             best_value, best = history[-1], states.detach().clone()
+            best_controls = current if levels is None else profiles(levels.detach())
         if len(history) == steps + 1:
             break
-        (grad,) = torch.autograd.grad(-value, z)  # to the states only (the GP's hyperparameters stay untouched)
-        z.grad = grad
+        grads = torch.autograd.grad(-value, params)  # to the experiments only (the GP's hyperparameters stay put)
+        for p, g in zip(params, grads, strict=True):
+            p.grad = g
         opt.step()
         bar.update()
     bar.close()
     with torch.no_grad():
-        start_gain = float(gain(y0))
+        start_gain = float(gain(y0, controls))
     if start_gain >= best_value:  # the logit start is the start up to 1e-6 of the box: keep the exact one
-        best_value, best = start_gain, y0.detach().clone()
-    return Refinement(best, y0.detach().clone(), best_value, start_gain, tuple(history))
+        best_value, best, best_controls = start_gain, y0.detach().clone(), controls
+    return Refinement(best, y0.detach().clone(), best_value, start_gain, tuple(history), best_controls)
