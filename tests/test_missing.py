@@ -104,7 +104,7 @@ def test_a_component_an_experiment_does_not_measure_is_partial_data():
     y[1, :, 2] = math.nan  # never observed in experiment 1
     y[0, 1:, 1] = math.nan  # observed once (its first value): not measured either
     traj = tms.Trajectories(torch.arange(5.0), y, state_names=["a", "b", "c"])
-    assert traj.is_partial
+    assert traj.is_partial and "not measured: b in 1 of 2; c in 1 of 2" in repr(traj)
     assert traj.measured.tolist() == [[True, False, True], [True, True, False]]
     filled = traj.filled()
     assert torch.isnan(filled.states[1, :, 2]).all()  # nothing to fill from: stays missing

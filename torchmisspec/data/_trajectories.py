@@ -287,6 +287,7 @@ class Trajectories:
                     torch.stack([self.states[k] for k in idx]),
                     state_names=self.state_names,
                     controls=None if self.controls is None else self.controls[idx],
+                    initial_states=None if self.initial_states is None else self.initial_states[idx],
                 ),
             )
             for _, idx in sorted(groups.items())
@@ -358,6 +359,11 @@ class Trajectories:
         names = "" if self.state_names == _default_names(self.state_dim) else f" ({', '.join(self.state_names)})"
         missing = self.num_missing
         gaps = f", {missing} missing entr{'y' if missing == 1 else 'ies'}" if missing else ""
+        if missing:  # partial measurements: say which components some experiment does not measure
+            absent = (~self.measured).sum(0).tolist()
+            K = self.num_experiments
+            parts = [f"{n} in {a} of {K}" for n, a in zip(self.state_names, absent, strict=True) if a]
+            gaps += f", not measured: {'; '.join(parts)}" if parts else ""
         controls = "" if self.controls is None else f", controls {', '.join(self.controls.names)}"
         return (
             f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
