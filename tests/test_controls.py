@@ -163,9 +163,11 @@ def test_systems_without_controls_refuse_them_and_the_design_says_what_is_not_bu
         tms.design.greedy(torch.ones(3, 1, dtype=DT), 1, system=system, times=torch.linspace(0, 1, 3), gp=None)
     with pytest.raises(tms.InputError, match=r"pass controls=\.\.\. \(one input profile per candidate\)"):
         tms.design.random(torch.ones(3, 1, dtype=DT), 1, system=system, times=torch.linspace(0, 1, 3), gp=None)
-    later = r"use design.greedy, random, .*the sequential Campaign with input profiles is not built yet"
-    with pytest.raises(tms.InputError, match=later):
+    with pytest.raises(tms.InputError, match=r"pass controls=\.\.\. \(one input profile per candidate\)"):
         tms.design.Campaign(system, torch.ones(3, 1, dtype=DT), torch.linspace(0, 1, 3, dtype=DT), None)
+    others = r"use design.greedy, random, agnostic, sampling_times, refine or Campaign"
+    with pytest.raises(tms.InputError, match=others):
+        tms.design.proxy_check([0], torch.ones(3, 1, dtype=DT), system=system, times=torch.linspace(0, 1, 3), gp=None)
     with pytest.raises(tms.InputError, match=r"correction_inputs: expected state or control names"):
         tms.MisspecifiedSystem(lambda t, y, u: y, 1, num_controls=1, correction_inputs=["flow"])
 

@@ -249,3 +249,40 @@ def test_refine_moves_input_levels_within_their_box_too():
     assert math.isclose(float(again.sum()), moved.information_gain, rel_tol=1e-4)
     with pytest.raises(tms.InputError, match=r"expected every level inside control_box"):
         design.refine(y0, system=system, times=t, gp=gp, box=[(0.0, 2.0)], controls=profiles, control_box=[(1.0, 2.0)])
+
+
+def test_a_campaign_asks_for_states_with_profiles_and_resumes(tmp_path):
+    """The sequential loop on a tank with an inflow: ask returns states and profiles, tell matches each told
+    experiment by its first state and its profile (every candidate starts at the same level), save/load keeps the
+    profiles."""
+
+    def tank(t, y, u):
+        return -0.7 * y + u
+
+    truth = tms.MisspecifiedSystem(
+        tank,
+        1,
+        num_controls=1,
+        correction=lambda x: -0.5 * x[..., 1:] * x[..., :1] / (1 + x[..., :1]),
+        correction_inputs=[0, 1],
+        name="tank",
+    )
+    system = tms.MisspecifiedSystem(tank, 1, num_controls=1, correction_inputs=[0, 1], name="tank")
+    g = torch.Generator().manual_seed(0)
+    states = torch.full((6, 1), 0.5, dtype=DT)  # one initial level: the candidates differ by their profiles only
+    profiles = tms.Controls(torch.tensor([0.0, 2.0], dtype=DT), 2 * torch.rand(6, 2, 1, generator=g, dtype=DT))
+    prior = tms.CorrectionGP(lengthscale=0.7, outputscale=0.1, noise_variance=1e-4)
+    t = torch.linspace(0, 4, 21, dtype=DT)
+    campaign = design.Campaign(system, states, t, prior, controls=profiles)
+    y0, u = campaign.ask(2)
+    assert y0.shape == (2, 1) and u.num_experiments == 2
+    picks = campaign.pending
+    told = tms.simulate(truth, y0.flip(0), t, controls=u[[1, 0]])  # told in the other order
+    campaign.tell(told)
+    assert campaign.measured == picks[::-1] and campaign.pending == []
+    path = campaign.save(tmp_path / "c.pt")
+    again = design.Campaign.load(path, system)
+    assert torch.equal(again.controls.values, campaign.controls.values)
+    assert torch.equal(again.ask(1)[0], campaign.ask(1)[0])  # the same next design after a resume
+    with pytest.raises(tms.InputError, match=r"tell the measured trajectories with the profiles"):
+        again.tell(tms.Trajectories(t, told.states))

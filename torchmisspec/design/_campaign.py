@@ -6,6 +6,10 @@ collected, and with data the proxies are the corrected model's trajectories by d
 turns measured trajectories into correction samples and refits the GP (hyperparameters by marginal likelihood once
 the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every round; ``save`` /
 ``load`` write and read the whole campaign (tensors and plain values only, never code).
+
+For a system with inputs u(t), a candidate experiment is an initial state *and* an input profile: the campaign takes
+``controls`` (one profile per candidate), ``ask`` returns the states with their profiles, and ``tell`` matches each
+told experiment to a pending ask by its first state and its profile.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from ..data import Trajectories
 from ..gp import CorrectionGP, _persistence
 from ..metrics import correction_error
 from ..observations import correction_samples
+from ..signals import Controls
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
@@ -35,6 +40,27 @@ MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to 
 # a measured first state (noisy) matches the nearest pending ask within this fraction of the candidates' range per
 # coordinate, when no pending ask matches exactly and every other pending ask is at least twice as far
 NEAR_TOL = 0.1
+
+
+def _controls_blob(controls: Controls) -> dict:
+    """The profiles as plain tensors and strings (what :meth:`Campaign.save` writes)."""
+    lengths = controls.lengths.tolist()
+    return {
+        "knots": [controls.knots[k, :n].cpu() for k, n in enumerate(lengths)],
+        "values": [controls.values[k, :n].cpu() for k, n in enumerate(lengths)],
+        "kind": controls.kind,
+        "names": list(controls.names),
+    }
+
+
+def _controls_from(blob, path) -> Controls | None:
+    """The profiles :func:`_controls_blob` wrote (``None`` for a campaign without inputs)."""
+    if blob is None:
+        return None
+    try:
+        return Controls(list(blob["knots"]), list(blob["values"]), kind=blob["kind"], names=blob["names"])
+    except (KeyError, TypeError, TorchMisspecError) as exc:
+        raise InputError(f"{path}: field 'controls' is damaged ({type(exc).__name__}: {exc})") from exc
 
 
 def _hyperparameters(gp: CorrectionGP) -> dict:
@@ -99,8 +125,9 @@ class Campaign:
         refit_after: int | None = None,
         pilot: int = 0,
         seed: int = 0,
+        controls=None,
     ) -> None:
-        self.system = check_system(system)
+        self.system = check_system(system, controls, with_controls=True)
         if system.parameters is not None:
             raise InputError(
                 f"system: '{system.name}' has uncertain parameters {list(system.parameters.names)}, and a Campaign "
@@ -115,6 +142,16 @@ class Campaign:
             raise InputError(f"proxy: expected one of {PROXIES} or None, got {proxy!r}")
         self.candidates = check_candidates(candidates, self.system, dtype=gp.dtype, device=gp.device)
         self.times = check_times(times, dtype=gp.dtype, device=gp.device)
+        #: the candidates' input profiles (a system with inputs), or None
+        self.controls = None
+        if controls is not None:
+            if getattr(controls, "_function", None) is not None:
+                raise InputError(
+                    "controls: a Campaign saves its candidates' profiles: give them as samples, not a function"
+                )
+            self.controls = self.system.check_controls(controls, self.candidates.shape[0]).to(
+                dtype=gp.dtype, device=gp.device
+            )
         self.prior = gp  # fitted: its hyperparameters and its samples are where the campaign starts
         if domain is not None:
             domain = check_domain(domain, "domain (one (lo, hi) per correction input)", dim=self.system.input_dim)
@@ -172,8 +209,9 @@ class Campaign:
         )
 
     # --------------------------------------------------------------------------------------------- ask
-    def ask(self, k: int = 1) -> torch.Tensor:
-        """The next ``k`` initial conditions ``(k, d)``, designed greedily given everything measured so far.
+    def ask(self, k: int = 1):
+        """The next ``k`` initial conditions ``(k, d)``, designed greedily given everything measured so far; for a
+        campaign with ``controls``, ``(states (k, d), their profiles)``: run each experiment under its profile.
 
         While fewer than ``pilot`` experiments were asked for, the batch (or its first part) is drawn at random.
         The picks are recorded in ``history`` and stay pending until told.
@@ -205,6 +243,8 @@ class Campaign:
                 "seconds": time.perf_counter() - start,
             }
         )
+        if self.controls is not None:
+            return self.candidates[picks].clone(), self.controls[picks]
         return self.candidates[picks].clone()
 
     def _design(self, k: int, n_pilot: int, remaining: torch.Tensor) -> tuple[list[int], list, dict]:
@@ -234,6 +274,7 @@ class Campaign:
                 gp=self.gp,
                 criterion=self.config["criterion"],
                 proxy=proxy,
+                controls=None if self.controls is None else self.controls[pool.tolist()],
                 **domain,
             )
             picks += pool[plan.indices.cpu()].tolist()
@@ -243,8 +284,16 @@ class Campaign:
         return picks, gains, info
 
     # --------------------------------------------------------------------------------------------- tell
-    def _match(self, y0: torch.Tensor, pending: list[int]) -> int:
-        """The first of ``pending`` (candidate indices) whose initial condition is ``y0`` (-1: none)."""
+    def _match(self, y0: torch.Tensor, pending: list[int], profile=None) -> int:
+        """The first of ``pending`` (candidate indices) whose initial condition is ``y0`` (-1: none); with a campaign's
+        ``controls``, only the pending asks whose profile is ``profile`` (equal at the observation times)."""
+        if self.controls is not None:
+            told = profile.at(self.times.unsqueeze(0)).to(self.candidates)
+            pending = [
+                p
+                for p in pending
+                if torch.allclose(self.controls[[p]].at(self.times.unsqueeze(0)), told, rtol=1e-9, atol=1e-12)
+            ]
         if not pending:
             return -1
         pend = self.candidates[pending]
@@ -303,10 +352,15 @@ class Campaign:
         traj = trajectories.to(dtype=self.candidates.dtype, device=self.candidates.device)
         start = time.perf_counter()
         y0 = traj.initial_conditions
+        if self.controls is not None and traj.controls is None:
+            raise InputError(
+                "trajectories: this campaign's experiments have input profiles; tell the measured trajectories with "
+                "the profiles they ran under (Trajectories(..., controls=...))"
+            )
         matched, pending = [], list(self.pending)
         if asked is None:
-            for row in y0:
-                idx = self._match(row, pending)
+            for k, row in enumerate(y0):
+                idx = self._match(row, pending, None if self.controls is None else traj.controls[[k]])
                 if idx >= 0:
                     pending.remove(idx)  # duplicates of a candidate match one pending ask each
                 matched.append(idx)
@@ -385,6 +439,7 @@ class Campaign:
             "config": dict(self.config),
             "candidates": self.candidates.cpu(),
             "times": self.times.cpu(),
+            "controls": None if self.controls is None else _controls_blob(self.controls),
             "prior": _persistence.config_of(self.prior),
             "prior_model": _persistence.to_blob(self.prior) if self.prior.is_fitted else None,
             "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
@@ -408,7 +463,8 @@ class Campaign:
         and dimension). A file that is not a campaign, or is damaged, raises an InputError naming what is wrong."""
         path = Path(path)
         blob = _persistence.read_safely(path, "Campaign", "Campaign.save")
-        system = check_system(system)
+        if not isinstance(system, MisspecifiedSystem):
+            raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
 
         def field(key, kind):
             return _persistence._field(blob, key, kind, path, "Campaign")
@@ -438,6 +494,7 @@ class Campaign:
                 refit_after=cfg["refit_after"],
                 pilot=cfg["pilot"],
                 seed=cfg["seed"],
+                controls=_controls_from(blob.get("controls"), path),
             )
         except (KeyError, TypeError) as exc:
             raise InputError(f"{path}: field 'config' is damaged ({type(exc).__name__}: {exc})") from exc

@@ -382,11 +382,10 @@ def check_system(system, controls=None, *, with_controls: bool = False) -> Missp
     if system.num_controls and (controls is None or not with_controls):
         where = "pass controls=... (one input profile per candidate)"
         if not with_controls:
-            where = "use design.greedy, random, agnostic, sampling_times or refine with controls=..."
+            where = "use design.greedy, random, agnostic, sampling_times, refine or Campaign with controls=..."
         raise InputError(
             f"system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is then an "
-            f"initial state and an input profile: {where} (the sequential Campaign with input profiles is not built "
-            "yet)"
+            f"initial state and an input profile: {where}"
         )
     if not system.autonomous and not system.num_controls:
         raise InputError(
