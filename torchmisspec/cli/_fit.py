@@ -61,8 +61,10 @@ def _fit(args: argparse.Namespace) -> int:
         f"experiments x {times} times, derivative {args.derivative!r}): {gp!r}"
     )
     if cv is not None:
+        # partly measured data: the held-out errors compare with the data completed by the first fitted model
+        where = "" if getattr(gp, "identifiability_", None) is None else " (on the data completed through the ODE)"
         print(
-            f"cross-validation ({cv.folds} folds): chose {cv.best}; held-out error {min(cv.scores):.4g} against "
+            f"cross-validation ({cv.folds} folds){where}: chose {cv.best}; held-out error {min(cv.scores):.4g} against "
             f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
         )
     report = getattr(gp, "identifiability_", None)
