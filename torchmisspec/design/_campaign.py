@@ -30,7 +30,8 @@ from ..signals import Controls
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
-from ._greedy import PROXIES, greedy
+from ._greedy import greedy
+from ._proxy import PROXIES
 
 __all__ = ["Campaign"]
 

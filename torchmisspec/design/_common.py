@@ -394,18 +394,21 @@ def check_system(system, controls=None, *, with_controls: bool = False) -> Missp
     return system
 
 
-def check_candidates(candidates, system: MisspecifiedSystem, *, dtype=None, device=None) -> torch.Tensor:
-    """Candidates ``(N, d)``: 2-D, d = state_dim, finite, at least one row."""
-    c = as_tensor(candidates, "candidates", dtype=dtype, device=device)
-    check_ndim(c, 2, "candidates", f"(N, {system.state_dim})")
+def check_candidates(
+    candidates, system: MisspecifiedSystem, *, dtype=None, device=None, name: str = "candidates"
+) -> torch.Tensor:
+    """Candidates (or other initial states, named ``name``) ``(N, d)``: 2-D, d = state_dim, finite, at least one
+    row."""
+    c = as_tensor(candidates, name, dtype=dtype, device=device)
+    check_ndim(c, 2, name, f"(N, {system.state_dim})")
     if c.shape[1] != system.state_dim:
         raise ShapeError(
-            f"candidates: expected shape (N, {system.state_dim}) (state_dim of system "
-            f"'{system.name}'), got {tuple(c.shape)}"
+            f"{name}: expected shape (N, {system.state_dim}) (state_dim of system '{system.name}'), got "
+            f"{tuple(c.shape)}"
         )
     if c.shape[0] < 1:
-        raise ShapeError("candidates: expected at least one candidate, got shape (0, d)")
-    check_finite(c, "candidates")
+        raise ShapeError(f"{name}: expected at least one row, got shape (0, d)")
+    check_finite(c, name)
     return c
 
 

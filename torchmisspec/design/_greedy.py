@@ -58,12 +58,11 @@ from ._common import (
     pivots,
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
-from ._proxy import corrected_proxies, proxy_trajectories
+from ._proxy import choose_proxy, proxy_paths
 
 __all__ = ["greedy"]
 
 METHODS = ("lazy", "plain", "naive")
-PROXIES = ("known", "corrected")  # the proxy trajectories: G alone (the paper's), or G + the GP's posterior mean
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank)
 SLACK_NATS = 1e-4  # target slack of the feature bounds at the last pick (sets the pivot tolerance)
@@ -112,12 +111,7 @@ class _Problem:
         self.budget = check_budget(budget, n)
         self.partition = check_partition(partition, capacities, n, self.budget, self.kern.device)
         kd = {"dtype": self.kern.dtype, "device": self.kern.device}
-        if proxy is None:
-            proxy = "corrected" if gp.is_fitted else "known"
-        if proxy not in PROXIES:
-            raise InputError(f"proxy: expected one of {PROXIES}, got {proxy!r}")
-        if proxy == "corrected" and not gp.is_fitted:
-            raise InputError("proxy='corrected': an unfitted gp has no correction to add to G; fit it or pass 'known'")
+        proxy = choose_proxy(proxy, gp)
         self.proxy = proxy if proxies is None else "given"
         if proxies is None:
             if times is None:
@@ -126,11 +120,7 @@ class _Problem:
                     "None (pass times=..., or proxies=(N, T, d))"
                 )
             self.times = check_times(times, **kd)
-            y0 = self.candidates.to(**kd)
-            if proxy == "known":
-                self.proxies = proxy_trajectories(self.system, y0, self.times, controls=controls)
-            else:  # G + the posterior mean of F: closer to the truth than G alone once data are in
-                self.proxies = corrected_proxies(self.system, gp, y0, self.times, controls)
+            self.proxies = proxy_paths(proxy, self.system, gp, self.candidates.to(**kd), self.times, controls)
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)

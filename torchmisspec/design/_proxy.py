@@ -116,3 +116,26 @@ def proxy_trajectories(
         atol=atol,
         max_steps=max_steps,
     ).states
+
+
+#: The proxy trajectories a design may use: G alone (the paper's), or G + the GP's posterior mean.
+PROXIES = ("known", "corrected")
+
+
+def choose_proxy(proxy: str | None, gp) -> str:
+    """``proxy`` checked, or the default: ``"corrected"`` for a fitted GP (closer to the truth once data are in),
+    ``"known"`` otherwise."""
+    if proxy is None:
+        return "corrected" if gp.is_fitted else "known"
+    if proxy not in PROXIES:
+        raise InputError(f"proxy: expected one of {PROXIES}, got {proxy!r}")
+    if proxy == "corrected" and not gp.is_fitted:
+        raise InputError("proxy='corrected': an unfitted gp has no correction to add to G; fit it or pass 'known'")
+    return proxy
+
+
+def proxy_paths(proxy: str, system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor, controls=None):
+    """The ``proxy`` trajectories (:func:`choose_proxy`) from ``y0 (N, d)``: ``(N, T, d)``."""
+    if proxy == "known":
+        return proxy_trajectories(system, y0, times, controls=controls)
+    return corrected_proxies(system, gp, y0, times, controls)

@@ -19,11 +19,12 @@ import torch
 from .._errors import InputError
 from .._linalg import logdet_identity_plus
 from .._ode import FITTING_TOLERANCES, solve
-from .._validation import as_tensor, check_domain, check_positive_int, check_real, progress_bar
+from .._validation import check_domain, check_positive_int, check_real, progress_bar
 from ..gp import CorrectionGP
 from ..signals import Controls
 from ..systems import MisspecifiedSystem
-from ._common import GPKernel, check_system, check_times
+from ._common import GPKernel, check_candidates, check_system, check_times
+from ._proxy import choose_proxy
 
 __all__ = ["Refinement", "refine"]
 
@@ -48,6 +49,17 @@ class Refinement:
     start_gain: float
     history: tuple[float, ...]
     controls: object = None
+
+
+def _box(spec, name: str, dim: int, kd: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lo, hi - lo)`` of a box given as one ``(lo, hi)`` per coordinate."""
+    bounds = torch.tensor(check_domain(spec, name, dim=dim), **kd)
+    return bounds[:, 0], (bounds[:, 1] - bounds[:, 0]).clamp_min(torch.finfo(bounds.dtype).tiny)
+
+
+def _logits(x: torch.Tensor, lo: torch.Tensor, span: torch.Tensor) -> torch.Tensor:
+    """The unconstrained coordinates z of ``x = lo + span * sigmoid(z)`` (1e-6 inside the box's faces)."""
+    return torch.logit(((x - lo) / span).clamp(1e-6, 1 - 1e-6)).detach()
 
 
 def _objective(system, gp, kern, times, proxy):
@@ -122,48 +134,32 @@ def refine(
         raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
     kern = GPKernel(gp, input_dim=system.input_dim, condition=condition)
     kd = dict(dtype=kern.dtype, device=kern.device)
-    y0 = as_tensor(initial_states, "initial_states", **kd)
-    if y0.dim() != 2 or y0.shape[-1] != system.state_dim or y0.shape[0] < 1:
-        raise InputError(
-            f"initial_states: expected a (K, {system.state_dim}) tensor of initial states, got shape {tuple(y0.shape)}"
-        )
-    bounds = torch.tensor(check_domain(box, "box (one (lo, hi) per state component)", dim=system.state_dim), **kd)
-    lo, hi = bounds[:, 0], bounds[:, 1]
-    if not bool(((y0 >= lo) & (y0 <= hi)).all()):
+    y0 = check_candidates(initial_states, system, name="initial_states", **kd)
+    lo, span = _box(box, "box (one (lo, hi) per state component)", system.state_dim, kd)
+    if not bool(((y0 >= lo) & (y0 <= lo + span)).all()):
         raise InputError("initial_states: expected every state inside box; clamp them or widen the box")
     t = check_times(times, **kd)
     steps = check_positive_int(steps, "steps")
     lr = check_real(lr, "lr", positive=True)
-    if controls is not None:
-        controls = system.check_controls(controls, y0.shape[0])
+    controls = system.check_controls(controls, y0.shape[0])
     levels = None
     if control_box is not None:
         if controls is None or getattr(controls, "_function", None) is not None:
             raise InputError(
                 "control_box: refining input levels needs controls given as samples (Controls(knots, values))"
             )
-        cb = torch.tensor(
-            check_domain(control_box, "control_box (one (lo, hi) per input)", dim=system.num_controls), **kd
-        )
+        c_lo, c_span = _box(control_box, "control_box (one (lo, hi) per input)", system.num_controls, kd)
         values = controls.values.to(**kd)
-        if not bool(((values >= cb[:, 0]) & (values <= cb[:, 1])).all()):
+        if not bool(((values >= c_lo) & (values <= c_lo + c_span)).all()):
             raise InputError("controls: expected every level inside control_box; clamp them or widen the box")
-        c_span = (cb[:, 1] - cb[:, 0]).clamp_min(torch.finfo(values.dtype).tiny)
-        levels = torch.logit(((values - cb[:, 0]) / c_span).clamp(1e-6, 1 - 1e-6)).detach().requires_grad_(True)
+        levels = _logits(values, c_lo, c_span).requires_grad_(True)
 
         def profiles(w: torch.Tensor):
-            return Controls(
-                controls.knots, cb[:, 0] + c_span * torch.sigmoid(w), kind=controls.kind, names=controls.names
-            )
+            return Controls(controls.knots, c_lo + c_span * torch.sigmoid(w), kind=controls.kind, names=controls.names)
 
-    if proxy is None:
-        proxy = "corrected" if gp.is_fitted else "known"
-    if proxy not in ("known", "corrected") or (proxy == "corrected" and not gp.is_fitted):
-        raise InputError(f"proxy: expected 'known', or 'corrected' with a fitted gp, got {proxy!r}")
+    proxy = choose_proxy(proxy, gp)
     gain = _objective(system, gp, kern, t, proxy)
-    span = (hi - lo).clamp_min(torch.finfo(y0.dtype).tiny)
-    frac = ((y0 - lo) / span).clamp(1e-6, 1 - 1e-6)
-    z = torch.logit(frac).detach().requires_grad_(True)
+    z = _logits(y0, lo, span).requires_grad_(True)
     params = [z] if levels is None else [z, levels]
     opt = torch.optim.Adam(params, lr=lr)
     best_value, best, best_controls = None, y0.detach().clone(), controls

@@ -16,12 +16,12 @@ from dataclasses import dataclass
 import torch
 
 from .._errors import InputError
-from .._validation import as_tensor, check_positive_int
+from .._validation import check_positive_int
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
-from ._common import DesignResult, check_system
+from ._common import DesignResult, check_candidates, check_system, check_times
 from ._greedy import greedy
-from ._proxy import corrected_proxies, proxy_trajectories
+from ._proxy import choose_proxy, proxy_paths
 
 __all__ = ["SamplingTimes", "sampling_times"]
 
@@ -90,30 +90,16 @@ def sampling_times(
         if key in options:
             raise InputError(f"{key}: set by sampling_times itself (one region of candidate times per experiment)")
     kd = dict(dtype=gp.dtype, device=gp.device)
-    y0 = as_tensor(initial_states, "initial_states", **kd)
-    if y0.dim() != 2 or y0.shape[-1] != system.state_dim or y0.shape[0] < 1:
-        raise InputError(
-            f"initial_states: expected a (K, {system.state_dim}) tensor of initial states, got shape {tuple(y0.shape)}"
-        )
-    grid = as_tensor(times, "times", **kd)
-    if grid.dim() != 1 or grid.numel() < 1 or not bool((grid[1:] > grid[:-1]).all()):
-        raise InputError(f"times: expected a (T,) strictly increasing tensor of candidate times, got {times!r:.80}")
+    y0 = check_candidates(initial_states, system, name="initial_states", **kd)
+    grid = check_times(times, **kd)
     K, T = y0.shape[0], grid.numel()
     per_experiment = check_positive_int(per_experiment, "per_experiment")
     if per_experiment > T:
         raise InputError(
             f"per_experiment: expected at most the {T} candidate times, got {per_experiment}; pass more candidate times"
         )
-    if controls is not None:
-        controls = system.check_controls(controls, K)
-    if proxy is None:
-        proxy = "corrected" if gp.is_fitted else "known"
-    if proxy == "corrected":
-        paths = corrected_proxies(system, gp, y0, grid, controls)
-    elif proxy == "known":
-        paths = proxy_trajectories(system, y0, grid, controls=controls)
-    else:
-        raise InputError(f"proxy: expected 'known' or 'corrected', got {proxy!r}")
+    controls = system.check_controls(controls, K)
+    paths = proxy_paths(choose_proxy(proxy, gp), system, gp, y0, grid, controls)
     width = system.state_dim
     if system.uses_controls:  # F's inputs include u: each sample carries the inputs at its own time
         paths = torch.cat([paths, controls.at(grid.expand(K, -1)).to(paths)], dim=-1)
