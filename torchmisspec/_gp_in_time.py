@@ -279,3 +279,13 @@ def observed_variance(flat: torch.Tensor) -> torch.Tensor:
     zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
     mean = torch.where(seen, flat, zero).sum(0) / n
     return torch.where(seen, flat - mean, zero).pow(2).sum(0) / (n - 1)
+
+
+def observed_rms(flat: torch.Tensor) -> torch.Tensor:
+    """``(d,)`` the root mean square of each column of ``flat (N, d)`` over its observed (non-NaN) entries; a column
+    whose values are all 0 (an empty compartment at the start) gets the largest column's, as a size for steps and
+    weights."""
+    seen = torch.isfinite(flat)
+    zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
+    rms = (torch.where(seen, flat, zero).pow(2).sum(0) / seen.sum(0).clamp_min(1)).sqrt()
+    return torch.where(rms > 0, rms, rms.max()).clamp_min(torch.finfo(flat.dtype).tiny)

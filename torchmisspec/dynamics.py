@@ -15,6 +15,7 @@ from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
 from .calibration import calibrate_bands
+from .data import Trajectories
 from .gp import CorrectionGP
 from .parameters import ParameterPosterior
 from .partial import complete, estimate_initial_states, initial_guess
@@ -340,33 +341,33 @@ class CorrectedODE(nn.Module):
         """``(K, d)`` every experiment's initial state under this model: the first observed states, with each
         component an experiment does not measure (:attr:`Trajectories.measured
         <torchmisspec.Trajectories.measured>`) estimated by fitting this model's mean path to the measured values
-        (:func:`torchmisspec.partial.estimate_initial_states`). What :meth:`calibrate` starts partly measured
-        held-out experiments from; for a new experiment, pass its measured states (and any first values known).
-        """
-        from .data import Trajectories
-
-        if not isinstance(trajectories, Trajectories):
-            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
-        trajectories = trajectories.to(dtype=self.gp.dtype, device=self.gp.device)
+        (:func:`torchmisspec.partial.estimate_initial_states`): for an experiment whose unmeasured starting values
+        are not known. (:meth:`calibrate` does not use it: a held-out experiment starts from its first row, as a
+        prediction would.)"""
+        trajectories = self._partial(trajectories)
         if not trajectories.is_partial:
             return trajectories.initial_conditions
         start = trajectories.with_initial_states(initial_guess(trajectories))
-        rhs = _mean_field(self._known, self.gp.posterior())
-        return estimate_initial_states(self._known, rhs, start, ~trajectories.measured)
+        return estimate_initial_states(self._known, self._mean_rhs(), start, ~trajectories.measured)
 
     def complete(self, trajectories):
         """``trajectories`` with every component an experiment does not measure filled in by this model's mean path
         from :meth:`initial_states` (what :func:`~torchmisspec.correction_samples` needs of partly measured data);
         fully measured trajectories are returned as they are."""
-        from .data import Trajectories
-
-        if not isinstance(trajectories, Trajectories):
-            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
+        trajectories = self._partial(trajectories)
         if not trajectories.is_partial:
             return trajectories
-        trajectories = trajectories.to(dtype=self.gp.dtype, device=self.gp.device)
-        rhs = _mean_field(self._known, self.gp.posterior())
-        return complete(self._known, rhs, trajectories, self.initial_states(trajectories))
+        return complete(self._known, self._mean_rhs(), trajectories, self.initial_states(trajectories))
+
+    def _partial(self, trajectories):
+        """``trajectories`` checked and in the GP's dtype and device."""
+        if not isinstance(trajectories, Trajectories):
+            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
+        return trajectories.to(dtype=self.gp.dtype, device=self.gp.device)
+
+    def _mean_rhs(self):
+        """G (at theta's mean) + the posterior mean of F, as ``rhs(y, t, u)``."""
+        return _mean_field(self._known, self.gp.posterior())
 
     def calibrate(self, trajectories, samples=None, **options):
         """Calibrate the bands of :meth:`posterior` on held-out experiments and make the result its default scale.

@@ -502,9 +502,8 @@ def fit_correction(
                 f"system '{system.name}': uncertain parameters {list(system.parameters.names)} with partly measured "
                 "states are not supported yet; fix them (system.at(values)) or measure every component"
             )
-        options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, **estimator)
-        options["refine"] = refine
-        return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options)
+        options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
+        return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)
     system0 = system
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from ._errors import FittingError, InputError, TorchMisspecWarning
+from ._gp_in_time import observed_rms
 from ._ode import FITTING_TOLERANCES, PREDICTION_TOLERANCES
 from ._trajectory_map import _fit_relevance
 from .data import Trajectories
@@ -101,13 +102,6 @@ class Identifiability:
             )
 
 
-def _names(system: MisspecifiedSystem, trajectories: Trajectories) -> list[str]:
-    default = tuple(f"y{i}" for i in range(system.state_dim))
-    if trajectories.state_names != default:
-        return list(trajectories.state_names)
-    return list(system.state_names or default)
-
-
 def _dependencies(system: MisspecifiedSystem, states: torch.Tensor, times, controls) -> torch.Tensor:
     """``(d, d)`` boolean: entry (a, b) when dy_b/dt depends on y_a through G (its Jacobian at the states, nonzero
     somewhere) or through F (a an input of F and b one of its outputs)."""
@@ -151,7 +145,7 @@ def identifiability(
     reach = depends | torch.eye(d, dtype=torch.bool)
     for _ in range(d):  # transitive closure: reach[a, b] when a chain a -> ... -> b exists
         reach = reach | ((reach.to(torch.int64) @ reach.to(torch.int64)) > 0)
-    names = _names(system, trajectories)
+    names = system.state_names_for(trajectories) or trajectories.state_names
     seen_by = []
     for j in system.correction_outputs:
         seen = [names[m] for m in range(d) if measured[m] and reach[j, m]]
@@ -189,16 +183,6 @@ def initial_guess(trajectories: Trajectories) -> torch.Tensor:
     return torch.where(torch.isfinite(first), first, mean.expand_as(first))
 
 
-def _scale(trajectories: Trajectories, y0: torch.Tensor) -> torch.Tensor:
-    """``(d,)`` a size of each component (its RMS over the observations and ``y0``), for steps and weights."""
-    flat = torch.cat([trajectories.flat_states(), y0])
-    seen = torch.isfinite(flat)
-    zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
-    rms = (torch.where(seen, flat, zero).pow(2).sum(0) / seen.sum(0).clamp_min(1)).sqrt()
-    rms = torch.where(rms > 0, rms, rms.max())  # values all 0 (an empty compartment): the largest component's
-    return rms.clamp_min(torch.finfo(rms.dtype).tiny)
-
-
 def estimate_initial_states(
     system: MisspecifiedSystem,
     rhs,
@@ -228,7 +212,8 @@ def estimate_initial_states(
     kd = dict(dtype=trajectories.dtype, device=trajectories.device)
     if noise is None:
         variance = _state_noise(None, trajectories, d, kd)
-        noise = _scale(trajectories, trajectories.initial_conditions) if variance is None else variance.sqrt()
+        sizes = torch.cat([trajectories.flat_states(), trajectories.initial_conditions])
+        noise = observed_rms(sizes) if variance is None else variance.sqrt()
     sd = noise.to(**kd)  # offsets and residuals in units of each component's noise
     experiment = residuals.experiment  # (n,)
     cols = free.any(0).nonzero().flatten().tolist()

@@ -216,14 +216,20 @@ class MisspecifiedSystem:
         out[..., list(self.correction_outputs)] = f
         return out
 
+    def state_names_for(self, trajectories=None) -> tuple[str, ...] | None:
+        """The states' names: ``trajectories.state_names`` when they are not the defaults ``y0, y1, ...``, else this
+        system's ``state_names``; ``None`` when neither names them."""
+        names = getattr(trajectories, "state_names", None)
+        if names is None or tuple(names) == tuple(f"y{i}" for i in range(len(names))):
+            names = self.state_names
+        return None if names is None or len(names) != self.state_dim else tuple(names)
+
     def input_names(self, trajectories=None) -> tuple[str, ...] | None:
         """The names of the correction's inputs: the states' from ``trajectories.state_names`` when they are not the
         defaults ``y0, y1, ...``, else from this system's ``state_names`` (``None`` when neither has names); the
         controls' from the trajectories' controls, else from ``control_names``."""
-        names = getattr(trajectories, "state_names", None)
-        if names is None or tuple(names) == tuple(f"y{i}" for i in range(len(names))):
-            names = self.state_names
-        if names is None or len(names) != self.state_dim:
+        names = self.state_names_for(trajectories)
+        if names is None:
             return None
         controls = getattr(trajectories, "controls", None)
         every = tuple(names) + (self.control_names if controls is None else tuple(controls.names))

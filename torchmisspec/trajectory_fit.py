@@ -16,6 +16,7 @@ from ._errors import (
     NotFittedError,
     ShapeError,
 )
+from ._gp_in_time import observed_rms
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
@@ -359,11 +360,6 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> t
     var = std.to(**kd).pow(2)
     if trajectories.is_partial:  # a component no experiment measures: its few values taken as 1 % accurate (of
         # its size, or of the largest component's when they are all 0)
-        flat = trajectories.flat_states().to(**kd)
-        seen = torch.isfinite(flat)
-        zero = torch.zeros((), **kd)
-        rms = (torch.where(seen, flat, zero).pow(2).sum(0) / seen.sum(0).clamp_min(1)).sqrt()
-        rms = torch.where(rms > 0, rms, rms.max())  # values all 0 (e.g. an empty compartment at the start)
-        floor = torch.finfo(var.dtype).tiny
-        var = torch.where(trajectories.measured.any(0), var, (1e-2 * rms).pow(2).clamp_min(floor))
+        size = observed_rms(trajectories.flat_states().to(**kd))
+        var = torch.where(trajectories.measured.any(0), var, (1e-2 * size).pow(2))
     return var

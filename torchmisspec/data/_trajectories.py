@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -210,13 +211,7 @@ class Trajectories:
 
     def with_initial_states(self, initial_states: torch.Tensor | None) -> Trajectories:
         """These trajectories with :attr:`initial_states` set (``None``: cleared)."""
-        return Trajectories(
-            self.times if not self.is_ragged else list(self.times),
-            self.states if not self.is_ragged else list(self.states),
-            state_names=self.state_names,
-            controls=self.controls,
-            initial_states=initial_states,
-        )
+        return dataclasses.replace(self, initial_states=initial_states)
 
     @property
     def initial_conditions(self) -> torch.Tensor:
