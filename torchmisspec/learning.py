@@ -483,6 +483,14 @@ def fit_correction(
        with uncertain parameters, ``refine=True`` refines F at theta's posterior mean after theta's own fit through
        the ODE (by default it does not).
 
+    **Partly measured states** (a component some experiment does not measure, :attr:`Trajectories.measured
+    <torchmisspec.Trajectories.measured>`): the correction is learned through the ODE
+    (:func:`torchmisspec.partial.fit_partly_measured`: the unmeasured starting values and a first model of F fitted
+    to the measured values, the data completed with its paths, then the steps above on the completed data);
+    ``result.identifiability_`` says how the measurements see each output of F (an output none sees is refused), and
+    ``result.initial_states_`` holds the estimated ``(K, d)`` initial states. Neither is saved with the model. With
+    uncertain parameters of G, such data are refused (not built).
+
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
     not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).

@@ -349,5 +349,4 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
         y0 = result.initial_states_
     result.initial_states_ = y0
     result.identifiability_ = report
-    result.first_fit_ = first
     return result
