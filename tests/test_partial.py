@@ -146,7 +146,7 @@ def test_uncertain_parameters_with_partial_measurements_are_refused_clearly():
 
 
 @pytest.mark.slow
-def test_the_whole_loop_with_a_compartment_not_measured(tmp_path):
+def test_the_whole_loop_with_a_compartment_not_measured(tmp_path, capsys):
     """Python: fit -> what is identifiable -> calibrate -> predict; the measured component's corrected/known
     RMSE <= 0.2 (the issue's floor) on new doses, the unmeasured one's improved too."""
     g = torch.Generator().manual_seed(1)
@@ -214,6 +214,8 @@ def test_the_whole_loop_with_a_compartment_not_measured(tmp_path):
     # a table without the peripheral column at all: nothing to start it from, one line and exit 2
     (tmp_path / "central.csv").write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
     assert main(["fit", "--data", str(tmp_path / "central.csv"), *common, "--out", str(tmp_path / "x.pt")]) == 2
+    said = capsys.readouterr().err
+    assert "component 'peripheral' is never observed in any experiment" in said and "first row" in said
 
 
 def test_functions_that_need_every_component_say_what_to_do_with_partial_data():

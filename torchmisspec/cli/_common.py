@@ -83,21 +83,24 @@ def read_observations(args: argparse.Namespace, system=None):
     ``--state-columns``, a text table's columns are read by those names, in the system's order, and a state whose
     column is absent is *not measured* (all missing: partial measurements, learned through the ODE)."""
     from ..data import Trajectories
+    from ..data._tables import _TEXT_FORMATS, _read_table
 
     wanted = state_columns(args)
     names = list(getattr(system, "state_names", None) or [])
-    header = _header(args.data) if names and wanted is None else None
-    present = [n for n in names if header is not None and n in header]
-    read = present if present and len(present) < len(names) else wanted
+    present = []
+    if names and wanted is None and Path(args.data).suffix in _TEXT_FORMATS and Path(args.data).is_file():
+        header = _read_table(Path(args.data))[0]
+        present = [n for n in names if n in header]
+    partial = 0 < len(present) < len(names)  # some of the system's states have no column: not measured
     observed = Trajectories.load(
         args.data,
         time_column=args.time_column,
         experiment_column=args.experiment_column or None,  # '' = no experiment column: one experiment
-        state_columns=read,
+        state_columns=present if partial else wanted,
         control_columns=state_columns(args, "input_columns"),
         control_kind=getattr(args, "input_kind", "previous"),
     )
-    if read is not present:
+    if not partial:
         return observed
     import torch
 
@@ -108,20 +111,6 @@ def read_observations(args: argparse.Namespace, system=None):
         rows.append(full)
     times = [t for t, _ in observed.experiments()]
     return Trajectories(times, rows, state_names=names, controls=observed.controls)
-
-
-def _header(path: str) -> list[str] | None:
-    """The column names of a CSV/TSV/TXT table's first line (``None`` for other files or no readable header)."""
-    p = Path(path)
-    if p.suffix not in (".csv", ".tsv", ".txt") or not p.is_file():
-        return None
-    try:
-        with p.open(encoding="utf-8") as f:
-            first = f.readline()
-    except (OSError, UnicodeDecodeError):
-        return None  # the loader reports it
-    sep = "\t" if "\t" in first else ("," if "," in first else None)
-    return [c.strip() for c in first.split(sep)]
 
 
 def default_names(system) -> list[str]:
