@@ -303,7 +303,7 @@ def _through_the_ode(system: MisspecifiedSystem, trajectories: Trajectories, com
     )
 
 
-def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories) -> Trajectories:
+def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories, noise=None) -> Trajectories:
     """The data completed with G alone (step 1 of the module): the unmeasured initial values that no first row gives
     are fitted to the measurements; the given ones are kept (G is wrong: fitting them with G alone would move them to
     wherever G's error is best hidden, and the fit through the ODE that follows refines them with F)."""
@@ -313,18 +313,19 @@ def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories) -> T
 
     start = trajectories.with_initial_states(initial_guess(trajectories))
     given = torch.isfinite(trajectories.initial_conditions)
-    y0 = estimate_initial_states(system, known, start, ~trajectories.measured & ~given)
+    y0 = estimate_initial_states(system, known, start, ~trajectories.measured & ~given, noise=noise)
     return complete(system, known, trajectories, y0)
 
 
 def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, **options):
     """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
     is ``fit_correction`` itself (called on the completed data for the model choice), ``options`` its keywords."""
-    completed = _completed_by_g(system, trajectories)
+    kd = dict(dtype=trajectories.dtype, device=trajectories.device)
+    noise = _state_noise(None, trajectories, system.state_dim, kd)  # variances, once for every step below
+    completed = _completed_by_g(system, trajectories, None if noise is None else noise.sqrt())
     report = identifiability(system, trajectories, completed=completed)
     report.check(system.name)
     samples = correction_samples(completed, system, derivative="central")  # only their inputs are used
-    noise = _state_noise(None, trajectories, system.state_dim, dict(dtype=completed.dtype, device=completed.device))
     data = trajectories.with_initial_states(completed.initial_states)
     first = _through_the_ode(system, data, completed, samples, noise, progress)
     y0 = first.initial_states_
