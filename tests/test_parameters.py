@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import math
 import warnings
+from types import SimpleNamespace
 
 import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.parameters import ParameterPosterior, check_priors, linear_basis, parameter_posterior
+from torchmisspec.parameters import ParameterPosterior, check_priors, parameter_basis, parameter_posterior
 
 D = torch.float64
 
@@ -83,7 +84,8 @@ def test_f_posterior_with_theta_integrated_matches_brute_force(problem):
     basis = basis[:, [1], :]  # F acts on the only component: every component is F's
     residuals = residuals[:, [1]]
     gp = _gp(X, residuals)
-    conditioned, _ = tms.parameters.condition_with_parameters(gp, _samples(X, residuals, basis), priors, [0])
+    declared = SimpleNamespace(parameters=priors, correction_outputs=[0])  # what the closed form reads of a system
+    conditioned, _ = tms.parameters.condition_with_parameters(gp, _samples(X, residuals, basis), declared)
     post = conditioned.parameters_
     mean, cov, _, total, r, H, K = _brute(gp, X, residuals, basis, [0], priors.mean, priors.scale, {})
     xs = torch.linspace(-2.5, 2.5, 7, dtype=D)[:, None]
@@ -123,13 +125,18 @@ def test_priors_and_linearity_are_checked():
         check_priors([("a", (0.3, 0.1))])
     y = torch.rand(10, 2, dtype=D)
     theta, scale = torch.tensor([1.0, 2.0], dtype=D), torch.tensor([0.1, 0.2], dtype=D)
-    basis = linear_basis(lambda th: torch.stack([th[0] * y[:, 0], th[1] * y[:, 1] ** 2], -1), theta, scale, "ab", "G")
+    basis, linear = parameter_basis(lambda th: torch.stack([th[0] * y[:, 0], th[1] * y[:, 1] ** 2], -1), theta, scale)
+    assert linear
     torch.testing.assert_close(basis[:, 0, 0], y[:, 0])
     torch.testing.assert_close(basis[:, 1, 1], y[:, 1] ** 2)
-    with pytest.raises(tms.InputError, match=r"not linear in its uncertain parameter\(s\) \['a'\].*reparametrise"):
-        linear_basis(lambda th: torch.stack([th[0] ** 2 * y[:, 0], th[1] * y[:, 1]], -1), theta, scale, "ab", "G")
-    with pytest.raises(tms.InputError, match=r"\['a', 'b'\]"):
-        linear_basis(lambda th: torch.stack([th[0] * th[1] * y[:, 0], y[:, 1]], -1), theta, scale, "ab", "G")
+    # nonlinear in a, then in the pair (a, b) only: the Jacobian at theta, by hand
+    basis, linear = parameter_basis(lambda th: torch.stack([th[0] ** 2 * y[:, 0], th[1] * y[:, 1]], -1), theta, scale)
+    assert not linear
+    torch.testing.assert_close(basis[:, 0, 0], 2 * theta[0] * y[:, 0])
+    torch.testing.assert_close(basis[:, 1, 1], y[:, 1])
+    basis, linear = parameter_basis(lambda th: torch.stack([th[0] * th[1] * y[:, 0], y[:, 1]], -1), theta, scale)
+    assert not linear
+    torch.testing.assert_close(basis[:, 0, :], torch.stack([theta[1] * y[:, 0], theta[0] * y[:, 0]], -1))
 
 
 # ------------------------------------------------------------------------------- the fit on a damped oscillator
@@ -195,6 +202,86 @@ def test_oscillator_damping_absorbed_by_a_drag_is_reported():
     assert post.identified == (False,)
     assert float(post.sd_without_correction[0]) < 0.5 * float(post.prior_scale[0])
     assert "NOT identified" in post.summary()
+
+
+# ------------------------------------------------------------------------------- G nonlinear in theta
+def _oscillator_time_constant(tau: float):
+    """The damped oscillator with its damping given by a time constant: v' = -x - v / tau + F(x), nonlinear in tau."""
+
+    def G(y, theta):
+        return torch.stack([y[..., 1], -y[..., 0] - y[..., 1] / theta[0]], -1)
+
+    def F(x):
+        return -0.5 * torch.sin(2 * x)
+
+    truth = tms.MisspecifiedSystem(
+        lambda y: G(y, torch.tensor([tau], dtype=D)), 2, correction=F, correction_inputs=[0], correction_outputs=[1]
+    )
+    system = tms.MisspecifiedSystem(
+        G, 2, correction_inputs=[0], correction_outputs=[1], parameters={"tau": (1.3 * tau, 0.5 * tau)}
+    )
+    return truth, system
+
+
+def test_nonlinear_parameter_map_and_laplace_match_brute_force():
+    """For a G nonlinear in theta and fixed hyperparameters, Gauss-Newton's mean is the maximum of
+    log N(r(theta); 0, C) + log N(theta; m, s^2) found on a grid, and its variance the Laplace one, 1 / (1/s^2 +
+    J^T C^-1 J) with J = dr/dtheta at the maximum by differences of the residuals themselves."""
+    truth, system = _oscillator_time_constant(1 / 0.3)
+    samples = tms.correction_samples(_data(truth, 3), system, derivative="gp")
+    assert not samples.parameters_linear
+    gp = tms.CorrectionGP(lengthscale=0.7, outputscale=0.3, noise_variance=1e-3).fit(samples.inputs, samples.targets)
+    post, linearized = tms.parameters.posterior_given(gp, samples, system)
+    assert not post.linear
+    dydt = samples.residuals + system.known_rhs(samples.states)
+    m, s = float(system.parameters.mean[0]), float(system.parameters.scale[0])
+    exact = gp.posterior()
+
+    def log_density(tau: float) -> float:
+        r = dydt - system.at([tau]).known_rhs(samples.states)
+        return exact.with_targets(r[:, [1]]).log_marginal_likelihood - 0.5 * (tau - m) ** 2 / s**2
+
+    grid = torch.linspace(m - 4 * s, m + 4 * s, 801, dtype=D)
+    best = float(grid[int(torch.tensor([log_density(float(v)) for v in grid]).argmax())])
+    fine = torch.linspace(best - 0.02 * s, best + 0.02 * s, 401, dtype=D)
+    best = float(fine[int(torch.tensor([log_density(float(v)) for v in fine]).argmax())])
+    assert float(post.mean[0]) == pytest.approx(best, abs=2e-4 * s)
+    h = 1e-5 * s
+    J = (system.at([best - h]).known_rhs(samples.states) - system.at([best + h]).known_rhs(samples.states))[:, 1] / (
+        2 * h
+    )  # dr/dtheta on the corrected component (the other does not depend on tau)
+    info = float(J @ exact.with_targets(J[:, None]).weights[:, 0])
+    assert float(post.covariance[0, 0]) == pytest.approx(1 / (1 / s**2 + info), rel=1e-3)
+    # the samples come back linearised at the mean: their targets are r at it
+    r = dydt - system.at(post.mean).known_rhs(samples.states)
+    torch.testing.assert_close(linearized.targets, r[:, [1]])
+
+
+def test_nonlinear_parameter_is_recovered_predicts_and_persists(tmp_path):
+    truth, system = _oscillator_time_constant(1 / 0.3)
+    data = _data(truth, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tms.TorchMisspecWarning)  # identified: no warning
+        gp = tms.fit_correction(data, system, progress=False)
+    post = gp.parameters_
+    assert not post.linear and post.identified == (True,)
+    assert abs(float(post.mean[0]) - 1 / 0.3) <= 2 * float(post.stddev[0])
+    model = tms.CorrectedODE(system, gp)
+    g = torch.Generator().manual_seed(9)
+    y0 = torch.rand(10, 2, generator=g, dtype=D) * 4 - 2
+    t = torch.linspace(0, 6, 25, dtype=D)
+    ref = tms.simulate(truth, y0, t).states
+    known_error = tms.trajectory_rmse(tms.simulate(system, y0, t, known_only=True).states, ref)
+    assert tms.trajectory_rmse(model.predict(y0, t), ref) <= 0.1 * known_error
+    gp.save(tmp_path / "m.pt")
+    loaded = tms.CorrectionGP.load(tmp_path / "m.pt")
+    assert loaded.parameters_.linear is False
+    torch.testing.assert_close(tms.CorrectedODE(system, loaded).predict(y0, t), model.predict(y0, t))
+    # each band draw integrates G at its own tau: draws of tau alone (F's spread off) spread the paths as tau does
+    bands = model.posterior(y0[:2], t, num_samples=32, scale=1.0, generator=torch.Generator().manual_seed(1))
+    assert bool(torch.isfinite(bands.samples).all())
+    taus = post.sample(4000, generator=torch.Generator().manual_seed(2))
+    assert float(taus.std()) == pytest.approx(float(post.stddev[0]), rel=0.05)
 
 
 def test_prior_only_model_and_refusals():

@@ -91,7 +91,7 @@ def test_parameters_study_smoke(tmp_path):
     out = tmp_path / "p.json"
     stdout = _script("study_parameters.py", "--smoke", "--json", str(out))
     result = json.loads(out.read_text())
-    assert result["smoke"] and set(result["runs"]) == {"identifiable", "absorbable"}
+    assert result["smoke"] and set(result["runs"]) == {"identifiable", "absorbable", "nonlinear"}
     for run in result["runs"]["absorbable"]:
         assert run["warned_kd"] and not run["identified"][0]  # F can absorb kd: said every time
     for run in result["runs"]["identifiable"]:

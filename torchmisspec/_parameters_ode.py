@@ -186,11 +186,11 @@ def fit_parameters(gp, samples, system, trajectories, delta=None):
     refined through the ODE on ``trajectories`` (:func:`refine_through_ode`); ``gp`` has the hyperparameters to
     use and was trained on ``samples``' inputs, ``system`` declares the parameters."""
     outputs = system.correction_outputs
-    gp, moved = condition_with_parameters(gp, samples, system.parameters, outputs, delta)
+    gp, moved = condition_with_parameters(gp, samples, system, delta)
     refined = refine_through_ode(system, gp, trajectories, gp.parameters_)
     if refined is gp.parameters_:
         return gp, moved
-    moved = samples.shifted(refined.mean - refined.prior_mean, outputs)
+    moved = moved.linearized(system, refined.mean, outputs).shifted(refined.mean - refined.prior_mean, outputs)
     gp = gp.condition(moved.inputs, moved.targets, noise=moved.noise)
     gp.parameters_ = refined
     return gp, moved

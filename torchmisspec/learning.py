@@ -52,7 +52,7 @@ from .gp._features import FEATURE_DEGREE
 from .gp._paths import detached, kernel_hyperparameters, kernel_matrix
 from .gp._selection import fit_and_score
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
-from .parameters import parameter_posterior
+from .parameters import posterior_given
 from .partial import fit_partly_measured
 from .systems import MisspecifiedSystem
 from .trajectory_fit import fit_trajectories
@@ -428,15 +428,17 @@ PARAMETER_PASSES = 3
 
 
 def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, template: CorrectionGP):
-    """theta's posterior after :data:`PARAMETER_PASSES` alternations of the GP's hyperparameters (``template``, by
-    marginal likelihood on the samples at the current theta) and theta's closed-form posterior given them."""
+    """``(theta's posterior, the samples)`` after :data:`PARAMETER_PASSES` alternations of the GP's hyperparameters
+    (``template``, by marginal likelihood on the samples at the current theta) and theta's closed-form posterior given
+    them; for a G nonlinear in theta, each pass's posterior is Gauss-Newton's to convergence (the samples linearised
+    at each step's mean, :mod:`torchmisspec.parameters`), and the samples come back linearised at the last mean."""
     outputs, posterior = system.correction_outputs, None
     for _ in range(PARAMETER_PASSES):
         delta = None if posterior is None else posterior.mean - system.theta
         moved = samples if delta is None else samples.shifted(delta, outputs)
         model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
-        posterior = parameter_posterior(model, samples.residuals, samples.basis, outputs, system.parameters, delta)
-    return posterior
+        posterior, samples = posterior_given(model, samples, system, delta)
+    return posterior, samples
 
 
 @adaptive_threads()
@@ -528,7 +530,7 @@ def fit_correction(
     posterior = None
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
         refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
-        posterior = _parameter_passes(samples, system, CorrectionGP() if gp is None or gp.auto else gp)
+        posterior, samples = _parameter_passes(samples, system, CorrectionGP() if gp is None or gp.auto else gp)
         system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
     cv = None
     result = None

@@ -57,7 +57,7 @@ from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_
 from ._stencils import finite_difference, smoothed_derivative
 from ._validation import check_finite, check_real
 from .data import Trajectories
-from .parameters import linear_basis
+from .parameters import parameter_basis
 from .systems import MisspecifiedSystem
 
 __all__ = [  # in the order of the API page
@@ -98,7 +98,12 @@ class CorrectionSamples:
         residuals: for a system with uncertain parameters, dy/dt - G(y; prior mean) on every state component
             ``(N, d)`` (``targets`` are its corrected components); ``None`` otherwise.
         basis: for a system with uncertain parameters, G's basis g_k = dG/dtheta_k at the samples ``(N, d, k)``
-            (:mod:`torchmisspec.parameters`); ``None`` otherwise.
+            (:mod:`torchmisspec.parameters`); ``None`` otherwise. For a G nonlinear in theta, ``residuals`` and
+            ``basis`` are its linearisation's (:meth:`linearized`).
+        times, controls: for a system with uncertain parameters, the samples' times ``(N,)`` (non-autonomous
+            systems) and inputs ``(N, m)`` (systems with inputs), where G is evaluated again at another theta.
+        parameters_linear: whether G is linear in its uncertain parameters.
+        linearized_at: for a nonlinear G, the theta ``(k,)`` it is linearised at (``None``: the prior mean).
     """
 
     inputs: torch.Tensor
@@ -108,17 +113,44 @@ class CorrectionSamples:
     noise: torch.Tensor | None = None
     residuals: torch.Tensor | None = None
     basis: torch.Tensor | None = None
+    times: torch.Tensor | None = None
+    controls: torch.Tensor | None = None
+    parameters_linear: bool = True
+    linearized_at: torch.Tensor | None = None
 
     def subset(self, rows: torch.Tensor) -> CorrectionSamples:
         """The samples at ``rows`` (a boolean mask or indices)."""
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return CorrectionSamples(**{k: None if v is None else v[rows] for k, v in fields.items()})
+        shared = ("parameters_linear", "linearized_at")  # not per sample
+        return CorrectionSamples(**{k: v if v is None or k in shared else v[rows] for k, v in fields.items()})
 
     def shifted(self, delta: torch.Tensor, outputs) -> CorrectionSamples:
         """These samples with the parameters moved by ``delta`` ``(k,)`` from the prior mean: the targets
-        r - H delta on the corrected components ``outputs`` (G is linear in them)."""
+        r - H delta on the corrected components ``outputs`` (exact for a G linear in them, else to first order
+        around where the samples were linearised)."""
         moved = self.residuals - self.basis @ delta.to(self.basis)
         return dataclasses.replace(self, targets=moved[:, list(outputs)].contiguous())
+
+    def linearized(self, system, theta: torch.Tensor, outputs) -> CorrectionSamples:
+        """These samples with a nonlinear G linearised at ``theta`` ``(k,)`` instead (Gauss-Newton's step, see
+        :mod:`torchmisspec.parameters`): G(y; theta') ~ G(y; theta) + J (theta' - theta), so the residuals at the
+        prior mean m become r(theta) + J (theta - m) and the basis J. ``system`` is the one the samples were taken
+        with (its theta the prior mean); targets are the residuals at ``theta``. Unchanged for a linear G."""
+        if self.parameters_linear:
+            return self
+        theta = theta.to(self.residuals)
+        mean = system.theta.to(theta)
+        before = mean if self.linearized_at is None else self.linearized_at.to(theta)
+
+        def known(th):
+            return system.at(th).known_rhs(self.states, self.times, self.controls)
+
+        dydt = self.residuals + known(before) + self.basis @ (mean - before)
+        at = dydt - known(theta)
+        basis, _ = parameter_basis(known, theta, system.parameters.scale.to(theta))
+        residuals = at + basis @ (theta - mean)
+        targets = at[:, list(outputs)].contiguous()
+        return dataclasses.replace(self, residuals=residuals, basis=basis, targets=targets, linearized_at=theta)
 
     def __len__(self) -> int:
         return self.inputs.shape[0]
@@ -264,18 +296,17 @@ def correction_samples(
         dydt, flat_states, experiment, g = dydt[keep], flat_states[keep], experiment[keep], g[keep]
         variance = None if variance is None else variance[keep]
         u = None if u is None else u[keep]
-    residuals = basis = None
+    residuals = basis = t = None
+    linear = True
     if system.parameters is not None:  # every component (theta's information), and G's basis in theta
         residuals = dydt - g
         t = None if system.autonomous else trajectories.flat_times().to(flat_states)
         if trajectories.has_missing and t is not None:
             t = t[keep]
-        basis = linear_basis(
+        basis, linear = parameter_basis(
             lambda theta: system.at(theta).known_rhs(flat_states, t, u),
             system.theta.to(flat_states),
             system.parameters.scale.to(flat_states),
-            system.parameters.names,
-            f"system '{system.name}'",
         )
     targets = system.select_outputs(dydt - g)
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
@@ -294,4 +325,7 @@ def correction_samples(
         noise=sample_noise,
         residuals=residuals,
         basis=basis,
+        times=t,
+        controls=None if system.parameters is None else u,
+        parameters_linear=linear,
     )

@@ -32,8 +32,15 @@ the data hardly depend on theta_k. A parameter error and a missing term can look
 answer. Parameters whose posteriors correlate beyond :data:`CORRELATION_LIMIT` are reported too (only a
 combination is determined).
 
-**G nonlinear in theta**: refused for now (the MAP-Laplace fit through the ODE is not built); reparametrise
-(e.g. 1 / Y instead of a yield Y) so that G is linear in what is uncertain, or fix the parameter.
+**G nonlinear in theta** (MAP with a Laplace posterior): the residuals' density with F integrated out,
+N(r(theta); 0, C) N(theta; m, S), r(theta) = dy/dt - G(y; theta), is maximised by Gauss-Newton. At theta_0,
+G(y; theta) ~ G(y; theta_0) + J_0 (theta - theta_0) (J_0 the Jacobian at the samples, :func:`parameter_basis`), which
+is the linear model above with the residuals r(theta_0) + J_0 (theta_0 - m) and the basis J_0
+(:meth:`CorrectionSamples.linearized <torchmisspec.CorrectionSamples.linearized>`); its posterior mean is the next
+theta_0, until a step moves theta by less than 1 % of its posterior standard deviation. At the MAP, A^-1 is the Laplace
+covariance (the Gauss-Newton Hessian). A posterior draw integrates G(y; theta_s) itself, not its linearisation
+(:meth:`ParameterPosterior.draw_field`), and so does the fit through the ODE that refines theta on the trajectories.
+:attr:`ParameterPosterior.linear` records which case a model is in.
 """
 
 from __future__ import annotations
@@ -44,16 +51,17 @@ from dataclasses import dataclass
 
 import torch
 
-from ._errors import InputError, TorchMisspecWarning, warn
+from ._errors import InputError, NumericalWarning, TorchMisspecWarning, warn
 from ._validation import DEFAULT_DTYPE
 
 __all__ = [
     "Priors",
     "ParameterPosterior",
     "check_priors",
-    "linear_basis",
+    "parameter_basis",
     "parameter_posterior",
     "condition_with_parameters",
+    "posterior_given",
     "IDENTIFIED_RATIO",
     "CORRELATION_LIMIT",
     "LINEARITY_TOLERANCE",
@@ -66,6 +74,12 @@ IDENTIFIED_RATIO = 0.5
 CORRELATION_LIMIT = 0.95
 #: relative tolerance of the numerical check that G is linear in its uncertain parameters
 LINEARITY_TOLERANCE = 1e-6
+#: the central differences of a nonlinear G's Jacobian in theta, in prior scales
+JACOBIAN_STEP = 1e-4
+#: most Gauss-Newton steps of a nonlinear G's posterior per hyperparameter pass (each: one closed-form posterior)
+GAUSS_NEWTON_STEPS = 20
+#: Gauss-Newton stops once a step moves every parameter by at most this fraction of its posterior standard deviation
+CONVERGED = 0.01
 
 
 @dataclass(frozen=True)
@@ -114,34 +128,27 @@ def check_priors(parameters) -> Priors | None:
     )
 
 
-def linear_basis(rhs, theta: torch.Tensor, scale: torch.Tensor, names, where: str) -> torch.Tensor:
-    """The basis g_k = dG/dtheta_k ``(..., d, k)`` of a G linear in theta, from ``rhs(theta) -> (..., d)`` (G at the
-    data with the parameters ``theta``), by differences of one prior scale, with linearity checked (a step back, and
-    the steps of each pair at once, must agree with the basis). ``names`` and ``where`` word the error."""
+def parameter_basis(rhs, theta: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """``(basis, linear)``: G's basis g_k = dG/dtheta_k ``(..., d, k)`` at ``theta`` from ``rhs(theta) -> (..., d)``
+    (G at the data with the parameters ``theta``), and whether G is linear in theta there.
+
+    Linearity is checked numerically (a step of one prior scale ``scale`` back, and the steps of each pair at once,
+    must agree with the differences of one step forward to :data:`LINEARITY_TOLERANCE`). A linear G's basis is those
+    differences (exact); a nonlinear G's is its Jacobian at ``theta`` by central differences of
+    :data:`JACOBIAN_STEP` prior scales, the linearisation the Gauss-Newton / Laplace fit uses (the module's notes)."""
     base = rhs(theta)
     k = theta.shape[0]
     steps = torch.eye(k, dtype=theta.dtype, device=theta.device) * scale.to(theta)
     ups = [rhs(theta + steps[j]) for j in range(k)]
-    basis = torch.stack([(ups[j] - base) / scale[j].item() for j in range(k)], dim=-1)
     size = base.abs().amax() + sum(float((u - base).abs().amax()) for u in ups) + 1e-300
-    checks = [(rhs(theta - steps[j]), base - (ups[j] - base), (names[j],)) for j in range(k)]
-    checks += [
-        (rhs(theta + steps[i] + steps[j]), ups[i] + ups[j] - base, (names[i], names[j]))
-        for i in range(k)
-        for j in range(i + 1, k)
-    ]
-    for got, linear, which in checks:
-        err = float((got - linear).abs().amax())
-        if not err <= LINEARITY_TOLERANCE * float(size):
-            raise InputError(
-                f"{where}: G is not linear in its uncertain parameter(s) {list(which)} (a step of one prior scale "
-                f"differs from the linear prediction by {err:.3g} at the data, relative {err / float(size):.2g}); "
-                "expected G(y; theta) = G(y; m) + sum_k (theta_k - m_k) g_k(y). Uncertain parameters that enter G "
-                "nonlinearly are not built yet (the fit through the ODE with a Laplace posterior): reparametrise so "
-                "that G is linear in them (e.g. 1/Y instead of a yield Y, a rate instead of a time constant), or fix "
-                "them at a value"
-            )
-    return basis
+    checks = [(rhs(theta - steps[j]), base - (ups[j] - base)) for j in range(k)]
+    checks += [(rhs(theta + steps[i] + steps[j]), ups[i] + ups[j] - base) for i in range(k) for j in range(i + 1, k)]
+    linear = all(float((got - want).abs().amax()) <= LINEARITY_TOLERANCE * float(size) for got, want in checks)
+    if linear:
+        return torch.stack([(ups[j] - base) / scale[j].item() for j in range(k)], dim=-1), True
+    h = steps * JACOBIAN_STEP
+    cols = [(rhs(theta + h[j]) - rhs(theta - h[j])) / (2 * h[j, j].item()) for j in range(k)]
+    return torch.stack(cols, dim=-1), False
 
 
 @dataclass(frozen=True)
@@ -158,6 +165,8 @@ class ParameterPosterior:
         log_evidence: log p(r) of the residual samples with theta integrated out (nats).
         basis_targets: the basis g_k at the GP's training inputs on the corrected components ``(N, d_out, k)``
             (F's absorption of each, :meth:`draw_terms`).
+        linear: whether G is linear in theta (else the posterior is the Laplace approximation at the MAP, and
+            :attr:`log_evidence` the linearised model's).
     """
 
     names: tuple[str, ...]
@@ -168,6 +177,7 @@ class ParameterPosterior:
     sd_without_correction: torch.Tensor
     log_evidence: float
     basis_targets: torch.Tensor
+    linear: bool = True
 
     @property
     def stddev(self) -> torch.Tensor:
@@ -257,20 +267,32 @@ class ParameterPosterior:
     def draw_field(self, system, gp, deltas: torch.Tensor, batch: int):
         """The term each posterior draw adds to the right-hand side (the module's notes): for draws ``deltas``
         ``(S, k)`` of theta - :attr:`mean`, a function ``(y, t, u, x) -> (S * batch, d)`` of the states, times, controls
-        and correction inputs of the rows (draw s drives rows s * batch ... s * batch + batch - 1)."""
+        and correction inputs of the rows (draw s drives rows s * batch ... s * batch + batch - 1). A nonlinear G is
+        evaluated at each draw's theta (one call of G per draw)."""
         absorbed = self.draw_terms(gp)
         base_system = system.at(self.mean)
         scale = self.prior_scale.to(self.mean)
         eye = torch.eye(len(self.names), dtype=self.mean.dtype, device=self.mean.device)
-        steps = [system.at(self.mean + scale[j] * eye[j]) for j in range(len(scale))]
+        steps = [system.at(self.mean + scale[j] * eye[j]) for j in range(len(scale))] if self.linear else None
+        drawn = None if self.linear else [system.at(self.mean + delta) for delta in deltas]
         rows = deltas.repeat_interleave(batch, dim=0)
 
-        def term(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
+        def moved(y: torch.Tensor, t, u) -> torch.Tensor:  # G(y; mean + delta) - G(y; mean), each row's delta
             base = base_system.known_rhs(y, t, u)
-            g = torch.stack([(s.known_rhs(y, t, u) - base) / scale[j].to(y) for j, s in enumerate(steps)], dim=-1)
+            if self.linear:
+                g = torch.stack([(s.known_rhs(y, t, u) - base) / scale[j].to(y) for j, s in enumerate(steps)], dim=-1)
+                return (g * rows.to(y).unsqueeze(1)).sum(-1)
+            parts = []
+            for s, part in enumerate(drawn):
+                at = slice(s * batch, (s + 1) * batch)
+                tt = t[at] if isinstance(t, torch.Tensor) and t.dim() > 0 else t
+                parts.append(part.known_rhs(y[at], tt, None if u is None else u[at]))
+            return torch.cat(parts) - base
+
+        def term(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
             m = absorbed(x.to(gp.device, gp.dtype)).to(y)  # (rows, d_out, k)
             m = system.embed(m.transpose(-1, -2)).transpose(-1, -2)
-            return ((g - m) * rows.to(y).unsqueeze(1)).sum(-1)
+            return moved(y, t, u) - (m * rows.to(y).unsqueeze(1)).sum(-1)
 
         return term
 
@@ -300,6 +322,7 @@ class ParameterPosterior:
             "sd_without_correction": self.sd_without_correction.detach().cpu(),
             "log_evidence": float(self.log_evidence),
             "basis_targets": self.basis_targets.detach().cpu(),
+            "linear": bool(self.linear),
         }
 
     @classmethod
@@ -332,10 +355,15 @@ class ParameterPosterior:
             evidence = float(values["log_evidence"])
         except (TypeError, ValueError) as exc:
             raise InputError(f"{path}: expected 'log_evidence' a number ({exc})") from exc
-        return cls(tuple(names), **{key: values[key].to(like) for key in shapes}, log_evidence=evidence)
+        linear = values.get("linear", True)  # files written before nonlinear parameters: linear
+        if not isinstance(linear, bool):
+            raise InputError(f"{path}: expected 'linear' True or False, got {linear!r:.40}")
+        return cls(tuple(names), **{key: values[key].to(like) for key in shapes}, log_evidence=evidence, linear=linear)
 
 
-def parameter_posterior(gp, residuals: torch.Tensor, basis: torch.Tensor, outputs, priors: Priors, delta=None):
+def parameter_posterior(
+    gp, residuals: torch.Tensor, basis: torch.Tensor, outputs, priors: Priors, delta=None, *, linear: bool = True
+):
     """The posterior of theta given the residual samples, F integrated out (the module's notes).
 
     Args:
@@ -347,6 +375,8 @@ def parameter_posterior(gp, residuals: torch.Tensor, basis: torch.Tensor, output
         priors: the :class:`Priors`.
         delta: the current estimate of theta - m ``(k,)`` (``None``: 0), for the noise of the components F does not
             act on (estimated from the residuals r - H delta there).
+        linear: whether G is linear in theta (else ``residuals`` and ``basis`` are a linearisation's, and the
+            posterior is the Laplace approximation when taken at the MAP), recorded in the result.
     """
     dtype, device = residuals.dtype, residuals.device
     k = len(priors)
@@ -389,16 +419,46 @@ def parameter_posterior(gp, residuals: torch.Tensor, basis: torch.Tensor, output
         sd_without_correction=cov0.diagonal().clamp_min(0).sqrt(),
         log_evidence=float(evidence),
         basis_targets=Hc.detach().clone(),
+        linear=linear,
     )
 
 
-def condition_with_parameters(gp, samples, priors: Priors, outputs, delta=None):
-    """``(gp conditioned on r - H theta_bar, theta's posterior)``: theta's posterior under ``gp``'s hyperparameters
-    (``gp`` trained on ``samples``' inputs), and ``gp``'s hyperparameters conditioned on the samples at its mean,
-    the posterior kept as ``parameters_``. ``samples``: :class:`~torchmisspec.CorrectionSamples` with ``residuals``
-    and ``basis``; ``delta`` the current estimate of theta - m (for the noise of components F does not act on)."""
-    posterior = parameter_posterior(gp, samples.residuals, samples.basis, outputs, priors, delta)
-    moved = samples.shifted(posterior.mean - posterior.prior_mean, outputs)
+def posterior_given(gp, samples, system, delta=None):
+    """``(theta's posterior, the samples)`` under ``gp``'s hyperparameters (``gp`` trained on ``samples``' inputs):
+    the closed form for a G linear in theta; for a nonlinear G, Gauss-Newton to the MAP (the module's notes, at most
+    :data:`GAUSS_NEWTON_STEPS` steps, warned when it does not converge), the samples returned linearised at it.
+    ``samples``: :class:`~torchmisspec.CorrectionSamples` with ``residuals`` and ``basis`` taken with ``system``;
+    ``delta`` the current estimate of theta - m (for the noise of components F does not act on)."""
+    outputs, linear = system.correction_outputs, samples.parameters_linear
+    posterior = None
+    for step in range(1 if linear else GAUSS_NEWTON_STEPS):
+        before = posterior
+        posterior = parameter_posterior(
+            gp, samples.residuals, samples.basis, outputs, system.parameters, delta, linear=linear
+        )
+        if linear:
+            break
+        samples = samples.linearized(system, posterior.mean, outputs)
+        moved = None if before is None else (posterior.mean - before.mean).abs() / posterior.stddev
+        if moved is not None and bool((moved <= CONVERGED).all()):
+            break
+        if step == GAUSS_NEWTON_STEPS - 1:
+            warn(
+                f"the Gauss-Newton fit of G's uncertain parameters {list(system.parameters.names)} (G is nonlinear in "
+                f"them) did not converge in {GAUSS_NEWTON_STEPS} steps (the last moved them by up to "
+                f"{float(moved.max()):.2g} posterior standard deviations); the posterior is the last step's. Tighter "
+                "priors, or a parametrisation in which G is closer to linear, help",
+                NumericalWarning,
+            )
+    return posterior, samples
+
+
+def condition_with_parameters(gp, samples, system, delta=None):
+    """``(gp conditioned on r - H theta_bar, the samples there)``: theta's posterior under ``gp``'s hyperparameters
+    (:func:`posterior_given`), and ``gp``'s hyperparameters conditioned on the samples at its mean, the posterior kept
+    as ``parameters_``."""
+    posterior, samples = posterior_given(gp, samples, system, delta)
+    moved = samples.shifted(posterior.mean - posterior.prior_mean, system.correction_outputs)
     out = gp.condition(moved.inputs, moved.targets, noise=moved.noise)
     out.parameters_ = posterior
     return out, moved
