@@ -95,7 +95,18 @@ _LATER_ITERATIONS = 10
 
 
 def _fit_relevance(
-    gp, system, trajectories, residuals, n_obs, offsets, s2, *, max_iter: int, progress: bool = False, start=None
+    gp,
+    system,
+    trajectories,
+    residuals,
+    n_obs,
+    offsets,
+    s2,
+    *,
+    max_iter: int,
+    progress: bool = False,
+    start=None,
+    rounds: int | None = None,
 ):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
@@ -107,6 +118,7 @@ def _fit_relevance(
     :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle. ``start`` (a mean
     square of F per output, ``(d_out,)``): start from F = 0 with every term's prior variance an equal share of it
     instead of from ``gp``'s fit (partly measured data, whose samples do not see F on an unmeasured component).
+    ``rounds``: at most this many rounds (default :data:`RELEVANCE_ROUNDS`).
     """
     from .gp._features import PRUNE
 
@@ -151,8 +163,9 @@ def _fit_relevance(
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
     sd = s2.sqrt()
     iterations = evaluations = 0
-    bar = progress_bar(progress, RELEVANCE_ROUNDS, "fit_trajectories: term weights through the ODE", "round")
-    for round_ in range(RELEVANCE_ROUNDS):
+    rounds = RELEVANCE_ROUNDS if rounds is None else rounds
+    bar = progress_bar(progress, rounds, "fit_trajectories: term weights through the ODE", "round")
+    for round_ in range(rounds):
         bar.update()
         active = W > 0
         if not bool(active.any()):
