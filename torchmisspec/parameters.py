@@ -268,26 +268,29 @@ class ParameterPosterior:
         """The term each posterior draw adds to the right-hand side (the module's notes): for draws ``deltas``
         ``(S, k)`` of theta - :attr:`mean`, a function ``(y, t, u, x) -> (S * batch, d)`` of the states, times, controls
         and correction inputs of the rows (draw s drives rows s * batch ... s * batch + batch - 1). A nonlinear G is
-        evaluated at each draw's theta (one call of G per draw)."""
+        evaluated at each draw's theta (one call of G per distinct theta)."""
         absorbed = self.draw_terms(gp)
         base_system = system.at(self.mean)
         scale = self.prior_scale.to(self.mean)
         eye = torch.eye(len(self.names), dtype=self.mean.dtype, device=self.mean.device)
         steps = [system.at(self.mean + scale[j] * eye[j]) for j in range(len(scale))] if self.linear else None
-        drawn = None if self.linear else [system.at(self.mean + delta) for delta in deltas]
         rows = deltas.repeat_interleave(batch, dim=0)
+        if not self.linear:  # one call of G per distinct theta, on the rows it drives
+            distinct, which = torch.unique(deltas, dim=0, return_inverse=True)
+            drawn = [system.at(self.mean + delta) for delta in distinct]
+            groups = [(which.repeat_interleave(batch) == j).nonzero()[:, 0] for j in range(len(drawn))]
 
         def moved(y: torch.Tensor, t, u) -> torch.Tensor:  # G(y; mean + delta) - G(y; mean), each row's delta
             base = base_system.known_rhs(y, t, u)
             if self.linear:
                 g = torch.stack([(s.known_rhs(y, t, u) - base) / scale[j].to(y) for j, s in enumerate(steps)], dim=-1)
                 return (g * rows.to(y).unsqueeze(1)).sum(-1)
-            parts = []
-            for s, part in enumerate(drawn):
-                at = slice(s * batch, (s + 1) * batch)
+            out = torch.empty_like(base)
+            for part, at in zip(drawn, groups, strict=True):
+                at = at.to(y.device)
                 tt = t[at] if isinstance(t, torch.Tensor) and t.dim() > 0 else t
-                parts.append(part.known_rhs(y[at], tt, None if u is None else u[at]))
-            return torch.cat(parts) - base
+                out[at] = part.known_rhs(y[at], tt, None if u is None else u[at])
+            return out - base
 
         def term(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
             m = absorbed(x.to(gp.device, gp.dtype)).to(y)  # (rows, d_out, k)
