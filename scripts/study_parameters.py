@@ -3,7 +3,7 @@
 Usage::
 
     python scripts/study_parameters.py --markdown          # full: JSON, docs/studies/parameters.md, BENCHMARKS.md
-    python scripts/study_parameters.py --smoke --json /tmp/p.json   # 2 realizations per case, never writes docs
+    python scripts/study_parameters.py --smoke --json /tmp/p.json   # 1 realization of 3 cases, never writes docs
 """
 
 from __future__ import annotations

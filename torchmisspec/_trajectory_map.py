@@ -107,6 +107,7 @@ def _fit_relevance(
     progress: bool = False,
     start=None,
     rounds: int | None = None,
+    parameters: bool = False,
 ):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
@@ -118,7 +119,11 @@ def _fit_relevance(
     :data:`~torchmisspec.gp._features.PRUNE`), until the active terms and weights settle. ``start`` (a mean
     square of F per output, ``(d_out,)``): start from F = 0 with every term's prior variance an equal share of it
     instead of from ``gp``'s fit (partly measured data, whose samples do not see F on an unmeasured component).
-    ``rounds``: at most this many rounds (default :data:`RELEVANCE_ROUNDS`).
+    ``rounds``: at most this many rounds (default :data:`RELEVANCE_ROUNDS`). ``parameters``: learn the system's
+    uncertain parameters of G with the coefficients (single shooting only): theta = m + s v with v ~ N(0, I) is
+    part of the Levenberg-Marquardt problem and of the Laplace step, which gives its joint posterior with the
+    coefficients, the offsets marginalised; the result's ``parameters_laplace_`` is ``(mean (k,), covariance (k, k),
+    covariance with F held fixed (k, k))``.
     """
     from .gp._features import PRUNE
 
@@ -144,25 +149,60 @@ def _fit_relevance(
         W = (start.to(**kd).reshape(1, -1) / (p * phi2)).expand(p, d_out).clone()
         beta = torch.zeros_like(W)
 
-    def make_field(b):
+    k = len(system.parameters) if parameters else 0
+    if k and not (hasattr(residuals, "many") and offsets is not None):
+        raise FittingError("the joint fit of G's uncertain parameters through the ODE needs single shooting")
+    m_theta = None if not k else system.parameters.mean.to(**kd)
+    s_theta = None if not k else system.parameters.scale.to(**kd)
+    v = None if not k else torch.zeros(k, **kd)  # theta = m + s v, starting at the prior mean
+
+    def known_at(vv):  # G at theta = m + s vv (the system as declared when not learning theta)
+        return system if vv is None else system.at(m_theta + s_theta * vv)
+
+    def make_field(b, vv=None):
+        known = known_at(vv if k else None)
+
         def field(y, t=None, u=None):
             x = system.select_inputs(y, u)
-            return system.known_rhs(y, t, u) + system.embed(base.features(x) @ b)
+            return known.known_rhs(y, t, u) + system.embed(base.features(x) @ b)
 
         return field
 
-    def make_fields(bs):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
+    def make_fields(bs, vs=None):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
+        copies = [known_at(vv) for vv in vs] if vs is not None else None  # vs (m, k): copy c's theta
+
         def field(y, t=None, u=None):
             f = base.features(system.select_inputs(y, u)).reshape(bs.shape[0], -1, p)  # (m, K, p)
             mixed = torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
-            return system.known_rhs(y, t, u) + system.embed(mixed)
+            if copies is None:
+                return system.known_rhs(y, t, u) + system.embed(mixed)
+            rows = y.shape[0] // len(copies)
+            known = [
+                c.known_rhs(
+                    y[i * rows : (i + 1) * rows],
+                    t[i * rows : (i + 1) * rows] if isinstance(t, torch.Tensor) and t.dim() > 0 else t,
+                    None if u is None else u[i * rows : (i + 1) * rows],
+                )
+                for i, c in enumerate(copies)
+            ]
+            return torch.cat(known) + system.embed(mixed)
 
         return field
+
+    if k:  # every field below at the current theta unless told otherwise
+        plain_field, plain_fields = make_field, make_fields
+
+        def make_field(b, vv=None):
+            return plain_field(b, v if vv is None else vv)
+
+        def make_fields(bs, vs=None):
+            return plain_fields(bs, v.expand(bs.shape[0], -1) if vs is None else vs)
 
     if s2 is None:
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
     sd = s2.sqrt()
     iterations = evaluations = 0
+    laplace = None
     rounds = RELEVANCE_ROUNDS if rounds is None else rounds
     bar = progress_bar(progress, rounds, "fit_trajectories: term weights through the ODE", "round")
     for round_ in range(rounds):
@@ -181,7 +221,17 @@ def _fit_relevance(
         rounds_iter = max_iter if round_ == 0 else min(max_iter, _LATER_ITERATIONS)
         if hasattr(residuals, "many") and offsets is not None:  # single shooting: Levenberg-Marquardt
             its, evals = _levenberg_marquardt(
-                u, offsets, active, root, beta, make_field, make_fields, residuals, sd, max_iter=rounds_iter
+                u,
+                offsets,
+                active,
+                root,
+                beta,
+                make_field,
+                make_fields,
+                residuals,
+                sd,
+                max_iter=rounds_iter,
+                theta=None if not k else (v, plain_field, plain_fields),
             )
         else:
             result = _maximise_posterior(
@@ -198,7 +248,10 @@ def _fit_relevance(
         off = None if offsets is None else offsets.detach()
         with torch.no_grad():
             J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
-            H = J_b.T @ J_b + torch.diag(1.0 / W[active])
+            q = J_b.shape[1]
+            if k:  # G's parameters: columns and prior N(0, 1) in units of their prior sd
+                J_b = torch.cat([J_b, _parameter_columns(residuals, plain_fields, beta, v, off, sd)], dim=1)
+            H = J_b.T @ J_b + torch.diag(torch.cat([1.0 / W[active], torch.ones(k, **kd)]))
             if off is not None:  # the offsets' block: column j moves component j of every initial state
                 Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
                 Kx, dd = off.shape
@@ -206,7 +259,15 @@ def _fit_relevance(
                 Hoo = Jo.T @ Jo + torch.eye(Kx * dd, **kd)  # the offsets' prior N(0, 1) in units of sd
                 H = H - Hbo @ torch.linalg.solve(Hoo, Hbo.T)  # marginal over the offsets (Schur complement)
             try:
-                Sigma = torch.linalg.inv(H).diagonal()
+                inverse = torch.linalg.inv(H)
+                Sigma = inverse.diagonal()[:q]
+                if k:  # theta's posterior, with F's coefficients marginalised and with them held fixed
+                    cov = _robust(inverse[q:, q:], J_b, Jo, residuals(make_field(beta), off, sd) / sd, residuals, W)
+                    laplace = (
+                        m_theta + s_theta * v,
+                        s_theta[:, None] * cov * s_theta[None, :],
+                        s_theta[:, None] * torch.linalg.inv(H[q:, q:]) * s_theta[None, :],
+                    )
             except torch.linalg.LinAlgError:
                 break
             new = torch.zeros_like(W)
@@ -249,47 +310,89 @@ def _fit_relevance(
     refined.state_noise_ = s2
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
+    if k:
+        refined.parameters_laplace_ = laplace
     return refined
 
 
-def _levenberg_marquardt(u, offsets, active, root, beta, make_field, make_fields, residuals, sd, *, max_iter: int):
+def _robust(cov: torch.Tensor, J_p: torch.Tensor, J_o: torch.Tensor, r: torch.Tensor, residuals, W) -> torch.Tensor:
+    """G's parameters' covariance ``(k, k)`` (in units of their prior sd) from the joint fit through the ODE: the
+    Laplace one ``cov``, or, when it is wider on average, the cluster-robust sandwich over experiments (Liang & Zeger
+    1986; as :mod:`torchmisspec._parameters_ode` does): what the polynomial F cannot represent of the true one is
+    shared by the times of an experiment, not independent noise, and the Laplace posterior would let theta absorb it
+    with a confidence it has not earned. ``J_p`` ``(n d, q + k)``: the columns of the active coefficients (prior
+    variances ``W``) and of the parameters; ``J_o`` the offsets'; ``r`` ``(n, d)`` the scaled residuals."""
+    k = cov.shape[0]
+    q = J_p.shape[1] - k
+    kd = dict(dtype=cov.dtype, device=cov.device)
+    J = torch.cat([J_p, J_o], dim=1)
+    prior = torch.cat([1.0 / W[W > 0], torch.ones(k + J_o.shape[1], **kd)])
+    inverse = torch.linalg.inv(J.T @ J + torch.diag(prior))
+    d = r.shape[1]
+    rows = residuals.experiment.repeat_interleave(d)
+    K = int(rows.max()) + 1
+    scores = torch.zeros(K, J.shape[1], **kd).index_add_(0, rows, J * r.reshape(-1, 1))
+    meat = K / max(K - 1, 1) * scores.T @ scores + torch.diag(prior)
+    robust = (inverse @ meat @ inverse)[q : q + k, q : q + k]
+    if float(torch.trace(torch.linalg.solve(cov, robust))) > k:  # wider on average: the data say so
+        shrink = (1 / robust.diagonal().sqrt()).clamp_max(1.0)  # never wider than the prior (sd 1 in these units)
+        return shrink[:, None] * robust * shrink[None, :]
+    return cov
+
+
+def _levenberg_marquardt(
+    u, offsets, active, root, beta, make_field, make_fields, residuals, sd, *, max_iter: int, theta=None
+):
     """Minimise ``1/2 ||r(u, o) / s||^2 + 1/2 ||u||^2`` (the MAP of the coefficients ``u``, in units of their prior
     standard deviations, and the initial-state offsets ``o``, in units of the state noise) by Levenberg-Marquardt
     steps: the Jacobian by central differences, every perturbed model in one batched solve. The problem has a few
     dozen parameters and is nearly linear in them, so a handful of steps replaces L-BFGS's dozens of evaluations,
-    each of which differentiated through the solver. ``u`` and ``offsets`` are updated in place; returns
-    ``(iterations, objective evaluations)``."""
+    each of which differentiated through the solver. ``theta``: ``(v, field, fields)`` to learn G's uncertain
+    parameters too, v ``(k,)`` in units of their prior standard deviations (``+ 1/2 ||v||^2``), ``field(b, v)`` and
+    ``fields(bs, vs)`` taking them. ``u``, ``offsets`` (and v) are updated in place; returns ``(iterations, objective
+    evaluations)``."""
     q = u.numel()
     K, d = offsets.shape
     kd = dict(dtype=u.dtype, device=u.device)
+    k = 0 if theta is None else theta[0].numel()
 
     def coefficients(uv):
         b = torch.zeros_like(beta)
         b[active] = uv * root
         return b
 
-    def objective(uv, ov):
+    def fields(vv):  # (field, fields) with G at vv
+        if theta is None:
+            return make_field, make_fields
+        return (lambda b: theta[1](b, vv)), (lambda bs: theta[2](bs, vv.expand(bs.shape[0], -1)))
+
+    def objective(uv, vv, ov):
         try:
-            r = residuals(make_field(coefficients(uv)), ov, sd) / sd
+            r = residuals(fields(vv)[0](coefficients(uv)), ov, sd) / sd
         except IntegrationError:
             return math.inf, None
-        return 0.5 * float(r.pow(2).sum() + uv.pow(2).sum()), r.reshape(-1)
+        prior = uv.pow(2).sum() + (0 if vv is None else vv.pow(2).sum())
+        return 0.5 * float(r.pow(2).sum() + prior), r.reshape(-1)
 
     with torch.no_grad():
         uv, ov = u.detach().clone(), offsets.detach().clone()
-        value, r = objective(uv, ov)
+        vv = None if theta is None else theta[0].detach().clone()
+        value, r = objective(uv, vv, ov)
         if r is None:
             raise FittingError("fit_trajectories: the starting correction cannot be integrated over the experiments")
         lam, evaluations, iterations = 1e-3, 1, 0
         while iterations < max_iter:
             iterations += 1
             b = coefficients(uv)
-            J_u = _coefficient_columns(residuals, make_field, b, active, ov, sd, make_fields) * root  # (n d, q)
-            J_o = _offset_columns(residuals, make_field(b), ov, sd)  # (n d, K d)
-            J = torch.cat([J_u, J_o], dim=1)
-            grad = J.T @ r + torch.cat([uv, torch.zeros(K * d, **kd)])
+            field, fields_ = fields(vv)
+            J_u = _coefficient_columns(residuals, field, b, active, ov, sd, fields_) * root  # (n d, q)
+            J_o = _offset_columns(residuals, field(b), ov, sd)  # (n d, K d)
+            parts = [J_u] if theta is None else [J_u, _parameter_columns(residuals, theta[2], b, vv, ov, sd)]
+            J = torch.cat([*parts, J_o], dim=1)
+            prior = torch.cat([uv] + ([] if vv is None else [vv]) + [torch.zeros(K * d, **kd)])
+            grad = J.T @ r + prior
             H = J.T @ J
-            H[range(q), range(q)] += 1.0
+            H[range(q + k), range(q + k)] += 1.0
             accepted = False
             for _ in range(8):
                 A = H + lam * torch.diag(H.diagonal().clamp_min(1e-12))
@@ -298,8 +401,9 @@ def _levenberg_marquardt(u, offsets, active, root, beta, make_field, make_fields
                 except torch.linalg.LinAlgError:
                     lam *= 10.0
                     continue
-                new_u, new_o = uv + step[:q], ov + step[q:].reshape(K, d)
-                new_value, new_r = objective(new_u, new_o)
+                new_u, new_o = uv + step[:q], ov + step[q + k :].reshape(K, d)
+                new_v = None if vv is None else vv + step[q : q + k]
+                new_value, new_r = objective(new_u, new_v, new_o)
                 evaluations += 1
                 if new_value < value:
                     accepted = True
@@ -308,13 +412,29 @@ def _levenberg_marquardt(u, offsets, active, root, beta, make_field, make_fields
             if not accepted:
                 break
             gain = value - new_value
-            uv, ov, value, r = new_u, new_o, new_value, new_r
+            uv, vv, ov, value, r = new_u, new_v, new_o, new_value, new_r
             lam = max(lam / 10.0, 1e-9)
             if gain <= 1e-8 * max(value, 1.0):
                 break
         u.data.copy_(uv)
         offsets.data.copy_(ov)
+        if theta is not None:
+            theta[0].copy_(vv)
     return iterations, evaluations
+
+
+def _parameter_columns(residuals, make_fields, beta, v, off, sd) -> torch.Tensor:
+    """``(n d, k)``: d (residual / s) / d v for G's uncertain parameters theta = m + s v, by central differences,
+    the 2 k perturbed models in one batched solve (``make_fields(bs, vs)``: copy c with coefficients bs[c] and
+    parameters vs[c])."""
+    k = v.numel()
+    h = 1e-5
+    vs = v.unsqueeze(0).repeat(2 * k, 1)
+    j = torch.arange(k, device=v.device)
+    vs[j, j] += h
+    vs[k + j, j] -= h
+    res = residuals.many(make_fields(beta.unsqueeze(0).expand(2 * k, -1, -1), vs), 2 * k, off, sd)  # (2k, n, d)
+    return ((res[:k] - res[k:]) / (2 * h) / sd).reshape(k, -1).T
 
 
 def _step(value: float, typical: float) -> float:

@@ -491,7 +491,8 @@ def fit_correction(
     to the measured values, the data completed with its paths, then the steps above on the completed data);
     ``result.identifiability_`` says how the measurements see each output of F (an output none sees is refused), and
     ``result.initial_states_`` holds the estimated ``(K, d)`` initial states. Neither is saved with the model. With
-    uncertain parameters of G, such data are refused (not built).
+    uncertain parameters of G, they are learned with the first model through the ODE (their Laplace posterior, F's
+    terms and the initial states marginalised) and F is chosen at their posterior mean.
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
@@ -507,11 +508,6 @@ def fit_correction(
     """
     _check_trajectories_and_system(trajectories, system)
     if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
-        if system.parameters is not None:
-            raise InputError(
-                f"system '{system.name}': uncertain parameters {list(system.parameters.names)} with partly measured "
-                "states are not supported yet; fix them (system.at(values)) or measure every component"
-            )
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
         return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)
     system0 = system

@@ -22,6 +22,8 @@ that no measured component sees cannot be learned from these data, and the fit r
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -35,6 +37,7 @@ from .data import Trajectories
 from .gp import CorrectionGP
 from .gp._features import FEATURE_DEGREE
 from .observations import correction_samples
+from .parameters import ParameterPosterior, parameter_basis
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field, _shooting, _solve_rhs, _state_noise, fit_trajectories
 
@@ -292,12 +295,15 @@ def complete(system: MisspecifiedSystem, rhs, trajectories: Trajectories, initia
     return Trajectories(list(trajectories.times), rows, **kept)
 
 
-def _through_the_ode(system: MisspecifiedSystem, trajectories: Trajectories, completed, samples, noise, progress):
+def _through_the_ode(
+    system: MisspecifiedSystem, trajectories: Trajectories, completed, samples, noise, progress, parameters=False
+):
     """The first model of F and the initial states, fitted to what was measured: the feature kernel (monomials up to
     :data:`~torchmisspec.learning.FEATURE_DEGREE`, one set of relevance weights per output) through the ODE, its
     term weights by sparse Bayesian learning (:func:`~torchmisspec.fit_trajectories`' relevance fit), starting
     from F = 0 with a prior as large as G on F's outputs (the missing term may be as large as the known one), for
-    at most :data:`FIRST_MODEL_ROUNDS` rounds of relevance updates."""
+    at most :data:`FIRST_MODEL_ROUNDS` rounds of relevance updates; with ``parameters``, G's uncertain parameters
+    are learned with it (their Laplace posterior in the result's ``parameters_laplace_``)."""
     filled = completed.filled()
     g = system.select_outputs(system.known_rhs(filled.flat_states(), filled.flat_times(), filled.flat_controls()))
     start = g.pow(2).mean(0).clamp_min(torch.finfo(g.dtype).tiny)  # (d_out,)
@@ -316,6 +322,7 @@ def _through_the_ode(system: MisspecifiedSystem, trajectories: Trajectories, com
         progress=progress,
         start=start,
         rounds=FIRST_MODEL_ROUNDS,
+        parameters=parameters,
     )
 
 
@@ -343,13 +350,16 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     report.check(system.name)
     samples = correction_samples(completed, system, derivative="central")  # only their inputs are used
     data = trajectories.with_initial_states(completed.initial_states)
-    first = _through_the_ode(system, data, completed, samples, noise, progress)
+    learn = system.parameters is not None
+    first = _through_the_ode(system, data, completed, samples, noise, progress, parameters=learn)
     y0 = first.initial_states_
-    completed = complete(system, _mean_field(system, first.posterior()), trajectories, y0)
+    posterior = _first_posterior(system, first, completed) if learn else None
+    at = system if posterior is None else system.at(posterior.mean)  # F is chosen at theta's posterior mean
+    completed = complete(at, _mean_field(at, first.posterior()), trajectories, y0)
     refine = options.pop("refine", None)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", TorchMisspecWarning)
-        result = fit(completed, system, progress=progress, refine=False, **options)
+        result = fit(completed, at, progress=progress, refine=False, **options)
     for w in caught:  # the estimator's advice, for data whose unmeasured components are the first model's paths
         text = str(w.message).replace(
             "or fit the correction through the ODE with tms.fit_trajectories",
@@ -360,10 +370,45 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
         refine = result.kernel_spec.feature_space and system.autonomous
     if refine:  # F through the ODE on what was measured (not on the completed paths), the initial states with it
         chosen = result
-        result = fit_trajectories(chosen, system, trajectories.with_initial_states(y0), progress=progress)
+        result = fit_trajectories(chosen, at, trajectories.with_initial_states(y0), progress=progress)
         result.cross_validation_, result.samples_ = chosen.cross_validation_, chosen.samples_
         result.input_names_ = chosen.input_names_
         y0 = result.initial_states_
     result.initial_states_ = y0
     result.identifiability_ = report
+    if posterior is not None:
+        n = result.train_inputs_.shape[0]
+        result.parameters_ = dataclasses.replace(
+            posterior, basis_targets=posterior.basis_targets.new_zeros(n, *posterior.basis_targets.shape[1:])
+        )
+        result.parameters_.warn_if_unidentified("fit_correction")
     return result
+
+
+def _first_posterior(system: MisspecifiedSystem, first, completed: Trajectories) -> ParameterPosterior:
+    """G's uncertain parameters as the joint fit through the ODE found them (``first.parameters_laplace_``: the
+    Laplace posterior with F's coefficients and the initial states marginalised). F's posterior is not conditioned
+    on them (no absorption terms: draws of theta and of F are independent, which overstates the spread where F
+    could make up for theta)."""
+    found = first.parameters_laplace_
+    priors = system.parameters
+    like = completed.flat_states()
+    if found is None:  # the fit ended before its Laplace step: nothing learned
+        return ParameterPosterior.prior(priors, 0, system.output_dim, like)
+    mean, cov, fixed = found
+    flat = completed.flat_states()
+    t = None if system.autonomous else completed.flat_times().to(flat)
+    _, linear = parameter_basis(
+        lambda th: system.at(th).known_rhs(flat, t, completed.flat_controls()), mean, priors.scale.to(mean)
+    )
+    return ParameterPosterior(
+        names=priors.names,
+        prior_mean=priors.mean.to(like),
+        prior_scale=priors.scale.to(like),
+        mean=mean.detach().to(like),
+        covariance=(0.5 * (cov + cov.T)).detach().to(like),
+        sd_without_correction=fixed.diagonal().clamp_min(0).sqrt().detach().to(like),
+        log_evidence=math.nan,
+        basis_targets=like.new_zeros(0, system.output_dim, len(priors)),
+        linear=linear,
+    )
