@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import re
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -192,6 +193,20 @@ def check_chemostat(ns: dict) -> None:
     # "kd is flagged not identified ... q ... is still determined"
     assert ns["gp_absorbing"].parameters_.identified == (False, True)
     assert any("kd: posterior sd" in str(w.message) for w in ns["caught"])
+    # the substrate not measured, the yield uncertain: "seen through X"; "just over two posterior standard deviations";
+    # "predicted far better than by the known model"; the posterior is kept by save/load
+    found = ns["gp_partly"]
+    assert "F on dS/dt: seen through X" in found.identifiability_.summary()
+    post = found.parameters_
+    assert not post.linear and post.identified == (True, True)
+    z = (post.mean - torch.tensor([0.05, 0.5], dtype=torch.float64)).abs() / post.stddev
+    assert bool((z <= 2.5).all()) and bool((z > 2).any())
+    known_x = tms.trajectory_rmse(ns["known_x"], ns["reference_x"])
+    assert tms.trajectory_rmse(ns["predicted_x"], ns["reference_x"]) < 0.3 * known_x
+    with tempfile.TemporaryDirectory() as folder:
+        found.save(Path(folder) / "m.pt")
+        loaded = tms.CorrectionGP.load(Path(folder) / "m.pt").parameters_
+    assert torch.equal(loaded.mean, post.mean) and torch.equal(loaded.covariance, post.covariance)
 
 
 def check_partial_measurements(ns: dict) -> None:

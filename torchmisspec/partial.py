@@ -9,10 +9,19 @@ estimated, so the correction is learned through the ODE (:func:`~torchmisspec.fi
    model G alone (:func:`estimate_initial_states`: Levenberg-Marquardt on the measured values, one batched solve per
    step; the given ones are kept until the next step);
 2. the unmeasured components are filled with the model's path (:func:`complete`), so that F's inputs are known;
-3. F is fitted through the ODE to what was measured, the initial states with it
-   (:func:`~torchmisspec.fit_trajectories` with the unmeasured entries left out of the misfit), the data completed
+3. a first model of F (the feature kernel's terms) is fitted through the ODE to what was measured, the initial
+   states with it (sparse Bayesian learning with the unmeasured entries left out of the misfit), the data completed
    again with that model, and the usual model choice made on the completed data; a refinement through the ODE
    (``refine``, by :func:`~torchmisspec.fit_correction`'s rule) then fits the chosen model to the *measured* values.
+
+**Uncertain parameters of G** are learned in step 3, with the first model's terms and the initial states (their
+Levenberg-Marquardt problem, theta in units of its prior standard deviations). Their posterior is the Laplace one
+from the same Gauss-Newton Hessian, the coefficients and initial states marginalised, or the cluster-robust sandwich
+over experiments when that is wider on average (what the polynomial F misses of the true term is shared by an
+experiment's times, and the Laplace posterior would let theta absorb it with unearned confidence). F is then chosen
+and refined at theta's posterior mean. Derivative samples of the completed data are not used for theta: the
+completed paths were drawn with a first model, and theta fitted to them stayed near that model's (on the chemostat,
+3 to 4 of its standard deviations from the truth).
 
 Whether the measurements can tell anything about F is structural (:func:`identifiability`): F acting on component
 j is seen by the measurements when j is measured, or when j drives a measured component through G or F (a path in
