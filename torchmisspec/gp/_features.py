@@ -109,20 +109,21 @@ def monomial_powers(d_in: int, degree: int, *, device=None) -> torch.Tensor:
     return torch.tensor(rows, dtype=torch.long, device=device)
 
 
-def monomials(x: torch.Tensor, powers: torch.Tensor) -> torch.Tensor:
-    """``phi(x)``: ``(..., p)`` monomials of inputs ``(..., d_in)`` (differentiable in ``x``)."""
-    out = torch.ones((*x.shape[:-1], powers.shape[0]), dtype=x.dtype, device=x.device)
-    for i in range(powers.shape[1]):
-        top = int(powers[:, i].max()) if powers.numel() else 0
+def monomials(x: torch.Tensor, powers: torch.Tensor, tops=None) -> torch.Tensor:
+    """``phi(x)``: ``(..., p)`` monomials of inputs ``(..., d_in)`` (differentiable in ``x``); ``tops``: each input's
+    highest power, ``powers.max(0)`` as a list (given by kernels that call this at every solver step)."""
+    tops = (powers.amax(0).tolist() if powers.numel() else [0] * powers.shape[1]) if tops is None else tops
+    out = None
+    for i, top in enumerate(tops):
         if top == 0:
             continue
         xi = x[..., i : i + 1]
-        pw = [torch.ones_like(xi)]
-        for _ in range(top):
+        pw = [torch.ones_like(xi), xi]
+        for _ in range(top - 1):
             pw.append(pw[-1] * xi)
-        table = torch.cat(pw, dim=-1)  # (..., top + 1): x_i^0 .. x_i^top
-        out = out * table[..., powers[:, i]]
-    return out
+        table = torch.cat(pw, dim=-1)[..., powers[:, i]]  # x_i to each term's power
+        out = table if out is None else out * table
+    return torch.ones((*x.shape[:-1], powers.shape[0]), dtype=x.dtype, device=x.device) if out is None else out
 
 
 def monomial_names(powers: torch.Tensor, names=None) -> list[str]:
@@ -200,6 +201,7 @@ class FeatureKernel(gpytorch.kernels.Kernel):
         self.library_names = library_names
         powers = monomial_powers(d_in, degree) if library is None else torch.zeros(len(library), d_in, dtype=torch.long)
         self.register_buffer("powers", powers)
+        self._tops = powers.amax(0).tolist() if powers.numel() else [0] * d_in  # monomials' highest powers
         self.register_parameter("weights", torch.nn.Parameter(torch.ones(*batch_shape, powers.shape[0])))
         #: each term's posterior probability of being present (:func:`term_inclusion`; 1 until a fit sets it)
         self.register_buffer("inclusion", torch.ones(*batch_shape, powers.shape[0]))
@@ -209,7 +211,7 @@ class FeatureKernel(gpytorch.kernels.Kernel):
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         if self.library is None:
-            return monomials(x, self.powers)
+            return monomials(x, self.powers, self._tops)
         return library_features(self.library, x, self.library_names)
 
     def names(self, input_names=None) -> list[str]:
