@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -228,6 +229,10 @@ def test_band_and_calibration_figures(linear, tmp_path):
     shaded = fig.axes[0].collections[0].get_paths()[0].vertices[:, 1]  # the 90 % band of component 0
     assert shaded.min() == pytest.approx(float(lo[1, :, 0].min()))
     assert shaded.max() == pytest.approx(float(hi[1, :, 0].max()))
+    assert post.state_names == system.state_names is None  # the system names no states: y_1, y_2
+    assert [ax.get_ylabel() for ax in fig.axes] == ["$y_{1}$", "$y_{2}$"]
+    named = dataclasses.replace(post, state_names=("prey", "predator"))  # as CorrectedODE.posterior of a named system
+    assert [ax.get_ylabel() for ax in plot_prediction_bands(named).axes] == ["prey", "predator"]
     with pytest.raises(tms.InputError, match=r"index: expected an initial condition in \[0, 1\], got 2"):
         plot_prediction_bands(post, index=2)
     with pytest.raises(tms.ShapeError, match=r"true_states: expected shape \(2, 7, 2\) as the posterior"):

@@ -335,6 +335,7 @@ class CorrectedODE(nn.Module):
             extrapolating=extrapolating,
             threshold=threshold,
             update_error=draws.update_error,
+            state_names=self.system.state_names,
         )
 
     def initial_states(self, trajectories) -> torch.Tensor:
@@ -531,6 +532,8 @@ class TrajectoryPosterior:
         extrapolating: ``(B,)`` paths whose support ratio exceeds ``threshold`` somewhere.
         threshold: the extrapolation threshold used.
         update_error: the certified bound on the compression of the draws' update (0: exact).
+        state_names: the system's names of the state components (``None`` when it names none): what plots label
+            the panels with.
     """
 
     times: torch.Tensor
@@ -540,6 +543,7 @@ class TrajectoryPosterior:
     extrapolating: torch.Tensor
     threshold: float
     update_error: float = 0.0
+    state_names: tuple[str, ...] | None = None
 
     @property
     def num_samples(self) -> int:

@@ -50,7 +50,8 @@ def plot_prediction_bands(
         misspecified_states: optional ``(B, T, d)`` likewise.
         levels: central band probabilities in (0, 1).
         components: state components to draw (default: all), one panel each.
-        component_labels: y labels of the panels (default ``$y_{j+1}$``).
+        component_labels: y labels of the panels (default: the system's state names the posterior carries, else
+            ``$y_{j+1}$``).
         axes: draw into these Axes (one per component) instead of a new figure.
         legend: ``True``/``"axes"`` (in the first panel), ``"right"``, ``"below"`` or ``False``.
     """
@@ -64,7 +65,9 @@ def plot_prediction_bands(
     if not levels or not all(0 < v < 1 for v in levels):
         raise InputError(f"levels: expected band probabilities in (0, 1), got {levels}")
     comps = list(range(d)) if components is None else check_indices(components, d, "components")
-    labels = [f"$y_{{{j + 1}}}$" for j in comps] if component_labels is None else list(component_labels)
+    names = getattr(posterior, "state_names", None)
+    default = [names[j] if names else f"$y_{{{j + 1}}}$" for j in comps]
+    labels = default if component_labels is None else list(component_labels)
     if len(labels) != len(comps):
         raise InputError(f"component_labels: expected {len(comps)} labels, got {len(labels)}")
     extra = {}
