@@ -169,13 +169,15 @@ def _fit_relevance(
         return field
 
     def make_fields(bs, vs=None):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
-        copies = [known_at(vv) for vv in vs] if vs is not None else None  # vs (m, k): copy c's theta
+        # vs: None (G as declared), (k,) one theta for every copy (one call of G), or (m, k) copy c's theta
+        shared = known_at(vs) if vs is None or vs.dim() == 1 else None
+        copies = None if shared is not None else [known_at(vv) for vv in vs]
 
         def field(y, t=None, u=None):
             f = base.features(system.select_inputs(y, u)).reshape(bs.shape[0], -1, p)  # (m, K, p)
             mixed = torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
             if copies is None:
-                return system.known_rhs(y, t, u) + system.embed(mixed)
+                return shared.known_rhs(y, t, u) + system.embed(mixed)
             rows = y.shape[0] // len(copies)
             known = [
                 c.known_rhs(
@@ -196,7 +198,7 @@ def _fit_relevance(
             return plain_field(b, v if vv is None else vv)
 
         def make_fields(bs, vs=None):
-            return plain_fields(bs, v.expand(bs.shape[0], -1) if vs is None else vs)
+            return plain_fields(bs, v if vs is None else vs)
 
     if s2 is None:
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
@@ -364,7 +366,7 @@ def _levenberg_marquardt(
     def fields(vv):  # (field, fields) with G at vv
         if theta is None:
             return make_field, make_fields
-        return (lambda b: theta[1](b, vv)), (lambda bs: theta[2](bs, vv.expand(bs.shape[0], -1)))
+        return (lambda b: theta[1](b, vv)), (lambda bs: theta[2](bs, vv))
 
     def objective(uv, vv, ov):
         try:
