@@ -159,52 +159,6 @@ def _oscillator(c: float, absorb: bool):
     return truth, system
 
 
-def _data(truth, seed, K=8):
-    g = torch.Generator().manual_seed(seed)
-    y0 = torch.rand(K, 2, generator=g, dtype=D) * 4 - 2
-    t = torch.linspace(0, 6, 25, dtype=D)
-    clean = tms.simulate(truth, y0, t)
-    return tms.Trajectories(t, clean.states + 0.01 * torch.randn(clean.states.shape, generator=g, dtype=D))
-
-
-def test_oscillator_damping_is_recovered_and_predicts_as_well_as_known(tmp_path):
-    truth, system = _oscillator(0.3, absorb=False)
-    data = _data(truth, 0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", tms.TorchMisspecWarning)  # identified: no warning
-        gp = tms.fit_correction(data, system, progress=False)
-    post = gp.parameters_
-    assert post.names == ("c",) and post.identified == (True,)
-    assert abs(float(post.mean[0]) - 0.3) <= 2 * float(post.stddev[0])
-    assert float(post.stddev[0]) < 0.1 * 0.15  # far inside the prior
-    model = tms.CorrectedODE(system, gp)
-    g = torch.Generator().manual_seed(9)
-    y0 = torch.rand(10, 2, generator=g, dtype=D) * 4 - 2
-    t = torch.linspace(0, 6, 25, dtype=D)
-    ref = tms.simulate(truth, y0, t).states
-    known_error = tms.trajectory_rmse(tms.simulate(system, y0, t, known_only=True).states, ref)
-    assert tms.trajectory_rmse(model.predict(y0, t), ref) <= 0.1 * known_error
-    # saved and loaded, it predicts the same
-    gp.save(tmp_path / "m.pt")
-    loaded = tms.CorrectionGP.load(tmp_path / "m.pt")
-    torch.testing.assert_close(loaded.parameters_.covariance, post.covariance, rtol=0, atol=0)
-    torch.testing.assert_close(tms.CorrectedODE(system, loaded).predict(y0, t), model.predict(y0, t))
-    # the bands' draws carry theta's posterior: each draw a draw of theta too
-    bands = model.posterior(y0[:3], t, num_samples=16, scale=1.0, generator=torch.Generator().manual_seed(1))
-    assert bool(torch.isfinite(bands.samples).all())
-
-
-def test_oscillator_damping_absorbed_by_a_drag_is_reported():
-    truth, system = _oscillator(0.3, absorb=True)
-    with pytest.warns(tms.TorchMisspecWarning, match=r"c: posterior sd .* F can absorb its effect"):
-        gp = tms.fit_correction(_data(truth, 1), system, progress=False)
-    post = gp.parameters_
-    assert post.identified == (False,)
-    assert float(post.sd_without_correction[0]) < 0.5 * float(post.prior_scale[0])
-    assert "NOT identified" in post.summary()
-
-
-# ------------------------------------------------------------------------------- G nonlinear in theta
 def _oscillator_time_constant(tau: float):
     """The damped oscillator with its damping given by a time constant: v' = -x - v / tau + F(x), nonlinear in tau."""
 
@@ -223,6 +177,56 @@ def _oscillator_time_constant(tau: float):
     return truth, system
 
 
+def _data(truth, seed, K=8):
+    g = torch.Generator().manual_seed(seed)
+    y0 = torch.rand(K, 2, generator=g, dtype=D) * 4 - 2
+    t = torch.linspace(0, 6, 25, dtype=D)
+    clean = tms.simulate(truth, y0, t)
+    return tms.Trajectories(t, clean.states + 0.01 * torch.randn(clean.states.shape, generator=g, dtype=D))
+
+
+@pytest.mark.parametrize("nonlinear", [False, True], ids=["damping c (linear)", "time constant 1/c (nonlinear)"])
+def test_damping_is_recovered_predicts_as_well_as_known_and_persists(tmp_path, nonlinear):
+    """The damping as a rate c (G linear in it: the closed form) or as a time constant tau = 1 / c (nonlinear: the
+    MAP and its Laplace posterior): recovered within 2 posterior sd, far inside the prior, identified without a
+    warning; predictions near the truth, kept exactly by save/load; band draws carry theta's posterior."""
+    truth, system = _oscillator_time_constant(1 / 0.3) if nonlinear else _oscillator(0.3, absorb=False)
+    true = 1 / 0.3 if nonlinear else 0.3
+    data = _data(truth, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tms.TorchMisspecWarning)  # identified: no warning
+        gp = tms.fit_correction(data, system, progress=False)
+    post = gp.parameters_
+    assert post.linear is not nonlinear and post.identified == (True,)
+    assert abs(float(post.mean[0]) - true) <= 2 * float(post.stddev[0])
+    assert float(post.stddev[0]) < 0.1 * float(post.prior_scale[0])  # far inside the prior
+    model = tms.CorrectedODE(system, gp)
+    g = torch.Generator().manual_seed(9)
+    y0 = torch.rand(10, 2, generator=g, dtype=D) * 4 - 2
+    t = torch.linspace(0, 6, 25, dtype=D)
+    ref = tms.simulate(truth, y0, t).states
+    known_error = tms.trajectory_rmse(tms.simulate(system, y0, t, known_only=True).states, ref)
+    assert tms.trajectory_rmse(model.predict(y0, t), ref) <= 0.1 * known_error
+    gp.save(tmp_path / "m.pt")
+    loaded = tms.CorrectionGP.load(tmp_path / "m.pt")
+    assert loaded.parameters_.linear is post.linear
+    torch.testing.assert_close(loaded.parameters_.covariance, post.covariance, rtol=0, atol=0)
+    torch.testing.assert_close(tms.CorrectedODE(system, loaded).predict(y0, t), model.predict(y0, t))
+    bands = model.posterior(y0[:3], t, num_samples=16, scale=1.0, generator=torch.Generator().manual_seed(1))
+    assert bool(torch.isfinite(bands.samples).all())
+
+
+def test_oscillator_damping_absorbed_by_a_drag_is_reported():
+    truth, system = _oscillator(0.3, absorb=True)
+    with pytest.warns(tms.TorchMisspecWarning, match=r"c: posterior sd .* F can absorb its effect"):
+        gp = tms.fit_correction(_data(truth, 1), system, progress=False)
+    post = gp.parameters_
+    assert post.identified == (False,)
+    assert float(post.sd_without_correction[0]) < 0.5 * float(post.prior_scale[0])
+    assert "NOT identified" in post.summary()
+
+
+# ------------------------------------------------------------------------------- G nonlinear in theta
 def test_nonlinear_parameter_map_and_laplace_match_brute_force():
     """For a G nonlinear in theta and fixed hyperparameters, Gauss-Newton's mean is the maximum of
     log N(r(theta); 0, C) + log N(theta; m, s^2) found on a grid, and its variance the Laplace one, 1 / (1/s^2 +
@@ -255,33 +259,6 @@ def test_nonlinear_parameter_map_and_laplace_match_brute_force():
     # the samples come back linearised at the mean: their targets are r at it
     r = dydt - system.at(post.mean).known_rhs(samples.states)
     torch.testing.assert_close(linearized.targets, r[:, [1]])
-
-
-def test_nonlinear_parameter_is_recovered_predicts_and_persists(tmp_path):
-    truth, system = _oscillator_time_constant(1 / 0.3)
-    data = _data(truth, 0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", tms.TorchMisspecWarning)  # identified: no warning
-        gp = tms.fit_correction(data, system, progress=False)
-    post = gp.parameters_
-    assert not post.linear and post.identified == (True,)
-    assert abs(float(post.mean[0]) - 1 / 0.3) <= 2 * float(post.stddev[0])
-    model = tms.CorrectedODE(system, gp)
-    g = torch.Generator().manual_seed(9)
-    y0 = torch.rand(10, 2, generator=g, dtype=D) * 4 - 2
-    t = torch.linspace(0, 6, 25, dtype=D)
-    ref = tms.simulate(truth, y0, t).states
-    known_error = tms.trajectory_rmse(tms.simulate(system, y0, t, known_only=True).states, ref)
-    assert tms.trajectory_rmse(model.predict(y0, t), ref) <= 0.1 * known_error
-    gp.save(tmp_path / "m.pt")
-    loaded = tms.CorrectionGP.load(tmp_path / "m.pt")
-    assert loaded.parameters_.linear is False
-    torch.testing.assert_close(tms.CorrectedODE(system, loaded).predict(y0, t), model.predict(y0, t))
-    # each band draw integrates G at its own tau: draws of tau alone (F's spread off) spread the paths as tau does
-    bands = model.posterior(y0[:2], t, num_samples=32, scale=1.0, generator=torch.Generator().manual_seed(1))
-    assert bool(torch.isfinite(bands.samples).all())
-    taus = post.sample(4000, generator=torch.Generator().manual_seed(2))
-    assert float(taus.std()) == pytest.approx(float(post.stddev[0]), rel=0.05)
 
 
 def test_prior_only_model_and_refusals():

@@ -159,8 +159,8 @@ def _fit_relevance(
     def known_at(vv):  # G at theta = m + s vv (the system as declared when not learning theta)
         return system if vv is None else system.at(m_theta + s_theta * vv)
 
-    def make_field(b, vv=None):
-        known = known_at(vv if k else None)
+    def make_field(b, vv=None):  # vv: G's parameters (default: the current v; None without them)
+        known = known_at(v if vv is None else vv)
 
         def field(y, t=None, u=None):
             x = system.select_inputs(y, u)
@@ -169,7 +169,8 @@ def _fit_relevance(
         return field
 
     def make_fields(bs, vs=None):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
-        # vs: None (G as declared), (k,) one theta for every copy (one call of G), or (m, k) copy c's theta
+        # vs: (k,) one theta for every copy (one call of G; default the current v), or (m, k) copy c's theta
+        vs = v if vs is None else vs
         shared = known_at(vs) if vs is None or vs.dim() == 1 else None
         copies = None if shared is not None else [known_at(vv) for vv in vs]
 
@@ -190,15 +191,6 @@ def _fit_relevance(
             return torch.cat(known) + system.embed(mixed)
 
         return field
-
-    if k:  # every field below at the current theta unless told otherwise
-        plain_field, plain_fields = make_field, make_fields
-
-        def make_field(b, vv=None):
-            return plain_field(b, v if vv is None else vv)
-
-        def make_fields(bs, vs=None):
-            return plain_fields(bs, v if vs is None else vs)
 
     if s2 is None:
         s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
@@ -233,7 +225,7 @@ def _fit_relevance(
                 residuals,
                 sd,
                 max_iter=rounds_iter,
-                theta=None if not k else (v, plain_field, plain_fields),
+                theta=None if not k else (v, make_field, make_fields),
             )
         else:
             result = _maximise_posterior(
@@ -252,7 +244,7 @@ def _fit_relevance(
             J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
             q = J_b.shape[1]
             if k:  # G's parameters: columns and prior N(0, 1) in units of their prior sd
-                J_b = torch.cat([J_b, _parameter_columns(residuals, plain_fields, beta, v, off, sd)], dim=1)
+                J_b = torch.cat([J_b, _parameter_columns(residuals, make_fields, beta, v, off, sd)], dim=1)
             H = J_b.T @ J_b + torch.diag(torch.cat([1.0 / W[active], torch.ones(k, **kd)]))
             if off is not None:  # the offsets' block: column j moves component j of every initial state
                 Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
@@ -263,13 +255,8 @@ def _fit_relevance(
             try:
                 inverse = torch.linalg.inv(H)
                 Sigma = inverse.diagonal()[:q]
-                if k:  # theta's posterior, with F's coefficients marginalised and with them held fixed
-                    cov = _robust(inverse[q:, q:], J_b, Jo, residuals(make_field(beta), off, sd) / sd, residuals, W)
-                    laplace = (
-                        m_theta + s_theta * v,
-                        s_theta[:, None] * cov * s_theta[None, :],
-                        s_theta[:, None] * torch.linalg.inv(H[q:, q:]) * s_theta[None, :],
-                    )
+                if k:  # this round's pieces of theta's posterior (made once, after the last round)
+                    laplace = (v.clone(), inverse[q:, q:], torch.linalg.inv(H[q:, q:]), J_b, Jo, beta.clone(), W, off)
             except torch.linalg.LinAlgError:
                 break
             new = torch.zeros_like(W)
@@ -312,8 +299,14 @@ def _fit_relevance(
     refined.state_noise_ = s2
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
-    if k:
-        refined.parameters_laplace_ = laplace
+    if k:  # theta's posterior from the last round's Laplace step, with F's coefficients marginalised and held fixed
+        refined.parameters_laplace_ = None
+        if laplace is not None:
+            v_at, cov, fixed, J_p, J_o, b_at, W_at, off_at = laplace
+            r = residuals(make_field(b_at, v_at), off_at, sd) / sd
+            cov = _robust(cov, J_p, J_o, r, residuals, W_at)
+            scaled = (s_theta[:, None] * c * s_theta[None, :] for c in (cov, fixed))
+            refined.parameters_laplace_ = (m_theta + s_theta * v_at, *scaled)
     return refined
 
 

@@ -57,7 +57,7 @@ from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_
 from ._stencils import finite_difference, smoothed_derivative
 from ._validation import check_finite, check_real
 from .data import Trajectories
-from .parameters import parameter_basis
+from .parameters import jacobian, parameter_basis
 from .systems import MisspecifiedSystem
 
 __all__ = [  # in the order of the API page
@@ -147,7 +147,7 @@ class CorrectionSamples:
 
         dydt = self.residuals + known(before) + self.basis @ (mean - before)
         at = dydt - known(theta)
-        basis, _ = parameter_basis(known, theta, system.parameters.scale.to(theta))
+        basis = jacobian(known, theta, system.parameters.scale.to(theta))  # nonlinear: no check again
         residuals = at + basis @ (theta - mean)
         targets = at[:, list(outputs)].contiguous()
         return dataclasses.replace(self, residuals=residuals, basis=basis, targets=targets, linearized_at=theta)

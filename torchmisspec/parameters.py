@@ -59,6 +59,7 @@ __all__ = [
     "ParameterPosterior",
     "check_priors",
     "parameter_basis",
+    "jacobian",
     "parameter_posterior",
     "condition_with_parameters",
     "posterior_given",
@@ -146,9 +147,15 @@ def parameter_basis(rhs, theta: torch.Tensor, scale: torch.Tensor) -> tuple[torc
     linear = all(float((got - want).abs().amax()) <= LINEARITY_TOLERANCE * float(size) for got, want in checks)
     if linear:
         return torch.stack([(ups[j] - base) / scale[j].item() for j in range(k)], dim=-1), True
-    h = steps * JACOBIAN_STEP
-    cols = [(rhs(theta + h[j]) - rhs(theta - h[j])) / (2 * h[j, j].item()) for j in range(k)]
-    return torch.stack(cols, dim=-1), False
+    return jacobian(rhs, theta, scale), False
+
+
+def jacobian(rhs, theta: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """dG/dtheta ``(..., d, k)`` at ``theta`` by central differences of :data:`JACOBIAN_STEP` prior scales ``scale``
+    (``rhs(theta) -> (..., d)``): the basis of a G known to be nonlinear in theta."""
+    h = torch.eye(theta.shape[0], dtype=theta.dtype, device=theta.device) * scale.to(theta) * JACOBIAN_STEP
+    cols = [(rhs(theta + h[j]) - rhs(theta - h[j])) / (2 * h[j, j].item()) for j in range(theta.shape[0])]
+    return torch.stack(cols, dim=-1)
 
 
 @dataclass(frozen=True)
