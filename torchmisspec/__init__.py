@@ -33,7 +33,7 @@ from ._errors import (
     TorchMisspecWarning,
 )
 from .calibration import BandCalibration, calibrate_bands
-from .data import Trajectories, simulate
+from .data import Readout, Trajectories, simulate
 from .dynamics import CorrectedODE, TrajectoryPosterior
 from .gp import CorrectionGP, GPPosterior, Posterior
 from .learning import cross_validate, fit_correction
@@ -63,6 +63,7 @@ __all__ = [
     "FittingError",
     "GPPosterior",
     "Posterior",
+    "Readout",
     "InputError",
     "IntegrationError",
     "MisspecifiedSystem",

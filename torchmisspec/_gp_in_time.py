@@ -272,6 +272,19 @@ def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:
     return torch.maximum(var.to(states), floor.to(states)).sqrt()
 
 
+def estimate_readings_noise(trajectories: Trajectories) -> torch.Tensor | None:
+    """``(m,)`` the readings' noise standard deviations, estimated as the states' are (the GP in time), from the
+    experiments that read them; ``None`` where that estimate is (too few readings)."""
+    values = trajectories.readings
+    lengths = trajectories.lengths
+    per = list(values) if isinstance(values, tuple) else [values[k] for k in range(len(lengths))]
+    times = [t for t, _ in trajectories.experiments()]
+    kept = [k for k, r in enumerate(per) if bool(torch.isfinite(r).any())]
+    read = Trajectories([times[k] for k in kept], [per[k] for k in kept], state_names=trajectories.readout.names)
+    std = estimate_state_noise(read)  # 0 for a reading no experiment reads often enough: its few values 1 % accurate
+    return None if std is None else torch.where(std > 0, std, 1e-2 * observed_rms(read.flat_states()))
+
+
 def observed_variance(flat: torch.Tensor) -> torch.Tensor:
     """``(d,)`` the unbiased variance of each column of ``flat (N, d)`` over its observed (non-NaN) entries."""
     seen = torch.isfinite(flat)

@@ -27,10 +27,11 @@ from ._validation import progress_bar
 from .data import Trajectories
 
 
-def _balanced_noise(residuals, field, trajectories: Trajectories, d: int) -> torch.Tensor:
-    """State-noise variances that balance data and prior at the start: the mean squared misfit per component."""
+def _balanced_noise(residuals, field, trajectories: Trajectories) -> torch.Tensor:
+    """Noise variances that balance data and prior at the start: the mean squared misfit per component (of the
+    states and any readings)."""
     with torch.no_grad():
-        sq0 = residuals(field, None, None).pow(2).reshape(-1, d)  # the start: the observed initial states
+        sq0 = residuals(field, None, None).pow(2)  # (n, d + m), from the observed initial states
     seen = residuals.seen.to(sq0.dtype)
     flat = trajectories.flat_states()
     size = float(flat[torch.isfinite(flat)].pow(2).mean())
@@ -193,7 +194,7 @@ def _fit_relevance(
         return field
 
     if s2 is None:
-        s2 = _balanced_noise(residuals, make_field(beta), trajectories, d)
+        s2 = _balanced_noise(residuals, make_field(beta), trajectories)
     sd = s2.sqrt()
     iterations = evaluations = 0
     laplace = None
@@ -298,7 +299,7 @@ def _fit_relevance(
     refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
     if offsets is not None:
-        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd
+        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd[:d]
     if k:  # theta's posterior from the last round's Laplace step, with F's coefficients marginalised and held fixed
         refined.parameters_laplace_ = None
         if laplace is not None:
@@ -467,30 +468,32 @@ def _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fiel
 
 
 def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
-    """``(n d, K d)``: d (residual / s) / d offsets by central differences; experiments are independent, so moving
-    component j of every initial state at once gives each experiment's own column."""
+    """``(n e, K d)``: d (residual / s) / d offsets by central differences (e = d + m residual columns, the states
+    and any readings); experiments are independent, so moving component j of every initial state at once gives
+    each experiment's own column."""
     rows = residuals.experiment  # (n,)
     K, d = off.shape
     n = rows.shape[0]
-    J = torch.zeros((n, d, K, d), dtype=off.dtype, device=off.device)
+    e = sd.shape[-1]
+    J = torch.zeros((n, e, K, d), dtype=off.dtype, device=off.device)
     h = 1e-5
     if hasattr(residuals, "many"):  # the 2 d perturbed offsets in one batched solve
         stack = off.unsqueeze(0).repeat(2 * d, 1, 1)
         j = torch.arange(d, device=off.device)
         stack[j, :, j] += h
         stack[d + j, :, j] -= h
-        res = residuals.many(field, 2 * d, stack, sd)  # (2 d, n, d)
-        delta = (res[:d] - res[d:]) / (2 * h) / sd  # (d, n, d)
+        res = residuals.many(field, 2 * d, stack, sd)  # (2 d, n, e)
+        delta = (res[:d] - res[d:]) / (2 * h) / sd  # (d, n, e)
         for jj in range(d):
             J[torch.arange(n, device=off.device), :, rows, jj] = delta[jj]
-        return J.reshape(n * d, K * d)
+        return J.reshape(n * e, K * d)
     for j in range(d):
         plus, minus = off.clone(), off.clone()
         plus[:, j] += h
         minus[:, j] -= h
-        delta = (residuals(field, plus, sd) - residuals(field, minus, sd)) / (2 * h) / sd  # (n, d)
+        delta = (residuals(field, plus, sd) - residuals(field, minus, sd)) / (2 * h) / sd  # (n, e)
         J[torch.arange(n, device=off.device), :, rows, j] = delta
-    return J.reshape(n * d, K * d)
+    return J.reshape(n * e, K * d)
 
 
 def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:

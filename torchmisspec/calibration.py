@@ -50,6 +50,7 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
+from ._gp_in_time import estimate_readings_noise
 from ._parameters_ode import fit_parameters
 from ._validation import as_tensor, check_positive_int, check_real, progress_bar
 from .data import Trajectories
@@ -77,14 +78,20 @@ def _check_level(level) -> float:
     return level
 
 
-def _state_noise(state_noise, trajectories: Trajectories, d: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(absolute (d,), relative (d,))`` standard deviations of the observation noise on the states: a new
-    observation of a state y is y + (absolute + relative |y|) z, z standard normal."""
-    zeros = torch.zeros(d, dtype=dtype, device=device)
+def _state_noise(state_noise, trajectories: Trajectories, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(absolute (e,), relative (e,))`` standard deviations of the observation noise on the states and any
+    readings (e = d + m): a new observation of a value y is y + (absolute + relative |y|) z, z standard normal."""
+    d = trajectories.state_dim
+    readout = trajectories.readout
+    e = d + (0 if readout is None else readout.num_readings)
+    zeros = torch.zeros(e, dtype=dtype, device=device)
     if state_noise is None:
         return zeros, zeros
     if isinstance(state_noise, str) and state_noise == "auto":
         estimate = estimate_state_noise(trajectories)
+        if estimate is not None and readout is not None:
+            readings = estimate_readings_noise(trajectories)
+            estimate = None if readings is None else torch.cat([estimate, readings.to(estimate)])
         return (zeros if estimate is None else estimate.to(dtype=dtype, device=device)), zeros
     if isinstance(state_noise, str):
         text = state_noise.strip()
@@ -100,10 +107,11 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, dtype, device)
         return zeros, zeros + value
     noise = as_tensor(state_noise, "state_noise", dtype=dtype, device=device)
     if noise.dim() == 0:
-        noise = noise.expand(d)
-    if noise.shape != (d,):
+        noise = noise.expand(e)
+    if noise.shape != (e,):
+        what = "state" if e == d else "state and reading"
         raise ShapeError(
-            f"state_noise: expected a standard deviation or {d} of them (one per state), got {noise.shape}"
+            f"state_noise: expected a standard deviation or {e} of them (one per {what}), got {noise.shape}"
         )
     if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
         raise InputError(f"state_noise: expected finite standard deviations >= 0, got {noise.tolist()}")
@@ -172,11 +180,12 @@ def calibrate_bands(
         raise InputError("posterior_options: scale and num_samples are set by calibrate_bands itself")
     _check_trajectories_and_system(trajectories, system)
     folds = _check_cv_inputs(system, trajectories, samples, folds)
-    absolute, relative = _state_noise(state_noise, trajectories, system.state_dim, gp.dtype, gp.device)
+    absolute, relative = _state_noise(state_noise, trajectories, gp.dtype, gp.device)
     noisy = bool(absolute.any() or relative.any())
     seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
     K = trajectories.num_experiments
     experiments = trajectories.experiments()
+    values, _ = trajectories.observed_values()  # (K, T_max, d + m): the states and any readings
     first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
     held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d), controls or None)])
     refinement = getattr(gp, "refinement_", None)
@@ -221,7 +230,7 @@ def calibrate_bands(
         for group in by_length.values():
             kd = dict(dtype=gp.dtype, device=gp.device)
             times = torch.stack([experiments[k][0] for k in group]).to(**kd)
-            states = torch.stack([experiments[k][1] for k in group]).to(**kd)
+            states = values[group, : times.shape[-1]].to(**kd)
             controls = None if trajectories.controls is None else trajectories.controls[group]
             batches.append((first[group].to(**kd), times, states, controls))
         held_out.append((type(model)(system, fold_gp), batches))
@@ -263,13 +272,13 @@ def calibrate_bands(
                     raise FittingError(
                         f"calibrate_bands: the held-out posterior paths of fold {i} fail ({exc})"
                     ) from exc
-            mean = post.mean_path[:, 1:]  # every path starts at the first observed state
+            mean = trajectories.observe(post.mean_path[:, 1:])  # every path starts at the first observed state
             z = None
             if noisy:  # NOISE_DRAWS noise draws per path: the band's quantiles of path + noise
                 z = torch.randn(
                     (num_samples, NOISE_DRAWS, *mean.shape), generator=gen, dtype=mean.dtype, device=mean.device
                 )
-            paths.append((mean, post.samples[:, :, 1:] - mean, z, observed[:, 1:]))
+            paths.append((mean, trajectories.observe(post.samples[:, :, 1:]) - mean, z, observed[:, 1:]))
         bar.update()
     bar.close()
     total = sum(int(torch.isfinite(obs).sum()) for *_, obs in paths)  # missing entries (NaN) are not compared

@@ -12,7 +12,9 @@ estimated, so the correction is learned through the ODE (:func:`~torchmisspec.fi
 3. a first model of F (the feature kernel's terms) is fitted through the ODE to what was measured, the initial
    states with it (sparse Bayesian learning with the unmeasured entries left out of the misfit), the data completed
    again with that model, and the usual model choice made on the completed data; a refinement through the ODE
-   (``refine``, by :func:`~torchmisspec.fit_correction`'s rule) then fits the chosen model to the *measured* values.
+   then fits the chosen model to the *measured* values (``refine``; by default by
+   :func:`~torchmisspec.fit_correction`'s rule, and for any kernel when F acts on or depends on a component not
+   measured directly, whose samples came from the first model's paths; autonomous systems).
 
 **Uncertain parameters of G** are learned in step 3, with the first model's terms and the initial states (their
 Levenberg-Marquardt problem, theta in units of its prior standard deviations). Their posterior is the Laplace one
@@ -43,6 +45,7 @@ from ._gp_in_time import observed_rms
 from ._ode import FITTING_TOLERANCES, PREDICTION_TOLERANCES
 from ._trajectory_map import _fit_relevance
 from .data import Trajectories
+from .data._trajectories import MIN_MEASURED
 from .gp import CorrectionGP
 from .gp._features import FEATURE_DEGREE
 from .observations import correction_samples
@@ -83,6 +86,13 @@ class Identifiability:
     measured: tuple[str, ...]
     unmeasured: tuple[str, ...]
     unmeasured_inputs: tuple[str, ...]
+
+    @property
+    def from_paths(self) -> bool:
+        """Whether F's samples on the completed data rest on fitted paths: an output of F or one of its inputs is not
+        measured directly (then the model chosen on those samples is refined through the ODE)."""
+        direct = all(seen and seen[0] == out for out, seen in zip(self.outputs, self.seen_by, strict=True))
+        return not direct or bool(self.unmeasured_inputs)
 
     @property
     def unseen(self) -> tuple[str, ...]:
@@ -163,9 +173,18 @@ def identifiability(
     for _ in range(d):  # transitive closure: reach[a, b] when a chain a -> ... -> b exists
         reach = reach | ((reach.to(torch.int64) @ reach.to(torch.int64)) > 0)
     names = system.state_names_for(trajectories) or trajectories.state_names
+    readout, read = trajectories.readout, []
+    if readout is not None:  # a reading sees every state it weighs (when some experiment reads it often enough)
+        values, mask = trajectories.observed_values()
+        counts = (torch.isfinite(values[..., d:]) & mask.unsqueeze(-1)).sum(1)  # (K, m)
+        weighs = (readout.matrix != 0).cpu()
+        read = [
+            (readout.names[r], weighs[r]) for r in range(weighs.shape[0]) if bool((counts[:, r] >= MIN_MEASURED).any())
+        ]
     seen_by = []
     for j in system.correction_outputs:
         seen = [names[m] for m in range(d) if measured[m] and reach[j, m]]
+        seen += [name for name, w in read if bool((reach[j] & w).any())]
         if measured[j]:  # itself first
             seen = [names[j]] + [s for s in seen if s != names[j]]
         seen_by.append(tuple(seen))
@@ -183,10 +202,21 @@ def identifiability(
 def initial_guess(trajectories: Trajectories) -> torch.Tensor:
     """``(K, d)`` starting values of the initial states: the first observed states (missing entries estimated by
     :meth:`Trajectories.filled`); a component never observed in an experiment starts at its mean over the
-    experiments that observe it. Raises :class:`InputError` for a component no experiment observes at all."""
+    experiments that observe it, or, when it is only read in combinations (:attr:`Trajectories.readout`), at the
+    least-squares solution of the first readings given the states known there. Raises :class:`InputError` for a
+    component no experiment observes at all, neither alone nor in a reading."""
     first = trajectories.initial_conditions
+    if trajectories.readout is not None:
+        first = _from_readings(trajectories, first)[0]
     flat = trajectories.flat_states()
     seen = torch.isfinite(flat)
+    if trajectories.readout is not None:  # a state read in a combination counts as observed there
+        weights = trajectories.readout.matrix.to(flat) != 0  # (m, d)
+        _, readings = trajectories.observed_values()[0].split([trajectories.state_dim, weights.shape[0]], dim=-1)
+        read = torch.isfinite(readings).flatten(0, -2).any(0)  # (m,)
+        if bool(torch.isfinite(first).all()):
+            return first
+        seen = seen | (weights & read.unsqueeze(-1)).any(0)
     never = (~seen.any(0)).nonzero().flatten().tolist()
     if never:
         names = ", ".join(repr(trajectories.state_names[j]) for j in never)
@@ -196,8 +226,35 @@ def initial_guess(trajectories: Trajectories) -> torch.Tensor:
             "enough: it is refined from the other measurements), or measure it at least once"
         )
     zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
-    mean = torch.where(seen, flat, zero).sum(0) / seen.sum(0)
+    seen = seen & torch.isfinite(flat)
+    mean = torch.where(seen, flat, zero).sum(0) / seen.sum(0).clamp_min(1)
     return torch.where(torch.isfinite(first), first, mean.expand_as(first))
+
+
+def _from_readings(trajectories: Trajectories, first: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``first (K, d)`` with its missing entries solved from each experiment's readings at its first time, given the
+    known entries (the minimum-norm least-squares solution; entries the readings do not reach stay NaN), and the
+    ``(K, d)`` mask of the entries the readings determine (uniquely: as many independent readings as unknowns)."""
+    values, _ = trajectories.observed_values()
+    d = trajectories.state_dim
+    H = trajectories.readout.matrix.to(first)
+    out, determined = first.clone(), torch.zeros_like(first, dtype=torch.bool)
+    for k in range(first.shape[0]):
+        unknown = ~torch.isfinite(first[k])
+        row = values[k, 0, d:]  # the readings at the first time
+        read = torch.isfinite(row)
+        if not bool(unknown.any() and read.any()):
+            continue
+        A = H[read][:, unknown]  # (r, u)
+        reached = (A != 0).any(0)
+        if not bool(reached.any()):
+            continue
+        A = A[:, reached]
+        rhs = row[read] - H[read][:, ~unknown] @ first[k][~unknown]
+        idx = unknown.nonzero().flatten()[reached]
+        out[k, idx] = torch.linalg.lstsq(A, rhs.unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
+        determined[k, idx] = int(torch.linalg.matrix_rank(A)) == A.shape[1]
+    return out, determined
 
 
 def estimate_initial_states(
@@ -228,9 +285,13 @@ def estimate_initial_states(
     residuals, _, _ = _shooting(trajectories, "single", dict(solver, what="estimate_initial_states"), system)
     kd = dict(dtype=trajectories.dtype, device=trajectories.device)
     if noise is None:
-        variance = _state_noise(None, trajectories, d, kd)
+        variance = _state_noise(None, trajectories, kd)
         sizes = torch.cat([trajectories.flat_states(), trajectories.initial_conditions])
-        noise = observed_rms(sizes) if variance is None else variance.sqrt()
+        if variance is not None:
+            noise = variance.sqrt()
+        else:  # each state's and reading's size
+            values, mask = trajectories.observed_values()
+            noise = torch.cat([observed_rms(sizes), observed_rms(values[mask])[d:]])
     sd = noise.to(**kd)  # offsets and residuals in units of each component's noise
     experiment = residuals.experiment  # (n,)
     cols = free.any(0).nonzero().flatten().tolist()
@@ -239,7 +300,7 @@ def estimate_initial_states(
     off = torch.zeros(K, d, dtype=sd.dtype, device=sd.device)
     lam = torch.full((K,), 1e-3, dtype=sd.dtype, device=sd.device)
 
-    def per_experiment_cost(r: torch.Tensor) -> torch.Tensor:  # r (n, d) weighted residuals
+    def per_experiment_cost(r: torch.Tensor) -> torch.Tensor:  # r (n, e) weighted residuals
         return torch.zeros(K, dtype=r.dtype, device=r.device).index_add_(0, experiment, r.pow(2).sum(-1))
 
     with torch.no_grad():
@@ -247,9 +308,9 @@ def estimate_initial_states(
             offs = off.expand(m + 1, K, d).clone()
             for c, j in enumerate(cols):
                 offs[c + 1, :, j] += step * free[:, j].to(off)
-            R = residuals.many(rhs, m + 1, offs, sd) / sd  # (m + 1, n, d)
+            R = residuals.many(rhs, m + 1, offs, sd) / sd  # (m + 1, n, e): the states and any readings
             r0 = R[0]
-            J = ((R[1:] - r0) / step).permute(1, 2, 0)  # (n, d, m)
+            J = ((R[1:] - r0) / step).permute(1, 2, 0)  # (n, e, m)
             A = torch.zeros(K, m, m, dtype=r0.dtype, device=r0.device).index_add_(
                 0, experiment, J.transpose(-1, -2) @ J
             )
@@ -271,7 +332,7 @@ def estimate_initial_states(
             gain = torch.where(better, (cost0 - cost1) / cost0.clamp_min(torch.finfo(cost0.dtype).tiny), 0.0)
             if float(gain.max()) < 1e-6 and bool(better.any()):  # every experiment has settled
                 break
-    y0 = trajectories.initial_conditions + off * sd
+    y0 = trajectories.initial_conditions + off * sd[:d]
     if not bool(torch.isfinite(y0).all()):
         raise FittingError("estimate_initial_states: the estimate is not finite (the model's paths blow up)")
     return y0
@@ -297,11 +358,7 @@ def complete(system: MisspecifiedSystem, rhs, trajectories: Trajectories, initia
         )
     unmeasured = ~trajectories.measured  # (K, d)
     out = torch.where(unmeasured.unsqueeze(1), path, states)
-    kept = dict(state_names=trajectories.state_names, controls=trajectories.controls, initial_states=initial_states)
-    if not trajectories.is_ragged:
-        return Trajectories(trajectories.times, out, **kept)
-    rows = [out[k, :n] for k, n in enumerate(trajectories.lengths)]
-    return Trajectories(list(trajectories.times), rows, **kept)
+    return trajectories.with_states(out).with_initial_states(initial_states)
 
 
 def _through_the_ode(
@@ -345,6 +402,8 @@ def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories, nois
 
     start = trajectories.with_initial_states(initial_guess(trajectories))
     given = torch.isfinite(trajectories.initial_conditions)
+    if trajectories.readout is not None:  # entries the first readings determine are data too
+        given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
     y0 = estimate_initial_states(system, known, start, ~trajectories.measured & ~given, noise=noise)
     return complete(system, known, trajectories, y0)
 
@@ -353,7 +412,7 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
     is ``fit_correction`` itself (called on the completed data for the model choice), ``options`` its keywords."""
     kd = dict(dtype=trajectories.dtype, device=trajectories.device)
-    noise = _state_noise(None, trajectories, system.state_dim, kd)  # variances, once for every step below
+    noise = _state_noise(None, trajectories, kd)  # variances of the states and readings, once for every step below
     completed = _completed_by_g(system, trajectories, None if noise is None else noise.sqrt())
     report = identifiability(system, trajectories, completed=completed)
     report.check(system.name)
@@ -375,8 +434,9 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
             "or refit with refine=True (F then matches the measured states through the ODE)",
         )
         warnings.warn_explicit(text, w.category, w.filename, w.lineno)
-    if refine is None:  # fit_correction's rule: the feature kernel's terms are re-learned through the ODE
-        refine = result.kernel_spec.feature_space and system.autonomous
+    if refine is None:  # fit_correction's rule (the feature kernel's terms are re-learned through the ODE), and any
+        # model whose samples rest on the first model's paths (F on, or of, a state not measured directly)
+        refine = system.autonomous and (result.kernel_spec.feature_space or report.from_paths)
     if refine:  # F through the ODE on what was measured (not on the completed paths), the initial states with it
         chosen = result
         result = fit_trajectories(chosen, at, trajectories.with_initial_states(y0), progress=progress)

@@ -16,7 +16,7 @@ from ._errors import (
     NotFittedError,
     ShapeError,
 )
-from ._gp_in_time import observed_rms
+from ._gp_in_time import estimate_readings_noise, observed_rms
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
@@ -30,29 +30,23 @@ __all__ = ["SHOOTING", "fit_trajectories", "shooting_misfit"]
 
 
 def _intervals(trajectories: Trajectories):
-    """Start states ``(B, d)``, interval grids ``(B, 2)``, end states ``(B, d)`` and the experiment of each ``(B,)``
-    of all sum_k (T_k - 1) intervals (experiment after experiment; ragged data too). Missing entries of the start
-    states are estimated (:meth:`Trajectories.filled`); those of the end states stay NaN (the residuals skip them)."""
+    """Start states ``(B, d)``, interval grids ``(B, 2)``, end values ``(B, d + m)`` (the states and any readings,
+    :meth:`Trajectories.observed_values`) and the experiment of each ``(B,)`` of all sum_k (T_k - 1) intervals
+    (experiment after experiment; ragged data too). Missing entries of the start states are estimated
+    (:meth:`Trajectories.filled`); those of the end values stay NaN (the residuals skip them)."""
     if min(trajectories.lengths) < 2:
         raise InputError(
             f"trajectories: expected at least 2 times per experiment to shoot between, got T = "
             f"{min(trajectories.lengths)}"
         )
-    filled = trajectories.filled()
     rows = torch.arange(trajectories.num_experiments, device=trajectories.device).repeat_interleave(
         torch.tensor(trajectories.lengths, device=trajectories.device) - 1
     )
-    if trajectories.is_ragged:
-        parts = [
-            (f[:-1], torch.stack([t[:-1], t[1:]], dim=-1), y[1:])
-            for (t, y), f in zip(trajectories.experiments(), filled.states, strict=True)
-        ]
-        return (*(torch.cat(p) for p in zip(*parts, strict=True)), rows)
-    states, grid = trajectories.states, trajectories.time_grid  # (K, T, d), (K, T)
-    d = states.shape[-1]
-    starts = filled.states[:, :-1].reshape(-1, d)
-    ends = states[:, 1:].reshape(-1, d)
-    times = torch.stack([grid[:, :-1], grid[:, 1:]], dim=-1).reshape(-1, 2)
+    grid, filled, _ = trajectories.filled().padded()
+    values, mask = trajectories.observed_values()
+    inner = mask[:, 1:] & mask[:, :-1]  # intervals inside each experiment
+    starts, ends = filled[:, :-1][inner], values[:, 1:][inner]
+    times = torch.stack([grid[:, :-1], grid[:, 1:]], dim=-1)[inner]
     return starts, times, ends, rows
 
 
@@ -99,7 +93,7 @@ def shooting_misfit(
             what="shooting_misfit",
         )
     seen = torch.isfinite(ends)
-    return float((pred[:, -1] - ends)[seen].pow(2).mean().sqrt())
+    return float((trajectories.observe(pred[:, -1]) - ends)[seen].pow(2).mean().sqrt())
 
 
 def _check(gp, system, trajectories) -> None:
@@ -218,7 +212,7 @@ def fit_trajectories(
     solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="fit_trajectories")
     residuals, n_obs, offsets = _shooting(trajectories, shooting, solver, system)
     kd = dict(dtype=gp.dtype, device=gp.device)
-    s2 = _state_noise(state_noise, trajectories, d, kd)
+    s2 = _state_noise(state_noise, trajectories, kd)
     # how this refinement was made: calibrate_bands repeats it on each fold (a fold fitted to the samples alone is a
     # worse model than the refined one, and its held-out errors would widen the bands too much)
     recipe = dict(
@@ -248,7 +242,7 @@ def fit_trajectories(
         return _mean_field(system, pseudo), 0.5 * pseudo.factor.quad
 
     if s2 is None:  # too few samples for the GP in time: balance the terms at the start
-        s2 = _balanced_noise(residuals, field_and_prior(z.detach())[0], trajectories, d)
+        s2 = _balanced_noise(residuals, field_and_prior(z.detach())[0], trajectories)
     result = _maximise_posterior(
         [z], offsets, field_and_prior, residuals, s2, n_obs, max_iter=max_iter, progress=progress, shooting=shooting
     )
@@ -257,17 +251,19 @@ def fit_trajectories(
     refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
     if offsets is not None:
-        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2.sqrt()
+        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2[:d].sqrt()
     refined.refinement_ = recipe
     return refined
 
 
 def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: MisspecifiedSystem):
-    """``residuals(field, off, sd)``: the state errors (prediction - observation) ``(n, d)`` of a right-hand side
-    ``field`` (single shooting: from the observed first states moved by ``off * sd``, its rows experiment after
-    experiment within each length group, ``residuals.experiment (n,)`` naming each row's experiment); the number of
-    observations compared; the initial-state offsets to optimise (single shooting) or ``None``."""
+    """``residuals(field, off, sd)``: the errors (prediction - observation) ``(n, d + m)`` of a right-hand side
+    ``field`` in the states and any readings (:meth:`Trajectories.observe`; single shooting: from the observed first
+    states moved by ``off * sd[:d]``, its rows experiment after experiment, ``residuals.experiment (n,)`` naming each
+    row's experiment); the number of observations compared; the initial-state offsets to optimise (single shooting)
+    or ``None``."""
     d = trajectories.state_dim
+    observe = trajectories.observe
     if shooting == "multiple":
         starts, times, ends, rows = _intervals(trajectories)
         _check_starts(starts, "multiple shooting starts every interval at the observed states: ", "use single shooting")
@@ -278,7 +274,7 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
         def residuals(field, off, sd):  # noqa: ARG001 - the same signature as single shooting's
             pred, nfe = _solve_rhs(system, field, starts, times, controls, **solver)
             residuals.nfe += nfe
-            return torch.where(seen, pred[:, -1] - ends, zero)  # missing entries: 0
+            return torch.where(seen, observe(pred[:, -1]) - ends, zero)  # missing entries: 0
 
         residuals.experiment = None
         residuals.nfe = 0
@@ -286,7 +282,8 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
         return residuals, int(seen.sum()), None
     # every experiment in one batched solve, ragged ones too: each row on its own times (padded at its end by
     # repeating its last time, which the solver's shared grid absorbs); only the observed entries are compared
-    times, states, mask = trajectories.padded()
+    times, _, mask = trajectories.padded()
+    states, _ = trajectories.observed_values()  # (K, T, d + m): the states and any readings
     if times.dim() == 1:
         times = times.expand(states.shape[0], -1)
     first = trajectories.initial_conditions  # (K, d), missing entries estimated (Trajectories.filled)
@@ -297,23 +294,24 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
     seen = torch.isfinite(states)  # missing entries (NaN) are compared as 0
 
     def residuals(field, off, sd):
-        y0 = first if off is None else first + off * sd
+        y0 = first if off is None else first + off * sd[:d]
         pred, nfe = _solve_rhs(system, field, y0, times, controls, **solver)
         residuals.nfe += nfe
-        return torch.where(seen, pred - states, zero)[mask]  # (n, d), experiment after experiment
+        return torch.where(seen, observe(pred) - states, zero)[mask]  # (n, d + m), experiment after experiment
 
     residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
     residuals.experiment = torch.arange(states.shape[0], device=first.device).unsqueeze(-1).expand_as(mask)[mask]
 
     def many(field, copies: int, off, sd):
-        """``(copies, n, d)``: the residuals of ``copies`` models at once, ``field`` taking the states of copy c's
+        """``(copies, n, d + m)``: the residuals of ``copies`` models at once, ``field`` taking the states of copy c's
         experiments in rows c K ... c K + K - 1 (one batched solve instead of ``copies``)."""
-        y0 = first if off is None else first + off * sd  # off (K, d), or (copies, K, d): one per copy
+        y0 = first if off is None else first + off * sd[:d]  # off (K, d), or (copies, K, d): one per copy
         y0 = y0.reshape(-1, d) if y0.dim() == 3 else y0.repeat(copies, 1)
         repeated = None if controls is None else controls.repeat(copies)
         pred, nfe = _solve_rhs(system, field, y0, times.repeat(copies, 1), repeated, **solver)
         residuals.nfe += nfe
-        return torch.where(seen, pred.reshape(copies, *states.shape) - states, zero)[:, mask]
+        pred = observe(pred.reshape(copies, *first.shape[:1], -1, d))
+        return torch.where(seen, pred - states, zero)[:, mask]
 
     residuals.many = many
     residuals.seen = seen[mask]
@@ -341,17 +339,20 @@ def _recorded(state_noise):
     return [float(v) for v in torch.as_tensor(state_noise).reshape(-1).tolist()]
 
 
-def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> torch.Tensor | None:
-    """The ``(d,)`` state-noise variances: given, or the GP in time's estimate (None with fewer than 4 samples)."""
+def _state_noise(state_noise, trajectories: Trajectories, kd: dict) -> torch.Tensor | None:
+    """The ``(d + m,)`` noise variances of the states and any readings: given (a number for all, or one per state
+    and reading), or the GP in time's estimate (None with fewer than 4 samples)."""
+    d = trajectories.state_dim
+    e = d + (0 if trajectories.readout is None else trajectories.readout.num_readings)
     if state_noise is not None:
         if isinstance(state_noise, (int, float)) and not isinstance(state_noise, bool):
-            return torch.full((d,), check_real(state_noise, "state_noise", positive=True), **kd)
+            return torch.full((e,), check_real(state_noise, "state_noise", positive=True), **kd)
         value = as_tensor(state_noise, "state_noise", **kd).reshape(-1)
-        if value.shape != (d,) or not bool(torch.isfinite(value).all() and (value > 0).all()):
+        if value.shape != (e,) or not bool(torch.isfinite(value).all() and (value > 0).all()):
+            what = "state component" if e == d else "state component and reading"
             raise InputError(
-                f"state_noise: expected a positive number or {d} positive variance{'s' if d > 1 else ''} (one per "
-                f"state component), got "
-                f"{state_noise!r:.80}"
+                f"state_noise: expected a positive number or {e} positive variance{'s' if e > 1 else ''} (one per "
+                f"{what}), got {state_noise!r:.80}"
             )
         return value
     std = estimate_state_noise(trajectories)  # None with fewer than 4 samples or a constant component
@@ -362,4 +363,7 @@ def _state_noise(state_noise, trajectories: Trajectories, d: int, kd: dict) -> t
         # its size, or of the largest component's when they are all 0)
         size = observed_rms(trajectories.flat_states().to(**kd))
         var = torch.where(trajectories.measured.any(0), var, (1e-2 * size).pow(2))
-    return var
+    if e == d:
+        return var
+    readings = estimate_readings_noise(trajectories)
+    return None if readings is None else torch.cat([var, readings.to(**kd).pow(2)])

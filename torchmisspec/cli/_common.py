@@ -49,6 +49,13 @@ def add_column_options(parser: argparse.ArgumentParser) -> None:
         help="comma separated state column names, in the system's order (default: every other column)",
     )
     parser.add_argument(
+        "--readout",
+        action="append",
+        metavar="NAME=EXPRESSION",
+        help="a column holding a measured combination of states, e.g. 'total = free + bound' or 'A280 = 1.5*P + "
+        "0.2*L' (repeat for several); states with no column of their own are then read only through it",
+    )
+    parser.add_argument(
         "--input-columns",
         help="comma separated names of the columns holding known inputs u(t) (the system's controls, in its order): "
         "each experiment's rows sample its input profile, known at every row",
@@ -87,6 +94,19 @@ def read_observations(args: argparse.Namespace, system=None):
 
     wanted = state_columns(args)
     names = list(getattr(system, "state_names", None) or [])
+    if getattr(args, "readout", None):
+        from ..data import Readout
+
+        states = wanted or names or default_names(system)
+        return Trajectories.load(
+            args.data,
+            time_column=args.time_column,
+            experiment_column=args.experiment_column or None,
+            state_columns=states,
+            control_columns=state_columns(args, "input_columns"),
+            control_kind=getattr(args, "input_kind", "previous"),
+            readout=Readout.parse(args.readout, states),
+        )
     present = []
     if names and wanted is None and Path(args.data).suffix in _TEXT_FORMATS and Path(args.data).is_file():
         header = _read_table(Path(args.data))[0]

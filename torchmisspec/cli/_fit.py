@@ -71,7 +71,10 @@ def _fit(args: argparse.Namespace) -> int:
     if report is not None:  # partly measured states: what the measurements see
         unmeasured = ", ".join(report.unmeasured)
         summary = report.summary().replace("\n", "\n  ")
-        print(f"not measured (in some experiment): {unmeasured}; estimated through the ODE from the measured states")
+        print(
+            f"not measured (in some experiment): {unmeasured}; estimated through the ODE from the measured states"
+            + (" and readings" if observed.readout is not None else "")
+        )
         print(f"  {summary}")
     if getattr(gp, "parameters_", None) is not None:  # G's uncertain parameters, learned with F
         print("uncertain parameters of G, posterior mean +- sd:\n  " + gp.parameters_.summary().replace("\n", "\n  "))

@@ -12,7 +12,8 @@ checks of what it is given in ``_input``, the file formats of :meth:`Trajectorie
 in ``_tables``, and :func:`simulate` in ``_simulate``.
 """
 
+from ._readout import Readout
 from ._simulate import simulate, simulate_known_each
 from ._trajectories import Trajectories
 
-__all__ = ["Trajectories", "simulate", "simulate_known_each"]
+__all__ = ["Readout", "Trajectories", "simulate", "simulate_known_each"]

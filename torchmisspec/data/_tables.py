@@ -233,8 +233,18 @@ def write(
 ) -> Path:
     """What :meth:`Trajectories.save <torchmisspec.data.Trajectories.save>` does (see there)."""
     path = Path(path)
+    readout = trajectories.readout
     if path.suffix == ".npz":
         names = np.asarray(trajectories.state_names, dtype=np.str_)
+        extra = {}
+        if readout is not None:  # the readout's weights and names, and its values laid out as the states
+            readings = trajectories.readings
+            readings = torch.cat(readings) if trajectories.is_ragged else readings
+            extra = dict(
+                readout_matrix=readout.matrix.detach().cpu().numpy(),
+                readout_names=np.asarray(readout.names, dtype=np.str_),
+                readings=readings.detach().cpu().numpy(),
+            )
         if trajectories.is_ragged:  # no object arrays (they would need pickle): concatenated, with the lengths
             np.savez(
                 path,
@@ -242,6 +252,7 @@ def write(
                 states=trajectories.flat_states().detach().cpu().numpy(),
                 lengths=np.asarray(trajectories.lengths, dtype=np.int64),
                 state_names=names,
+                **extra,
             )
         else:
             np.savez(
@@ -249,6 +260,7 @@ def write(
                 times=trajectories.times.detach().cpu().numpy(),
                 states=trajectories.states.detach().cpu().numpy(),
                 state_names=names,
+                **extra,
             )
         return path
     if path.suffix not in _TEXT_FORMATS:
@@ -258,7 +270,7 @@ def write(
         raise ShapeError(
             f"state_columns: expected {trajectories.state_dim} names (one per state component), got {names}"
         )
-    header = [experiment_column, time_column, *names]
+    header = [experiment_column, time_column, *names, *([] if readout is None else readout.names)]
     for name in header:
         if not isinstance(name, str) or not name.strip() or name != name.strip():
             raise InputError(f"column names: expected non-empty strings without surrounding spaces, got {name!r}")
@@ -290,10 +302,16 @@ def write(
         y = y.detach().cpu().tolist()
         for t_j, u_j in zip(every.cpu().tolist(), u, strict=True):
             j = at.get(float(t_j))
-            state = y[j] if j is not None else [math.nan] * len(names)  # a knot between measurements
+            state = y[j] if j is not None else [math.nan] * width  # a knot between measurements
             yield [str(k), repr(float(t_j))] + cells(state) + cells(u_j)
 
-    rows = (row for k, (t, y) in enumerate(trajectories.experiments()) for row in rows_of(k, t, y))
+    width = len(header) - 2 - (0 if controls is None else len(controls.names))
+    values, _ = trajectories.observed_values()  # the states and any readings, side by side
+    rows = (
+        row
+        for k, ((t, _), n) in enumerate(zip(trajectories.experiments(), trajectories.lengths, strict=True))
+        for row in rows_of(k, t, values[k, :n])
+    )
     with path.open("w", newline="", encoding="utf-8") as fh:
         if path.suffix == ".txt":
             fh.write(" ".join(header) + "\n")
@@ -314,7 +332,7 @@ def read(
     state_columns: Sequence[str] | None,
     control_columns: Sequence[str] | None = None,
 ) -> tuple:
-    """``(times, states, state_names, controls)`` for :meth:`Trajectories.load
+    """``(times, states, state_names, controls, readout)`` for :meth:`Trajectories.load
     <torchmisspec.data.Trajectories.load>` (see there): tensors, or lists of per-experiment tensors for ragged
     data."""
     path = Path(path)
@@ -331,6 +349,7 @@ def read(
                 times, states = data["times"], data["states"]
                 lengths = data["lengths"] if "lengths" in data.files else None
                 names = data["state_names"] if "state_names" in data.files else None
+                readout = {key: data[key] for key in ("readout_matrix", "readout_names", "readings") if key in data}
         except InputError:
             raise
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
@@ -344,9 +363,43 @@ def read(
             names = names.tolist()
         if control_columns is not None:
             raise InputError(f"control_columns: name the columns of a text table; {path} is an .npz archive")
+        readout = _npz_readout(path, readout, names, lengths)
         if lengths is not None:
-            return (*_split_ragged(path, times, states, lengths), names, None)
-        return as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"), names, None
+            return (*_split_ragged(path, times, states, lengths), names, None, readout)
+        return as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"), names, None, readout
     header, body = _read_table(path)
     columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-    return _columns_to_arrays(path, header, body, control_columns=control_columns, **columns)
+    return (*_columns_to_arrays(path, header, body, control_columns=control_columns, **columns), None)
+
+
+def _npz_readout(path: Path, arrays: dict, names, lengths):
+    """``(Readout, readings)`` from an ``.npz`` archive's readout arrays (``None`` without them)."""
+    from ._readout import Readout
+
+    if not arrays:
+        return None
+    if set(arrays) != {"readout_matrix", "readout_names", "readings"}:
+        raise InputError(
+            f"{path}: expected the arrays readout_matrix, readout_names and readings together, got {sorted(arrays)}"
+        )
+    if arrays["readout_names"].dtype.kind != "U" or arrays["readout_names"].ndim != 1:
+        raise InputError(f"{path}: expected 'readout_names' to be a 1-D array of strings")
+    readout = Readout(
+        as_tensor(arrays["readout_matrix"], f"{path}: readout_matrix"),
+        arrays["readout_names"].tolist(),
+        state_names=names,
+    )
+    readings = as_tensor(arrays["readings"], f"{path}: readings")
+    if lengths is not None:
+        if readings.dim() != 2 or readings.shape[0] != int(np.asarray(lengths).sum()):
+            raise ShapeError(f"{path}: expected readings (N, m) with N = sum(lengths), got {tuple(readings.shape)}")
+        readings = list(readings.split(np.asarray(lengths).tolist()))
+    return readout, readings
+
+
+def header(path: str | Path) -> list[str] | None:
+    """The column names of a text table (``None`` for an ``.npz`` archive or a missing file)."""
+    path = Path(path)
+    if path.suffix not in _TEXT_FORMATS or not path.is_file():
+        return None
+    return _read_table(path)[0]

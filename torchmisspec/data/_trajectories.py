@@ -16,6 +16,7 @@ from .._validation import as_tensor, states_and_times
 from ..signals import Controls
 from . import _tables
 from ._input import _check_state_names, _default_names, _describe_lengths, _drop_empty_rows, _is_number, _per_experiment
+from ._readout import Readout
 
 #: A component observed fewer times than this in an experiment is *not measured* there (too few values for a
 #: derivative estimate: every estimator needs 3); its few values still enter the fit through the ODE.
@@ -63,6 +64,11 @@ class Trajectories:
             :attr:`initial_conditions` instead of the first observed states (``None``: those). Set by the fit of
             partly measured data (:meth:`with_initial_states`), where a component that is not measured has no
             first value of its own; kept by indexing and :meth:`to`, not saved in tables.
+        readout: measured linear combinations of the states, a :class:`~torchmisspec.data.Readout` (an observation
+            matrix H ``(m, d)``; ``None``: only the states themselves are measured).
+        readings: the readout's values, laid out as :attr:`states` with m columns (``(K, T, m)`` or a tuple of
+            ``(T_k, m)``), NaN where a quantity was not read; a time at which only readings were taken is kept. A
+            state read only through the readout is not :attr:`measured`: the fit learns through the ODE then.
     """
 
     times: torch.Tensor | tuple[torch.Tensor, ...]
@@ -70,20 +76,35 @@ class Trajectories:
     state_names: tuple[str, ...] | None = None
     controls: Controls | None = None
     initial_states: torch.Tensor | None = None
+    readout: Readout | None = None
+    readings: torch.Tensor | tuple[torch.Tensor, ...] | None = None
 
     def __post_init__(self) -> None:
-        if isinstance(self.states, (list, tuple)):
-            states, times = _per_experiment(self.states, self.times)
+        m = _check_readout(self.readout, self.readings)
+        given = self.states if m == 0 else _joined(self.states, self.readings)
+        if isinstance(given, (list, tuple)):
+            states, times = _per_experiment(given, self.times)
         else:
             if isinstance(self.times, (list, tuple)) and self.times and not _is_number(self.times[0]):
                 raise InputError(
                     "times: a list of per-experiment time arrays needs a list of per-experiment state arrays, got "
                     f"states as one {type(self.states).__name__}"
                 )
-            states, times = states_and_times(self.states, self.times, missing=True)
-        d = states[0].shape[-1]
+            states, times = states_and_times(given, self.times, missing=True)
+        d = states[0].shape[-1] - m
         names = _check_state_names(self.state_names, d)
         states, times = _drop_empty_rows(states, times)
+        if m:  # the states and the readings, split again after the checks and the dropped rows
+            if self.readout.state_dim != d:
+                raise ShapeError(
+                    f"readout: expected weights over the {d} states (an (m, {d}) matrix), got {self.readout.state_dim} "
+                    "columns"
+                )
+            split = [(y[..., :d], y[..., d:]) for y in states] if isinstance(states, tuple) else None
+            readings = tuple(r for _, r in split) if split else states[..., d:]
+            states = tuple(y for y, _ in split) if split else states[..., :d]
+            object.__setattr__(self, "readings", readings)
+            object.__setattr__(self, "readout", self.readout.to(dtype=states[0].dtype, device=states[0].device))
         if self.controls is not None:
             if not isinstance(self.controls, Controls):
                 raise InputError(
@@ -190,12 +211,52 @@ class Trajectories:
         if not self.has_missing:
             return self
         times, states, mask = self.padded()
-        out = fill(states, times, torch.isfinite(states) & mask.unsqueeze(-1))
-        kept = dict(state_names=self.state_names, controls=self.controls, initial_states=self.initial_states)
+        return self.with_states(fill(states, times, torch.isfinite(states) & mask.unsqueeze(-1)))
+
+    def with_states(self, states: torch.Tensor) -> Trajectories:
+        """These experiments (times, names, controls, initial states, readings) with new state values: ``(K, T, d)``
+        laid out as :meth:`padded` (ragged data: the entries past each experiment's length are ignored)."""
         if not self.is_ragged:
-            return Trajectories(self.times, out, **kept)
-        rows = [out[k, :n] for k, n in enumerate(self.lengths)]
-        return Trajectories(list(self.times), rows, **kept)
+            return dataclasses.replace(self, states=states)
+        rows = [states[k, :n] for k, n in enumerate(self.lengths)]
+        return dataclasses.replace(self, times=list(self.times), states=rows, readings=self._listed_readings())
+
+    def _listed_readings(self):
+        return None if self.readings is None or not self.is_ragged else list(self.readings)
+
+    def observed_values(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(values (K, T_max, d + m), mask (K, T_max))``: the states and the readings side by side, padded as
+        :meth:`padded` (NaN where an entry was not observed); what the model's path, read by :meth:`observe`, is
+        compared with."""
+        _, states, mask = self.padded()
+        if self.readout is None:
+            return states, mask
+        readings = self.readings
+        if self.is_ragged:
+            T = states.shape[1]
+            readings = torch.stack([torch.cat([r, r[-1:].expand(T - len(r), -1)]) for r in readings])
+        return torch.cat([states, readings], dim=-1), mask
+
+    def observe(self, states: torch.Tensor) -> torch.Tensor:
+        """``(..., d + m)``: states ``(..., d)`` and their readings (:attr:`readout`), as :meth:`observed_values`."""
+        if self.readout is None:
+            return states
+        return torch.cat([states, self.readout(states)], dim=-1)
+
+    def with_readout(self, readout: Readout | None, readings=None) -> Trajectories:
+        """These trajectories with ``readout`` (``None``: none), its values ``readings`` laid out as :attr:`states`
+        (default: the readout of the states themselves, e.g. of a simulation, before its states are masked)."""
+        if readout is not None and readings is None:
+            readings = tuple(readout(y) for y in self.states) if self.is_ragged else readout(self.states)
+        if self.is_ragged and readings is not None:
+            readings = list(readings)
+        return dataclasses.replace(
+            self,
+            times=list(self.times) if self.is_ragged else self.times,
+            states=list(self.states) if self.is_ragged else self.states,
+            readout=readout,
+            readings=readings,
+        )
 
     @property
     def measured(self) -> torch.Tensor:
@@ -283,6 +344,8 @@ class Trajectories:
                     state_names=self.state_names,
                     controls=None if self.controls is None else self.controls[idx],
                     initial_states=None if self.initial_states is None else self.initial_states[idx],
+                    readout=self.readout,
+                    readings=None if self.readings is None else torch.stack([self.readings[k] for k in idx]),
                 ),
             )
             for _, idx in sorted(groups.items())
@@ -296,38 +359,35 @@ class Trajectories:
         if isinstance(index, numbers.Integral) or (isinstance(index, torch.Tensor) and index.dim() == 0):
             index = [int(index)]
         picked = torch.arange(self.num_experiments)[index].reshape(-1).tolist()
-        controls = None if self.controls is None else self.controls[picked]
-        y0 = None if self.initial_states is None else self.initial_states[picked]
+        kept = dict(
+            state_names=self.state_names,
+            controls=None if self.controls is None else self.controls[picked],
+            initial_states=None if self.initial_states is None else self.initial_states[picked],
+            readout=self.readout,
+        )
         if self.is_ragged:
+            readings = None if self.readings is None else [self.readings[k] for k in picked]
             return Trajectories(
-                [self.times[k] for k in picked],
-                [self.states[k] for k in picked],
-                state_names=self.state_names,
-                controls=controls,
-                initial_states=y0,
+                [self.times[k] for k in picked], [self.states[k] for k in picked], readings=readings, **kept
             )
         times = self.times if self.times.dim() == 1 else self.times[index]
-        return Trajectories(
-            times, self.states[index], state_names=self.state_names, controls=controls, initial_states=y0
-        )
+        readings = None if self.readings is None else self.readings[index]
+        return Trajectories(times, self.states[index], readings=readings, **kept)
 
     def to(self, *args, **kwargs) -> Trajectories:
-        controls = None if self.controls is None else self.controls.to(*args, **kwargs)
-        y0 = None if self.initial_states is None else self.initial_states.to(*args, **kwargs)
-        if self.is_ragged:
-            return Trajectories(
-                [t.to(*args, **kwargs) for t in self.times],
-                [s.to(*args, **kwargs) for s in self.states],
-                state_names=self.state_names,
-                controls=controls,
-                initial_states=y0,
-            )
+        def moved(x):
+            if x is None:
+                return None
+            return [v.to(*args, **kwargs) for v in x] if isinstance(x, tuple) else x.to(*args, **kwargs)
+
         return Trajectories(
-            self.times.to(*args, **kwargs),
-            self.states.to(*args, **kwargs),
+            moved(self.times),
+            moved(self.states),
             state_names=self.state_names,
-            controls=controls,
-            initial_states=y0,
+            controls=None if self.controls is None else self.controls.to(*args, **kwargs),
+            initial_states=moved(self.initial_states),
+            readout=None if self.readout is None else self.readout.to(*args, **kwargs),
+            readings=moved(self.readings),
         )
 
     def control_values(self) -> torch.Tensor | tuple[torch.Tensor, ...] | None:
@@ -360,6 +420,8 @@ class Trajectories:
             parts = [f"{n} in {a} of {K}" for n, a in zip(self.state_names, absent, strict=True) if a]
             gaps += f", not measured: {'; '.join(parts)}" if parts else ""
         controls = "" if self.controls is None else f", controls {', '.join(self.controls.names)}"
+        if self.readout is not None:
+            controls += f", readings {'; '.join(self.readout.describe(self.state_names))}"
         return (
             f"Trajectories(K={self.num_experiments} experiment{'s' * (self.num_experiments != 1)}, "
             f"{count} on [{lo:.6g}, {hi:.6g}] ({grid}), "
@@ -398,6 +460,7 @@ class Trajectories:
         state_columns: Sequence[str] | None = None,
         control_columns: Sequence[str] | None = None,
         control_kind: str = "previous",
+        readout: Readout | None = None,
     ) -> Trajectories:
         """Read trajectories from ``.npz`` (arrays ``times`` and ``states``) or a text table with a header row.
 
@@ -417,6 +480,10 @@ class Trajectories:
                 every row, also where no state was measured (a dose given between measurements).
             control_kind: how a profile runs between its samples: ``"previous"`` (piecewise constant, default) or
                 ``"linear"``.
+            readout: measured combinations of the states (a text table's only; an ``.npz`` archive stores its
+                own): the columns named by ``readout.names`` hold its :attr:`readings`. The states are
+                ``state_columns`` (default ``readout.state_names``); a state with no column in the file was not
+                measured on its own (all missing), as when only a combination of it is read.
 
         A state cell that is empty or reads ``NaN``, ``NA`` or ``N/A`` (any case) is a missing entry (see the class
         docstring); a missing time or experiment label is an error, and so is an experiment with no value at all in
@@ -430,9 +497,99 @@ class Trajectories:
         repeated (experiment, time) rows,
         and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
         """
+        if readout is not None:
+            return _load_with_readout(
+                cls, path, readout, time_column, experiment_column, state_columns, control_columns, control_kind
+            )
         columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-        times, states, names, controls = _tables.read(path, control_columns=control_columns, **columns)
+        times, states, names, controls, stored = _tables.read(path, control_columns=control_columns, **columns)
         if controls is not None:
             knots, values, control_names = controls
             controls = Controls(knots, values, kind=control_kind, names=control_names)
-        return cls(times, states, state_names=names, controls=controls)
+        read, readings = (None, None) if stored is None else stored
+        return cls(times, states, state_names=names, controls=controls, readout=read, readings=readings)
+
+
+def _check_readout(readout, readings) -> int:
+    """The number of readings m (0 without a readout); a readout needs its values and the values a readout."""
+    if readout is None and readings is None:
+        return 0
+    if readout is None:
+        raise InputError(
+            "readings: expected a readout saying what they measure (readout=Readout(matrix, names)), got none"
+        )
+    if not isinstance(readout, Readout):
+        raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
+    if readings is None:
+        raise InputError(
+            f"readings: expected the values of the readout ({', '.join(readout.names)}), laid out as the states with "
+            f"{readout.num_readings} columns, got None (trajectories.with_readout(readout) reads them off the states)"
+        )
+    return readout.num_readings
+
+
+def _joined(states, readings):
+    """The states and the readings side by side (one array per experiment for lists), for the checks of both."""
+    if isinstance(states, (list, tuple)) != isinstance(readings, (list, tuple)):
+        raise InputError(
+            "readings: expected the same layout as the states (one array for equal lengths, a list of per-experiment "
+            f"arrays for ragged data), got states as {type(states).__name__} and readings as {type(readings).__name__}"
+        )
+    if isinstance(states, (list, tuple)):
+        if len(states) != len(readings):
+            raise ShapeError(f"readings: expected {len(states)} arrays (one per experiment), got {len(readings)}")
+        pairs = [
+            (as_tensor(y, f"states[{k}]"), as_tensor(r, f"readings[{k}]"))
+            for k, (y, r) in enumerate(zip(states, readings, strict=True))
+        ]
+        for k, (y, r) in enumerate(pairs):
+            if y.dim() != 2 or r.dim() != 2 or y.shape[0] != r.shape[0]:
+                raise ShapeError(
+                    f"readings[{k}]: expected ({y.shape[0]}, m) values (a row per time of states[{k}]), got shape "
+                    f"{tuple(r.shape)}"
+                )
+        return [torch.cat([y, r.to(y)], dim=-1) for y, r in pairs]
+    y, r = as_tensor(states, "states"), as_tensor(readings, "readings")
+    if y.dim() < 2 or r.shape[:-1] != y.shape[:-1]:
+        raise ShapeError(
+            f"readings: expected {(*y.shape[:-1], 'm')} values (a row per row of states), got shape {tuple(r.shape)}"
+        )
+    return torch.cat([y, r.to(y)], dim=-1)
+
+
+def _load_with_readout(cls, path, readout, time_column, experiment_column, state_columns, control_columns, kind):
+    """:meth:`Trajectories.load` of a text table holding a readout's columns (see there)."""
+    if not isinstance(readout, Readout):
+        raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
+    names = list(state_columns) if state_columns is not None else list(readout.state_names or [])
+    if len(names) != readout.state_dim:
+        raise InputError(
+            f"state_columns: expected the names of the {readout.state_dim} states the readout reads from (or a "
+            f"readout built with state_names), got {names}"
+        )
+    header = _tables.header(path)
+    if header is None:
+        raise InputError(f"readout: expected a text table (.csv, .tsv, .txt) holding its columns, got {str(path)!r}")
+    present = [n for n in names if n in header]
+    times, values, _, controls = _tables.read(
+        path,
+        time_column=time_column,
+        experiment_column=experiment_column,
+        state_columns=present + list(readout.names),
+        control_columns=control_columns,
+    )[:4]
+    if controls is not None:
+        knots, levels, control_names = controls
+        controls = Controls(knots, levels, kind=kind, names=control_names)
+    where = [names.index(n) for n in present]
+
+    def states_of(v):  # the states absent from the file: columns of missing values
+        out = torch.full((*v.shape[:-1], len(names)), float("nan"), dtype=v.dtype)
+        out[..., where] = v[..., : len(present)]
+        return out
+
+    if isinstance(values, list):
+        states, readings = [states_of(v) for v in values], [v[..., len(present) :] for v in values]
+    else:
+        states, readings = states_of(values), values[..., len(present) :]
+    return cls(times, states, state_names=names, controls=controls, readout=readout, readings=readings)

@@ -1,0 +1,167 @@
+"""Measured linear combinations of the states: :class:`Readout` (an observation matrix H).
+
+An instrument often reads a combination of states rather than one: the total of free and bound protein, an
+absorbance weighting two species by their extinction coefficients, reported cases as a fraction of the infected.
+A :class:`Readout` names m such quantities and their weights, z = H y with H ``(m, d)``; its values in an experiment
+(*readings*) sit beside the directly measured states in :class:`~torchmisspec.Trajectories`
+(``Trajectories(times, states, readout=..., readings=...)``), NaN where a quantity was not read.
+
+Readings cannot give derivatives of a single state, so a component seen only through a readout counts as not
+measured (:attr:`Trajectories.measured <torchmisspec.Trajectories.measured>`), and the correction is learned through
+the ODE, where the model's path is read out as H y and compared with the readings (:mod:`torchmisspec.partial`).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+
+import torch
+
+from .._errors import InputError, ShapeError
+from .._validation import as_tensor
+from ._input import _check_distinct
+
+__all__ = ["Readout"]
+
+_TERM = re.compile(r"\s*([+-]?)\s*(?:(\d+(?:\.\d*)?(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)\s*\*?\s*)?([^\s+\-*]+)\s*")
+
+
+class Readout:
+    """m measured linear combinations of the d states: reading i is ``sum_j matrix[i, j] y_j``.
+
+    ``Readout(matrix, names, state_names=None)``:
+
+    * ``matrix``: ``(m, d)`` finite weights, every row with a nonzero weight;
+    * ``names``: the m quantities' names (the columns of a lab's table that hold them);
+    * ``state_names``: the d states' names (for messages and :meth:`from_weights`; optional).
+
+    :meth:`from_weights` builds one from ``{"total": {"free": 1, "bound": 1}}``, :meth:`parse` from the command
+    line's ``"total = free + bound"``. Calling a readout on states ``(..., d)`` gives the readings ``(..., m)``.
+    """
+
+    def __init__(self, matrix, names: Sequence[str], *, state_names: Sequence[str] | None = None) -> None:
+        H = as_tensor(matrix, "matrix")
+        if not H.is_floating_point():
+            H = H.to(torch.get_default_dtype())
+        if H.dim() != 2 or H.shape[0] == 0 or H.shape[1] == 0:
+            raise ShapeError(f"matrix: expected an (m, d) array of weights (one row per reading), got {tuple(H.shape)}")
+        if not bool(torch.isfinite(H).all()):
+            raise InputError("matrix: expected finite weights, got NaN or inf")
+        empty = [i for i in range(H.shape[0]) if not bool((H[i] != 0).any())]
+        if empty:
+            raise InputError(
+                f"matrix: expected a nonzero weight in every row (a reading of something), rows {empty} are 0"
+            )
+        if isinstance(names, str) or not all(isinstance(n, str) and n.strip() for n in names):
+            raise InputError(f"names: expected a list of {H.shape[0]} non-empty strings, got {names!r:.120}")
+        names = tuple(names)
+        if len(names) != H.shape[0]:
+            raise ShapeError(f"names: expected {H.shape[0]} names (one per row of matrix), got {len(names)}")
+        _check_distinct(names, "readout names", "names")
+        if state_names is not None:
+            state_names = tuple(state_names)
+            if len(state_names) != H.shape[1]:
+                raise ShapeError(
+                    f"state_names: expected {H.shape[1]} names (one per column of matrix), got {state_names}"
+                )
+            clash = [n for n in names if n in state_names]
+            if clash:
+                raise InputError(f"names: expected readings named apart from the states, got {clash} in both")
+        self.matrix = H
+        self.names = names
+        self.state_names = state_names
+
+    @classmethod
+    def from_weights(cls, weights: Mapping[str, Mapping[str, float]], state_names: Sequence[str]) -> Readout:
+        """``{reading: {state: weight, ...}, ...}`` over the states ``state_names`` (unnamed states weigh 0)."""
+        if not isinstance(weights, Mapping) or not weights:
+            raise InputError(
+                f"weights: expected a mapping {{reading: {{state: weight}}}}, got {type(weights).__name__}"
+            )
+        state_names = tuple(state_names)
+        H = torch.zeros(len(weights), len(state_names), dtype=torch.float64)
+        for i, (name, row) in enumerate(weights.items()):
+            if not isinstance(row, Mapping) or not row:
+                raise InputError(f"weights[{name!r}]: expected a mapping {{state: weight}}, got {row!r:.80}")
+            for state, w in row.items():
+                if state not in state_names:
+                    raise InputError(f"weights[{name!r}]: expected states among {list(state_names)}, got {state!r}")
+                if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
+                    raise InputError(f"weights[{name!r}][{state!r}]: expected a finite number, got {w!r}")
+                H[i, state_names.index(state)] += float(w)
+        return cls(H, list(weights), state_names=state_names)
+
+    @classmethod
+    def parse(cls, definitions: Sequence[str], state_names: Sequence[str]) -> Readout:
+        """Readings written as ``"name = w1*state1 + state2 - 0.5 state3"`` (one string per reading; a weight is a
+        plain number, 1 when left out). Nothing is evaluated: each term is a number and a state's name."""
+        if isinstance(definitions, str):
+            definitions = [definitions]
+        weights: dict[str, dict[str, float]] = {}
+        for text in definitions:
+            name, eq, expression = str(text).partition("=")
+            name = name.strip()
+            if not eq or not name or not expression.strip():
+                raise InputError(
+                    f"readout: expected 'name = weight*state + ...' (e.g. 'total = free + bound'), got {text!r}"
+                )
+            row: dict[str, float] = {}
+            rest = expression.strip()
+            position = 0
+            while position < len(rest):
+                match = _TERM.match(rest, position)
+                if match is None or match.end() == position or (position > 0 and not match.group(1)):
+                    raise InputError(
+                        f"readout {name!r}: expected terms 'weight*state' joined by + or -, got {expression.strip()!r} "
+                        f"(states: {', '.join(state_names)})"
+                    )
+                sign = -1.0 if match.group(1) == "-" else 1.0
+                weight = float(match.group(2)) if match.group(2) else 1.0
+                row[match.group(3)] = row.get(match.group(3), 0.0) + sign * weight
+                position = match.end()
+            if name in weights:
+                raise InputError(f"readout: {name!r} is defined twice")
+            weights[name] = row
+        return cls.from_weights(weights, state_names)
+
+    @property
+    def num_readings(self) -> int:
+        """m, the number of quantities read."""
+        return self.matrix.shape[0]
+
+    @property
+    def state_dim(self) -> int:
+        """d, the number of states read from."""
+        return self.matrix.shape[1]
+
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        """The readings ``(..., m)`` of states ``(..., d)``."""
+        return states @ self.matrix.to(states).T
+
+    def to(self, *args, **kwargs) -> Readout:
+        return Readout(self.matrix.to(*args, **kwargs), self.names, state_names=self.state_names)
+
+    def describe(self, state_names: Sequence[str] | None = None) -> list[str]:
+        """Each reading as ``"name = w*state + ..."``."""
+        names = state_names or self.state_names or tuple(f"y{j}" for j in range(self.state_dim))
+        out = []
+        for name, row in zip(self.names, self.matrix.tolist(), strict=True):
+            terms = [(w, s) for w, s in zip(row, names, strict=True) if w != 0]
+            text = " ".join(
+                f"{'-' if w < 0 else '+'} {'' if abs(w) == 1 else f'{abs(w):g}*'}{s}" for w, s in terms
+            ).removeprefix("+ ")
+            out.append(f"{name} = {text}")
+        return out
+
+    def __eq__(self, other) -> bool:
+        return (
+            isinstance(other, Readout)
+            and self.names == other.names
+            and self.matrix.shape == other.matrix.shape
+            and bool((self.matrix.cpu().double() == other.matrix.cpu().double()).all())
+        )
+
+    def __repr__(self) -> str:
+        return f"Readout({'; '.join(self.describe())})"
