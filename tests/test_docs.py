@@ -221,6 +221,10 @@ def check_partial_measurements(ns: dict) -> None:
     assert 0.85 <= ns["calibration"].coverage <= 0.95
     # "The message names the component, what is measured, and the fixes"
     assert "acts on y1" in ns["message"] and "measured: y0" in ns["message"] and "correction_outputs" in ns["message"]
+    # "F on the bound ligand is seen through the total"; "far better than by the known model"
+    assert ns["fit"].identifiability_.summary().startswith("F on dbound/dt: seen through total")
+    known = float(tms.trajectory_rmse(ns["ligand_known"], ns["ligand_reference"]))
+    assert float(tms.trajectory_rmse(ns["ligand_predicted"], ns["ligand_reference"])) < 0.1 * known
 
 
 PAGES = {

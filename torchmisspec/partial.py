@@ -76,7 +76,8 @@ class Identifiability:
         outputs: the names of the components F acts on (``system.correction_outputs``).
         seen_by: for each output, the measured components through which the data see it (itself first when it
             is measured); empty when none does.
-        measured: the state components some experiment measures.
+        measured: the state components some experiment measures, and the readings of combinations of them
+            (:attr:`Trajectories.readout <torchmisspec.Trajectories.readout>`) some experiment reads.
         unmeasured: the state components some experiment does not measure.
         unmeasured_inputs: F's inputs among them (their values come from the fitted paths).
     """
@@ -154,8 +155,11 @@ def identifiability(
     """Which measured components see each output of F, from the dependency graph of G + F at the data.
 
     Component j is *seen* by measured component m when a chain j -> ... -> m of dependencies (dy_b/dt depending on
-    y_a) exists; the dependencies of G are read off its Jacobian at every state of ``completed`` (so a dependence
-    that vanishes at all the data is missed). ``completed``: the data with the unmeasured components filled in
+    y_a) exists, and by a reading of a combination (:attr:`Trajectories.readout
+    <torchmisspec.Trajectories.readout>`) when such a chain reaches a state the reading weighs (a reading of a sum
+    sees each of its terms, though not which one F changed: that is left to the fit through the ODE); the
+    dependencies of G are read off its Jacobian at every state of ``completed`` (so a dependence that vanishes at
+    all the data is missed). ``completed``: the data with the unmeasured components filled in
     (:func:`complete`); by default the paths of G alone from initial states estimated by
     :func:`estimate_initial_states`."""
     measured = trajectories.measured.any(0).cpu()  # (d,): measured in some experiment
@@ -193,7 +197,7 @@ def identifiability(
     return Identifiability(
         outputs=tuple(names[j] for j in system.correction_outputs),
         seen_by=tuple(seen_by),
-        measured=tuple(names[j] for j in range(d) if measured[j]),
+        measured=tuple(names[j] for j in range(d) if measured[j]) + tuple(name for name, _ in read),
         unmeasured=tuple(unmeasured),
         unmeasured_inputs=tuple(inputs),
     )
@@ -268,8 +272,9 @@ def estimate_initial_states(
     max_steps: int | None = None,
 ) -> torch.Tensor:
     """``(K, d)`` initial states whose ``free (K, d)`` entries minimise the squared misfit of the path of ``rhs``
-    (``rhs(y, t, u)``, e.g. the known model G) to every observed value, each component weighted by ``noise``
-    (``(d,)`` standard deviations of its observations; default: the state noise the fit through the ODE assumes,
+    (``rhs(y, t, u)``, e.g. the known model G) to every observed value and reading, each weighted by ``noise``
+    (``(d + m,)`` standard deviations of the states' and readings' observations; default: the noise the fit
+    through the ODE assumes,
     :func:`~torchmisspec.fit_trajectories`); the other entries stay at ``trajectories.initial_conditions`` (set
     :attr:`Trajectories.initial_states` to start elsewhere). Levenberg-Marquardt per experiment (experiments are
     independent), the Jacobian by forward differences of all free components at once in one batched solve per
