@@ -11,8 +11,12 @@ missing saturable pathway F(C) = -0.8 C / (0.5 + C) on dC/dt. Each realization d
   on [0, 8], before any data, with a stated prior: RBF, lengthscale 0.5, output scale 0.1, noise 1e-3);
 
 and learns F with ``fit_correction`` (defaults; the chosen times are irregular). The error is the integrated error of
-F over C in [0, 4]. Reported per K: the mean ± standard error over realizations of each error, and of the ratio of
-the chosen design's error to all T equally spaced (per realization too): the issue's goal is a ratio <= 1.
+F over C in [0, 4]. Reported per K: the mean ± standard error over realizations of each error, and the paired
+ratios of the chosen design's error (and of T/2 equally spaced) to all T equally spaced. The issue's goal, T/2 chosen
+times no worse than all T, is judged on the geometric mean of the per-realization ratios (<= 1): the arithmetic
+mean of ratios is biased above 1 for any two designs whose errors vary, which the table shows with the mean of the
+reciprocal ratios (:mod:`torchmisspec.paper._ratios`). Before 2026-11-26 the page judged the arithmetic mean, on 10
+realizations per K (1.003 ± 0.269 and 1.060 ± 0.337: not met); the realizations are now 30 per K.
 """
 
 from __future__ import annotations
@@ -26,13 +30,15 @@ from torchmisspec import design
 from torchmisspec.benchmarks.reporting import ROOT, run_study
 from torchmisspec.metrics import mean_and_standard_error
 
+from ._ratios import describe, paired_ratio
+
 DEFAULT_JSON = ROOT / "benchmarks" / "study_sampling_times.json"
 DOC_PAGE = ROOT / "docs" / "studies" / "sampling-times.md"
 MARK_START = "<!-- study:sampling-times:start -->"
 MARK_END = "<!-- study:sampling-times:end -->"
 DT = torch.float64
 SEED = 24_500
-FULL = {"realizations": 10, "ks": [2, 4], "times": 20, "candidates": 41}
+FULL = {"realizations": 30, "ks": [2, 4], "times": 20, "candidates": 41}
 SMOKE = {"realizations": 1, "ks": [2], "times": 12, "candidates": 25}
 GOAL = 1.0
 PRIOR = {"lengthscale": 0.5, "outputscale": 0.1, "noise_variance": 1e-3}
@@ -110,21 +116,20 @@ def _summary(values) -> tuple[float, float, float, float]:
 def table(result: dict) -> str:
     T = result["config"]["times"]
     lines = [
-        f"| K | all {T} equally spaced | {T // 2} equally spaced | {T // 2} chosen | chosen / all {T} | goal |",
-        "|---|---|---|---|---|---|",
+        f"| K | all {T} equally spaced | {T // 2} equally spaced | {T // 2} chosen | chosen / all {T} | "
+        f"{T // 2} equally spaced / all {T} | goal (geometric mean of chosen / all) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for K, runs in result["runs"].items():
         cells = []
         for name in ("all", "half", "chosen"):
             m, se, _, _ = _summary([r[name] for r in runs])
             cells.append(f"{m:.4f} ± {se:.4f}")
-        ratios = [r["chosen"] / r["all"] for r in runs]
-        m, se, lo, hi = _summary(ratios)
-        median = float(torch.tensor(ratios, dtype=DT).median())
-        ok = "met" if m <= result["goal"] else "**not met**"
+        chosen = paired_ratio([r["chosen"] for r in runs], [r["all"] for r in runs])
+        half = paired_ratio([r["half"] for r in runs], [r["all"] for r in runs])
+        ok = "met" if chosen["geometric"] <= result["goal"] else "**not met**"
         lines.append(
-            f"| {K} | {' | '.join(cells)} | {m:.3f} ± {se:.3f}, median {median:.3f} ({lo:.3f}-{hi:.3f}) | "
-            f"<= {result['goal']}: {ok} |"
+            f"| {K} | {' | '.join(cells)} | {describe(chosen)} | {describe(half)} | <= {result['goal']}: {ok} |"
         )
     return "\n".join(lines) + "\n"
 
