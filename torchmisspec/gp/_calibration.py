@@ -49,7 +49,7 @@ class BandCalibration:
     def __str__(self) -> str:
         return (
             f"BandCalibration(scale={self.scale:.3g}: the central {self.level:.0%} band covers {self.coverage:.3f} "
-            f"of the held-out states (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds, "
+            f"of the held-out observations (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds, "
             f"{'refitted' if self.refit else 'conditioned'} GP"
             + ("" if self.reached else "; the level is out of reach")
             + f", {self.num_points} points)"

@@ -26,9 +26,13 @@ Each realization: 8 experiments x 20 times with 1 % multiplicative state noise, 
 baselines: the same fit with theta known exactly, and with theta fixed at its prior mean (the scientist who does not
 declare it uncertain); in the identifiable case also both fits with ``refine=True`` (F refined through the ODE after
 the derivative-based fit; with theta learned, at theta's posterior mean). Reported per parameter: the share of
-realizations whose truth lies within 2 posterior standard deviations; the prediction RMSE over the theta-known fit's
-(mean ± standard error, and per realization); the share of absorbable realizations where the fit warned that kd is
-not identified; the seconds of one fit.
+realizations whose truth lies within 2 posterior standard deviations; the prediction RMSE over the theta-known fit's,
+paired per realization (:mod:`torchmisspec.paper._ratios`: the geometric mean of the ratios, on which the goal
+"no worse than theta known + 10 %" is judged, the arithmetic mean with that of the reciprocals, and the ratio of the
+mean errors); the share of absorbable realizations where the fit warned that kd is not identified; the seconds of
+one fit. Before 2026-11-26 the goal was judged on the arithmetic mean of the ratios, which is biased above 1 for any
+two fits whose errors vary (identifiable case: 1.424 ± 0.450 learned / known, and the reciprocals average above 1
+too).
 """
 
 from __future__ import annotations
@@ -43,7 +47,8 @@ from torchmisspec.benchmarks.reporting import (
     ROOT,
     run_study,
 )
-from torchmisspec.metrics import mean_and_standard_error
+
+from ._ratios import describe, paired_ratio
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_parameters.json"
 DOC_PAGE = ROOT / "docs" / "studies" / "parameters.md"
@@ -212,13 +217,6 @@ def _share(flags) -> float:
     return sum(flags) / len(flags)
 
 
-def _spread(values) -> str:
-    """``mean ± se (min-max)`` of per-realization values."""
-    x = torch.tensor(list(values), dtype=DT)
-    m, se = mean_and_standard_error(x)
-    return f"{float(m):.3f} ± {float(se):.3f} ({float(x.min()):.3f}-{float(x.max()):.3f})"
-
-
 def _met(ok: bool) -> str:
     return "met" if ok else "**not met**"
 
@@ -236,14 +234,20 @@ def _case_rows(label: str, runs: list, priors: dict, true, goal: bool) -> list[s
             f"{GOALS['within_2sd']}: {_met(share >= GOALS['within_2sd'])} |"
         )
     for key, what in (("rmse", "uncertain theta, learned"), ("rmse_theta_prior", "theta at its prior mean")):
-        ratios = [r[key] / r["rmse_theta_known"] for r in runs]
-        mean = sum(ratios) / len(ratios)
-        verdict = f"<= {GOALS['rmse_vs_known']}: {_met(mean <= GOALS['rmse_vs_known'])}" if goal else "-"
+        row_goal = goal if key == "rmse" else None
         lines.append(
-            f"| {label} | prediction RMSE / theta known, {what} | {_spread(ratios)} | "
-            f"{verdict if key == 'rmse' else 'baseline'} |"
+            _ratio_row(label, f"prediction RMSE / theta known, {what}", runs, key, "rmse_theta_known", row_goal)
         )
     return lines
+
+
+def _ratio_row(label: str, measure: str, runs: list, a: str, b: str, goal) -> str:
+    """A row of paired ratios ``a / b`` (judged against the goal on their geometric mean when ``goal`` is true;
+    ``None``: the baseline row)."""
+    stats = paired_ratio([r[a] for r in runs], [r[b] for r in runs])
+    limit = GOALS["rmse_vs_known"]
+    verdict = "baseline" if goal is None else f"<= {limit}: {_met(stats['geometric'] <= limit)}" if goal else "-"
+    return f"| {label} | {measure} | {describe(stats)} | {verdict} |"
 
 
 def table(result: dict) -> str:
@@ -251,25 +255,11 @@ def table(result: dict) -> str:
     n = len(ident)
     lines = ["| case | measure | value | goal |", "|---|---|---|---|"]
     lines += _case_rows("identifiable", ident, result["priors"], result["true"], goal=True)
-    # the mean of per-realization ratios weighs a realization whose theta-known fit happens to be very good heavily;
-    # the ratio of the mean errors is the other reading (reported, not the goal's)
-    learned = sum(r["rmse"] for r in ident) / n
-    known = sum(r["rmse_theta_known"] for r in ident) / n
-    lines.append(
-        f"| identifiable | mean prediction RMSE, theta learned / theta known | {learned:.4g} / {known:.4g} = "
-        f"{learned / known:.3f} | - |"
-    )
     if all("rmse_refined" in r for r in ident):  # not in smoke runs
-        ratios = [r["rmse_refined"] / r["rmse_theta_known_refined"] for r in ident]
-        lines.append(
-            f"| identifiable | with `refine=True` (F refined through the ODE, theta learned) / theta known and F "
-            f"refined alike | {_spread(ratios)} | <= {GOALS['rmse_vs_known']}: "
-            f"{_met(sum(ratios) / n <= GOALS['rmse_vs_known'])} |"
-        )
-        lines.append(
-            f"| identifiable | with `refine=True`, theta learned / theta known with the default fit | "
-            f"{_spread(r['rmse_refined'] / r['rmse_theta_known'] for r in ident)} | - |"
-        )
+        what = "with `refine=True` (F refined through the ODE, theta learned) / theta known and F refined alike"
+        lines.append(_ratio_row("identifiable", what, ident, "rmse_refined", "rmse_theta_known_refined", True))
+        what = "with `refine=True`, theta learned / theta known with the default fit"
+        lines.append(_ratio_row("identifiable", what, ident, "rmse_refined", "rmse_theta_known", False))
     false_alarms = _share(bool(r["warnings"]) and any("not determined" in w for w in r["warnings"]) for r in ident)
     lines.append(
         f"| identifiable | fits warning that a parameter is not determined (false alarms) | "
@@ -285,10 +275,10 @@ def table(result: dict) -> str:
         f"| absorbable | q still identified | {_share(r['identified'][1] for r in absorb):.2f} of {len(absorb)}; truth "
         f"within 2 sd {_share(r['within_2sd'][1] for r in absorb):.2f} | - |"
     )
-    absorb_ratios = ((k, [r[k] / r["rmse_theta_known"] for r in absorb]) for k in ("rmse", "rmse_theta_prior"))
-    for key, ratios in absorb_ratios:
+    for key in ("rmse", "rmse_theta_prior"):
         what = "uncertain theta, learned" if key == "rmse" else "theta at its prior mean"
-        lines.append(f"| absorbable | prediction RMSE / theta known, {what} | {_spread(ratios)} | - |")
+        measure = f"prediction RMSE / theta known, {what}"
+        lines.append(_ratio_row("absorbable", measure, absorb, key, "rmse_theta_known", False))
     # the cases added after the first two (absent from older runs' JSON)
     if result["runs"].get("nonlinear"):
         lines += _case_rows(
