@@ -339,8 +339,8 @@ def calibrate_bands(
     if not reached:
         warn(
             f"calibrate_bands: no scale up to {2.0**MAX_LOG2_SCALE:g} makes the central {level:g} band cover the "
-            f"held-out observations (at best {final:.3f}, from scale {scale:.3g}, which is kept): some held-out bands have "
-            "no spread to widen (a fold whose refit explained the signal away as noise, or observations far from "
+            f"held-out observations (at best {final:.3f}, from scale {scale:.3g}, which is kept): some held-out bands "
+            "have no spread to widen (a fold whose refit explained the signal away as noise, or observations far from "
             "every draw); these bands stay unreliable",
             TorchMisspecWarning,
         )
