@@ -174,6 +174,14 @@ def test_fit_through_the_readout_predicts_both_states():
     known = tms.simulate(system, y0, t, known_only=True).states
     ratio = float(tms.trajectory_rmse(model.predict(y0, t), reference)) / float(tms.trajectory_rmse(known, reference))
     assert ratio <= 0.05, ratio
+    # the band of what the instrument reads: the draws read out (free + bound), quantiles of their sums
+    post = model.posterior(y0, t, num_samples=16, generator=torch.Generator().manual_seed(0), scale=1.0)
+    read = post.read(TOTAL)
+    assert read.state_names == ("total",)
+    assert torch.allclose(read.samples, post.samples.sum(-1, keepdim=True))
+    assert torch.allclose(read.mean_path, post.mean_path.sum(-1, keepdim=True))
+    lower, upper = read.interval(0.8)
+    assert bool((lower <= read.mean_path + 1e-9).all() and (read.mean_path <= upper + 1e-9).all())
     # the readings alone give the bound state's start: 0 up to the noise
     assert torch.allclose(gp.initial_states_[:, 1], torch.zeros(8, dtype=DT), atol=0.1)
     # without the readout nothing is measured: refused, naming what is missing
@@ -208,8 +216,14 @@ def test_cli_reads_the_readout_column(tmp_path, capsys):
     (tmp_path / "doses.csv").write_text("run,free,bound\nlow,1.0,0\nhigh,2.5,0\n")
     out = tmp_path / "predicted.csv"
     predict = ["predict", "--model", str(model), "--initial", str(tmp_path / "doses.csv"), "--times", "0:8:9"]
-    assert main([*predict, *common, "--out", str(out), "--quiet"]) == 0
-    assert out.read_text().splitlines()[0].startswith("run,minutes,free_mean")
+    assert main([*predict, *common, *readout, "--out", str(out), "--quiet"]) == 0
+    header, *rows = (line.split(",") for line in out.read_text().splitlines())
+    assert header[:3] == ["run", "minutes", "free_mean"] and header[-3:] == [
+        f"radioactivity_{s}" for s in ("mean", "lower", "upper")
+    ]
+    for row in rows:  # the reading's mean path is the sum of the states' mean paths
+        free, bound, total = (float(row[header.index(f"{n}_mean")]) for n in ("free", "bound", "radioactivity"))
+        assert abs(free + bound - total) < 1e-9
     # a readout naming a state the system does not have: one line, exit 2
     bad = ["--readout", "radioactivity = free + bund"]
     assert main(["fit", "--data", str(tmp_path / "lab.csv"), *common, *bad, "--out", str(tmp_path / "x.pt")]) == 2

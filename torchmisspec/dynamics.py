@@ -3,6 +3,7 @@ trajectories under posterior draws of F (:meth:`CorrectedODE.posterior`), with u
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -15,7 +16,7 @@ from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import as_tensor, check_positive_int, check_real
 from .calibration import calibrate_bands
-from .data import Trajectories
+from .data import Readout, Trajectories
 from .gp import CorrectionGP
 from .parameters import ParameterPosterior
 from .partial import complete, estimate_initial_states, initial_guess
@@ -589,3 +590,16 @@ class TrajectoryPosterior:
         if states.shape != lower.shape:
             raise ShapeError(f"states: expected shape {tuple(lower.shape)} (B, T, d), got {tuple(states.shape)}")
         return (states >= lower) & (states <= upper)
+
+    def read(self, readout: Readout) -> TrajectoryPosterior:
+        """The posterior of what ``readout`` reads (a :class:`~torchmisspec.data.Readout`, z = H y): every sampled
+        path and the mean path read out, ``(.., m)``; :meth:`interval` then gives the readings' band (e.g. the
+        total a tracer counts, when the states themselves are not measured)."""
+        if not isinstance(readout, Readout):
+            raise InputError(f"readout: expected a torchmisspec.data.Readout, got {type(readout).__name__}")
+        d = self.samples.shape[-1]
+        if readout.state_dim != d:
+            raise ShapeError(f"readout: expected weights over the {d} states, got {readout.state_dim} columns")
+        return dataclasses.replace(
+            self, samples=readout(self.samples), mean_path=readout(self.mean_path), state_names=readout.names
+        )

@@ -49,6 +49,11 @@ def _predict(args: argparse.Namespace) -> int:
     gp = load_model(args.model, system)
     y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
     names = check_names(gp, names, system, "--initial")
+    readout = None
+    if args.readout:  # checked before the work
+        from ..data import Readout
+
+        readout = Readout.parse(args.readout, names)
     labels = labels if labels is not None else [str(b) for b in range(y0.shape[0])]
     controls = None if args.controls is None else read_controls(args.controls, args, system, labels)
     model = CorrectedODE(system, gp)
@@ -76,6 +81,14 @@ def _predict(args: argparse.Namespace) -> int:
     header = [args.experiment_column or "experiment", args.time_column]
     for name in names:
         header += [f"{name}_mean", f"{name}_lower", f"{name}_upper"]
+    if readout is not None:  # the readings' bands too: the quantiles of the draws read out
+        read = post.read(readout)
+        low, high = read.interval(args.level)
+        for row, (b, i) in zip(rows, ((b, i) for b in range(y0.shape[0]) for i in range(times.numel())), strict=True):
+            for r in range(low.shape[-1]):
+                row += [float(read.mean_path[b, i, r]), float(low[b, i, r]), float(high[b, i, r])]
+        for name in read.state_names:
+            header += [f"{name}_mean", f"{name}_lower", f"{name}_upper"]
     write_csv(out, header, rows)
     unbounded = int((~torch.isfinite(lower) | ~torch.isfinite(upper)).sum())
     band = f"the central {args.level:.0%} band" + (
@@ -133,7 +146,8 @@ def add_predict(sub) -> None:
         description="Integrate the corrected model (G + the correction's posterior mean) from each initial condition, "
         "and posterior draws of the correction for the bands (CorrectedODE.posterior), calibrated when the model file "
         "holds a calibration (written by 'fit' or 'calibrate'). Writes one row per initial condition and time: "
-        "experiment, time, and <state>_mean, <state>_lower, <state>_upper for every state.",
+        "experiment, time, and <state>_mean, <state>_lower, <state>_upper for every state (and for every --readout, "
+        "the band of what it reads).",
     )
     pre.add_argument("--model", required=True, help="the model file written by 'fit' (or 'calibrate')")
     add_system_option(pre)
