@@ -175,6 +175,11 @@ def solve(
     rtol, atol = check_real(rtol, "rtol", positive=True), check_real(atol, "atol", positive=True)
     if not isinstance(method, str):
         raise InputError(f"method: expected a torchdiffeq method name such as 'dopri5', got {method!r:.60}")
+    if options is not None and not (isinstance(options, dict) and all(isinstance(k, str) for k in options)):
+        raise InputError(
+            f"options: expected a dict of torchdiffeq solver options (e.g. {{'step_size': 0.01}}) or None, got "
+            f"{options!r:.60} ({type(options).__name__})"
+        )
     if y0.dtype not in _FLOAT_DTYPES:
         raise InputError(
             f"{what}: expected float32 or float64 states, got {y0.dtype} (half precision cannot meet the solver's "

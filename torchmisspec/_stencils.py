@@ -17,6 +17,11 @@ def _states_and_times(states, times) -> tuple[torch.Tensor, torch.Tensor]:
     """The shared states/times check (NaN states are missing entries); the times come back as ``(1, T)`` (shared
     grid) or ``(K, T)``."""
     states, times = states_and_times(states, times, missing=True)
+    if states.dtype not in (torch.float32, torch.float64):  # the least-squares fits have no half-precision kernels
+        raise InputError(
+            f"states: expected float32 or float64 values, got {str(states.dtype).removeprefix('torch.')} (half "
+            "precision is too coarse for derivative estimates); convert with .double()"
+        )
     return states, times.reshape(-1, states.shape[1])
 
 

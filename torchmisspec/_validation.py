@@ -53,6 +53,30 @@ def as_tensor(x, name: str, *, dtype: torch.dtype | None = None, device=None) ->
     return t
 
 
+def check_device(device, name: str = "device") -> torch.device:
+    """``None`` (the CPU), a ``torch.device`` or its name (``"cpu"``, ``"cuda"``, ``"cuda:1"``), available here."""
+    if device is None:
+        return torch.device("cpu")
+    if not isinstance(device, (str, torch.device)):
+        raise InputError(
+            f"{name}: expected a torch.device or a device name such as 'cpu' or 'cuda', got {device!r:.60} "
+            f"({type(device).__name__})"
+        )
+    try:
+        out = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise InputError(
+            f"{name}: expected a device name such as 'cpu', 'cuda' or 'cuda:1', got {device!r:.60}"
+        ) from None
+    if out.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(
+            f"{name}: expected a device this machine has, got {str(out)!r}: CUDA is not available; use 'cpu'"
+        )
+    if out.type == "cuda" and out.index is not None and out.index >= torch.cuda.device_count():
+        raise InputError(f"{name}: expected one of the {torch.cuda.device_count()} CUDA devices, got {str(out)!r}")
+    return out
+
+
 def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
     """Raise :class:`InputError` naming the first NaN/inf entry of ``t``."""
     bad = ~torch.isfinite(t)
@@ -90,8 +114,9 @@ def check_increasing(times: torch.Tensor, name: str = "times") -> torch.Tensor:
     return times
 
 
-def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
-    """Indices into a vector of length ``size``: integers, in range, no repeats. ``None`` means all."""
+def check_indices(indices, size: int, name: str, *, distinct: bool = True) -> tuple[int, ...]:
+    """Indices into a vector of length ``size``: integers (not bools, not floats), in range, no repeats unless
+    ``distinct`` is false. ``None`` means all."""
     if indices is None:
         return tuple(range(size))
     try:
@@ -109,7 +134,7 @@ def check_indices(indices, size: int, name: str) -> tuple[int, ...]:
     for i in out:
         if not 0 <= i < size:
             raise InputError(f"{name}: expected indices in [0, {size - 1}], got {i} in {list(out)}")
-    if len(set(out)) != len(out):
+    if distinct and len(set(out)) != len(out):
         raise InputError(f"{name}: expected distinct indices, got repeats in {list(out)}")
     return out
 

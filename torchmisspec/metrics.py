@@ -123,6 +123,11 @@ def correction_error(gp, system, *, domain=None, resolution: int = 101, metric: 
     """
     if metric not in CORRECTION_METRICS:
         raise InputError(f"metric: expected one of {CORRECTION_METRICS}, got {metric!r}")
+    if not hasattr(system, "true_correction") or not hasattr(system, "domain"):
+        raise InputError(
+            f"system: expected a torchmisspec.MisspecifiedSystem with its true correction F, got "
+            f"{type(system).__name__}"
+        )
     domain = system.domain if domain is None else domain
     if domain is None:
         raise InputError(f"domain: system '{system.name}' has no domain; pass domain=((lo, hi), ...)")
@@ -161,5 +166,13 @@ def trajectory_rmse(predicted, true, *, per_trajectory: bool = False) -> torch.T
         raise ShapeError(f"predicted: expected non-empty trajectories (B, T, d), got shape {tuple(predicted.shape)}")
     check_finite(predicted, "predicted")
     check_finite(true, "true")
-    sq = (predicted - true).pow(2)
-    return sq.flatten(1).mean(-1).sqrt() if per_trajectory else sq.mean().sqrt()
+    diff = (predicted - true).flatten(1) if per_trajectory else (predicted - true).reshape(1, -1)
+    if not bool(torch.isfinite(diff).all()):
+        raise InputError(
+            f"predicted: the differences from true overflow {str(diff.dtype).removeprefix('torch.')} (values near "
+            f"{float(predicted.abs().max()):.3g}); compare in float64 (.double())"
+        )
+    # scaled by the largest difference, so finite errors whose squares would overflow stay finite
+    scale = diff.abs().amax(-1, keepdim=True).clamp_min(torch.finfo(diff.dtype).tiny)
+    rms = scale.squeeze(-1) * (diff / scale).pow(2).mean(-1).sqrt()
+    return rms if per_trajectory else rms[0]

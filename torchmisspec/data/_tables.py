@@ -236,20 +236,21 @@ def write(
     readout = trajectories.readout
     if path.suffix == ".npz":
         names = np.asarray(trajectories.state_names, dtype=np.str_)
-        extra = {}
+        # the dtype is recorded and restored by read (bfloat16, which numpy lacks, is stored exactly as float32)
+        extra = {"dtype": np.asarray(str(trajectories.dtype).removeprefix("torch."))}
         if readout is not None:  # the readout's weights and names, and its values laid out as the states
             readings = trajectories.readings
             readings = torch.cat(readings) if trajectories.is_ragged else readings
-            extra = dict(
-                readout_matrix=readout.matrix.detach().cpu().numpy(),
+            extra.update(
+                readout_matrix=_numpy(readout.matrix),
                 readout_names=np.asarray(readout.names, dtype=np.str_),
-                readings=readings.detach().cpu().numpy(),
+                readings=_numpy(readings),
             )
         if trajectories.is_ragged:  # no object arrays (they would need pickle): concatenated, with the lengths
             np.savez(
                 path,
-                times=torch.cat(trajectories.times).detach().cpu().numpy(),
-                states=trajectories.flat_states().detach().cpu().numpy(),
+                times=_numpy(torch.cat(trajectories.times)),
+                states=_numpy(trajectories.flat_states()),
                 lengths=np.asarray(trajectories.lengths, dtype=np.int64),
                 state_names=names,
                 **extra,
@@ -257,8 +258,8 @@ def write(
         else:
             np.savez(
                 path,
-                times=trajectories.times.detach().cpu().numpy(),
-                states=trajectories.states.detach().cpu().numpy(),
+                times=_numpy(trajectories.times),
+                states=_numpy(trajectories.states),
                 state_names=names,
                 **extra,
             )
@@ -350,6 +351,7 @@ def read(
                 lengths = data["lengths"] if "lengths" in data.files else None
                 names = data["state_names"] if "state_names" in data.files else None
                 readout = {key: data[key] for key in ("readout_matrix", "readout_names", "readings") if key in data}
+                stored = data["dtype"] if "dtype" in data.files else None
         except InputError:
             raise
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
@@ -363,13 +365,47 @@ def read(
             names = names.tolist()
         if control_columns is not None:
             raise InputError(f"control_columns: name the columns of a text table; {path} is an .npz archive")
+        dtype = _stored_dtype(path, stored)
         readout = _npz_readout(path, readout, names, lengths)
         if lengths is not None:
-            return (*_split_ragged(path, times, states, lengths), names, None, readout)
-        return as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states"), names, None, readout
+            times, states = _split_ragged(path, times, states, lengths)
+        else:
+            times, states = as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states")
+        if dtype is not None:  # the dtype the trajectories were saved in
+            times, states = _cast(times, dtype), _cast(states, dtype)
+            readout = None if readout is None else (readout[0], _cast(readout[1], dtype))
+        return times, states, names, None, readout
     header, body = _read_table(path)
     columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
     return (*_columns_to_arrays(path, header, body, control_columns=control_columns, **columns), None)
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    """A tensor as numpy (bfloat16, which numpy lacks, as float32: exact)."""
+    t = t.detach().cpu()
+    return (t.float() if t.dtype == torch.bfloat16 else t).numpy()
+
+
+_STORED_DTYPES = {
+    "float16": torch.float16,
+    "bfloat16": torch.bfloat16,
+    "float32": torch.float32,
+    "float64": torch.float64,
+}
+
+
+def _stored_dtype(path: Path, stored) -> torch.dtype | None:
+    """The dtype an ``.npz`` archive records (``None`` for older files: float64, or the arrays' own)."""
+    if stored is None:
+        return None
+    name = str(stored)
+    if stored.ndim != 0 or name not in _STORED_DTYPES:
+        raise InputError(f"{path}: expected 'dtype' to name one of {sorted(_STORED_DTYPES)}, got {name!r:.40}")
+    return _STORED_DTYPES[name]
+
+
+def _cast(x, dtype: torch.dtype):
+    return [v.to(dtype) for v in x] if isinstance(x, (list, tuple)) else x.to(dtype)
 
 
 def _npz_readout(path: Path, arrays: dict, names, lengths):

@@ -8,8 +8,8 @@ import time
 
 import torch
 
-from .._errors import InputError, ShapeError
-from .._validation import as_tensor, check_finite, check_ndim
+from .._errors import ShapeError
+from .._validation import as_tensor, check_finite, check_indices, check_ndim
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 from ._common import (
@@ -17,6 +17,7 @@ from ._common import (
     check_budget,
     check_candidates,
     check_partition,
+    check_proxies,
     check_system,
     check_times,
     logdet_identity_plus,
@@ -42,13 +43,12 @@ def marginal_gains(
     cand = check_candidates(candidates, check_system(system, controls, with_controls=True))
     if isinstance(indices, DesignResult):
         indices = indices.indices
-    idx = torch.as_tensor(indices, dtype=torch.long).reshape(-1).cpu()
-    if idx.numel() == 0:
-        raise InputError("indices: expected at least one index, got none")
     n = cand.shape[0]
-    if bool(((idx < 0) | (idx >= n)).any()):
-        raise InputError(f"indices: expected indices in [0, {n - 1}], got {idx.tolist()}")
-    sel_prox = None if proxies is None else torch.as_tensor(proxies)[idx]
+    # integers in range (not bools, not fractions: no quiet rounding); a design may repeat a candidate here
+    idx = torch.tensor(check_indices(indices, n, "indices", distinct=False), dtype=torch.long)
+    sel_prox = None
+    if proxies is not None:
+        sel_prox = check_proxies(proxies, n, system, None, dtype=cand.dtype, device=cand.device)[idx.to(cand.device)]
     # budget = K distinct candidates of the sub-problem; duplicates in ``indices`` are allowed here
     picked = None if controls is None else system.check_controls(controls, n)[idx.tolist()]
     sub = _Problem(
@@ -123,6 +123,13 @@ def random(
     n = cand.shape[0]
     budget = check_budget(budget, n)
     part = check_partition(partition, capacities, n, budget, "cpu")
+    if proxies is not None:  # checked even when the gains are not computed: a wrong shape is a mistake either way
+        if system is not None:
+            proxies = check_proxies(proxies, n, system, None, dtype=cand.dtype, device=cand.device)
+        else:
+            proxies = check_ndim(as_tensor(proxies, "proxies", dtype=cand.dtype), 3, "proxies", f"({n}, T, d)")
+            if proxies.shape[0] != n:
+                raise ShapeError(f"proxies: expected one proxy trajectory per candidate ({n}), got {proxies.shape[0]}")
     idx = _random_indices(n, budget, part, generator).to(cand.device)
     have_all = system is not None and gp is not None and (times is not None or proxies is not None)
     prox = None
@@ -130,7 +137,7 @@ def random(
         gains = marginal_gains(idx, cand, system=system, times=times, gp=gp, proxies=proxies, controls=controls)
         info = float(gains.sum())
         if proxies is not None:
-            prox = torch.as_tensor(proxies)[idx.cpu()].to(cand.device)
+            prox = proxies[idx.to(proxies.device)].to(cand.device)
     else:
         gains = torch.full((budget,), math.nan, dtype=cand.dtype, device=cand.device)
         info = math.nan

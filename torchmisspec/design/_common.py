@@ -463,12 +463,23 @@ def check_partition(partition, capacities, n: int, budget: int, device) -> tuple
             "per region) or neither, got only "
             f"{'partition' if capacities is None else 'capacities'}"
         )
-    lab = torch.as_tensor(partition)
+    try:
+        lab = torch.as_tensor(partition)
+    except (TypeError, ValueError, RuntimeError, OverflowError):
+        raise InputError(
+            f"partition: expected an integer region label per candidate, got {partition!r:.80}; number the regions "
+            "0, 1, ... (e.g. [labels.index(x) for x in names])"
+        ) from None
     if lab.dim() != 1 or lab.shape[0] != n:
         raise ShapeError(f"partition: expected one region label per candidate, shape ({n},), got {tuple(lab.shape)}")
-    if lab.is_floating_point() or lab.is_complex() or lab.dtype == torch.bool:
-        if lab.is_complex() or not bool((lab == lab.round()).all()) or lab.dtype == torch.bool:
-            raise InputError(f"partition: expected integer region labels, got dtype {lab.dtype}")
+    integral = not (lab.is_complex() or lab.dtype == torch.bool)
+    if integral and lab.is_floating_point():
+        integral = bool(torch.isfinite(lab).all() and (lab == lab.round()).all() and (lab.abs() < 2**62).all())
+    if not integral:
+        raise InputError(
+            f"partition: expected integer region labels, got dtype {str(lab.dtype).removeprefix('torch.')} "
+            f"({lab.tolist()!r:.80}); number the regions 0, 1, ..."
+        )
     lab = lab.to(torch.long).cpu()
     labels = sorted(int(v) for v in torch.unique(lab))
     if isinstance(capacities, Mapping):
@@ -486,14 +497,14 @@ def check_partition(partition, capacities, n: int, budget: int, device) -> tuple
     for key, val in caps_map.items():
         try:
             k = int(key)
-            if k != key:
+            if k != key or isinstance(key, bool):
                 raise TypeError
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InputError(f"capacities: expected integer region labels as keys, got {key!r}") from None
         integral = isinstance(val, numbers.Integral) or (isinstance(val, float) and val.is_integer())
         if isinstance(val, bool) or not integral or int(val) < 0:
             raise InputError(f"capacities: expected non-negative integers, got {val!r} for region {k}")
-        clean[k] = int(val)
+        clean[k] = min(int(val), n)  # more picks than candidates allows nothing more
     missing = [lbl for lbl in labels if lbl not in clean]
     if missing:
         raise InputError(

@@ -147,6 +147,8 @@ def read_safely(path: str | Path, what: str, writer: str):
     path = Path(path)
     if not path.is_file():
         raise InputError(f"path: expected an existing {what} file, got {str(path)!r}")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: expected a {what} file written by {writer}, got an empty file (0 bytes)")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except (

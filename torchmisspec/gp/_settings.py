@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from .._errors import InputError
-from .._validation import check_positive_int, check_real
+from .._validation import check_device, check_positive_int, check_real
 from ._features import check_library
 from ._kernels import as_kernel
 from ._selection import EVIDENCE_MARGIN
@@ -101,5 +101,5 @@ def check_settings(
         "degree": degree,
         "max_iter": check_positive_int(max_iter, "max_iter"),
         "dtype": dtype,
-        "device": torch.device(device) if device is not None else torch.device("cpu"),
+        "device": check_device(device),
     }
