@@ -137,3 +137,37 @@ def test_half_precision_derivatives_are_refused_clearly():
     t = torch.linspace(0, 1, 9).half()
     with pytest.raises(tms.InputError, match=r"states: expected float32 or float64 values, got float16"):
         tms.smoothed_derivative(torch.ones(1, 9, 1).half(), t)
+
+
+# ------------------------------------------------------------------------------------- the command line
+def test_an_interrupted_write_leaves_the_old_file_or_none(tmp_path):
+    from torchmisspec.cli._common import write_csv
+
+    def rows():
+        yield [1, 2]
+        raise KeyboardInterrupt
+
+    out = tmp_path / "table.csv"
+    with pytest.raises(KeyboardInterrupt):
+        write_csv(out, ["a", "b"], rows())
+    assert not out.exists() and list(tmp_path.iterdir()) == []  # nothing half-written, no temporary left
+    out.write_text("a,b\n0,0\n")
+    with pytest.raises(KeyboardInterrupt):
+        write_csv(out, ["a", "b"], rows())
+    assert out.read_text() == "a,b\n0,0\n" and len(list(tmp_path.iterdir())) == 1
+    write_csv(out, ["a", "b"], [[1, 2]])
+    assert out.read_text().splitlines() == ["a,b", "1,2"]
+
+
+def test_ctrl_c_in_a_command_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    from torchmisspec import cli
+    from torchmisspec.cli import _predict
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_predict, "_predict", interrupted)
+    argv = ["predict", "--model", "m.pt", "--system", "paper_linear", "--initial", "x.csv", "--times", "0:1:2"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["torchmisspec predict: interrupted; nothing more was written"]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+from contextlib import contextmanager
 from pathlib import Path
 
 from .._errors import InputError
@@ -383,10 +385,22 @@ def load_model(path: str, system):
     return gp
 
 
+@contextmanager
+def written(path: Path):
+    """Write ``path`` all at once: the body writes the yielded temporary file next to it (same suffix), which then
+    replaces ``path``; an error or Ctrl-C on the way removes it, so no half-written output looks complete."""
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_csv(path: Path, header: list[str], rows) -> None:
     import csv
 
-    with path.open("w", newline="") as fh:
+    with written(path) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(header)
         writer.writerows(rows)

@@ -19,6 +19,7 @@ from ._common import (
     read_states,
     read_table,
     write_csv,
+    written,
 )
 
 __all__ = ["add_design"]
@@ -164,27 +165,27 @@ def _design(args: argparse.Namespace) -> int:
     units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
     conditioned = plan.diagnostics.get("conditioned", 0)
     if out.suffix == ".json":
-        out.write_text(
-            json.dumps(
-                {
-                    "system": system.name,
-                    "model": source,
-                    "method": plan.method,
-                    "budget": args.budget,
-                    "indices": plan.indices.tolist(),
-                    "gains": plan.gains.tolist(),
-                    "information_gain": plan.information_gain,
-                    "points": [dict(zip(names, p, strict=True)) for p in plan.points.tolist()],
-                    "labels": None if labels is None else [labels[i] for i in plan.indices.tolist()],
-                    "criterion": args.criterion,
-                    "conditioned_on_samples": conditioned,
-                    "proxy": plan.diagnostics.get("proxy"),
-                    "units": units,
-                    "times": when,
-                },
-                indent=2,
-            )
+        text = json.dumps(
+            {
+                "system": system.name,
+                "model": source,
+                "method": plan.method,
+                "budget": args.budget,
+                "indices": plan.indices.tolist(),
+                "gains": plan.gains.tolist(),
+                "information_gain": plan.information_gain,
+                "points": [dict(zip(names, p, strict=True)) for p in plan.points.tolist()],
+                "labels": None if labels is None else [labels[i] for i in plan.indices.tolist()],
+                "criterion": args.criterion,
+                "conditioned_on_samples": conditioned,
+                "proxy": plan.diagnostics.get("proxy"),
+                "units": units,
+                "times": when,
+            },
+            indent=2,
         )
+        with written(out) as tmp:
+            tmp.write_text(text)
     else:
         label = [] if labels is None else [args.experiment_column]  # the candidates' own labels, when they have them
         rows = [

@@ -13,6 +13,7 @@ from ._common import (
     describe_system,
     load_model,
     read_observations,
+    written,
 )
 
 __all__ = ["POSSIBLE_TERM", "add_calibrate", "add_fit"]
@@ -95,7 +96,8 @@ def _fit(args: argparse.Namespace) -> int:
         else:
             print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
     gp.system_ = describe_system(system)  # later commands check they are given the same system
-    gp.save(out)
+    with written(out) as tmp:
+        gp.save(tmp)
     print(f"written to {out}")
     return 0
 
@@ -118,7 +120,8 @@ def _recalibrate(args: argparse.Namespace) -> int:
     result = model.calibrate(
         observed, samples, level=args.level, state_noise=_state_noise(args.state_noise), progress=not args.quiet
     )
-    gp.save(out)
+    with written(out) as tmp:
+        gp.save(tmp)
     print(f"calibrated bands: {result}; written to {out}")
     return 0
 

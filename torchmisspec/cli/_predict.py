@@ -18,6 +18,7 @@ from ._common import (
     read_controls,
     read_states,
     write_csv,
+    written,
 )
 
 __all__ = ["add_predict"]
@@ -136,7 +137,8 @@ def _figure(post, path, names, labels, args: argparse.Namespace) -> None:
         )
         for ax in axes[b]:
             ax.set_xlabel(args.time_column)
-    fig.savefig(path, dpi=100)
+    with written(path) as tmp:
+        fig.savefig(tmp, dpi=100)
 
 
 def add_predict(sub) -> None:
