@@ -171,3 +171,19 @@ def test_ctrl_c_in_a_command_is_one_line_and_exit_2(tmp_path, capsys, monkeypatc
     assert cli.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["torchmisspec predict: interrupted; nothing more was written"]
+
+
+# ------------------------------------------------------------------------------------ wrong without a warning
+def test_correction_samples_are_data_not_a_graph():
+    """A known model with a trainable parameter (an nn.Parameter) must not leave its graph in the samples."""
+    k = torch.nn.Parameter(torch.tensor(1.0, dtype=DT))
+    system = tms.MisspecifiedSystem(lambda y: -k * y, 1, correction_inputs=[0], correction_outputs=[0])
+    truth = tms.MisspecifiedSystem(
+        lambda y: -y, 1, correction=lambda x: -0.5 * x**2, correction_inputs=[0], correction_outputs=[0]
+    )
+    t = torch.linspace(0, 1, 8, dtype=DT)
+    data = tms.simulate(truth, torch.tensor([[1.0], [2.0], [0.5]], dtype=DT), t)
+    samples = tms.correction_samples(data, system)
+    assert not samples.targets.requires_grad and samples.targets.grad_fn is None
+    exact = tms.correction_samples(data, tms.MisspecifiedSystem(lambda y: -y, 1))
+    assert torch.equal(samples.targets, exact.targets)

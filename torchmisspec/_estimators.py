@@ -190,10 +190,12 @@ def _cut_at_jumps(trajectories: Trajectories):
 
 def known_flat(system: MisspecifiedSystem, trajectories: Trajectories, flat: torch.Tensor) -> torch.Tensor:
     """G at ``flat (N, d)``, the states of ``trajectories`` experiment after experiment, at their own times and
-    controls (``G(y)`` for an autonomous system)."""
-    if system.autonomous:
-        return system.known_rhs(flat)
-    return system.known_rhs(flat, trajectories.flat_times().to(flat), trajectories.flat_controls())
+    controls (``G(y)`` for an autonomous system). Values, not a graph: a G with trainable parameters (an
+    ``nn.Module``) leaves no autograd history in the samples built from them."""
+    with torch.no_grad():
+        if system.autonomous:
+            return system.known_rhs(flat)
+        return system.known_rhs(flat, trajectories.flat_times().to(flat), trajectories.flat_controls())
 
 
 def _flat_observed(trajectories: Trajectories) -> torch.Tensor:

@@ -308,6 +308,7 @@ def correction_samples(
             system.theta.to(flat_states),
             system.parameters.scale.to(flat_states),
         )
+        basis = basis.detach()
     targets = system.select_outputs(dydt - g)
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     sample_noise = None if variance is None else system.select_outputs(variance)
