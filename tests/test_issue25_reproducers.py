@@ -187,3 +187,9 @@ def test_correction_samples_are_data_not_a_graph():
     assert not samples.targets.requires_grad and samples.targets.grad_fn is None
     exact = tms.correction_samples(data, tms.MisspecifiedSystem(lambda y: -y, 1))
     assert torch.equal(samples.targets, exact.targets)
+
+
+def test_no_experiments_is_refused_when_built():
+    t = torch.linspace(0, 1, 4, dtype=DT)
+    with pytest.raises(tms.ShapeError, match=r"states: expected at least one experiment with at least one time, got"):
+        tms.Trajectories(t, torch.zeros(0, 4, 2, dtype=DT))

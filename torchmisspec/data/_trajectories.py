@@ -91,6 +91,11 @@ class Trajectories:
                     f"states as one {type(self.states).__name__}"
                 )
             states, times = states_and_times(given, self.times, missing=True)
+        if len(states) == 0 or states[0].shape[0] == 0:
+            raise ShapeError(
+                "states: expected at least one experiment with at least one time, got shape "
+                f"{tuple(states.shape) if isinstance(states, torch.Tensor) else tuple(states[0].shape)}"
+            )
         d = states[0].shape[-1] - m
         names = _check_state_names(self.state_names, d)
         states, times = _drop_empty_rows(states, times)
