@@ -127,7 +127,7 @@ def test_gp_derivative_float32_and_errors():
     t, y, _ = closed_form(K=2, T=11, seed=6)
     out = gp_derivative(y.float(), t.float())
     assert out.mean.dtype == out.variance.dtype == torch.float32
-    with pytest.raises(InputError, match=r"derivative='gp' needs at least 4 samples per trajectory, got T=3"):
+    with pytest.raises(InputError, match=r"derivative='gp': expected at least 4 samples per trajectory, got T=3"):
         gp_derivative(y[:, :3], t[:, :3])
     const = y.clone()
     const[..., 1] = 2.0
@@ -166,7 +166,7 @@ def test_estimator_error_matches_choice_and_validates():
         estimator_error(traj, system, derivative="central", window=5)
     with pytest.raises(InputError, match=r"derivative: expected one of \['central', 'smooth', 'gp'\], got 'oracle'"):
         estimator_error(traj, system, derivative="oracle")
-    with pytest.raises(InputError, match=r"window=11 needs at least 11 samples"):
+    with pytest.raises(InputError, match=r"expected at least 11 samples per trajectory for window=11"):
         estimator_error(pendulum_data(K=2, T=7), system, derivative="smooth", window=11, degree=3)
 
 

@@ -272,7 +272,9 @@ def test_too_few_observations_of_a_component_are_named():
     y[0, 1:7, 1] = math.nan  # component 1 seen twice only
     with pytest.raises(tms.InputError, match=r"at least 3 observed values .* got 2 of component 1 in experiment 0"):
         finite_difference(y, t)
-    with pytest.raises(tms.InputError, match=r"derivative='gp' needs at least 4 samples .*experiment 0, component 1"):
+    with pytest.raises(
+        tms.InputError, match=r"derivative='gp': expected at least 4 samples .*experiment 0, component 1"
+    ):
         gp_derivative(y, t)
 
 

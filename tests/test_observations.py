@@ -110,10 +110,10 @@ def test_finite_difference_follows_dtype():
 
 def test_finite_difference_bad_inputs():
     t = torch.linspace(0, 1, 2, dtype=DT)
-    with pytest.raises(InputError, match=r"order=2 needs at least 3 samples per trajectory, got T=2"):
+    with pytest.raises(InputError, match=r"expected at least 3 samples per trajectory for order=2, got T=2"):
         finite_difference(torch.zeros(1, 2, 1, dtype=DT), t)
     t4 = torch.linspace(0, 1, 4, dtype=DT)
-    with pytest.raises(InputError, match=r"order=4 needs at least 5 samples per trajectory, got T=4"):
+    with pytest.raises(InputError, match=r"expected at least 5 samples per trajectory for order=4, got T=4"):
         finite_difference(torch.zeros(2, 4, 3, dtype=DT), t4, order=4)
     with pytest.raises(InputError, match=r"order: expected one of \[2, 4\], got 3"):
         finite_difference(torch.zeros(1, 5, 1, dtype=DT), torch.arange(5.0), order=3)
@@ -170,7 +170,7 @@ def test_smoother_bad_inputs():
         smoothed_derivative(states, t, window=3, degree=3)
     with pytest.raises(InputError, match=r"degree: expected an integer >= 1"):
         smoothed_derivative(states, t, degree=0)
-    with pytest.raises(InputError, match=r"window=11 needs at least 11 samples per trajectory, got T=9"):
+    with pytest.raises(InputError, match=r"expected at least 11 samples per trajectory for window=11, got T=9"):
         smoothed_derivative(states, t, window=11)
     with pytest.raises(InputError, match=r"window: expected an integer >= 1, got 7.0 \(float\)"):
         smoothed_derivative(states, t, window=7.0)
@@ -286,11 +286,11 @@ def test_correction_samples_bad_inputs(linear_fine):
     with pytest.raises(ShapeError, match=r"expected state dimension 4 of system 'paper_gravity', got .*state_dim=2"):
         correction_samples(traj, paper_gravity())
     short = Trajectories(torch.tensor([0.0, 1.0]), torch.zeros(1, 2, 2))
-    with pytest.raises(InputError, match=r"order=2 needs at least 3 samples per trajectory, got T=2"):
+    with pytest.raises(InputError, match=r"expected at least 3 samples per trajectory for order=2, got T=2"):
         correction_samples(short, system, derivative="central")
-    with pytest.raises(InputError, match=r"derivative='auto': every estimator needs at least 3 samples.*got T=2"):
+    with pytest.raises(InputError, match=r"derivative='auto': expected at least 3 samples.*got T=2"):
         correction_samples(short, system)
-    with pytest.raises(InputError, match=r"window=7 needs at least 7 samples per trajectory, got T=2"):
+    with pytest.raises(InputError, match=r"expected at least 7 samples per trajectory for window=7, got T=2"):
         correction_samples(short, system, derivative="smooth")
     no_f = MisspecifiedSystem(LinearField(torch.eye(2)), 2, name="known_only")
     msg = r"oracle derivatives need a system with a true correction.*'auto', 'central', 'smooth' or 'gp'"

@@ -210,7 +210,10 @@ def test_auto_and_self_check_on_ragged_data(ragged):
     one_short = Trajectories([traj.times[0][:2], traj.times[1]], [traj.states[0][:2], traj.states[1]])
     with pytest.raises(tms.InputError, match=r"got T=2 \(the shortest experiment\)"):
         correction_samples(one_short, system)
-    with pytest.raises(tms.InputError, match=r"order=4 needs at least 5 samples.*experiment \[0\] of the ragged data"):
+    with pytest.raises(
+        tms.InputError,
+        match=r"expected at least 5 samples per trajectory for order=4.*experiment \[0\] of the ragged data",
+    ):
         correction_samples(one_short, system, derivative="central", order=4)
 
 

@@ -364,7 +364,7 @@ def choose_derivative(
     candidates = [(n, o) for n, o, need in AUTO_CANDIDATES if T >= need]
     if not candidates:
         raise InputError(
-            f"derivative='auto': every estimator needs at least 3 samples per trajectory, got T={T}"
+            f"derivative='auto': expected at least 3 samples per trajectory, got T={T}"
             + (" (the shortest experiment)" if trajectories.is_ragged else "")
         )
     known_copy = _known_model_copy(trajectories, system)

@@ -139,7 +139,8 @@ def _gp_time(
         k, j = (int(i) for i in (counts == counts.min()).nonzero()[0])
         where = "" if mask is None else f" (experiment {k}" + (f", component {j})" if int(counts[k].min()) < T else ")")
         raise InputError(
-            f"derivative='gp' needs at least {GP_MIN_SAMPLES} samples per trajectory, got T={int(counts.min())}" + where
+            f"derivative='gp': expected at least {GP_MIN_SAMPLES} samples per trajectory, got T={int(counts.min())}"
+            + where
         )
     dtype, device = states.dtype, states.device
     t = times.to(torch.float64)

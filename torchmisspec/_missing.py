@@ -91,7 +91,7 @@ def check_counts(observed: torch.Tensor, need: int, what: str, experiment_names=
             "through the ODE (torchmisspec.partial)"
         )
     raise InputError(
-        f"{what} needs at least {need} observed values of every state component in every experiment, got "
+        f"{what}: expected at least {need} observed values of every state component in every experiment, got "
         f"{int(counts[k, j])} of component {j} in experiment {k} (its other values are missing); {fix}"
     )
 

@@ -126,7 +126,7 @@ def finite_difference(states, times, *, order: int = 2) -> torch.Tensor:
     T = states.shape[1]
     width = order + 1
     if T < width:
-        raise InputError(f"order={order} needs at least {width} samples per trajectory, got T={T}")
+        raise InputError(f"states: expected at least {width} samples per trajectory for order={order}, got T={T}")
     observed = torch.isfinite(states)
     if not bool(observed.all()):
         return _masked("central", states, times, observed, {"order": order})[0]
@@ -174,7 +174,7 @@ def smoothed_derivative(states, times, *, window: int = 7, degree: int = 2) -> t
     states, times = _states_and_times(states, times)
     T = states.shape[1]
     if T < window:
-        raise InputError(f"window={window} needs at least {window} samples per trajectory, got T={T}")
+        raise InputError(f"states: expected at least {window} samples per trajectory for window={window}, got T={T}")
     observed = torch.isfinite(states)
     if not bool(observed.all()):
         return _masked("smooth", states, times, observed, {"window": window, "degree": degree})[0]
@@ -200,11 +200,13 @@ def _check_stencil_options(name: str, options: dict, T: int) -> None:
         if order not in _FD_ORDERS:
             raise InputError(f"order: expected one of {list(_FD_ORDERS)}, got {order}")
         if T < order + 1:
-            raise InputError(f"order={order} needs at least {order + 1} samples per trajectory, got T={T}")
+            raise InputError(
+                f"states: expected at least {order + 1} samples per trajectory for order={order}, got T={T}"
+            )
         return
     window = check_positive_int(options.get("window", 7), "window")
     degree = check_positive_int(options.get("degree", 2), "degree", minimum=1)
     if window % 2 == 0 or window < 3 or window <= degree:
         raise InputError(f"window: expected an odd integer >= 3 and > degree, got window={window}, degree={degree}")
     if T < window:
-        raise InputError(f"window={window} needs at least {window} samples per trajectory, got T={T}")
+        raise InputError(f"states: expected at least {window} samples per trajectory for window={window}, got T={T}")

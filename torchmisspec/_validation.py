@@ -228,8 +228,8 @@ def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None
         ordered = bool((t[..., 1:] > t[..., :-1]).all())
         if not ordered or lost > 1e-3 * step:
             what = (
-                f"{name}: {str(t.dtype).removeprefix('torch.')} (the states' dtype) cannot resolve these times: "
-                f"rounding moves them by up to {lost:.3g}, against a smallest step of {step:.3g}; pass the states "
+                f"{name}: expected times that {str(t.dtype).removeprefix('torch.')} (the states' dtype) can resolve, "
+                f"got a rounding of up to {lost:.3g} against a smallest step of {step:.3g}; pass the states "
                 f"as {str(given.dtype).removeprefix('torch.')}, or shift the times to start near 0"
             )
             if not ordered:

@@ -150,10 +150,12 @@ def mean_and_standard_error(values, dim: int = 0) -> tuple[torch.Tensor, torch.T
         raise ShapeError(f"values: expected at least one value along dim {dim}, got shape {tuple(v.shape)}")
     check_finite(v, "values")
     n = v.shape[dim]
-    mean = v.mean(dim)
+    # scaled by the largest magnitude, so that finite values whose squares (or sums) would overflow stay finite
+    scale = v.abs().amax(dim, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
+    mean = (v / scale).mean(dim) * scale.squeeze(dim)
     if n == 1:
         return mean, torch.zeros_like(mean)
-    return mean, v.std(dim, unbiased=True) / math.sqrt(n)
+    return mean, (v / scale).std(dim, unbiased=True) * scale.squeeze(dim) / math.sqrt(n)
 
 
 def trajectory_rmse(predicted, true, *, per_trajectory: bool = False) -> torch.Tensor:

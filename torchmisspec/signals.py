@@ -100,7 +100,11 @@ class Controls:
         steps = knots_t.diff(dim=-1)
         inside = torch.arange(1, knots_t.shape[1], device=steps.device) < self.lengths.unsqueeze(-1).to(steps.device)
         if bool((steps[inside] <= 0).any()):
-            raise InputError("knots: expected strictly increasing times in every experiment's profile")
+            k, i = (int(v) for v in ((steps <= 0) & inside).nonzero()[0])
+            raise InputError(
+                "knots: expected strictly increasing times in every experiment's profile, got "
+                f"{float(knots_t[k, i]):g} then {float(knots_t[k, i + 1]):g} in experiment {k}"
+            )
         self.knots = knots_t.contiguous()
         self.values = values_t.contiguous()
         self.names = check_names(names, values_t.shape[-1], "names", default="u")

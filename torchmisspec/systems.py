@@ -8,7 +8,7 @@ others (``correction_inputs``), as in the gravity set-up of paper §5.3 where F 
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import torch
 from torch import nn
@@ -112,6 +112,7 @@ class MisspecifiedSystem:
         if (
             outputs is not None
             and not isinstance(outputs, (str, torch.Tensor))
+            and isinstance(outputs, Iterable)
             and any(isinstance(i, str) for i in outputs)
         ):
             names = list(self.state_names or ())
@@ -137,7 +138,14 @@ class MisspecifiedSystem:
 
     def _resolve(self, items):
         """``correction_inputs`` given by name: their positions among the states, then the controls."""
-        if items is None or isinstance(items, torch.Tensor) or not any(isinstance(i, str) for i in items):
+        if items is None or isinstance(items, torch.Tensor):
+            return items
+        if isinstance(items, (str, bytes)) or not isinstance(items, Iterable):
+            raise InputError(
+                f"correction_inputs / correction_outputs: expected a list of state (or control) indices or names, "
+                f"got {items!r:.60} ({type(items).__name__})"
+            )
+        if not any(isinstance(i, str) for i in items):
             return items
         known = list(self.state_names or ()) + [None] * (self.state_dim - len(self.state_names or ()))
         known += list(self.control_names)

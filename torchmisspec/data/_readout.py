@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 
@@ -52,9 +52,11 @@ class Readout:
         empty = [i for i in range(H.shape[0]) if not bool((H[i] != 0).any())]
         if empty:
             raise InputError(
-                f"matrix: expected a nonzero weight in every row (a reading of something), rows {empty} are 0"
+                f"matrix: expected a nonzero weight in every row (a reading of something), got rows {empty} all 0"
             )
-        if isinstance(names, str) or not all(isinstance(n, str) and n.strip() for n in names):
+        if isinstance(names, str) or not isinstance(names, Iterable):
+            raise InputError(f"names: expected a list of {H.shape[0]} non-empty strings, got {names!r:.120}")
+        if not all(isinstance(n, str) and n.strip() for n in names):
             raise InputError(f"names: expected a list of {H.shape[0]} non-empty strings, got {names!r:.120}")
         names = tuple(names)
         if len(names) != H.shape[0]:
