@@ -299,8 +299,74 @@ CASES = [
 ]
 
 
-def _every_case():
-    for call, args in CASES:
+def _fit_correction(trajectories=TRAJ, gp=None, select="cv", derivative="auto", folds=3, refine=None):
+    return tms.fit_correction(
+        trajectories, SYSTEM, gp=gp, select=select, derivative=derivative, folds=folds, refine=refine, progress=False
+    ).predict_mean(Y0)
+
+
+def _fit_trajectories(trajectories=TRAJ, shooting="single", state_noise=None, max_iter=3, relevance=None):
+    return tms.fit_trajectories(
+        FITTED, SYSTEM, trajectories, shooting=shooting, state_noise=state_noise, max_iter=max_iter, relevance=relevance
+    ).predict_mean(Y0)
+
+
+def _calibrate(trajectories=TRAJ, level=0.9, folds=3, num_samples=4, state_noise="auto"):
+    model = tms.CorrectedODE(SYSTEM, FITTED)
+    return model.calibrate(
+        trajectories, SAMPLES, level=level, folds=folds, num_samples=num_samples, state_noise=state_noise,
+        progress=False,
+    ).scale  # fmt: skip
+
+
+BAD_TRAJECTORIES = [
+    TRAJ.states,
+    None,
+    "data.csv",
+    TRAJ[:1],
+    tms.Trajectories(TIMES[:2], TRAJ.states[:, :2]),
+    tms.Trajectories(TIMES, TRAJ.states * 1e200),
+    tms.Trajectories(TIMES, TRAJ.states.clone().index_fill_(1, torch.tensor([2, 3, 4]), float("nan"))),
+    tms.Trajectories(TIMES, torch.zeros(3, 6, 3, dtype=DT)),
+]
+#: the fits: each call takes a second or more, so they run in the slow tests
+SLOW_CASES = [
+    (
+        _fit_correction,
+        {
+            "trajectories": BAD_TRAJECTORIES,
+            "gp": ["rbf", 3, tms.CorrectionGP(kernel="polynomial", degree=2)],
+            "select": ["bogus", None, 3],
+            "derivative": ["bogus", None, 3],
+            "folds": BAD_NUMBERS,
+            "refine": ["yes", 2, 0.5],
+        },
+    ),
+    (
+        _fit_trajectories,
+        {
+            "trajectories": BAD_TRAJECTORIES,
+            "shooting": ["bogus", None, 3],
+            "state_noise": BAD_NUMBERS + [[1.0], [1.0, -1.0]],
+            "max_iter": BAD_NUMBERS,
+            "relevance": ["yes", 2],
+        },
+    ),
+    (
+        _calibrate,
+        {
+            "trajectories": BAD_TRAJECTORIES,
+            "level": BAD_NUMBERS + [1.0],
+            "folds": BAD_NUMBERS,
+            "num_samples": BAD_NUMBERS,
+            "state_noise": ["bogus", "-2%", -1.0, [1.0], float("nan")],
+        },
+    ),
+]
+
+
+def _every_case(cases=CASES):
+    for call, args in cases:
         for name, values in args.items():
             for k, value in enumerate(values):
                 yield pytest.param(call, name, value, id=f"{call.__name__}-{name}-{k}")
@@ -323,6 +389,14 @@ def test_every_valid_call_is_valid():
 @pytest.mark.parametrize(("call", "name", "value"), list(_every_case()))
 def test_one_bad_argument(call, name, value):
     """Every listed bad value of every argument, one at a time (all of them: a few seconds)."""
+    _check(call, **{name: value})
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::torchmisspec.NumericalWarning", "ignore::torchmisspec.TorchMisspecWarning")
+@pytest.mark.parametrize(("call", "name", "value"), list(_every_case(SLOW_CASES)))
+def test_one_bad_argument_of_the_fits(call, name, value):
+    """The fits (fit_correction, fit_trajectories, calibration), every listed bad value of every argument."""
     _check(call, **{name: value})
 
 

@@ -193,3 +193,32 @@ def test_no_experiments_is_refused_when_built():
     t = torch.linspace(0, 1, 4, dtype=DT)
     with pytest.raises(tms.ShapeError, match=r"states: expected at least one experiment with at least one time, got"):
         tms.Trajectories(t, torch.zeros(0, 4, 2, dtype=DT))
+
+
+X = torch.linspace(0, 1, 8, dtype=DT).unsqueeze(-1)
+
+
+@pytest.mark.parametrize(
+    ("call", "said"),
+    [
+        (lambda: tms.CorrectionGP(per_output="yes"), "per_output: expected True or False, got 'yes' (str)"),
+        (
+            lambda: tms.CorrectionGP(max_iter=5).fit(X, torch.sin(3 * X), progress=1),
+            "progress: expected True or False, got 1 (int)",
+        ),
+    ],
+)
+def test_switches_are_booleans(call, said):
+    """A truthy string or number was taken as a switch (relevance='no' turned relevance on)."""
+    with pytest.raises(tms.InputError) as info:
+        call()
+    assert said in str(info.value)
+
+
+def test_fit_switches_are_booleans(fitted):
+    system, gp, _, times = fitted
+    data = tms.simulate(system, tms.design.candidates.grid(system.domain, 2), times)
+    with pytest.raises(tms.InputError, match=r"refine: expected True, False or None, got 'no' \(str\)"):
+        tms.fit_correction(data, system, refine="no", progress=False)
+    with pytest.raises(tms.InputError, match=r"relevance: expected True, False or None, got 'no' \(str\)"):
+        tms.fit_trajectories(gp, system, data, relevance="no")

@@ -119,7 +119,9 @@ def test_fallbacks_and_bad_input(linear_noisy):
     with pytest.raises(tms.InputError, match=r"gp: expected a CorrectionGP template or None, got str"):
         tms.fit_correction(traj, system, gp="rbf")
     samples = tms.correction_samples(traj, system, derivative="central")
-    with pytest.raises(tms.InputError, match=r"needs at least 2 experiments and 2 folds, got K=10, folds=1"):
+    with pytest.raises(
+        tms.InputError, match=r"expected at least 2 experiments and 2 folds for cross-validation, got K=10, folds=1"
+    ):
         cross_validate_lengthscale(system, traj, samples, folds=1)
     with pytest.raises(tms.InputError, match=r"expected the correction samples of these 2 experiments"):
         cross_validate_lengthscale(system, traj[[0, 1]], samples)

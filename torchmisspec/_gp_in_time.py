@@ -275,7 +275,8 @@ def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:
 
 def estimate_readings_noise(trajectories: Trajectories) -> torch.Tensor | None:
     """``(m,)`` the readings' noise standard deviations, estimated as the states' are (the GP in time), from the
-    experiments that read them; ``None`` where that estimate is (too few readings)."""
+    experiments that read them (a reading read too rarely for the GP in time: its values taken as 1 % accurate);
+    ``None`` when an experiment has too few samples for the GP in time, as :func:`estimate_state_noise`."""
     values = trajectories.readings
     lengths = trajectories.lengths
     per = list(values) if isinstance(values, tuple) else [values[k] for k in range(len(lengths))]

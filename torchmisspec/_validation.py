@@ -298,13 +298,25 @@ class _NoBar:
         pass
 
 
+def check_flag(value, name: str, *, none: bool = False) -> bool | None:
+    """``True`` or ``False`` (or ``None`` when ``none``): no truthy strings or numbers quietly taken as a switch."""
+    if isinstance(value, bool) or (none and value is None):
+        return value
+    if isinstance(value, (np.bool_,)) or (
+        isinstance(value, torch.Tensor) and value.dtype == torch.bool and value.numel() == 1
+    ):
+        return bool(value)
+    allowed = "True, False or None" if none else "True or False"
+    raise InputError(f"{name}: expected {allowed}, got {value!r:.60} ({type(value).__name__})")
+
+
 def progress_bar(enabled: bool, total: int, desc: str, unit: str = "it"):
     """A tqdm progress bar, or an object with the same methods that does nothing when ``enabled`` is false.
 
     Use it as a context manager (``with progress_bar(...) as bar:``) or call ``close()``; no ``None`` checks needed.
     tqdm is imported only when a bar is shown.
     """
-    if not enabled:
+    if not check_flag(enabled, "progress"):
         return _NoBar()
     from tqdm.auto import tqdm
 

@@ -52,7 +52,7 @@ from ._errors import (
 )
 from ._gp_in_time import estimate_readings_noise
 from ._parameters_ode import fit_parameters
-from ._validation import as_tensor, check_positive_int, check_real, progress_bar
+from ._validation import as_tensor, check_flag, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp._calibration import BandCalibration
 from .learning import _check_cv_inputs
@@ -175,6 +175,7 @@ def calibrate_bands(
         )
     system, gp = model.system, model.gp
     level = _check_level(level)
+    refit = check_flag(refit, "refit")
     num_samples = check_positive_int(num_samples, "num_samples")
     if "scale" in posterior_options or "num_samples" in posterior_options:
         raise InputError("posterior_options: scale and num_samples are set by calibrate_bands itself")
@@ -352,7 +353,7 @@ def calibrate_bands(
         scales=tuple(c for c, _ in tried),
         coverages=tuple(v for _, v in tried),
         folds=len(held_out),
-        refit=bool(refit),
+        refit=refit,
         num_points=total,
         reached=reached,
     )

@@ -3,20 +3,18 @@ trajectories under posterior draws of F (:meth:`CorrectedODE.posterior`), with u
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from ._bands import band_quantiles, path_quantiles
+from ._bands import TrajectoryPosterior
 from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
-from ._validation import as_tensor, check_positive_int, check_real
+from ._validation import check_positive_int, check_real
 from .calibration import calibrate_bands
-from .data import Readout, Trajectories
+from .data import Trajectories
 from .gp import CorrectionGP
 from .parameters import ParameterPosterior
 from .partial import complete, estimate_initial_states, initial_guess
@@ -517,89 +515,3 @@ def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B:
 
 def _wants_graph(*tensors: torch.Tensor) -> bool:
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-
-
-@dataclass(frozen=True)
-class TrajectoryPosterior:
-    """Predicted trajectories under S posterior draws of the correction (:meth:`CorrectedODE.posterior`).
-
-    Attributes:
-        times: ``(B, T)`` output times of every initial condition.
-        samples: ``(S, B, T, d)`` the sampled paths.
-        mean_path: ``(B, T, d)`` the trajectory of the posterior mean of F (what :meth:`CorrectedODE.predict`
-            returns; not the same as :attr:`mean`, the mean over the sampled paths, when the dynamics are nonlinear).
-        support: ``(B, T)`` posterior / prior standard deviation of F along the mean paths (near 0: well inside the
-            data; near 1: the prior alone).
-        extrapolating: ``(B,)`` paths whose support ratio exceeds ``threshold`` somewhere.
-        threshold: the extrapolation threshold used.
-        update_error: the certified bound on the compression of the draws' update (0: exact).
-        state_names: the system's names of the state components (``None`` when it names none): what plots label
-            the panels with.
-    """
-
-    times: torch.Tensor
-    samples: torch.Tensor
-    mean_path: torch.Tensor
-    support: torch.Tensor
-    extrapolating: torch.Tensor
-    threshold: float
-    update_error: float = 0.0
-    state_names: tuple[str, ...] | None = None
-
-    @property
-    def num_samples(self) -> int:
-        return self.samples.shape[0]
-
-    @property
-    def mean(self) -> torch.Tensor:
-        """``(B, T, d)``: the mean over the sampled paths."""
-        return self.samples.mean(0)
-
-    @property
-    def stddev(self) -> torch.Tensor:
-        """``(B, T, d)``: the standard deviation over the sampled paths (0 with one draw)."""
-        if self.num_samples < 2:
-            return torch.zeros_like(self.samples[0])
-        return self.samples.std(0)
-
-    def quantile(self, q) -> torch.Tensor:
-        """Empirical quantile(s) over the sampled paths: ``(B, T, d)`` for a number, ``(Q, B, T, d)`` for Q of them."""
-        qs = as_tensor(q, "q", dtype=self.samples.dtype, device=self.samples.device)
-        if qs.dim() > 1 or not bool(((qs >= 0) & (qs <= 1)).all()):
-            raise InputError(f"q: expected a quantile or a 1-D list of quantiles in [0, 1], got {q!r:.80}")
-        return path_quantiles(self.samples, qs)
-
-    def interval(self, level: float = 0.9) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(lower, upper)``, each ``(B, T, d)``: the central band of the sampled paths that a new draw falls in with
-        probability ``level``: the order statistics at ranks ``(S + 1)(1 -/+ level) / 2`` of the S draws, not the
-        plain quantiles, whose band of 64 draws covers 0.87 for ``level=0.9`` (:mod:`torchmisspec._bands`). A level
-        beyond ``(S - 1) / (S + 1)`` gives the draws' range, with a warning naming the draws it needs."""
-        level = check_real(level, "level", minimum=0.0)
-        if level > 1.0:
-            raise InputError(f"level: expected a probability in [0, 1], got {level!r}")
-        qs = band_quantiles(
-            level, self.num_samples, dtype=self.samples.dtype, device=self.samples.device, what="interval"
-        )
-        lo_hi = path_quantiles(self.samples, qs)
-        return lo_hi[0], lo_hi[1]
-
-    def covers(self, states, level: float = 0.9) -> torch.Tensor:
-        """``(B, T, d)`` booleans: whether ``states (B, T, d)`` (e.g. the true trajectories) lie in the band."""
-        lower, upper = self.interval(level)
-        states = as_tensor(states, "states", dtype=lower.dtype, device=lower.device)
-        if states.shape != lower.shape:
-            raise ShapeError(f"states: expected shape {tuple(lower.shape)} (B, T, d), got {tuple(states.shape)}")
-        return (states >= lower) & (states <= upper)
-
-    def read(self, readout: Readout) -> TrajectoryPosterior:
-        """The posterior of what ``readout`` reads (a :class:`~torchmisspec.data.Readout`, z = H y): every sampled
-        path and the mean path read out, ``(.., m)``; :meth:`interval` then gives the readings' band (e.g. the
-        total a tracer counts, when the states themselves are not measured)."""
-        if not isinstance(readout, Readout):
-            raise InputError(f"readout: expected a torchmisspec.data.Readout, got {type(readout).__name__}")
-        d = self.samples.shape[-1]
-        if readout.state_dim != d:
-            raise ShapeError(f"readout: expected weights over the {d} states, got {readout.state_dim} columns")
-        return dataclasses.replace(
-            self, samples=readout(self.samples), mean_path=readout(self.mean_path), state_names=readout.names
-        )

@@ -44,7 +44,7 @@ from ._errors import (
 from ._ode import FITTING_TOLERANCES, solve
 from ._parameters_ode import fit_parameters
 from ._threads import adaptive_threads
-from ._validation import check_positive_int, progress_bar
+from ._validation import check_flag, check_positive_int, progress_bar
 from .data import Trajectories, simulate_known_each
 from .gp import CorrectionGP
 from .gp._exact import median_distance
@@ -252,7 +252,9 @@ def _check_cv_inputs(system, trajectories, samples, folds) -> int:
     K = trajectories.num_experiments
     folds = check_positive_int(folds, "folds")
     if K < 2 or folds < 2:
-        raise InputError(f"folds: cross-validation needs at least 2 experiments and 2 folds, got K={K}, folds={folds}")
+        raise InputError(
+            f"folds: expected at least 2 experiments and 2 folds for cross-validation, got K={K}, folds={folds}"
+        )
     if int(samples.experiment.max()) > K - 1 or len(samples) > trajectories.num_samples:  # missing entries: fewer
         raise InputError(
             f"samples: expected the correction samples of these {K} experiments ({trajectories.num_samples} samples), "
@@ -507,6 +509,8 @@ def fit_correction(
         :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
     """
     _check_trajectories_and_system(trajectories, system)
+    refine = check_flag(refine, "refine", none=True)
+    check_flag(progress, "progress")
     if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
         return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)

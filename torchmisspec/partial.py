@@ -124,8 +124,9 @@ class Identifiability:
             one = len(self.unseen) == 1
             raise InputError(
                 f"system '{system_name}': the correction acts on {names}, which no experiment measures and which "
-                f"drive{'s' if one else ''} no measured component through G or F, so these data cannot inform it "
-                f"(measured: {', '.join(self.measured) or 'nothing'}); measure {names} in some experiment, or drop "
+                f"drive{'s' if one else ''} no measured component through G or F, so these data cannot inform it: "
+                f"expected a measurement that sees {names}, got none (measured: "
+                f"{', '.join(self.measured) or 'nothing'}); measure {names} in some experiment, or drop "
                 f"{'it' if one else 'them'} from correction_outputs"
             )
 

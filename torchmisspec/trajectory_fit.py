@@ -20,7 +20,7 @@ from ._gp_in_time import estimate_readings_noise, observed_rms
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
-from ._validation import as_tensor, check_positive_int, check_real
+from ._validation import as_tensor, check_flag, check_positive_int, check_real
 from .data import Trajectories
 from .gp import CorrectionGP, Posterior
 from .observations import _check_trajectories_and_system, estimate_state_noise
@@ -199,9 +199,12 @@ def fit_trajectories(
     if not isinstance(shooting, str) or shooting not in SHOOTING:
         raise InputError(f"shooting: expected one of {list(SHOOTING)}, got {shooting!r}")
     max_iter = check_positive_int(max_iter, "max_iter")
-    relevance = gp.kernel_spec.feature_space if relevance is None else bool(relevance)
+    relevance = check_flag(relevance, "relevance", none=True)
+    relevance = gp.kernel_spec.feature_space if relevance is None else relevance
     if relevance and not gp.kernel_spec.feature_space:
-        raise InputError(f"relevance: re-estimating term weights needs the feature kernel, got kernel {gp.kernel!r}")
+        raise InputError(
+            f"relevance: expected a feature kernel (its term weights are re-estimated), got kernel {gp.kernel!r}"
+        )
     trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
     d = trajectories.state_dim
     if min(trajectories.lengths) < 2:

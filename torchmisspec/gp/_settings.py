@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from .._errors import InputError
-from .._validation import check_device, check_positive_int, check_real
+from .._validation import check_device, check_flag, check_positive_int, check_real
 from ._features import check_library
 from ._kernels import as_kernel
 from ._selection import EVIDENCE_MARGIN
@@ -97,7 +97,7 @@ def check_settings(
         "evidence_margin": evidence_margin,
         "library": library,
         "library_names": library_names,
-        "per_output": bool(per_output),
+        "per_output": check_flag(per_output, "per_output"),
         "degree": degree,
         "max_iter": check_positive_int(max_iter, "max_iter"),
         "dtype": dtype,
