@@ -90,9 +90,52 @@ def _no_nan(out) -> None:
         _no_nan(out.points)
 
 
+def _scaled_rms(d: np.ndarray) -> float:
+    """The root mean square of ``d`` without overflow (numpy, scaled by the largest magnitude)."""
+    scale = float(np.abs(d).max()) or 1.0
+    return scale * float(np.sqrt(np.mean((d / scale) ** 2)))
+
+
+def _rmse_oracle(predicted=None, true=None):
+    a = np.asarray(TRAJ.states if predicted is None else predicted, dtype=np.float64)
+    b = np.asarray(TRAJ.states if true is None else true, dtype=np.float64)
+    return _scaled_rms(a - b)
+
+
+def _mean_se_oracle(values=(1.0, 2.0, 3.0)):
+    v = np.asarray(values, dtype=np.float64)
+    scale = float(np.abs(v).max(axis=0).max()) or 1.0
+    w = v / scale
+    se = 0.0 if len(w) == 1 else np.std(w, axis=0, ddof=1) * scale / math.sqrt(len(w))
+    return np.mean(w, axis=0) * scale, se
+
+
+def _information_oracle(points=None):
+    """0.5 d_out logdet(I + K / noise) with the prior's RBF kernel written out (lengthscale 1, output scale 4e-5,
+    noise 1e-4)."""
+    x = np.asarray(Y0 if points is None else points, dtype=np.float64)
+    sq = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    K = 4e-5 * np.exp(-sq / 2.0)
+    return 0.5 * 2 * np.linalg.slogdet(np.eye(len(x)) + K / 1e-4)[1]
+
+
+def _agrees(out, expected) -> None:
+    """A result equals an independent computation (numpy), to the rounding of the result's dtype."""
+    for got, want in zip(
+        out if isinstance(out, tuple) else (out,), expected if isinstance(expected, tuple) else (expected,), strict=True
+    ):
+        rtol = 1e-9
+        if isinstance(got, torch.Tensor):
+            rtol = max(rtol, 100 * torch.finfo(got.dtype).eps)
+            got = got.detach().cpu().double()
+        got = np.asarray(got, dtype=np.float64)
+        assert np.allclose(got, want, rtol=rtol, atol=1e-300), (got, want)
+
+
 def _check(call, **kwargs) -> None:
-    """The call returns a finite result, or raises a package error whose message names what was expected and what
-    was received ("expected ..., got ..."), within the time bound."""
+    """The call returns a finite result (equal to an independent computation where the call has one, its
+    ``oracle``), or raises a package error whose message names what was expected and what was received
+    ("expected ..., got ..."), within the time bound."""
     start = time.perf_counter()
     try:
         out = call(**kwargs)
@@ -103,6 +146,9 @@ def _check(call, **kwargs) -> None:
         pass
     else:
         _no_nan(out)
+        oracle = ORACLES.get(call)
+        if oracle is not None:
+            _agrees(out, oracle(**kwargs))
     assert time.perf_counter() - start < TIME_BOUND
 
 
@@ -241,6 +287,10 @@ def _mean_se(values=(1.0, 2.0, 3.0)):
     return tms.metrics.mean_and_standard_error(values)
 
 
+#: independent computations of what some calls return (numpy), checked on every accepted argument
+ORACLES = {}
+
+
 CASES = [
     (_simulate, {"y0": BAD_ARRAYS, "times": BAD_TIMES, "max_steps": BAD_NUMBERS}),
     (
@@ -365,6 +415,9 @@ SLOW_CASES = [
 ]
 
 
+ORACLES.update({_rmse: _rmse_oracle, _mean_se: _mean_se_oracle, _information: _information_oracle})
+
+
 def _every_case(cases=CASES):
     for call, args in cases:
         for name, values in args.items():
@@ -382,7 +435,7 @@ def two_bad_arguments(draw):
 
 def test_every_valid_call_is_valid():
     for call, _ in CASES:
-        _no_nan(call())
+        _check(call)
 
 
 @pytest.mark.filterwarnings("ignore::torchmisspec.NumericalWarning")  # extreme values: warnings are honest
