@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -287,6 +289,66 @@ def _mean_se(values=(1.0, 2.0, 3.0)):
     return tms.metrics.mean_and_standard_error(values)
 
 
+def _proxies(candidates=CANDIDATES[:4], times=TIMES, max_steps=2000):
+    return tms.design.proxy_trajectories(SYSTEM, candidates, times, max_steps=max_steps)
+
+
+def _variance_reduction(points=Y0, domain_size=64):
+    return tms.design.variance_reduction(points, PRIOR, system=SYSTEM, domain_size=domain_size)
+
+
+def _agnostic(candidates=CANDIDATES, budget=3, times=TIMES):
+    return tms.design.agnostic(candidates, budget, system=SYSTEM, times=times, gp=PRIOR)
+
+
+def _uniform_box(n=5, domain=((-1.0, 1.0), (-1.0, 1.0))):
+    return tms.design.candidates.uniform_box(n, domain, generator=torch.Generator().manual_seed(0))
+
+
+def _box_grid(domain=((-1.0, 1.0), (-1.0, 1.0)), resolution=5):
+    return tms.design.candidates.box_grid(domain, resolution)
+
+
+def _integrated_error(domain=((-1.0, 1.0), (-1.0, 1.0)), resolution=11):
+    return tms.integrated_error(FITTED.predict_mean, SYSTEM.true_correction, domain, resolution=resolution)
+
+
+def _campaign_ask(k=1, candidates=CANDIDATES, times=TIMES):
+    return tms.design.Campaign(SYSTEM, candidates, times, PRIOR).ask(k).indices
+
+
+FILES = Path(tempfile.mkdtemp(prefix="torchmisspec-fuzz-"))
+(FILES / "empty.csv").write_text("")
+(FILES / "header.csv").write_text("experiment,time,y0,y1\n")
+(FILES / "binary.csv").write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe" * 8)
+(FILES / "ragged.csv").write_text("experiment,time,y0,y1\n0,0,1,2\n0,1,3\n")
+(FILES / "words.csv").write_text("experiment,time,y0,y1\n0,0,a,2\n0,1,3,4\n")
+(FILES / "repeat.csv").write_text("experiment,time,y0,y1\n0,0,1,2\n0,0,3,4\n")
+(FILES / "inf.csv").write_text("experiment,time,y0,y1\n0,0,inf,2\n0,1,3,4\n")
+(FILES / "text.npz").write_text("not an archive")
+np.savez(FILES / "bare.npz", np.zeros(3))
+np.savez(FILES / "objects.npz", times=np.array([0.0, 1.0]), states=np.array([[None, 1]], dtype=object))
+(FILES / "text.pt").write_text("not a model")
+(FILES / "empty.pt").write_bytes(b"")
+BAD_FILES = [str(FILES / name) for name in sorted(p.name for p in FILES.iterdir())] + [
+    str(FILES / "missing.csv"),
+    str(FILES),
+    "data.xlsx",
+    3,
+    None,
+]
+
+
+def _load_trajectories(path=None):
+    TRAJ.save(FILES / "good.csv")
+    return tms.Trajectories.load(FILES / "good.csv" if path is None else path).flat_states()
+
+
+def _load_model(path=None):
+    FITTED.save(FILES / "good.pt")
+    return tms.CorrectionGP.load(FILES / "good.pt" if path is None else path).predict_mean(Y0)
+
+
 #: independent computations of what some calls return (numpy), checked on every accepted argument
 ORACLES = {}
 
@@ -346,6 +408,15 @@ CASES = [
     (_sampling_times, {"initial_states": BAD_ARRAYS, "times": BAD_TIMES, "per_experiment": BAD_NUMBERS}),
     (_posterior, {"y0": BAD_ARRAYS, "times": BAD_TIMES, "num_samples": BAD_NUMBERS, "scale": BAD_NUMBERS}),
     (_mean_se, {"values": BAD_ARRAYS + [[], [float("nan")]]}),
+    (_proxies, {"candidates": BAD_ARRAYS, "times": BAD_TIMES, "max_steps": BAD_NUMBERS}),
+    (_variance_reduction, {"points": BAD_ARRAYS, "domain_size": BAD_NUMBERS}),
+    (_agnostic, {"candidates": BAD_ARRAYS, "budget": BAD_NUMBERS, "times": BAD_TIMES}),
+    (_uniform_box, {"n": BAD_NUMBERS, "domain": BAD_ARRAYS + [((1.0, -1.0),)]}),
+    (_box_grid, {"domain": BAD_ARRAYS + [((1.0, -1.0),)], "resolution": BAD_NUMBERS}),
+    (_integrated_error, {"domain": BAD_ARRAYS + [((1.0, -1.0),)], "resolution": BAD_NUMBERS}),
+    (_campaign_ask, {"k": BAD_NUMBERS, "candidates": BAD_ARRAYS, "times": BAD_TIMES}),
+    (_load_trajectories, {"path": BAD_FILES}),
+    (_load_model, {"path": BAD_FILES}),
 ]
 
 

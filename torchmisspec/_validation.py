@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Sequence
 
 import numpy as np
@@ -75,6 +76,22 @@ def check_device(device, name: str = "device") -> torch.device:
     if out.type == "cuda" and out.index is not None and out.index >= torch.cuda.device_count():
         raise InputError(f"{name}: expected one of the {torch.cuda.device_count()} CUDA devices, got {str(out)!r}")
     return out
+
+
+def check_path(path, name: str = "path"):
+    """A file name: a string or an ``os.PathLike`` (a number or ``None`` is refused before any file is touched)."""
+    if isinstance(path, str) or isinstance(path, os.PathLike):
+        return path
+    raise InputError(f"{name}: expected a file name (str or pathlib.Path), got {path!r:.60} ({type(path).__name__})")
+
+
+def unreadable(exc: BaseException) -> str:
+    """Why a file could not be read, for a message: the error's type and first line, without a reader's advice to
+    load it unsafely (torch and numpy suggest turning off their safe modes; a file is never unpickled here)."""
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    if "pickle" in text.lower() or "weights_only" in text:
+        return f"{type(exc).__name__}: it holds pickled Python objects or is not such a file; nothing is unpickled"
+    return f"{type(exc).__name__}: {text[:160]}" if text else type(exc).__name__
 
 
 def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import as_tensor
+from .._validation import as_tensor, check_path, unreadable
 from ._input import _check_distinct
 
 _TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
@@ -36,7 +36,7 @@ def _read_table(path: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
     except (UnicodeDecodeError, csv.Error, OSError) as exc:
         kind = {".csv": "CSV file", ".tsv": "TSV file (tab separated)", ".txt": "TXT file (whitespace separated)"}
         raise InputError(
-            f"{path}: expected a UTF-8 text {kind[path.suffix]}, but it could not be read ({exc})"
+            f"{path}: expected a UTF-8 text {kind[path.suffix]}, got a file that could not be read as one ({exc})"
         ) from exc
     rows = [(i, [cell.strip() for cell in row]) for i, row in rows if any(cell.strip() for cell in row)]
     if not rows:
@@ -232,7 +232,7 @@ def write(
     state_columns: Sequence[str] | None,
 ) -> Path:
     """What :meth:`Trajectories.save <torchmisspec.data.Trajectories.save>` does (see there)."""
-    path = Path(path)
+    path = Path(check_path(path))
     readout = trajectories.readout
     if path.suffix == ".npz":
         names = np.asarray(trajectories.state_names, dtype=np.str_)
@@ -336,7 +336,7 @@ def read(
     """``(times, states, state_names, controls, readout)`` for :meth:`Trajectories.load
     <torchmisspec.data.Trajectories.load>` (see there): tensors, or lists of per-experiment tensors for ragged
     data."""
-    path = Path(path)
+    path = Path(check_path(path))
     if path.suffix != ".npz" and path.suffix not in _TEXT_FORMATS:
         raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
     if not path.is_file():
@@ -346,7 +346,10 @@ def read(
             with np.load(path, allow_pickle=False) as data:
                 missing = {"times", "states"} - set(data.files)
                 if missing:
-                    raise InputError(f"{path}: expected arrays 'times' and 'states', missing {sorted(missing)}")
+                    raise InputError(
+                        f"{path}: expected arrays 'times' and 'states', got {sorted(data.files)} (missing "
+                        f"{sorted(missing)})"
+                    )
                 times, states = data["times"], data["states"]
                 lengths = data["lengths"] if "lengths" in data.files else None
                 names = data["state_names"] if "state_names" in data.files else None
@@ -357,7 +360,7 @@ def read(
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
             raise InputError(
                 f"{path}: expected an .npz archive with numeric arrays 'times' and 'states' (no pickled objects), "
-                f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
+                f"got a file that could not be read as one ({unreadable(exc)})"
             ) from exc
         if names is not None:
             if names.dtype.kind != "U" or names.ndim != 1:
@@ -435,7 +438,7 @@ def _npz_readout(path: Path, arrays: dict, names, lengths):
 
 def header(path: str | Path) -> list[str] | None:
     """The column names of a text table (``None`` for an ``.npz`` archive or a missing file)."""
-    path = Path(path)
+    path = Path(check_path(path))
     if path.suffix not in _TEXT_FORMATS or not path.is_file():
         return None
     return _read_table(path)[0]

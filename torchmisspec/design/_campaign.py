@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from .._errors import InputError, ShapeError, TorchMisspecError
-from .._validation import check_domain, check_positive_int, check_real
+from .._validation import check_domain, check_path, check_positive_int, check_real
 from ..data import Trajectories
 from ..gp import CorrectionGP, _persistence
 from ..metrics import correction_error
@@ -430,7 +430,7 @@ class Campaign:
     def save(self, path: str | Path) -> Path:
         """Write the campaign (configuration, candidates, data, pending asks, history, model, random state) to
         ``path``, atomically. The system is not saved (it is code): pass it again to :meth:`load`."""
-        path = Path(path)
+        path = Path(check_path(path))
         if not path.parent.is_dir():
             raise InputError(f"path: expected a file in an existing folder, got {str(path)!r}")
         blob = {
@@ -462,7 +462,7 @@ class Campaign:
     def load(cls, path: str | Path, system: MisspecifiedSystem) -> Campaign:
         """Resume a campaign written by :meth:`save`; ``system`` must be the one it was run with (checked by name
         and dimension). A file that is not a campaign, or is damaged, raises an InputError naming what is wrong."""
-        path = Path(path)
+        path = Path(check_path(path))
         blob = _persistence.read_safely(path, "Campaign", "Campaign.save")
         if not isinstance(system, MisspecifiedSystem):
             raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")

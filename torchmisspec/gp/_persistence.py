@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from .._errors import InputError
-from .._validation import check_real
+from .._validation import check_path, check_real, unreadable
 from ..parameters import ParameterPosterior
 from ._calibration import BandCalibration
 from ._exact import IndependentOutputsGP
@@ -31,7 +31,7 @@ _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 def save(gp, path: str | Path) -> Path:
     """Write ``gp`` (fitted) to ``path``; the folder must exist."""
-    path = Path(path)
+    path = Path(check_path(path))
     if not path.parent.is_dir():
         raise InputError(
             f"path: expected a file in an existing folder, got {str(path)!r} (no folder {str(path.parent)!r})"
@@ -144,7 +144,7 @@ def _field(blob: dict, key: str, kind, path: Path, what: str = "CorrectionGP"):
 
 def read_safely(path: str | Path, what: str, writer: str):
     """``torch.load(weights_only=True)`` of ``path`` (tensors and plain containers only), with a clear error."""
-    path = Path(path)
+    path = Path(check_path(path))
     if not path.is_file():
         raise InputError(f"path: expected an existing {what} file, got {str(path)!r}")
     if path.stat().st_size == 0:
@@ -165,13 +165,13 @@ def read_safely(path: str | Path, what: str, writer: str):
     ) as exc:
         raise InputError(
             f"{path}: expected a {what} file written by {writer} (tensors and plain values only), "
-            f"but it could not be read safely ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
+            f"got a file that could not be read safely ({unreadable(exc)})"
         ) from exc
 
 
 def load(cls, path: str | Path, *, device=None):
     """Read a file written by :func:`save`; the posterior cache is rebuilt (one factorization)."""
-    path = Path(path)
+    path = Path(check_path(path))
     blob = read_safely(path, "CorrectionGP", "CorrectionGP.save")
     return from_blob(cls, blob, path, device=device)
 
