@@ -247,7 +247,7 @@ def test_fit_command_with_a_user_system(tmp_path, observed_csv, monkeypatch, cap
     [
         ((), {"--system": "nope"}, "unknown system name 'nope'"),
         ((), {"--system": "no_such_module_xyz:f"}, "expected an importable module 'no_such_module_xyz'"),
-        (("--state-columns", "x1,speed"), {}, "expected state columns ['x1', 'speed'], missing ['speed']"),
+        (("--state-columns", "x1,speed"), {}, "expected state columns ['x1', 'speed'], got columns"),
         ((), {"--time-column": "time"}, "expected a time column 'time', got columns ['experiment', 't', 'x1', 'x2']"),
         (("--experiment-column", "run"), {}, "expected an experiment column 'run'"),
         (("--derivative", "psychic"), {}, "derivative: expected one of"),

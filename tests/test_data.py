@@ -192,7 +192,7 @@ def test_repr_is_short():
     ("text", "kwargs", "error", "message"),
     [
         ("time,x\n0,1\n", {"state_columns": ["x", "y"]}, tms.InputError,
-         r"expected state columns \['x', 'y'\], missing \['y'\]; the file has \['time', 'x'\]"),
+         r"expected state columns \['x', 'y'\], got columns \['time', 'x'\] \(missing \['y'\]\)"),
         ("time,x\n0,1\n", {"experiment_column": "run"}, tms.InputError,
          r"expected an experiment column 'run', got columns \['time', 'x'\]"),
         ("time,x\n0,1\n", {"time_column": "t"}, tms.InputError, r"expected a time column 't'"),
@@ -239,7 +239,7 @@ def test_save_rejects_bad_column_names(tmp_path):
         traj.save(tmp_path / "a.csv", state_columns=["x"])
     with pytest.raises(tms.InputError, match=r"expected distinct column names, got \['x'\]"):
         traj.save(tmp_path / "a.csv", state_columns=["x", "x"])
-    with pytest.raises(tms.InputError, match="names cannot hold spaces"):
+    with pytest.raises(tms.InputError, match="expected names without spaces"):
         traj.save(tmp_path / "a.txt", state_columns=["x", "y 2"])
     with pytest.raises(tms.InputError, match=r"expected a .npz, .csv, .tsv or .txt file name"):
         traj.save(tmp_path / "a.json")
@@ -273,7 +273,7 @@ def test_system_rejects_bad_indices_and_names():
         MisspecifiedSystem(field, 3, correction_outputs=[1, 1])
     with pytest.raises(tms.InputError, match="state_dim: expected an integer >= 1, got 0"):
         MisspecifiedSystem(field, 0)
-    with pytest.raises(tms.InputError, match="unknown system name 'nope'"):
+    with pytest.raises(tms.InputError, match="got the unknown name 'nope'"):
         tms.systems.get_system("nope")
 
 

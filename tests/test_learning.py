@@ -131,7 +131,9 @@ def test_fallbacks_and_bad_input(linear_noisy):
         cross_validate_lengthscale(system, traj, samples, gp=tms.CorrectionGP(kernel="auto"))
     with pytest.raises(tms.InputError, match=r"lengthscales: expected positive numbers"):
         cross_validate_lengthscale(system, traj, samples, lengthscales=[1.0, -2.0])
-    with pytest.raises(tms.InputError, match=r"candidates: pass either a gp template or a list of candidates"):
+    with pytest.raises(
+        tms.InputError, match=r"candidates: expected either a gp template or a list of candidates, got both"
+    ):
         tms.fit_correction(traj, system, gp=tms.CorrectionGP(), candidates=[tms.CorrectionGP()])
     with pytest.raises(tms.InputError, match=r"candidates: expected a non-empty list of CorrectionGP templates"):
         tms.cross_validate(system, traj, samples, [])

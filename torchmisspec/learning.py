@@ -518,7 +518,7 @@ def fit_correction(
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
     if candidates is not None and gp is not None:
-        raise InputError("candidates: pass either a gp template or a list of candidates, not both")
+        raise InputError("candidates: expected either a gp template or a list of candidates, got both")
     if not (isinstance(select, str) and select in SELECTION):
         raise InputError(
             f"select: expected 'cv' (held-out experiments) or 'evidence' (marginal likelihood), got {select!r}"

@@ -130,7 +130,10 @@ def correction_error(gp, system, *, domain=None, resolution: int = 101, metric: 
         )
     domain = system.domain if domain is None else domain
     if domain is None:
-        raise InputError(f"domain: system '{system.name}' has no domain; pass domain=((lo, hi), ...)")
+        raise InputError(
+            f"domain: expected a box to integrate over, got none (system '{system.name}' has no domain); pass "
+            "domain=((lo, hi), ...)"
+        )
 
     def estimate(x):
         with torch.no_grad():

@@ -154,7 +154,7 @@ class Controls:
             want = tuple(tt.shape) + (self.num_controls,)
             if not isinstance(out, torch.Tensor) or tuple(out.shape) != want:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-                raise ShapeError(f"controls: u(t) must map times {tuple(tt.shape)} to {want}, got {got}")
+                raise ShapeError(f"controls: expected u(t) to map times {tuple(tt.shape)} to {want}, got {got}")
             return out.to(self.values)
         K = self.num_experiments
         flat = t.expand(K) if t.dim() == 0 else t

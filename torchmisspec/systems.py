@@ -535,7 +535,7 @@ def get_system(name: str) -> MisspecifiedSystem:
     try:
         return SYSTEMS[name]()
     except KeyError:
-        raise InputError(f"unknown system name {name!r}; expected one of {sorted(SYSTEMS)}") from None
+        raise InputError(f"system: expected one of {sorted(SYSTEMS)}, got the unknown name {name!r}") from None
 
 
 def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:

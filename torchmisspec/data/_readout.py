@@ -124,7 +124,7 @@ class Readout:
                 row[match.group(3)] = row.get(match.group(3), 0.0) + sign * weight
                 position = match.end()
             if name in weights:
-                raise InputError(f"readout: {name!r} is defined twice")
+                raise InputError(f"readout: expected each reading defined once, got {name!r} twice")
             weights[name] = row
         return cls.from_weights(weights, state_names)
 

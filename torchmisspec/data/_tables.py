@@ -90,7 +90,7 @@ def _columns_to_arrays(
         _check_distinct(controls, "control_columns", "control_columns")
         absent = [c for c in controls if c not in header]
         if absent:
-            raise InputError(f"{path}: expected control columns {controls}, missing {absent}; the file has {header}")
+            raise InputError(f"{path}: expected control columns {controls}, got columns {header} (missing {absent})")
         clash = [c for c in controls if c in index_columns or (state_columns is not None and c in state_columns)]
         if clash:
             raise InputError(
@@ -109,7 +109,7 @@ def _columns_to_arrays(
             raise InputError(f"state_columns: expected state columns, got the time / experiment column {clash}")
         missing = [c for c in names if c not in header]
         if missing:
-            raise InputError(f"{path}: expected state columns {names}, missing {missing}; the file has {header}")
+            raise InputError(f"{path}: expected state columns {names}, got columns {header} (missing {missing})")
     if not names:
         raise InputError(f"{path}: expected at least one state column besides {index_columns}, got columns {header}")
 
@@ -276,7 +276,9 @@ def write(
         if not isinstance(name, str) or not name.strip() or name != name.strip():
             raise InputError(f"column names: expected non-empty strings without surrounding spaces, got {name!r}")
         if path.suffix == ".txt" and len(name.split()) != 1:
-            raise InputError(f"column names: a .txt table is space separated, so names cannot hold spaces: {name!r}")
+            raise InputError(
+                f"column names: expected names without spaces (a .txt table is space separated), got {name!r}"
+            )
     controls = trajectories.controls
     if controls is not None:
         if controls.is_function:
@@ -367,7 +369,9 @@ def read(
                 raise InputError(f"{path}: expected 'state_names' to be a 1-D array of strings, got {names!r:.80}")
             names = names.tolist()
         if control_columns is not None:
-            raise InputError(f"control_columns: name the columns of a text table; {path} is an .npz archive")
+            raise InputError(
+                f"control_columns: expected a text table to name the columns of, got the .npz archive {path}"
+            )
         dtype = _stored_dtype(path, stored)
         readout = _npz_readout(path, readout, names, lengths)
         if lengths is not None:
@@ -422,7 +426,9 @@ def _npz_readout(path: Path, arrays: dict, names, lengths):
             f"{path}: expected the arrays readout_matrix, readout_names and readings together, got {sorted(arrays)}"
         )
     if arrays["readout_names"].dtype.kind != "U" or arrays["readout_names"].ndim != 1:
-        raise InputError(f"{path}: expected 'readout_names' to be a 1-D array of strings")
+        raise InputError(
+            f"{path}: expected 'readout_names' to be a 1-D array of strings, got {arrays['readout_names']!r:.80}"
+        )
     readout = Readout(
         as_tensor(arrays["readout_matrix"], f"{path}: readout_matrix"),
         arrays["readout_names"].tolist(),
