@@ -111,7 +111,9 @@ def test_lazy_plain_and_naive_agree_when_conditioned(corners):
 
 def test_condition_on_an_unfitted_gp_is_refused():
     system = tms.systems.paper_linear()
-    with pytest.raises(tms.InputError, match="condition: an unfitted gp holds no data"):
+    with pytest.raises(
+        tms.InputError, match="condition: expected a fitted gp to condition on its data, got an unfitted one"
+    ):
         design.greedy(
             grid(system.domain, 3), 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), condition=True
         )

@@ -229,7 +229,9 @@ def test_paths_persistence_and_conditioning(tmp_path):
 
 def test_bad_input():
     X, _, Y = data()
-    with pytest.raises(tms.InputError, match=r"lengthscale: the features kernel .* has no lengthscale"):
+    with pytest.raises(
+        tms.InputError, match=r"lengthscale: expected None \(the features kernel .* has no lengthscale\), got 1.0"
+    ):
         tms.CorrectionGP(kernel="features", lengthscale=1.0)
     with pytest.raises(tms.InputError, match=r"degree: expected"):
         tms.CorrectionGP(kernel="features", degree=0)

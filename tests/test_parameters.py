@@ -301,7 +301,7 @@ def test_prior_only_model_and_refusals():
     assert seen and all(seen)  # each fold's F refined with theta fixed at the fold's estimate
     with pytest.raises(tms.InputError, match=r"system.at\(gp.parameters_.mean\)"):
         tms.fit_trajectories(refined, system, data)  # G would run at the prior mean: refused, with the fix
-    with pytest.raises(tms.InputError, match="no uncertain parameters"):
+    with pytest.raises(tms.InputError, match="expected a system with uncertain parameters to fix, got one without"):
         truth.at([0.3])
     with pytest.raises(tms.ShapeError, match="one value per parameter"):
         system.at([0.3, 0.1])

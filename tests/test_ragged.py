@@ -102,7 +102,7 @@ def test_lists_of_equal_length_are_stacked():
             [0.0, 1.0],
             [[[1.0], [2.0]], [[1.0], [2.0], [3.0]]],
             tms.ShapeError,
-            r"one shared \(T,\) array needs experiments of equal length, got lengths \[2, 3\]",
+            r"expected experiments of equal length for one shared \(T,\) array, got lengths \[2, 3\]",
         ),
         (
             [[0.0, 1.0], [0.0, 1.0, 2.0]],
@@ -114,7 +114,7 @@ def test_lists_of_equal_length_are_stacked():
             [[0.0, 1.0], [0.0, 1.0]],
             torch.zeros(2, 2, 1),
             tms.InputError,
-            r"a list of per-experiment time arrays needs a list of per-experiment state arrays",
+            r"expected a list of per-experiment state arrays with a list of per-experiment time arrays",
         ),
     ],
 )

@@ -259,7 +259,7 @@ def solve(
             ),
         ) from exc
     except ValueError as exc:  # an unknown method or option
-        raise InputError(f"{what}: torchdiffeq refused the solver settings: {exc}") from exc
+        raise InputError(f"{what}: expected solver settings torchdiffeq accepts, got a refusal: {exc}") from exc
     sol = sol.transpose(0, 1)  # (B, T', d)
     if gather is not None:
         sol = torch.gather(sol, 1, gather.unsqueeze(-1).expand(-1, -1, sol.shape[-1]))

@@ -302,7 +302,9 @@ class MisspecifiedSystem:
     def at(self, theta) -> MisspecifiedSystem:
         """This system with its uncertain parameters fixed at ``theta`` ``(k,)`` (a system without uncertain ones)."""
         if self.theta is None:
-            raise InputError(f"system '{self.name}': at(theta): this system has no uncertain parameters to fix")
+            raise InputError(
+                f"system '{self.name}': at(theta): expected a system with uncertain parameters to fix, got one without"
+            )
         theta = check_finite(as_tensor(theta, "theta", dtype=torch.float64), "theta").detach()
         if theta.shape != self.theta.shape:
             raise ShapeError(

@@ -120,7 +120,7 @@ def _per_experiment(states_list, times) -> tuple:
             )
         if len(set(lengths)) != 1:
             raise ShapeError(
-                f"times: one shared (T,) array needs experiments of equal length, got lengths {lengths}; pass a "
+                f"times: expected experiments of equal length for one shared (T,) array, got lengths {lengths}; pass a "
                 "list with one time array per experiment"
             )
         stacked, shared = states_and_times(torch.stack(states), shared, missing=True)

@@ -87,7 +87,8 @@ class Trajectories:
         else:
             if isinstance(self.times, (list, tuple)) and self.times and not _is_number(self.times[0]):
                 raise InputError(
-                    "times: a list of per-experiment time arrays needs a list of per-experiment state arrays, got "
+                    "times: expected a list of per-experiment state arrays with a list of per-experiment time "
+                    "arrays, got "
                     f"states as one {type(self.states).__name__}"
                 )
             states, times = states_and_times(given, self.times, missing=True)

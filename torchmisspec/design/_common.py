@@ -187,7 +187,10 @@ class GPKernel:
         if condition is None:
             condition = gp.is_fitted
         if condition and not gp.is_fitted:
-            raise InputError("condition: an unfitted gp holds no data to condition on; fit it first or pass False")
+            raise InputError(
+                "condition: expected a fitted gp to condition on its data, got an unfitted one; fit it first or "
+                "pass False"
+            )
         self.gp = gp
         self.dtype = gp.dtype
         self.device = gp.device

@@ -39,11 +39,15 @@ def check_settings(
     auto = isinstance(kernel, str) and kernel == "auto"
     spec = as_kernel("rbf" if auto else kernel)  # the unfitted auto model holds an RBF until its first fit
     if not spec.has_lengthscale and lengthscale is not None:
-        raise InputError(f"lengthscale: the {spec.name} kernel {spec!r} has no lengthscale; pass None")
+        raise InputError(
+            f"lengthscale: expected None (the {spec.name} kernel {spec!r} has no lengthscale), got {lengthscale!r}"
+        )
     if spec.terms and outputscale is None:
         outputscale = 1.0  # the weights carry the scale
     if spec.shared_only and per_output:
-        raise InputError(f"per_output: the {spec.name} kernel is shared by the outputs; pass per_output=False")
+        raise InputError(
+            f"per_output: expected False (the {spec.name} kernel is shared by the outputs), got {per_output!r}"
+        )
     if auto and (lengthscale is not None or outputscale is not None):
         raise InputError(
             "kernel='auto': the candidates' hyperparameters are learned (only noise_variance may be fixed); got "
@@ -71,9 +75,11 @@ def check_settings(
         else None
     )
     if library is not None and not (spec.terms or auto):
-        raise InputError(f"library: a feature library is for kernel 'features' or 'features+rbf', got {spec.name!r}")
+        raise InputError(
+            f"library: expected kernel 'features' or 'features+rbf' for a feature library, got kernel {spec.name!r}"
+        )
     if library is None and library_names is not None:
-        raise InputError("library_names: names a library of features; pass library=[...] too")
+        raise InputError("library_names: expected a library=[...] for these names to name, got library=None")
     library, library_names = (None, None) if library is None else check_library(library, library_names)
     lengthscale, outputscale, noise_variance = (
         None if value is None else check_real(value, name, positive=True)
