@@ -16,6 +16,7 @@ import torch
 from .._errors import InputError, ShapeError
 from .._validation import as_tensor, check_path, unreadable
 from ._input import _check_distinct
+from ._readout import Readout
 
 _TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
 _SUFFIXES = ".npz, .csv, .tsv or .txt"
@@ -417,8 +418,6 @@ def _cast(x, dtype: torch.dtype):
 
 def _npz_readout(path: Path, arrays: dict, names, lengths):
     """``(Readout, readings)`` from an ``.npz`` archive's readout arrays (``None`` without them)."""
-    from ._readout import Readout
-
     if not arrays:
         return None
     if set(arrays) != {"readout_matrix", "readout_names", "readings"}:
@@ -448,3 +447,42 @@ def header(path: str | Path) -> list[str] | None:
     if path.suffix not in _TEXT_FORMATS or not path.is_file():
         return None
     return _read_table(path)[0]
+
+
+def read_with_readout(
+    path, *, readout, time_column: str, experiment_column: str | None, state_columns, control_columns=None
+) -> tuple:
+    """:func:`read` of a text table holding a readout's columns (:meth:`Trajectories.load
+    <torchmisspec.data.Trajectories.load>` with ``readout``): the states are ``state_columns`` (default
+    ``readout.state_names``), those without a column all missing; the last item is ``(readout, readings)``."""
+    if not isinstance(readout, Readout):
+        raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
+    names = list(state_columns) if state_columns is not None else list(readout.state_names or [])
+    if len(names) != readout.state_dim:
+        raise InputError(
+            f"state_columns: expected the names of the {readout.state_dim} states the readout reads from (or a "
+            f"readout built with state_names), got {names}"
+        )
+    columns = header(path)
+    if columns is None:
+        raise InputError(f"readout: expected a text table (.csv, .tsv, .txt) holding its columns, got {str(path)!r}")
+    present = [n for n in names if n in columns]
+    times, values, _, controls, _ = read(
+        path,
+        time_column=time_column,
+        experiment_column=experiment_column,
+        state_columns=present + list(readout.names),
+        control_columns=control_columns,
+    )
+    where = [names.index(n) for n in present]
+
+    def states_of(v):  # the states absent from the file: columns of missing values
+        out = torch.full((*v.shape[:-1], len(names)), float("nan"), dtype=v.dtype)
+        out[..., where] = v[..., : len(present)]
+        return out
+
+    if isinstance(values, list):
+        states, readings = [states_of(v) for v in values], [v[..., len(present) :] for v in values]
+    else:
+        states, readings = states_of(values), values[..., len(present) :]
+    return times, states, names, controls, (readout, readings)

@@ -6,6 +6,7 @@ import dataclasses
 import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -503,12 +504,9 @@ class Trajectories:
         repeated (experiment, time) rows,
         and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
         """
-        if readout is not None:
-            return _load_with_readout(
-                cls, path, readout, time_column, experiment_column, state_columns, control_columns, control_kind
-            )
         columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-        times, states, names, controls, stored = _tables.read(path, control_columns=control_columns, **columns)
+        reader = _tables.read if readout is None else partial(_tables.read_with_readout, readout=readout)
+        times, states, names, controls, stored = reader(path, control_columns=control_columns, **columns)
         if controls is not None:
             knots, values, control_names = controls
             controls = Controls(knots, values, kind=control_kind, names=control_names)
@@ -561,41 +559,3 @@ def _joined(states, readings):
             f"readings: expected {(*y.shape[:-1], 'm')} values (a row per row of states), got shape {tuple(r.shape)}"
         )
     return torch.cat([y, r.to(y)], dim=-1)
-
-
-def _load_with_readout(cls, path, readout, time_column, experiment_column, state_columns, control_columns, kind):
-    """:meth:`Trajectories.load` of a text table holding a readout's columns (see there)."""
-    if not isinstance(readout, Readout):
-        raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
-    names = list(state_columns) if state_columns is not None else list(readout.state_names or [])
-    if len(names) != readout.state_dim:
-        raise InputError(
-            f"state_columns: expected the names of the {readout.state_dim} states the readout reads from (or a "
-            f"readout built with state_names), got {names}"
-        )
-    header = _tables.header(path)
-    if header is None:
-        raise InputError(f"readout: expected a text table (.csv, .tsv, .txt) holding its columns, got {str(path)!r}")
-    present = [n for n in names if n in header]
-    times, values, _, controls = _tables.read(
-        path,
-        time_column=time_column,
-        experiment_column=experiment_column,
-        state_columns=present + list(readout.names),
-        control_columns=control_columns,
-    )[:4]
-    if controls is not None:
-        knots, levels, control_names = controls
-        controls = Controls(knots, levels, kind=kind, names=control_names)
-    where = [names.index(n) for n in present]
-
-    def states_of(v):  # the states absent from the file: columns of missing values
-        out = torch.full((*v.shape[:-1], len(names)), float("nan"), dtype=v.dtype)
-        out[..., where] = v[..., : len(present)]
-        return out
-
-    if isinstance(values, list):
-        states, readings = [states_of(v) for v in values], [v[..., len(present) :] for v in values]
-    else:
-        states, readings = states_of(values), values[..., len(present) :]
-    return cls(times, states, state_names=names, controls=controls, readout=readout, readings=readings)
