@@ -273,18 +273,22 @@ def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:
     return torch.maximum(var.to(states), floor.to(states)).sqrt()
 
 
-def estimate_readings_noise(trajectories: Trajectories) -> torch.Tensor | None:
-    """``(m,)`` the readings' noise standard deviations, estimated as the states' are (the GP in time), from the
-    experiments that read them (a reading read too rarely for the GP in time: its values taken as 1 % accurate);
-    ``None`` when an experiment has too few samples for the GP in time, as :func:`estimate_state_noise`."""
+def estimate_observed_noise(trajectories: Trajectories) -> torch.Tensor | None:
+    """``(d + m,)`` :func:`estimate_state_noise` of the states, then the same estimate for the readings of
+    :attr:`Trajectories.readout <torchmisspec.Trajectories.readout>` from the experiments that read them (a reading
+    read too rarely for the GP in time: its values taken as 1 % accurate); ``None`` when either estimate is."""
+    states = estimate_state_noise(trajectories)
+    if trajectories.readout is None or states is None:
+        return states
     values = trajectories.readings
-    lengths = trajectories.lengths
-    per = list(values) if isinstance(values, tuple) else [values[k] for k in range(len(lengths))]
+    per = list(values) if isinstance(values, tuple) else list(values.unbind(0))
     times = [t for t, _ in trajectories.experiments()]
     kept = [k for k, r in enumerate(per) if bool(torch.isfinite(r).any())]
     read = Trajectories([times[k] for k in kept], [per[k] for k in kept], state_names=trajectories.readout.names)
-    std = estimate_state_noise(read)  # 0 for a reading no experiment reads often enough: its few values 1 % accurate
-    return None if std is None else torch.where(std > 0, std, 1e-2 * observed_rms(read.flat_states()))
+    std = estimate_state_noise(read)
+    if std is None:
+        return None
+    return torch.cat([states, torch.where(std > 0, std, 1e-2 * observed_rms(read.flat_states())).to(states)])
 
 
 def observed_variance(flat: torch.Tensor) -> torch.Tensor:

@@ -50,13 +50,13 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
-from ._gp_in_time import estimate_readings_noise
+from ._gp_in_time import estimate_observed_noise
 from ._parameters_ode import fit_parameters
 from ._validation import as_tensor, check_flag, check_positive_int, check_real, progress_bar
 from .data import Trajectories
 from .gp._calibration import BandCalibration
 from .learning import _check_cv_inputs
-from .observations import CorrectionSamples, _check_trajectories_and_system, estimate_state_noise
+from .observations import CorrectionSamples, _check_trajectories_and_system
 from .trajectory_fit import fit_trajectories
 
 __all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
@@ -81,17 +81,12 @@ def _check_level(level) -> float:
 def _state_noise(state_noise, trajectories: Trajectories, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
     """``(absolute (e,), relative (e,))`` standard deviations of the observation noise on the states and any
     readings (e = d + m): a new observation of a value y is y + (absolute + relative |y|) z, z standard normal."""
-    d = trajectories.state_dim
-    readout = trajectories.readout
-    e = d + (0 if readout is None else readout.num_readings)
+    d, e = trajectories.state_dim, trajectories.observed_dim
     zeros = torch.zeros(e, dtype=dtype, device=device)
     if state_noise is None:
         return zeros, zeros
     if isinstance(state_noise, str) and state_noise == "auto":
-        estimate = estimate_state_noise(trajectories)
-        if estimate is not None and readout is not None:
-            readings = estimate_readings_noise(trajectories)
-            estimate = None if readings is None else torch.cat([estimate, readings.to(estimate)])
+        estimate = estimate_observed_noise(trajectories)
         return (zeros if estimate is None else estimate.to(dtype=dtype, device=device)), zeros
     if isinstance(state_noise, str):
         text = state_noise.strip()

@@ -213,15 +213,14 @@ def initial_guess(trajectories: Trajectories) -> torch.Tensor:
     first = trajectories.initial_conditions
     if trajectories.readout is not None:
         first = _from_readings(trajectories, first)[0]
+    if bool(torch.isfinite(first).all()):
+        return first
     flat = trajectories.flat_states()
     seen = torch.isfinite(flat)
     if trajectories.readout is not None:  # a state read in a combination counts as observed there
-        weights = trajectories.readout.matrix.to(flat) != 0  # (m, d)
-        _, readings = trajectories.observed_values()[0].split([trajectories.state_dim, weights.shape[0]], dim=-1)
-        read = torch.isfinite(readings).flatten(0, -2).any(0)  # (m,)
-        if bool(torch.isfinite(first).all()):
-            return first
-        seen = seen | (weights & read.unsqueeze(-1)).any(0)
+        values, _ = trajectories.observed_values()
+        read = torch.isfinite(values[..., trajectories.state_dim :]).flatten(0, -2).any(0)  # (m,)
+        seen = seen | ((trajectories.readout.matrix != 0) & read.unsqueeze(-1)).any(0)
     never = (~seen.any(0)).nonzero().flatten().tolist()
     if never:
         names = ", ".join(repr(trajectories.state_names[j]) for j in never)

@@ -16,14 +16,14 @@ from ._errors import (
     NotFittedError,
     ShapeError,
 )
-from ._gp_in_time import estimate_readings_noise, observed_rms
+from ._gp_in_time import estimate_observed_noise, observed_rms
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
 from ._validation import as_tensor, check_flag, check_positive_int, check_real
 from .data import Trajectories
 from .gp import CorrectionGP, Posterior
-from .observations import _check_trajectories_and_system, estimate_state_noise
+from .observations import _check_trajectories_and_system
 from .systems import MisspecifiedSystem
 
 __all__ = ["SHOOTING", "fit_trajectories", "shooting_misfit"]
@@ -346,7 +346,7 @@ def _state_noise(state_noise, trajectories: Trajectories, kd: dict) -> torch.Ten
     """The ``(d + m,)`` noise variances of the states and any readings: given (a number for all, or one per state
     and reading), or the GP in time's estimate (None with fewer than 4 samples)."""
     d = trajectories.state_dim
-    e = d + (0 if trajectories.readout is None else trajectories.readout.num_readings)
+    e = trajectories.observed_dim
     if state_noise is not None:
         if isinstance(state_noise, (int, float)) and not isinstance(state_noise, bool):
             return torch.full((e,), check_real(state_noise, "state_noise", positive=True), **kd)
@@ -358,15 +358,12 @@ def _state_noise(state_noise, trajectories: Trajectories, kd: dict) -> torch.Ten
                 f"{what}), got {state_noise!r:.80}"
             )
         return value
-    std = estimate_state_noise(trajectories)  # None with fewer than 4 samples or a constant component
+    std = estimate_observed_noise(trajectories)  # None with fewer than 4 samples or a constant component
     if std is None:
         return None
     var = std.to(**kd).pow(2)
     if trajectories.is_partial:  # a component no experiment measures: its few values taken as 1 % accurate (of
         # its size, or of the largest component's when they are all 0)
         size = observed_rms(trajectories.flat_states().to(**kd))
-        var = torch.where(trajectories.measured.any(0), var, (1e-2 * size).pow(2))
-    if e == d:
-        return var
-    readings = estimate_readings_noise(trajectories)
-    return None if readings is None else torch.cat([var, readings.to(**kd).pow(2)])
+        var[:d] = torch.where(trajectories.measured.any(0), var[:d], (1e-2 * size).pow(2))
+    return var

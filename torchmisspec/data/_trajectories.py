@@ -231,6 +231,11 @@ class Trajectories:
     def _listed_readings(self):
         return None if self.readings is None or not self.is_ragged else list(self.readings)
 
+    @property
+    def observed_dim(self) -> int:
+        """d + m: the states and the readings (:attr:`readout`) of every row, as :meth:`observed_values` lays them."""
+        return self.state_dim + (0 if self.readout is None else self.readout.num_readings)
+
     def observed_values(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(values (K, T_max, d + m), mask (K, T_max))``: the states and the readings side by side, padded as
         :meth:`padded` (NaN where an entry was not observed); what the model's path, read by :meth:`observe`, is
