@@ -224,6 +224,10 @@ def test_cli_reads_the_readout_column(tmp_path, capsys):
     for row in rows:  # the reading's mean path is the sum of the states' mean paths
         free, bound, total = (float(row[header.index(f"{n}_mean")]) for n in ("free", "bound", "radioactivity"))
         assert abs(free + bound - total) < 1e-9
+    # design reads no table with --model: a --readout there would be ignored, so it is refused
+    design = ["design", "--model", str(model), "--candidates", str(tmp_path / "doses.csv"), "--times", "0:8:5"]
+    assert main([*design, "--budget", "1", *common, *readout, "--out", str(tmp_path / "p.csv"), "--quiet"]) == 2
+    assert "--readout: expected --data" in capsys.readouterr().err
     # a readout naming a state the system does not have: one line, exit 2
     bad = ["--readout", "radioactivity = free + bund"]
     assert main(["fit", "--data", str(tmp_path / "lab.csv"), *common, *bad, "--out", str(tmp_path / "x.pt")]) == 2

@@ -109,6 +109,11 @@ def _design(args: argparse.Namespace) -> int:
             f"--samples-per-experiment: expected 1 to {len(times)} (the number of --times), got "
             f"{args.samples_per_experiment}"
         )
+    if args.readout and args.data is None:  # a readout names columns of --data: nothing would read it
+        raise InputError(
+            f"--readout: expected --data whose columns it names (the design reads no other table), got "
+            f"--readout {args.readout[0]!r} without --data; drop it, or fit on --data"
+        )
     early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
     observed = read_observations(args, system) if args.data is not None and early is None else None  # read first
     known = known_state_names(system, None if early is None else early[0])
