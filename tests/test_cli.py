@@ -466,7 +466,7 @@ PROBLEMS = {  # problem -> the message's telling part (per command where it diff
     "ragged data, missing column": "missing ['oxygen']",
     "binary data": "could not be read",
     "bad system": "expected an importable module",
-    "system file raises": "importing it raised ZeroDivisionError",
+    "system file raises": "got ZeroDivisionError: division by zero when importing it",
     "mismatched system and model": {
         "fit": "expected state dimension 3 of system 'decay3'",
         "calibrate": "pass the system it was fitted with",

@@ -56,15 +56,16 @@ def test_file_path_spec(tmp_path, user_module):
 @pytest.mark.parametrize(
     ("spec", "message"),
     [
-        ("nope", r"unknown system name 'nope'; expected one of \['paper_gravity', 'paper_linear'\] or "
+        ("nope", r"unknown system name 'nope': expected one of \['paper_gravity', 'paper_linear'\] or "
          r"'module:function'"),
-        ("no_such_module_xyz:f", r"expected an importable module 'no_such_module_xyz', but importing it raised "
-         r"ModuleNotFoundError: No module named 'no_such_module_xyz'"),
-        ("bad_syntax_mod:f", r"importing it raised SyntaxError"),
+        ("no_such_module_xyz:f", r"expected an importable module 'no_such_module_xyz', got "
+         r"ModuleNotFoundError: No module named 'no_such_module_xyz' when importing it"),
+        ("bad_syntax_mod:f", r"got SyntaxError.* when importing it"),
         ("{mod}:missing", r"expected a function 'missing' in module '{mod}', got none "
          r"\(the module defines \[.*'damped'"),
         ("{mod}:NUMBER", r"expected 'NUMBER' to be a function, got int"),
-        ("{mod}:broken", r"calling broken\(\) raised RuntimeError: no parameters file second line$"),
+        ("{mod}:broken", r"expected broken\(\) to return a MisspecifiedSystem, got RuntimeError: no parameters file "
+         r"second line when calling it$"),
         ("{mod}:not_a_system", r"expected not_a_system\(\) to return a torchmisspec MisspecifiedSystem, got dict"),
         ("{mod}:", r"expected 'module:function' with a function name after the colon"),
         ("does/not/exist.py:f", r"expected an existing Python file, got 'does/not/exist.py'"),

@@ -119,7 +119,9 @@ def _samples(X, residuals, basis):
 def test_priors_and_linearity_are_checked():
     with pytest.raises(tms.InputError, match="value, scale"):
         check_priors({"a": 0.3})
-    with pytest.raises(tms.InputError, match="finite positive scale"):
+    with pytest.raises(
+        tms.InputError, match="scale .the prior standard deviation.: expected a positive finite number, got 0"
+    ):
         check_priors({"a": (0.3, 0.0)})
     with pytest.raises(tms.InputError, match="non-empty mapping"):
         check_priors([("a", (0.3, 0.1))])

@@ -42,7 +42,7 @@ def import_module(module_name: str, spec: str):
         raise
     except Exception as exc:
         raise InputError(
-            f"system {spec!r}: expected an importable module {module_name!r}, but importing it raised {one_line(exc)}"
+            f"system {spec!r}: expected an importable module {module_name!r}, got {one_line(exc)} when importing it"
         ) from exc
 
 

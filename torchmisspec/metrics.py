@@ -59,6 +59,7 @@ def integrate_over_box(
     fn: Callable[[torch.Tensor], torch.Tensor], domain, *, resolution: int = 101, chunk: int = 65536
 ) -> float:
     """Trapezoidal integral over the box of a scalar function ``fn: (M, n) -> (M,)``."""
+    chunk = check_positive_int(chunk, "chunk")
     points, weight = box_grid(domain, resolution)
     total = 0.0
     for start in range(0, points.shape[0], chunk):

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import torch
 
 from ._errors import InputError, NumericalWarning, TorchMisspecWarning, warn
-from ._validation import DEFAULT_DTYPE
+from ._validation import DEFAULT_DTYPE, check_real
 
 __all__ = [
     "Priors",
@@ -110,18 +110,13 @@ def check_priors(parameters) -> Priors | None:
     for name, prior in parameters.items():
         if not isinstance(name, str) or not name:
             raise InputError(f"parameters: expected non-empty string names, got {name!r}")
-        ok = isinstance(prior, (tuple, list)) and len(prior) == 2
-        ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in prior)
-        if not ok:
+        if not (isinstance(prior, (tuple, list)) and len(prior) == 2):
             raise InputError(
                 f"parameters[{name!r}]: expected (value, scale), two real numbers (the prior mean and standard "
                 f"deviation), got {prior!r:.80}"
             )
-        value, scale = float(prior[0]), float(prior[1])
-        if not (math.isfinite(value) and math.isfinite(scale) and scale > 0):
-            raise InputError(
-                f"parameters[{name!r}]: expected a finite value and a finite positive scale, got ({value}, {scale})"
-            )
+        value = check_real(prior[0], f"parameters[{name!r}] value (the prior mean)")
+        scale = check_real(prior[1], f"parameters[{name!r}] scale (the prior standard deviation)", positive=True)
         means.append(value)
         scales.append(scale)
     return Priors(

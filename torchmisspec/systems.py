@@ -504,6 +504,8 @@ def data_driven(system: MisspecifiedSystem) -> MisspecifiedSystem:
     correction inputs and outputs are all components). Fit a :class:`CorrectionGP` to its correction samples to get
     the data-driven estimator; its estimate of F is then (estimate - G).
     """
+    if not isinstance(system, MisspecifiedSystem):
+        raise InputError(f"system: expected a MisspecifiedSystem, got {system!r:.60} ({type(system).__name__})")
     full = tuple(range(system.state_dim))
     if system.correction_inputs != full or system.correction_outputs != full:
         raise InputError(
@@ -564,8 +566,8 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
     if ":" not in spec:
         if spec not in SYSTEMS:
             raise InputError(
-                f"unknown system name {spec!r}; expected one of {sorted(SYSTEMS)} or 'module:function' (a function "
-                "returning a MisspecifiedSystem)"
+                f"unknown system name {spec!r}: expected one of {sorted(SYSTEMS)} or 'module:function' (a function "
+                f"returning a MisspecifiedSystem), got {spec!r}"
             )
         return get_system(spec)
     module_name, _, function_name = spec.rpartition(":")
@@ -584,7 +586,10 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
     try:
         system = function()
     except Exception as exc:
-        raise InputError(f"system {spec!r}: calling {function_name}() raised {one_line(exc)}") from exc
+        raise InputError(
+            f"system {spec!r}: expected {function_name}() to return a MisspecifiedSystem, got {one_line(exc)} when "
+            "calling it"
+        ) from exc
     if not isinstance(system, MisspecifiedSystem):
         raise InputError(
             f"system {spec!r}: expected {function_name}() to return a torchmisspec MisspecifiedSystem, got "

@@ -471,13 +471,16 @@ class Campaign:
             return _persistence._field(blob, key, kind, path, "Campaign")
 
         if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-            raise InputError(f"{path}: expected a torchmisspec Campaign file (format {FORMAT!r}), it is not one")
+            raise InputError(
+                f"{path}: expected a torchmisspec Campaign file (format {FORMAT!r}), got "
+                + (f"format {blob.get('format')!r}" if isinstance(blob, dict) else type(blob).__name__)
+            )
         if blob.get("version") != VERSION:
             raise InputError(f"{path}: expected Campaign file version {VERSION}, got {blob.get('version')!r}")
         saved = field("system", dict)
         if saved.get("name") != system.name or saved.get("state_dim") != system.state_dim:
             raise InputError(
-                f"system: the campaign was run with system '{saved.get('name')}' (state_dim "
+                f"system: expected the system the campaign was run with, '{saved.get('name')}' (state_dim "
                 f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
             )
         prior = _persistence.from_config(CorrectionGP, field("prior", dict), f"{path} (field 'prior')")

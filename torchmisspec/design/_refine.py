@@ -136,8 +136,13 @@ def refine(
     kd = dict(dtype=kern.dtype, device=kern.device)
     y0 = check_candidates(initial_states, system, name="initial_states", **kd)
     lo, span = _box(box, "box (one (lo, hi) per state component)", system.state_dim, kd)
-    if not bool(((y0 >= lo) & (y0 <= lo + span)).all()):
-        raise InputError("initial_states: expected every state inside box; clamp them or widen the box")
+    outside = ~((y0 >= lo) & (y0 <= lo + span)).all(dim=-1)
+    if bool(outside.any()):
+        first = int(outside.nonzero()[0])
+        raise InputError(
+            f"initial_states: expected every state inside box, got {int(outside.sum())} outside (first: row {first}, "
+            f"{[round(v, 6) for v in y0[first].tolist()]}); clamp them or widen the box"
+        )
     t = check_times(times, **kd)
     steps = check_positive_int(steps, "steps")
     lr = check_real(lr, "lr", positive=True)

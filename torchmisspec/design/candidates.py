@@ -10,12 +10,10 @@ for :func:`torchmisspec.design.greedy` and the other designs.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from .._errors import InputError
-from .._validation import check_domain, check_positive_int
+from .._validation import check_domain, check_positive_int, check_real
 from ..metrics import box_grid
 from ..systems import PAPER_GRAVITY_KNOWN_MASS
 
@@ -60,16 +58,6 @@ def uniform_box(
     return lo + (hi - lo) * u
 
 
-def _check_positive_number(value, name: str) -> float:
-    try:
-        out = float(value)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected a positive number, got {value!r}") from exc
-    if isinstance(value, bool) or not (math.isfinite(out) and out > 0):
-        raise InputError(f"{name}: expected a finite number > 0, got {value!r}")
-    return out
-
-
 def orbits(
     n: int = 300,
     *,
@@ -99,9 +87,9 @@ def orbits(
         ``(n, 4)`` states: positions ``[:, :2]``, velocities ``[:, 2:]``.
     """
     n = check_positive_int(n, "n")
-    mass = _check_positive_number(mass, "mass")
-    half_width = _check_positive_number(half_width, "half_width")
-    min_radius = _check_positive_number(min_radius, "min_radius")
+    mass = check_real(mass, "mass", positive=True)
+    half_width = check_real(half_width, "half_width", positive=True)
+    min_radius = check_real(min_radius, "min_radius", positive=True)
     if not min_radius < half_width:
         raise InputError(f"min_radius: expected 0 < min_radius < half_width={half_width}, got {min_radius}")
     points, count = [], 0

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import check_indices
+from .._validation import check_indices, check_path
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
@@ -32,11 +32,14 @@ def _as_array(x: Any, name: str) -> np.ndarray:
             x = x.states
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu()
-        if x.is_complex():
-            raise InputError(f"{name}: expected real numbers, got a complex tensor")
+        if x.is_complex() or x.dtype == torch.bool:
+            raise InputError(f"{name}: expected real numbers, got a {x.dtype} tensor")
         return x.to(torch.float64).numpy()
     try:
-        arr = np.asarray(x, dtype=np.float64)
+        arr = np.asarray(x)
+        if arr.dtype.kind in "cb":  # complex or bool: converting would drop the imaginary part or turn True into 1
+            raise InputError(f"{name}: expected real numbers, got an array of dtype {arr.dtype}")
+        arr = arr.astype(np.float64)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: expected an array of numbers, got {type(x).__name__} ({exc})") from exc
     return arr
@@ -122,11 +125,16 @@ def _axes(ax: Axes | None, figsize: tuple[float, float] | None = None) -> tuple[
 
 def _finish(fig: Figure, path: str | Path | None, dpi: int) -> Figure:
     if path is not None:
-        path = Path(path)
+        path = Path(check_path(path))
         if path.suffix.lower() not in ("", ".png"):
             raise InputError(f"path: expected a .png file name, got {str(path)!r}")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=dpi, format="png")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fig.savefig(path, dpi=dpi, format="png")
+        except OSError as exc:
+            raise InputError(
+                f"path: expected a .png file in a folder that can be written, got {str(path)!r} ({exc.strerror or exc})"
+            ) from None
     return fig
 
 

@@ -32,6 +32,8 @@ def _curve(value, n: int, name: str) -> tuple[np.ndarray, np.ndarray | None]:
         raise ShapeError(f"{name}: expected a mean of shape ({n},) matching ks, got {mean.shape}")
     if err is not None and err.shape != (n,):
         raise ShapeError(f"{name}: expected a stderr of shape ({n},) matching ks, got {err.shape}")
+    if err is not None and bool((err < 0).any()):
+        raise InputError(f"{name}: expected standard errors >= 0, got {float(err[err < 0][0]):g}")
     return mean, err
 
 
@@ -78,6 +80,13 @@ def plot_error_curves(
         except (TypeError, ValueError) as exc:
             raise InputError(f"reference_lines[{label!r}]: expected a number, got {level!r}") from exc
     legend = _check_legend(legend)
+    if logy:
+        for name, (mean, _) in data.items():
+            if not bool((mean > 0).all()):
+                raise InputError(
+                    f"curves[{name!r}]: expected positive values on a logarithmic axis, got {float(mean.min()):g}; "
+                    "pass logy=False"
+                )
 
     fig, ax = _axes(ax)
     for i, (name, (mean, err)) in enumerate(data.items()):

@@ -61,9 +61,10 @@ def plot_prediction_bands(
     S, B, T, d = samples.shape
     if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < B:
         raise InputError(f"index: expected an initial condition in [0, {B - 1}], got {index!r}")
-    levels = [float(v) for v in levels]
+    given = levels
+    levels = [float(v) for v in _as_array(levels, "levels").reshape(-1)] if levels is not None else []
     if not levels or not all(0 < v < 1 for v in levels):
-        raise InputError(f"levels: expected band probabilities in (0, 1), got {levels}")
+        raise InputError(f"levels: expected band probabilities in (0, 1), got {given!r:.60}")
     comps = list(range(d)) if components is None else check_indices(components, d, "components")
     names = getattr(posterior, "state_names", None)
     default = [names[j] if names else f"$y_{{{j + 1}}}$" for j in comps]
