@@ -136,7 +136,7 @@ def test_bad_input(data):
         tms.calibrate_bands(model, traj, samples, state_noise=-1.0)
     with pytest.raises(tms.ShapeError, match="state_noise: expected a standard deviation or 2"):
         tms.calibrate_bands(model, traj, samples, state_noise=[0.1, 0.1, 0.1])
-    with pytest.raises(tms.InputError, match="scale and num_samples are set by calibrate_bands"):
+    with pytest.raises(tms.InputError, match="expected neither scale nor num_samples .calibrate_bands sets them"):
         tms.calibrate_bands(model, traj, samples, scale=2.0)
     with pytest.raises(
         tms.InputError,

@@ -128,7 +128,7 @@ def test_bad_input_loses_nothing(tmp_path):
     with pytest.raises(tms.InputError, match="'asked'.*damaged"):
         design.Campaign.load(bad, system)
     other = tms.systems.paper_gravity()
-    with pytest.raises(tms.InputError, match="run with system 'paper_linear'"):
+    with pytest.raises(tms.InputError, match="expected the system the campaign was run with, 'paper_linear'"):
         design.Campaign.load(good, other)
 
 

@@ -134,7 +134,7 @@ def test_design_command_errors(tmp_path, candidates_csv, capsys):
     assert (
         main(base + ["--system", "paper_linear", "--budget", "2", "--criterion", "domain", "--method", "random"]) == 2
     )
-    assert "only the greedy methods" in capsys.readouterr().err
+    assert "expected a greedy --method" in capsys.readouterr().err
 
 
 def test_console_script_help():

@@ -98,7 +98,7 @@ def test_bad_budgets_and_times_are_refused_with_the_fix():
         design.sampling_times(y0, t.flip(0), 2, system=pk(), gp=gp)
     with pytest.raises(tms.ShapeError, match=r"initial_states: expected shape \(N, 2\), got \(3,\)"):
         design.sampling_times(torch.ones(3, dtype=DT), t, 2, system=pk(), gp=gp)
-    with pytest.raises(tms.InputError, match=r"partition: set by sampling_times itself"):
+    with pytest.raises(tms.InputError, match=r"partition: expected none .sampling_times sets it"):
         design.sampling_times(y0, t, 2, system=pk(), gp=gp, partition=[0] * 5)
 
 

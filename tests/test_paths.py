@@ -325,7 +325,7 @@ def test_bad_arguments(data):
             gp.sample_functions(bad)
     with pytest.raises(tms.InputError, match=r"num_features: expected an even number"):
         gp.sample_functions(2, num_features=5)
-    with pytest.raises(tms.InputError, match=r"pass one of them, not both"):
+    with pytest.raises(tms.InputError, match=r"expected one of them, got both"):
         gp.sample_functions(2, num_features=8, feature_error=0.1)
     with pytest.raises(tms.InputError, match=r"feature_error: 0.001 needs 1000000 frequency pairs"):
         tms.CorrectionGP(kernel="matern52").fit(X, Y).sample_functions(2, feature_error=1e-3)

@@ -39,7 +39,7 @@ def as_tensor(x, name: str, *, dtype: torch.dtype | None = None, device=None) ->
         try:
             x = torch.as_tensor(arr.astype(np.float64) if arr.dtype.kind in "iu" or arr.dtype == np.float16 else arr)
         except (TypeError, ValueError, RuntimeError) as exc:  # pragma: no cover - numpy numbers always convert
-            raise InputError(f"{name}: expected an array of real numbers ({exc})") from exc
+            raise InputError(f"{name}: expected an array of real numbers, got dtype {arr.dtype} ({exc})") from exc
         if dtype is None and not x.is_floating_point():
             x = x.to(DEFAULT_DTYPE)
         if dtype is None and x.dtype == torch.float32 and arr.dtype != np.float32:
@@ -250,7 +250,7 @@ def check_times(times, name: str = "times", *, per_row: bool = False, dtype=None
                 f"as {str(given.dtype).removeprefix('torch.')}, or shift the times to start near 0"
             )
             if not ordered:
-                raise InputError(what + " (rounded, some are no longer increasing)")
+                raise InputError(what + " (rounded, some are no longer increasing: got repeated times)")
             warn(what, NumericalWarning)
     return t
 

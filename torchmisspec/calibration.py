@@ -173,7 +173,10 @@ def calibrate_bands(
     refit = check_flag(refit, "refit")
     num_samples = check_positive_int(num_samples, "num_samples")
     if "scale" in posterior_options or "num_samples" in posterior_options:
-        raise InputError("posterior_options: scale and num_samples are set by calibrate_bands itself")
+        raise InputError(
+            "posterior_options: expected neither scale nor num_samples (calibrate_bands sets them), got "
+            f"{sorted(set(posterior_options) & {'scale', 'num_samples'})}"
+        )
     _check_trajectories_and_system(trajectories, system)
     folds = _check_cv_inputs(system, trajectories, samples, folds)
     absolute, relative = _state_noise(state_noise, trajectories, gp.dtype, gp.device)

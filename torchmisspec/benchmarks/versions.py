@@ -3,9 +3,11 @@ slow prediction or the design?
 
 Both versions run ``scripts/benchmark.py --only predict --only design`` of their own tree (the older one from a
 temporary ``git worktree`` of ``--base``), alternating which goes first in each of ``--rounds`` rounds, so that a
-change in the machine's load falls on both. Reported: the median over every repeat of every round of
-``CorrectedODE.predict`` (1,000 initial conditions, 61 times) and of the lazy greedy (10,000 candidates, K = 50,
-T = 20, three kernels), the ratio this version / base, and whether the greedy's information gain is the same.
+change in the machine's load falls on both. Reported for ``CorrectedODE.predict`` (1,000 initial conditions, 61
+times) and the lazy greedy (10,000 candidates, K = 50, T = 20, three kernels): the median and the fastest of every
+repeat of every round, the ratio this / base of the medians of each round (the two versions ran minutes apart, so
+the pairing removes most of the drift of a shared machine) with their geometric mean and range, and whether the
+greedy's information gain is the same.
 
 ``scripts/benchmark_versions.py`` is its command line.
 """
@@ -13,6 +15,7 @@ T = 20, three kernels), the ratio this version / base, and whether the greedy's 
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import statistics
@@ -66,7 +69,7 @@ def compare(base: str, rounds: int, repeats: int, smoke: bool) -> dict:
             for name in order:
                 result = _suite(trees[name], smoke, repeats, scratch / f"{name}-{r}.json")
                 for path, ts in _times(result).items():
-                    times[name].setdefault(path, []).extend(ts)
+                    times[name].setdefault(path, []).append(ts)  # one list per round
                 gains.setdefault(name, _gains(result))
                 print(f"round {r + 1}/{rounds}: {name} done", file=sys.stderr)
     finally:
@@ -76,19 +79,25 @@ def compare(base: str, rounds: int, repeats: int, smoke: bool) -> dict:
 
 
 def table(result: dict) -> list[str]:
-    """The markdown table: median per path and version, the ratio, the same gain."""
+    """The markdown table: per path, both versions' median and fastest repeat, the paired ratios of the rounds."""
     lines = [
-        f"| path | base {result['base']} (median) | this {result['this']} (median) | this / base | repeats each "
-        "| same information gain |",
+        f"| path | base {result['base']}: median (fastest) | this {result['this']}: median (fastest) | this / base, "
+        "rounds paired: geometric mean [range] | repeats each | same information gain |",
         "|---|---|---|---|---|---|",
     ]
     for path, before in result["times"]["base"].items():
         after = result["times"]["this"][path]
-        b, a = statistics.median(before), statistics.median(after)
+        pooled_b, pooled_a = [t for r in before for t in r], [t for r in after for t in r]
+        ratios = [statistics.median(a) / statistics.median(b) for a, b in zip(after, before, strict=True)]
+        geo = math.exp(statistics.fmean(math.log(x) for x in ratios))
         same = ""
         if path in result["gains"]["base"]:
             same = str(result["gains"]["base"][path] == result["gains"]["this"][path])
-        lines.append(f"| {path} | {b * 1e3:.1f} ms | {a * 1e3:.1f} ms | {a / b:.2f} | {len(before)} | {same} |")
+        lines.append(
+            f"| {path} | {statistics.median(pooled_b) * 1e3:.1f} ms ({min(pooled_b) * 1e3:.1f}) | "
+            f"{statistics.median(pooled_a) * 1e3:.1f} ms ({min(pooled_a) * 1e3:.1f}) | **{geo:.2f}** "
+            f"[{min(ratios):.2f}, {max(ratios):.2f}] | {len(pooled_b)} | {same} |"
+        )
     return lines
 
 
@@ -101,9 +110,9 @@ def run(args) -> int:
         "",
         run_sentence(args),
         f"Base: commit {result['base']}; this: commit {result['this']}. Each version runs `scripts/benchmark.py "
-        f"--only predict --only design` of its own tree, {result['rounds']} rounds alternating which goes first; "
-        "the medians pool every repeat of every round (predict: 1,000 initial conditions, 61 times; greedy: "
-        "10,000 candidates, K = 50, T = 20, in a fresh process).",
+        f"--only predict --only design` of its own tree, {result['rounds']} rounds alternating which goes first "
+        "(predict: 1,000 initial conditions, 61 times; greedy: 10,000 candidates, K = 50, T = 20, in a fresh "
+        "process). Medians and fastest repeats pool every round; the ratio pairs the medians of each round.",
         "",
         *table(result),
     ]

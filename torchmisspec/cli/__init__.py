@@ -18,6 +18,7 @@ from functools import partial
 from pathlib import Path
 
 from .._errors import InputError
+from ._common import seed
 from ._design import add_design
 from ._fit import add_calibrate, add_fit
 from ._predict import add_predict
@@ -76,7 +77,7 @@ def _add_demo(sub) -> None:
     )
     demo.add_argument("--n-train", type=int, default=40, help="number of training experiments (default: 40)")
     demo.add_argument("--n-test", type=int, default=20, help="number of new initial conditions (default: 20)")
-    demo.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    demo.add_argument("--seed", type=seed, default=0, help="random seed (default: 0)")
     demo.add_argument("--noise-std", type=float, default=1e-2, help="std of the derivative noise (default: 1e-2)")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(func=_demo)

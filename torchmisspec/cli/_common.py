@@ -26,6 +26,18 @@ __all__ = [
 ]
 
 
+def seed(text: str) -> int:
+    """An ``--seed`` value: an integer in [0, 2**63) (torch reduces larger ones modulo 2**64, so two seeds would give
+    the same draws)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2**63), got {text!r}") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2**63), got {text[:30]!r}")
+    return value
+
+
 def add_system_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--system",
@@ -297,7 +309,10 @@ def read_table(path: str, what: str, option: str | None = None):
 
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{label}: file {path!r} does not exist")
+        raise InputError(
+            f"{label}: expected an existing file, got {path!r}, which "
+            + ("is a folder" if p.is_dir() else "does not exist")
+        )
     if p.suffix not in (".csv", ".tsv", ".txt", ".npz", ".npy"):
         raise InputError(f"{label}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
     header = None

@@ -18,6 +18,7 @@ from ._common import (
     read_observations,
     read_states,
     read_table,
+    seed,
     write_csv,
     written,
 )
@@ -33,7 +34,10 @@ def _gp(args: argparse.Namespace, system, observed=None):
 
     given = {name: getattr(args, name) for name in PRIOR if getattr(args, name) is not None}
     if args.model is not None and (given or args.data is not None):
-        raise InputError("--model: the model already holds its data and hyperparameters; drop --data and the prior")
+        raise InputError(
+            "--model: expected the model alone (it holds its data and hyperparameters), got --data or a prior too; "
+            "drop them"
+        )
     if args.model is not None:
         return load_model(args.model, system), "the model " + args.model
     if given and len(given) != len(PRIOR):
@@ -66,7 +70,7 @@ def _capacities(args: argparse.Namespace, n: int):
 
     if args.partition is None:
         if args.capacities is not None:
-            raise InputError("--capacities: needs --partition (a region label per candidate)")
+            raise InputError("--capacities: expected --partition with it (a region label per candidate), got none")
         return None, None
     labels = torch.as_tensor(read_table(args.partition, "partition")[0]).reshape(-1)
     if labels.is_floating_point() and not bool((labels == labels.round()).all()):
@@ -100,9 +104,13 @@ def _design(args: argparse.Namespace) -> int:
             "labelling the rows of --candidates, the time, the inputs)"
         )
     if args.controls is not None and not system.num_controls:
-        raise InputError(f"--controls: system '{system.name}' has no inputs u(t); drop --controls")
+        raise InputError(
+            f"--controls: expected none, system '{system.name}' has no inputs u(t), got {args.controls!r}; drop it"
+        )
     if args.controls is not None and args.criterion != "information":
-        raise InputError(f"--controls: candidate input profiles are designed by information; got {args.criterion}")
+        raise InputError(
+            f"--controls: expected --criterion information (input profiles are designed by it), got {args.criterion}"
+        )
     times = parse_times(args.times)
     if args.samples_per_experiment is not None and not 1 <= args.samples_per_experiment <= len(times):
         raise InputError(
@@ -134,7 +142,9 @@ def _design(args: argparse.Namespace) -> int:
     if system.parameters is not None and getattr(gp, "parameters_", None) is not None:
         system = system.at(gp.parameters_.mean)  # G's uncertain parameters at their posterior mean for the proxies
     if args.criterion != "information" and args.method not in ("lazy", "plain", "naive"):
-        raise InputError(f"--criterion {args.criterion}: only the greedy methods use it, got --method {args.method}")
+        raise InputError(
+            f"--criterion {args.criterion}: expected a greedy --method (lazy, plain or naive), got {args.method}"
+        )
     common = dict(
         system=system, times=times, gp=gp, progress=not args.quiet, partition=partition, capacities=capacities
     )
@@ -283,7 +293,7 @@ def add_design(sub) -> None:
         "--capacities",
         help="most picks per region: 'label=count,...' or 'count,count,...' (indexed by label); needs --partition",
     )
-    des.add_argument("--seed", type=int, default=0, help="seed of the random design (default: 0)")
+    des.add_argument("--seed", type=seed, default=0, help="seed of the random design (default: 0)")
     des.add_argument("--out", default="design.csv", help="output file, .csv or .json (default: %(default)s)")
     des.add_argument("--quiet", action="store_true", help="no progress bars")
     des.set_defaults(func=_design)

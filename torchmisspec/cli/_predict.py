@@ -17,6 +17,7 @@ from ._common import (
     parse_times,
     read_controls,
     read_states,
+    seed,
     write_csv,
     written,
 )
@@ -46,7 +47,9 @@ def _predict(args: argparse.Namespace) -> int:
             "initial conditions with --controls profiles.csv (columns: experiment, time, the inputs)"
         )
     if args.controls is not None and not system.num_controls:
-        raise InputError(f"--controls: system '{system.name}' has no inputs u(t); drop --controls")
+        raise InputError(
+            f"--controls: expected none, system '{system.name}' has no inputs u(t), got {args.controls!r}; drop it"
+        )
     gp = load_model(args.model, system)
     y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
     names = check_names(gp, names, system, "--initial")
@@ -172,7 +175,7 @@ def add_predict(sub) -> None:
     add_column_options(pre)
     pre.add_argument("--level", type=float, default=0.9, help="the central band written (default: %(default)s)")
     pre.add_argument("--samples", type=int, default=64, help="posterior draws for the bands (default: %(default)s)")
-    pre.add_argument("--seed", type=int, default=0, help="seed of the draws (default: %(default)s)")
+    pre.add_argument("--seed", type=seed, default=0, help="seed of the draws (default: %(default)s)")
     pre.add_argument("--out", default="prediction.csv", help="output table, .csv (default: %(default)s)")
     pre.add_argument(
         "--figure", help=f"also draw the prediction and band (the first {MAX_FIGURE_ROWS} initial conditions), .png"

@@ -156,7 +156,10 @@ def refine(
         c_lo, c_span = _box(control_box, "control_box (one (lo, hi) per input)", system.num_controls, kd)
         values = controls.values.to(**kd)
         if not bool(((values >= c_lo) & (values <= c_lo + c_span)).all()):
-            raise InputError("controls: expected every level inside control_box; clamp them or widen the box")
+            raise InputError(
+                f"controls: expected every level inside control_box, got levels from {float(values.min()):g} to "
+                f"{float(values.max()):g}; clamp them or widen the box"
+            )
         levels = _logits(values, c_lo, c_span).requires_grad_(True)
 
         def profiles(w: torch.Tensor):

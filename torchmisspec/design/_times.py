@@ -88,7 +88,9 @@ def sampling_times(
         raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
     for key in ("partition", "capacities", "proxies", "times", "candidates"):
         if key in options:
-            raise InputError(f"{key}: set by sampling_times itself (one region of candidate times per experiment)")
+            raise InputError(
+                f"{key}: expected none (sampling_times sets it: one region of candidate times per experiment), got one"
+            )
     kd = dict(dtype=gp.dtype, device=gp.device)
     y0 = check_candidates(initial_states, system, name="initial_states", **kd)
     grid = check_times(times, **kd)

@@ -230,7 +230,8 @@ class Polynomial(Kernel):
 
         if num_features is not None or feature_error is not None:
             raise InputError(
-                "num_features / feature_error: the polynomial kernel has exact finite features; pass neither"
+                "num_features / feature_error: expected neither (the polynomial kernel has exact finite features), "
+                f"got {num_features!r} / {feature_error!r}"
             )
         return polynomial_features(gp, base, outputscale)
 
@@ -270,7 +271,10 @@ class Features(Kernel):
         from ._paths import FeatureMap
 
         if num_features is not None or feature_error is not None:
-            raise InputError("num_features / feature_error: the feature kernel has exact finite features; pass neither")
+            raise InputError(
+                "num_features / feature_error: expected neither (the feature kernel has exact finite features), got "
+                f"{num_features!r} / {feature_error!r}"
+            )
         w = base.weights.detach().reshape(outputscale.shape[0], -1).to(outputscale)
         return FeatureMap("library", w.shape[-1], fn=base.features, coef=(outputscale * w).sqrt())
 

@@ -237,7 +237,10 @@ def stationary_features(gp, kernel, lengthscale, outputscale, num_features, feat
         D = frequencies_for(DEFAULT_FEATURE_ERROR if feature_error is None else feature_error)
     else:
         if feature_error is not None:
-            raise InputError("num_features and feature_error: pass one of them, not both")
+            raise InputError(
+                "num_features and feature_error: expected one of them, got both "
+                f"({num_features!r} and {feature_error!r})"
+            )
         F = check_positive_int(num_features, "num_features")
         if F % 2:
             raise InputError(f"num_features: expected an even number (cos and sin per frequency), got {F}")

@@ -49,7 +49,9 @@ def config_of(gp) -> dict:
         )
     dtype = str(gp.dtype).removeprefix("torch.")
     if dtype not in _DTYPES:
-        raise InputError(f"dtype: only {sorted(_DTYPES)} models can be saved, got {dtype}")
+        raise InputError(
+            f"dtype: expected a model in one of {sorted(_DTYPES)} to save, got {dtype}; convert it with .to()"
+        )
     return {
         "kernel": gp.kernel,
         "kernel_config": gp.kernel_spec.config(),  # the kernel object's arguments (plain values)
@@ -135,7 +137,10 @@ def to_blob(gp) -> dict:
 def _field(blob: dict, key: str, kind, path: Path, what: str = "CorrectionGP"):
     """``blob[key]``, checked to exist and be a ``kind`` (the error names the file, the field and what it holds)."""
     if not isinstance(blob, dict) or key not in blob:
-        raise InputError(f"{path}: expected a torchmisspec {what} file with field {key!r}, which is missing")
+        raise InputError(
+            f"{path}: expected a torchmisspec {what} file with field {key!r}, got "
+            + (f"fields {sorted(blob)[:8]}" if isinstance(blob, dict) else type(blob).__name__)
+        )
     value = blob[key]
     if not isinstance(value, kind):
         raise InputError(f"{path}: field {key!r} expected {kind}, got {type(value).__name__}")
@@ -196,7 +201,10 @@ def from_blob(cls, blob, path, *, device=None):
             )
         noise = noise.to(gp.device, gp.dtype)
         if not bool(torch.isfinite(noise).all()) or bool((noise < 0).any()):
-            raise InputError(f"{path}: expected finite non-negative known noise variances in 'train_noise'")
+            raise InputError(
+                f"{path}: expected finite non-negative known noise variances in 'train_noise', got values from "
+                f"{float(noise.min()):g} to {float(noise.max()):g}"
+            )
         noise = noise.T.contiguous()
 
     gp._d_in = X.shape[1]  # the feature kernel's library depends on the number of inputs
@@ -223,7 +231,10 @@ def from_blob(cls, blob, path, *, device=None):
     gp.input_names_ = None if names is None else tuple(names)
     system = blob.get("system")
     if system is not None and not (isinstance(system, dict) and all(isinstance(k, str) for k in system)):
-        raise InputError(f"{path}: expected 'system' to be a dictionary of the corrected system's description")
+        raise InputError(
+            f"{path}: expected 'system' to be a dictionary of the corrected system's description, got "
+            f"{type(system).__name__}"
+        )
     gp.system_ = system
     gp.refinement_ = _refinement(blob.get("refinement"), path)
     gp.posterior()
