@@ -69,6 +69,18 @@ def test_design_command_writes_picks(tmp_path, candidates_csv, suffix):
         assert [int(row.split(",")[1]) for row in lines[1:]] == expected.indices.tolist()
 
 
+def test_design_command_stochastic_is_the_library_call_with_the_seed(tmp_path, candidates_csv):
+    out = tmp_path / "picks.json"
+    assert main(_design_args(candidates_csv, out, "--method", "stochastic", "--seed", "3", budget=4)) == 0
+    expected = tms.design.greedy(
+        grid(((-1, 1), (-1, 1)), 7), 4, system=tms.systems.paper_linear(),
+        times=torch.linspace(0, 6, 11, dtype=torch.float64),
+        gp=tms.CorrectionGP(lengthscale=1.0, outputscale=4e-5, noise_variance=1e-4), method="stochastic",
+        generator=torch.Generator().manual_seed(3),
+    )  # fmt: skip
+    assert json.loads(out.read_text())["indices"] == expected.indices.tolist()
+
+
 def test_design_has_no_hidden_prior(tmp_path, candidates_csv, capsys):
     """Without a model, data or a stated prior the design refuses (it applied paper_linear's prior to any system),
     naming the three ways; a partial prior names what is missing."""

@@ -445,3 +445,73 @@ def test_lazy_identical_to_plain_greedy_many_candidates(outputscale, lengthscale
     plain = design.greedy(cand, 30, system=system, times=times, gp=gp, method="plain")
     assert lazy.indices.tolist() == plain.indices.tolist()
     torch.testing.assert_close(lazy.gains, plain.gains, atol=1e-9, rtol=1e-9)
+
+
+# ----------------------------------------------------------------------------------------- stochastic greedy
+def test_stochastic_greedy_meets_its_expected_guarantee():
+    """E[f] >= (1 - 1/e - eps) f(optimum) (Mirzasoleiman et al. 2015): 12 candidates, K = 3, eps = 0.5 (a draw of 3
+    per pick, so the draws matter), 60 seeds against the brute-force optimum; every reported gain is the exact
+    set's (independent log-determinants) and the marginal gains add up to it."""
+    system, outputscale, eps = paper_linear(), 1e-2, 0.5
+    cand = torch.rand(12, 2, generator=torch.Generator().manual_seed(3), dtype=DT) * 2 - 1
+    prox = simulate(system, cand, TIMES, known_only=True).states
+    best = max(set_gain(prox, s, outputscale) for s in itertools.combinations(range(12), 3))
+    got = []
+    for seed in range(60):
+        res = design.greedy(
+            cand, 3, system=system, times=TIMES, gp=make_gp(outputscale), method="stochastic", epsilon=eps,
+            generator=torch.Generator().manual_seed(seed),
+        )  # fmt: skip
+        assert res.diagnostics["sample_size"] == 3
+        exact = set_gain(prox, res.indices.tolist(), outputscale)
+        assert exact == pytest.approx(res.information_gain, rel=1e-8)
+        assert float(res.gains.sum()) == pytest.approx(exact, rel=1e-8)
+        got.append(exact / best)
+    mean = sum(got) / len(got)
+    se = (sum((g - mean) ** 2 for g in got) / (len(got) - 1) / len(got)) ** 0.5
+    assert mean - 3 * se >= 1 - 1 / math.e - eps
+    assert len({round(g, 9) for g in got}) > 1, "the draws never changed the picks"
+
+
+def test_stochastic_greedy_with_a_draw_of_every_candidate_is_lazy_greedy():
+    system, cand = paper_linear(), grid13()
+    gp = make_gp(1e-2)
+    lazy = design.greedy(cand, 6, system=system, times=TIMES, gp=gp)
+    full = design.greedy(cand, 6, system=system, times=TIMES, gp=gp, method="stochastic", epsilon=1e-12)
+    assert full.diagnostics["sample_size"] == cand.shape[0]
+    assert full.indices.tolist() == lazy.indices.tolist()
+
+
+def test_stochastic_greedy_is_reproducible_and_close_to_lazy_greedy():
+    """A seeded generator gives the same picks; with the default eps on 3,000 candidates (screening on) the gain is
+    within 2 % of lazy greedy's (measured: 1.1 % below for seed 0 at this small size; the benchmark measures 10^4 and
+    10^5 candidates, where the goal is 1 %)."""
+    system = paper_linear()
+    cand = design.candidates.uniform_box(3000, system.domain, generator=torch.Generator().manual_seed(0))
+    gp = make_gp(4e-5)
+    lazy = design.greedy(cand, 20, system=system, times=TIMES, gp=gp)
+    runs = [
+        design.greedy(cand, 20, system=system, times=TIMES, gp=gp, method="stochastic",
+                      generator=torch.Generator().manual_seed(s))
+        for s in (0, 0, 1)
+    ]  # fmt: skip
+    assert runs[0].indices.tolist() == runs[1].indices.tolist()
+    assert runs[0].indices.tolist() != runs[2].indices.tolist()
+    assert runs[0].diagnostics["screening"] and runs[0].evaluations < lazy.evaluations
+    for run in runs:
+        assert run.information_gain >= 0.98 * lazy.information_gain
+
+
+def test_stochastic_greedy_refuses_what_its_guarantee_does_not_cover():
+    system, cand, gp = paper_linear(), grid13(), make_gp()
+    common = dict(system=system, times=TIMES, gp=gp)
+    with pytest.raises(InputError, match="expected a cardinality budget"):
+        design.greedy(cand, 2, **common, method="stochastic", partition=[0] * 169, capacities=[2])
+    with pytest.raises(InputError, match=r"epsilon: expected a number in \(0, 1\), got 1.0"):
+        design.greedy(cand, 2, **common, method="stochastic", epsilon=1.0)
+    with pytest.raises(InputError, match="epsilon: expected a positive finite number, got 'x'"):
+        design.greedy(cand, 2, **common, method="stochastic", epsilon="x")
+    with pytest.raises(InputError, match="expected method='stochastic' with them, got method='lazy'"):
+        design.greedy(cand, 2, **common, generator=torch.Generator())
+    with pytest.raises(InputError, match="generator: expected a torch.Generator, got int"):
+        design.greedy(cand, 2, **common, method="stochastic", generator=0)

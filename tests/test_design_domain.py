@@ -158,7 +158,7 @@ def test_bad_input(fitted):
         design.greedy(cand, 2, criterion="variance", **kw)
     with pytest.raises(tms.InputError, match="domain.*expected"):
         design.greedy(cand, 2, criterion="domain", domain=((-1, 1),), **kw)
-    with pytest.raises(tms.InputError, match="only used by criterion='domain'"):
+    with pytest.raises(tms.InputError, match="expected criterion='domain' with them"):
         design.greedy(cand, 2, domain=((-1, 1), (-1, 1)), **kw)
     with pytest.raises(tms.InputError, match="domain_size"):
         design.greedy(cand, 2, criterion="domain", domain_size=1, **kw)

@@ -52,6 +52,8 @@ def test_benchmark_smokes():
     assert "same picks as the reference: True" in _script("benchmark_campaign.py", "--smoke")
     out = _script("benchmark_features.py", "--smoke")
     assert "| 8 | 45 | per output |" in out and "dense factorization" in out
+    out = _script("benchmark_large_design.py", "--smoke", "--repeats", "1")
+    assert "| 2000 | lazy (exact greedy set) |" in out and "| 2000 | stochastic, 2 seeds" in out
 
 
 @pytest.mark.slow

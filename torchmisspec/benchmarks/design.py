@@ -8,25 +8,15 @@ import torch
 import torchmisspec as tms
 from torchmisspec.design.candidates import uniform_box
 
-from .reporting import run_worker, timed, worker_main
+from .reporting import peak_rss_mb, run_worker, timed, worker_main
 
 
-def _design_worker(n: int, T: int, K: int, outputscale: float, lengthscale: float, repeats: int) -> dict:
-    """10k-candidate design, run in a fresh process so that its peak memory is its own."""
-    import resource
-
+def _design_worker(
+    n: int, T: int, K: int, outputscale: float, lengthscale: float, repeats: int, method: str = "lazy", seed: int = 0
+) -> dict:
+    """A design of ``n`` uniform candidates (their proxies included), run in a fresh process so that its peak memory is
+    its own; ``seed`` seeds the draws of ``method="stochastic"``."""
     from torchmisspec import design
-
-    def peak_mb() -> float:
-        """Peak resident memory of this process (VmHWM; ru_maxrss can carry the parent's peak across exec)."""
-        try:
-            with open("/proc/self/status") as fh:
-                for line in fh:
-                    if line.startswith("VmHWM:"):
-                        return int(line.split()[1]) / 1024
-        except OSError:
-            pass
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
     system = tms.systems.paper_linear()
     gen = torch.Generator().manual_seed(0)
@@ -34,10 +24,11 @@ def _design_worker(n: int, T: int, K: int, outputscale: float, lengthscale: floa
     times = torch.linspace(0.0, 6.0, T, dtype=torch.float64)
     gp = tms.CorrectionGP(lengthscale=lengthscale, outputscale=outputscale, noise_variance=1e-4)
     design.greedy(candidates[:50], 3, system=system, times=times, gp=gp)  # warm-up: first-call overheads
-    before = peak_mb()
+    before = peak_rss_mb()
 
     def run():
-        return design.greedy(candidates, K, system=system, times=times, gp=gp)  # proxies included
+        draws = {"generator": torch.Generator().manual_seed(seed)} if method == "stochastic" else {}
+        return design.greedy(candidates, K, system=system, times=times, gp=gp, method=method, **draws)
 
     plan, seconds, all_seconds = timed(run, repeats)
     return {
@@ -48,10 +39,12 @@ def _design_worker(n: int, T: int, K: int, outputscale: float, lengthscale: floa
         "outputscale": outputscale,
         "seconds": seconds,
         "all_seconds": all_seconds,
+        "method": method,
+        "seed": seed,
         "gain_evaluations": plan.evaluations,
         "information_gain_nats": plan.information_gain,
         "diagnostics": plan.diagnostics,
-        "peak_rss_mb": peak_mb(),
+        "peak_rss_mb": peak_rss_mb(),
         "rss_after_imports_and_warmup_mb": before,
     }
 

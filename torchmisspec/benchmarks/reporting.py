@@ -170,6 +170,20 @@ def timed(fn, repeats: int, setup=None):
     return out, statistics.median(times), times
 
 
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MB (VmHWM; ru_maxrss can carry the parent's peak across exec)."""
+    import resource
+
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def memory_gb() -> float | None:
     """Total memory of the machine (GB, from /proc/meminfo), or None."""
     try:

@@ -154,10 +154,12 @@ def _design(args: argparse.Namespace) -> int:
     elif args.method == "agnostic":
         plan = design.agnostic(candidates, args.budget, controls=controls, **common)
     else:
+        draws = {"generator": torch.Generator().manual_seed(args.seed)} if args.method == "stochastic" else {}
         plan = design.greedy(
             candidates,
             args.budget,
             method=args.method,
+            **draws,
             criterion=args.criterion,
             proxy=args.proxy,
             controls=controls,
@@ -272,9 +274,9 @@ def add_design(sub) -> None:
     des.add_argument(
         "--method",
         default="lazy",
-        choices=["lazy", "plain", "naive", "agnostic", "random"],
-        help="lazy greedy (default), plain greedy, naive greedy (reference), agnostic (ignores the known model), "
-        "random",
+        choices=["lazy", "plain", "naive", "stochastic", "agnostic", "random"],
+        help="lazy greedy (default), plain greedy, naive greedy (reference), stochastic greedy (the best of a random "
+        "draw per pick, for 10^5 candidates and more; seeded by --seed), agnostic (ignores the known model), random",
     )
     des.add_argument(
         "--criterion",
