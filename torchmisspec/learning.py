@@ -567,7 +567,7 @@ def fit_correction(
         pool = candidates if user_candidates else [CorrectionGP(kernel="auto") if gp is None else gp]
         result = _by_evidence(pool, samples)
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
-        refine = result.kernel_spec.feature_space and system.autonomous
+        refine = result.kernel_spec.terms and result.kernel_spec.feature_space and system.autonomous
     if refine:
         result = fit_trajectories(result, system, trajectories, progress=progress)
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar

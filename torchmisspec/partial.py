@@ -441,7 +441,8 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
         warnings.warn_explicit(text, w.category, w.filename, w.lineno)
     if refine is None:  # fit_correction's rule (the feature kernel's terms are re-learned through the ODE), and any
         # model whose samples rest on the first model's paths (F on, or of, a state not measured directly)
-        refine = system.autonomous and (result.kernel_spec.feature_space or report.from_paths)
+        spec = result.kernel_spec
+        refine = system.autonomous and ((spec.terms and spec.feature_space) or report.from_paths)
     if refine:  # F through the ODE on what was measured (not on the completed paths), the initial states with it
         chosen = result
         result = fit_trajectories(chosen, at, trajectories.with_initial_states(y0), progress=progress)

@@ -200,8 +200,9 @@ def fit_trajectories(
         raise InputError(f"shooting: expected one of {list(SHOOTING)}, got {shooting!r}")
     max_iter = check_positive_int(max_iter, "max_iter")
     relevance = check_flag(relevance, "relevance", none=True)
-    relevance = gp.kernel_spec.feature_space if relevance is None else relevance
-    if relevance and not gp.kernel_spec.feature_space:
+    relevance_kernel = gp.kernel_spec.terms and gp.kernel_spec.feature_space  # term weights learned in feature space
+    relevance = relevance_kernel if relevance is None else relevance
+    if relevance and not relevance_kernel:
         raise InputError(
             f"relevance: expected a feature kernel (its term weights are re-estimated), got kernel {gp.kernel!r}"
         )

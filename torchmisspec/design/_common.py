@@ -14,6 +14,7 @@ from .._linalg import logdet_identity_plus
 from .._validation import as_tensor, check_finite, check_ndim
 from .._validation import check_times as _check_times
 from ..gp import CorrectionGP
+from ..gp._features import FeatureFactorization
 from ..systems import MisspecifiedSystem
 
 __all__ = ["DesignResult", "logdet_identity_plus"]
@@ -195,10 +196,16 @@ class GPKernel:
         self.dtype = gp.dtype
         self.device = gp.device
         fac = gp.posterior().factor if gp.is_fitted else None
-        # the data's factor: (1, N, N) when every output has the same C = K + noise, else (d_out, N, N)
-        chol = None if fac is None else fac.chol.detach()
-        shared_data = chol is None or chol.shape[0] == 1 or all(torch.equal(chol[0], c) for c in chol[1:])
+        in_features = isinstance(fac, FeatureFactorization)  # the data's term in feature space (no N x N factor)
+        if in_features:
+            shared_data = fac.cov.shape[0] == 1 or all(torch.equal(fac.cov[0], c) for c in fac.cov[1:])
+            chol = None
+        else:  # the data's factor: (1, N, N) when every output has the same C = K + noise, else (d_out, N, N)
+            chol = None if fac is None else fac.chol.detach()
+            shared_data = chol is None or chol.shape[0] == 1 or all(torch.equal(chol[0], c) for c in chol[1:])
         shared = not gp.per_output and shared_data and (scales is None or bool((scales == scales[0]).all()))
+        if in_features and condition and not shared:  # per-output data terms: the dense factor (modest N only)
+            chol, in_features = fac.chol.detach(), False
         #: whether points are expanded to one block per output (:meth:`expand`); False: the shared layout
         self.expanded = not shared
         self.blocks = 1 if shared else gp.output_dim
@@ -209,11 +216,17 @@ class GPKernel:
             self.module = _OutputBlocks(gp.covar_module, scales, gp.per_output)
             self.noise = 1.0
             self.scales = scales
-        #: the lower Cholesky factor of K(X, X) + noise of the GP's training samples X when conditioning, else None
+        #: the lower Cholesky factor of K(X, X) + noise of the GP's training samples X when conditioning on them
+        #: through the dense factor, else None
         self.chol: torch.Tensor | None = None
+        #: the GP's training inputs when conditioning on them, else None
         self.data: torch.Tensor | None = None
+        self._G: torch.Tensor | None = None  # the data term's factor (see _data_factor); None: the prior
         self._memo: tuple | None = None
-        if condition:
+        if condition and in_features:
+            self.data = gp.train_inputs_.detach()
+            self._feature_factor(fac, gp.covar_module.base_kernel)
+        elif condition:
             X = gp.train_inputs_.detach()
             if shared:
                 self.chol, self.data = chol[0], X
@@ -287,6 +300,24 @@ class GPKernel:
                 q = k0 * N * max(e_X, 0.0) / max(c_min, 1e-300)
                 self.data_error = 2 * math.sqrt(q * k0) + q
 
+    def _feature_factor(self, fac, base) -> None:
+        """The data term of a feature-space posterior, exactly: with the coefficients' prior ``diag(W)`` and posterior
+        covariance ``S``, k(x, X) C^-1 k(X, x') = phi(x)^T (W - S) phi(x'), so G G^T = W - S (p x p, from its
+        eigendecomposition) and the basis is phi(x) itself; no N x N matrix and no pivots."""
+        with torch.no_grad():
+            M = torch.diag(fac._W[0]) - fac.cov[0]
+            lam, U = torch.linalg.eigh(0.5 * (M + M.T))
+            keep = lam > lam.abs().max().clamp_min(torch.finfo(M.dtype).tiny) * torch.finfo(M.dtype).eps * M.shape[0]
+            self._G = U[:, keep] * lam[keep].sqrt()
+            self._features = base.features
+            self.data_rank, self.data_error = int(keep.sum()), 0.0
+
+    def _basis(self, x: torch.Tensor) -> torch.Tensor:
+        """``(..., r, M)``: what the data factor ``G`` multiplies: k(Z, x) at the pivots, or the features phi(x)^T."""
+        if getattr(self, "_features", None) is not None:
+            return self._features(x).transpose(-1, -2)
+        return self.module.forward(self._Z, x)
+
     def _explained(self, x: torch.Tensor) -> torch.Tensor:
         """``psi(x)`` ``(..., r, M)`` for ``x (..., M, d_in)``, with k(x, X) C^-1 k(X, x') = psi(x)^T psi(x').
 
@@ -295,7 +326,7 @@ class GPKernel:
         if self._memo is not None and self._memo[0] is x:
             return self._memo[1]
         with torch.no_grad():
-            psi = self._G.T @ self.module.forward(self._Z, x)
+            psi = self._G.T @ self._basis(x)
         if x.shape[-2] >= 64:  # small blocks (a pivot's point) are cheap and must not evict the large one
             self._memo = (x, psi)
         return psi
@@ -305,16 +336,16 @@ class GPKernel:
         with torch.no_grad():
             K = self.module.forward(z, x)
             d = self.module.forward(x, x, diag=True)
-            if self.chol is None:
+            if self._G is None:
                 return K, d
-            Vx = self._G.T @ self.module.forward(self._Z, x)
+            Vx = self._G.T @ self._basis(x)
             return K - self._explained(z).transpose(-1, -2) @ Vx, (d - Vx.pow(2).sum(-2)).clamp_min(0.0)
 
     def __call__(self, x1: torch.Tensor, x2: torch.Tensor | None = None) -> torch.Tensor:
         """The kernel block ``(..., M1, M2)``; conditioned on the GP's data: k(x1, x2) - k(x1, X) C^-1 k(X, x2)."""
         with torch.no_grad():
             K = self.module.forward(x1, x1 if x2 is None else x2)
-            if self.chol is None:
+            if self._G is None:
                 return K
             V1 = self._explained(x1)
             V2 = V1 if x2 is None else self._explained(x2)
@@ -325,16 +356,16 @@ class GPKernel:
         gradients of the criterion in the experiments (:func:`~torchmisspec.design.refine`); the data's factor is
         a constant."""
         K = self.module.forward(x, x)
-        if self.chol is None:
+        if self._G is None:
             return K
-        V = self._G.T @ self.module.forward(self._Z, x)
+        V = self._G.T @ self._basis(x)
         return K - V.transpose(-1, -2) @ V
 
     def diag(self, x: torch.Tensor) -> torch.Tensor:
         """k(x_i, x_i) for ``x (M, d_in)``: ``(M,)`` (conditioned like the blocks)."""
         with torch.no_grad():
             d = self.module.forward(x, x, diag=True)
-            if self.chol is None:
+            if self._G is None:
                 return d
             return (d - self._explained(x).pow(2).sum(-2)).clamp_min(0.0)
 

@@ -85,7 +85,7 @@ class DomainModel:
             self.W = (phi_q * self.weights.unsqueeze(-1)).T @ phi_q  # (r, r)
             self.A = torch.eye(self.rank, **dd)  # I + Psi_data^T Psi_data
             self.num_conditioned = 0
-            if kern.chol is not None:  # the GP's data, with their own noise (floor + known, the same for all outputs)
+            if kern.data is not None:  # the GP's data, with their own noise (floor + known, the same for all outputs)
                 X = kern.data
                 phi, r = self.features(X)
                 noise = kern.gp._noise_diag(kern.gp.train_noise_)[0].detach().expand(X.shape[0])

@@ -6,7 +6,7 @@ One idea per module, each readable in one sitting:
   the checks of what it is given; :mod:`._exact` - the GPyTorch modules and ``ExactGP`` view;
 * :mod:`._kernels` - the kernels as objects (:class:`Kernel`, :class:`RBF`, ...; :func:`register` a kernel of your
   own); :mod:`._features` - the feature kernel, its terms and its feature-space posterior; :mod:`._sum` - the
-  library plus an RBF;
+  library plus an RBF; :mod:`._large` - the RBF kernel in a feature space for many samples;
 * :mod:`._mll` - the exact log marginal likelihood and its analytic gradient (pure functions); :mod:`._fit` - how
   a model learns (through the package's one L-BFGS loop, :mod:`torchmisspec._optim`); :mod:`._relevance` - the
   feature weights' sparse Bayesian learning; :mod:`._selection` - ``kernel="auto"``'s choice by evidence;
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from ._exact import log_positive
 from ._kernels import RBF, Features, FeaturesRBF, Kernel, Matern52, Polynomial, Stationary, register
+from ._large import RBFQuadrature
 from ._model import KERNELS, CorrectionGP
 from ._posterior import GPPosterior, Posterior
 
@@ -36,6 +37,7 @@ __all__ = [
     "Polynomial",
     "Features",
     "FeaturesRBF",
+    "RBFQuadrature",
     "register",
     "log_positive",
 ]

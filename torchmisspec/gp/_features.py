@@ -76,6 +76,9 @@ import torch
 from .._errors import InputError, ShapeError
 from .._linalg import cholesky
 
+#: Most samples for which a feature-space posterior builds its dense factor on request (3.2 GB in float64).
+DENSE_LIMIT = 20_000
+
 __all__ = [
     "FeatureKernel",
     "PRUNE",
@@ -372,8 +375,15 @@ class FeatureFactorization:
 
     @property
     def chol(self) -> torch.Tensor:
-        """The dense ``(B, N, N)`` Cholesky factor of C, built on first access (O(N^3))."""
+        """The dense ``(B, N, N)`` Cholesky factor of C, built on first access (O(N^3)); refused above
+        :data:`DENSE_LIMIT` samples (the paths that need it are for models of modest size)."""
         if self._chol is None:
+            N = self._Phi.shape[0]
+            if N > DENSE_LIMIT:
+                raise InputError(
+                    f"this operation needs the dense factor of the training covariance, expected at most {DENSE_LIMIT} "
+                    f"samples for it, got {N} ({8 * N * N / 2**30:.1f} GiB); fit on fewer samples for it"
+                )
             K = (self._Phi.unsqueeze(0) * self._W.unsqueeze(1)) @ self._Phi.T
             self._chol = cholesky(K + torch.diag_embed(self._D), what="K + noise (dense, on request)")
         return self._chol

@@ -71,7 +71,7 @@ def fit_model(gp, X, Y, noise, learn: bool, *, progress: bool, max_iter: int, wa
         lik = gp._modules(batch=d_out, noise=known)[1]
     gp.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
     gp._cache = None
-    own = gp.kernel_spec.fit(gp, X, Y, noise, max_iter=max_iter) if learn else None
+    own = gp.kernel_spec.fit(gp, X, Y, noise, max_iter=max_iter) if learn else gp.kernel_spec.prepare(gp, X)
     if own is not None:  # the kernel's own fit (the feature kernels')
         gp.n_iterations_, gp.n_evaluations_ = own
     elif learn:

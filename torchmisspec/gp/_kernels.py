@@ -113,6 +113,11 @@ class Kernel:
         """A fit of its own (``(iterations, evaluations)``), or ``None``: the generic marginal-likelihood fit."""
         return None
 
+    def prepare(self, gp, X) -> tuple[int, int] | None:
+        """What the kernel needs from the training inputs when nothing is learned (every hyperparameter given):
+        ``(0, 0)`` when it did something, ``None`` when it needs nothing (the default)."""
+        return None
+
     # ---------------------------------------------------------------------------------------- the written-out side
     def hyperparameters(self, base, B: int) -> dict:
         """The base kernel's hyperparameters as ``(B, 1, 1)`` tensors (or what :meth:`matrix` needs), keeping the

@@ -375,6 +375,12 @@ class FunctionSamples:
                 weights = weights * scale
                 extra = None if extra is None else (extra[0], extra[1] * scale)
                 v = scale * v + (1.0 - scale) * alpha
+            if gp.kernel_spec.feature_space and B == 1 and features.kind == "library":
+                # a kernel of finitely many features k(x, x') = phi(x)^T phi(x') (output scale in phi): the update
+                # k(x, X) v_s = phi(x)^T (phi(X)^T v_s) is a change of the draw's coefficients, so each draw is
+                # phi(x)^T w'_s exactly and costs p per point, not N (no update over the training inputs is kept)
+                weights = weights + torch.einsum("nf,snd->sfd", phi[0], v).unsqueeze(1)
+                X, v = X[:0], v[:, :0]
         self.num_samples = S
         self.scale = scale
         self.features = features
@@ -391,7 +397,7 @@ class FunctionSamples:
         self._buffers: dict = {}
         #: certified bound on |update - exact update| at any point (0: the exact canonical basis is used)
         self.update_error = 0.0
-        if update_error is not None and batches == 1 and gp.kernel_spec.stationary:
+        if update_error is not None and batches == 1 and gp.kernel_spec.stationary and X.shape[0] > 0:
             with torch.no_grad():
                 self._compress(float(update_error) * math.sqrt(float(self._params["outputscale"].reshape(-1)[0])))
 

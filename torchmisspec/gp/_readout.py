@@ -41,6 +41,16 @@ class Readout:
         n = self.train_inputs_.shape[0]
         return float(self.log_marginal_likelihood_) - 0.5 * math.log(n) * self.num_hyperparameters
 
+    @property
+    def approximation(self) -> dict | None:
+        """How far the kernel in use is from the one it stands for, or ``None`` for an exact kernel: for
+        ``kernel="rbf-quadrature"`` (:mod:`torchmisspec.gp._large`) the kind of features (``"quadrature"``: a
+        certified uniform bound over ``box``; ``"random"``: a root-mean-square bound), their number, the bound on
+        ``|k_hat - k|`` relative to the output scale, the box, and the settings (``feature_error``, ``subsample``)."""
+        self._require_fitted()
+        describe = getattr(self.covar_module.base_kernel, "describe", None)
+        return None if describe is None else {**describe(), **self.kernel_spec.config()}
+
     # ------------------------------------------------------------------------------------------ hyperparameters
     def laplace_covariance(self) -> tuple[list[str], torch.Tensor, torch.Tensor]:
         """A Laplace approximation of the posterior of the learned log hyperparameters: ``(names, mean, covariance)``

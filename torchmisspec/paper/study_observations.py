@@ -235,7 +235,8 @@ def run_one(case: Case, system, train: tms.Trajectories, test: dict, *, fit_max_
     if gp is None or not gp.is_fitted:
         out["fit_trajectories"] = {"status": "error", "error": "skipped: method (a) failed"}
         return out
-    if gp.kernel_spec.feature_space:  # fit_correction already refined it through the ODE: (b) is (a)
+    # fit_correction already refined the feature kernel through the ODE: (b) is (a)
+    if gp.kernel_spec.terms and gp.kernel_spec.feature_space:
         out["fit_trajectories"] = dict(
             out["auto"],
             iterations=int(gp.n_iterations_),

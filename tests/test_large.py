@@ -1,0 +1,124 @@
+"""The RBF kernel in feature space for many samples (``kernel="rbf-quadrature"``, torchmisspec.gp._large).
+
+References: the kernel against the RBF formula within the certified bound; the feature-space posterior against a
+hand-written Cholesky posterior with the same (approximate) kernel; the subsample's hyperparameters against an exact
+fit on the same subsample; the design's conditioning against the dense formula.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec import design
+from torchmisspec.gp._features import DENSE_LIMIT
+
+DT = torch.float64
+SYSTEM = tms.systems.paper_linear()
+FIXED = dict(lengthscale=0.8, outputscale=4e-5, noise_variance=1e-6)
+
+
+def _samples(n: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 2, generator=g, dtype=DT) * 2 - 1
+    y = SYSTEM.true_correction(x) + 1e-3 * torch.randn(n, 2, generator=g, dtype=DT)
+    return x, y
+
+
+def _rbf(a, b, lengthscale, outputscale):
+    return outputscale * np.exp(-((a[:, None, :] - b[None, :, :]) ** 2).sum(-1) / (2 * lengthscale**2))
+
+
+def test_features_stay_within_their_certified_bound_of_the_rbf():
+    x, y = _samples(300)
+    gp = tms.CorrectionGP(kernel="rbf-quadrature", **FIXED).fit(x, y)
+    info = gp.approximation
+    assert info["kind"] == "quadrature" and info["error_bound"] <= 1e-2 and info["num_features"] > 0
+    lo, hi = torch.tensor(info["box"], dtype=DT)
+    pts = lo + (hi - lo) * torch.rand(400, 2, generator=torch.Generator().manual_seed(1), dtype=DT)
+    exact = _rbf(pts.numpy(), pts.numpy(), 0.8, 4e-5)
+    err = np.abs(gp.covariance(pts).numpy() - exact).max() / 4e-5
+    assert err <= info["error_bound"]
+    assert gp.lengthscale == pytest.approx(0.8) and gp.kernel == "rbf-quadrature"
+
+
+def test_feature_space_posterior_is_the_cholesky_posterior_of_the_same_kernel():
+    """Mean, variance and the design's conditioned kernel equal a hand-written dense computation with
+    K_hat = s^2 Phi Phi^T (numpy Cholesky), the approximate kernel's exact posterior."""
+    x, y = _samples(200)
+    gp = tms.CorrectionGP(kernel="rbf-quadrature", **FIXED).fit(x, y)
+    t = torch.rand(50, 2, generator=torch.Generator().manual_seed(2), dtype=DT) * 2 - 1
+    phi = gp.covar_module.base_kernel.features
+    P, Pt = phi(x).numpy(), phi(t).numpy()
+    K = 4e-5 * P @ P.T + 1e-6 * np.eye(200)
+    L = np.linalg.cholesky(K)
+    kx = 4e-5 * Pt @ P.T
+    mean = kx @ np.linalg.solve(L.T, np.linalg.solve(L, y.numpy()))
+    V = np.linalg.solve(L, kx.T)
+    cov = 4e-5 * Pt @ Pt.T - V.T @ V
+    post = gp.predict(t)
+    scale = np.abs(mean).max()
+    assert np.abs(post.mean.numpy() - mean).max() <= 1e-8 * scale
+    assert np.abs(post.variance[:, 0].numpy() - np.diag(cov)).max() <= 1e-9 * 4e-5
+    kern = design._common.GPKernel(gp, condition=True)
+    assert np.abs(kern(t).numpy() - cov).max() <= 1e-9 * 4e-5
+    assert kern.num_conditioned == 200 and kern.chol is None  # no N x N factor was built
+
+
+def test_hyperparameters_are_an_exact_fit_on_the_subsample():
+    x, y = _samples(900)
+    gp = tms.CorrectionGP(kernel=tms.gp.RBFQuadrature(subsample=300)).fit(x, y)
+    sub = torch.linspace(0, 899, 300).round().long()
+    exact = tms.CorrectionGP().fit(x[sub], y[sub])
+    assert gp.lengthscale == pytest.approx(exact.lengthscale, rel=1e-10)
+    assert gp.outputscale == pytest.approx(exact.outputscale, rel=1e-10)
+    assert gp.noise_variance == pytest.approx(exact.noise_variance, rel=1e-10)
+    assert gp.approximation["subsample"] == 300
+
+
+def test_save_and_load_predict_exactly(tmp_path):
+    x, y = _samples(400)
+    gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
+    again = tms.CorrectionGP.load(gp.save(tmp_path / "large.pt"))
+    t = torch.rand(30, 2, generator=torch.Generator().manual_seed(3), dtype=DT) * 2 - 1
+    assert torch.equal(again.predict_mean(t), gp.predict_mean(t))
+    assert torch.equal(again.predict(t).variance, gp.predict(t).variance)
+    assert again.approximation == gp.approximation
+
+
+@pytest.mark.slow
+def test_many_samples_through_prediction_bands_and_design():
+    """25,000 samples: fit, predict, bands and a conditioned design run without an N x N matrix; the paths that need
+    the dense factor refuse with a message."""
+    x, y = _samples(25_000)
+    gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
+    model = tms.CorrectedODE(SYSTEM, gp)
+    y0 = torch.tensor([[0.5, -0.3], [0.2, 0.7]], dtype=DT)
+    times = torch.linspace(0, 6, 11, dtype=DT)
+    truth = tms.simulate(SYSTEM, y0, times).states
+    pred = model.predict(y0, times)
+    assert tms.trajectory_rmse(pred, truth) < 0.01
+    bands = model.posterior(y0, times, num_samples=8, scale=1.0, generator=torch.Generator().manual_seed(0))
+    assert bool(torch.isfinite(bands.samples).all())
+    cand = design.candidates.grid(SYSTEM.domain, 10)
+    plan = design.greedy(cand, 3, system=SYSTEM, times=times, gp=gp)
+    assert plan.diagnostics["conditioned"] == 25_000
+    assert 25_000 > DENSE_LIMIT
+    with pytest.raises(tms.InputError, match=f"expected at most {DENSE_LIMIT} samples for it, got 25000"):
+        gp.posterior().with_targets(y)
+
+
+def test_posterior_draws_are_drawn_in_feature_space():
+    """Draws of a feature-space posterior are phi(x)^T w_s (no update over the N training inputs): their mean and
+    variance at test points match the posterior's within 4 standard errors of 4,000 draws."""
+    x, y = _samples(500)
+    gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
+    draws = gp.sample_functions(4000, generator=torch.Generator().manual_seed(1))
+    assert draws._X.shape[0] == 0
+    t = torch.rand(6, 2, generator=torch.Generator().manual_seed(4), dtype=DT) * 2 - 1
+    f, post = draws(t), gp.predict(t)
+    se = post.stddev / 4000**0.5
+    assert bool(((f.mean(0) - post.mean).abs() <= 4 * se).all())
+    assert bool(((f.var(0) / post.variance - 1).abs() <= 4 * (2 / 3999) ** 0.5).all())
