@@ -103,10 +103,10 @@ def test_orbits_mass_and_geometry_arguments():
     "kwargs, message",
     [
         ({"n": 0}, "n: expected an integer >= 1, got 0"),
-        ({"mass": 0.0}, "mass: expected a finite number > 0, got 0.0"),
-        ({"mass": "heavy"}, "mass: expected a positive number, got 'heavy'"),
+        ({"mass": 0.0}, "mass: expected a positive finite number, got 0.0"),
+        ({"mass": "heavy"}, r"mass: expected a positive finite number, got 'heavy' \(str\)"),
         ({"min_radius": 2.0}, r"min_radius: expected 0 < min_radius < half_width=2.0, got 2.0"),
-        ({"half_width": -1.0}, "half_width: expected a finite number > 0, got -1.0"),
+        ({"half_width": -1.0}, "half_width: expected a positive finite number, got -1.0"),
     ],
 )
 def test_orbits_reject_bad_input(kwargs, message):

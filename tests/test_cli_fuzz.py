@@ -3,12 +3,13 @@
 The promise checked (issue 25): the command either succeeds and writes a complete output (finite numbers), or exits
 2 with one line on stderr that starts with ``torchmisspec <command>:``, no traceback, and no output file written.
 The commands that only read (predict, design) run in the default tests; fit and calibrate (a fit each) in the slow
-ones.
+ones (every other case; all with ``TORCHMISSPEC_FUZZ_EXAMPLES`` set above 1500, the long profile).
 """
 
 from __future__ import annotations
 
 import math
+import os
 
 import pytest
 from test_cli import _lab, lab, lab_model  # noqa: F401  (fixtures: the lab's files and a model fitted on them)
@@ -130,8 +131,14 @@ def test_one_bad_option(command, option, value, lab, lab_model, tmp_path, capsys
     _run(command, option, value, lab, lab_model, tmp_path, capsys)
 
 
+#: the fits' cases: every other one in CI's slow run, all of them in the long profile (TORCHMISSPEC_FUZZ_EXAMPLES
+#: above its default, as tests/test_fuzz.py's long run)
+LONG = int(os.environ.get("TORCHMISSPEC_FUZZ_EXAMPLES", "1500")) > 1500
+FITS = _params(["fit", "calibrate"])
+
+
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore")
-@pytest.mark.parametrize(("command", "option", "value"), _params(["fit", "calibrate"]))
+@pytest.mark.parametrize(("command", "option", "value"), FITS if LONG else FITS[::2])
 def test_one_bad_option_of_the_fits(command, option, value, lab, lab_model, tmp_path, capsys):  # noqa: F811
     _run(command, option, value, lab, lab_model, tmp_path, capsys)

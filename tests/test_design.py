@@ -190,7 +190,8 @@ def test_screened_lazy_greedy_identical_to_plain_greedy():
 @pytest.mark.parametrize("max_rank", [6, 12, 40])
 def test_low_rank_bounds_are_upper_bounds(max_rank):
     """g(c | S) <= g~(c | S) + (d_out / 2)(|S| T + T) e_max / sigma^2 for features of any rank."""
-    from torchmisspec.design._greedy import _LowRank, _Problem
+    from torchmisspec.design._greedy import _Problem
+    from torchmisspec.design._screening import LowRank as _LowRank
 
     system, outputscale = paper_linear(), 1e-2
     cand = torch.rand(60, 2, generator=torch.Generator().manual_seed(8), dtype=DT) * 2 - 1
@@ -198,7 +199,7 @@ def test_low_rank_bounds_are_upper_bounds(max_rank):
     low = _LowRank(prob, max_rank)
     if not low.useful:  # the bounds are valid anyway; build them regardless for the test
         low = _LowRank.__new__(_LowRank)
-        import torchmisspec.design._greedy as G
+        import torchmisspec.design._screening as G
 
         old, G.SLACK_USELESS = G.SLACK_USELESS, math.inf
         try:

@@ -80,6 +80,10 @@ def check_design(ns: dict) -> None:
     # "pick the same set; lazy greedy needs fewer gain evaluations"
     assert plain.indices.tolist() == plan.indices.tolist()
     assert plan.evaluations < plain.evaluations
+    # "each draw is about half of the 169 candidates and the gain a few percent below lazy greedy's"
+    quick = ns["quick"]
+    assert 60 <= quick.diagnostics["sample_size"] <= 110
+    assert 0.95 <= quick.information_gain / plan.information_gain < 1.0
     # "The unconstrained design puts more than 3 experiments on the left, so the capacity binds; the constrained
     # design gives up a little information"
     region = ns["region"]

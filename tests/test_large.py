@@ -122,3 +122,36 @@ def test_posterior_draws_are_drawn_in_feature_space():
     se = post.stddev / 4000**0.5
     assert bool(((f.mean(0) - post.mean).abs() <= 4 * se).all())
     assert bool(((f.var(0) / post.variance - 1).abs() <= 4 * (2 / 3999) ** 0.5).all())
+
+
+def test_an_rbf_gp_moves_to_the_feature_space_above_large_n_and_back():
+    from torchmisspec.gp._large import LARGE_N
+
+    x, y = _samples(LARGE_N + 50)
+    gp = tms.CorrectionGP().fit(x, y)
+    assert gp.kernel == "rbf-quadrature" and gp.approximation["kind"] == "quadrature"
+    assert gp.clone().requested_kernel.name == "rbf" and gp.clone().exact is None
+    small = gp.clone().fit(x[:300], y[:300])
+    assert small.kernel == "rbf" and small.approximation is None
+    gp.fit(x[:300], y[:300])  # the same model refitted on few samples: exact again
+    assert gp.kernel == "rbf"
+    assert tms.CorrectionGP(exact=False).fit(x[:300], y[:300]).kernel == "rbf-quadrature"
+    with pytest.raises(tms.InputError, match="exact: expected None or True for this kernel"):
+        tms.CorrectionGP(kernel="matern52", exact=False)
+    with pytest.raises(tms.InputError, match="exact: expected True, False or None"):
+        tms.CorrectionGP(exact="yes")
+
+
+@pytest.mark.slow
+def test_exact_true_keeps_the_exact_gp_above_large_n(tmp_path):
+    from torchmisspec.gp._large import LARGE_N
+
+    x, y = _samples(LARGE_N + 50)
+    gp = tms.CorrectionGP(exact=True, lengthscale=0.8, outputscale=4e-5, noise_variance=1e-6).fit(x, y)
+    assert gp.kernel == "rbf" and gp.approximation is None
+    large = tms.CorrectionGP(lengthscale=0.8, outputscale=4e-5, noise_variance=1e-6).fit(x, y)
+    again = tms.CorrectionGP.load(large.save(tmp_path / "m.pt"))
+    assert again.kernel == "rbf-quadrature" and again.requested_kernel.name == "rbf"
+    t = torch.rand(20, 2, generator=torch.Generator().manual_seed(5), dtype=DT) * 2 - 1
+    scale = float(gp.predict_mean(t).abs().max())
+    assert float((large.predict_mean(t) - gp.predict_mean(t)).abs().max()) <= 0.02 * scale

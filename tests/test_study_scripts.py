@@ -54,6 +54,9 @@ def test_benchmark_smokes():
     assert "| 8 | 45 | per output |" in out and "dense factorization" in out
     out = _script("benchmark_large_design.py", "--smoke", "--repeats", "1")
     assert "| 2000 | lazy (exact greedy set) |" in out and "| 2000 | stochastic, 2 seeds" in out
+    out = _script("benchmark_large_fit.py", "--smoke")
+    assert "| 600 |" in out and "| paper_linear | CorrectionGP() (rbf-quadrature) | 5000 |" in out
+    assert "GPyTorch SGPR" in out
 
 
 @pytest.mark.slow

@@ -17,7 +17,7 @@ return the same picks:
   Screening (``screen``, on by default from 1000 candidates): smooth kernels make every gain fall at every pick,
   so plain stale bounds stay above the best and lazy greedy re-evaluates most candidates. A low-rank (Nystrom)
   feature model of the kernel on all proxy points then gives tighter, still rigorous, upper bounds at cost
-  ~ r^2 T instead of (|S| T)^2 T (see :class:`_LowRank`); only candidates whose feature bound can still win get an
+  ~ r^2 T instead of (|S| T)^2 T (see :mod:`._screening`); only candidates whose feature bound can still win get an
   exact evaluation. The exact values decide every pick, so the picks are those of plain greedy. Features are built
   only when a modest rank (memory ``8 N T r`` bytes, by default at most 256 MiB or 64 features, whichever is more)
   makes the bounds tight;
@@ -44,7 +44,6 @@ import time
 import torch
 
 from .._errors import InputError
-from .._linalg import cholesky
 from .._threads import adaptive_threads
 from .._validation import check_positive_int, check_real, progress_bar
 from ..gp import CorrectionGP
@@ -59,10 +58,10 @@ from ._common import (
     check_system,
     check_times,
     logdet_identity_plus,
-    pivots,
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
 from ._proxy import choose_proxy, proxy_paths
+from ._screening import CHUNK_BYTES, LowRank
 
 __all__ = ["greedy"]
 
@@ -72,9 +71,6 @@ SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank) ...
 SCREEN_MIN_RANK = 64  # ... but never fewer features than this: at 10^5 candidates 256 MiB allow only 16, too few
 # for tight bounds on a smooth kernel, and lazy greedy then took 185 s and 11 GB instead of 13 s and 2.5 GB
-SLACK_NATS = 1e-4  # target slack of the feature bounds at the last pick (sets the pivot tolerance)
-SLACK_USELESS = 1e-2  # features whose predicted slack exceeds this many nats are not built
-CHUNK_BYTES = 8 * 2**20  # size of the batched temporaries (small enough for the allocator to reuse them)
 
 
 class _Problem:
@@ -201,79 +197,6 @@ def _first_at_least(values: torch.Tensor, mask: torch.Tensor, thr: float) -> int
 
 
 # ------------------------------------------------------------------------------------------------ lazy greedy
-class _LowRank:
-    """Nystrom features of the kernel on all proxy points: cheap, rigorous upper bounds on the marginal gains.
-
-    With pivots Z, phi(x) = L_Z^-1 k(Z, x) and the residual E = K - Phi Phi^T is positive semi-definite; e_max is its
-    largest diagonal over all proxy points. The feature model's gain g~(c | S) (the same formula with Phi Phi^T in
-    place of K) bounds the exact gain: det(I + X + Y) <= det(I + X) det(I + Y) for X, Y >= 0 and logdet(I + E / s2)
-    <= tr(E) / s2 give logdet(I + K_A / s2) <= logdet(I + Phi_A Phi_A^T / s2) + |A| e_max / s2 for any point set A,
-    and Phi Phi^T <= K gives the reverse without slack, so
-
-        g(c | S) <= g~(c | S) + (d_out / 2) (|S| T + T) e_max / sigma^2.
-
-    In feature space, Sigma~_{c|S} = Phi_c Lambda_S^-1 Phi_c^T with Lambda_S = I + Phi_S^T Phi_S / sigma^2 (r x r), so a
-    bound costs one (T x r) triangular solve against chol(Lambda_S): about (KT / r)^2 times less than an exact gain.
-    """
-
-    def __init__(self, prob: _Problem, max_rank: int, sample: int = 8192, chunk: int = 32768) -> None:
-        self.prob = prob
-        kern, P = prob.kern, prob.points
-        N, T, d_in = P.shape
-        flat = P.reshape(N * T, d_in)
-        gen = torch.Generator().manual_seed(0)  # a fixed subsample: the picks never depend on it, only the speed
-        sub = flat if N * T <= sample else flat[torch.randperm(N * T, generator=gen)[:sample].to(P.device)]
-        k0 = float(kern.diag(sub).max())
-        # pivot tolerance: the bound slack stays around SLACK_NATS up to the last pick
-        tol = max(SLACK_NATS * kern.noise / (0.5 * prob.d_out * (prob.budget + 1) * T), 1e-13 * k0)
-        piv, e_sub = pivots(kern, sub, max_rank, tol)
-        self.rank = r = piv.shape[0]
-        # a rough kernel needs more features than max_rank allows: bounds that loose would only cost time
-        self.useful = 0.5 * prob.d_out * prob.budget * T * e_sub / kern.noise <= SLACK_USELESS
-        if not self.useful:
-            return
-        Z = sub[piv]
-        LZ = cholesky(kern(Z), what="K(pivots)")
-        phi = P.new_empty(N * T, r)
-        e_max = 0.0
-        for s in range(0, N * T, chunk):
-            x = flat[s : s + chunk]
-            Kzx, dx = kern.cross_and_diag(Z, x)
-            f = torch.linalg.solve_triangular(LZ, Kzx, upper=False).T
-            phi[s : s + chunk] = f
-            e_max = max(e_max, float((dx - f.pow(2).sum(-1)).max()))
-        # floating-point slack on the residual (its computed value can be off by a few ulps of k0)
-        self.e_max = max(e_max, 0.0) + 64 * torch.finfo(P.dtype).eps * k0
-        self.phi = phi.reshape(N, T, r)
-        self.Lam = torch.eye(r, dtype=P.dtype, device=P.device)  # I + Phi_S^T Phi_S / sigma^2
-        self.LLam = self.Lam.clone()
-
-    def bounds(self, idx: torch.Tensor, m: int) -> torch.Tensor:
-        """Upper bounds on the exact gains of candidates ``idx (b,)`` given the m selected proxy points."""
-        prob = self.prob
-        T, r = prob.T, self.rank
-        chunk = max(1, CHUNK_BYTES // (8 * T * r))
-        out = []
-        for s in range(0, idx.shape[0], chunk):
-            c = idx[s : s + chunk]
-            X = torch.linalg.solve_triangular(self.LLam.T, self.phi[c].reshape(-1, r), upper=True, left=False).reshape(
-                -1, T, r
-            )  # Phi_c L^-T
-            ld, _ = logdet_identity_plus(X @ X.transpose(1, 2), prob.kern.noise, "I + Sigma~_{c|S} / noise_variance")
-            out.append(ld)
-        g = 0.5 * prob.d_out * torch.cat(out)
-        return g + self.slack(m) + 1e-10 * g.abs().clamp_min(1.0)  # + round-off allowance on g~
-
-    def slack(self, m: int) -> float:
-        """The bound's slack (nats) given m selected proxy points: (d_out / 2) (m + T) e_max / sigma^2."""
-        return 0.5 * self.prob.d_out * (m + self.prob.T) * self.e_max / self.prob.kern.noise
-
-    def add(self, n: int) -> None:
-        f = self.phi[n]  # (T, r)
-        self.Lam += f.T @ f / self.prob.kern.noise
-        self.LLam = cholesky(self.Lam, what="I + Phi_S^T Phi_S / noise_variance")
-
-
 def sample_size(n: int, budget: int, epsilon: float) -> int:
     """Stochastic greedy's candidates per step, ceil((n / K) ln(1 / epsilon)) (Mirzasoleiman et al. 2015)."""
     return min(n, math.ceil(n / budget * math.log(1.0 / epsilon)))
@@ -298,7 +221,7 @@ def _lazy(
     level = torch.full((N,), 2, dtype=torch.int8, device=dev)
     L = P.new_zeros(K * T, K * T)  # Cholesky factor of K_SS + sigma^2 I, grown block by block
     PS = P.new_empty(K * T, d_in)  # proxy points of S
-    low = _LowRank(prob, max_rank) if screen and K > 1 else None
+    low = LowRank(prob, max_rank) if screen and K > 1 else None
     info = {} if low is None else {"rank": low.rank, "screening": low.useful}
     if low is not None and not low.useful:
         low = None

@@ -64,7 +64,7 @@ def clone(gp, **overrides):
     """:meth:`CorrectionGP.clone <torchmisspec.gp.CorrectionGP.clone>`: an unfitted model with ``gp``'s settings."""
     auto = gp.auto
     args = {
-        "kernel": "auto" if auto else gp.kernel_spec,
+        "kernel": "auto" if auto else gp.requested_kernel,  # an RBF stays one (fitted in a feature space if large)
         "lengthscale": None if auto else gp.fixed["lengthscale"],
         "outputscale": None if auto else gp.fixed["outputscale"],
         "noise_variance": gp.fixed["noise_variance"],
@@ -77,6 +77,7 @@ def clone(gp, **overrides):
         "library_names": gp.library_names,
         "min_gain": gp.min_gain,
         "evidence_margin": gp.evidence_margin,
+        "exact": gp.exact,
     }
     unknown = sorted(set(overrides) - set(args))
     if unknown:
@@ -92,6 +93,7 @@ def clone(gp, **overrides):
             "library_names": not (new_auto or spec.terms),
             "min_gain": not (new_auto or spec.terms),
             "evidence_margin": not new_auto,
+            "exact": new_auto or spec.name not in ("rbf", "rbf-quadrature"),
         }
         args.update({name: None for name, drop in dropped.items() if drop})
     args.update(overrides)

@@ -14,7 +14,9 @@ The exact GP factorizes the N x N training covariance, O(N^3) time and O(N^2) me
    ``O(N p^2 + p^3)`` time and ``O(N p)`` memory for p features; predictions cost p per input, not N.
 
 The approximation is reported, not hidden: ``gp.approximation`` gives the kind of features, their number, the
-certified (or root-mean-square) bound, its box and the subsample. ``kernel="rbf"`` is the exact GP at any N.
+certified (or root-mean-square) bound, its box and the subsample. ``CorrectionGP(kernel="rbf")`` (the default) uses
+it above :data:`LARGE_N` samples; ``exact=True`` keeps the exact GP at any N, ``exact=False`` uses the features at
+any N.
 """
 
 from __future__ import annotations
@@ -26,8 +28,11 @@ from .._errors import InputError
 from ._kernels import RBF, Kernel, register
 from ._quadrature import QUADRATURE_FEATURE_ERROR, _check_error
 
-__all__ = ["RBFQuadrature", "QuadratureRBFModule", "SUBSAMPLE"]
+__all__ = ["RBFQuadrature", "QuadratureRBFModule", "SUBSAMPLE", "LARGE_N"]
 
+#: Above this many samples ``CorrectionGP(kernel="rbf")`` is fitted in the feature space (``exact=None``): where the
+#: exact fit becomes slower than the subsample's fit plus the features (BENCHMARKS.md, ``benchmark_large_fit.py``).
+LARGE_N = 3000
 #: Samples of the exact fit that sets the hyperparameters (evenly spaced over the training samples).
 SUBSAMPLE = 2000
 

@@ -38,6 +38,7 @@ from ._exact import IndependentOutputsGP, build_modules, median_distance, noise_
 from ._fit import fit_model
 from ._inputs import check_inputs, check_samples
 from ._kernels import Kernel, as_kernel
+from ._large import LARGE_N, RBFQuadrature
 from ._persistence import load as _load
 from ._persistence import save as _save
 from ._posterior import GPPosterior, Posterior
@@ -90,6 +91,10 @@ class CorrectionGP(Readout):
             kernel's: every eligible stationary kernel's) to be chosen instead (``None``: :data:`EVIDENCE_MARGIN`,
             3, "strong" evidence; 0: the highest score, ties going to the RBF).
         max_iter: most L-BFGS iterations when fitting.
+        exact: how an RBF kernel is computed (:mod:`torchmisspec.gp._large`): ``None`` (default) exactly up to
+            :data:`~torchmisspec.gp._large.LARGE_N` samples and in a feature space above (``kernel_spec`` is then
+            :class:`~torchmisspec.gp.RBFQuadrature`, ``approximation`` reports its bound); ``True`` always exactly
+            (O(N^3)); ``False`` always in the feature space.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
 
@@ -132,6 +137,7 @@ class CorrectionGP(Readout):
         library_names=None,
         min_gain: float | None = None,
         evidence_margin: float | None = None,
+        exact: bool | None = None,
     ) -> None:
         c = check_settings(
             kernel=kernel,
@@ -147,11 +153,18 @@ class CorrectionGP(Readout):
             library_names=library_names,
             min_gain=min_gain,
             evidence_margin=evidence_margin,
+            exact=exact,
         )
         #: kernel="auto": every fit chooses among AUTO_KERNELS by evidence (self.kernel is then the one chosen)
         self.auto: bool = c["auto"]
         #: the kernel object (:mod:`torchmisspec.gp._kernels`); ``kernel`` is its name (an RBF until an auto fit)
         self.kernel_spec: Kernel = c["kernel"]
+        #: the kernel asked for; with ``exact=None`` an RBF is fitted in a feature space above LARGE_N samples, and
+        #: ``kernel_spec`` is then :class:`~torchmisspec.gp.RBFQuadrature` until a fit on fewer samples
+        self.requested_kernel: Kernel = c["kernel"]
+        #: None: exact up to LARGE_N samples, in a feature space above (an RBF); True: always exact; False: always
+        #: in a feature space
+        self.exact: bool | None = c["exact"]
         #: the hyperparameters given (held fixed), ``None`` for those learned
         self.fixed: dict = c["fixed"]
         #: the feature kernel's price of a term in nats per learned weight (None: half the log of the sample count)
@@ -404,9 +417,17 @@ class CorrectionGP(Readout):
         # a failed fit leaves the model as it was (not half-fitted on the new data)
         before = (self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_)
         saved = [{k: v.clone() for k, v in m.state_dict().items()} for m in (self.covar_module, self.likelihood)]
+        spec_before = self.kernel_spec
         try:
+            spec = self._kernel_for(X.shape[0])
+            if spec != self.kernel_spec:  # an RBF on many samples (or on few again): the other kernel's modules
+                self.kernel_spec = spec
+                covar, lik = self._modules(batch=1)
+                self.model = IndependentOutputsGP(None, None, lik, covar, 1).eval()
+                free = [name for name, _ in self._free_parameters()]
             fit_model(self, X, Y, noise, bool(free), progress=progress, max_iter=max_iter, warm_start=warm_start)
         except BaseException:
+            self.kernel_spec = spec_before
             self.model, self._cache, self.n_iterations_, self.n_evaluations_, self.log_marginal_likelihood_ = before
             self.covar_module.load_state_dict(saved[0])
             self.likelihood.load_state_dict(saved[1])
@@ -414,6 +435,15 @@ class CorrectionGP(Readout):
         self.__dict__.pop("calibration_", None)  # a calibration of the bands belongs to the fit it was made for
         self.__dict__.pop("refinement_", None)  # and so does a refinement through the ODE
         return self
+
+    def _kernel_for(self, n: int) -> Kernel:
+        """The kernel a fit on ``n`` samples uses: the one asked for, except a shared RBF's, which is computed in a
+        feature space above :data:`~torchmisspec.gp._large.LARGE_N` samples (``exact=None``) or always
+        (``exact=False``)."""
+        asked = self.requested_kernel
+        if self.auto or self.per_output or asked.name != "rbf" or self.exact is True:
+            return asked
+        return RBFQuadrature() if self.exact is False or n > LARGE_N else asked
 
     # --------------------------------------------------------------------------------------------- the posterior
     def posterior(self, *, differentiable: bool = False) -> Posterior:

@@ -64,6 +64,8 @@ def config_of(gp) -> dict:
         "auto": bool(getattr(gp, "auto", False)),  # kernel="auto": a refit chooses again
         "evidence_margin": getattr(gp, "evidence_margin", None),
         "auto_per_output": bool(getattr(gp, "_auto_per_output", gp.per_output)),
+        "exact": getattr(gp, "exact", None),  # additive: how an RBF is computed (gp._large)
+        "requested_kernel": [gp.requested_kernel.name, gp.requested_kernel.config()],  # additive: the one asked for
     }
 
 
@@ -87,8 +89,14 @@ def from_config(cls, cfg, path, *, device=None):
             min_gain=cfg.get("min_gain") if kernel.terms else None,
             dtype=_DTYPES[dtype_name],
             device=device,
+            exact=cfg.get("exact"),
             **fixed,
         )
+        asked = cfg.get("requested_kernel")
+        if asked is not None:
+            if not (isinstance(asked, list) and len(asked) == 2 and isinstance(asked[1], dict)):
+                raise InputError(f"expected 'requested_kernel' as [name, config], got {asked!r:.80}")
+            gp.requested_kernel = as_kernel(asked[0], asked[1])
     except (TypeError, InputError) as exc:
         raise InputError(f"{path}: the configuration is not valid ({exc})") from exc
     gp.auto = bool(cfg.get("auto", False))

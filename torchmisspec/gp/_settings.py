@@ -33,6 +33,7 @@ def check_settings(
     library_names,
     min_gain,
     evidence_margin,
+    exact=None,
 ) -> dict:
     """The constructor's arguments, checked and normalised (floats, a :class:`~torchmisspec.gp.Kernel` object, a
     device); ``auto`` says whether the kernel is ``"auto"`` (then ``kernel`` is the RBF it holds until a fit)."""
@@ -89,6 +90,14 @@ def check_settings(
             ("noise_variance", noise_variance),
         )
     )
+    exact = check_flag(exact, "exact", none=True)
+    if exact is False and not (spec.name in ("rbf", "rbf-quadrature") and not per_output and not auto):
+        raise InputError(
+            "exact: expected None or True for this kernel (only a shared RBF kernel is computed in a feature space), "
+            f"got False with kernel {'auto' if auto else spec.name!r}{' and per_output' if per_output else ''}"
+        )
+    if exact is True and spec.name == "rbf-quadrature":
+        raise InputError("exact: expected None or False with kernel 'rbf-quadrature' (a feature space), got True")
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
     return {
@@ -106,6 +115,7 @@ def check_settings(
         "per_output": check_flag(per_output, "per_output"),
         "degree": degree,
         "max_iter": check_positive_int(max_iter, "max_iter"),
+        "exact": exact,
         "dtype": dtype,
         "device": check_device(device),
     }
