@@ -83,8 +83,12 @@ def test_save_and_load_predict_exactly(tmp_path):
     gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
     again = tms.CorrectionGP.load(gp.save(tmp_path / "large.pt"))
     t = torch.rand(30, 2, generator=torch.Generator().manual_seed(3), dtype=DT) * 2 - 1
-    assert torch.equal(again.predict_mean(t), gp.predict_mean(t))
-    assert torch.equal(again.predict(t).variance, gp.predict(t).variance)
+    # the stored features are exact; the recomputed feature-space solve may differ by round-off (thread counts
+    # change BLAS orders), the tolerance of every model file (tests/test_persistence.py)
+    base, loaded = gp.covar_module.base_kernel, again.covar_module.base_kernel
+    assert torch.equal(loaded.omega, base.omega) and torch.equal(loaded.mass, base.mass)
+    torch.testing.assert_close(again.predict_mean(t), gp.predict_mean(t), rtol=1e-9, atol=1e-13)
+    torch.testing.assert_close(again.predict(t).variance, gp.predict(t).variance, rtol=1e-9, atol=1e-15)
     assert again.approximation == gp.approximation
 
 

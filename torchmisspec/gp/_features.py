@@ -79,7 +79,19 @@ from .._linalg import cholesky
 #: Most samples for which a feature-space posterior builds its dense factor on request (3.2 GB in float64).
 DENSE_LIMIT = 20_000
 
+
+def check_dense(N: int) -> None:
+    """Refuse an N x N training covariance above :data:`DENSE_LIMIT` samples (a model fitted in feature space on
+    many samples), with what it would take."""
+    if N > DENSE_LIMIT:
+        raise InputError(
+            f"this operation needs the dense N x N training covariance, expected at most {DENSE_LIMIT} samples for it, "
+            f"got {N} ({8 * N * N / 2**30:.1f} GiB); fit on fewer samples for it"
+        )
+
+
 __all__ = [
+    "check_dense",
     "FeatureKernel",
     "PRUNE",
     "Term",
@@ -378,12 +390,7 @@ class FeatureFactorization:
         """The dense ``(B, N, N)`` Cholesky factor of C, built on first access (O(N^3)); refused above
         :data:`DENSE_LIMIT` samples (the paths that need it are for models of modest size)."""
         if self._chol is None:
-            N = self._Phi.shape[0]
-            if N > DENSE_LIMIT:
-                raise InputError(
-                    f"this operation needs the dense factor of the training covariance, expected at most {DENSE_LIMIT} "
-                    f"samples for it, got {N} ({8 * N * N / 2**30:.1f} GiB); fit on fewer samples for it"
-                )
+            check_dense(self._Phi.shape[0])
             K = (self._Phi.unsqueeze(0) * self._W.unsqueeze(1)) @ self._Phi.T
             self._chol = cholesky(K + torch.diag_embed(self._D), what="K + noise (dense, on request)")
         return self._chol

@@ -13,6 +13,7 @@ import torch
 from .._errors import InputError, LinearAlgebraError
 from .._linalg import cholesky
 from .._validation import check_positive_int
+from ._features import check_dense
 from ._paths import kernel_hyperparameters, kernel_matrix
 
 __all__ = ["LOG_PRIOR_SD", "laplace_covariance", "hyperparameter_samples"]
@@ -58,6 +59,7 @@ def laplace_covariance(gp) -> tuple[list[str], torch.Tensor, torch.Tensor]:
     try:
         with torch.enable_grad():
             # the kernel written out in torch (GPyTorch's RBF has a custom backward without a second derivative)
+            check_dense(X.shape[0])
             K = kernel_matrix(gp.kernel_spec, X, X, kernel_hyperparameters(gp), gp.degree)
             floor = gp._floor(gp.likelihood).noise.reshape(-1, 1)
             if noise is None:

@@ -26,7 +26,7 @@ import torch
 
 from .._errors import InputError, ShapeError, warn
 from . import _mll
-from ._features import FeatureFactorization
+from ._features import FeatureFactorization, check_dense
 from ._inputs import check_inputs
 from ._paths import detached, kernel_hyperparameters, kernel_matrix
 
@@ -125,6 +125,7 @@ class Posterior:
         gp.model.num_outputs = Y.shape[1]
         Yb = gp._targets_batched(Y, noise)
         if differentiable:
+            check_dense(X.shape[0])
             K, diag = gp._kernel_parts(X, noise)
             return cls(gp, _mll.factorize(K, diag, Yb))
         key, values = state_of(gp)
@@ -342,6 +343,7 @@ class Posterior:
     def training_covariance(self) -> torch.Tensor:
         """C = K + diag(noise) at the training inputs: ``(B, N, N)`` (B = 1 when the outputs share it)."""
         gp = self._gp
+        check_dense(gp.train_inputs_.shape[0])
         K, diag = gp._kernel_parts(gp.train_inputs_, gp.train_noise_)
         return K + torch.diag_embed(diag.expand(K.shape[0], K.shape[-1]))
 
