@@ -1,4 +1,4 @@
-"""The RBF kernel in feature space for many samples (``kernel="rbf-quadrature"``, torchmisspec.gp._large).
+"""The RBF kernel in feature space for many samples (``kernel="rbf-features"``, torchmisspec.gp._large).
 
 References: the kernel against the RBF formula within the certified bound; the feature-space posterior against a
 hand-written Cholesky posterior with the same (approximate) kernel; the subsample's hyperparameters against an exact
@@ -31,24 +31,47 @@ def _rbf(a, b, lengthscale, outputscale):
     return outputscale * np.exp(-((a[:, None, :] - b[None, :, :]) ** 2).sum(-1) / (2 * lengthscale**2))
 
 
-def test_features_stay_within_their_certified_bound_of_the_rbf():
+def test_quadrature_features_stay_within_their_certified_bound_on_the_box():
     x, y = _samples(300)
-    gp = tms.CorrectionGP(kernel="rbf-quadrature", **FIXED).fit(x, y)
-    info = gp.approximation
-    assert info["kind"] == "quadrature" and info["error_bound"] <= 1e-2 and info["num_features"] > 0
+    gp = tms.CorrectionGP(kernel=tms.gp.RBFFeatures(feature_error=1e-2), exact=False, **FIXED).fit(x, y)
+    from torchmisspec.gp._paths import _quadrature_features
+
+    quad = _quadrature_features(x, torch.full((1, 2), 0.8, dtype=DT), torch.ones(1, 1, dtype=DT), 1e-2)
+    gp.covar_module.base_kernel.set_fourier(quad._t["omega"][0], quad._t["scale"][0], 0.8, quad.error_bound, quad.box)
+    info = gp.covar_module.base_kernel.describe()
+    assert info["kind"] == "quadrature" and info["error_bound"] <= 1e-2 and info["bound_holds_on"] == "box"
     lo, hi = torch.tensor(info["box"], dtype=DT)
     pts = lo + (hi - lo) * torch.rand(400, 2, generator=torch.Generator().manual_seed(1), dtype=DT)
     exact = _rbf(pts.numpy(), pts.numpy(), 0.8, 4e-5)
-    err = np.abs(gp.covariance(pts).numpy() - exact).max() / 4e-5
-    assert err <= info["error_bound"]
-    assert gp.lengthscale == pytest.approx(0.8) and gp.kernel == "rbf-quadrature"
+    assert np.abs(gp.covariance(pts).numpy() - exact).max() / 4e-5 <= info["error_bound"]
+
+
+def test_nystrom_features_stay_within_their_certified_bound_on_the_data():
+    x, y = _samples(300)
+    gp = tms.CorrectionGP(kernel="rbf-features", **FIXED).fit(x, y)
+    info = gp.approximation
+    assert info["kind"] == "nystrom" and info["bound_holds_on"] == "training inputs"
+    # the default tolerance: a tenth of the noise-to-signal ratio
+    assert info["error_bound"] <= 0.1 * 1e-6 / 4e-5 * 1.01 and info["feature_error"] is None
+    exact = _rbf(x.numpy(), x.numpy(), 0.8, 4e-5)
+    assert np.abs(gp.covariance(x).numpy() - exact).max() / 4e-5 <= info["error_bound"]
+    assert gp.lengthscale == pytest.approx(0.8) and gp.kernel == "rbf-features"
+
+
+def test_four_inputs_use_nystrom_and_two_smooth_ones_quadrature():
+    from torchmisspec.benchmarks import large_fit
+
+    s4, s2 = large_fit.quartic4(), tms.systems.paper_linear()
+    four = tms.CorrectionGP(exact=False).fit(*large_fit.samples(s4, 600))
+    two = tms.CorrectionGP(exact=False).fit(*large_fit.samples(s2, 600))
+    assert four.approximation["kind"] == "nystrom" and two.approximation["kind"] == "quadrature"
 
 
 def test_feature_space_posterior_is_the_cholesky_posterior_of_the_same_kernel():
     """Mean, variance and the design's conditioned kernel equal a hand-written dense computation with
     K_hat = s^2 Phi Phi^T (numpy Cholesky), the approximate kernel's exact posterior."""
     x, y = _samples(200)
-    gp = tms.CorrectionGP(kernel="rbf-quadrature", **FIXED).fit(x, y)
+    gp = tms.CorrectionGP(kernel="rbf-features", **FIXED).fit(x, y)
     t = torch.rand(50, 2, generator=torch.Generator().manual_seed(2), dtype=DT) * 2 - 1
     phi = gp.covar_module.base_kernel.features
     P, Pt = phi(x).numpy(), phi(t).numpy()
@@ -69,7 +92,7 @@ def test_feature_space_posterior_is_the_cholesky_posterior_of_the_same_kernel():
 
 def test_hyperparameters_are_an_exact_fit_on_the_subsample():
     x, y = _samples(900)
-    gp = tms.CorrectionGP(kernel=tms.gp.RBFQuadrature(subsample=300)).fit(x, y)
+    gp = tms.CorrectionGP(kernel=tms.gp.RBFFeatures(subsample=300)).fit(x, y)
     sub = torch.linspace(0, 899, 300).round().long()
     exact = tms.CorrectionGP().fit(x[sub], y[sub])
     assert gp.lengthscale == pytest.approx(exact.lengthscale, rel=1e-10)
@@ -80,7 +103,7 @@ def test_hyperparameters_are_an_exact_fit_on_the_subsample():
 
 def test_save_and_load_predict_exactly(tmp_path):
     x, y = _samples(400)
-    gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
+    gp = tms.CorrectionGP(kernel="rbf-features").fit(x, y)
     again = tms.CorrectionGP.load(gp.save(tmp_path / "large.pt"))
     t = torch.rand(30, 2, generator=torch.Generator().manual_seed(3), dtype=DT) * 2 - 1
     # the stored features are exact; the recomputed feature-space solve may differ by round-off (thread counts
@@ -97,7 +120,7 @@ def test_many_samples_through_prediction_bands_and_design():
     """25,000 samples: fit, predict, bands and a conditioned design run without an N x N matrix; the paths that need
     the dense factor refuse with a message."""
     x, y = _samples(25_000)
-    gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
+    gp = tms.CorrectionGP(kernel="rbf-features").fit(x, y)
     model = tms.CorrectedODE(SYSTEM, gp)
     y0 = torch.tensor([[0.5, -0.3], [0.2, 0.7]], dtype=DT)
     times = torch.linspace(0, 6, 11, dtype=DT)
@@ -118,7 +141,7 @@ def test_posterior_draws_are_drawn_in_feature_space():
     """Draws of a feature-space posterior are phi(x)^T w_s (no update over the N training inputs): their mean and
     variance at test points match the posterior's within 4 standard errors of 4,000 draws."""
     x, y = _samples(500)
-    gp = tms.CorrectionGP(kernel="rbf-quadrature").fit(x, y)
+    gp = tms.CorrectionGP(kernel="rbf-features").fit(x, y)
     draws = gp.sample_functions(4000, generator=torch.Generator().manual_seed(1))
     assert draws._X.shape[0] == 0
     t = torch.rand(6, 2, generator=torch.Generator().manual_seed(4), dtype=DT) * 2 - 1
@@ -133,13 +156,13 @@ def test_an_rbf_gp_moves_to_the_feature_space_above_large_n_and_back():
 
     x, y = _samples(LARGE_N + 50)
     gp = tms.CorrectionGP().fit(x, y)
-    assert gp.kernel == "rbf-quadrature" and gp.approximation["kind"] == "quadrature"
+    assert gp.kernel == "rbf-features" and gp.approximation["kind"] in ("quadrature", "nystrom")
     assert gp.clone().requested_kernel.name == "rbf" and gp.clone().exact is None
     small = gp.clone().fit(x[:300], y[:300])
     assert small.kernel == "rbf" and small.approximation is None
     gp.fit(x[:300], y[:300])  # the same model refitted on few samples: exact again
     assert gp.kernel == "rbf"
-    assert tms.CorrectionGP(exact=False).fit(x[:300], y[:300]).kernel == "rbf-quadrature"
+    assert tms.CorrectionGP(exact=False).fit(x[:300], y[:300]).kernel == "rbf-features"
     with pytest.raises(tms.InputError, match="exact: expected None or True for this kernel"):
         tms.CorrectionGP(kernel="matern52", exact=False)
     with pytest.raises(tms.InputError, match="exact: expected True, False or None"):
@@ -155,7 +178,7 @@ def test_exact_true_keeps_the_exact_gp_above_large_n(tmp_path):
     assert gp.kernel == "rbf" and gp.approximation is None
     large = tms.CorrectionGP(lengthscale=0.8, outputscale=4e-5, noise_variance=1e-6).fit(x, y)
     again = tms.CorrectionGP.load(large.save(tmp_path / "m.pt"))
-    assert again.kernel == "rbf-quadrature" and again.requested_kernel.name == "rbf"
+    assert again.kernel == "rbf-features" and again.requested_kernel.name == "rbf"
     t = torch.rand(20, 2, generator=torch.Generator().manual_seed(5), dtype=DT) * 2 - 1
     scale = float(gp.predict_mean(t).abs().max())
     assert float((large.predict_mean(t) - gp.predict_mean(t)).abs().max()) <= 0.02 * scale

@@ -55,7 +55,7 @@ def test_benchmark_smokes():
     out = _script("benchmark_large_design.py", "--smoke", "--repeats", "1")
     assert "| 2000 | lazy (exact greedy set) |" in out and "| 2000 | stochastic, 2 seeds" in out
     out = _script("benchmark_large_fit.py", "--smoke")
-    assert "| 600 |" in out and "| paper_linear | CorrectionGP() (rbf-quadrature) | 5000 |" in out
+    assert "| 600 |" in out and "| paper_linear | CorrectionGP() (rbf-features) | 5000 |" in out
     assert "GPyTorch SGPR" in out
 
 

@@ -11,9 +11,9 @@ scale), seed 0. Systems: paper 5.1's (d_in = 2) and ``quartic4`` below (d_in = 4
   domain; wall times, peak memory, the integrated error of F and the features used. Target: fit + predict under
   60 s and 4 GB on 2 cores, integrated error within 5 % of the exact GP's where both run.
 * **Peer** in the same run: GPyTorch's SGPR (``InducingPointKernel`` on an exact GP, the collapsed Titsias bound,
-  Adam lr 0.1, as GPyTorch's SGPR tutorial) with as many inducing points as our model has features (the same
-  budget), and 4x that, on the same samples: fit time and integrated error of its predictive mean. Target: our fit
-  at most 0.5x its time at equal or lower error.
+  50 Adam iterations at lr 0.1, as GPyTorch's SGPR tutorial) with as many inducing points as our model has features
+  (the same budget; also 4x that when it is at most 64), on the same samples: fit time and integrated error of its
+  predictive mean. Target: our fit at most 0.5x its time at equal or lower error.
 
 ``scripts/benchmark_large_fit.py`` is its command line.
 """
@@ -32,7 +32,7 @@ from .reporting import peak_rss_mb, publish, run_sentence, run_worker, worker_ma
 MARK_START = "<!-- bench:large-fit:start -->"
 MARK_END = "<!-- bench:large-fit:end -->"
 FULL = {"switch": [1000, 2000, 3000, 4000], "large": 100_000, "systems": ["paper_linear", "quartic4"],
-        "trajectories": 1000, "sgpr_iterations": 100}  # fmt: skip
+        "trajectories": 1000, "sgpr_iterations": 50}  # fmt: skip
 SMOKE = {"switch": [300, 600], "large": 5000, "systems": ["paper_linear"], "trajectories": 20, "sgpr_iterations": 5}
 NOISE = 1e-3  # target noise std relative to F's scale
 
@@ -173,7 +173,7 @@ def measure(cfg: dict) -> dict:
             run_worker(
                 "torchmisspec.benchmarks.large_fit", ["sgpr", name, cfg["large"], m, cfg["sgpr_iterations"]], threads
             )  # fmt: skip
-            for m in (budget, 4 * budget)
+            for m in ((budget, 4 * budget) if budget <= 64 else (budget,))
         ]
         out["large"][name] = {"ours": ours, "sgpr": peers}
     return out
@@ -251,8 +251,8 @@ def run(args) -> int:
         run_sentence(args),
         "Samples of F at inputs uniform in the domain with noise (std 1e-3 of F's scale); integrated error of F over "
         "the domain (`correction_error`, 101 points per axis in 2-D, 11 in 4-D). The exact fit (`exact=True`) and "
-        "the feature-space fit (`exact=False`: hyperparameters from an exact fit on 2,000 samples, certified "
-        "quadrature features, the posterior of all samples) on the same samples:",
+        "the feature-space fit (`exact=False`: hyperparameters from an exact fit on 2,000 samples, quadrature or "
+        "Nystrom features with a certified bound, the posterior of all samples) on the same samples:",
         "",
         *_lines(result),
         "",

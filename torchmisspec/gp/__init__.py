@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from ._exact import log_positive
 from ._kernels import RBF, Features, FeaturesRBF, Kernel, Matern52, Polynomial, Stationary, register
-from ._large import RBFQuadrature
+from ._large import RBFFeatures
 from ._model import KERNELS, CorrectionGP
 from ._posterior import GPPosterior, Posterior
 
@@ -37,7 +37,7 @@ __all__ = [
     "Polynomial",
     "Features",
     "FeaturesRBF",
-    "RBFQuadrature",
+    "RBFFeatures",
     "register",
     "log_positive",
 ]

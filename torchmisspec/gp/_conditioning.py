@@ -93,7 +93,7 @@ def clone(gp, **overrides):
             "library_names": not (new_auto or spec.terms),
             "min_gain": not (new_auto or spec.terms),
             "evidence_margin": not new_auto,
-            "exact": new_auto or spec.name not in ("rbf", "rbf-quadrature"),
+            "exact": new_auto or spec.name not in ("rbf", "rbf-features"),
         }
         args.update({name: None for name, drop in dropped.items() if drop})
     args.update(overrides)

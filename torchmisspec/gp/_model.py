@@ -38,7 +38,7 @@ from ._exact import IndependentOutputsGP, build_modules, median_distance, noise_
 from ._fit import fit_model
 from ._inputs import check_inputs, check_samples
 from ._kernels import Kernel, as_kernel
-from ._large import LARGE_N, RBFQuadrature
+from ._large import LARGE_N, RBFFeatures
 from ._persistence import load as _load
 from ._persistence import save as _save
 from ._posterior import GPPosterior, Posterior
@@ -93,7 +93,7 @@ class CorrectionGP(Readout):
         max_iter: most L-BFGS iterations when fitting.
         exact: how an RBF kernel is computed (:mod:`torchmisspec.gp._large`): ``None`` (default) exactly up to
             :data:`~torchmisspec.gp._large.LARGE_N` samples and in a feature space above (``kernel_spec`` is then
-            :class:`~torchmisspec.gp.RBFQuadrature`, ``approximation`` reports its bound); ``True`` always exactly
+            :class:`~torchmisspec.gp.RBFFeatures`, ``approximation`` reports its bound); ``True`` always exactly
             (O(N^3)); ``False`` always in the feature space.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
@@ -160,7 +160,7 @@ class CorrectionGP(Readout):
         #: the kernel object (:mod:`torchmisspec.gp._kernels`); ``kernel`` is its name (an RBF until an auto fit)
         self.kernel_spec: Kernel = c["kernel"]
         #: the kernel asked for; with ``exact=None`` an RBF is fitted in a feature space above LARGE_N samples, and
-        #: ``kernel_spec`` is then :class:`~torchmisspec.gp.RBFQuadrature` until a fit on fewer samples
+        #: ``kernel_spec`` is then :class:`~torchmisspec.gp.RBFFeatures` until a fit on fewer samples
         self.requested_kernel: Kernel = c["kernel"]
         #: None: exact up to LARGE_N samples, in a feature space above (an RBF); True: always exact; False: always
         #: in a feature space
@@ -443,7 +443,7 @@ class CorrectionGP(Readout):
         asked = self.requested_kernel
         if self.auto or self.per_output or asked.name != "rbf" or self.exact is True:
             return asked
-        return RBFQuadrature() if self.exact is False or n > LARGE_N else asked
+        return RBFFeatures() if self.exact is False or n > LARGE_N else asked
 
     # --------------------------------------------------------------------------------------------- the posterior
     def posterior(self, *, differentiable: bool = False) -> Posterior:

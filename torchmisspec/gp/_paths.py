@@ -306,6 +306,22 @@ def kernel_matrix(kernel, x: torch.Tensor, X: torch.Tensor, params: dict, degree
     return kernel.matrix(x, X, params, degree)
 
 
+def _coefficient_draws(fac, features, S: int, d_out: int, scale: float, generator) -> torch.Tensor:
+    """``(S, 1, p, d_out)`` draws of the coefficients z of ``phi(x)^T z`` (``features``, coef included) from a
+    feature-space posterior: beta_s = mean + c sqrt(W) L_M^-T e_s (``fac``'s factor M = L_M L_M^T, c the scale)."""
+    mean = fac.mean[0]  # (p, d_out) posterior mean of the coefficients beta
+    beta = mean.unsqueeze(0).expand(S, -1, -1).clone()
+    factor = fac._factors[0]
+    if factor is not None:
+        act, sw, _, L = factor
+        e = torch.randn((S, L.shape[0], d_out), generator=generator, dtype=mean.dtype, device=mean.device)
+        dev = torch.linalg.solve_triangular(L.T.unsqueeze(0), e, upper=True)  # cov M^-1
+        beta[:, act] += scale * sw.unsqueeze(-1) * dev
+    coef = features._t["coef"].reshape(-1)  # (p,) sqrt(s^2 w)
+    z = torch.where(coef.unsqueeze(-1) > 0, beta / coef.clamp_min(torch.finfo(coef.dtype).tiny).unsqueeze(-1), 0.0)
+    return z.unsqueeze(1)
+
+
 class FunctionSamples:
     """``S`` posterior draws of F as functions: ``samples(x)`` with ``x (S, M, d_in)`` (draw s at its own points)
     or ``(M, d_in)`` (every draw at the same points) returns ``(S, M, d_out)``.
@@ -347,20 +363,27 @@ class FunctionSamples:
         with torch.no_grad():
             diag = gp._noise_diag(noise)  # (1, 1), (1, N), (d_out, 1) or (d_out, N): no N x N kernel
             B = features(X[:1]).shape[0]
-            weights = torch.randn((S, B, features.num_features, d_out if B == 1 else 1), generator=generator, **kd)
-            eps = torch.randn((S, N, d_out), generator=generator, **kd) * diag.T.sqrt()  # (S, N, d_out)
-            # the prior draws at the training inputs: one feature matrix phi(X) for all draws
-            phi = features(X)  # (B, N, F)
-            prior = phi[0] @ weights[:, 0] if B == 1 else torch.einsum("bnf,sbf->snb", phi, weights[..., 0])
-            residual = Y - prior - eps  # (S, N, d_out)
             fac = cache.factor
             batches = fac.alpha.shape[0]  # 1: one covariance for every output, else one per output
-            solve = fac.solve if hasattr(fac, "solve") else (lambda V: torch.cholesky_solve(V, fac.chol))
-            if batches == 1:
-                rhs = residual.permute(1, 0, 2).reshape(1, N, S * d_out)
-                v = solve(rhs)[0].reshape(N, S, d_out).permute(1, 0, 2)
+            if gp.kernel_spec.feature_space and B == 1 and batches == 1 and features.kind == "library":
+                # finitely many features (output scale in phi): each draw is phi(x)^T z_s with the coefficients
+                # drawn from their posterior, z_s = (mean + sqrt(W) L_M^-T e_s) / coef: p per point, not N, and
+                # no solve with C (whose Woodbury form cancels badly when the noise is tiny)
+                weights = _coefficient_draws(fac, features, S, d_out, float(scale), generator)
+                X, v = X[:0], weights.new_zeros(S, 0, d_out)
             else:
-                v = solve(residual.permute(2, 1, 0)).permute(2, 1, 0)  # (S, N, d_out)
+                weights = torch.randn((S, B, features.num_features, d_out if B == 1 else 1), generator=generator, **kd)
+                eps = torch.randn((S, N, d_out), generator=generator, **kd) * diag.T.sqrt()  # (S, N, d_out)
+                # the prior draws at the training inputs: one feature matrix phi(X) for all draws
+                phi = features(X)  # (B, N, F)
+                prior = phi[0] @ weights[:, 0] if B == 1 else torch.einsum("bnf,sbf->snb", phi, weights[..., 0])
+                residual = Y - prior - eps  # (S, N, d_out)
+                solve = fac.solve if hasattr(fac, "solve") else (lambda V: torch.cholesky_solve(V, fac.chol))
+                if batches == 1:
+                    rhs = residual.permute(1, 0, 2).reshape(1, N, S * d_out)
+                    v = solve(rhs)[0].reshape(N, S, d_out).permute(1, 0, 2)
+                else:
+                    v = solve(residual.permute(2, 1, 0)).permute(2, 1, 0)  # (S, N, d_out)
             # the removed feature terms' chance of being present: independent coefficients e_s ~ N(0, spread), not
             # conditioned on the data (it is posterior spread already: gp._features), drawn after the others
             extra = None
@@ -370,17 +393,13 @@ class FunctionSamples:
                 e = torch.randn((S, spread.shape[-1], d_out), generator=generator, **kd)
                 extra = (base.features, e * spread.T.sqrt())  # (S, p, d_out): one column per output
             scale = float(scale)
-            if scale != 1.0:  # mu + c (F_s - mu): c w_s and c v_s + (1 - c) alpha (and c e_s)
+            if scale != 1.0 and X.shape[0] == 0:  # the coefficient draws carry the scale already
+                extra = None if extra is None else (extra[0], extra[1] * scale)
+            elif scale != 1.0:  # mu + c (F_s - mu): c w_s and c v_s + (1 - c) alpha (and c e_s)
                 alpha = cache.weights  # (N, d_out)
                 weights = weights * scale
                 extra = None if extra is None else (extra[0], extra[1] * scale)
                 v = scale * v + (1.0 - scale) * alpha
-            if gp.kernel_spec.feature_space and B == 1 and features.kind == "library":
-                # a kernel of finitely many features k(x, x') = phi(x)^T phi(x') (output scale in phi): the update
-                # k(x, X) v_s = phi(x)^T (phi(X)^T v_s) is a change of the draw's coefficients, so each draw is
-                # phi(x)^T w'_s exactly and costs p per point, not N (no update over the training inputs is kept)
-                weights = weights + torch.einsum("nf,snd->sfd", phi[0], v).unsqueeze(1)
-                X, v = X[:0], v[:, :0]
         self.num_samples = S
         self.scale = scale
         self.features = features

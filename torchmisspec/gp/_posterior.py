@@ -136,9 +136,8 @@ class Posterior:
                 W = base.weights.detach().reshape(-1, Phi.shape[1]) * gp.covar_module.outputscale.reshape(-1, 1)
                 diag = gp._noise_diag(noise)
                 fac = FeatureFactorization(Phi, W, diag, Yb)
-                B = fac.alpha.shape[0]
-                KA = Phi @ (W.expand(B, -1).unsqueeze(-1) * (Phi.T @ fac.alpha))  # K alpha, (B, N, m)
-                resid = KA + diag.expand(B, -1).unsqueeze(-1) * fac.alpha - Yb
+                # the mean comes from the coefficients' solve: its relative residual, on the targets' scale
+                resid = fac.coefficient_residual(Yb) * Yb.abs().max().reshape(1)
             else:
                 K, diag = gp._kernel_parts(X, noise)
                 fac = _mll.factorize(K, diag, Yb)

@@ -44,7 +44,7 @@ class Readout:
     @property
     def approximation(self) -> dict | None:
         """How far the kernel in use is from the one it stands for, or ``None`` for an exact kernel: for
-        ``kernel="rbf-quadrature"`` (:mod:`torchmisspec.gp._large`) the kind of features (``"quadrature"``: a
+        ``kernel="rbf-features"`` (:mod:`torchmisspec.gp._large`) the kind of features (``"quadrature"``: a
         certified uniform bound over ``box``; ``"random"``: a root-mean-square bound), their number, the bound on
         ``|k_hat - k|`` relative to the output scale, the box, and the settings (``feature_error``, ``subsample``)."""
         self._require_fitted()
