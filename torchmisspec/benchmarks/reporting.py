@@ -78,6 +78,9 @@ def study_arguments(doc: str, argv, default_json: Path, extra=None):
     parser.add_argument("--json", help=f"raw results (default {default_json.relative_to(ROOT)}; smoke: only if given)")
     parser.add_argument("--markdown", action="store_true", help="write the docs page and the BENCHMARKS block")
     parser.add_argument("--from-json", help="render a saved full run (its JSON) instead of running the study")
+    parser.add_argument(
+        "--workers", type=int, help="run the realizations in a local pool of this many processes (same numbers)"
+    )
     if extra is not None:
         extra(parser)
     args = parser.parse_args(argv)
@@ -243,10 +246,22 @@ def run_study(args, module) -> int:
         result, wall = args.saved, args.saved["wall_seconds"]
         json_path = module.DEFAULT_JSON if args.markdown else None
     else:
+        cfg = module.SMOKE if args.smoke else module.FULL
         t0 = time.perf_counter()
-        result = module.study(module.SMOKE if args.smoke else module.FULL)
+        if args.workers is None:
+            result = module.study(cfg)
+        else:
+            import inspect
+
+            from torchmisspec.parallel import process_pool
+
+            if "executor" not in inspect.signature(module.study).parameters:
+                args.parser.error("--workers: this study runs its realizations serially (no executor yet)")
+            with process_pool(args.workers) as pool:
+                result = module.study(cfg, executor=pool)
         wall = time.perf_counter() - t0
         result["machine"], result["wall_seconds"], result["smoke"] = machine(), wall, args.smoke
+        result["workers"] = args.workers  # None: serial
         json_path = run_json(args, module.DEFAULT_JSON)
     write_json(result, json_path)
     print(module.table(result))

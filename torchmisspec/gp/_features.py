@@ -381,19 +381,18 @@ class FeatureFactorization:
             gs.append(g)
         return torch.stack(out), gs
 
-    def coefficient_residual(self, Y: torch.Tensor) -> float:
-        """The largest relative residual ``|M g - P^T D^-1 y| / |P^T D^-1 y|`` of the coefficients' solve over the
-        batches: the accuracy of the posterior mean (which :attr:`alpha` cannot show: with tiny noise its Woodbury
-        form cancels, although the mean, computed from g, is accurate)."""
+    def mean_error(self, Y: torch.Tensor) -> float:
+        """The largest error of the posterior mean at the training inputs that the coefficients' solve leaves, to
+        first order: ``max |P M^-1 r|`` with ``r = M g - P^T D^-1 y`` its residual. (:attr:`alpha` cannot show it:
+        with tiny noise its Woodbury form cancels although the mean, computed from g, is accurate.)"""
         worst = 0.0
         for b, factor in enumerate(self._factors):
             if factor is None:
                 continue
             act, sw, P, L = factor
-            rhs = P.T @ (Y[b] / self._D[b].unsqueeze(-1))
             g = self.mean[b][act] / sw.unsqueeze(-1)
-            r = L @ (L.T @ g) - rhs
-            worst = max(worst, float(r.abs().max() / rhs.abs().max().clamp_min(torch.finfo(r.dtype).tiny)))
+            r = L @ (L.T @ g) - P.T @ (Y[b] / self._D[b].unsqueeze(-1))
+            worst = max(worst, float((P @ torch.cholesky_solve(r, L)).abs().max()))
         return worst
 
     def solve(self, V: torch.Tensor) -> torch.Tensor:

@@ -136,8 +136,8 @@ class Posterior:
                 W = base.weights.detach().reshape(-1, Phi.shape[1]) * gp.covar_module.outputscale.reshape(-1, 1)
                 diag = gp._noise_diag(noise)
                 fac = FeatureFactorization(Phi, W, diag, Yb)
-                # the mean comes from the coefficients' solve: its relative residual, on the targets' scale
-                resid = fac.coefficient_residual(Yb) * Yb.abs().max().reshape(1)
+                # the mean comes from the coefficients' solve: the error it leaves at the training inputs
+                resid = torch.tensor([fac.mean_error(Yb)], dtype=Yb.dtype)
             else:
                 K, diag = gp._kernel_parts(X, noise)
                 fac = _mll.factorize(K, diag, Yb)

@@ -31,6 +31,7 @@ from torchmisspec.benchmarks.reporting import (
     run_study,
 )
 from torchmisspec.metrics import mean_and_standard_error
+from torchmisspec.parallel import map_tasks
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_end_to_end.json"
 DOC_PAGE = ROOT / "docs" / "studies" / "end-to-end.md"
@@ -142,12 +143,17 @@ def run_one(seed: int, cfg: dict, folder: Path) -> dict:
     return rec
 
 
-def study(cfg: dict, log=print) -> dict:
-    runs = []
+def _task(args: tuple) -> dict:
+    seed, cfg, folder = args
+    return run_one(seed, cfg, Path(folder))  # each realization writes its own files (named by its seed)
+
+
+def study(cfg: dict, log=print, executor=None) -> dict:
+    """Every realization (independent tasks, each seeded: through ``executor`` the same numbers)."""
     with tempfile.TemporaryDirectory() as folder:
-        for r in range(cfg["realizations"]):
-            rec = run_one(SEED + r, cfg, Path(folder))
-            runs.append(rec)
+        tasks = [(SEED + r, cfg, folder) for r in range(cfg["realizations"])]
+        runs = map_tasks(_task, tasks, executor)
+        for r, rec in enumerate(runs):
             log(
                 f"  r={r}: fit {rec['fit_seconds']:.1f} s, RMSE ratio {rec['rmse_ratio']:.3f}, calibrate "
                 f"{rec['calibrate_seconds']:.1f} s (scale {rec['scale']:.3g}), coverage {rec['coverage']:.3f}, greedy "

@@ -29,6 +29,7 @@ import torchmisspec as tms
 from torchmisspec import design
 from torchmisspec.benchmarks.reporting import ROOT, run_study
 from torchmisspec.metrics import mean_and_standard_error
+from torchmisspec.parallel import map_tasks
 
 from ._ratios import describe, paired_ratio
 
@@ -96,14 +97,18 @@ def run_one(K: int, seed: int, cfg: dict) -> dict:
     return out
 
 
-def study(cfg: dict, log=print) -> dict:
-    runs = {}
-    for K in cfg["ks"]:
-        runs[str(K)] = []
-        for r in range(cfg["realizations"]):
-            one = run_one(K, SEED + 100 * K + r, cfg)
-            runs[str(K)].append(one)
-            log(f"K={K} {r}: all {one['all']:.4f}, half {one['half']:.4f}, chosen {one['chosen']:.4f}")
+def _task(args: tuple) -> dict:
+    return run_one(*args)
+
+
+def study(cfg: dict, log=print, executor=None) -> dict:
+    """Every realization of every K (independent tasks, each seeded: through ``executor`` the same numbers)."""
+    tasks = [(K, SEED + 100 * K + r, cfg) for K in cfg["ks"] for r in range(cfg["realizations"])]
+    results = map_tasks(_task, tasks, executor)
+    runs = {str(K): [] for K in cfg["ks"]}
+    for (K, seed, _), one in zip(tasks, results, strict=True):
+        runs[str(K)].append(one)
+        log(f"K={K} {seed - SEED - 100 * K}: all {one['all']:.4f}, half {one['half']:.4f}, chosen {one['chosen']:.4f}")
     return {"config": cfg, "prior": PRIOR, "goal": GOAL, "runs": runs}
 
 
