@@ -381,6 +381,17 @@ class FeatureFactorization:
             gs.append(g)
         return torch.stack(out), gs
 
+    def sample_coefficients(self, S: int, scale: float, generator) -> torch.Tensor:
+        """``(S, p, m)`` draws of the first batch's coefficients, ``mean + scale sqrt(W) L_M^-T e`` (covariance
+        ``scale^2 cov``), e standard normal: posterior draws of F in feature space, without a solve with C."""
+        mean = self.mean[0]
+        beta = mean.unsqueeze(0).expand(S, -1, -1).clone()
+        if self._factors[0] is not None:
+            act, sw, _, L = self._factors[0]
+            e = torch.randn((S, L.shape[0], mean.shape[-1]), generator=generator, dtype=mean.dtype, device=mean.device)
+            beta[:, act] += scale * sw.unsqueeze(-1) * torch.linalg.solve_triangular(L.T.unsqueeze(0), e, upper=True)
+        return beta
+
     def mean_error(self, Y: torch.Tensor) -> float:
         """The largest error of the posterior mean at the training inputs that the coefficients' solve leaves, to
         first order: ``max |P M^-1 r|`` with ``r = M g - P^T D^-1 y`` its residual. (:attr:`alpha` cannot show it:

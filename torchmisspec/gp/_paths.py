@@ -306,22 +306,6 @@ def kernel_matrix(kernel, x: torch.Tensor, X: torch.Tensor, params: dict, degree
     return kernel.matrix(x, X, params, degree)
 
 
-def _coefficient_draws(fac, features, S: int, d_out: int, scale: float, generator) -> torch.Tensor:
-    """``(S, 1, p, d_out)`` draws of the coefficients z of ``phi(x)^T z`` (``features``, coef included) from a
-    feature-space posterior: beta_s = mean + c sqrt(W) L_M^-T e_s (``fac``'s factor M = L_M L_M^T, c the scale)."""
-    mean = fac.mean[0]  # (p, d_out) posterior mean of the coefficients beta
-    beta = mean.unsqueeze(0).expand(S, -1, -1).clone()
-    factor = fac._factors[0]
-    if factor is not None:
-        act, sw, _, L = factor
-        e = torch.randn((S, L.shape[0], d_out), generator=generator, dtype=mean.dtype, device=mean.device)
-        dev = torch.linalg.solve_triangular(L.T.unsqueeze(0), e, upper=True)  # cov M^-1
-        beta[:, act] += scale * sw.unsqueeze(-1) * dev
-    coef = features._t["coef"].reshape(-1)  # (p,) sqrt(s^2 w)
-    z = torch.where(coef.unsqueeze(-1) > 0, beta / coef.clamp_min(torch.finfo(coef.dtype).tiny).unsqueeze(-1), 0.0)
-    return z.unsqueeze(1)
-
-
 class FunctionSamples:
     """``S`` posterior draws of F as functions: ``samples(x)`` with ``x (S, M, d_in)`` (draw s at its own points)
     or ``(M, d_in)`` (every draw at the same points) returns ``(S, M, d_out)``.
@@ -369,7 +353,9 @@ class FunctionSamples:
                 # finitely many features (output scale in phi): each draw is phi(x)^T z_s with the coefficients
                 # drawn from their posterior, z_s = (mean + sqrt(W) L_M^-T e_s) / coef: p per point, not N, and
                 # no solve with C (whose Woodbury form cancels badly when the noise is tiny)
-                weights = _coefficient_draws(fac, features, S, d_out, float(scale), generator)
+                beta = fac.sample_coefficients(S, float(scale), generator)  # (S, p, d_out)
+                coef = features._t["coef"].reshape(-1, 1)  # (p, 1): sqrt(s^2 w); 0 for a removed term
+                weights = torch.where(coef > 0, beta / coef.clamp_min(torch.finfo(coef.dtype).tiny), 0.0).unsqueeze(1)
                 X, v = X[:0], weights.new_zeros(S, 0, d_out)
             else:
                 weights = torch.randn((S, B, features.num_features, d_out if B == 1 else 1), generator=generator, **kd)
