@@ -294,3 +294,30 @@ def test_noise_that_differs_between_outputs_is_conditioned_per_output(corners):
     assert float(plan.gains.sum()) == pytest.approx(expected, rel=1e-7)
     with pytest.raises(tms.InputError, match="criterion='domain' .* per-output noise"):
         design.greedy(cand, 2, system=system, times=TIMES, gp=gp, criterion="domain")
+
+
+def test_corrected_proxies_isolate_the_candidates_that_blow_up():
+    """Candidates from which G + the posterior mean cannot be integrated get G's proxy, the others the corrected
+    model's (each as solved alone), and the warning counts them."""
+    from torchmisspec.design._proxy import corrected_proxies, proxy_trajectories
+
+    system = tms.systems.paper_linear()
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(60, 2, generator=g, dtype=torch.float64) * 0.4
+    gp = tms.CorrectionGP(kernel="polynomial", degree=3, outputscale=1.0, noise_variance=1e-8).fit(x, 3 * x**3)
+    cands = torch.tensor(
+        [[0.1, 0.1], [3.0, 3.0], [0.2, -0.1], [-4.0, 4.0], [0.3, 0.0], [5.0, 5.0]], dtype=torch.float64
+    )
+    times = torch.linspace(0, 6, 7, dtype=torch.float64)
+    model = tms.CorrectedODE(system, gp)
+    alone, blown = [], []
+    for i in range(len(cands)):
+        try:
+            alone.append(model.predict(cands[i : i + 1], times, rtol=1e-6, atol=1e-8)[0])
+        except tms.IntegrationError:
+            blown.append(i)
+            alone.append(proxy_trajectories(system, cands[i : i + 1], times)[0])
+    assert blown, "the test needs candidates that blow up"
+    with pytest.warns(tms.TorchMisspecWarning, match=f"cannot be integrated from {len(blown)} of 6 candidates"):
+        proxies = corrected_proxies(system, gp, cands, times)
+    torch.testing.assert_close(proxies, torch.stack(alone), rtol=1e-5, atol=1e-7)

@@ -27,19 +27,49 @@ def corrected_proxies(
     model = CorrectedODE(system, gp)
     failed: list[int] = []
 
-    def solve(rows: torch.Tensor) -> torch.Tensor:
-        """The corrected proxies of ``y0[rows]``; where the corrected model cannot be integrated from a candidate (the
-        posterior mean far from the data can grow without bound), the halves are solved apart until the failing
-        candidates are found, and those get G's proxy."""
+    def one(rows: torch.Tensor) -> torch.Tensor:
+        u = None if controls is None else controls[rows.tolist()]
+        return model.predict(y0[rows], times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1], controls=u)
+
+    def alone(row: int) -> torch.Tensor:
+        """One candidate's corrected proxy, or G's where the corrected model cannot be integrated from it."""
+        rows = torch.tensor([row], device=y0.device)
         try:
-            u = None if controls is None else controls[rows.tolist()]
-            return model.predict(y0[rows], times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1], controls=u)
+            return one(rows)
         except IntegrationError:
-            if rows.numel() == 1:
-                failed.append(int(rows[0]))
-                return proxy_trajectories(system, y0[rows], times, controls=u)
-            half = rows.numel() // 2
-            return torch.cat([solve(rows[:half]), solve(rows[half:])])
+            failed.append(row)
+            return proxy_trajectories(system, y0[rows], times, controls=None if controls is None else controls[[row]])
+
+    def solve(rows: torch.Tensor) -> torch.Tensor:
+        """The corrected proxies of ``y0[rows]``. Where the corrected model cannot be integrated from a candidate (the
+        posterior mean far from the data can grow without bound), the solver's suspects (the rows with the largest
+        state or derivative where it gave up) are solved alone and the rest together again; without suspects, the
+        halves are solved apart. Each failing solve runs to the step limit, so isolating the suspects first takes
+        a few solves where halving took one per level and failure."""
+        out: dict[int, torch.Tensor] = {}
+        pending = rows
+        while pending.numel():
+            try:
+                for row, path in zip(pending.tolist(), one(pending), strict=True):
+                    out[row] = path
+                break
+            except IntegrationError as exc:
+                suspects = sorted(set(getattr(exc, "rows", None) or []))
+                if pending.numel() == 1:
+                    out[int(pending[0])] = alone(int(pending[0]))[0]
+                    break
+                if not suspects:
+                    half = pending.numel() // 2
+                    for part in (pending[:half], pending[half:]):
+                        for row, path in zip(part.tolist(), solve(part), strict=True):
+                            out[row] = path
+                    break
+                keep = torch.ones(pending.numel(), dtype=torch.bool, device=pending.device)
+                keep[suspects] = False
+                for row in pending[~keep].tolist():
+                    out[row] = alone(row)[0]
+                pending = pending[keep]
+        return torch.stack([out[row] for row in rows.tolist()])
 
     out = solve(torch.arange(y0.shape[0], device=y0.device))
     if failed:
