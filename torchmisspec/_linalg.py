@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ._errors import LinearAlgebraError, NotPositiveDefiniteError
@@ -92,3 +94,35 @@ def logdet_identity_plus(
     if m == 0:
         return cov.new_zeros(cov.shape[:-2]), L
     return logdet_from_cholesky(L), L
+
+
+def pivots(kern, X: torch.Tensor, max_rank: int, tol: float, *, factor: bool = False) -> tuple:
+    """Greedy pivoted Cholesky of a kernel ``kern`` (``kern(A, B)`` a block, ``kern.diag(A)`` its diagonal) on the
+    points ``X (M, d_in)``: up to ``max_rank`` pivot indices (the design's screening and data term, and the Nystrom
+    features of :mod:`torchmisspec.gp._large`, use this one).
+
+    Stops when the largest residual variance is at most ``tol``. Returns the pivots and that largest residual, and
+    with ``factor`` the rows ``R (r, M)`` of the partial factor (K(X, X) ~ R^T R; ``R[:, pivots]`` is upper
+    triangular with ``R[:, pivots]^T R[:, pivots] = K(Z, Z)``).
+    """
+    M = X.shape[0]
+    resid = kern.diag(X).clone()
+    R = X.new_empty(min(max_rank, M), M)
+    piv = []
+    for i in range(R.shape[0]):
+        j = int(torch.argmax(resid))
+        dj = float(resid[j])
+        if dj <= tol:
+            break
+        col = kern(X[j : j + 1], X)[0]
+        if i:
+            col = col - R[:i, j] @ R[:i]
+        if float(col[j]) < 0.5 * dj:  # the residual is round-off: further pivots would only add noise
+            break
+        R[i] = col / math.sqrt(dj)
+        R[i, j] = math.sqrt(dj)  # consistent with the residual the pivot was chosen by
+        resid -= R[i] ** 2
+        resid[j] = 0.0
+        piv.append(j)
+    out = torch.tensor(piv, dtype=torch.long, device=X.device), float(resid.max())
+    return (*out, R[: len(piv)]) if factor else out

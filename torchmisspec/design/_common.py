@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .._errors import BudgetError, InputError, ShapeError
-from .._linalg import logdet_identity_plus
+from .._linalg import logdet_identity_plus, pivots
 from .._validation import as_tensor, check_finite, check_ndim
 from .._validation import check_times as _check_times
 from ..gp import CorrectionGP
@@ -375,36 +375,6 @@ class GPKernel:
         if n <= chunk:
             return self(points)
         return torch.cat([self(points[i : i + chunk]) for i in range(0, n, chunk)])
-
-
-def pivots(kern, X: torch.Tensor, max_rank: int, tol: float, *, factor: bool = False) -> tuple:
-    """Greedy pivoted Cholesky of k on the points ``X (M, d_in)``: up to ``max_rank`` pivot indices.
-
-    Stops when the largest residual variance is at most ``tol``. Returns the pivots and that largest residual, and
-    with ``factor`` the rows ``R (r, M)`` of the partial factor (K(X, X) ~ R^T R; ``R[:, pivots]`` is upper
-    triangular with ``R[:, pivots]^T R[:, pivots] = K(Z, Z)``).
-    """
-    M = X.shape[0]
-    resid = kern.diag(X).clone()
-    R = X.new_empty(min(max_rank, M), M)
-    piv = []
-    for i in range(R.shape[0]):
-        j = int(torch.argmax(resid))
-        dj = float(resid[j])
-        if dj <= tol:
-            break
-        col = kern(X[j : j + 1], X)[0]
-        if i:
-            col = col - R[:i, j] @ R[:i]
-        if float(col[j]) < 0.5 * dj:  # the residual is round-off: further pivots would only add noise
-            break
-        R[i] = col / math.sqrt(dj)
-        R[i, j] = math.sqrt(dj)  # consistent with the residual the pivot was chosen by
-        resid -= R[i] ** 2
-        resid[j] = 0.0
-        piv.append(j)
-    out = torch.tensor(piv, dtype=torch.long, device=X.device), float(resid.max())
-    return (*out, R[: len(piv)]) if factor else out
 
 
 # ---------------------------------------------------------------------------------------------------- input checks

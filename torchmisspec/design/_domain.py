@@ -36,10 +36,10 @@ import math
 import torch
 
 from .._errors import InputError, ShapeError
-from .._linalg import cholesky
+from .._linalg import cholesky, pivots
 from .._validation import as_tensor, check_domain, check_finite, check_ndim, check_positive_int, progress_bar
 from ..metrics import box_grid
-from ._common import GPKernel, check_system, pivots
+from ._common import GPKernel, check_system
 
 CRITERIA = ("information", "domain")  # the paper's criterion, or the variance of F over the domain D
 DOMAIN_NODES = 1024  # default most quadrature nodes

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import torch
 
-from .._linalg import cholesky
-from ._common import logdet_identity_plus, pivots
+from .._linalg import cholesky, pivots
+from ._common import logdet_identity_plus
 
 __all__ = ["LowRank", "SLACK_NATS", "SLACK_USELESS", "CHUNK_BYTES"]
 

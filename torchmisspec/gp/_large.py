@@ -29,13 +29,12 @@ and where it holds. ``CorrectionGP(kernel="rbf")`` (the default) uses it above :
 
 from __future__ import annotations
 
-import math
-
 import gpytorch
 import torch
 
 from .._errors import InputError
-from .._linalg import cholesky
+from .._linalg import cholesky, pivots
+from .._validation import check_positive_int
 from ._kernels import Kernel, register
 from ._quadrature import _check_error
 
@@ -156,23 +155,24 @@ def rbf_unit(a: torch.Tensor, b: torch.Tensor, lengthscale: float) -> torch.Tens
     return torch.exp(-sq.clamp_min(0.0) / (2.0 * lengthscale * lengthscale))
 
 
+class _UnitRBF:
+    """The unit-scale RBF as :func:`~torchmisspec._linalg.pivots` asks for it."""
+
+    def __init__(self, lengthscale: float) -> None:
+        self.lengthscale = lengthscale
+
+    def __call__(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return rbf_unit(a, b, self.lengthscale)
+
+    def diag(self, a: torch.Tensor) -> torch.Tensor:
+        return torch.ones(a.shape[0], dtype=a.dtype, device=a.device)
+
+
 def nystrom(X: torch.Tensor, sub: torch.Tensor, lengthscale: float, error: float, most: int):
     """Pivots Z of the subsample ``sub`` (greedy pivoted Cholesky of the unit-scale RBF until the residual variance
     is at most ``error`` or ``most`` pivots) and the factor L_Z; the bound: the largest residual over ``X``."""
-    n = sub.shape[0]
-    diag = torch.ones(n, dtype=sub.dtype, device=sub.device)
-    L = sub.new_zeros(n, min(most, n))
-    chosen: list[int] = []
-    for j in range(L.shape[1]):
-        i = int(diag.argmax())
-        if float(diag[i]) <= error:
-            break
-        col = rbf_unit(sub, sub[i : i + 1], lengthscale)[:, 0] - L[:, :j] @ L[i, :j]
-        L[:, j] = col / math.sqrt(float(diag[i]))
-        diag = (diag - L[:, j].pow(2)).clamp_min(0.0)
-        diag[i] = 0.0
-        chosen.append(i)
-    Z = sub[chosen]
+    piv, _ = pivots(_UnitRBF(lengthscale), sub, most, error)
+    Z = sub[piv]
     LZ = cholesky(rbf_unit(Z, Z, lengthscale), what="k(Z, Z) (Nystrom pivots)")
     worst = 0.0
     for s in range(0, X.shape[0], 16384):  # the residual at every training input: the certified bound on the data
@@ -194,8 +194,6 @@ class RBFFeatures(Kernel):
     feature_space = True
 
     def __init__(self, feature_error: float | None = None, subsample: int = SUBSAMPLE) -> None:
-        from .._validation import check_positive_int
-
         self.feature_error = None if feature_error is None else _check_error(feature_error)
         self.subsample = check_positive_int(subsample, "subsample", minimum=10)
 
