@@ -337,7 +337,7 @@ def cross_validate(
 def lengthscale_candidates(samples: CorrectionSamples, template: CorrectionGP | None = None) -> list[float]:
     """The default candidate lengthscales: :data:`LENGTHSCALE_GRID` times the median distance between the samples'
     inputs, plus the marginal-likelihood lengthscale of ``template`` (default ``CorrectionGP()``) on all samples."""
-    template = CorrectionGP() if template is None else template
+    template = CorrectionGP(device=samples.inputs.device) if template is None else template
     scale = median_distance(samples.inputs)
     candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
     try:
@@ -374,7 +374,7 @@ def cross_validate_lengthscale(
         :class:`CrossValidation`.
     """
     folds = _check_cv_inputs(system, trajectories, samples, folds)
-    template = CorrectionGP() if gp is None else gp
+    template = CorrectionGP(device=samples.inputs.device) if gp is None else gp
     if not isinstance(template, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
     kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
@@ -398,8 +398,9 @@ def default_candidates(samples: CorrectionSamples) -> list[CorrectionGP]:
     """The models :func:`fit_correction` chooses from by default: an RBF GP at each of
     :func:`lengthscale_candidates`, and a feature kernel (monomials up to :data:`FEATURE_DEGREE`, one set of
     relevance weights per output) whose evidence removes the terms the samples do not support."""
-    rbf = [CorrectionGP(lengthscale=ell) for ell in lengthscale_candidates(samples)]
-    return [*rbf, CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True)]
+    on = {"device": samples.inputs.device}  # the models follow the data's device
+    rbf = [CorrectionGP(lengthscale=ell, **on) for ell in lengthscale_candidates(samples)]
+    return [*rbf, CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, **on)]
 
 
 def _by_evidence(pool: list[CorrectionGP], samples: CorrectionSamples) -> CorrectionGP:
@@ -530,7 +531,8 @@ def fit_correction(
     posterior = None
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
         refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
-        posterior, samples = _parameter_passes(samples, system, CorrectionGP() if gp is None or gp.auto else gp)
+        template = CorrectionGP(device=samples.inputs.device) if gp is None or gp.auto else gp
+        posterior, samples = _parameter_passes(samples, system, template)
         system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
     cv = None
     result = None
@@ -564,7 +566,8 @@ def fit_correction(
                 TorchMisspecWarning,
             )
     if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
-        pool = candidates if user_candidates else [CorrectionGP(kernel="auto") if gp is None else gp]
+        auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
+        pool = candidates if user_candidates else [auto if gp is None else gp]
         result = _by_evidence(pool, samples)
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
         refine = result.kernel_spec.terms and result.kernel_spec.feature_space and system.autonomous

@@ -378,7 +378,8 @@ def _through_the_ode(
     filled = completed.filled()
     g = system.select_outputs(system.known_rhs(filled.flat_states(), filled.flat_times(), filled.flat_controls()))
     start = g.pow(2).mean(0).clamp_min(torch.finfo(g.dtype).tiny)  # (d_out,)
-    gp = CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True).fit(samples)
+    gp = CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, device=samples.inputs.device)
+    gp = gp.fit(samples)
     solver = dict(rtol=FITTING_TOLERANCES[0], atol=FITTING_TOLERANCES[1], max_steps=None, what="fit_correction")
     residuals, n_obs, offsets = _shooting(trajectories, "single", solver, system)
     return _fit_relevance(

@@ -57,7 +57,8 @@ def machine() -> dict:
 
     status = git("status", "--porcelain", "--", "torchmisspec")
     return {
-        "git_commit": git("rev-parse", "--short", "HEAD"),
+        # a copy without its git folder (a GPU machine's) names its commit in TORCHMISSPEC_COMMIT
+        "git_commit": git("rev-parse", "--short", "HEAD") or os.environ.get("TORCHMISSPEC_COMMIT"),
         "library_modified": None if status is None else bool(status),
         "cpu": cpu_model(),
         "logical_cpus": os.cpu_count(),
