@@ -136,9 +136,9 @@ def correction_error(gp, system, *, domain=None, resolution: int = 101, metric: 
             "domain=((lo, hi), ...)"
         )
 
-    def estimate(x):
+    def estimate(x):  # x on the CPU (the quadrature grid), F_hat on the GP's device
         with torch.no_grad():
-            return gp.predict_mean(x)
+            return gp.predict_mean(x).to(x.device)
 
     fn = mean_squared_error if metric == "mean_squared" else integrated_error
     return fn(estimate, system.true_correction, domain, resolution=resolution)

@@ -251,7 +251,8 @@ def _lazy(
         avail = feas.mask()
         if sample is not None and sample < int(avail.sum()):  # stochastic greedy: the best of a random subset
             ids = avail.nonzero().squeeze(1)
-            drawn = ids[torch.randperm(ids.shape[0], generator=generator)[:sample].to(dev)]
+            # drawn on the generator's own device (a CPU or a GPU generator), the same draws for the same seed there
+            drawn = ids[torch.randperm(ids.shape[0], generator=generator, device=generator.device)[:sample].to(dev)]
             avail = torch.zeros_like(avail)
             avail[drawn] = True
         if k > 0:
