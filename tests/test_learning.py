@@ -245,3 +245,40 @@ def test_fit_correction_shows_progress_by_default_and_is_silent_when_asked(capfd
     assert capfd.readouterr().err == ""
     tms.fit_correction(trajs, system, derivative="central", refine=False)
     assert "fit_correction: cross-validating candidate models" in capfd.readouterr().err
+
+
+def test_thinned_keeps_each_experiments_ends_evenly_spaced():
+    x = torch.arange(30, dtype=DT).unsqueeze(1)
+    experiment = torch.tensor([0] * 20 + [1] * 8 + [2] * 2)
+    samples = tms.CorrectionSamples(x, x.clone(), x.clone(), experiment)
+    assert samples.thinned(30) is samples and samples.thinned(100) is samples
+    kept = samples.thinned(15)
+    rows = kept.inputs.squeeze(1).long().tolist()
+    assert rows == [0, 2, 4, 6, 8, 11, 13, 15, 17, 19, 20, 22, 25, 27, 28, 29]  # 10 of 20, 4 of 8, both of 2
+    assert kept.experiment.tolist() == [0] * 10 + [1] * 4 + [2] * 2
+
+
+def test_the_model_is_chosen_on_a_subsample_and_fitted_on_all(linear_noisy, one_thread, monkeypatch):
+    """Above SELECTION_SAMPLES the candidates are scored on each experiment's samples thinned evenly; the chosen
+    template is then fitted on every sample (its lengthscale the chosen one); at or below it nothing changes."""
+    import torchmisspec.learning as learning
+
+    system, traj, test = linear_noisy
+    monkeypatch.setattr(learning, "SELECTION_SAMPLES", 40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(traj, system, gp=tms.CorrectionGP(), progress=False)
+    cv = gp.cross_validation_
+    assert cv.samples == 40 and gp.train_inputs_.shape[0] == len(gp.samples_) == 110
+    assert float(gp.lengthscale) == pytest.approx(cv.best_lengthscale, rel=1e-12)
+    assert ratio(system, gp, test) < 0.3  # still the right model (the full choice: 0.18, above)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        auto = tms.fit_correction(traj, system, select="evidence", progress=False)  # kernel="auto" on 40
+    chosen = [r for r in auto.model_selection_ if r["chosen"]]
+    assert auto.train_inputs_.shape[0] == 110 and len(chosen) == 1 and chosen[0]["kernel"] == auto.kernel
+    monkeypatch.setattr(learning, "SELECTION_SAMPLES", 110)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        full = tms.fit_correction(traj, system, gp=tms.CorrectionGP(), progress=False)
+    assert full.cross_validation_.samples == 110

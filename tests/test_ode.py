@@ -81,3 +81,33 @@ def test_float32_solves_stay_float32_and_agree():
     got = tms.simulate(system, Y0.float(), times.float(), rtol=1e-6, atol=1e-7).states
     assert got.dtype == torch.float32
     torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("method", "options"),
+    [("dopri5", None), ("dopri5", {"jump_t": torch.tensor([2.5, 7.0], dtype=torch.float64)}), ("bosh3", None),
+     ("rk4", {"step_size": 0.05})],
+)  # fmt: skip
+def test_long_grids_interpolate_each_step_at_once_with_torchdiffeqs_numbers(method, options):
+    """_integrate evaluates the outputs inside a step together: the same steps and numbers as torchdiffeq's odeint
+    (which evaluates them one by one), values to the bit and gradients to rounding, for a grid long enough to take
+    that path."""
+    from torchdiffeq import odeint
+
+    from torchmisspec._ode import _VECTOR_OUTPUTS, _integrate
+
+    g = torch.Generator().manual_seed(0)
+    grid = torch.cat([torch.zeros(1, dtype=torch.float64), torch.rand(5 * _VECTOR_OUTPUTS, generator=g).double()])
+    grid = torch.sort(grid * 10).values
+    y0 = torch.rand(7, 2, generator=g, dtype=torch.float64).requires_grad_(True)
+
+    def field(t, y):
+        step = 1.0 + (t > 2.5).to(y) - 0.5 * (t > 7.0).to(y)  # a field that jumps where jump_t says
+        return torch.stack([y[..., 1], -step * torch.sin(y[..., 0])], -1)
+
+    ours = _integrate(field, y0, grid, method, 1e-7, 1e-9, options)
+    theirs = odeint(field, y0, grid, method=method, rtol=1e-7, atol=1e-9, options=options)
+    assert torch.equal(ours, theirs)
+    (g_ours,) = torch.autograd.grad(ours.square().sum(), y0)
+    (g_theirs,) = torch.autograd.grad(theirs.square().sum(), y0)
+    torch.testing.assert_close(g_ours, g_theirs, rtol=1e-10, atol=0.0)  # sums of the same terms, in another order

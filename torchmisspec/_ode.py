@@ -2,7 +2,10 @@
 
 Many initial conditions are integrated in one torchdiffeq call. Per-experiment time grids ``(B, T)`` are handled
 by integrating on the sorted union of all times and gathering each experiment's own times, so the batch still
-costs one solve. Non-finite states or a solver that gives up raise :class:`IntegrationError`.
+costs one solve. On a long grid (ragged, irregular data: the union has up to B T times) every output time inside
+a step of an adaptive Runge-Kutta method is interpolated at once (:func:`_integrate`): torchdiffeq evaluates them one
+at a time in Python, which cost more than the steps themselves (the same steps and the same numbers). Non-finite
+states or a solver that gives up raise :class:`IntegrationError`.
 
 **Tolerance policy** (one rule for every solve in the package, dopri5 by default):
 
@@ -27,6 +30,13 @@ from collections.abc import Callable
 
 import torch
 from torchdiffeq import odeint
+
+try:  # torchdiffeq's own input handling and solvers, for the vectorised output of _integrate (odeint otherwise)
+    from torchdiffeq._impl.misc import _check_inputs
+    from torchdiffeq._impl.odeint import SOLVERS
+    from torchdiffeq._impl.rk_common import RKAdaptiveStepsizeODESolver
+except ImportError:  # pragma: no cover - another torchdiffeq layout
+    SOLVERS = None
 
 from ._errors import InputError, IntegrationError, ShapeError
 from ._validation import as_tensor, check_finite, check_ndim, check_positive_int, check_real, check_times
@@ -138,6 +148,45 @@ def _with_rows(rows: list[int], exc: IntegrationError) -> IntegrationError:
     return exc
 
 
+#: output times from which a solve interpolates each step's outputs at once (below, torchdiffeq's loop is as fast)
+_VECTOR_OUTPUTS = 64
+
+
+def _integrate(func, y0: torch.Tensor, grid: torch.Tensor, method: str, rtol: float, atol: float, options):
+    """``odeint(func, y0, grid, ...)`` (increasing ``grid``); for an adaptive Runge-Kutta method on a long grid, the
+    outputs that fall inside each step are evaluated together from the step's interpolating polynomial (the same
+    polynomial and arithmetic as torchdiffeq's ``_interp_evaluate``, and the same steps, which do not depend on the
+    output times)."""
+    if SOLVERS is None or grid.numel() < _VECTOR_OUTPUTS:
+        return odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options)
+    shapes, f, y, t, rtol, atol, method, options, _, reversed_ = _check_inputs(
+        func, y0, grid, rtol, atol, method, options, None, SOLVERS
+    )
+    solver = SOLVERS[method](func=f, y0=y, rtol=rtol, atol=atol, **options)
+    if shapes is not None or reversed_ or not isinstance(solver, RKAdaptiveStepsizeODESolver):
+        return solver.integrate(t)  # what odeint does (a tensor state, an increasing grid)
+    out = torch.empty(len(t), *y.shape, dtype=y.dtype, device=y.device)
+    out[0] = y
+    t = t.to(solver.dtype)
+    solver._before_integrate(t)
+    i, n = 1, len(t)
+    while i < n:
+        state = solver.rk_state
+        if t[i] > state.t1:  # torchdiffeq's _advance: step until the next output time is inside the step
+            solver.rk_state = solver._adaptive_step(state)
+            continue
+        j = max(int(torch.searchsorted(t, state.t1, right=True)), i + 1)  # outputs i .. j - 1 are in this step
+        x = ((t[i:j] - state.t0) / (state.t1 - state.t0)).to(y.dtype).reshape(-1, *([1] * y.dim()))
+        c = state.interp_coeff
+        total, power = c[0] + x * c[1], x
+        for coefficient in c[2:]:
+            power = power * x
+            total = total + power * coefficient
+        out[i:j] = total
+        i = j
+    return out
+
+
 def solve(
     field: Callable[[torch.Tensor], torch.Tensor],
     y0: torch.Tensor,
@@ -221,7 +270,7 @@ def solve(
             "model has a singularity there (check G and F)"
         )
     try:
-        sol = odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options)  # (T', B, d)
+        sol = _integrate(func, y0, grid, method, rtol, atol, options)  # (T', B, d)
     except _StepLimit:
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         raise _with_rows(

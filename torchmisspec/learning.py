@@ -73,6 +73,12 @@ __all__ = [
 #: Candidate lengthscales of the cross-validation, as multiples of the median distance between the samples' inputs
 #: (the marginal-likelihood lengthscale is always added to them).
 LENGTHSCALE_GRID = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
+#: Above this many samples :func:`fit_correction` chooses its model on a subsample (each experiment's samples
+#: thinned evenly, :meth:`CorrectionSamples.thinned`) and refits the chosen one on all of them: a candidate's
+#: marginal-likelihood fit costs O(N^3) per step and the choice needs about 13 of them, while the held-out
+#: experiments' predictions that score them change little once the samples are dense (measured in
+#: docs/tutorials/limits.md).
+SELECTION_SAMPLES = 1000
 #: The rules :func:`fit_correction` chooses a model by (its ``select``).
 SELECTION = ("cv", "evidence")
 #: Solver steps allowed for one held-out prediction (a candidate whose prediction blows up scores infinity).
@@ -93,6 +99,8 @@ class CrossValidation:
         gains: ``(K,)`` per held-out experiment, ``log`` of the known model's squared error over the best
             candidate's (positive: the correction helps on that experiment).
         index: the position of the chosen candidate.
+        samples: the number of correction samples the candidates were fitted on (:func:`fit_correction` scores
+            them on at most about :data:`SELECTION_SAMPLES`).
     """
 
     candidates: tuple[str, ...]
@@ -103,6 +111,7 @@ class CrossValidation:
     folds: int
     gains: tuple[float, ...] = ()
     index: int = 0
+    samples: int = 0
 
     @property
     def best_lengthscale(self) -> float | None:
@@ -330,7 +339,8 @@ def cross_validate(
     gains = tuple(ratio.log().tolist()) if math.isfinite(scores[i]) else ()
     labels = tuple(_label(c) for c in candidates)
     ells = tuple(c.fixed["lengthscale"] if c.kernel_spec.stationary else None for c in candidates)
-    result = CrossValidation(labels, ells, tuple(scores), float(base.sum()), labels[i], folds, gains, i)
+    n = samples.inputs.shape[0]
+    result = CrossValidation(labels, ells, tuple(scores), float(base.sum()), labels[i], folds, gains, i, n)
     return result, models
 
 
@@ -502,8 +512,12 @@ def fit_correction(
     not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).
 
     Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and, with ``"cv"``, one batched
-    solve of the held-out experiments per candidate; about 13 candidates by default. ``progress`` (default on) shows
-    bars over the candidates and the refinement's rounds; ``progress=False`` is silent.
+    solve of the held-out experiments per candidate; about 13 candidates by default. Above
+    :data:`SELECTION_SAMPLES` samples the candidates are fitted and scored on a subsample (each experiment's
+    samples thinned evenly, :meth:`CorrectionSamples.thinned`; the held-out experiments are still predicted over all
+    their times) and the chosen one is refitted on every sample (an RBF kernel above ``LARGE_N`` samples then in a
+    feature space, see :class:`CorrectionGP`): the choice costs what it costs at that size, whatever N. ``progress``
+    (default on) shows bars over the candidates and the refinement's rounds; ``progress=False`` is silent.
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
@@ -536,20 +550,23 @@ def fit_correction(
         system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
     cv = None
     result = None
+    chooser = samples.thinned(SELECTION_SAMPLES)  # the model is chosen on at most about this many samples
     if select == "cv" and trajectories.num_experiments >= 2:
         if candidates is None and gp is None:
-            candidates = default_candidates(samples)
+            candidates = default_candidates(chooser)
         elif candidates is None:
             # auto: scored as it is
             free = not gp.auto and gp.kernel_spec.stationary and gp.fixed["lengthscale"] is None
             if free and not gp.per_output:
                 candidates = [
-                    gp.clone(kernel=gp.kernel_spec, lengthscale=ell) for ell in lengthscale_candidates(samples, gp)
+                    gp.clone(kernel=gp.kernel_spec, lengthscale=ell) for ell in lengthscale_candidates(chooser, gp)
                 ]
             else:
                 candidates = [gp]
-        cv, models = cross_validate(system, trajectories, samples, candidates, folds=folds, progress=progress)
+        cv, models = cross_validate(system, trajectories, chooser, candidates, folds=folds, progress=progress)
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
+        if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
+            result = copy.deepcopy(candidates[cv.index]).fit(samples)
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
@@ -568,11 +585,18 @@ def fit_correction(
     if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
         auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
         pool = candidates if user_candidates else [auto if gp is None else gp]
-        result = _by_evidence(pool, samples)
+        result = _by_evidence(pool, chooser)
+        if chooser is not samples:  # the chosen kernel (an auto model's choice), fitted on every sample
+            chosen = getattr(result, "model_selection_", None)
+            result = result.clone(kernel=result.kernel_spec).fit(samples)
+            result.model_selection_ = chosen
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
         refine = result.kernel_spec.terms and result.kernel_spec.feature_space and system.autonomous
-    if refine:
+    if refine:  # a new model: the record of the evidence's choice carried over
+        selection = getattr(result, "model_selection_", None)
         result = fit_trajectories(result, system, trajectories, progress=progress)
+        if selection is not None:
+            result.model_selection_ = selection
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
         delta = posterior.mean - posterior.prior_mean
         result, samples = fit_parameters(result, samples, system0, trajectories, delta)

@@ -38,6 +38,7 @@ and their self-check in ``torchmisspec._estimators``; this module forms the samp
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import torch
@@ -123,6 +124,20 @@ class CorrectionSamples:
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         shared = ("parameters_linear", "linearized_at")  # not per sample
         return CorrectionSamples(**{k: v if v is None or k in shared else v[rows] for k, v in fields.items()})
+
+    def thinned(self, at_most: int) -> CorrectionSamples:
+        """About ``at_most`` of these samples (these themselves when there are no more): each experiment's samples
+        thinned evenly, in proportion to its share, at least two per experiment (its first and last)."""
+        n = self.inputs.shape[0]
+        if n <= at_most:
+            return self
+        rows = []
+        for k in torch.unique(self.experiment).tolist():
+            idx = (self.experiment == k).nonzero().squeeze(1)
+            keep = max(2, math.ceil(idx.numel() * at_most / n))
+            pick = torch.linspace(0, idx.numel() - 1, keep, device=idx.device).round().long().unique()
+            rows.append(idx[pick])
+        return self.subset(torch.cat(rows))
 
     def shifted(self, delta: torch.Tensor, outputs) -> CorrectionSamples:
         """These samples with the parameters moved by ``delta`` ``(k,)`` from the prior mean: the targets
