@@ -182,3 +182,21 @@ def test_exact_true_keeps_the_exact_gp_above_large_n(tmp_path):
     t = torch.rand(20, 2, generator=torch.Generator().manual_seed(5), dtype=DT) * 2 - 1
     scale = float(gp.predict_mean(t).abs().max())
     assert float((large.predict_mean(t) - gp.predict_mean(t)).abs().max()) <= 0.02 * scale
+
+
+def test_conditioning_rebuilds_the_features_for_the_new_inputs():
+    """``condition`` keeps the hyperparameters and builds the features for the new inputs: the kernel is within the
+    certified bound at them (the old features were certified near the old inputs only), and the posterior is the one
+    a fit with those values gives."""
+    x, y = _samples(300)
+    gp = tms.CorrectionGP(kernel="rbf-features", **FIXED).fit(0.1 * x, y)  # inputs in [-0.1, 0.1]^2
+    wide = gp.condition(2 * x, y)  # inputs in [-2, 2]^2
+    info = wide.approximation
+    assert info != gp.approximation
+    exact = _rbf(2 * x.numpy(), 2 * x.numpy(), 0.8, 4e-5)
+    assert np.abs(wide.covariance(2 * x).numpy() - exact).max() / 4e-5 <= info["error_bound"]
+    old = np.abs(gp.covariance(2 * x).numpy() - exact).max() / 4e-5
+    assert old > gp.approximation["error_bound"], "the test needs inputs where the old features are off"
+    refit = tms.CorrectionGP(kernel="rbf-features", **FIXED).fit(2 * x, y)
+    t = torch.rand(20, 2, generator=torch.Generator().manual_seed(4), dtype=DT) * 4 - 2
+    torch.testing.assert_close(wide.predict_mean(t), refit.predict_mean(t), rtol=1e-9, atol=1e-12)

@@ -88,26 +88,32 @@ def test_float32_solves_stay_float32_and_agree():
     [("dopri5", None), ("dopri5", {"jump_t": torch.tensor([2.5, 7.0], dtype=torch.float64)}), ("bosh3", None),
      ("rk4", {"step_size": 0.05})],
 )  # fmt: skip
-def test_long_grids_interpolate_each_step_at_once_with_torchdiffeqs_numbers(method, options):
-    """_integrate evaluates the outputs inside a step together: the same steps and numbers as torchdiffeq's odeint
-    (which evaluates them one by one), values to the bit and gradients to rounding, for a grid long enough to take
-    that path."""
+@pytest.mark.parametrize("ragged", [False, True], ids=["shared", "per-row"])
+def test_long_grids_interpolate_each_step_at_once_with_torchdiffeqs_numbers(method, options, ragged):
+    """_integrate evaluates the outputs inside a step together, and on per-row grids only each row's own: the same
+    steps and numbers as torchdiffeq's odeint on the union of the grids (which evaluates every output time one by
+    one, for every row), values to the bit and gradients to rounding, on grids long enough to take that path."""
     from torchdiffeq import odeint
 
     from torchmisspec._ode import _VECTOR_OUTPUTS, _integrate
 
     g = torch.Generator().manual_seed(0)
-    grid = torch.cat([torch.zeros(1, dtype=torch.float64), torch.rand(5 * _VECTOR_OUTPUTS, generator=g).double()])
-    grid = torch.sort(grid * 10).values
-    y0 = torch.rand(7, 2, generator=g, dtype=torch.float64).requires_grad_(True)
+    rows = 7
+    shape = (rows, 2 * _VECTOR_OUTPUTS) if ragged else (5 * _VECTOR_OUTPUTS,)
+    grid = torch.sort(torch.rand(shape, generator=g, dtype=torch.float64) * 10, dim=-1).values
+    grid[..., 0] = 0.0
+    y0 = torch.rand(rows, 2, generator=g, dtype=torch.float64).requires_grad_(True)
 
     def field(t, y):
         step = 1.0 + (t > 2.5).to(y) - 0.5 * (t > 7.0).to(y)  # a field that jumps where jump_t says
         return torch.stack([y[..., 1], -step * torch.sin(y[..., 0])], -1)
 
     ours = _integrate(field, y0, grid, method, 1e-7, 1e-9, options)
-    theirs = odeint(field, y0, grid, method=method, rtol=1e-7, atol=1e-9, options=options)
-    assert torch.equal(ours, theirs)
+    union, inverse = torch.unique(grid.reshape(-1), sorted=True, return_inverse=True)
+    theirs = odeint(field, y0, union, method=method, rtol=1e-7, atol=1e-9, options=options).transpose(0, 1)
+    if ragged:
+        theirs = torch.gather(theirs, 1, inverse.reshape(grid.shape).unsqueeze(-1).expand(-1, -1, 2))
+    assert ours.shape == theirs.shape and torch.equal(ours, theirs)
     (g_ours,) = torch.autograd.grad(ours.square().sum(), y0)
     (g_theirs,) = torch.autograd.grad(theirs.square().sum(), y0)
     torch.testing.assert_close(g_ours, g_theirs, rtol=1e-10, atol=0.0)  # sums of the same terms, in another order

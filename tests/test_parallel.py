@@ -45,3 +45,81 @@ def test_a_study_on_a_local_dask_cluster_gives_the_serial_numbers():
         with distributed.Client(cluster) as client:
             pooled = study_sampling_times.study(cfg, log=quiet, executor=client.get_executor())
     assert pooled["runs"] == serial["runs"]
+
+
+def _calibration_case():
+    import torch
+
+    system = tms.systems.paper_linear()
+    g = torch.Generator().manual_seed(5)
+    times = torch.linspace(0.0, 6.0, 11, dtype=torch.float64)
+    y0 = tms.design.candidates.uniform_box(6, system.domain, generator=g)
+    clean = tms.simulate(system, y0, times)
+    data = tms.Trajectories(times, clean.states * (1 + 0.003 * torch.randn(clean.states.shape, generator=g)))
+    samples = tms.correction_samples(data, system)
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-4).fit(samples)
+    return tms.CorrectedODE(system, gp), data, samples
+
+
+def test_calibration_folds_through_an_executor_give_the_serial_result():
+    model, data, samples = _calibration_case()
+    options = dict(folds=3, num_samples=20, refit=False, progress=False)
+    serial = tms.calibrate_bands(model, data, samples, **options)
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        assert tms.calibrate_bands(model, data, samples, executor=pool, **options) == serial
+    with pytest.raises(tms.InputError, match="executor: expected a concurrent.futures.Executor"):
+        tms.calibrate_bands(model, data, samples, executor="pool", **options)
+
+
+@pytest.mark.slow
+def test_calibration_folds_in_a_process_pool_give_the_serial_result():
+    model, data, samples = _calibration_case()
+    options = dict(folds=3, num_samples=20, progress=False)  # refitted in each fold
+    serial = tms.calibrate_bands(model, data, samples, **options)
+    with process_pool(2) as pool:
+        assert tms.calibrate_bands(model, data, samples, executor=pool, **options) == serial
+
+
+def _gravity_design_case():
+    import torch
+
+    system = tms.systems.paper_gravity()
+    candidates = tms.design.candidates.uniform_box(30, system.domain, generator=torch.Generator().manual_seed(2))
+    times = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-2, noise_variance=1e-4)
+    return system, candidates, times, gp
+
+
+def test_design_proxies_in_chunks_through_an_executor_give_the_serial_design(monkeypatch):
+    """The proxies of a nonlinear G are solved in chunks of PROXY_CHUNK candidates, one after another or through an
+    executor: the same proxies and the same design; each chunk matches the one-batch solve to the solver's tolerance."""
+    import torch
+
+    from torchmisspec.design import _proxy
+
+    system, candidates, times, gp = _gravity_design_case()
+    whole = _proxy.proxy_paths("known", system, gp, candidates, times)
+    monkeypatch.setattr(_proxy, "PROXY_CHUNK", 7)
+    chunked = _proxy.proxy_paths("known", system, gp, candidates, times)
+    torch.testing.assert_close(chunked, whole, rtol=1e-8, atol=1e-10)
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        assert torch.equal(_proxy.proxy_paths("known", system, gp, candidates, times, executor=pool), chunked)
+        serial = tms.design.greedy(candidates, 4, system=system, times=times, gp=gp)
+        pooled = tms.design.greedy(candidates, 4, system=system, times=times, gp=gp, executor=pool)
+        campaign = tms.design.Campaign(system, candidates, times, gp, executor=pool)
+        assert campaign.ask(4).tolist() == candidates[serial.indices].tolist()
+    assert pooled.indices.tolist() == serial.indices.tolist() and pooled.information_gain == serial.information_gain
+    with pytest.raises(tms.InputError, match="executor: expected a concurrent.futures.Executor"):
+        tms.design.greedy(candidates, 2, system=system, times=times, gp=gp, executor=4)
+
+
+@pytest.mark.slow
+def test_design_proxies_in_a_process_pool_give_the_serial_design(monkeypatch):
+    from torchmisspec.design import _proxy
+
+    system, candidates, times, gp = _gravity_design_case()
+    monkeypatch.setattr(_proxy, "PROXY_CHUNK", 10)  # the workers import their own (4096): the chunks are made here
+    serial = tms.design.greedy(candidates, 4, system=system, times=times, gp=gp)
+    with process_pool(2) as pool:
+        pooled = tms.design.greedy(candidates, 4, system=system, times=times, gp=gp, executor=pool)
+    assert pooled.indices.tolist() == serial.indices.tolist() and pooled.information_gain == serial.information_gain

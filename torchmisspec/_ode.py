@@ -1,11 +1,11 @@
 """Private batched ODE solve shared by :func:`simulate` and :class:`CorrectedODE`.
 
-Many initial conditions are integrated in one torchdiffeq call. Per-experiment time grids ``(B, T)`` are handled
-by integrating on the sorted union of all times and gathering each experiment's own times, so the batch still
-costs one solve. On a long grid (ragged, irregular data: the union has up to B T times) every output time inside
-a step of an adaptive Runge-Kutta method is interpolated at once (:func:`_integrate`): torchdiffeq evaluates them one
-at a time in Python, which cost more than the steps themselves (the same steps and the same numbers). Non-finite
-states or a solver that gives up raise :class:`IntegrationError`.
+Many initial conditions are integrated in one torchdiffeq call, also when each has its own time grid ``(B, T)``.
+With an adaptive Runge-Kutta method (dopri5, the default) on a long grid, the outputs that fall inside each solver
+step are interpolated at once, and on per-row grids only each row's own times are evaluated (:func:`_integrate`):
+torchdiffeq's ``odeint`` evaluates every output time one by one in Python, and per-row grids would need the union of
+all of them (up to B T times) for every row, O(B^2 T) memory and time for ragged irregular data. The steps and the
+numbers are ``odeint``'s. Non-finite states or a solver that gives up raise :class:`IntegrationError`.
 
 **Tolerance policy** (one rule for every solve in the package, dopri5 by default):
 
@@ -152,32 +152,40 @@ def _with_rows(rows: list[int], exc: IntegrationError) -> IntegrationError:
 _VECTOR_OUTPUTS = 64
 
 
-def _integrate(func, y0: torch.Tensor, grid: torch.Tensor, method: str, rtol: float, atol: float, options):
-    """``odeint(func, y0, grid, ...)`` (increasing ``grid``); for an adaptive Runge-Kutta method on a long grid, the
-    outputs that fall inside each step are evaluated together from the step's interpolating polynomial (the same
-    polynomial and arithmetic as torchdiffeq's ``_interp_evaluate``, and the same steps, which do not depend on the
-    output times)."""
-    if SOLVERS is None or grid.numel() < _VECTOR_OUTPUTS:
-        return odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options)
+def _solver(func, y0: torch.Tensor, grid: torch.Tensor, method: str, rtol: float, atol: float, options):
+    """torchdiffeq's adaptive Runge-Kutta solver set up as ``odeint`` sets it up (its own input handling), started
+    at ``grid[0]``; ``None`` where ``odeint`` itself must run (another method, another torchdiffeq layout)."""
+    if SOLVERS is None:  # pragma: no cover - another torchdiffeq layout
+        return None
     shapes, f, y, t, rtol, atol, method, options, _, reversed_ = _check_inputs(
         func, y0, grid, rtol, atol, method, options, None, SOLVERS
     )
     solver = SOLVERS[method](func=f, y0=y, rtol=rtol, atol=atol, **options)
     if shapes is not None or reversed_ or not isinstance(solver, RKAdaptiveStepsizeODESolver):
-        return solver.integrate(t)  # what odeint does (a tensor state, an increasing grid)
-    out = torch.empty(len(t), *y.shape, dtype=y.dtype, device=y.device)
-    out[0] = y
-    t = t.to(solver.dtype)
-    solver._before_integrate(t)
-    i, n = 1, len(t)
+        return None
+    solver._before_integrate(t.to(solver.dtype))
+    return solver
+
+
+def _outputs(solver, y0: torch.Tensor, points: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+    """The solution at the sorted times ``points (M,)`` (the first is the start): every row's ``(M, B, d)``, or with
+    ``rows (M,)`` row ``rows[m]``'s at ``points[m]``, ``(M, d)``. The outputs inside each step are evaluated together
+    from the step's interpolating polynomial (torchdiffeq's ``_interp_evaluate``, its arithmetic and its steps, which
+    do not depend on the output times: the same numbers as ``odeint``)."""
+    points = points.to(solver.dtype)
+    n = points.numel()
+    out = torch.empty((n, *y0.shape) if rows is None else (n, y0.shape[-1]), dtype=y0.dtype, device=y0.device)
+    i = int(torch.searchsorted(points, points[0], right=True))  # the outputs at the start: the initial states
+    out[:i] = y0 if rows is None else y0[rows[:i]]
+    shape = (-1, *([1] * y0.dim())) if rows is None else (-1, 1)
     while i < n:
         state = solver.rk_state
-        if t[i] > state.t1:  # torchdiffeq's _advance: step until the next output time is inside the step
+        if points[i] > state.t1:  # torchdiffeq's _advance: step until the next output time is inside the step
             solver.rk_state = solver._adaptive_step(state)
             continue
-        j = max(int(torch.searchsorted(t, state.t1, right=True)), i + 1)  # outputs i .. j - 1 are in this step
-        x = ((t[i:j] - state.t0) / (state.t1 - state.t0)).to(y.dtype).reshape(-1, *([1] * y.dim()))
-        c = state.interp_coeff
+        j = max(int(torch.searchsorted(points, state.t1, right=True)), i + 1)  # outputs i .. j - 1 in this step
+        x = ((points[i:j] - state.t0) / (state.t1 - state.t0)).to(y0.dtype).reshape(shape)
+        c = state.interp_coeff if rows is None else [coefficient[rows[i:j]] for coefficient in state.interp_coeff]
         total, power = c[0] + x * c[1], x
         for coefficient in c[2:]:
             power = power * x
@@ -185,6 +193,29 @@ def _integrate(func, y0: torch.Tensor, grid: torch.Tensor, method: str, rtol: fl
         out[i:j] = total
         i = j
     return out
+
+
+def _integrate(func, y0: torch.Tensor, times: torch.Tensor, method: str, rtol: float, atol: float, options):
+    """The solution ``(B, T, d)`` at ``times`` (``(T,)``, or ``(B, T)`` each row's own, relative to the start 0),
+    one batched solve. With an adaptive Runge-Kutta method on a long grid each step's outputs are interpolated at
+    once, and on per-row grids only each row's own (:func:`_outputs`); otherwise ``odeint`` on the sorted union of
+    the grids, each row's times gathered from it (B times the outputs, and torchdiffeq's loop over every one)."""
+    ragged = times.dim() == 2
+    grid, inverse = torch.unique(times.reshape(-1), sorted=True, return_inverse=True) if ragged else (times, None)
+    solver = _solver(func, y0, grid, method, rtol, atol, options) if grid.numel() >= _VECTOR_OUTPUTS else None
+    if solver is None:
+        sol = odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options).transpose(0, 1)
+        if not ragged:
+            return sol
+        return torch.gather(sol, 1, inverse.reshape(times.shape).unsqueeze(-1).expand(-1, -1, sol.shape[-1]))
+    if not ragged:
+        return _outputs(solver, y0, grid).transpose(0, 1)
+    flat = times.reshape(-1)
+    order = torch.argsort(flat, stable=True)
+    values = _outputs(solver, y0, flat[order], torch.div(order, times.shape[1], rounding_mode="floor"))
+    out = torch.empty((flat.numel(), y0.shape[-1]), dtype=y0.dtype, device=y0.device)
+    out[order] = values
+    return out.reshape(*times.shape, y0.shape[-1])
 
 
 def solve(
@@ -242,14 +273,13 @@ def solve(
         return "; ".join(label(i) for i in rows[:10]) + more
 
     if times.dim() == 1:
-        grid, gather = times, None
+        grid, rel = times, times
         offsets = times.new_zeros(y0.shape[0])
     else:
-        # One solve on the union of all grids; row b starts at times[b, 0], so shift every row to start at 0
-        # (a timed field gets each row's own time back) and gather each row's own times afterwards.
+        # One solve for every row; row b starts at times[b, 0], so shift every row to start at 0 (a timed field gets
+        # each row's own time back) and read each row at its own times (_integrate).
         rel = times - times[:, :1]
-        grid, inverse = torch.unique(rel.reshape(-1), sorted=True, return_inverse=True)
-        gather = inverse.reshape(times.shape)
+        grid = torch.stack([rel.min(), rel.max()])  # the span
         offsets = times[:, 0]
     func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0, offsets.detach() if timed else None)
     if timed and jumps is not None and method in _JUMPING:
@@ -270,7 +300,7 @@ def solve(
             "model has a singularity there (check G and F)"
         )
     try:
-        sol = _integrate(func, y0, grid, method, rtol, atol, options)  # (T', B, d)
+        sol = _integrate(func, y0, rel, method, rtol, atol, options)  # (B, T, d)
     except _StepLimit:
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         raise _with_rows(
@@ -309,9 +339,6 @@ def solve(
         ) from exc
     except ValueError as exc:  # an unknown method or option
         raise InputError(f"{what}: expected solver settings torchdiffeq accepts, got a refusal: {exc}") from exc
-    sol = sol.transpose(0, 1)  # (B, T', d)
-    if gather is not None:
-        sol = torch.gather(sol, 1, gather.unsqueeze(-1).expand(-1, -1, sol.shape[-1]))
     finite = torch.isfinite(sol).all(dim=-1).all(dim=-1)
     if not bool(finite.all()):
         bad = (~finite).nonzero().flatten().tolist()

@@ -57,6 +57,7 @@ from .data import Trajectories
 from .gp._calibration import BandCalibration
 from .learning import _check_cv_inputs
 from .observations import CorrectionSamples, _check_trajectories_and_system
+from .parallel import check_executor, map_tasks
 from .trajectory_fit import fit_trajectories
 
 __all__ = ["MAX_LOG2_SCALE", "MIN_LOG2_SCALE", "BandCalibration", "calibrate_bands"]
@@ -113,6 +114,82 @@ def _state_noise(state_noise, trajectories: Trajectories, dtype, device) -> tupl
     return noise, zeros
 
 
+def _fold(task: dict) -> dict:
+    """One fold of :func:`calibrate_bands` (a task for an executor: everything it needs is in ``task``): the GP refitted
+    (or conditioned) without the fold's experiments, refined like the model, and the held-out experiments' posterior
+    paths. Returns ``paths`` (``None`` when the fold cannot be fitted), its warnings (``numerical``, ``other``) and
+    ``failed``, the message of a held-out solve that failed."""
+    f, folds, gp, samples = task["fold"], task["folds"], task["gp"], task["samples"]
+    system, trajectories = task["system"], task["trajectories"]
+    K = trajectories.num_experiments
+    ks = [k for k in range(K) if k % folds == f]
+    keep = ~torch.isin(samples.experiment, torch.tensor(ks, device=samples.experiment.device))
+    sample_noise = None if samples.noise is None else samples.noise[keep]
+    out = {"paths": None, "numerical": [], "other": [], "failed": None}
+    with warnings.catch_warnings(record=True) as caught:  # the folds' fits are ours: summarised by the caller
+        warnings.simplefilter("always")
+        try:
+            if task["refit"]:
+                fold_gp = gp.clone(kernel=gp.kernel_spec)  # the kernel chosen, refitted
+                fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            else:
+                fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
+            rest = trajectories[[k for k in range(K) if k % folds != f]]
+            parameters = task["parameters"]
+            if parameters is not None and samples.basis is not None:  # G's theta too
+                delta = parameters.mean - parameters.prior_mean
+                fold_gp = fit_parameters(fold_gp, samples.subset(keep), system, rest, delta)[0]
+            if task["refinement"] is not None:  # the model was refined through the ODE: so is each fold
+                found = getattr(fold_gp, "parameters_", None)  # G's theta: F refined at its mean, kept
+                at = system if found is None else system.at(found.mean)
+                fold_gp = fit_trajectories(fold_gp, at, rest, **task["refinement"])
+                if found is not None:
+                    fold_gp.parameters_ = found
+        except (FittingError, LinearAlgebraError, IntegrationError):
+            fold_gp = None  # this fold cannot be held out (too few samples left); the others still calibrate
+    out["numerical"] = [str(w.message) for w in caught if issubclass(w.category, NumericalWarning)]
+    out["other"] = [(str(w.message), w.category) for w in caught if not issubclass(w.category, NumericalWarning)]
+    if fold_gp is None:
+        return out
+    fold_model = task["model_type"](system, fold_gp)
+    experiments = trajectories.experiments()
+    values, _ = trajectories.observed_values()  # (K, T_max, d + m): the states and any readings
+    first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
+    by_length: dict[int, list[int]] = {}
+    for k in ks:  # experiments of one length are integrated together
+        by_length.setdefault(experiments[k][0].shape[0], []).append(k)
+    kd = dict(dtype=gp.dtype, device=gp.device)
+    paths = []
+    for j, group in enumerate(by_length.values()):
+        times = torch.stack([experiments[k][0] for k in group]).to(**kd)
+        observed = values[group, : times.shape[-1]].to(**kd)
+        controls = None if trajectories.controls is None else trajectories.controls[group]
+        gen = torch.Generator(device=gp.device).manual_seed(task["seed"] + 7919 * f + j)
+        with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
+            warnings.simplefilter("ignore", TorchMisspecWarning)
+            try:
+                post = fold_model.posterior(
+                    first[group].to(**kd),
+                    times,
+                    num_samples=task["num_samples"],
+                    generator=gen,
+                    scale=1.0,
+                    controls=controls,
+                    **task["posterior_options"],
+                )
+            except IntegrationError as exc:
+                out["failed"] = f"calibrate_bands: the held-out posterior paths of fold {f} fail ({exc})"
+                return out
+        mean = trajectories.observe(post.mean_path[:, 1:])  # every path starts at the first observed state
+        z = None
+        if task["noisy"]:  # NOISE_DRAWS noise draws per path: the band's quantiles of path + noise
+            shape = (task["num_samples"], NOISE_DRAWS, *mean.shape)
+            z = torch.randn(shape, generator=gen, dtype=mean.dtype, device=mean.device)
+        paths.append((mean, trajectories.observe(post.samples[:, :, 1:]) - mean, z, observed[:, 1:]))
+    out["paths"] = paths
+    return out
+
+
 def calibrate_bands(
     model,
     trajectories: Trajectories,
@@ -125,6 +202,7 @@ def calibrate_bands(
     state_noise="auto",
     generator: torch.Generator | None = None,
     progress: bool = True,
+    executor=None,
     **posterior_options,
 ) -> BandCalibration:
     """Calibrate the spread of ``model.posterior``'s bands on held-out experiments (see the module docstring).
@@ -154,6 +232,10 @@ def calibrate_bands(
             ``"2%"`` (noise proportional to the state), or ``None`` (exact states, the paper's setting).
         generator: ``torch.Generator`` for the draws (the same draws are reused at every scale).
         progress: show a progress bar over the folds (``False``: silent).
+        executor: a ``concurrent.futures.Executor`` (:func:`torchmisspec.parallel.process_pool`, a Dask or Ray
+            client's executor) to run the folds on, or ``None`` (here, one after another): the same result either
+            way. A process pool must be able to pickle the model (a system whose functions are defined at a module's
+            top level; an executor that pickles by value, as Dask's, takes lambdas too).
         **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, solver settings).
 
     Returns:
@@ -182,57 +264,34 @@ def calibrate_bands(
     absolute, relative = _state_noise(state_noise, trajectories, gp.dtype, gp.device)
     noisy = bool(absolute.any() or relative.any())
     seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
-    K = trajectories.num_experiments
-    experiments = trajectories.experiments()
-    values, _ = trajectories.observed_values()  # (K, T_max, d + m): the states and any readings
-    first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
-    held_out = []  # (fold model, [(y0 (B, d), times (B, T), observed (B, T, d), controls or None)])
+    executor = check_executor(executor)
     refinement = getattr(gp, "refinement_", None)
     if refinement is not None and not refit:  # conditioning keeps the hyperparameters: the term weights too
         refinement = {**refinement, "relevance": False}
-    bar = progress_bar(progress, 2 * folds, "calibrate: refit and predict each fold", "step")
-    fold_warnings: list[str] = []
-    for f in range(folds):
-        bar.update()
-        ks = [k for k in range(K) if k % folds == f]
-        keep = ~torch.isin(samples.experiment, torch.tensor(ks, device=samples.experiment.device))
-        sample_noise = None if samples.noise is None else samples.noise[keep]
-        try:
-            with warnings.catch_warnings(record=True) as caught:  # the folds' fits are ours: summarised below
-                warnings.simplefilter("always", NumericalWarning)
-                if refit:
-                    fold_gp = gp.clone(kernel=gp.kernel_spec)  # the kernel chosen, refitted
-                    fold_gp.fit(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
-                else:
-                    fold_gp = gp.condition(samples.inputs[keep], samples.targets[keep], noise=sample_noise)
-                if getattr(model, "parameters_", None) is not None and samples.basis is not None:  # G's theta too
-                    delta = model.parameters_.mean - model.parameters_.prior_mean
-                    rest = trajectories[[k for k in range(K) if k % folds != f]]
-                    fold_gp = fit_parameters(fold_gp, samples.subset(keep), system, rest, delta)[0]
-                if refinement is not None:  # the model was refined through the ODE: so is each fold, on its data
-                    rest = trajectories[[k for k in range(K) if k % folds != f]]
-                    found = getattr(fold_gp, "parameters_", None)  # G's theta: F refined at its mean, kept
-                    at = system if found is None else system.at(found.mean)
-                    fold_gp = fit_trajectories(fold_gp, at, rest, **refinement)
-                    if found is not None:
-                        fold_gp.parameters_ = found
-            fold_warnings += [str(w.message) for w in caught if issubclass(w.category, NumericalWarning)]
-            for w in caught:  # anything else reaches the user as it was
-                if not issubclass(w.category, NumericalWarning):
-                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-        except (FittingError, LinearAlgebraError, IntegrationError):
-            continue  # this fold cannot be held out (too few samples left); the others still calibrate
-        by_length: dict[int, list[int]] = {}
-        for k in ks:  # experiments of one length are integrated together
-            by_length.setdefault(experiments[k][0].shape[0], []).append(k)
-        batches = []
-        for group in by_length.values():
-            kd = dict(dtype=gp.dtype, device=gp.device)
-            times = torch.stack([experiments[k][0] for k in group]).to(**kd)
-            states = values[group, : times.shape[-1]].to(**kd)
-            controls = None if trajectories.controls is None else trajectories.controls[group]
-            batches.append((first[group].to(**kd), times, states, controls))
-        held_out.append((type(model)(system, fold_gp), batches))
+    common = dict(
+        model_type=type(model),
+        parameters=getattr(model, "parameters_", None),
+        system=system,
+        gp=gp,
+        trajectories=trajectories,
+        samples=samples,
+        folds=folds,
+        refit=refit,
+        refinement=refinement,
+        seed=seed,
+        num_samples=num_samples,
+        noisy=noisy,
+        posterior_options=posterior_options,
+    )
+    bar = progress_bar(progress, folds, "calibrate: refit and predict each fold", "fold")
+    results = map_tasks(_fold, [dict(common, fold=f) for f in range(folds)], executor, each=lambda _: bar.update())
+    bar.close()
+    fold_warnings = [m for r in results for m in r["numerical"]]
+    for message, category in (w for r in results for w in r["other"]):  # anything else reaches the user as it was
+        warn(message, category)
+    failed = next((r["failed"] for r in results if r["failed"] is not None), None)
+    if failed is not None:
+        raise FittingError(failed)
     if fold_warnings:
         warn(
             f"calibrate_bands: the refit of the GP on {len(fold_warnings)} fold(s) warned (first: "
@@ -241,45 +300,14 @@ def calibrate_bands(
             "CorrectionGP(max_iter=...) template) and calibrate again",
             NumericalWarning,
         )
+    held_out = [r for r in results if r["paths"] is not None]
     if not held_out:
-        bar.close()
         raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
     # the band the user's posterior.interval(level) draws from num_samples paths (times the noise draws)
     quantiles = band_quantiles(
         level, num_samples * (NOISE_DRAWS if noisy else 1), dtype=gp.dtype, device=gp.device, what="calibrate"
     )
-    # every held-out posterior is integrated once, with the GP's own draws; a scale c only rescales the paths'
-    # deviations from the mean path (CorrectedODE.posterior), so the coverage at any c is a few tensor operations
-    paths = []  # (mean path (B, T - 1, d), deviations (S, B, T - 1, d), noise draws z or None, observed)
-    for i, (fold_model, batches) in enumerate(held_out):
-        for j, (y0, times, observed, controls) in enumerate(batches):
-            gen = torch.Generator(device=gp.device).manual_seed(seed + 7919 * i + j)
-            with warnings.catch_warnings():  # held-out paths leave their fold's data by design: not the user's
-                warnings.simplefilter("ignore", TorchMisspecWarning)
-                try:
-                    post = fold_model.posterior(
-                        y0,
-                        times,
-                        num_samples=num_samples,
-                        generator=gen,
-                        scale=1.0,
-                        controls=controls,
-                        **posterior_options,
-                    )
-                except IntegrationError as exc:
-                    bar.close()
-                    raise FittingError(
-                        f"calibrate_bands: the held-out posterior paths of fold {i} fail ({exc})"
-                    ) from exc
-            mean = trajectories.observe(post.mean_path[:, 1:])  # every path starts at the first observed state
-            z = None
-            if noisy:  # NOISE_DRAWS noise draws per path: the band's quantiles of path + noise
-                z = torch.randn(
-                    (num_samples, NOISE_DRAWS, *mean.shape), generator=gen, dtype=mean.dtype, device=mean.device
-                )
-            paths.append((mean, trajectories.observe(post.samples[:, :, 1:]) - mean, z, observed[:, 1:]))
-        bar.update()
-    bar.close()
+    paths = [p for r in held_out for p in r["paths"]]  # (mean path, deviations, noise draws or None, observed)
     total = sum(int(torch.isfinite(obs).sum()) for *_, obs in paths)  # missing entries (NaN) are not compared
 
     def coverage(c: float) -> float:

@@ -374,9 +374,10 @@ class CorrectedODE(nn.Module):
 
         ``samples`` default to the ones :func:`~torchmisspec.fit_correction` recorded on the GP (``gp.samples_``).
         See :func:`torchmisspec.calibration.calibrate_bands` (the arguments after ``samples`` are its keywords:
-        ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator`` and options for
-        :meth:`posterior`, e.g. ``hyperparameters="laplace"``, which later calls should then use too). Costs one
-        GP fit per fold plus about ten held-out posteriors per fold.
+        ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator``, ``executor`` (the folds
+        through a ``concurrent.futures.Executor``) and options for :meth:`posterior`, e.g.
+        ``hyperparameters="laplace"``, which later calls should then use too). Costs one GP fit per fold plus about
+        ten held-out posteriors per fold.
 
         Returns:
             the :class:`~torchmisspec.calibration.BandCalibration`, also kept on the GP as ``gp.calibration_``

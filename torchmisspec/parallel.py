@@ -1,4 +1,5 @@
-"""Independent work through an executor: studies' realizations (and what else runs as independent tasks).
+"""Independent work through an executor: studies' realizations, the folds of :func:`~torchmisspec.calibrate_bands`,
+the chunks of a design's proxy trajectories.
 
 Any :class:`concurrent.futures.Executor` runs the tasks: a local process pool (:func:`process_pool`), a Dask
 cluster's ``Client.get_executor()``, Ray's ``ray.util`` executors. Results come back in the tasks' order, and every
@@ -33,13 +34,17 @@ def check_executor(executor) -> concurrent.futures.Executor | None:
     )
 
 
-def map_tasks(fn: Callable, tasks: Iterable, executor=None) -> list:
-    """``[fn(task) for task in tasks]``, through ``executor`` when one is given (results in the tasks' order)."""
+def map_tasks(fn: Callable, tasks: Iterable, executor=None, *, each: Callable | None = None) -> list:
+    """``[fn(task) for task in tasks]``, through ``executor`` when one is given (results in the tasks' order);
+    ``each(result)`` is called as each result arrives (a progress bar's update)."""
     executor = check_executor(executor)
     tasks = list(tasks)
-    if executor is None:
-        return [fn(task) for task in tasks]
-    return list(executor.map(fn, tasks))
+    results = []
+    for result in map(fn, tasks) if executor is None else executor.map(fn, tasks):
+        results.append(result)
+        if each is not None:
+            each(result)
+    return results
 
 
 def _one_thread() -> None:

@@ -26,6 +26,7 @@ from ..data import Trajectories
 from ..gp import CorrectionGP, _persistence
 from ..metrics import correction_error
 from ..observations import correction_samples
+from ..parallel import check_executor
 from ..signals import Controls
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
@@ -103,6 +104,8 @@ class Campaign:
         pilot: the first ``pilot`` experiments are drawn at random among the candidates (a pilot batch to learn
             hyperparameters from before designing); 0 designs from the first ask on.
         seed: seeds the pilot draws and the sample noise of ``tell``.
+        executor: a ``concurrent.futures.Executor`` for the designs' proxy trajectories (see
+            :func:`~torchmisspec.design.greedy`), or ``None``; not saved: set ``campaign.executor`` after ``load``.
 
     Attributes:
         gp: the current model: the prior before any data, then the GP fitted on every sample.
@@ -127,8 +130,10 @@ class Campaign:
         pilot: int = 0,
         seed: int = 0,
         controls=None,
+        executor=None,
     ) -> None:
         self.system = check_system(system, controls, with_controls=True)
+        self.executor = check_executor(executor)
         if system.parameters is not None:
             raise InputError(
                 f"system: '{system.name}' has uncertain parameters {list(system.parameters.names)}, and a Campaign "
@@ -276,6 +281,7 @@ class Campaign:
                 criterion=self.config["criterion"],
                 proxy=proxy,
                 controls=None if self.controls is None else self.controls[pool.tolist()],
+                executor=self.executor,
                 **domain,
             )
             picks += pool[plan.indices.cpu()].tolist()

@@ -47,6 +47,7 @@ from .._errors import InputError
 from .._threads import adaptive_threads
 from .._validation import check_positive_int, check_real, progress_bar
 from ..gp import CorrectionGP
+from ..parallel import check_executor
 from ..systems import MisspecifiedSystem
 from ._common import (
     DesignResult,
@@ -94,6 +95,7 @@ class _Problem:
         domain=None,
         domain_size=None,
         controls=None,
+        executor=None,
     ) -> None:
         if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
             raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
@@ -126,7 +128,8 @@ class _Problem:
                     "None (pass times=..., or proxies=(N, T, d))"
                 )
             self.times = check_times(times, **kd)
-            self.proxies = proxy_paths(proxy, self.system, gp, self.candidates.to(**kd), self.times, controls)
+            cands = self.candidates.to(**kd)
+            self.proxies = proxy_paths(proxy, self.system, gp, cands, self.times, controls, executor)
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)
@@ -423,6 +426,7 @@ def greedy(
     controls=None,
     epsilon: float = EPSILON,
     generator: torch.Generator | None = None,
+    executor=None,
 ) -> DesignResult:
     """Choose ``budget`` initial conditions among ``candidates`` maximising the proxy information gain.
 
@@ -499,6 +503,8 @@ def greedy(
             (``result.diagnostics["sample_size"]``); smaller is closer to lazy greedy and slower.
         generator: ``method="stochastic"`` only: the random draws (default: a generator seeded with 0, so a design
             is reproducible).
+        executor: a ``concurrent.futures.Executor`` that solves the proxy trajectories (chunks of ``PROXY_CHUNK``
+            candidates, :mod:`torchmisspec.parallel`), or ``None`` (here): the same design either way.
 
     Memory: ``"lazy"`` O(N T^2 + (K T)^2 + N T r) (r features when screening); ``"plain"`` O(N T^2 K), about
     ``8 N K T^2`` bytes, so 1.6 GB for N = 10,000, K = 50, T = 20; ``"naive"`` O(N T^2 + chunk).
@@ -534,7 +540,7 @@ def greedy(
     prob = _Problem(
         candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
         condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
-        controls=controls,
+        controls=controls, executor=check_executor(executor),
     )  # fmt: skip
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES

@@ -7,6 +7,7 @@ import torch
 from .._errors import InputError, IntegrationError, TorchMisspecWarning, warn
 from .._ode import SIMULATION_TOLERANCES
 from ..data import simulate
+from ..parallel import map_tasks
 from ..systems import MisspecifiedSystem
 from ._common import check_candidates, check_system, check_times
 
@@ -22,6 +23,24 @@ def corrected_proxies(
     """The corrected model's trajectories (G + the fitted GP's posterior mean) from ``y0 (N, d)`` (under
     ``controls``, one profile each, for a system with inputs): the proxies a design with data uses
     (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`)."""
+    out, failed = _corrected(system, gp, y0, times, controls)
+    _warn_failed(failed, y0.shape[0])
+    return out
+
+
+def _warn_failed(failed: list[int], n: int) -> None:
+    if failed:
+        warn(
+            f"corrected proxies: the corrected model (G + the GP's posterior mean) cannot be integrated from "
+            f"{len(failed)} of {n} candidates (e.g. {sorted(failed)[:5]}): far from the data the correction "
+            "is an extrapolation. Their proxies are the known model's alone (the paper's proxy); the design still "
+            "ranks them, by the information along G's trajectories",
+            TorchMisspecWarning,
+        )
+
+
+def _corrected(system, gp, y0: torch.Tensor, times: torch.Tensor, controls=None) -> tuple[torch.Tensor, list[int]]:
+    """The corrected proxies from ``y0`` and the rows where G's had to stand in (see :func:`corrected_proxies`)."""
     from ..dynamics import CorrectedODE
 
     model = CorrectedODE(system, gp)
@@ -71,16 +90,7 @@ def corrected_proxies(
                 pending = pending[keep]
         return torch.stack([out[row] for row in rows.tolist()])
 
-    out = solve(torch.arange(y0.shape[0], device=y0.device))
-    if failed:
-        warn(
-            f"corrected proxies: the corrected model (G + the GP's posterior mean) cannot be integrated from "
-            f"{len(failed)} of {y0.shape[0]} candidates (e.g. {sorted(failed)[:5]}): far from the data the correction "
-            "is an extrapolation. Their proxies are the known model's alone (the paper's proxy); the design still "
-            "ranks them, by the information along G's trajectories",
-            TorchMisspecWarning,
-        )
-    return out
+    return solve(torch.arange(y0.shape[0], device=y0.device)), failed
 
 
 def proxy_trajectories(
@@ -164,8 +174,40 @@ def choose_proxy(proxy: str | None, gp) -> str:
     return proxy
 
 
-def proxy_paths(proxy: str, system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor, controls=None):
-    """The ``proxy`` trajectories (:func:`choose_proxy`) from ``y0 (N, d)``: ``(N, T, d)``."""
+#: candidates per solve of a design's proxies: the solves of a large set are independent chunks (each its own
+#: adaptive steps; a candidate that blows up holds back only its chunk), run one after another or through an executor
+PROXY_CHUNK = 4096
+
+
+def proxy_paths(
+    proxy: str, system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor, controls=None, executor=None
+):
+    """The ``proxy`` trajectories (:func:`choose_proxy`) from ``y0 (N, d)``: ``(N, T, d)``. Solved in chunks of
+    :data:`PROXY_CHUNK` candidates (a linear autonomous G in one closed form), through ``executor`` when one is
+    given (a ``concurrent.futures.Executor``): the same numbers either way."""
+    if proxy == "known" and system.known_matrix is not None and system.autonomous:
+        return proxy_trajectories(system, y0, times, controls=controls)  # expm: no solver
+    n = y0.shape[0]
+    starts = range(0, n, PROXY_CHUNK)
+    tasks = [
+        (
+            proxy,
+            system,
+            gp,
+            y0[s : s + PROXY_CHUNK],
+            times,
+            None if controls is None else controls[list(range(s, min(s + PROXY_CHUNK, n)))],
+        )
+        for s in starts
+    ]
+    parts = map_tasks(_proxy_chunk, tasks, executor)
+    _warn_failed([s + row for s, (_, failed) in zip(starts, parts, strict=True) for row in failed], n)
+    return torch.cat([paths for paths, _ in parts])
+
+
+def _proxy_chunk(task) -> tuple[torch.Tensor, list[int]]:
+    """One chunk of :func:`proxy_paths` (a task for an executor): its paths and the rows where G's stood in."""
+    proxy, system, gp, y0, times, controls = task
     if proxy == "known":
-        return proxy_trajectories(system, y0, times, controls=controls)
-    return corrected_proxies(system, gp, y0, times, controls)
+        return proxy_trajectories(system, y0, times, controls=controls), []
+    return _corrected(system, gp, y0, times, controls)

@@ -54,6 +54,8 @@ def condition(gp, inputs, targets=None, *, noise=None):
         with torch.no_grad():
             new._floor(lik).noise = gp._floor(gp.likelihood).noise.detach().clone()
     new.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, Y.shape[1]).eval()
+    with torch.no_grad():
+        new.kernel_spec.prepare(new, X)  # what the kernel builds from the inputs (a feature space's features)
     new.n_iterations_, new.n_evaluations_, new.log_marginal_likelihood_ = 0, 0, None
     new._freeze()
     new.posterior()

@@ -224,8 +224,10 @@ class RBFFeatures(Kernel):
         return exact.n_iterations_, exact.n_evaluations_
 
     def prepare(self, gp, X):
-        """Every hyperparameter given: the features for them."""
-        self._features(gp, X, float(gp.fixed["lengthscale"]))
+        """Every hyperparameter given (or kept, by ``gp.condition``): the features for them on these inputs, so that
+        the certified bound holds where the new inputs are."""
+        ell = gp.fixed.get("lengthscale")
+        self._features(gp, X, float(gp.covar_module.base_kernel.lengthscale if ell is None else ell))
         return 0, 0
 
     def _features(self, gp, X: torch.Tensor, lengthscale: float) -> None:
