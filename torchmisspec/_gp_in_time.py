@@ -118,6 +118,11 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
     return _gp_time(states, times.expand(states.shape[0], -1), mask, max_iter)
 
 
+#: entries of the covariance matrices evaluated at once by the start grid of :func:`_gp_time` (its memory: many
+#: experiments of many times would otherwise hold every grid point's K T x T matrices together)
+GRID_BATCH_ENTRIES = 2**24
+
+
 def _gp_time(
     states: torch.Tensor,
     times: torch.Tensor,
@@ -175,11 +180,21 @@ def _gp_time(
     ells = torch.logspace(math.log10(dt_min), math.log10(2 * span), 10, dtype=torch.float64, device=device)
     noises = torch.tensor([1e-8, 1e-5, 1e-3, 1e-1], dtype=torch.float64, device=device)
     grid = torch.cartesian_prod(ells.log(), noises.log())  # (G, 2)
-    with torch.no_grad():  # all G grid points x d components in one batch
+    with torch.no_grad():  # the G grid points x d components in batches of about GRID_BATCH_ENTRIES matrix entries
         G = grid.shape[0]
         p = torch.cat([grid[:, :1], torch.zeros_like(grid[:, :1]), grid[:, 1:]], -1).repeat_interleave(d, 0)
-        grid_pair = None if pair is None else pair.repeat(G, 1, 1, 1)
-        values_ = _gp_neg_mll(t, z.repeat(G, 1, 1), p, grid_pair).view(G, d)  # inf where a factorization failed
+        step = max(1, GRID_BATCH_ENTRIES // (d * K * T * T))
+        values_ = torch.cat(
+            [
+                _gp_neg_mll(
+                    t,
+                    z.repeat(min(step, G - g0), 1, 1),
+                    p[g0 * d : (g0 + step) * d],
+                    None if pair is None else pair.repeat(min(step, G - g0), 1, 1, 1),
+                )
+                for g0 in range(0, G, step)
+            ]
+        ).view(G, d)  # inf where a factorization failed
         start = p.view(G, d, 3)[values_.argmin(0), torch.arange(d, device=device)]  # (d, 3)
     log_params = start.clone().requires_grad_(True)
     lo = torch.tensor([math.log(dt_min / 4), -12.0, -30.0], dtype=torch.float64, device=device)

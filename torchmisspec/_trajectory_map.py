@@ -501,15 +501,16 @@ def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) 
     ``phi(x)^T beta``: with C the training covariance, ``Y_o = C Phi_a (Phi_a^T Phi_a)^-1 W_a^-1 beta_a`` over the
     active terms a of output o (then ``W_a Phi_a^T C^-1 Y_o = beta_a``)."""
     X = gp.train_inputs_
-    C = gp.posterior().training_covariance()  # (B, N, N)
-    Y = torch.zeros((X.shape[0], beta.shape[1]), dtype=beta.dtype, device=beta.device)
+    posterior = gp.posterior()
+    V = torch.zeros((X.shape[0], beta.shape[1]), dtype=beta.dtype, device=beta.device)
     for o in range(beta.shape[1]):
         act = W[:, o] > 0
-        if not bool(act.any()):
-            continue
-        P = Phi[:, act]
-        Y[:, o] = C[o if C.shape[0] > 1 else 0] @ (P @ torch.linalg.solve(P.T @ P, beta[act, o] / W[act, o]))
-    return Y
+        if bool(act.any()):
+            P = Phi[:, act]
+            V[:, o] = P @ torch.linalg.solve(P.T @ P, beta[act, o] / W[act, o])
+    B = posterior.factor.alpha.shape[0]  # one C per output, or one shared: C_o V_o (feature space: never formed)
+    CV = posterior.training_covariance_times(V.T.unsqueeze(-1) if B > 1 else V.unsqueeze(0))
+    return CV.squeeze(-1).T if B > 1 else CV[0]
 
 
 class _TrialDiverged(Exception):

@@ -410,6 +410,10 @@ class FeatureFactorization:
         """``C^-1 V`` for ``V (B, N, k)`` (Woodbury, from the factors kept at construction)."""
         return self._solve(V)[0]
 
+    def times(self, V: torch.Tensor) -> torch.Tensor:
+        """``C V = Phi (W (Phi^T V)) + D V`` for ``V (B, N, k)``, without forming C (O(N p k))."""
+        return self._Phi @ (self._W.unsqueeze(-1) * (self._Phi.T @ V)) + self._D.unsqueeze(-1) * V
+
     @property
     def chol(self) -> torch.Tensor:
         """The dense ``(B, N, N)`` Cholesky factor of C, built on first access (O(N^3)); refused above

@@ -339,6 +339,13 @@ class Posterior:
         """``num_samples`` posterior draws of F as whole functions: :meth:`CorrectionGP.sample_functions`."""
         return self._gp.sample_functions(num_samples, **options)
 
+    def training_covariance_times(self, V: torch.Tensor) -> torch.Tensor:
+        """``C V`` for ``V (B, N, k)``, C = K + diag(noise) at the training inputs (B as for
+        :meth:`training_covariance`): in feature space without forming C, else with the dense C."""
+        if isinstance(self.factor, FeatureFactorization):
+            return self.factor.times(V)
+        return self.training_covariance() @ V
+
     def training_covariance(self) -> torch.Tensor:
         """C = K + diag(noise) at the training inputs: ``(B, N, N)`` (B = 1 when the outputs share it)."""
         gp = self._gp
