@@ -155,7 +155,7 @@ def test_fit_trajectories_bad_shooting_and_state_noise(linear_noisy):
 
 
 def test_student_t_quantiles_and_the_critical_value():
-    from torchmisspec.learning import CrossValidation, student_t_quantile
+    from torchmisspec.cross_validation import CrossValidation, student_t_quantile
 
     # reference values of the 97.5 % quantile (standard tables)
     for df, value in ((1, 12.706), (2, 4.303), (3, 3.182), (4, 2.776), (9, 2.262), (29, 2.045), (1000, 1.962)):
@@ -222,9 +222,9 @@ def test_given_candidates_are_never_silently_replaced(one_thread, monkeypatch):
     with pytest.raises(tms.InputError, match="non-empty list of CorrectionGP templates, got an empty list"):
         tms.fit_correction(one, system, candidates=[], derivative="oracle")
     many = tms.simulate(system, torch.tensor([[0.5, -0.3], [0.2, 0.4], [-0.5, 0.1]], dtype=DT), t)
-    from torchmisspec import learning
+    from torchmisspec import cross_validation
 
-    monkeypatch.setattr(learning, "_held_out_errors", _fail_held_out)
+    monkeypatch.setattr(cross_validation, "_held_out_errors", _fail_held_out)
     with pytest.warns(tms.TorchMisspecWarning, match="every candidate failed cross-validation.*polynomial"):
         gp = tms.fit_correction(many, system, candidates=[poly], derivative="oracle")
     assert gp.kernel == "polynomial" and gp.cross_validation_.scores == (float("inf"),)

@@ -80,12 +80,14 @@ def test_calibration_folds_in_a_process_pool_give_the_serial_result():
         assert tms.calibrate_bands(model, data, samples, executor=pool, **options) == serial
 
 
-def _gravity_design_case():
+def _nonlinear_design_case():
     import torch
 
-    system = tms.systems.paper_gravity()
+    from torchmisspec.benchmarks.default_fit import predator_prey  # a nonlinear G, module-level (picklable)
+
+    system = predator_prey()
     candidates = tms.design.candidates.uniform_box(30, system.domain, generator=torch.Generator().manual_seed(2))
-    times = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    times = torch.linspace(0.0, 4.0, 6, dtype=torch.float64)
     gp = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-2, noise_variance=1e-4)
     return system, candidates, times, gp
 
@@ -97,7 +99,7 @@ def test_design_proxies_in_chunks_through_an_executor_give_the_serial_design(mon
 
     from torchmisspec.design import _proxy
 
-    system, candidates, times, gp = _gravity_design_case()
+    system, candidates, times, gp = _nonlinear_design_case()
     whole = _proxy.proxy_paths("known", system, gp, candidates, times)
     monkeypatch.setattr(_proxy, "PROXY_CHUNK", 7)
     chunked = _proxy.proxy_paths("known", system, gp, candidates, times)
@@ -117,7 +119,7 @@ def test_design_proxies_in_chunks_through_an_executor_give_the_serial_design(mon
 def test_design_proxies_in_a_process_pool_give_the_serial_design(monkeypatch):
     from torchmisspec.design import _proxy
 
-    system, candidates, times, gp = _gravity_design_case()
+    system, candidates, times, gp = _nonlinear_design_case()
     monkeypatch.setattr(_proxy, "PROXY_CHUNK", 10)  # the workers import their own (4096): the chunks are made here
     serial = tms.design.greedy(candidates, 4, system=system, times=times, gp=gp)
     with process_pool(2) as pool:

@@ -138,3 +138,23 @@ def test_condition_is_the_one_conditioning_path_for_given_and_fitted_hyperparame
     assert not hasattr(given, "fixed_copy")  # one path: fit learns what is not given, condition learns nothing
     with pytest.raises(tms.NotFittedError, match=r"condition: expected a fitted GP.*\['lengthscale'\]"):
         tms.CorrectionGP(outputscale=0.5, noise_variance=1e-4).condition(X, Y)
+
+
+@pytest.mark.parametrize(
+    "template",
+    [
+        lambda: tms.CorrectionGP(lengthscale=0.7, outputscale=0.5, noise_variance=1e-3),
+        lambda: tms.CorrectionGP(kernel="features", degree=2, per_output=True),
+        lambda: tms.CorrectionGP(kernel="rbf-features", lengthscale=0.7, outputscale=0.5, noise_variance=1e-3),
+    ],
+    ids=["rbf", "features per output", "rbf-features"],
+)
+def test_training_covariance_times_is_the_dense_product(template):
+    """C V without forming C in feature space: the product with the dense C (known noise per sample included)."""
+    X, Y = data(n=30)
+    noise = torch.linspace(1e-4, 1e-3, 30, dtype=DT).unsqueeze(-1).expand(30, 2).contiguous()
+    gp = template().fit(X, Y, noise=noise)
+    post = gp.posterior()
+    B = post.factor.alpha.shape[0]
+    V = torch.randn(B, 30, 3, generator=torch.Generator().manual_seed(1), dtype=DT)
+    torch.testing.assert_close(post.training_covariance_times(V), post.training_covariance() @ V, rtol=1e-12, atol=0)

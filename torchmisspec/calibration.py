@@ -53,9 +53,9 @@ from ._errors import (
 from ._gp_in_time import estimate_observed_noise
 from ._parameters_ode import fit_parameters
 from ._validation import as_tensor, check_flag, check_positive_int, check_real, progress_bar
+from .cross_validation import _check_cv_inputs
 from .data import Trajectories
 from .gp._calibration import BandCalibration
-from .learning import _check_cv_inputs
 from .observations import CorrectionSamples, _check_trajectories_and_system
 from .parallel import check_executor, map_tasks
 from .trajectory_fit import fit_trajectories

@@ -131,8 +131,8 @@ def run(args) -> int:
         run_sentence(args),
         "`fit_correction(data, system)` with its defaults on K ragged cultures of a predator-prey system the package "
         "does not ship (60-89 irregular times each, 1 % noise), each size in a fresh process; the earlier version "
-        "(every candidate fitted on all samples, torchdiffeq's output loop) in the same run where it finishes in "
-        "minutes.",
+        "(every candidate fitted on all samples, torchdiffeq's output loop on the union of the cultures' times; the "
+        "memory fixes of the same day in both) in the same run where it finishes in minutes.",
         "",
         *lines(rows),
     ]
