@@ -29,7 +29,7 @@ from .reporting import peak_rss_mb, publish, run_sentence, run_worker, worker_ma
 MARK_START = "<!-- bench:default-fit:start -->"
 MARK_END = "<!-- bench:default-fit:end -->"
 FULL = {"cultures": [20, 60, 200], "before": [20]}
-SMOKE = {"cultures": [5], "before": [5]}
+SMOKE = {"cultures": [3], "before": [3]}
 DOMAIN = ((0.0, 3.0), (0.0, 2.0))
 
 
