@@ -117,3 +117,21 @@ def test_long_grids_interpolate_each_step_at_once_with_torchdiffeqs_numbers(meth
     (g_ours,) = torch.autograd.grad(ours.square().sum(), y0)
     (g_theirs,) = torch.autograd.grad(theirs.square().sum(), y0)
     torch.testing.assert_close(g_ours, g_theirs, rtol=1e-10, atol=0.0)  # sums of the same terms, in another order
+
+
+def test_a_row_that_leaves_the_box_stops_there_and_the_others_are_solved_as_alone():
+    """solve(box=...): a row whose state leaves the box stops just outside it (its derivative is 0 from then on),
+    so it does not hold back the batch; the other rows get what they get solved without it."""
+    from torchmisspec._ode import solve
+
+    growth = torch.tensor([[3.0], [-0.5], [0.2]], dtype=DT)  # y' = a y: the first leaves [-2, 2] near t = 0.23
+
+    def field(y):
+        return growth.to(y) * y
+
+    y0 = torch.ones(3, 1, dtype=DT)
+    times = torch.linspace(0, 2, 9, dtype=DT)
+    box = (torch.tensor([-2.0], dtype=DT), torch.tensor([2.0], dtype=DT))
+    states, _ = solve(field, y0, times, box=box)
+    assert bool((states[0, 1:] > 2).all()) and float(states[0, -1]) < 2.5  # stopped just outside, not e^6
+    torch.testing.assert_close(states[1:, :, 0], torch.exp(growth[1:] * times), rtol=1e-6, atol=1e-9)

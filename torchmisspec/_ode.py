@@ -100,9 +100,11 @@ class _Autonomous(torch.nn.Module):
         what: str,
         span: float,
         offsets: torch.Tensor | None = None,
+        box: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> None:
         super().__init__()
         self.field = field
+        self.box = box  # (lo, hi): a row whose state leaves the box stops (its derivative is 0 from then on)
         self.offsets = offsets  # a timed field: every row's own time is the solver's time plus its offset
         self.nfe = 0
         self.max_evals = max_evals
@@ -129,6 +131,9 @@ class _Autonomous(torch.nn.Module):
                 f"{self.what}: the right-hand side must return one derivative per state, shape {tuple(y.shape)}, "
                 f"got {shape}; check that G (and F) map states (..., d) to (..., d)"
             )
+        if self.box is not None:
+            out = ((y < self.box[0]) | (y > self.box[1])).any(-1, keepdim=True)
+            f = torch.where(out, torch.zeros((), dtype=f.dtype, device=f.device), f)
         self.last_t, self.last_y, self.last_f = t, y, f
         return f
 
@@ -232,6 +237,7 @@ def solve(
     label: Callable[[int], str] | None = None,
     timed: bool = False,
     jumps: torch.Tensor | None = None,
+    box: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, int]:
     """Integrate dy/dt = field(y) from ``y0 (B, d)`` given at ``times[..., 0]``.
 
@@ -247,6 +253,9 @@ def solve(
             method and under ``python -O``).
         label: names batch row i in error messages (e.g. ``"sample 3 of initial condition 7"``); default: the
             row index.
+        box: ``(lo, hi)`` bounds ``(d,)``: a row whose state leaves them stops there (its derivative is set to 0),
+            so that a trajectory that blows up does not hold back the batch's steps; its states from then on lie
+            outside the box (the caller finds such rows there).
 
     Returns:
         states ``(B, T, d)`` and the number of right-hand-side evaluations.
@@ -281,7 +290,7 @@ def solve(
         rel = times - times[:, :1]
         grid = torch.stack([rel.min(), rel.max()])  # the span
         offsets = times[:, 0]
-    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0, offsets.detach() if timed else None)
+    func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0, offsets.detach() if timed else None, box)
     if timed and jumps is not None and method in _JUMPING:
         inner = jumps.to(grid).reshape(1, -1) - offsets.detach().to(grid).reshape(-1, 1)
         inner = torch.unique(inner[(inner > grid[0]) & (inner < grid[-1])])

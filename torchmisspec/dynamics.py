@@ -136,6 +136,11 @@ class CorrectedODE(nn.Module):
         solver (torchdiffeq's direct backpropagation), so ``states.sum().backward()`` gives sensitivities.
         Otherwise no graph is built.
         """
+        return self._solve(y0, times, controls, method=method, rtol=rtol, atol=atol, options=options,
+                           max_steps=max_steps)  # fmt: skip
+
+    def _solve(self, y0, times, controls, *, box=None, **solver) -> torch.Tensor:
+        """:meth:`predict`'s solve; ``box`` stops the rows that leave it (:func:`torchmisspec._ode.solve`)."""
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
@@ -151,17 +156,7 @@ class CorrectedODE(nn.Module):
         field, timed, jumps = self.system.solver_field(rhs, controls)
         with torch.set_grad_enabled(_wants_graph(y0, times) or hyper):
             states, self.nfe = solve(
-                field,
-                y0,
-                times,
-                method=method,
-                rtol=rtol,
-                atol=atol,
-                options=options,
-                max_steps=max_steps,
-                what="CorrectedODE.predict",
-                timed=timed,
-                jumps=jumps,
+                field, y0, times, what="CorrectedODE.predict", timed=timed, jumps=jumps, box=box, **solver
             )
         return states
 

@@ -45,7 +45,7 @@ import torch
 
 from .._errors import InputError
 from .._threads import adaptive_threads
-from .._validation import check_positive_int, check_real, progress_bar
+from .._validation import check_flag, check_positive_int, check_real, progress_bar
 from ..gp import CorrectionGP
 from ..parallel import check_executor
 from ..systems import MisspecifiedSystem
@@ -96,6 +96,7 @@ class _Problem:
         domain_size=None,
         controls=None,
         executor=None,
+        progress=False,
     ) -> None:
         if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
             raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
@@ -129,7 +130,7 @@ class _Problem:
                 )
             self.times = check_times(times, **kd)
             cands = self.candidates.to(**kd)
-            self.proxies = proxy_paths(proxy, self.system, gp, cands, self.times, controls, executor)
+            self.proxies = proxy_paths(proxy, self.system, gp, cands, self.times, controls, executor, progress)
         else:
             self.times = None if times is None else check_times(times, **kd)
             self.proxies = check_proxies(proxies, n, self.system, self.times, **kd)
@@ -467,7 +468,7 @@ def greedy(
         capacities: most picks per region: a mapping label -> count, or a sequence indexed by label.
         proxies: optional ``(N, T, d)`` trajectories to use instead of :func:`proxy_trajectories` (e.g. the
             agnostic design passes the constant trajectories).
-        progress: show a tqdm progress bar over the picks.
+        progress: show tqdm progress bars over the proxies' chunks (many candidates) and the picks.
         batch_size: lazy greedy's first batch of re-evaluations per pick (doubling while needed; same picks for
             any value).
         tie_tol: relative tolerance under which two gains tie; ties go to the lowest candidate index.
@@ -540,7 +541,7 @@ def greedy(
     prob = _Problem(
         candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
         condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
-        controls=controls, executor=check_executor(executor),
+        controls=controls, executor=check_executor(executor), progress=check_flag(progress, "progress"),
     )  # fmt: skip
     if screen == "auto":
         screen = prob.n >= SCREEN_MIN_CANDIDATES

@@ -6,6 +6,7 @@ import torch
 
 from .._errors import InputError, IntegrationError, TorchMisspecWarning, warn
 from .._ode import SIMULATION_TOLERANCES
+from .._validation import progress_bar
 from ..data import simulate
 from ..parallel import map_tasks
 from ..systems import MisspecifiedSystem
@@ -22,25 +23,43 @@ def corrected_proxies(
 ) -> torch.Tensor:
     """The corrected model's trajectories (G + the fitted GP's posterior mean) from ``y0 (N, d)`` (under
     ``controls``, one profile each, for a system with inputs): the proxies a design with data uses
-    (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`)."""
-    out, failed = _corrected(system, gp, y0, times, controls)
+    (:func:`~torchmisspec.design.greedy` with ``proxy="corrected"``, :func:`proxy_check`). Where the corrected
+    model blows up from a candidate (its solve fails, or its trajectory leaves :func:`escape_box`), G's proxy stands
+    in, with a warning."""
+    out, failed = _corrected(system, gp, y0, times, controls, escape_box(y0))
     _warn_failed(failed, y0.shape[0])
     return out
+
+
+#: a corrected proxy that leaves the candidates' box widened by this many times its width on each side is taken as
+#: blowing up (the solve stops it there, and G's proxy stands in): far outside every candidate the posterior mean is
+#: an extrapolation, and such a row would otherwise hold back its batch's steps until the solver gives up
+ESCAPE_WIDTHS = 10.0
+
+
+def escape_box(y0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lo, hi)`` ``(d,)``: the box of the candidates ``y0 (N, d)`` widened by :data:`ESCAPE_WIDTHS` times its
+    width on each side (a width of at least a tenth of the component's size where the candidates do not vary)."""
+    lo, hi = y0.min(0).values, y0.max(0).values
+    width = (hi - lo).clamp_min(0.1 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-9)
+    return lo - ESCAPE_WIDTHS * width, hi + ESCAPE_WIDTHS * width
 
 
 def _warn_failed(failed: list[int], n: int) -> None:
     if failed:
         warn(
-            f"corrected proxies: the corrected model (G + the GP's posterior mean) cannot be integrated from "
-            f"{len(failed)} of {n} candidates (e.g. {sorted(failed)[:5]}): far from the data the correction "
-            "is an extrapolation. Their proxies are the known model's alone (the paper's proxy); the design still "
-            "ranks them, by the information along G's trajectories",
+            f"corrected proxies: the corrected model (G + the GP's posterior mean) blows up from {len(failed)} of "
+            f"{n} candidates (e.g. {sorted(failed)[:5]}: its solve fails, or leaves the candidates' box widened "
+            f"{ESCAPE_WIDTHS:g} times its width): far from the data the correction is an extrapolation. Their "
+            "proxies are the known model's alone (the paper's proxy); the design still ranks them, by the "
+            "information along G's trajectories",
             TorchMisspecWarning,
         )
 
 
-def _corrected(system, gp, y0: torch.Tensor, times: torch.Tensor, controls=None) -> tuple[torch.Tensor, list[int]]:
-    """The corrected proxies from ``y0`` and the rows where G's had to stand in (see :func:`corrected_proxies`)."""
+def _corrected(system, gp, y0: torch.Tensor, times: torch.Tensor, controls, box) -> tuple[torch.Tensor, list[int]]:
+    """The corrected proxies from ``y0`` and the rows where G's had to stand in (see :func:`corrected_proxies`): those
+    whose solve fails, and those that leave ``box`` (:func:`escape_box`)."""
     from ..dynamics import CorrectedODE
 
     model = CorrectedODE(system, gp)
@@ -48,7 +67,16 @@ def _corrected(system, gp, y0: torch.Tensor, times: torch.Tensor, controls=None)
 
     def one(rows: torch.Tensor) -> torch.Tensor:
         u = None if controls is None else controls[rows.tolist()]
-        return model.predict(y0[rows], times, rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1], controls=u)
+        tol = dict(rtol=PROXY_TOLERANCES[0], atol=PROXY_TOLERANCES[1])
+        with torch.no_grad():
+            paths = model._solve(y0[rows], times, u, box=box, **tol)
+        lo, hi = (b.to(paths) for b in box)
+        left = ((paths < lo) | (paths > hi)).flatten(1).any(-1).nonzero().flatten()
+        if left.numel():  # stopped at the box: G's proxy stands in
+            gone = rows[left]
+            failed.extend(gone.tolist())
+            paths[left] = proxy_trajectories(system, y0[gone], times, controls=None if u is None else u[left.tolist()])
+        return paths
 
     def alone(row: int) -> torch.Tensor:
         """One candidate's corrected proxy, or G's where the corrected model cannot be integrated from it."""
@@ -180,14 +208,22 @@ PROXY_CHUNK = 4096
 
 
 def proxy_paths(
-    proxy: str, system: MisspecifiedSystem, gp, y0: torch.Tensor, times: torch.Tensor, controls=None, executor=None
+    proxy: str,
+    system: MisspecifiedSystem,
+    gp,
+    y0: torch.Tensor,
+    times: torch.Tensor,
+    controls=None,
+    executor=None,
+    progress: bool = False,
 ):
     """The ``proxy`` trajectories (:func:`choose_proxy`) from ``y0 (N, d)``: ``(N, T, d)``. Solved in chunks of
     :data:`PROXY_CHUNK` candidates (a linear autonomous G in one closed form), through ``executor`` when one is
-    given (a ``concurrent.futures.Executor``): the same numbers either way."""
+    given (a ``concurrent.futures.Executor``): the same numbers either way; ``progress``: a bar over the chunks."""
     if proxy == "known" and system.known_matrix is not None and system.autonomous:
         return proxy_trajectories(system, y0, times, controls=controls)  # expm: no solver
     n = y0.shape[0]
+    box = escape_box(y0)  # of all the candidates: every chunk stops its rows at the same box
     starts = range(0, n, PROXY_CHUNK)
     tasks = [
         (
@@ -197,17 +233,19 @@ def proxy_paths(
             y0[s : s + PROXY_CHUNK],
             times,
             None if controls is None else controls[list(range(s, min(s + PROXY_CHUNK, n)))],
+            box,
         )
         for s in starts
     ]
-    parts = map_tasks(_proxy_chunk, tasks, executor)
+    with progress_bar(progress and len(tasks) > 1, len(tasks), f"design: {proxy} proxies (N={n})", "chunk") as bar:
+        parts = map_tasks(_proxy_chunk, tasks, executor, each=lambda _: bar.update())
     _warn_failed([s + row for s, (_, failed) in zip(starts, parts, strict=True) for row in failed], n)
     return torch.cat([paths for paths, _ in parts])
 
 
 def _proxy_chunk(task) -> tuple[torch.Tensor, list[int]]:
     """One chunk of :func:`proxy_paths` (a task for an executor): its paths and the rows where G's stood in."""
-    proxy, system, gp, y0, times, controls = task
+    proxy, system, gp, y0, times, controls, box = task
     if proxy == "known":
         return proxy_trajectories(system, y0, times, controls=controls), []
-    return _corrected(system, gp, y0, times, controls)
+    return _corrected(system, gp, y0, times, controls, box)
