@@ -458,6 +458,18 @@ def test_predict_and_design_refuse_states_named_otherwise_than_the_model(lab, la
     assert main(_lab(lab, "predict", *base, *extra, "--out", str(tmp_path / "p.csv"))) == 0
     header, rows = _table(tmp_path / "p.csv")
     assert header[2] == "biomass_mean" and float(rows[0][2]) == 0.2 and float(rows[0][5]) == 0.8
+    # every state by its name: the other columns are not states; one of them (a lab's sample IDs) labels the rows
+    (tmp_path / "ids.csv").write_text("culture,substrate,biomass\nA7,0.8,0.2\n")
+    assert (
+        main(_lab(lab, "predict", *base, "--initial", str(tmp_path / "ids.csv"), "--out", str(tmp_path / "q.csv"))) == 0
+    )
+    header, rows = _table(tmp_path / "q.csv")
+    assert rows[0][0] == "A7" and float(rows[0][2]) == 0.2 and float(rows[0][5]) == 0.8
+    assert (
+        main(_lab(lab, "predict", *base, "--initial", str(tmp_path / "extra.csv"), "--out", str(tmp_path / "r.csv")))
+        == 0
+    )
+    assert float(_table(tmp_path / "r.csv")[1][0][2]) == 0.2
     design = ("--candidates", str(tmp_path / "renamed.csv"), "--times", "0:10:3", "--budget", "1")
     assert main(_lab(lab, "design", "--model", str(lab_model), *design, "--out", str(tmp_path / "d.csv"))) == 2
     assert "the columns give ['a', 'b']" in capsys.readouterr().err

@@ -164,7 +164,7 @@ def test_an_rbf_gp_moves_to_the_feature_space_above_large_n_and_back():
     assert gp.kernel == "rbf"
     assert tms.CorrectionGP(exact=False).fit(x[:300], y[:300]).kernel == "rbf-features"
     with pytest.raises(tms.InputError, match="exact: expected None or True for this kernel"):
-        tms.CorrectionGP(kernel="matern52", exact=False)
+        tms.CorrectionGP(kernel="polynomial", exact=False)
     with pytest.raises(tms.InputError, match="exact: expected True, False or None"):
         tms.CorrectionGP(exact="yes")
 
@@ -200,3 +200,38 @@ def test_conditioning_rebuilds_the_features_for_the_new_inputs():
     refit = tms.CorrectionGP(kernel="rbf-features", **FIXED).fit(2 * x, y)
     t = torch.rand(20, 2, generator=torch.Generator().manual_seed(4), dtype=DT) * 4 - 2
     torch.testing.assert_close(wide.predict_mean(t), refit.predict_mean(t), rtol=1e-9, atol=1e-12)
+
+
+def _matern52(a, b, lengthscale, outputscale):
+    r = np.sqrt(5.0 * ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)) / lengthscale
+    return outputscale * (1 + r + r**2 / 3) * np.exp(-r)
+
+
+def test_matern_features_stay_within_their_certified_bound_and_match_the_exact_gp(tmp_path):
+    """The Matern 5/2 kernel in feature space (Nystrom pivots): the kernel within the bound at the training inputs
+    (against the closed form), the error of F within 5 % of the exact GP's on the same samples, above LARGE_N by
+    default, and saved and loaded with its features."""
+    from torchmisspec.gp._large import LARGE_N
+
+    x, y = _samples(600)
+    gp = tms.CorrectionGP(kernel="matern52", exact=False, lengthscale=0.8, outputscale=4e-5, noise_variance=1e-6)
+    gp.fit(x, y)
+    info = gp.approximation
+    assert (
+        gp.kernel == "matern52-features" and info["kind"] == "nystrom" and info["bound_holds_on"] == "training inputs"
+    )
+    exact = _matern52(x.numpy(), x.numpy(), 0.8, 4e-5)
+    assert np.abs(gp.covariance(x).numpy() - exact).max() / 4e-5 <= info["error_bound"] <= 0.1 * 1e-6 / 4e-5 * 1.01
+    fitted = tms.CorrectionGP(kernel="matern52", exact=False).fit(x, y)
+    reference = tms.CorrectionGP(kernel="matern52").fit(x, y)
+    assert reference.kernel == "matern52" and reference.approximation is None
+    assert tms.correction_error(fitted, SYSTEM) <= 1.05 * tms.correction_error(reference, SYSTEM)
+    again = tms.CorrectionGP.load(fitted.save(tmp_path / "matern.pt"))
+    t = torch.rand(30, 2, generator=torch.Generator().manual_seed(3), dtype=DT) * 2 - 1
+    torch.testing.assert_close(again.predict_mean(t), fitted.predict_mean(t), rtol=1e-9, atol=1e-13)
+    assert again.approximation == fitted.approximation
+    big_x, big_y = _samples(LARGE_N + 50)
+    given = dict(lengthscale=0.8, outputscale=4e-5, noise_variance=1e-6)
+    assert tms.CorrectionGP(kernel="matern52", **given).fit(big_x, big_y).kernel == "matern52-features"
+    with pytest.raises(tms.InputError, match="exact: expected None or False with kernel 'matern52-features'"):
+        tms.CorrectionGP(kernel="matern52-features", exact=True)

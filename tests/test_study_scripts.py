@@ -57,6 +57,8 @@ def test_benchmark_smokes():
     out = _script("benchmark_large_fit.py", "--smoke")
     assert "| 600 |" in out and "| paper_linear | CorrectionGP() (rbf-features) | 5000 |" in out
     assert "GPyTorch SGPR" in out
+    out = _script("benchmark_large_fit.py", "--smoke", "--kernel", "matern52")
+    assert "(matern52-features) | 5000 |" in out and "nystrom" in out
     out = _script("benchmark_default_fit.py", "--smoke")
     assert "| 3 | " in out and "| now |" in out and "| before (all samples, one-by-one output) |" in out
     out = _script("benchmark_gpu.py", "--smoke")  # the CPU rows alone where there is no GPU

@@ -180,7 +180,8 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
     A CSV/TSV/TXT with a header row is read by name with the column options: ``--state-columns`` (default: every
     column but the experiment column), ``--experiment-column`` (optional: the rows' labels, else 0..N-1); a time
     column is refused (one state per row, not trajectories). ``known``: the states' names (the system's or the
-    model's); a header holding them all is read by them, in the system's order, whatever the columns' order. Without a
+    model's); a header holding them all is read by them, in the system's order, whatever the columns' order, and a
+    single other column (such as a sample ID) labels the rows when there is no experiment column. Without a
     header, or from .npy/.npz, every column is a state, in the system's order."""
     import torch
 
@@ -212,10 +213,15 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                     "drop it (or rename it if it is a state)"
                 )
             wanted = state_columns(args)
+            label_column = args.experiment_column
             if wanted is None and known is not None and all(c in header for c in known if c is not None):
                 others = [c for c in header if c != args.experiment_column and c not in known]
                 if known.count(None) == len(others) <= 1:  # one unnamed state at most: the one column left
                     wanted = [others.pop() if c is None else c for c in known]
+                elif None not in known:  # every state by its name: another column labels the rows (a lab's IDs)
+                    wanted = list(known)
+                    if args.experiment_column not in header and len(others) == 1:
+                        label_column = others[0]
             if wanted is None:
                 wanted = [c for c in header if c != args.experiment_column]
             missing = [c for c in wanted if c not in header]
@@ -225,8 +231,8 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                     "(set --state-columns)"
                 )
             names, columns = wanted, [header.index(c) for c in wanted]
-            if args.experiment_column and args.experiment_column in header:
-                e = header.index(args.experiment_column)
+            if label_column and label_column in header:
+                e = header.index(label_column)
                 labels = [row[e] if e < len(row) else "" for row in body]
         rows = []
         for k, row in enumerate(body, start=2 if header is not None else 1):

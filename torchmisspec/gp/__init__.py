@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from ._exact import log_positive
 from ._kernels import RBF, Features, FeaturesRBF, Kernel, Matern52, Polynomial, Stationary, register
-from ._large import RBFFeatures
+from ._large import Matern52Features, RBFFeatures
 from ._model import KERNELS, CorrectionGP
 from ._posterior import GPPosterior, Posterior
 
@@ -38,6 +38,7 @@ __all__ = [
     "Features",
     "FeaturesRBF",
     "RBFFeatures",
+    "Matern52Features",
     "register",
     "log_positive",
 ]

@@ -38,7 +38,7 @@ from .._validation import check_positive_int
 from ._kernels import Kernel, register
 from ._quadrature import _check_error
 
-__all__ = ["RBFFeatures", "RBFFeatureModule", "SUBSAMPLE", "LARGE_N", "MAX_FEATURES"]
+__all__ = ["RBFFeatures", "Matern52Features", "RBFFeatureModule", "SUBSAMPLE", "LARGE_N", "MAX_FEATURES"]
 
 #: Above this many samples ``CorrectionGP(kernel="rbf")`` is fitted in the feature space (``exact=None``): where the
 #: exact fit becomes slower than the subsample's fit plus the features (BENCHMARKS.md, ``benchmark_large_fit.py``).
@@ -48,6 +48,8 @@ SUBSAMPLE = 2000
 #: Most features (memory 8 N p bytes for N samples: 1.6 GB at N = 10^5).
 MAX_FEATURES = 2048
 _KINDS = ("quadrature", "random", "nystrom")
+#: the kernels the Nystrom features compute (the quadrature rule is the RBF's)
+_PROFILES = ("rbf", "matern52")
 
 
 class RBFFeatureModule(gpytorch.kernels.Kernel):
@@ -63,12 +65,14 @@ class RBFFeatureModule(gpytorch.kernels.Kernel):
         self.register_buffer("mass", torch.zeros(0))  # Fourier: (D,) sqrt(c_j)
         self.register_buffer("pivots", torch.zeros(0, 0))  # Nystrom: (M, d_in) the points Z
         self.register_buffer("factor", torch.zeros(0, 0))  # Nystrom: (M, M) L_Z, L_Z L_Z^T = k(Z, Z) / s^2
-        self.register_buffer("length", torch.ones(1))  # the RBF lengthscale the features are for
+        self.register_buffer("length", torch.ones(1))  # the lengthscale the features are for
+        self.register_buffer("profile", torch.zeros(1, dtype=torch.long))  # Nystrom: the kernel, into _PROFILES
         self.register_buffer("bound", torch.zeros(1))  # the error bound reached (relative to the prior variance)
         self.register_buffer("box", torch.zeros(2, 0))  # (2, d_in): where a quadrature bound holds; else empty
         self.spread = None  # no term is uncertain (the posterior's interface for the feature kernels)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        state_dict.setdefault(prefix + "profile", torch.zeros(1, dtype=torch.long))  # files from before Matern: RBF
         for name in ("omega", "mass", "pivots", "factor", "box"):  # the number of features is the saved model's
             key = prefix + name
             if key in state_dict:
@@ -91,8 +95,9 @@ class RBFFeatureModule(gpytorch.kernels.Kernel):
         extra = {} if box is None else {"box": box}
         self._set(kind, lengthscale, bound, omega=omega, mass=mass, **extra)
 
-    def set_nystrom(self, pivots, factor, lengthscale: float, bound: float) -> None:
+    def set_nystrom(self, pivots, factor, lengthscale: float, bound: float, profile: str = "rbf") -> None:
         self._set("nystrom", lengthscale, bound, pivots=pivots, factor=factor)
+        self.profile = torch.tensor([_PROFILES.index(profile)], device=pivots.device)
 
     @property
     def kind_name(self) -> str:
@@ -135,7 +140,7 @@ class RBFFeatureModule(gpytorch.kernels.Kernel):
         if d != x.shape[-1]:
             raise InputError(f"x: expected inputs with {d} columns (the features' dimension), got {x.shape[-1]}")
         if self.kind_name == "nystrom":
-            K = rbf_unit(self.pivots, x, float(self.length))  # (..., M, N)
+            K = unit_kernel(_PROFILES[int(self.profile)], self.pivots, x, float(self.length))  # (..., M, N)
             return torch.linalg.solve_triangular(self.factor, K, upper=False).transpose(-1, -2)
         proj = x @ self.omega
         return torch.cat([proj.cos() * self.mass, proj.sin() * self.mass], dim=-1)
@@ -155,28 +160,38 @@ def rbf_unit(a: torch.Tensor, b: torch.Tensor, lengthscale: float) -> torch.Tens
     return torch.exp(-sq.clamp_min(0.0) / (2.0 * lengthscale * lengthscale))
 
 
-class _UnitRBF:
-    """The unit-scale RBF as :func:`~torchmisspec._linalg.pivots` asks for it."""
+def unit_kernel(profile: str, a: torch.Tensor, b: torch.Tensor, lengthscale: float) -> torch.Tensor:
+    """The unit-scale ``profile`` kernel (``"rbf"`` or ``"matern52"``, see :mod:`._kernels`) ``(..., M, N)``."""
+    if profile == "rbf":
+        return rbf_unit(a, b, lengthscale)
+    sq = (a * a).sum(-1).unsqueeze(-1) + (b * b).sum(-1).unsqueeze(-2) - 2.0 * a @ b.transpose(-1, -2)
+    r = (5.0 * sq.clamp_min(0.0)).sqrt() / lengthscale
+    return (1.0 + r + r * r / 3.0) * torch.exp(-r)
 
-    def __init__(self, lengthscale: float) -> None:
-        self.lengthscale = lengthscale
+
+class _Unit:
+    """A unit-scale kernel as :func:`~torchmisspec._linalg.pivots` asks for it."""
+
+    def __init__(self, profile: str, lengthscale: float) -> None:
+        self.profile, self.lengthscale = profile, lengthscale
 
     def __call__(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return rbf_unit(a, b, self.lengthscale)
+        return unit_kernel(self.profile, a, b, self.lengthscale)
 
     def diag(self, a: torch.Tensor) -> torch.Tensor:
         return torch.ones(a.shape[0], dtype=a.dtype, device=a.device)
 
 
-def nystrom(X: torch.Tensor, sub: torch.Tensor, lengthscale: float, error: float, most: int):
-    """Pivots Z of the subsample ``sub`` (greedy pivoted Cholesky of the unit-scale RBF until the residual variance
-    is at most ``error`` or ``most`` pivots) and the factor L_Z; the bound: the largest residual over ``X``."""
-    piv, _ = pivots(_UnitRBF(lengthscale), sub, most, error)
+def nystrom(X: torch.Tensor, sub: torch.Tensor, lengthscale: float, error: float, most: int, profile: str = "rbf"):
+    """Pivots Z of the subsample ``sub`` (greedy pivoted Cholesky of the unit-scale kernel until the residual
+    variance is at most ``error`` or ``most`` pivots) and the factor L_Z; the bound: the largest residual over ``X``
+    (the residual is PSD for any kernel, so the bound holds for the Matern kernel as for the RBF)."""
+    piv, _ = pivots(_Unit(profile, lengthscale), sub, most, error)
     Z = sub[piv]
-    LZ = cholesky(rbf_unit(Z, Z, lengthscale), what="k(Z, Z) (Nystrom pivots)")
+    LZ = cholesky(unit_kernel(profile, Z, Z, lengthscale), what="k(Z, Z) (Nystrom pivots)")
     worst = 0.0
     for s in range(0, X.shape[0], 16384):  # the residual at every training input: the certified bound on the data
-        phi = torch.linalg.solve_triangular(LZ, rbf_unit(Z, X[s : s + 16384], lengthscale), upper=False)
+        phi = torch.linalg.solve_triangular(LZ, unit_kernel(profile, Z, X[s : s + 16384], lengthscale), upper=False)
         worst = max(worst, float((1.0 - phi.pow(2).sum(0)).max()))
     return Z, LZ, max(worst, 0.0) + 64 * Z.shape[0] * torch.finfo(X.dtype).eps
 
@@ -188,6 +203,7 @@ class RBFFeatures(Kernel):
     a tenth of the noise-to-signal ratio, within [1e-8, 1e-2]), the posterior of all samples."""
 
     name = "rbf-features"
+    exact_kernel = "rbf"  # the kernel computed, and fitted exactly on the subsample
     has_lengthscale = True
     stationary = True
     shared_only = True
@@ -213,7 +229,9 @@ class RBFFeatures(Kernel):
     def fit(self, gp, X, Y, noise, *, max_iter):
         """The exact RBF fit on an evenly spaced subsample, then the features for its lengthscale."""
         sub = self._subsample(X)
-        exact = type(gp)(kernel="rbf", max_iter=max_iter, dtype=gp.dtype, device=gp.device, exact=True, **gp.fixed)
+        exact = type(gp)(
+            kernel=self.exact_kernel, max_iter=max_iter, dtype=gp.dtype, device=gp.device, exact=True, **gp.fixed
+        )
         exact.fit(X[sub], Y[sub], noise=None if noise is None else noise[sub])
         with torch.no_grad():
             gp.covar_module.outputscale = torch.as_tensor(exact.outputscale, dtype=gp.dtype, device=gp.device)
@@ -230,15 +248,22 @@ class RBFFeatures(Kernel):
         self._features(gp, X, float(gp.covar_module.base_kernel.lengthscale if ell is None else ell))
         return 0, 0
 
+    #: the default tolerance's floor (a tenth of the noise-to-signal ratio, within [floor, 1e-2])
+    error_floor = 1e-8
+
+    def _error(self, gp) -> float:
+        """The tolerance: ``feature_error``, or a tenth of the noise-to-signal ratio within [error_floor, 1e-2]."""
+        if self.feature_error is not None:
+            return self.feature_error
+        s2 = float(gp.covar_module.outputscale.detach().reshape(-1)[0])
+        s2n = float(gp._floor(gp.likelihood).noise.detach().reshape(-1)[0])
+        return min(max(0.1 * s2n / s2, self.error_floor), 1e-2)
+
     def _features(self, gp, X: torch.Tensor, lengthscale: float) -> None:
         """Quadrature or Nystrom features (the fewer) at the tolerance, on ``gp``'s base kernel."""
         from ._paths import _quadrature_features
 
-        error = self.feature_error
-        if error is None:
-            s2 = float(gp.covar_module.outputscale.detach().reshape(-1)[0])
-            s2n = float(gp._floor(gp.likelihood).noise.detach().reshape(-1)[0])
-            error = min(max(0.1 * s2n / s2, 1e-8), 1e-2)
+        error = self._error(gp)
         kd = dict(dtype=gp.dtype, device=gp.device)
         ls = torch.full((1, X.shape[1]), lengthscale, **kd)
         quad = _quadrature_features(X, ls, torch.ones(1, 1, **kd), error)
@@ -269,3 +294,21 @@ class RBFFeatures(Kernel):
             )
         ones = base.weights.reshape(outputscale.shape[0], -1).to(outputscale)
         return FeatureMap("library", ones.shape[-1], fn=base.features, coef=(outputscale * ones).sqrt())
+
+
+@register
+class Matern52Features(RBFFeatures):
+    """The Matern 5/2 kernel computed in a feature space for many samples: as :class:`RBFFeatures`, with Nystrom
+    features only (the quadrature rule is the RBF's; the Nystrom bound holds for any kernel)."""
+
+    name = "matern52-features"
+    exact_kernel = "matern52"
+    # the Matern 5/2 fit of a smooth F takes long lengthscales and large output scales, so its noise-to-signal
+    # ratio is tiny (2e-12 on paper 5.1's F): at the RBF's floor of 1e-8 its 6 pivots gave 16x the exact GP's error,
+    # at 1e-12 32 pivots 0.8x (pivoted Cholesky in float64 reaches that, the quadrature rule would not)
+    error_floor = 1e-12
+
+    def _features(self, gp, X: torch.Tensor, lengthscale: float) -> None:
+        base = gp.covar_module.base_kernel
+        Z, LZ, bound = nystrom(X, X[self._subsample(X)], lengthscale, self._error(gp), MAX_FEATURES, "matern52")
+        base.set_nystrom(Z, LZ, lengthscale, bound, "matern52")

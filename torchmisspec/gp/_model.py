@@ -38,7 +38,7 @@ from ._exact import IndependentOutputsGP, build_modules, median_distance, noise_
 from ._fit import fit_model
 from ._inputs import check_inputs, check_samples
 from ._kernels import Kernel, as_kernel
-from ._large import LARGE_N, RBFFeatures
+from ._large import LARGE_N, Matern52Features, RBFFeatures
 from ._persistence import load as _load
 from ._persistence import save as _save
 from ._posterior import GPPosterior, Posterior
@@ -441,9 +441,10 @@ class CorrectionGP(Readout):
         feature space above :data:`~torchmisspec.gp._large.LARGE_N` samples (``exact=None``) or always
         (``exact=False``)."""
         asked = self.requested_kernel
-        if self.auto or self.per_output or asked.name != "rbf" or self.exact is True:
+        large = {"rbf": RBFFeatures, "matern52": Matern52Features}.get(asked.name)
+        if self.auto or self.per_output or large is None or self.exact is True:
             return asked
-        return RBFFeatures() if self.exact is False or n > LARGE_N else asked
+        return large() if self.exact is False or n > LARGE_N else asked
 
     # --------------------------------------------------------------------------------------------- the posterior
     def posterior(self, *, differentiable: bool = False) -> Posterior:

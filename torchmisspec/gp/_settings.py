@@ -91,13 +91,15 @@ def check_settings(
         )
     )
     exact = check_flag(exact, "exact", none=True)
-    if exact is False and not (spec.name in ("rbf", "rbf-features") and not per_output and not auto):
+    spaced = ("rbf", "rbf-features", "matern52", "matern52-features")  # computed in a feature space when large
+    if exact is False and not (spec.name in spaced and not per_output and not auto):
         raise InputError(
-            "exact: expected None or True for this kernel (only a shared RBF kernel is computed in a feature space), "
-            f"got False with kernel {'auto' if auto else spec.name!r}{' and per_output' if per_output else ''}"
+            "exact: expected None or True for this kernel (only a shared RBF or Matern 5/2 kernel is computed in a "
+            f"feature space), got False with kernel {'auto' if auto else spec.name!r}"
+            f"{' and per_output' if per_output else ''}"
         )
-    if exact is True and spec.name == "rbf-features":
-        raise InputError("exact: expected None or False with kernel 'rbf-features' (a feature space), got True")
+    if exact is True and spec.name.endswith("-features") and spec.name in spaced:
+        raise InputError(f"exact: expected None or False with kernel {spec.name!r} (a feature space), got True")
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
     return {
