@@ -1,4 +1,5 @@
-"""Many samples: the RBF kernel in a feature space (quadrature Fourier features, or Nystrom features).
+"""Many samples: the RBF kernel in a feature space (quadrature Fourier features, or Nystrom features), and the
+Matern 5/2 kernel (Nystrom features, :class:`Matern52Features`).
 
 The exact GP factorizes the N x N training covariance, O(N^3) time and O(N^2) memory (a fit on 5,000 samples took
 207 s and 1.35 GB). ``CorrectionGP(kernel="rbf-features")`` keeps the RBF model and changes how it is computed:
@@ -23,8 +24,8 @@ The exact GP factorizes the N x N training covariance, O(N^3) time and O(N^2) me
    ``O(N p^2 + p^3)`` time and ``O(N p)`` memory for p features; predictions cost p per input, not N.
 
 The approximation is reported, not hidden: ``gp.approximation`` gives the kind of features, their number, the bound
-and where it holds. ``CorrectionGP(kernel="rbf")`` (the default) uses it above :data:`LARGE_N` samples;
-``exact=True`` keeps the exact GP at any N, ``exact=False`` uses the features at any N.
+and where it holds. ``CorrectionGP(kernel="rbf")`` (the default) and ``kernel="matern52"`` use it above
+:data:`LARGE_N` samples; ``exact=True`` keeps the exact GP at any N, ``exact=False`` uses the features at any N.
 """
 
 from __future__ import annotations

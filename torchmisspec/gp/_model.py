@@ -91,9 +91,10 @@ class CorrectionGP(Readout):
             kernel's: every eligible stationary kernel's) to be chosen instead (``None``: :data:`EVIDENCE_MARGIN`,
             3, "strong" evidence; 0: the highest score, ties going to the RBF).
         max_iter: most L-BFGS iterations when fitting.
-        exact: how an RBF kernel is computed (:mod:`torchmisspec.gp._large`): ``None`` (default) exactly up to
-            :data:`~torchmisspec.gp._large.LARGE_N` samples and in a feature space above (``kernel_spec`` is then
-            :class:`~torchmisspec.gp.RBFFeatures`, ``approximation`` reports its bound); ``True`` always exactly
+        exact: how a shared RBF or Matern 5/2 kernel is computed (:mod:`torchmisspec.gp._large`): ``None``
+            (default) exactly up to :data:`~torchmisspec.gp._large.LARGE_N` samples and in a feature space above
+            (``kernel_spec`` is then :class:`~torchmisspec.gp.RBFFeatures` or
+            :class:`~torchmisspec.gp.Matern52Features`, ``approximation`` reports its bound); ``True`` always exactly
             (O(N^3)); ``False`` always in the feature space.
         dtype: of the model's tensors (float64 by default: recommended for GP maths).
         device: of the model's tensors (the CPU by default).
@@ -159,10 +160,10 @@ class CorrectionGP(Readout):
         self.auto: bool = c["auto"]
         #: the kernel object (:mod:`torchmisspec.gp._kernels`); ``kernel`` is its name (an RBF until an auto fit)
         self.kernel_spec: Kernel = c["kernel"]
-        #: the kernel asked for; with ``exact=None`` an RBF is fitted in a feature space above LARGE_N samples, and
-        #: ``kernel_spec`` is then :class:`~torchmisspec.gp.RBFFeatures` until a fit on fewer samples
+        #: the kernel asked for; with ``exact=None`` an RBF or Matern 5/2 is fitted in a feature space above LARGE_N
+        #: samples, and ``kernel_spec`` is then its features kernel (``RBFFeatures``) until a fit on fewer samples
         self.requested_kernel: Kernel = c["kernel"]
-        #: None: exact up to LARGE_N samples, in a feature space above (an RBF); True: always exact; False: always
+        #: None: exact up to LARGE_N samples, in a feature space above (RBF, Matern); True: always exact; False: always
         #: in a feature space
         self.exact: bool | None = c["exact"]
         #: the hyperparameters given (held fixed), ``None`` for those learned
