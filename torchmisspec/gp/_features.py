@@ -311,6 +311,10 @@ def _consistent(alpha: torch.Tensor, Phi: torch.Tensor, target: torch.Tensor) ->
         return alpha
 
 
+#: rows per block of the feature-space Gram matrix (its temporaries)
+_ROWS = 16384
+
+
 class FeatureFactorization:
     """The posterior of a feature kernel in feature space: ``C = Phi W Phi^T + diag(D)`` is never formed.
 
@@ -337,7 +341,7 @@ class FeatureFactorization:
         W = W.expand(B, p)
         D = D.expand(B, N)
         self._Phi, self._W, self._D = Phi, W, D
-        # per batch, once: the active terms, sqrt(W_a), P = Phi_a sqrt(W_a) and chol(M); every solve reuses them
+        # per batch, once: the active terms, sqrt(W_a) and chol(M) (P = Phi_a sqrt(W_a) enters only in products)
         self._factors = []
         means, covs, logdet = [], [], D.log().sum()
         for b in range(B):
@@ -346,10 +350,14 @@ class FeatureFactorization:
             factor = None
             if bool(act.any()):
                 sw = W[b, act].sqrt()
-                P = Phi[:, act] * sw
-                M = torch.eye(P.shape[1], dtype=P.dtype, device=P.device) + P.T @ (P / D[b].unsqueeze(-1))
+                Pa = self._active(act)
+                G = sum(  # Phi_a^T D^-1 Phi_a in blocks of rows: no N x q temporary beside Phi
+                    Pa[r : r + _ROWS].T @ (Pa[r : r + _ROWS] / D[b, r : r + _ROWS].unsqueeze(-1))
+                    for r in range(0, N, _ROWS)
+                )
+                M = torch.eye(sw.shape[0], dtype=Phi.dtype, device=Phi.device) + sw.unsqueeze(-1) * G * sw
                 L = cholesky(M, what="I + P^T D^-1 P (feature-space posterior)")
-                factor = (act, sw, P, L)
+                factor = (act, sw, L)  # P = Phi_a diag(sw) is never formed
                 logdet = logdet + 2.0 * L.diagonal().log().sum()
                 idx = act.nonzero().flatten()
                 cov[idx.unsqueeze(-1), idx] = sw.unsqueeze(-1) * torch.cholesky_inverse(L) * sw
@@ -367,6 +375,10 @@ class FeatureFactorization:
         self.cov = torch.stack(covs)
         self._chol = None
 
+    def _active(self, act: torch.Tensor) -> torch.Tensor:
+        """``Phi_a``, the active terms' features (``Phi`` itself, not a copy, when every term is active)."""
+        return self._Phi if bool(act.all()) else self._Phi[:, act]
+
     def _solve(self, V: torch.Tensor) -> tuple[torch.Tensor, list]:
         """``C^-1 V`` for ``V (B, N, k)`` and, per batch, ``g = M^-1 P^T D^-1 V`` (None without active terms)."""
         out, gs = [], []
@@ -374,9 +386,10 @@ class FeatureFactorization:
             d = self._D[b].unsqueeze(-1)
             v, g = V[b] / d, None
             if factor is not None:
-                act, sw, P, L = factor
-                g = torch.cholesky_solve(P.T @ v, L)
-                v = _consistent(v - (P / d) @ g, self._Phi[:, act], g / sw.unsqueeze(-1))
+                act, sw, L = factor
+                Pa = self._active(act)
+                g = torch.cholesky_solve(sw.unsqueeze(-1) * (Pa.T @ v), L)
+                v = _consistent(v - (Pa @ (sw.unsqueeze(-1) * g)) / d, Pa, g / sw.unsqueeze(-1))
             out.append(v)
             gs.append(g)
         return torch.stack(out), gs
@@ -387,7 +400,7 @@ class FeatureFactorization:
         mean = self.mean[0]
         beta = mean.unsqueeze(0).expand(S, -1, -1).clone()
         if self._factors[0] is not None:
-            act, sw, _, L = self._factors[0]
+            act, sw, L = self._factors[0]
             e = torch.randn((S, L.shape[0], mean.shape[-1]), generator=generator, dtype=mean.dtype, device=mean.device)
             beta[:, act] += scale * sw.unsqueeze(-1) * torch.linalg.solve_triangular(L.T.unsqueeze(0), e, upper=True)
         return beta
@@ -400,10 +413,11 @@ class FeatureFactorization:
         for b, factor in enumerate(self._factors):
             if factor is None:
                 continue
-            act, sw, P, L = factor
+            act, sw, L = factor
+            Pa = self._active(act)
             g = self.mean[b][act] / sw.unsqueeze(-1)
-            r = L @ (L.T @ g) - P.T @ (Y[b] / self._D[b].unsqueeze(-1))
-            worst = max(worst, float((P @ torch.cholesky_solve(r, L)).abs().max()))
+            r = L @ (L.T @ g) - sw.unsqueeze(-1) * (Pa.T @ (Y[b] / self._D[b].unsqueeze(-1)))
+            worst = max(worst, float((Pa @ (sw.unsqueeze(-1) * torch.cholesky_solve(r, L))).abs().max()))
         return worst
 
     def solve(self, V: torch.Tensor) -> torch.Tensor:

@@ -49,6 +49,8 @@ SUBSAMPLE = 2000
 #: Most features (memory 8 N p bytes for N samples: 1.6 GB at N = 10^5).
 MAX_FEATURES = 2048
 _KINDS = ("quadrature", "random", "nystrom")
+#: rows of inputs whose Nystrom features are computed at once (the kernel block and its temporaries)
+_ROWS = 8192
 #: the kernels the Nystrom features compute (the quadrature rule is the RBF's)
 _PROFILES = ("rbf", "matern52")
 
@@ -141,6 +143,8 @@ class RBFFeatureModule(gpytorch.kernels.Kernel):
         if d != x.shape[-1]:
             raise InputError(f"x: expected inputs with {d} columns (the features' dimension), got {x.shape[-1]}")
         if self.kind_name == "nystrom":
+            if x.dim() == 2 and x.shape[0] > _ROWS:  # in blocks of rows: the kernel's temporaries stay small
+                return torch.cat([self.features(x[s : s + _ROWS]) for s in range(0, x.shape[0], _ROWS)])
             K = unit_kernel(_PROFILES[int(self.profile)], self.pivots, x, float(self.length))  # (..., M, N)
             return torch.linalg.solve_triangular(self.factor, K, upper=False).transpose(-1, -2)
         proj = x @ self.omega
