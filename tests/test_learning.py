@@ -256,6 +256,9 @@ def test_thinned_keeps_each_experiments_ends_evenly_spaced():
     rows = kept.inputs.squeeze(1).long().tolist()
     assert rows == [0, 2, 4, 6, 8, 11, 13, 15, 17, 19, 20, 22, 25, 27, 28, 29]  # 10 of 20, 4 of 8, both of 2
     assert kept.experiment.tolist() == [0] * 10 + [1] * 4 + [2] * 2
+    for bad in (0, -3, 2.5, "10"):
+        with pytest.raises(tms.InputError, match="at_most: expected an integer >= 1"):
+            samples.thinned(bad)
 
 
 def test_the_model_is_chosen_on_a_subsample_and_fitted_on_all(linear_noisy, one_thread, monkeypatch):

@@ -113,6 +113,8 @@ def test_design_proxies_in_chunks_through_an_executor_give_the_serial_design(mon
     assert pooled.indices.tolist() == serial.indices.tolist() and pooled.information_gain == serial.information_gain
     with pytest.raises(tms.InputError, match="executor: expected a concurrent.futures.Executor"):
         tms.design.greedy(candidates, 2, system=system, times=times, gp=gp, executor=4)
+    with pytest.raises(tms.InputError, match="executor: expected a concurrent.futures.Executor .* got str"):
+        tms.design.Campaign(system, candidates, times, gp, executor="pool")
 
 
 @pytest.mark.slow

@@ -56,7 +56,7 @@ from ._estimators import (
 )
 from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_derivative, observed_variance
 from ._stencils import finite_difference, smoothed_derivative
-from ._validation import check_finite, check_real
+from ._validation import check_finite, check_positive_int, check_real
 from .data import Trajectories
 from .parameters import jacobian, parameter_basis
 from .systems import MisspecifiedSystem
@@ -128,6 +128,7 @@ class CorrectionSamples:
     def thinned(self, at_most: int) -> CorrectionSamples:
         """About ``at_most`` of these samples (these themselves when there are no more): each experiment's samples
         thinned evenly, in proportion to its share, at least two per experiment (its first and last)."""
+        at_most = check_positive_int(at_most, "at_most")
         n = self.inputs.shape[0]
         if n <= at_most:
             return self
