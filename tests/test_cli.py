@@ -465,11 +465,14 @@ def test_predict_and_design_refuse_states_named_otherwise_than_the_model(lab, la
     )
     header, rows = _table(tmp_path / "q.csv")
     assert rows[0][0] == "A7" and float(rows[0][2]) == 0.2 and float(rows[0][5]) == 0.8
-    assert (
-        main(_lab(lab, "predict", *base, "--initial", str(tmp_path / "extra.csv"), "--out", str(tmp_path / "r.csv")))
-        == 0
-    )
-    assert float(_table(tmp_path / "r.csv")[1][0][2]) == 0.2
+    # other extra columns are refused, not silently left out (a data file given by mistake, its time column named otherwise)
+    (tmp_path / "data.csv").write_text("sample,minute,substrate,biomass\nA7,0.0,0.8,0.2\nA7,1.5,0.7,0.3\n")
+    capsys.readouterr()
+    said = {"extra.csv": "expected 2 states per row", "data.csv": "expected a number in every state column"}
+    for wrong, message in said.items():
+        args = ("--initial", str(tmp_path / wrong), "--out", str(tmp_path / "r.csv"))
+        assert main(_lab(lab, "predict", *base, *args)) == 2
+        assert message in capsys.readouterr().err
     design = ("--candidates", str(tmp_path / "renamed.csv"), "--times", "0:10:3", "--budget", "1")
     assert main(_lab(lab, "design", "--model", str(lab_model), *design, "--out", str(tmp_path / "d.csv"))) == 2
     assert "the columns give ['a', 'b']" in capsys.readouterr().err

@@ -152,9 +152,7 @@ def _fold(task: dict) -> dict:
     if fold_gp is None:
         return out
     fold_model = task["model_type"](system, fold_gp)
-    experiments = trajectories.experiments()
-    values, _ = trajectories.observed_values()  # (K, T_max, d + m): the states and any readings
-    first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
+    experiments, values, first = task["experiments"], task["values"], task["first"]
     by_length: dict[int, list[int]] = {}
     for k in ks:  # experiments of one length are integrated together
         by_length.setdefault(experiments[k][0].shape[0], []).append(k)
@@ -268,7 +266,10 @@ def calibrate_bands(
     refinement = getattr(gp, "refinement_", None)
     if refinement is not None and not refit:  # conditioning keeps the hyperparameters: the term weights too
         refinement = {**refinement, "relevance": False}
-    common = dict(
+    common = dict(  # what every fold needs, computed once
+        experiments=trajectories.experiments(),
+        values=trajectories.observed_values()[0],  # (K, T_max, d + m): the states and any readings
+        first=trajectories.initial_conditions,  # missing first entries estimated (Trajectories.filled)
         model_type=type(model),
         parameters=getattr(model, "parameters_", None),
         system=system,

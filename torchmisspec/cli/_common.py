@@ -181,7 +181,8 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
     column but the experiment column), ``--experiment-column`` (optional: the rows' labels, else 0..N-1); a time
     column is refused (one state per row, not trajectories). ``known``: the states' names (the system's or the
     model's); a header holding them all is read by them, in the system's order, whatever the columns' order, and a
-    single other column (such as a sample ID) labels the rows when there is no experiment column. Without a
+    single other column of names, not numbers (sample IDs), labels the rows when there is no experiment column; any
+    other extra column is refused (a data file given by mistake, a time column of another name). Without a
     header, or from .npy/.npz, every column is a state, in the system's order."""
     import torch
 
@@ -218,10 +219,11 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                 others = [c for c in header if c != args.experiment_column and c not in known]
                 if known.count(None) == len(others) <= 1:  # one unnamed state at most: the one column left
                     wanted = [others.pop() if c is None else c for c in known]
-                elif None not in known:  # every state by its name: another column labels the rows (a lab's IDs)
-                    wanted = list(known)
-                    if args.experiment_column not in header and len(others) == 1:
-                        label_column = others[0]
+                elif None not in known and args.experiment_column not in header and len(others) == 1:
+                    # every state by its name and one column of names, not numbers (a lab's sample IDs): its labels
+                    ids = header.index(others[0])
+                    if not any(_number(row[ids]) for row in body if ids < len(row)):
+                        wanted, label_column = list(known), others[0]
             if wanted is None:
                 wanted = [c for c in header if c != args.experiment_column]
             missing = [c for c in wanted if c not in header]
