@@ -465,7 +465,7 @@ def test_predict_and_design_refuse_states_named_otherwise_than_the_model(lab, la
     )
     header, rows = _table(tmp_path / "q.csv")
     assert rows[0][0] == "A7" and float(rows[0][2]) == 0.2 and float(rows[0][5]) == 0.8
-    # other extra columns are refused, not silently left out (a data file given by mistake, its time column named otherwise)
+    # other extra columns are refused, not silently left out (a data file given by mistake, time column named otherwise)
     (tmp_path / "data.csv").write_text("sample,minute,substrate,biomass\nA7,0.0,0.8,0.2\nA7,1.5,0.7,0.3\n")
     capsys.readouterr()
     said = {"extra.csv": "expected 2 states per row", "data.csv": "expected a number in every state column"}
