@@ -74,7 +74,7 @@ def _worker(cultures: int, before: bool) -> dict:
     from torchmisspec import _ode, learning
 
     if before:  # the earlier behaviour: every candidate on all samples, torchdiffeq's one-by-one output
-        learning.SELECTION_SAMPLES = math.inf
+        learning.SELECTION_SAMPLES = 2**40  # more than any file: an integer, as thinned() asks
         _ode._VECTOR_OUTPUTS = math.inf
     system = predator_prey()
     with warnings.catch_warnings():
