@@ -65,7 +65,7 @@ def test_file_path_spec(tmp_path, user_module):
          r"\(the module defines \[.*'damped'"),
         ("{mod}:NUMBER", r"expected 'NUMBER' to be a function, got int"),
         ("{mod}:broken", r"expected broken\(\) to return a MisspecifiedSystem, got RuntimeError: no parameters file "
-         r"second line when calling it$"),
+         r"second line when calling it \(at .*{mod}.py:10, in broken\)$"),
         ("{mod}:not_a_system", r"expected not_a_system\(\) to return a torchmisspec MisspecifiedSystem, got dict"),
         ("{mod}:", r"expected 'module:function' with a function name after the colon"),
         ("does/not/exist.py:f", r"expected an existing Python file, got 'does/not/exist.py'"),

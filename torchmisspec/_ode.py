@@ -38,7 +38,7 @@ try:  # torchdiffeq's own input handling and solvers, for the vectorised output 
 except ImportError:  # pragma: no cover - another torchdiffeq layout
     SOLVERS = None
 
-from ._errors import InputError, IntegrationError, ShapeError
+from ._errors import InputError, IntegrationError, ShapeError, TorchMisspecError
 from ._validation import as_tensor, check_finite, check_ndim, check_positive_int, check_real, check_times
 
 #: (rtol, atol) of simulations of a given model: the truth, the proxies (see the module docstring)
@@ -114,6 +114,7 @@ class _Autonomous(torch.nn.Module):
         self.last_t = None
         self.last_y = None
         self.last_f = None
+        self.failed = False  # whether the field itself raised
 
     def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         self.nfe += 1
@@ -124,7 +125,11 @@ class _Autonomous(torch.nn.Module):
             if self.window_t is not None and now - self.window_t < self.min_advance:
                 raise _Stalled
             self.window_t = now
-        f = self.field(y) if self.offsets is None else self.field(t + self.offsets, y)
+        try:
+            f = self.field(y) if self.offsets is None else self.field(t + self.offsets, y)
+        except Exception:
+            self.failed = True  # the field's own error, not the solver's: solve passes it on unchanged
+            raise
         if not isinstance(f, torch.Tensor) or f.shape != y.shape:
             shape = tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__
             raise ShapeError(
@@ -335,7 +340,11 @@ def solve(
                 "span"
             ),
         ) from None
+    except TorchMisspecError:  # the field's checks (G of the wrong shape, an error in the user's G): as they are
+        raise
     except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
+        if func.failed:  # an assertion inside the field (G, F), not the solver's
+            raise
         worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
         t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
         raise _with_rows(
@@ -347,6 +356,8 @@ def solve(
             ),
         ) from exc
     except ValueError as exc:  # an unknown method or option
+        if func.failed:  # raised inside the field (G, F): not a refusal of the solver's settings
+            raise
         raise InputError(f"{what}: expected solver settings torchdiffeq accepts, got a refusal: {exc}") from exc
     finite = torch.isfinite(sol).all(dim=-1).all(dim=-1)
     if not bool(finite.all()):

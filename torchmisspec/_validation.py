@@ -169,6 +169,35 @@ def check_names(names, count: int, name: str, *, default: str | None = None) -> 
     return tuple(items)
 
 
+def check_callable(function, name: str, form: str):
+    """``function`` when it is callable; otherwise an :class:`InputError` naming the expected ``form``
+    (e.g. ``"F(x) mapping points (M, n) to (M, m)"``)."""
+    if not callable(function):
+        raise InputError(f"{name}: expected a callable {form}, got {function!r:.60} ({type(function).__name__})")
+    return function
+
+
+def check_arity(function, count: int, name: str, form: str, fix: str = "") -> None:
+    """Refuse a callable that cannot be called with ``count`` positional arguments, as the package will call it;
+    ``form`` (e.g. ``"G(y, theta)"``) names that call in the message, ``fix`` ends it. ``*args`` and defaults are
+    accepted, a ``functools.partial`` is checked for what it leaves, an ``nn.Module`` by its ``forward``; a callable
+    whose signature cannot be read (a builtin) is not checked."""
+    import inspect
+
+    target = function.forward if isinstance(function, torch.nn.Module) else function
+    try:
+        signature = inspect.signature(target)
+    except (TypeError, ValueError):  # no signature to read: the first call tells
+        return
+    try:
+        signature.bind(*range(count))
+    except TypeError:
+        raise InputError(
+            f"{name}: expected a callable {form}, called with {count} positional argument{'s' if count != 1 else ''}, "
+            f"got a callable taking {signature}" + (f"; {fix}" if fix else "")
+        ) from None
+
+
 def check_positive_int(value, name: str, *, minimum: int = 1, maximum: int = 2**62) -> int:
     """An integer in ``[minimum, maximum]`` (bools, floats and other types are refused; numpy/torch integers are
     accepted). The default maximum keeps every count within torch's 64-bit sizes."""

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import DEFAULT_DTYPE, as_tensor, check_domain, check_finite, check_positive_int
+from ._validation import DEFAULT_DTYPE, as_tensor, check_callable, check_domain, check_finite, check_positive_int
 
 __all__ = [
     "box_grid",
@@ -59,6 +59,7 @@ def integrate_over_box(
     fn: Callable[[torch.Tensor], torch.Tensor], domain, *, resolution: int = 101, chunk: int = 65536
 ) -> float:
     """Trapezoidal integral over the box of a scalar function ``fn: (M, n) -> (M,)``."""
+    check_callable(fn, "fn", "fn(points) mapping points (M, n) to values (M,)")
     chunk = check_positive_int(chunk, "chunk")
     points, weight = box_grid(domain, resolution)
     total = 0.0
@@ -73,9 +74,15 @@ def integrate_over_box(
 
 def integrated_error(estimate: Field, truth: Field, domain, *, resolution: int = 101) -> float:
     """Integral over the box D of ||estimate(y) - truth(y)||_2 (paper §5.2); fields map ``(M, n) -> (M, m)``."""
+    _check_fields(estimate=estimate, truth=truth)
     return integrate_over_box(
         lambda x: torch.linalg.vector_norm(_difference(estimate, truth, x), dim=-1), domain, resolution=resolution
     )
+
+
+def _check_fields(**fields) -> None:
+    for name, field in fields.items():
+        check_callable(field, name, "field mapping points (M, n) to (M, m), e.g. gp.predict_mean or system.correction")
 
 
 def _difference(estimate: Field, truth: Field, x: torch.Tensor) -> torch.Tensor:
@@ -93,11 +100,13 @@ def _difference(estimate: Field, truth: Field, x: torch.Tensor) -> torch.Tensor:
 
 def integrated_norm(field: Field, domain, *, resolution: int = 101) -> float:
     """Integral over D of ||field(y)||_2: the "energy" reference lines of paper Fig 5."""
+    _check_fields(field=field)
     return integrate_over_box(lambda x: torch.linalg.vector_norm(field(x), dim=-1), domain, resolution=resolution)
 
 
 def mean_squared_error(estimate: Field, truth: Field, domain, *, resolution: int = 101) -> float:
     """(1 / |D|) times the integral over D of ||estimate - truth||_2^2 (paper Fig 8's mean squared error)."""
+    _check_fields(estimate=estimate, truth=truth)
     box = check_domain(domain)
     volume = 1.0
     for lo, hi in box:
@@ -124,6 +133,11 @@ def correction_error(gp, system, *, domain=None, resolution: int = 101, metric: 
     """
     if metric not in CORRECTION_METRICS:
         raise InputError(f"metric: expected one of {CORRECTION_METRICS}, got {metric!r}")
+    if not callable(getattr(gp, "predict_mean", None)):
+        raise InputError(
+            f"gp: expected a fitted torchmisspec.CorrectionGP (its posterior mean is compared with the true F), got "
+            f"{gp!r:.60} ({type(gp).__name__})"
+        )
     if not hasattr(system, "true_correction") or not hasattr(system, "domain"):
         raise InputError(
             f"system: expected a torchmisspec.MisspecifiedSystem with its true correction F, got "

@@ -18,7 +18,8 @@ from collections.abc import Callable, Iterable
 
 import torch
 
-from ._errors import InputError
+from ._errors import InputError, TorchMisspecError
+from ._user_code import one_line
 from ._validation import check_positive_int
 
 __all__ = ["map_tasks", "process_pool", "check_executor"]
@@ -36,15 +37,64 @@ def check_executor(executor) -> concurrent.futures.Executor | None:
 
 def map_tasks(fn: Callable, tasks: Iterable, executor=None, *, each: Callable | None = None) -> list:
     """``[fn(task) for task in tasks]``, through ``executor`` when one is given (results in the tasks' order);
-    ``each(result)`` is called as each result arrives (a progress bar's update)."""
+    ``each(result)`` is called as each result arrives (a progress bar's update).
+
+    Raises:
+        InputError: an executor that was shut down or broke (pass a running one, or ``None``), or whose ``map``
+            gives another number of results than tasks. The tasks' own errors pass unchanged.
+    """
     executor = check_executor(executor)
     tasks = list(tasks)
     results = []
-    for result in map(fn, tasks) if executor is None else executor.map(fn, tasks):
-        results.append(result)
-        if each is not None:
-            each(result)
+    if executor is None:
+        for result in map(fn, tasks):
+            results.append(result)
+            if each is not None:
+                each(result)
+        return results
+    try:
+        returned = executor.map(fn, tasks)
+        if not isinstance(returned, Iterable):
+            raise InputError(
+                f"executor: expected its map to return an iterable of results, got {type(returned).__name__} from "
+                f"{_kind(executor)}; pass a concurrent.futures.Executor, or None to run serially"
+            )
+        for result in returned:
+            results.append(result)
+            if len(results) > len(tasks):
+                break  # an executor that never stops giving results
+            if each is not None:
+                each(result)
+    except RuntimeError as exc:
+        if _unusable(exc):
+            raise InputError(
+                f"executor: expected a running executor, got {_kind(executor)} that was shut down or broke "
+                f"({one_line(exc)}); pass a running executor, or None to run serially"
+            ) from exc
+        raise
+    if len(results) != len(tasks):
+        got = f"{len(results)}" if len(results) <= len(tasks) else f"more than {len(tasks)}"
+        raise InputError(
+            f"executor: expected {len(tasks)} {'result' if len(tasks) == 1 else 'results'} (one per task) from the "
+            f"executor's map, got {got} from {_kind(executor)}; its map must give one result per task, in the "
+            "tasks' order (concurrent.futures.Executor.map does): fix the executor, or pass None to run serially"
+        )
     return results
+
+
+def _kind(executor) -> str:
+    return f"a {type(executor).__name__}"
+
+
+def _unusable(exc: RuntimeError) -> bool:
+    """Whether ``exc`` says that the executor itself cannot run tasks (shut down, or a broken pool); a task's own
+    error (a package error, a RuntimeError of the task's code) is not."""
+    if isinstance(exc, TorchMisspecError):
+        return False
+    if isinstance(exc, concurrent.futures.BrokenExecutor):
+        return True
+    text = f"{type(exc).__name__} {exc}".lower()
+    return "shutdown" in text or "shut down" in text
 
 
 def _one_thread() -> None:

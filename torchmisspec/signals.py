@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import as_tensor, check_names
+from ._validation import as_tensor, check_names, check_positive_int
 
 __all__ = ["KINDS", "Controls"]
 
@@ -117,6 +117,8 @@ class Controls:
         ``(..., m)`` (vectorised; checked at the first call)."""
         if not callable(function):
             raise InputError(f"function: expected a callable u(t), got {type(function).__name__}")
+        num_experiments = check_positive_int(num_experiments, "num_experiments")
+        num_controls = check_positive_int(num_controls, "num_controls")
         zeros = torch.zeros(num_experiments, 1, num_controls, dtype=torch.float64)
         out = cls(torch.zeros(1, dtype=torch.float64), zeros, **kw)
         out._function = function
@@ -186,8 +188,8 @@ class Controls:
         return out
 
     def repeat(self, n: int) -> Controls:
-        """These K profiles n times over (``n K`` experiments, as the draws' batch of paths is laid out)."""
-        return self[torch.arange(self.num_experiments).repeat(n)]
+        """These K profiles n times over (``n K`` experiments, as the draws' batch of paths is laid out); ``n >= 1``."""
+        return self[torch.arange(self.num_experiments).repeat(check_positive_int(n, "n"))]
 
     def to(self, *args, **kwargs) -> Controls:
         out = self[:]

@@ -13,8 +13,8 @@ from collections.abc import Callable, Iterable, Sequence
 import torch
 from torch import nn
 
-from ._errors import InputError, ShapeError
-from ._user_code import import_module, one_line
+from ._errors import InputError, ShapeError, TorchMisspecError
+from ._user_code import call_user, check_signatures, checked_output, import_module, one_line, where
 from ._validation import as_tensor, check_domain, check_finite, check_indices, check_names, check_positive_int
 from .parameters import check_priors
 from .signals import Controls
@@ -54,7 +54,7 @@ class MisspecifiedSystem:
             (``state_names`` / ``control_names``).
         correction_outputs: the state components F acts on, by index or by name (default: all).
         num_controls: m, the number of known input signals of every experiment (default 0).
-        control_names: the m controls' names (default ``u0, u1, ...``).
+        control_names: the m controls' names (default ``u0, u1, ...``), distinct from the states' names.
         time_dependent: G depends on time itself (then it is called ``G(t, y, u)``).
         parameters: G's uncertain parameters, ``{name: (value, scale)}``, a Gaussian prior each (mean, standard
             deviation): G then takes them last, ``G(y, theta)`` or ``G(t, y, u, theta)``, ``theta`` a tensor ``(k,)``
@@ -68,7 +68,10 @@ class MisspecifiedSystem:
 
     G and F must be vectorised: called with states ``(..., d)`` (any leading batch dimensions) they return a torch
     tensor ``(..., d)`` (F: ``(..., d_out)``), e.g. built with ``y[..., 0]`` and ``torch.stack(..., dim=-1)``.
-    The first batched call checks this (against the same callable on one state) and names what is wrong.
+    The first batched call checks this (against the same callable on one state) and names what is wrong. G's
+    signature is checked here against the form this system calls it with (``G(y)``, ``G(y, theta)``,
+    ``G(t, y, u)``, ``G(t, y, u, theta)``; F's against ``F(x)``), and an exception raised inside G or F is reported
+    as an :class:`~torchmisspec.InputError` naming the user's file and line (the original chained to it).
     """
 
     def __init__(
@@ -102,6 +105,13 @@ class MisspecifiedSystem:
         self.time_dependent = time_dependent
         self.control_names = check_names(control_names, self.num_controls, "control_names", default="u")
         self.state_names = check_names(state_names, state_dim, "state_names")
+        clash = [n for n in self.control_names if n in (self.state_names or ())]
+        if clash:
+            raise InputError(
+                f"control_names: state and control names must be distinct (a name picks one state or one control), "
+                f"got {clash} among the states {list(self.state_names)} and the controls {list(self.control_names)}; "
+                "rename the control(s) or the state(s)"
+            )
         correction_inputs = self._resolve(correction_inputs)
         self.correction_inputs = check_indices(
             tuple(range(state_dim)) if correction_inputs is None else correction_inputs,
@@ -133,6 +143,7 @@ class MisspecifiedSystem:
         self.known_matrix = known_matrix
         self.name = name
         self.parameters = check_priors(parameters)
+        check_signatures(self)
         self.theta = None if self.parameters is None else self.parameters.mean  # the value G is called with
         self._vectorised = {"G": False, "F": False}  # the first batched call of each is checked
 
@@ -332,7 +343,7 @@ class MisspecifiedSystem:
         """``fn(x)`` with its output checked; the first batched call also checks that ``fn`` broadcasts over the
         leading dimensions: a function written for one state (``y[0]``, ``torch.stack([...])`` along the first axis)
         can return the right shape for a batch whose size equals d and silently mix its rows."""
-        out = _checked(_call(fn, x, what), shape, what, x)
+        out = checked_output(call_user(fn, x, what), shape, what, x)
         if self._vectorised[key] or x.dim() < 2 or x[..., :1].numel() == 0 or (key == "G" and not self.autonomous):
             return out  # G(t, y, u) reads per-row times and controls: a one-state call would need them too
         with torch.no_grad():
@@ -372,37 +383,6 @@ class MisspecifiedSystem:
             f"correction_inputs={list(self.correction_inputs)}, correction_outputs={list(self.correction_outputs)}, "
             f"has_correction={self.has_correction})"
         )
-
-
-def _call(function, x: torch.Tensor, what: str):
-    """``function(x)``; a function that is not vectorised (it converts a batch of states to one number, or indexes
-    states as a single vector) fails here with a message that says so instead of torch's own."""
-    try:
-        return function(x)
-    except (ValueError, RuntimeError, IndexError, TypeError) as exc:
-        if "only one element tensors" in str(exc) or "a Tensor with" in str(exc) and "to a Scalar" in str(exc):
-            raise ShapeError(
-                f"{what} must work on a batch of states: it is called with a tensor of shape {tuple(x.shape)} "
-                f"(states (..., d)), and failed ({type(exc).__name__}: {exc}). Write it with tensor operations on the "
-                "last axis, e.g. y[..., 0] instead of float(y[0]), and torch.stack([...], dim=-1) for the result"
-            ) from exc
-        raise
-
-
-def _checked(out, shape: torch.Size, what: str, x: torch.Tensor) -> torch.Tensor:
-    if not isinstance(out, torch.Tensor):
-        raise ShapeError(
-            f"{what} returned a {type(out).__module__}.{type(out).__name__} for states of shape {tuple(x.shape)}; "
-            f"expected a torch.Tensor of shape {tuple(shape)} (build it with torch operations on the input tensor, "
-            "e.g. torch.stack([...], dim=-1), not NumPy)"
-        )
-    if out.shape != shape:
-        got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-        raise ShapeError(
-            f"{what} returned shape {got} for inputs of shape {tuple(x.shape)}; expected {tuple(shape)} (check the "
-            "callable's output: one value per state component it acts on)"
-        )
-    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -555,9 +535,10 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
     A :class:`MisspecifiedSystem` passed in is returned as it is.
 
     Raises:
-        InputError: an unknown built-in name, a module that cannot be imported (with the import's error), a
-            missing or non-callable function, a function that raises (with its error), or one that returns
-            something other than a MisspecifiedSystem.
+        InputError: an unknown built-in name, a module that cannot be imported (with the import's error and its
+            file and line), a missing or non-callable function, a function that raises (with its error and its file
+            and line; a package error, such as a G whose signature does not fit the system, keeps its type), or
+            one that returns something other than a MisspecifiedSystem.
     """
     if isinstance(spec, MisspecifiedSystem):
         return spec
@@ -585,10 +566,13 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
         raise InputError(f"system {spec!r}: expected {function_name!r} to be a function, got {type(function).__name__}")
     try:
         system = function()
+    except TorchMisspecError as exc:  # the system it builds is refused (a G of the wrong form, clashing names)
+        raise type(exc)(f"system {spec!r}: {exc}") from exc
     except Exception as exc:
+        at = where(exc)
         raise InputError(
             f"system {spec!r}: expected {function_name}() to return a MisspecifiedSystem, got {one_line(exc)} when "
-            "calling it"
+            "calling it" + (f" (at {at})" if at else "")
         ) from exc
     if not isinstance(system, MisspecifiedSystem):
         raise InputError(
