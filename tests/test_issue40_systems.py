@@ -10,6 +10,8 @@ import sys
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torchmisspec as tms
 from torchmisspec.cli import main
@@ -339,3 +341,86 @@ def test_oracle_targets_of_a_trainable_g_carry_no_graph():
     data = tms.simulate(system, torch.ones(2, 2, dtype=torch.float64), torch.linspace(0.0, 1.0, 5))
     samples = tms.correction_samples(data, system, derivative="oracle")
     assert not samples.targets.requires_grad and samples.targets.grad_fn is None
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Properties over the classes above (hypothesis): every case is accepted with the right result, or refused with a
+# package error; never a raw exception, never a silently wrong count.
+
+
+class _Giving(concurrent.futures.Executor):
+    """Its map gives the results of the tasks with ``extra`` more (> 0: the first repeated) or fewer (< 0)."""
+
+    def __init__(self, extra: int) -> None:
+        self.extra = extra
+
+    def map(self, fn, *iterables, **kwargs):
+        out = list(map(fn, *iterables))
+        return out[: len(out) + self.extra] if self.extra < 0 else out + out[:1] * self.extra
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 8), st.integers(-3, 3))
+def test_map_tasks_gives_one_result_per_task_or_refuses(n, extra):
+    executor = _Giving(extra)
+    if extra == 0 or n == 0:  # nothing to repeat or to drop: the right count
+        assert map_tasks(_square, range(n), executor) == [x * x for x in range(n)]
+        return
+    with pytest.raises(tms.InputError, match=rf"expected {n} results? \(one per task\)"):
+        map_tasks(_square, range(n), executor)
+
+
+def _with_arity(count: int, star: bool = False):
+    import inspect
+
+    def known(*args):
+        return -args[1] if len(args) >= 3 else -args[0]
+
+    kind = inspect.Parameter.POSITIONAL_OR_KEYWORD
+    parameters = [inspect.Parameter(f"a{i}", kind) for i in range(count)]
+    if star:
+        parameters.append(inspect.Parameter("rest", inspect.Parameter.VAR_POSITIONAL))
+    known.__signature__ = inspect.Signature(parameters)
+    return known
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 5), st.booleans(), st.booleans(), st.booleans(), st.booleans())
+def test_a_known_model_is_accepted_exactly_when_its_arity_fits(count, controls, timed, theta, star):
+    expected = (1 if not (controls or timed) else 3) + (1 if theta else 0)
+    kwargs = {"num_controls": int(controls), "time_dependent": timed}
+    if theta:
+        kwargs["parameters"] = {"a": (1.0, 0.1)}
+    known = _with_arity(count, star)
+    if count == expected or (star and count <= expected):
+        tms.MisspecifiedSystem(known, 1, **kwargs)
+    else:
+        with pytest.raises(tms.InputError, match=r"known: expected a callable G\((t, y, u|y)(, theta)?\)"):
+            tms.MisspecifiedSystem(known, 1, **kwargs)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from("XSDPQ"), min_size=1, max_size=3, unique=True), st.sampled_from("XSDPQ"))
+def test_a_system_is_built_exactly_when_its_state_and_control_names_differ(states, control):
+    build = functools.partial(
+        tms.MisspecifiedSystem, lambda t, y, u: -y, len(states), num_controls=1, control_names=[control],
+        state_names=states,
+    )  # fmt: skip
+    if control in states:
+        with pytest.raises(tms.InputError, match="state and control names must be distinct"):
+            build()
+    else:
+        system = build()
+        assert system.state_names == tuple(states) and system.control_names == (control,)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.one_of(st.integers(-3, 4), st.floats(-2, 4), st.booleans(), st.none(), st.text(max_size=2)))
+def test_controls_repeat_gives_n_times_the_profiles_or_refuses(n):
+    controls = Controls(torch.tensor([0.0, 1.0], dtype=torch.float64), torch.ones(2, 2, 1, dtype=torch.float64))
+    if isinstance(n, int) and not isinstance(n, bool) and n >= 1:
+        repeated = controls.repeat(n)
+        assert repeated.num_experiments == 2 * n and f"K={2 * n}" in repr(repeated)
+    else:
+        with pytest.raises(tms.InputError, match="n: expected an integer >= 1"):
+            controls.repeat(n)
