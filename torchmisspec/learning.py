@@ -23,6 +23,7 @@ from ._errors import (
 )
 from ._parameters_ode import fit_parameters
 from ._threads import adaptive_threads
+from ._units import fit_in_units
 from ._validation import check_flag
 from .cross_validation import (
     SIGNIFICANCE,
@@ -250,6 +251,12 @@ def fit_correction(
     _check_trajectories_and_system(trajectories, system)
     refine = check_flag(refine, "refine", none=True)
     check_flag(progress, "progress")
+    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress)
+    scaled = fit_in_units(
+        fit_correction, trajectories, system, gp=gp, candidates=candidates, estimator=estimator, **options
+    )
+    if scaled is not None:  # fitted in the data's own units, returned in the user's (torchmisspec._units)
+        return scaled
     if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
         return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)

@@ -20,6 +20,7 @@ from ._gp_in_time import estimate_observed_noise, observed_rms
 from ._ode import FITTING_TOLERANCES, solve
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
+from ._units import refine_in_units
 from ._validation import as_tensor, check_flag, check_positive_int, check_real
 from .data import Trajectories
 from .gp import CorrectionGP, Posterior
@@ -206,6 +207,13 @@ def fit_trajectories(
         raise InputError(
             f"relevance: expected a feature kernel (its term weights are re-estimated), got kernel {gp.kernel!r}"
         )
+    options = dict(shooting=shooting, max_iter=max_iter, rtol=rtol, atol=atol, max_steps=max_steps, progress=progress)
+    scaled = refine_in_units(
+        fit_trajectories, gp, system, trajectories, state_noise=state_noise, recorded=_recorded(state_noise),
+        relevance=relevance, **options,
+    )  # fmt: skip
+    if scaled is not None:  # refined in the data's own units, returned in the user's (torchmisspec._units)
+        return scaled
     trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
     d = trajectories.state_dim
     if min(trajectories.lengths) < 2:
