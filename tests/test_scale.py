@@ -134,6 +134,8 @@ def test_the_data_units_are_powers_of_ten_and_leave_data_of_order_one_alone():
         ("features", {"degree": 3}, [1e3, 1e-2], [1e3, 1e-2], True),
         ("features", {"degree": 2, "per_output": True}, [1e-3, 1e2], [1.0, 1e-3], True),
         ("features+rbf", {"degree": 2}, [1e2, 1e2], [1e-1, 1e-1], False),
+        ("rbf", {}, [1e3, 1e-2], [1.0, 1.0], False),  # inputs in different units: the kernel's input_scale
+        ("matern52", {"per_output": True}, [1e-3, 1e2], [1e2, 1e-3], True),
     ],
 )
 def test_a_fitted_model_is_rewritten_exactly_in_other_units(kernel, options, s_in, s_out, per_output):
@@ -156,11 +158,52 @@ def test_a_model_without_an_exact_form_in_other_units_is_not_rewritten():
     X = torch.rand(20, 2, dtype=DT)
     Y = X.sum(-1, keepdim=True)
     ones = torch.ones(1, dtype=DT)
-    rbf = tms.CorrectionGP().fit(X, Y)
-    assert rescaled(rbf, torch.tensor([1e3, 1e-2], dtype=DT), ones) is None  # one lengthscale, two input scales
+    both = tms.CorrectionGP(kernel="features+rbf").fit(X, Y)
+    assert rescaled(both, torch.tensor([1e3, 1e-2], dtype=DT), ones) is None  # its RBF part: one lengthscale
     polynomial = tms.CorrectionGP(kernel="polynomial").fit(X, Y)
-    assert rescaled(polynomial, torch.tensor([10.0, 10.0], dtype=DT), ones) is None
+    assert rescaled(polynomial, torch.tensor([10.0, 10.0], dtype=DT), ones) is None  # (1 + <x, x'>)^m
     assert rescaled(polynomial, torch.ones(2, dtype=DT), 10 * ones) is not None  # the outputs alone: exact
+
+
+def test_a_kernels_input_scale_is_saved_with_the_model(tmp_path):
+    X = torch.rand(20, 2, dtype=DT) * torch.tensor([1e3, 1e-2], dtype=DT)
+    gp = tms.CorrectionGP(kernel=tms.gp.RBF(input_scale=[1e3, 1e-2])).fit(X, X[:, :1] / 1e3)
+    back = tms.CorrectionGP.load(gp.save(tmp_path / "scaled.pt"))
+    assert back.kernel_spec == tms.gp.RBF(input_scale=(1e3, 1e-2)) and back.clone().kernel_spec == back.kernel_spec
+    assert torch.equal(back.predict(X[:3]).variance, gp.predict(X[:3]).variance)
+    with pytest.raises(tms.InputError, match=r"input_scale: expected one positive finite number per input"):
+        tms.gp.RBF(input_scale=[1.0, 0.0])
+
+
+A_PK = torch.tensor([[-0.8, 0.2], [0.5, -0.2]], dtype=DT)  # two compartments, a saturable elimination missing
+
+
+def pk_fit_and_predict(scales):
+    """A fully measured two-compartment model whose F (on the central compartment, of both) is a saturation: the
+    cross-validation chooses an RBF on two inputs, here in units ``scales``."""
+    S = torch.tensor(scales, dtype=DT)
+    B = A_PK * S.unsqueeze(-1) / S.unsqueeze(0)
+    system = tms.MisspecifiedSystem(lambda y: y @ B.T, 2, correction_inputs=[0, 1], correction_outputs=[0])
+    saturation = lambda x: (-0.8 * x[..., 0] / (0.5 + x[..., 0])).unsqueeze(-1)  # noqa: E731
+    truth = tms.MisspecifiedSystem(
+        lambda y: y @ A_PK.T, 2, correction=saturation, correction_inputs=[0], correction_outputs=[0]
+    )
+    g = torch.Generator().manual_seed(0)
+    y0 = torch.stack([0.5 + 3.5 * torch.rand(6, generator=g, dtype=DT), 0.5 * torch.rand(6, generator=g, dtype=DT)], -1)
+    t = torch.linspace(0, 8, 15, dtype=DT)
+    y = tms.simulate(truth, y0, t).states
+    y = y * (1 + 0.02 * torch.randn(y.shape, generator=g, dtype=DT))
+    gp = tms.fit_correction(tms.Trajectories(t, y * S), system, progress=False)
+    return gp, tms.CorrectedODE(system, gp).predict(y0[:3] * S, t) / S
+
+
+def test_an_rbf_on_inputs_of_different_scales_sees_them_standardized():
+    gp1, pred1 = pk_fit_and_predict([1.0, 1.0])
+    gp, pred = pk_fit_and_predict([1e3, 1e-2])
+    assert gp1.kernel_spec == tms.gp.RBF() and gp.kernel_spec == tms.gp.RBF(input_scale=(1e3, 1e-2))
+    assert gp.lengthscale == pytest.approx(gp1.lengthscale, rel=1e-6)
+    for j in range(2):
+        assert relative(pred[..., j], pred1[..., j]) <= TOLERANCE
 
 
 @pytest.mark.slow

@@ -22,13 +22,14 @@ rescaled: time (the package's tolerances and grids are relative to the time span
 in their units) and G's uncertain parameters (G is called with the user's theta).
 
 **The model returned** is the one fitted in the data's units, rewritten exactly in the user's units
-(:func:`rescaled`): training inputs, targets and known noise rescaled, an RBF's lengthscale (when its inputs share
-one scale), the output scale and noise variance by the outputs' squared scales, a feature kernel's weights by
-``s_out^2 / m(s_in)^2`` for its monomial ``m``. So every consumer (CorrectedODE, bands, design, save and load, the
-command line) sees an ordinary :class:`~torchmisspec.CorrectionGP` in the user's units. A shared kernel whose
-outputs have different scales becomes a per-output model (the same values in each output's units: the exact
-rewrite); a model that cannot be rewritten (an RBF whose inputs have different scales, a polynomial kernel or a user
-library of features on rescaled inputs) is fitted in the user's units instead, as before (:func:`fit_in_units`).
+(:func:`rescaled`): training inputs, targets and known noise rescaled, an RBF's lengthscale (or, when its inputs'
+scales differ, the kernel's ``input_scale``: it keeps seeing standardized inputs), the output scale and noise
+variance by the outputs' squared scales, a feature kernel's weights by ``s_out^2 / m(s_in)^2`` for its monomial
+``m``. So every consumer (CorrectedODE, bands, design, save and load, the command line) sees an ordinary
+:class:`~torchmisspec.CorrectionGP` in the user's units. A shared kernel whose outputs have different scales becomes
+a per-output model (the same values in each output's units: the exact rewrite); a model that cannot be rewritten (a
+polynomial kernel or a user library of features with rescaled inputs; features+rbf, or an RBF in a feature space,
+with inputs or outputs of different scales) is fitted in the user's units instead, as before (:func:`fit_in_units`).
 """
 
 from __future__ import annotations
@@ -94,7 +95,9 @@ class Units:
     def inputs(self, system) -> torch.Tensor:
         """``(d_in,)``: the scales of F's inputs (a control's is 1: controls keep their units)."""
         d = system.state_dim
-        return torch.tensor([float(self.state[i]) if i < d else 1.0 for i in system.correction_inputs]).double()
+        return torch.tensor(
+            [float(self.state[i]) if i < d else 1.0 for i in system.correction_inputs], dtype=torch.float64
+        )
 
     def outputs(self, system) -> torch.Tensor:
         """``(d_out,)``: the scales of F's outputs (those of the states they act on)."""
@@ -226,7 +229,7 @@ def fit_in_units(fit, trajectories: Trajectories, system, *, gp, candidates, est
     """``fit`` (:func:`~torchmisspec.fit_correction`) on the data in their own units, the result rewritten in the
     user's (the module docstring); ``None`` when the data are in their units already, when this runs inside such a
     fit, or when a template's fixed values (or ``noise_std``) cannot be rewritten: the caller then fits as it is.
-    When the model chosen cannot be rewritten exactly (an RBF whose inputs have different scales), the data are
+    When the model chosen cannot be rewritten exactly (:func:`~torchmisspec.gp._rescale.rescaled`), the data are
     fitted in the user's units instead."""
     if _INSIDE.get():
         return None

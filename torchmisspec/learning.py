@@ -232,6 +232,11 @@ def fit_correction(
     uncertain parameters of G, they are learned with the first model through the ODE (their Laplace posterior, F's
     terms and the initial states marginalised) and F is chosen at their posterior mean.
 
+    **Units**: every step runs on the states divided by a power of ten near each component's size (and readings by
+    their own), so that states in the thousands or in thousandths are fitted as states near 1 (data near 1 are left
+    as they are); the model is returned in the user's units (:mod:`torchmisspec._units`). ``cross_validation_``'s
+    scores are in the scaled units, where the candidates were compared.
+
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
     not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).

@@ -177,7 +177,9 @@ def fit_trajectories(
         max_iter: most L-BFGS iterations.
         rtol: relative tolerance of the shooting solves (the package's fitting tolerance by default, see
             :mod:`torchmisspec._ode`).
-        atol: absolute tolerance of the shooting solves.
+        atol: absolute tolerance of the shooting solves, in units of each state's scale: the fit runs on the states
+            divided by a power of ten near each component's size (data near 1 as they are), and returns the model in
+            the user's units (:mod:`torchmisspec._units`), so states of any size are integrated alike.
         max_steps: step limit of each solve (an :class:`IntegrationError` stops a fit whose ODE blows up).
         progress: show a progress bar over the likelihood evaluations.
         relevance: for the feature kernel (default ``True`` there): also re-estimate its term weights from the

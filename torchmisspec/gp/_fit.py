@@ -167,7 +167,7 @@ def lengthscale_box(gp, X: torch.Tensor):
     take log l to -1000, where every kernel entry is 0/0."""
     if not gp.kernel_spec.has_lengthscale or gp.fixed["lengthscale"] is not None:
         return None
-    scale = median_distance(X)
+    scale = median_distance(gp.kernel_spec.scaled_inputs(X))
     return gp.covar_module.base_kernel.raw_lengthscale, math.log(1e-4 * scale), math.log(1e4 * scale)
 
 

@@ -113,6 +113,10 @@ class Kernel:
         """A fit of its own (``(iterations, evaluations)``), or ``None``: the generic marginal-likelihood fit."""
         return None
 
+    def scaled_inputs(self, x: torch.Tensor) -> torch.Tensor:
+        """The inputs as the kernel sees them (the same, unless a stationary kernel has an ``input_scale``)."""
+        return x
+
     def prepare(self, gp, X) -> tuple[int, int] | None:
         """What the kernel needs from the training inputs when nothing is learned (every hyperparameter given):
         ``(0, 0)`` when it did something, ``None`` when it needs nothing (the default)."""
@@ -135,9 +139,41 @@ class Kernel:
 
 
 class Stationary(Kernel):
-    """k(x, x') = s^2 profile(|x - x'|^2 / l^2): write :meth:`profile`, :meth:`module` and :meth:`spectral`."""
+    """k(x, x') = s^2 profile(|x - x'|^2 / l^2): write :meth:`profile`, :meth:`module` and :meth:`spectral`.
+
+    ``input_scale`` (optional, one positive number per input): the kernel sees the inputs divided by it,
+    ``|x / c - x' / c|^2 / l^2``, and ``l`` is in those units. The fits in the data's units write a kernel fitted on
+    standardized inputs so in the user's units (:mod:`torchmisspec.gp._rescale`): an isotropic kernel on inputs of
+    different scales.
+    """
 
     stationary = True
+    #: the inputs' scales (``None``: none), a tuple of floats
+    input_scale: tuple[float, ...] | None = None
+
+    def __init__(self, input_scale=None) -> None:
+        self.input_scale = None if input_scale is None else _check_scale(input_scale)
+
+    def config(self) -> dict:
+        return {} if self.input_scale is None else {"input_scale": self.input_scale}
+
+    def scaled_inputs(self, x: torch.Tensor) -> torch.Tensor:
+        """The inputs as the kernel sees them (divided by :attr:`input_scale`, when it has one)."""
+        if self.input_scale is None:
+            return x
+        cache = self.__dict__.setdefault("_scales", {})  # per dtype and device: an ODE's field calls this each step
+        key = (x.dtype, x.device)
+        if key not in cache:
+            cache[key] = torch.tensor(self.input_scale, dtype=x.dtype, device=x.device)
+        return x / cache[key]
+
+    def _module(self, cls, **options) -> gpytorch.kernels.Kernel:
+        """The GPyTorch kernel ``cls(**options)``, on inputs divided by :attr:`input_scale` when it has one."""
+        if self.input_scale is None:
+            return cls(**options)
+        module = _SCALED[cls](**options)
+        module.scaled_inputs = self.scaled_inputs
+        return module
 
     def profile(self, sq: torch.Tensor) -> torch.Tensor:
         """k / s^2 as a function of the squared scaled distance ``sq`` (>= 0)."""
@@ -149,6 +185,7 @@ class Stationary(Kernel):
 
     def matrix(self, x, X, params, degree):
         s2, ell = params["outputscale"], params["lengthscale"]
+        x, X = self.scaled_inputs(x), self.scaled_inputs(X)
         sq = (x.pow(2).sum(-1, keepdim=True) + X.pow(2).sum(-1) - 2.0 * (x @ X.T)).clamp_min(0.0) / ell.pow(2)
         return s2 * self.profile(sq)
 
@@ -158,6 +195,8 @@ class Stationary(Kernel):
         kd = dict(dtype=gp.dtype, device=gp.device)
         B = outputscale.shape[0]
         lengthscale = base.lengthscale.detach().to(**kd).reshape(B, -1).expand(B, gp.input_dim)
+        if self.input_scale is not None:  # l in the inputs' own units, per input
+            lengthscale = lengthscale * torch.tensor(self.input_scale, **kd)
         return stationary_features(gp, self, lengthscale, outputscale, num_features, feature_error, generator)
 
 
@@ -171,7 +210,7 @@ class RBF(Stationary):
     squared_exponential: ClassVar[bool] = True
 
     def module(self, gp, batch_shape):
-        return gpytorch.kernels.RBFKernel(batch_shape=batch_shape, lengthscale_constraint=log_positive())
+        return self._module(gpytorch.kernels.RBFKernel, batch_shape=batch_shape, lengthscale_constraint=log_positive())
 
     def profile(self, sq):
         return torch.exp(-0.5 * sq)
@@ -181,7 +220,11 @@ class RBF(Stationary):
 
     def matrix(self, x, X, params, degree):
         s2, ell = params["outputscale"], params["lengthscale"]
-        if ell.numel() == 1 and not (x.requires_grad or ell.requires_grad or s2.requires_grad):
+        if (
+            ell.numel() == 1
+            and self.input_scale is None
+            and not (x.requires_grad or ell.requires_grad or s2.requires_grad)
+        ):
             # the hot path of sampled trajectories: one fused pass per operation, in place (no temporaries)
             a, b = x / ell.reshape(()), X / ell.reshape(())
             sq = torch.addmm(a.pow(2).sum(-1, keepdim=True) + b.pow(2).sum(-1), a, b.T, alpha=-2.0)
@@ -196,7 +239,8 @@ class Matern52(Stationary):
     name = "matern52"
 
     def module(self, gp, batch_shape):
-        return gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=batch_shape, lengthscale_constraint=log_positive())
+        options = dict(nu=2.5, batch_shape=batch_shape, lengthscale_constraint=log_positive())
+        return self._module(gpytorch.kernels.MaternKernel, **options)
 
     def profile(self, sq):
         r = (5.0 * sq).clamp_min(1e-300).sqrt() * (sq > 0)  # sqrt(5) ||x - x'|| / l, with a finite gradient at 0
@@ -338,3 +382,33 @@ class FeaturesRBF(Features):
         return FeatureMap(
             "sum", poly.num_features + rbf.num_features, error_bound=rbf.error_bound, box=rbf.box, parts=(poly, rbf)
         )
+
+
+def _check_scale(value) -> tuple[float, ...]:
+    """``input_scale`` as a tuple of positive finite floats (a saved kernel's plain values)."""
+    try:
+        scale = tuple(float(v) for v in torch.as_tensor(value, dtype=torch.float64).reshape(-1).tolist())
+    except (TypeError, ValueError, RuntimeError):
+        scale = ()
+    if not scale or not all(v > 0 and v < float("inf") for v in scale):
+        raise InputError(f"input_scale: expected one positive finite number per input, got {value!r:.80}")
+    return scale
+
+
+class _InputScaled:
+    """A GPyTorch stationary kernel on inputs divided by its kernel object's ``input_scale`` (``scaled_inputs``, set
+    when it is built: not a parameter or buffer, so its state is the plain kernel's)."""
+
+    def forward(self, x1, x2, **params):
+        return super().forward(self.scaled_inputs(x1), self.scaled_inputs(x2), **params)
+
+
+class _ScaledRBF(_InputScaled, gpytorch.kernels.RBFKernel):
+    pass
+
+
+class _ScaledMatern(_InputScaled, gpytorch.kernels.MaternKernel):
+    pass
+
+
+_SCALED = {gpytorch.kernels.RBFKernel: _ScaledRBF, gpytorch.kernels.MaternKernel: _ScaledMatern}

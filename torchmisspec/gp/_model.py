@@ -334,11 +334,12 @@ class CorrectionGP(Readout):
         X = as_tensor(inputs, "inputs", dtype=self.dtype, device=self.device)
         Y = as_tensor(targets, "targets", dtype=self.dtype, device=self.device)
         Y = Y.unsqueeze(-1) if Y.dim() == 1 else Y
+        kd = dict(dtype=X.dtype, device=X.device)
         var = Y.pow(2).mean(dim=0)  # (d_out,)
         var = torch.where(var > 0, var, var.max()) if self.per_output else var.mean()
         out = {"outputscale": var, "noise_variance": 1e-2 * var}
-        if self.kernel_spec.has_lengthscale:
-            out["lengthscale"] = torch.tensor(median_distance(X), dtype=X.dtype, device=X.device)
+        if self.kernel_spec.has_lengthscale:  # in the units the kernel sees (an input_scale's)
+            out["lengthscale"] = torch.tensor(median_distance(self.kernel_spec.scaled_inputs(X)), **kd)
         return out
 
     # ----------------------------------------------------------------------------------------------- the maths
@@ -438,12 +439,13 @@ class CorrectionGP(Readout):
         return self
 
     def _kernel_for(self, n: int) -> Kernel:
-        """The kernel a fit on ``n`` samples uses: the one asked for, except a shared RBF's, which is computed in a
-        feature space above :data:`~torchmisspec.gp._large.LARGE_N` samples (``exact=None``) or always
-        (``exact=False``)."""
+        """The kernel a fit on ``n`` samples uses: the one asked for, except a shared RBF's (without an
+        ``input_scale``), which is computed in a feature space above :data:`~torchmisspec.gp._large.LARGE_N` samples
+        (``exact=None``) or always (``exact=False``)."""
         asked = self.requested_kernel
         large = {"rbf": RBFFeatures, "matern52": Matern52Features}.get(asked.name)
-        if self.auto or self.per_output or large is None or self.exact is True:
+        scaled = getattr(asked, "input_scale", None) is not None  # the feature space has no scale per input
+        if self.auto or self.per_output or large is None or self.exact is True or scaled:
             return asked
         return large() if self.exact is False or n > LARGE_N else asked
 

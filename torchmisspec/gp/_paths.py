@@ -528,6 +528,7 @@ class FunctionSamples:
                 f.kind in ("fourier", "quadrature")
                 and f._t["omega"].shape[0] == 1
                 and getattr(self._kind, "squared_exponential", False)
+                and getattr(self._kind, "input_scale", None) is None
                 and params["lengthscale"].numel() == 1
             ):
                 omega, scale = f._t["omega"][0], f._t["scale"].reshape(-1, 1)  # (d_in, D), (1 or D, 1)

@@ -8,7 +8,9 @@ are the hyperparameters that carry units:
 * the output scale and the noise variance, by the outputs' squared scales (a feature kernel's output scale stays at 1:
   its weights carry the scale);
 * an RBF's or Matern's lengthscale (also the RBF part of features+rbf, and the RBF in a feature space) by the inputs'
-  scale: exact when every input has the same one (an isotropic kernel cannot stretch one input and not another);
+  scale when every input has the same one; when they differ, an RBF or Matern 5/2 keeps its lengthscale and takes
+  the inputs' scales as its ``input_scale`` (:class:`~torchmisspec.gp.Stationary`: it sees each input in its own
+  units, as it did when it was fitted), which features+rbf and the feature-space RBF cannot;
 * the weight of a feature kernel's monomial m by ``s_out^2 / m(s_in)^2`` (its coefficient's prior variance), also
   its removed terms' spread. A polynomial kernel ``(1 + <x, x'>)^m`` and a user library of features are not
   rewritten unless the inputs keep their units.
@@ -54,11 +56,23 @@ def common_scale(scales: torch.Tensor) -> float | None:
     return float(scales[0]) if bool((scales == scales[0]).all()) else None
 
 
+def _respec(gp, s_in: torch.Tensor):
+    """The kernel object in the new units when its inputs' scales differ: an RBF or Matern 5/2 with its
+    ``input_scale`` times ``s_in`` (its lengthscale then stays: it is in the units the kernel sees); ``None`` when
+    the inputs share one scale (the lengthscale is rescaled instead) or the kernel has no such form."""
+    spec = gp.kernel_spec
+    if common_scale(s_in) is not None or type(spec) not in (RBF, Matern52):
+        return None
+    before = torch.tensor(spec.input_scale or (1.0,) * s_in.shape[0], dtype=torch.float64)
+    return type(spec)(input_scale=before * s_in)
+
+
 def _fixed(gp, s_in: torch.Tensor, s_out: torch.Tensor) -> dict | None:
     """``gp.fixed`` in the new units, or ``None`` when a fixed value cannot be rewritten (a lengthscale fixed for
-    inputs whose scales differ; an output scale or noise variance fixed for outputs whose scales differ)."""
+    inputs whose scales differ, of a kernel without an ``input_scale``; an output scale or noise variance fixed for
+    outputs whose scales differ)."""
     fixed = dict(gp.fixed)
-    if fixed["lengthscale"] is not None:
+    if fixed["lengthscale"] is not None and _respec(gp, s_in) is None:
         common = common_scale(s_in)
         if common is None:
             return None
@@ -73,10 +87,10 @@ def _fixed(gp, s_in: torch.Tensor, s_out: torch.Tensor) -> dict | None:
     return fixed
 
 
-def _inputs_fit(kind: str | None, s_in: torch.Tensor) -> bool:
-    """Whether a kernel of this kind can be rewritten for these input scales."""
+def _inputs_fit(gp, kind: str | None, s_in: torch.Tensor) -> bool:
+    """Whether ``gp``'s kernel (of this kind) can be rewritten for these input scales."""
     if kind in ("lengthscale", "sum"):
-        return common_scale(s_in) is not None
+        return common_scale(s_in) is not None or _respec(gp, s_in) is not None
     if kind == "features":
         return True
     return bool((s_in == 1).all())
@@ -94,7 +108,8 @@ def rescaled_template(template, s_in, s_out):
         return None
     if template.auto:  # an auto model fixes at most its noise variance
         return template.clone(noise_variance=fixed["noise_variance"])
-    return template.clone(**fixed)
+    spec = _respec(template, s_in)
+    return template.clone(**fixed) if spec is None else template.clone(kernel=spec, **fixed)
 
 
 def rescaled(gp, s_in, s_out, *, flip: bool = True):
@@ -106,7 +121,7 @@ def rescaled(gp, s_in, s_out, *, flip: bool = True):
     if bool((s_in == 1).all() and (s_out == 1).all()):
         return gp
     kind = _kind(gp)
-    if kind is None or not _inputs_fit(kind, s_in):
+    if kind is None or not _inputs_fit(gp, kind, s_in):
         return None
     d_out = gp.output_dim
     B = gp.covar_module.outputscale.reshape(-1).shape[0]
@@ -118,10 +133,13 @@ def rescaled(gp, s_in, s_out, *, flip: bool = True):
         return None
     holder = copy.copy(gp)
     holder.fixed = fixed
+    spec = _respec(gp, s_in)  # an isotropic kernel on inputs of different scales: each input's scale in the kernel
+    if spec is not None:
+        holder.kernel_spec = holder.requested_kernel = spec
     covar, lik = copy.deepcopy(gp.covar_module), copy.deepcopy(gp.likelihood)
     X, Y, noise = gp.train_inputs_, gp.train_targets_, gp.train_noise_
-    if split:  # per output: the shared values copied to each output's kernel, then rescaled per output
-        holder.per_output = True
+    if split or spec is not None:  # new modules (per output, or the kernel's new form) holding the same values
+        holder.per_output = holder.per_output or split
         covar, lik = holder._modules(batch=d_out, noise=None if noise is None else noise.T.contiguous())
         _copy_expanded(gp.covar_module, covar)
         _copy_expanded(gp._floor(gp.likelihood), holder._floor(lik))
@@ -129,7 +147,7 @@ def rescaled(gp, s_in, s_out, *, flip: bool = True):
     s_in, s_out = s_in.to(**kd), s_out.to(**kd)
     a = s_out.pow(2) if split or B > 1 else s_out[:1].pow(2)  # (B,): the squared output scale of each kernel
     with torch.no_grad():
-        _rescale_modules(gp, covar, holder._floor(lik), kind, s_in, a)
+        _rescale_modules(gp, covar, holder._floor(lik), kind if spec is None else "outputs", s_in, a)
     holder.model = IndependentOutputsGP(X, Y.T.contiguous(), lik, covar, d_out).eval()
     return holder.condition(X * s_in, Y * s_out, noise=None if noise is None else noise * s_out.pow(2))
 
