@@ -144,6 +144,7 @@ class TrajectoryPosterior:
         d = self.samples.shape[-1]
         if readout.state_dim != d:
             raise ShapeError(f"readout: expected weights over the {d} states, got {readout.state_dim} columns")
+        readout = readout.for_states(self.state_names, "the posterior's system")  # by name, when both name them
         return dataclasses.replace(
             self, samples=readout(self.samples), mean_path=readout(self.mean_path), state_names=readout.names
         )

@@ -14,8 +14,8 @@ from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import check_positive_int, check_real
 from .calibration import calibrate_bands
-from .data import Trajectories
 from .gp import CorrectionGP
+from .observations import _check_trajectories_and_system
 from .parameters import ParameterPosterior
 from .partial import complete, estimate_initial_states, initial_guess
 from .systems import MisspecifiedSystem
@@ -356,8 +356,7 @@ class CorrectedODE(nn.Module):
 
     def _partial(self, trajectories):
         """``trajectories`` checked and in the GP's dtype and device."""
-        if not isinstance(trajectories, Trajectories):
-            raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
+        _check_trajectories_and_system(trajectories, self.system)  # shapes, controls, states named as the system's
         return trajectories.to(dtype=self.gp.dtype, device=self.gp.device)
 
     def _mean_rhs(self):

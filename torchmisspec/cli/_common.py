@@ -60,7 +60,8 @@ def add_column_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--state-columns",
-        help="comma separated state column names, in the system's order (default: every other column)",
+        help="comma separated names of the columns holding the system's states, in the system's order (default: the "
+        "columns named as the system's states; for a system that names none, every other column in file order)",
     )
     parser.add_argument(
         "--readout",
@@ -76,9 +77,9 @@ def add_column_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--input-kind",
-        default="previous",
         choices=["previous", "linear"],
-        help="how an input runs between its rows: previous (piecewise constant, default) or linear",
+        help="how an input runs between its rows: previous (piecewise constant, default) or linear (an .npz archive "
+        "records its own)",
     )
 
 
@@ -100,48 +101,118 @@ def state_columns(args: argparse.Namespace, option: str = "state_columns") -> li
 
 
 def read_observations(args: argparse.Namespace, system=None):
-    """The ``Trajectories`` of ``--data`` with the column options. With a ``system`` that names its states and no
-    ``--state-columns``, a text table's columns are read by those names, in the system's order, and a state whose
-    column is absent is *not measured* (all missing: partial measurements, learned through the ODE)."""
-    from ..data import Trajectories
-    from ..data._tables import _TEXT_FORMATS, _read_table
+    """The ``Trajectories`` of ``--data`` with the column options, checked against ``system``.
 
-    wanted = state_columns(args)
+    A system that names its states: a text table's state columns are read by those names, in the system's order,
+    whatever the file's order; a state whose column is absent is *not measured* (all missing: partial measurements,
+    learned through the ODE); other columns are left out. ``--state-columns`` names the columns of the system's states
+    instead, in its order (they are then called by the system's names). A time, experiment or input column named as
+    a state is refused. An ``.npz`` archive's states are matched to the system's by name. A system that names no
+    states: ``--state-columns``, else every column but the time, experiment and inputs, in file order (their names
+    go with the model, so later commands match their columns by them)."""
+    from ..data import Readout, Trajectories
+
     names = list(getattr(system, "state_names", None) or [])
-    if getattr(args, "readout", None):
-        from ..data import Readout
-
-        states = wanted or names or default_names(system)
-        return Trajectories.load(
-            args.data,
-            time_column=args.time_column,
-            experiment_column=args.experiment_column or None,
-            state_columns=states,
-            control_columns=state_columns(args, "input_columns"),
-            control_kind=getattr(args, "input_kind", "previous"),
-            readout=Readout.parse(args.readout, states),
+    wanted = _state_columns_for(args, system, names)
+    inputs = state_columns(args, "input_columns")
+    if system is not None and system.num_controls and inputs is None and Path(args.data).suffix != ".npz":
+        controls = list(system.control_names)
+        raise InputError(
+            f"--data: the system also takes {system.num_controls} input(s) {controls}: name their columns in "
+            f"{args.data!r} with --input-columns (e.g. --input-columns {','.join(controls)}), in the system's order"
         )
-    present = []
-    if names and wanted is None and Path(args.data).suffix in _TEXT_FORMATS and Path(args.data).is_file():
-        header = _read_table(Path(args.data))[0]
-        present = [n for n in names if n in header]
-    partial = 0 < len(present) < len(names)  # some of the system's states have no column: not measured
-    observed = Trajectories.load(
-        args.data,
+    if system is not None and inputs is not None:
+        _check_order("--input-columns", inputs, list(system.control_names), "inputs")
+    options = dict(
         time_column=args.time_column,
         experiment_column=args.experiment_column or None,  # '' = no experiment column: one experiment
-        state_columns=present if partial else wanted,
-        control_columns=state_columns(args, "input_columns"),
-        control_kind=getattr(args, "input_kind", "previous"),
+        control_columns=inputs,
+        control_kind=getattr(args, "input_kind", None),
     )
-    if not partial:
-        return observed
+    if getattr(args, "readout", None):
+        states = wanted or names or default_names(system)
+        observed = Trajectories.load(
+            args.data, state_columns=states, readout=Readout.parse(args.readout, states), **options
+        )
+        return observed.with_state_names(names) if wanted and names else observed
+    present = _present(args.data, names, system) if names and wanted is None else None
+    observed = Trajectories.load(args.data, state_columns=present or wanted, **options)
+    if wanted and names:  # the columns --state-columns names are the system's states, in its order
+        return observed.with_state_names(names)
+    if present is not None and len(present) < len(names):
+        return _with_absent_states(observed, names)
+    if names and set(observed.state_names) == set(names):  # an archive: its states matched to the system's by name
+        return observed.reordered(names)
+    return observed
+
+
+def _state_columns_for(args: argparse.Namespace, system, names: list[str]) -> list[str] | None:
+    """``--state-columns``, checked against the system: one column per state, in its order; a time, experiment or
+    input column named as one of its states is refused."""
+    wanted = state_columns(args)
+    if names:
+        label = f"a state of system '{system.name}' ({', '.join(names)})"
+        others = [("--time-column", args.time_column), ("--experiment-column", args.experiment_column)]
+        others += [("--input-columns", c) for c in state_columns(args, "input_columns") or []]
+        for option, column in others:
+            if column and column in names:
+                raise InputError(
+                    f"{option}: expected a column other than the states, got {column!r}, {label}; name the "
+                    f"{option.removeprefix('--').split('-')[0]} column of the file"
+                )
+    if wanted is None or system is None:
+        return wanted
+    if len(wanted) != system.state_dim:
+        raise InputError(
+            f"--state-columns: expected state dimension {system.state_dim} of system '{system.name}' (one column "
+            "name per state" + (f": {', '.join(names)}" if names else "") + f", in its order), got {wanted}"
+        )
+    _check_order("--state-columns", wanted, names, "states")
+    return wanted
+
+
+def _check_order(option: str, given: list[str], names: list[str], what: str) -> None:
+    """Refuse columns ``given`` (in the system's order) that name the system's ``names`` in another order."""
+    misplaced = [(c, names.index(c)) for i, c in enumerate(given) if c in names and names.index(c) != i]
+    if misplaced:
+        column, at = misplaced[0]
+        raise InputError(
+            f"{option}: {','.join(given)} names the system's {what} in another order: {column!r} is its "
+            f"{what[:-1]} {at + 1} of ({', '.join(names)}), and {option} lists the columns in the system's order; "
+            f"pass them in that order ({','.join(c for c in names if c in given)})"
+            + (", or leave it out (columns named as the states are read by name)" if what == "states" else "")
+        )
+
+
+def _present(path: str, names: list[str], system) -> list[str] | None:
+    """The system's state names that are columns of the text table ``path`` (``None`` for an archive); none is an
+    error: a table of a system that names its states is read by those names."""
+    from ..data._tables import header
+
+    columns = header(path)
+    if columns is None:
+        return None
+    present = [n for n in names if n in columns]
+    if not present:
+        raise InputError(
+            f"--data: expected state columns named as the states of system '{system.name}' ({', '.join(names)}), got "
+            f"columns "
+            f"{columns} in {path!r}; rename them, or name them in the system's order with --state-columns"
+        )
+    return present
+
+
+def _with_absent_states(observed, names: list[str]):
+    """``observed`` with the system's states that have no column as columns of missing values, in its order."""
     import torch
 
+    from ..data import Trajectories
+
+    where = [names.index(n) for n in observed.state_names]
     rows = []
-    for _, y in observed.experiments():  # the absent states as columns of missing values, in the system's order
+    for _, y in observed.experiments():
         full = torch.full((y.shape[0], len(names)), float("nan"), dtype=y.dtype, device=y.device)
-        full[:, [names.index(n) for n in present]] = y
+        full[:, where] = y
         rows.append(full)
     times = [t for t, _ in observed.experiments()]
     return Trajectories(times, rows, state_names=names, controls=observed.controls)
@@ -177,10 +248,12 @@ def known_state_names(system, gp=None) -> list[str | None] | None:
 def read_states(path: str, option: str, args: argparse.Namespace, system, known: list[str] | None = None):
     """Initial states, one per row, from ``path``: ``(tensor (N, d), state names, row labels)``.
 
-    A CSV/TSV/TXT with a header row is read by name with the column options: ``--state-columns`` (default: every
-    column but the experiment column), ``--experiment-column`` (optional: the rows' labels, else 0..N-1); a time
-    column is refused (one state per row, not trajectories). ``known``: the states' names (the system's or the
-    model's); a header holding them all is read by them, in the system's order, whatever the columns' order, and a
+    A CSV/TSV/TXT with a header row is read by name with the column options: ``--state-columns`` (the columns of
+    the system's states, in its order, then called by the system's names when it names them; default: every column
+    but the experiment column), ``--experiment-column`` (optional: the rows' labels, else 0..N-1); a time column is
+    refused (one state per row, not trajectories). ``known``: the states' names (the system's or the model's); a
+    header holding them all is read by them, in the system's order, whatever the columns' order (a system that names
+    its states: a header without them all is refused), and a
     single other column of names, not numbers (sample IDs), labels the rows when there is no experiment column; any
     other extra column is refused (a data file given by mistake, a time column of another name). Without a
     header, or from .npy/.npz, every column is a state, in the system's order."""
@@ -213,7 +286,8 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                     f"{option}: expected one state per row, but {path!r} has a time column {args.time_column!r}; "
                     "drop it (or rename it if it is a state)"
                 )
-            wanted = state_columns(args)
+            named = list(getattr(system, "state_names", None) or [])
+            wanted = _state_columns_for(args, system, named)  # in the system's order: its states, by its names
             label_column = args.experiment_column
             if wanted is None and known is not None and all(c in header for c in known if c is not None):
                 others = [c for c in header if c != args.experiment_column and c not in known]
@@ -224,6 +298,11 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                     ids = header.index(others[0])
                     if not any(_number(row[ids]) for row in body if ids < len(row)):
                         wanted, label_column = list(known), others[0]
+            if wanted is None and named and not all(c in header for c in named):
+                raise InputError(
+                    f"{option}: expected columns named as the states of system '{system.name}' ({', '.join(named)}), "
+                    f"got {header} in {path!r}; rename them, or name them in the system's order with --state-columns"
+                )
             if wanted is None:
                 wanted = [c for c in header if c != args.experiment_column]
             missing = [c for c in wanted if c not in header]
@@ -232,7 +311,8 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
                     f"{option}: expected state columns {wanted}, missing {missing}; {path!r} has {header} "
                     "(set --state-columns)"
                 )
-            names, columns = wanted, [header.index(c) for c in wanted]
+            columns = [header.index(c) for c in wanted]
+            names = named if named and state_columns(args) is not None else wanted
             if label_column and label_column in header:
                 e = header.index(label_column)
                 labels = [row[e] if e < len(row) else "" for row in body]
@@ -309,11 +389,11 @@ def read_table(path: str, what: str, option: str | None = None):
     """A numeric array from .npz (array ``what`` or the only one), .npy, or CSV/TSV/TXT (an optional header row),
     and the header's column names (``None`` without one). Nothing is unpickled; unreadable, non-UTF-8 or
     non-numeric files raise :class:`InputError`."""
-    import zipfile
+    import numpy as np
+
+    from ..data._npz import npy_array, npz_arrays
 
     label = option or what  # the option named in messages (``what`` is also the .npz array's name)
-
-    import numpy as np
 
     p = Path(path)
     if not p.is_file():
@@ -324,18 +404,17 @@ def read_table(path: str, what: str, option: str | None = None):
     if p.suffix not in (".csv", ".tsv", ".txt", ".npz", ".npy"):
         raise InputError(f"{label}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
     header = None
-    try:
-        if p.suffix == ".npz":
-            with np.load(p, allow_pickle=False) as data:
-                if what in data.files:
-                    arr = data[what]
-                elif len(data.files) == 1:
-                    arr = data[data.files[0]]
-                else:
-                    raise InputError(f"{path}: expected an array named {what!r} (or a single array), got {data.files}")
-        elif p.suffix == ".npy":
-            arr = np.load(p, allow_pickle=False)
-        else:
+    if p.suffix == ".npz":
+        arrays = npz_arrays(p, label)  # a damaged archive, or one array np.save'd under an .npz name: refused
+        if what not in arrays and len(arrays) != 1:
+            raise InputError(
+                f"{label}: expected an array named {what!r} (or a single array) in {path}, got {sorted(arrays)}"
+            )
+        arr = arrays[what] if what in arrays else next(iter(arrays.values()))
+    elif p.suffix == ".npy":
+        arr = npy_array(p, label)
+    else:
+        try:
             lines = [ln for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
             sep = "\t" if lines and "\t" in lines[0] else ","
             if lines:
@@ -345,13 +424,11 @@ def read_table(path: str, what: str, option: str | None = None):
                     header = [c.strip() for c in lines[0].split(sep)]
                     lines = lines[1:]  # a header row
             arr = np.array([[float(v) for v in ln.replace(sep, " ").split()] for ln in lines], dtype=np.float64)
-    except InputError:
-        raise
-    except (ValueError, OSError, EOFError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
-        raise InputError(
-            f"{label}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), but it "
-            f"could not be read ({type(exc).__name__}: {str(exc)[:160]})"
-        ) from exc
+        except (ValueError, OSError, UnicodeDecodeError) as exc:
+            raise InputError(
+                f"{label}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), "
+                f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
+            ) from exc
     if arr.dtype.kind not in "iuf" or arr.size == 0:
         raise InputError(
             f"{label}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
@@ -484,4 +561,4 @@ def read_controls(path: str, args: argparse.Namespace, system, labels: list[str]
             raise InputError(f"--controls: expected one row per time in the profile of {w or 'the experiments'!r}")
         knots.append(rows[:, 0])
         values.append(rows[:, 1:])
-    return Controls(knots, values, kind=args.input_kind, names=names)
+    return Controls(knots, values, kind=args.input_kind or "previous", names=names)

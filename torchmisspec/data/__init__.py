@@ -9,7 +9,8 @@ any column names. Missing entries (an empty cell, or NaN in arrays) are kept as 
 
 The code is split by concept into private modules: the :class:`Trajectories` container in ``_trajectories``, the
 checks of what it is given in ``_input``, the file formats of :meth:`Trajectories.save` / :meth:`Trajectories.load`
-in ``_tables``, and :func:`simulate` in ``_simulate``.
+in ``_tables`` (text tables) and ``_npz`` (archives), the :class:`Readout` in ``_readout``, and :func:`simulate` in
+``_simulate``.
 """
 
 from ._readout import Readout

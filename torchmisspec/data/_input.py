@@ -26,6 +26,37 @@ def _default_names(d: int) -> tuple[str, ...]:
     return tuple(f"y{i}" for i in range(d))
 
 
+def _named(names) -> bool:
+    """Whether ``names`` name states: given, and not the defaults ``y0, y1, ...`` that stand for no names."""
+    return names is not None and tuple(names) != _default_names(len(names))
+
+
+def _order_by_name(have: Sequence[str], want: Sequence[str]) -> list[int] | None:
+    """The positions ``p`` with ``have[p[i]] == want[i]`` when ``want`` reorders ``have``; ``None`` otherwise."""
+    have, want = list(have), list(want)
+    if len(have) != len(want) or set(have) != set(want) or len(set(want)) != len(want):
+        return None
+    return [have.index(n) for n in want]
+
+
+def check_named_as(state_names: Sequence[str], names: Sequence[str] | None, owner: str) -> None:
+    """Refuse trajectories whose states ``state_names`` are named otherwise than ``names`` (``owner``'s, e.g. a
+    system's): in another order, or other names. Names that are only the defaults ``y0, y1, ...`` (none given) on
+    either side are positions, and pass."""
+    if not _named(names) or not _named(state_names) or tuple(state_names) == tuple(names):
+        return
+    have, want = list(state_names), list(names)
+    if _order_by_name(have, want) is not None:
+        raise InputError(
+            f"trajectories: expected the states in the order of {owner} {want}, got {have} (the same names in another "
+            f"order); reorder the columns by name: trajectories.reordered({want})"
+        )
+    raise InputError(
+        f"trajectories: expected states named as the states of {owner} {want}, got {have}; if the columns are those "
+        f"states in that order, rename them (trajectories.with_state_names({want})), else load the right columns"
+    )
+
+
 def _check_distinct(names: Sequence[str], what: str, where: str) -> None:
     repeated = sorted({n for n in names if list(names).count(n) > 1})
     if repeated:
@@ -45,6 +76,24 @@ def _check_state_names(names, d: int) -> tuple[str, ...]:
         )
     _check_distinct(names, "state_names", "state_names")
     return names
+
+
+def _check_apart(state_names: Sequence[str], controls, readout) -> None:
+    """The states, the controls and the readings each named apart from the others (a table has one column each)."""
+    control_names = () if controls is None else tuple(controls.names)
+    reading_names = () if readout is None else tuple(readout.names)
+    for what, names, others, other in (
+        ("controls", control_names, state_names, "states"),
+        ("readout", reading_names, state_names, "states"),
+        ("readout", reading_names, control_names, "controls"),
+    ):
+        clash = [n for n in names if n in others]
+        if clash:
+            kind = "controls" if what == "controls" else "readings"
+            raise InputError(
+                f"{what}: expected {kind} named apart from the {other}, got {clash} in both ({other} {list(others)}, "
+                f"{kind} {list(names)}); rename one of them"
+            )
 
 
 def _drop_empty_rows(states, times):

@@ -21,7 +21,7 @@ import torch
 
 from .._errors import InputError, ShapeError
 from .._validation import as_tensor
-from ._input import _check_distinct
+from ._input import _check_distinct, _named, _order_by_name
 
 __all__ = ["Readout"]
 
@@ -139,8 +139,39 @@ class Readout:
         return self.matrix.shape[1]
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
-        """The readings ``(..., m)`` of states ``(..., d)``."""
+        """The readings ``(..., m)`` of states ``(..., d)``: a real floating tensor (in the readout's state order,
+        :attr:`state_names`)."""
+        d = self.state_dim
+        if not isinstance(states, torch.Tensor):
+            raise InputError(
+                f"states: expected a torch tensor of states (..., {d}), got {type(states).__name__}; pass "
+                "torch.as_tensor(states, dtype=torch.float64)"
+            )
+        if not states.is_floating_point():  # integers would truncate the weights, complex lose its imaginary part
+            raise InputError(
+                f"states: expected real floating states, got dtype {states.dtype}; convert them (states.double()) "
+                "or, for complex states, read their real and imaginary parts apart"
+            )
+        if states.dim() < 1 or states.shape[-1] != d:
+            names = "" if self.state_names is None else f" ({', '.join(self.state_names)})"
+            raise ShapeError(f"states: expected states (..., {d}){names}, got shape {tuple(states.shape)}")
         return states @ self.matrix.to(states).T
+
+    def for_states(self, state_names: Sequence[str] | None, owner: str = "the trajectories") -> Readout:
+        """This readout over states named ``state_names`` in that order: its weights' columns matched by name when it
+        names its states in another order; itself when it or ``state_names`` names none (the defaults ``y0, y1,
+        ...`` name none: the columns are then taken in order). Other names than its own are refused."""
+        if self.state_names is None or not _named(state_names) or tuple(state_names) == self.state_names:
+            return self
+        want = tuple(state_names)
+        order = _order_by_name(self.state_names, want)
+        if order is None:
+            raise InputError(
+                f"readout: expected weights over the states {list(want)} (of {owner}), got a readout over "
+                f"{list(self.state_names)} ({'; '.join(self.describe())}); build it over those states' names, e.g. "
+                f"Readout.parse([...], {list(want)})"
+            )
+        return Readout(self.matrix[:, order], self.names, state_names=want)
 
     def to(self, *args, **kwargs) -> Readout:
         return Readout(self.matrix.to(*args, **kwargs), self.names, state_names=self.state_names)
@@ -158,12 +189,61 @@ class Readout:
         return out
 
     def __eq__(self, other) -> bool:
-        return (
-            isinstance(other, Readout)
-            and self.names == other.names
-            and self.matrix.shape == other.matrix.shape
-            and bool((self.matrix.cpu().double() == other.matrix.cpu().double()).all())
-        )
+        """The same readings with the same weights on the same states (matched by name when both name them)."""
+        if not isinstance(other, Readout) or self.names != other.names or self.matrix.shape != other.matrix.shape:
+            return False
+        if self.state_names is not None and other.state_names is not None:
+            if _order_by_name(other.state_names, self.state_names) is None:
+                return False
+            other = other.for_states(self.state_names)
+        return bool((self.matrix.cpu().double() == other.matrix.cpu().double()).all())
 
     def __repr__(self) -> str:
         return f"Readout({'; '.join(self.describe())})"
+
+
+def check_readout(readout, readings) -> int:
+    """The number of readings m (0 without a readout); a readout needs its values and the values a readout."""
+    if readout is None and readings is None:
+        return 0
+    if readout is None:
+        raise InputError(
+            "readings: expected a readout saying what they measure (readout=Readout(matrix, names)), got none"
+        )
+    if not isinstance(readout, Readout):
+        raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
+    if readings is None:
+        raise InputError(
+            f"readings: expected the values of the readout ({', '.join(readout.names)}), laid out as the states with "
+            f"{readout.num_readings} columns, got None (trajectories.with_readout(readout) reads them off the states)"
+        )
+    return readout.num_readings
+
+
+def joined(states, readings):
+    """The states and the readings side by side (one array per experiment for lists), for the checks of both."""
+    if isinstance(states, (list, tuple)) != isinstance(readings, (list, tuple)):
+        raise InputError(
+            "readings: expected the same layout as the states (one array for equal lengths, a list of per-experiment "
+            f"arrays for ragged data), got states as {type(states).__name__} and readings as {type(readings).__name__}"
+        )
+    if isinstance(states, (list, tuple)):
+        if len(states) != len(readings):
+            raise ShapeError(f"readings: expected {len(states)} arrays (one per experiment), got {len(readings)}")
+        pairs = [
+            (as_tensor(y, f"states[{k}]"), as_tensor(r, f"readings[{k}]"))
+            for k, (y, r) in enumerate(zip(states, readings, strict=True))
+        ]
+        for k, (y, r) in enumerate(pairs):
+            if y.dim() != 2 or r.dim() != 2 or y.shape[0] != r.shape[0]:
+                raise ShapeError(
+                    f"readings[{k}]: expected ({y.shape[0]}, m) values (a row per time of states[{k}]), got shape "
+                    f"{tuple(r.shape)}"
+                )
+        return [torch.cat([y, r.to(y)], dim=-1) for y, r in pairs]
+    y, r = as_tensor(states, "states"), as_tensor(readings, "readings")
+    if y.dim() < 2 or r.shape[:-1] != y.shape[:-1]:
+        raise ShapeError(
+            f"readings: expected {(*y.shape[:-1], 'm')} values (a row per row of states), got shape {tuple(r.shape)}"
+        )
+    return torch.cat([y, r.to(y)], dim=-1)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import math
-import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -14,8 +13,10 @@ import numpy as np
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import as_tensor, check_path, unreadable
+from .._validation import check_path
+from ..signals import KINDS, Controls
 from ._input import _check_distinct
+from ._npz import read_npz, write_npz
 from ._readout import Readout
 
 _TEXT_FORMATS = {".csv": ",", ".tsv": "\t", ".txt": None}  # the delimiter; None: any whitespace
@@ -208,22 +209,6 @@ def _columns_to_arrays(
     return torch.from_numpy(times), torch.from_numpy(states), names, control
 
 
-def _split_ragged(path: Path, times: np.ndarray, states: np.ndarray, lengths: np.ndarray) -> tuple[list, list]:
-    """Per-experiment lists from a ragged ``.npz`` (concatenated times and states plus the lengths)."""
-    lengths = np.asarray(lengths)
-    if lengths.dtype.kind not in "iu" or lengths.ndim != 1 or lengths.size == 0 or (lengths < 1).any():
-        raise InputError(f"{path}: expected 'lengths' to be a 1-D array of positive integers, got {lengths!r:.80}")
-    if times.ndim != 1 or states.ndim != 2 or len(times) != len(states) or len(times) != int(lengths.sum()):
-        raise ShapeError(
-            f"{path}: expected ragged arrays times (N,) and states (N, d) with N = sum(lengths) = "
-            f"{int(lengths.sum())}, got times {times.shape} and states {states.shape}"
-        )
-    cuts = np.cumsum(lengths)[:-1]
-    times_list = [as_tensor(t, f"{path}: times") for t in np.split(times, cuts)]
-    states_list = [as_tensor(y, f"{path}: states") for y in np.split(states, cuts)]
-    return times_list, states_list
-
-
 def write(
     trajectories,
     path: str | Path,
@@ -234,39 +219,17 @@ def write(
 ) -> Path:
     """What :meth:`Trajectories.save <torchmisspec.data.Trajectories.save>` does (see there)."""
     path = Path(check_path(path))
-    readout = trajectories.readout
-    if path.suffix == ".npz":
-        names = np.asarray(trajectories.state_names, dtype=np.str_)
-        # the dtype is recorded and restored by read (bfloat16, which numpy lacks, is stored exactly as float32)
-        extra = {"dtype": np.asarray(str(trajectories.dtype).removeprefix("torch."))}
-        if readout is not None:  # the readout's weights and names, and its values laid out as the states
-            readings = trajectories.readings
-            readings = torch.cat(readings) if trajectories.is_ragged else readings
-            extra.update(
-                readout_matrix=_numpy(readout.matrix),
-                readout_names=np.asarray(readout.names, dtype=np.str_),
-                readings=_numpy(readings),
-            )
-        if trajectories.is_ragged:  # no object arrays (they would need pickle): concatenated, with the lengths
-            np.savez(
-                path,
-                times=_numpy(torch.cat(trajectories.times)),
-                states=_numpy(trajectories.flat_states()),
-                lengths=np.asarray(trajectories.lengths, dtype=np.int64),
-                state_names=names,
-                **extra,
-            )
-        else:
-            np.savez(
-                path,
-                times=_numpy(trajectories.times),
-                states=_numpy(trajectories.states),
-                state_names=names,
-                **extra,
-            )
-        return path
-    if path.suffix not in _TEXT_FORMATS:
+    readout, controls = trajectories.readout, trajectories.controls
+    if path.suffix not in _TEXT_FORMATS and path.suffix != ".npz":
         raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
+    if controls is not None and controls.is_function:
+        raise InputError(
+            "controls: a profile given as a function u(t) cannot be saved (in any format: only samples are stored); "
+            "sample it first, e.g. Controls(knots, controls.at(knots), kind='linear') at knots (K, S) fine enough"
+        )
+    if path.suffix == ".npz":
+        return write_npz(trajectories, path)
+    _check_table_can_hold(trajectories, path)
     names = list(trajectories.state_names) if state_columns is None else list(state_columns)
     if len(names) != trajectories.state_dim:
         raise ShapeError(
@@ -280,13 +243,7 @@ def write(
             raise InputError(
                 f"column names: expected names without spaces (a .txt table is space separated), got {name!r}"
             )
-    controls = trajectories.controls
     if controls is not None:
-        if controls.is_function:
-            raise InputError(
-                "controls: a profile given as a function u(t) cannot be written to a table; sample it "
-                "(Controls(knots, values)) first"
-            )
         header += list(controls.names)
     _check_distinct(header, "column names", str(path))
     gap = "NaN" if path.suffix == ".txt" else ""
@@ -328,6 +285,22 @@ def write(
     return path
 
 
+def _check_table_can_hold(trajectories, path: Path) -> None:
+    """Refuse the fields a text table cannot keep (an ``.npz`` archive keeps every field)."""
+    controls = trajectories.controls
+    if controls is not None and controls.kind != "previous":
+        raise InputError(
+            f"controls: a table records the profiles' samples, not how they run between them ({controls.kind!r}): "
+            f"{path.suffix} tables are read back as piecewise constant unless told otherwise; save to .npz, which "
+            "keeps the kind"
+        )
+    if trajectories.initial_states is not None:
+        raise InputError(
+            "initial_states: a table holds observations, not the initial_states estimated for them; save to .npz, "
+            "which keeps them, or write the observations alone: trajectories.with_initial_states(None).save(...)"
+        )
+
+
 def read(
     path: str | Path,
     *,
@@ -335,110 +308,32 @@ def read(
     experiment_column: str | None,
     state_columns: Sequence[str] | None,
     control_columns: Sequence[str] | None = None,
-) -> tuple:
-    """``(times, states, state_names, controls, readout)`` for :meth:`Trajectories.load
-    <torchmisspec.data.Trajectories.load>` (see there): tensors, or lists of per-experiment tensors for ragged
-    data."""
+    control_kind: str | None = None,
+) -> dict:
+    """The fields of :meth:`Trajectories.load <torchmisspec.data.Trajectories.load>` (see there), as keywords of
+    :class:`~torchmisspec.data.Trajectories`: tensors, or lists of per-experiment tensors for ragged data."""
     path = Path(check_path(path))
     if path.suffix != ".npz" and path.suffix not in _TEXT_FORMATS:
         raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
     if not path.is_file():
         raise InputError(f"path: expected an existing file, got {str(path)!r}")
+    if control_kind is not None and control_kind not in KINDS:
+        raise InputError(
+            f"control_kind: expected one of {KINDS} (how the profiles run between samples), got {control_kind!r}"
+        )
     if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                missing = {"times", "states"} - set(data.files)
-                if missing:
-                    raise InputError(
-                        f"{path}: expected arrays 'times' and 'states', got {sorted(data.files)} (missing "
-                        f"{sorted(missing)})"
-                    )
-                times, states = data["times"], data["states"]
-                lengths = data["lengths"] if "lengths" in data.files else None
-                names = data["state_names"] if "state_names" in data.files else None
-                readout = {key: data[key] for key in ("readout_matrix", "readout_names", "readings") if key in data}
-                stored = data["dtype"] if "dtype" in data.files else None
-        except InputError:
-            raise
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-            raise InputError(
-                f"{path}: expected an .npz archive with numeric arrays 'times' and 'states' (no pickled objects), "
-                f"got a file that could not be read as one ({unreadable(exc)})"
-            ) from exc
-        if names is not None:
-            if names.dtype.kind != "U" or names.ndim != 1:
-                raise InputError(f"{path}: expected 'state_names' to be a 1-D array of strings, got {names!r:.80}")
-            names = names.tolist()
         if control_columns is not None:
             raise InputError(
                 f"control_columns: expected a text table to name the columns of, got the .npz archive {path}"
             )
-        dtype = _stored_dtype(path, stored)
-        readout = _npz_readout(path, readout, names, lengths)
-        if lengths is not None:
-            times, states = _split_ragged(path, times, states, lengths)
-        else:
-            times, states = as_tensor(times, f"{path}: times"), as_tensor(states, f"{path}: states")
-        if dtype is not None:  # the dtype the trajectories were saved in
-            times, states = _cast(times, dtype), _cast(states, dtype)
-            readout = None if readout is None else (readout[0], _cast(readout[1], dtype))
-        return times, states, names, None, readout
+        return read_npz(path, control_kind)
     header, body = _read_table(path)
     columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
-    return (*_columns_to_arrays(path, header, body, control_columns=control_columns, **columns), None)
-
-
-def _numpy(t: torch.Tensor) -> np.ndarray:
-    """A tensor as numpy (bfloat16, which numpy lacks, as float32: exact)."""
-    t = t.detach().cpu()
-    return (t.float() if t.dtype == torch.bfloat16 else t).numpy()
-
-
-_STORED_DTYPES = {
-    "float16": torch.float16,
-    "bfloat16": torch.bfloat16,
-    "float32": torch.float32,
-    "float64": torch.float64,
-}
-
-
-def _stored_dtype(path: Path, stored) -> torch.dtype | None:
-    """The dtype an ``.npz`` archive records (``None`` for older files: float64, or the arrays' own)."""
-    if stored is None:
-        return None
-    name = str(stored)
-    if stored.ndim != 0 or name not in _STORED_DTYPES:
-        raise InputError(f"{path}: expected 'dtype' to name one of {sorted(_STORED_DTYPES)}, got {name!r:.40}")
-    return _STORED_DTYPES[name]
-
-
-def _cast(x, dtype: torch.dtype):
-    return [v.to(dtype) for v in x] if isinstance(x, (list, tuple)) else x.to(dtype)
-
-
-def _npz_readout(path: Path, arrays: dict, names, lengths):
-    """``(Readout, readings)`` from an ``.npz`` archive's readout arrays (``None`` without them)."""
-    if not arrays:
-        return None
-    if set(arrays) != {"readout_matrix", "readout_names", "readings"}:
-        raise InputError(
-            f"{path}: expected the arrays readout_matrix, readout_names and readings together, got {sorted(arrays)}"
-        )
-    if arrays["readout_names"].dtype.kind != "U" or arrays["readout_names"].ndim != 1:
-        raise InputError(
-            f"{path}: expected 'readout_names' to be a 1-D array of strings, got {arrays['readout_names']!r:.80}"
-        )
-    readout = Readout(
-        as_tensor(arrays["readout_matrix"], f"{path}: readout_matrix"),
-        arrays["readout_names"].tolist(),
-        state_names=names,
-    )
-    readings = as_tensor(arrays["readings"], f"{path}: readings")
-    if lengths is not None:
-        if readings.dim() != 2 or readings.shape[0] != int(np.asarray(lengths).sum()):
-            raise ShapeError(f"{path}: expected readings (N, m) with N = sum(lengths), got {tuple(readings.shape)}")
-        readings = list(readings.split(np.asarray(lengths).tolist()))
-    return readout, readings
+    times, states, names, controls = _columns_to_arrays(path, header, body, control_columns=control_columns, **columns)
+    if controls is not None:
+        knots, values, control_names = controls
+        controls = Controls(knots, values, kind=control_kind or "previous", names=control_names)
+    return dict(times=times, states=states, state_names=names, controls=controls)
 
 
 def header(path: str | Path) -> list[str] | None:
@@ -450,11 +345,18 @@ def header(path: str | Path) -> list[str] | None:
 
 
 def read_with_readout(
-    path, *, readout, time_column: str, experiment_column: str | None, state_columns, control_columns=None
-) -> tuple:
+    path,
+    *,
+    readout,
+    time_column: str,
+    experiment_column: str | None,
+    state_columns,
+    control_columns=None,
+    control_kind: str | None = None,
+) -> dict:
     """:func:`read` of a text table holding a readout's columns (:meth:`Trajectories.load
     <torchmisspec.data.Trajectories.load>` with ``readout``): the states are ``state_columns`` (default
-    ``readout.state_names``), those without a column all missing; the last item is ``(readout, readings)``."""
+    ``readout.state_names``), those without a column all missing; the readout and its readings come with them."""
     if not isinstance(readout, Readout):
         raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
     names = list(state_columns) if state_columns is not None else list(readout.state_names or [])
@@ -467,13 +369,15 @@ def read_with_readout(
     if columns is None:
         raise InputError(f"readout: expected a text table (.csv, .tsv, .txt) holding its columns, got {str(path)!r}")
     present = [n for n in names if n in columns]
-    times, values, _, controls, _ = read(
+    fields = read(
         path,
         time_column=time_column,
         experiment_column=experiment_column,
         state_columns=present + list(readout.names),
         control_columns=control_columns,
+        control_kind=control_kind,
     )
+    values = fields["states"]
     where = [names.index(n) for n in present]
 
     def states_of(v):  # the states absent from the file: columns of missing values
@@ -485,4 +389,4 @@ def read_with_readout(
         states, readings = [states_of(v) for v in values], [v[..., len(present) :] for v in values]
     else:
         states, readings = states_of(values), values[..., len(present) :]
-    return times, states, names, controls, (readout, readings)
+    return fields | dict(states=states, state_names=names, readout=readout, readings=readings)

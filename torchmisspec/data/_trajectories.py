@@ -16,8 +16,17 @@ from .._missing import fill
 from .._validation import as_tensor, states_and_times
 from ..signals import Controls
 from . import _tables
-from ._input import _check_state_names, _default_names, _describe_lengths, _drop_empty_rows, _is_number, _per_experiment
-from ._readout import Readout
+from ._input import (
+    _check_apart,
+    _check_state_names,
+    _default_names,
+    _describe_lengths,
+    _drop_empty_rows,
+    _is_number,
+    _order_by_name,
+    _per_experiment,
+)
+from ._readout import Readout, check_readout, joined
 
 #: A component observed fewer times than this in an experiment is *not measured* there (too few values for a
 #: derivative estimate: every estimator needs 3); its few values still enter the fit through the ODE.
@@ -59,14 +68,15 @@ class Trajectories:
         state_names: the names of the d state components (the table's column names for :meth:`load`; default
             ``y0, ..., y{d-1}``); kept by indexing, :meth:`to`, :meth:`save` and :meth:`load`.
         controls: the experiments' known input signals u(t), a :class:`~torchmisspec.signals.Controls` with one
-            profile per experiment (``None``: the system has none); kept by indexing, :meth:`to`, :meth:`save` and
-            :meth:`load` (a table's ``control_columns``).
+            profile per experiment (``None``: the system has none), named apart from the states; kept by indexing,
+            :meth:`to`, :meth:`save` and :meth:`load` (a table's ``control_columns``).
         initial_states: ``(K, d)`` estimates of every experiment's state at its first time, used by
             :attr:`initial_conditions` instead of the first observed states (``None``: those). Set by the fit of
             partly measured data (:meth:`with_initial_states`), where a component that is not measured has no
-            first value of its own; kept by indexing and :meth:`to`, not saved in tables.
+            first value of its own; kept by indexing, :meth:`to` and an ``.npz`` archive (a text table refuses them).
         readout: measured linear combinations of the states, a :class:`~torchmisspec.data.Readout` (an observation
-            matrix H ``(m, d)``; ``None``: only the states themselves are measured).
+            matrix H ``(m, d)``; ``None``: only the states themselves are measured). When both it and
+            :attr:`state_names` name the states, its weights are matched to them by name (other names are refused).
         readings: the readout's values, laid out as :attr:`states` with m columns (``(K, T, m)`` or a tuple of
             ``(T_k, m)``), NaN where a quantity was not read; a time at which only readings were taken is kept. A
             state read only through the readout is not :attr:`measured`: the fit learns through the ODE then.
@@ -81,8 +91,8 @@ class Trajectories:
     readings: torch.Tensor | tuple[torch.Tensor, ...] | None = None
 
     def __post_init__(self) -> None:
-        m = _check_readout(self.readout, self.readings)
-        given = self.states if m == 0 else _joined(self.states, self.readings)
+        m = check_readout(self.readout, self.readings)
+        given = self.states if m == 0 else joined(self.states, self.readings)
         if isinstance(given, (list, tuple)):
             states, times = _per_experiment(given, self.times)
         else:
@@ -111,7 +121,8 @@ class Trajectories:
             readings = tuple(r for _, r in split) if split else states[..., d:]
             states = tuple(y for y, _ in split) if split else states[..., :d]
             object.__setattr__(self, "readings", readings)
-            object.__setattr__(self, "readout", self.readout.to(dtype=states[0].dtype, device=states[0].device))
+            readout = self.readout.for_states(names)  # its weights matched to the states by name, when both name them
+            object.__setattr__(self, "readout", readout.to(dtype=states[0].dtype, device=states[0].device))
         if self.controls is not None:
             if not isinstance(self.controls, Controls):
                 raise InputError(
@@ -124,6 +135,7 @@ class Trajectories:
                     f"controls: expected profiles of the {K} experiments, got {self.controls.num_experiments}"
                 )
             object.__setattr__(self, "controls", self.controls.to(dtype=states[0].dtype, device=states[0].device))
+        _check_apart(names, self.controls, self.readout)  # a table holds one column of each name
         object.__setattr__(self, "states", states)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "state_names", names)
@@ -258,6 +270,8 @@ class Trajectories:
     def with_readout(self, readout: Readout | None, readings=None) -> Trajectories:
         """These trajectories with ``readout`` (``None``: none), its values ``readings`` laid out as :attr:`states`
         (default: the readout of the states themselves, e.g. of a simulation, before its states are masked)."""
+        if isinstance(readout, Readout):
+            readout = readout.for_states(self.state_names)  # its weights on these states by name, when both name them
         if readout is not None and readings is None:
             readings = tuple(readout(y) for y in self.states) if self.is_ragged else readout(self.states)
         if self.is_ragged and readings is not None:
@@ -285,6 +299,43 @@ class Trajectories:
     def with_initial_states(self, initial_states: torch.Tensor | None) -> Trajectories:
         """These trajectories with :attr:`initial_states` set (``None``: cleared)."""
         return dataclasses.replace(self, initial_states=initial_states)
+
+    def reordered(self, state_names: Sequence[str]) -> Trajectories:
+        """These trajectories with their state components in the order ``state_names``, a reordering of
+        :attr:`state_names` (e.g. ``observed.reordered(system.state_names)``): the states, the initial states and
+        the readout's weights follow their names."""
+        want = _check_state_names(state_names, self.state_dim)
+        order = _order_by_name(self.state_names, want)
+        if order is None:
+            raise InputError(
+                f"state_names: expected a reordering of the state names {list(self.state_names)}, got {list(want)}"
+            )
+        readout = self.readout
+        if readout is not None:  # its columns follow the states (a readout over named states: named as they are)
+            named = None if readout.state_names is None else want
+            readout = Readout(readout.matrix[:, order], readout.names, state_names=named)
+        return self._renamed(want, order, readout)
+
+    def with_state_names(self, state_names: Sequence[str]) -> Trajectories:
+        """These trajectories with their state components renamed ``state_names``, in their order (the columns are
+        the same; a readout over named states is renamed with them)."""
+        names = _check_state_names(state_names, self.state_dim)
+        readout = self.readout
+        if readout is not None and readout.state_names is not None:
+            readout = Readout(readout.matrix, readout.names, state_names=names)
+        return self._renamed(names, list(range(self.state_dim)), readout)
+
+    def _renamed(self, names: tuple[str, ...], order: list[int], readout) -> Trajectories:
+        states = [y[:, order] for y in self.states] if self.is_ragged else self.states[..., order]
+        return dataclasses.replace(
+            self,
+            times=list(self.times) if self.is_ragged else self.times,
+            states=states,
+            state_names=names,
+            initial_states=None if self.initial_states is None else self.initial_states[:, order],
+            readout=readout,
+            readings=self._listed_readings() if self.is_ragged else self.readings,
+        )
 
     @property
     def initial_conditions(self) -> torch.Tensor:
@@ -449,14 +500,23 @@ class Trajectories:
         experiment_column: str = "experiment",
         state_columns: Sequence[str] | None = None,
     ) -> Path:
-        """Write to ``path``: ``.npz`` (arrays times, states, state_names) or a text table with a header row.
+        """Write to ``path``: an ``.npz`` archive, which keeps every field, or a text table with a header row.
+
+        ``.npz``: the times, states (NaN where missing), :attr:`state_names`, the dtype, the controls (every
+        profile's knots and values, their names and kind), the readout (weights, names, the states it reads) with
+        its readings, and the initial states; ragged data as the concatenated rows and the lengths. :meth:`load`
+        gives back every field as it was. Nothing in it needs unpickling.
 
         Text tables: ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (space separated), one row
         per experiment and time, columns ``experiment_column, time_column, *state_columns`` (state columns
-        :attr:`state_names` by default; experiments numbered 0..K-1). Values are written with full precision, so
-        :meth:`load` with the same column names (or the defaults) reads back the same times and states (as float64).
-        A missing entry is written as an empty cell (``NaN`` in a ``.txt`` table, whose cells are separated by
-        spaces). The column names are ignored for ``.npz``, which stores :attr:`state_names` as an array of strings.
+        :attr:`state_names` by default; experiments numbered 0..K-1), then the readout's columns (its readings) and
+        the controls' columns (each profile sampled at every row: the observation times and its knots). Values are
+        written with full precision, so :meth:`load` with the same column names (or the defaults), the
+        ``control_columns`` and the ``readout``, reads back the same times, states, readings and profiles (as
+        float64). A missing entry is written as an empty cell (``NaN`` in a ``.txt`` table, whose cells are separated
+        by spaces). A table cannot record what is not a column, so it refuses controls that are not piecewise
+        constant (``kind="linear"``: read back as piecewise constant) and :attr:`initial_states`: save those to
+        ``.npz``. Controls given as a function u(t) cannot be saved in any format (sample them first).
         """
         return _tables.write(
             self, path, time_column=time_column, experiment_column=experiment_column, state_columns=state_columns
@@ -471,13 +531,15 @@ class Trajectories:
         experiment_column: str | None = "experiment",
         state_columns: Sequence[str] | None = None,
         control_columns: Sequence[str] | None = None,
-        control_kind: str = "previous",
+        control_kind: str | None = None,
         readout: Readout | None = None,
     ) -> Trajectories:
-        """Read trajectories from ``.npz`` (arrays ``times`` and ``states``) or a text table with a header row.
+        """Read trajectories from an ``.npz`` archive (as :meth:`save` writes) or a text table with a header row.
 
-        Text tables are UTF-8 ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (whitespace
-        separated), one row per experiment and time, columns in any order and rows in any order.
+        An ``.npz`` archive (arrays ``times`` and ``states``, and the other fields :meth:`save` stores) gives back
+        every field it holds; the column arguments are ignored for it. Text tables are UTF-8 ``.csv`` (comma
+        separated), ``.tsv`` (tab separated) or ``.txt`` (whitespace separated), one row per experiment and time,
+        columns in any order and rows in any order.
 
         Args:
             path: the file.
@@ -490,77 +552,25 @@ class Trajectories:
             control_columns: names of the columns holding the known input signals u(t) (a text table's only): each
                 experiment's rows are the samples of its profile (:class:`~torchmisspec.signals.Controls`), known at
                 every row, also where no state was measured (a dose given between measurements).
-            control_kind: how a profile runs between its samples: ``"previous"`` (piecewise constant, default) or
-                ``"linear"``.
+            control_kind: how a table's profiles run between their samples: ``"previous"`` (piecewise constant, the
+                default) or ``"linear"``. An archive records its own kind; another one given here is refused.
             readout: measured combinations of the states (a text table's only; an ``.npz`` archive stores its
                 own): the columns named by ``readout.names`` hold its :attr:`readings`. The states are
-                ``state_columns`` (default ``readout.state_names``); a state with no column in the file was not
-                measured on its own (all missing), as when only a combination of it is read.
+                ``state_columns`` (default ``readout.state_names``; a readout over named states is matched to them
+                by name); a state with no column in the file was not measured on its own (all missing), as when
+                only a combination of it is read.
 
         A state cell that is empty or reads ``NaN``, ``NA`` or ``N/A`` (any case) is a missing entry (see the class
         docstring); a missing time or experiment label is an error, and so is an experiment with no value at all in
         some state column. Each experiment's rows are sorted by time. The times come back shared ``(T,)`` when every
         experiment has the same grid, ``(K, T)`` when the experiments have equal lengths, and ragged (one tensor per
-        experiment) when their lengths differ. Column names are ignored for ``.npz`` (ragged ``.npz`` files, as
-        :meth:`save` writes them, hold the concatenated ``times (N,)``, ``states (N, d)`` and ``lengths (K,)``).
+        experiment) when their lengths differ.
 
         Nothing is unpickled and no code can run. Raises :class:`InputError` for a missing, unreadable, non-UTF-8
-        or malformed file, missing or duplicate columns, non-numeric or infinite cells, missing times or labels, or
-        repeated (experiment, time) rows,
-        and :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
+        or malformed file (an ``.npz`` name on a single ``np.save`` array included), missing or duplicate columns,
+        non-numeric or infinite cells, missing times or labels, or repeated (experiment, time) rows, and
+        :class:`ShapeError` for rows of the wrong width, each naming what was expected and what the file holds.
         """
         columns = dict(time_column=time_column, experiment_column=experiment_column, state_columns=state_columns)
         reader = _tables.read if readout is None else partial(_tables.read_with_readout, readout=readout)
-        times, states, names, controls, stored = reader(path, control_columns=control_columns, **columns)
-        if controls is not None:
-            knots, values, control_names = controls
-            controls = Controls(knots, values, kind=control_kind, names=control_names)
-        read, readings = (None, None) if stored is None else stored
-        return cls(times, states, state_names=names, controls=controls, readout=read, readings=readings)
-
-
-def _check_readout(readout, readings) -> int:
-    """The number of readings m (0 without a readout); a readout needs its values and the values a readout."""
-    if readout is None and readings is None:
-        return 0
-    if readout is None:
-        raise InputError(
-            "readings: expected a readout saying what they measure (readout=Readout(matrix, names)), got none"
-        )
-    if not isinstance(readout, Readout):
-        raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
-    if readings is None:
-        raise InputError(
-            f"readings: expected the values of the readout ({', '.join(readout.names)}), laid out as the states with "
-            f"{readout.num_readings} columns, got None (trajectories.with_readout(readout) reads them off the states)"
-        )
-    return readout.num_readings
-
-
-def _joined(states, readings):
-    """The states and the readings side by side (one array per experiment for lists), for the checks of both."""
-    if isinstance(states, (list, tuple)) != isinstance(readings, (list, tuple)):
-        raise InputError(
-            "readings: expected the same layout as the states (one array for equal lengths, a list of per-experiment "
-            f"arrays for ragged data), got states as {type(states).__name__} and readings as {type(readings).__name__}"
-        )
-    if isinstance(states, (list, tuple)):
-        if len(states) != len(readings):
-            raise ShapeError(f"readings: expected {len(states)} arrays (one per experiment), got {len(readings)}")
-        pairs = [
-            (as_tensor(y, f"states[{k}]"), as_tensor(r, f"readings[{k}]"))
-            for k, (y, r) in enumerate(zip(states, readings, strict=True))
-        ]
-        for k, (y, r) in enumerate(pairs):
-            if y.dim() != 2 or r.dim() != 2 or y.shape[0] != r.shape[0]:
-                raise ShapeError(
-                    f"readings[{k}]: expected ({y.shape[0]}, m) values (a row per time of states[{k}]), got shape "
-                    f"{tuple(r.shape)}"
-                )
-        return [torch.cat([y, r.to(y)], dim=-1) for y, r in pairs]
-    y, r = as_tensor(states, "states"), as_tensor(readings, "readings")
-    if y.dim() < 2 or r.shape[:-1] != y.shape[:-1]:
-        raise ShapeError(
-            f"readings: expected {(*y.shape[:-1], 'm')} values (a row per row of states), got shape {tuple(r.shape)}"
-        )
-    return torch.cat([y, r.to(y)], dim=-1)
+        return cls(**reader(path, control_columns=control_columns, control_kind=control_kind, **columns))
