@@ -155,8 +155,9 @@ def test_a_fitted_model_is_rewritten_exactly_in_other_units(kernel, options, s_i
 
 
 def test_a_model_without_an_exact_form_in_other_units_is_not_rewritten():
-    X = torch.rand(20, 2, dtype=DT)
-    Y = X.sum(-1, keepdim=True)
+    g = torch.Generator().manual_seed(5)
+    X = torch.rand(20, 2, generator=g, dtype=DT)
+    Y = X.sum(-1, keepdim=True) + 0.01 * torch.randn(20, 1, generator=g, dtype=DT)
     ones = torch.ones(1, dtype=DT)
     both = tms.CorrectionGP(kernel="features+rbf").fit(X, Y)
     assert rescaled(both, torch.tensor([1e3, 1e-2], dtype=DT), ones) is None  # its RBF part: one lengthscale
@@ -166,7 +167,7 @@ def test_a_model_without_an_exact_form_in_other_units_is_not_rewritten():
 
 
 def test_a_kernels_input_scale_is_saved_with_the_model(tmp_path):
-    X = torch.rand(20, 2, dtype=DT) * torch.tensor([1e3, 1e-2], dtype=DT)
+    X = torch.rand(20, 2, generator=torch.Generator().manual_seed(6), dtype=DT) * torch.tensor([1e3, 1e-2], dtype=DT)
     gp = tms.CorrectionGP(kernel=tms.gp.RBF(input_scale=[1e3, 1e-2])).fit(X, X[:, :1] / 1e3)
     back = tms.CorrectionGP.load(gp.save(tmp_path / "scaled.pt"))
     assert back.kernel_spec == tms.gp.RBF(input_scale=(1e3, 1e-2)) and back.clone().kernel_spec == back.kernel_spec
