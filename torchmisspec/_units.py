@@ -38,11 +38,11 @@ import contextlib
 import contextvars
 import copy
 import dataclasses
-import math
 import warnings
 
 import torch
 
+from ._ode import power_of_ten
 from .data import Readout, Trajectories
 from .gp import CorrectionGP
 from .gp._rescale import common_scale, rescaled, rescaled_template
@@ -61,16 +61,6 @@ def _inside():
         yield
     finally:
         _INSIDE.reset(token)
-
-
-def power_of_ten(values: torch.Tensor) -> float:
-    """The power of ten nearest the root mean square of the finite entries of ``values`` (1 when there are none or
-    they are all 0)."""
-    v = values[torch.isfinite(values)]
-    rms = float(v.double().pow(2).mean().sqrt()) if v.numel() else 0.0
-    if not (math.isfinite(rms) and rms > 0):
-        return 1.0
-    return 10.0 ** round(math.log10(rms))
 
 
 @dataclasses.dataclass(frozen=True)
