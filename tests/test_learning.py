@@ -285,3 +285,19 @@ def test_the_model_is_chosen_on_a_subsample_and_fitted_on_all(linear_noisy, one_
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
         full = tms.fit_correction(traj, system, gp=tms.CorrectionGP(), progress=False)
     assert full.cross_validation_.samples == 110
+
+
+def test_the_lengthscale_grid_is_the_median_distance_between_distinct_inputs():
+    """The grid's scale counts each pair of distinct inputs once, no input with itself: torch.cdist's matrix-product
+    form gave some self-distances of ~3e-8 instead of 0, how many depending on rounding, so the same samples in other
+    units (a power of ten there and back) moved the grid by 7.5e-4 (tests/test_scale.py's RBF case)."""
+    from torchmisspec.gp._exact import median_distance
+
+    g = torch.Generator().manual_seed(0)
+    X = torch.cat([torch.randn(89, 2, generator=g, dtype=DT) * torch.tensor([1.5, 0.2], dtype=DT), torch.zeros(1, 2)])
+    X = torch.cat([X, X[:5]])  # repeated inputs: not distinct, left out
+    i, j = torch.triu_indices(X.shape[0], X.shape[0], 1)
+    pairs = (X[i] - X[j]).pow(2).sum(-1).sqrt()
+    assert median_distance(X) == float(pairs[pairs > 0].median())
+    S = torch.tensor([1e3, 1e-2], dtype=DT)
+    assert median_distance(X * S / S) == pytest.approx(median_distance(X), rel=1e-14)

@@ -36,9 +36,13 @@ class IndependentOutputsGP(gpytorch.models.ExactGP):
 
 def median_distance(X: torch.Tensor) -> float:
     """The median distance between distinct inputs of an evenly spaced subsample of at most 500 (1.0 when all the
-    inputs coincide): the length scale of the data, for starting values, bounds and candidate grids."""
+    inputs coincide): the length scale of the data, for starting values, bounds and candidate grids.
+
+    Each pair once, from the differences of its inputs (``torch.pdist``): ``torch.cdist``'s matrix-product form
+    gives some inputs a distance of ~1e-8 to themselves, how many depending on rounding, so that the same inputs in
+    other units (divided by a power of ten and back) moved the median by 1e-3 relative."""
     sub = X[torch.linspace(0, X.shape[0] - 1, min(X.shape[0], 500), device=X.device).long()]
-    dist = torch.cdist(sub, sub)
+    dist = torch.pdist(sub.reshape(sub.shape[0], -1))
     positive = dist[dist > 0]
     return float(positive.median()) if positive.numel() else 1.0
 
