@@ -174,6 +174,22 @@ def test_a_table_without_the_systems_inputs_says_how_to_name_them(lab_files):
         read_observations(args_for(folder / "xs.csv", input_columns=None), chemostat())
 
 
+def test_initial_states_are_the_systems_states_named_by_it(tmp_path):
+    from torchmisspec.cli._common import read_states
+
+    system = chemostat()
+    lab = tmp_path / "initial.csv"
+    lab.write_text("run,biomass,substrate\na,0.2,0.8\nb,0.5,0.4\n")
+    y0, names, labels = read_states(str(lab), "--initial", args_for(lab, state_columns="biomass,substrate"), system)
+    assert names == ["X", "S"] and labels == ["a", "b"]  # what the model fitted with --state-columns is named
+    torch.testing.assert_close(y0, torch.tensor([[0.2, 0.8], [0.5, 0.4]], dtype=DT))
+    with pytest.raises(tms.InputError, match=r"--initial: expected columns named as the states of system 'chemostat'"):
+        read_states(str(lab), "--initial", args_for(lab), system)  # not taken in file order
+    (tmp_path / "sx.csv").write_text("run,S,X\na,0.8,0.2\n")
+    y0, names, _ = read_states(str(tmp_path / "sx.csv"), "--initial", args_for(lab), system)
+    assert names == ["X", "S"] and y0.tolist() == [[0.2, 0.8]]
+
+
 def test_no_state_column_named_as_the_systems_states_is_refused(lab_files, tmp_path):
     folder, _ = lab_files
     lower = tmp_path / "lower.csv"

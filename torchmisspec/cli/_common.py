@@ -277,45 +277,10 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
             raise InputError(f"{option}: expected at least one row of states in {path!r}, got none")
         header = cells[0] if not any(_number(c) for c in cells[0]) else None
         body = cells[1:] if header is not None else cells
-        labels = None
         if header is None:
-            names, columns = None, list(range(len(body[0])))
+            names, columns, labels = None, list(range(len(body[0]))), None
         else:
-            if args.time_column in header:
-                raise InputError(
-                    f"{option}: expected one state per row, but {path!r} has a time column {args.time_column!r}; "
-                    "drop it (or rename it if it is a state)"
-                )
-            named = list(getattr(system, "state_names", None) or [])
-            wanted = _state_columns_for(args, system, named)  # in the system's order: its states, by its names
-            label_column = args.experiment_column
-            if wanted is None and known is not None and all(c in header for c in known if c is not None):
-                others = [c for c in header if c != args.experiment_column and c not in known]
-                if known.count(None) == len(others) <= 1:  # one unnamed state at most: the one column left
-                    wanted = [others.pop() if c is None else c for c in known]
-                elif None not in known and args.experiment_column not in header and len(others) == 1:
-                    # every state by its name and one column of names, not numbers (a lab's sample IDs): its labels
-                    ids = header.index(others[0])
-                    if not any(_number(row[ids]) for row in body if ids < len(row)):
-                        wanted, label_column = list(known), others[0]
-            if wanted is None and named and not all(c in header for c in named):
-                raise InputError(
-                    f"{option}: expected columns named as the states of system '{system.name}' ({', '.join(named)}), "
-                    f"got {header} in {path!r}; rename them, or name them in the system's order with --state-columns"
-                )
-            if wanted is None:
-                wanted = [c for c in header if c != args.experiment_column]
-            missing = [c for c in wanted if c not in header]
-            if missing:
-                raise InputError(
-                    f"{option}: expected state columns {wanted}, missing {missing}; {path!r} has {header} "
-                    "(set --state-columns)"
-                )
-            columns = [header.index(c) for c in wanted]
-            names = named if named and state_columns(args) is not None else wanted
-            if label_column and label_column in header:
-                e = header.index(label_column)
-                labels = [row[e] if e < len(row) else "" for row in body]
+            names, columns, labels = _header_columns(header, body, path, option, args, system, known)
         rows = []
         for k, row in enumerate(body, start=2 if header is not None else 1):
             try:
@@ -335,6 +300,47 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
     if not bool(torch.isfinite(y0).all()):
         raise InputError(f"{option}: expected finite states in every row of {path!r}, got NaN or infinite values")
     return y0, names, labels
+
+
+def _header_columns(header: list[str], body: list[list[str]], path: str, option: str, args, system, known):
+    """``(state names, their columns' positions, row labels or None)`` of a table of states with a ``header`` (see
+    :func:`read_states`)."""
+    if args.time_column in header:
+        raise InputError(
+            f"{option}: expected one state per row, but {path!r} has a time column {args.time_column!r}; "
+            "drop it (or rename it if it is a state)"
+        )
+    named = list(getattr(system, "state_names", None) or [])
+    wanted = _state_columns_for(args, system, named)  # in the system's order: its states, by its names
+    known = known if known is not None or not named else named
+    label_column = args.experiment_column
+    if wanted is None and known is not None and all(c in header for c in known if c is not None):
+        others = [c for c in header if c != args.experiment_column and c not in known]
+        if known.count(None) == len(others) <= 1:  # one unnamed state at most: the one column left
+            wanted = [others.pop() if c is None else c for c in known]
+        elif None not in known and args.experiment_column not in header and len(others) == 1:
+            # every state by its name and one column of names, not numbers (a lab's sample IDs): its labels
+            ids = header.index(others[0])
+            if not any(_number(row[ids]) for row in body if ids < len(row)):
+                wanted, label_column = list(known), others[0]
+    if wanted is None and named and not all(c in header for c in named):
+        raise InputError(
+            f"{option}: expected columns named as the states of system '{system.name}' ({', '.join(named)}), "
+            f"got {header} in {path!r}; rename them, or name them in the system's order with --state-columns"
+        )
+    if wanted is None:
+        wanted = [c for c in header if c != args.experiment_column]
+    missing = [c for c in wanted if c not in header]
+    if missing:
+        raise InputError(
+            f"{option}: expected state columns {wanted}, missing {missing}; {path!r} has {header} (set --state-columns)"
+        )
+    labels = None
+    if label_column and label_column in header:
+        e = header.index(label_column)
+        labels = [row[e] if e < len(row) else "" for row in body]
+    names = named if named and state_columns(args) is not None else wanted
+    return names, [header.index(c) for c in wanted], labels
 
 
 def check_names(gp, names, system, option: str) -> list[str]:

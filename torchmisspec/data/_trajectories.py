@@ -505,7 +505,8 @@ class Trajectories:
         ``.npz``: the times, states (NaN where missing), :attr:`state_names`, the dtype, the controls (every
         profile's knots and values, their names and kind), the readout (weights, names, the states it reads) with
         its readings, and the initial states; ragged data as the concatenated rows and the lengths. :meth:`load`
-        gives back every field as it was. Nothing in it needs unpickling.
+        gives back every field as it was. Nothing in it needs unpickling; the column names are a table's, ignored
+        here.
 
         Text tables: ``.csv`` (comma separated), ``.tsv`` (tab separated) or ``.txt`` (space separated), one row
         per experiment and time, columns ``experiment_column, time_column, *state_columns`` (state columns
