@@ -332,10 +332,6 @@ def test_correction_error_refuses_something_that_is_not_a_model(gp):
         tms.metrics.correction_error(gp, tms.systems.paper_linear())
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs the oracle's dy/dt detached in observations.py (owned by another helper; see the issue 40 report)",
-)
 def test_oracle_targets_of_a_trainable_g_carry_no_graph():
     system = tms.MisspecifiedSystem(_Decay(), 2, correction=lambda y: 0.01 * y**2)
     data = tms.simulate(system, torch.ones(2, 2, dtype=torch.float64), torch.linspace(0.0, 1.0, 5))

@@ -14,10 +14,15 @@ from ._stencils import _check_stencil_options, _masked, finite_difference, smoot
 from ._threads import adaptive_threads
 from ._validation import check_positive_int
 from .data import Trajectories, simulate, simulate_known_each
+from .data._input import check_named_as
 from .systems import MisspecifiedSystem
 
 
 def _check_trajectories_and_system(trajectories, system) -> None:
+    """Trajectories that fit ``system``: their shapes, their controls (:meth:`MisspecifiedSystem.check_controls`,
+    by name too) and, when both name the states, the same names in the same order (states in another order would
+    be read as the wrong ones). Every function taking trajectories and a system checks them here (fit_correction,
+    calibrate_bands, fit_trajectories, cross_validate, correction_samples, estimator_error, Campaign.tell)."""
     if not isinstance(trajectories, Trajectories):
         raise InputError(
             f"trajectories: expected a torchmisspec Trajectories object, got {type(trajectories).__name__}; "
@@ -39,6 +44,7 @@ def _check_trajectories_and_system(trajectories, system) -> None:
                 else ""
             )
         )
+    check_named_as(trajectories.state_names, system.state_names, f"system '{system.name}'")
     system.check_controls(trajectories.controls, trajectories.num_experiments, "trajectories.controls")
 
 

@@ -47,18 +47,17 @@ from ._errors import InputError, TorchMisspecWarning, warn
 from ._estimators import (
     AUTO_CANDIDATES,
     ESTIMATOR_ERROR_THRESHOLD,
+    _check_trajectories_and_system,
     _estimate_flat,
     _sample_rows,
     choose_derivative,
     estimator_error,
     known_flat,
 )
-from ._estimators import _check_trajectories_and_system as _check_shapes
 from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_derivative, observed_variance
 from ._stencils import finite_difference, smoothed_derivative
 from ._validation import check_finite, check_positive_int, check_real
 from .data import Trajectories
-from .data._input import check_named_as
 from .parameters import jacobian, parameter_basis
 from .systems import MisspecifiedSystem
 
@@ -81,15 +80,6 @@ __all__ = [  # in the order of the API page
 
 #: Names accepted by ``correction_samples(derivative=...)``.
 DERIVATIVE_ESTIMATORS = ("auto", "oracle", "central", "smooth", "gp")
-
-
-def _check_trajectories_and_system(trajectories, system) -> None:
-    """Trajectories that fit ``system``: their shapes and controls (:mod:`torchmisspec._estimators`) and, when both
-    name the states, the same names in the same order (states in another order would be read as the wrong ones).
-    Every function taking trajectories and a system checks them here (fit_correction, calibrate_bands,
-    fit_trajectories, cross_validate, correction_samples, Campaign.tell through it)."""
-    _check_shapes(trajectories, system)
-    check_named_as(trajectories.state_names, system.state_names, f"system '{system.name}'")
 
 
 @dataclass(frozen=True)
@@ -283,11 +273,12 @@ def correction_samples(
             )
         flat_states = trajectories.filled().flat_states()
         check_finite(flat_states, "trajectories.states")
-        if system.autonomous:
-            dydt = system.true_rhs(flat_states)
-        else:
-            flat_t = trajectories.flat_times().to(flat_states)
-            dydt = system.true_rhs(flat_states, flat_t, trajectories.flat_controls())
+        with torch.no_grad():  # data, not a graph: a G that is an nn.Module with parameters must not leak into them
+            if system.autonomous:
+                dydt = system.true_rhs(flat_states)
+            else:
+                flat_t = trajectories.flat_times().to(flat_states)
+                dydt = system.true_rhs(flat_states, flat_t, trajectories.flat_controls())
     elif derivative == "auto":
         name, options, errors = choose_derivative(trajectories, system)
         ratio = errors[(name, tuple(sorted(options.items())))]

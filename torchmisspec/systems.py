@@ -275,6 +275,14 @@ class MisspecifiedSystem:
                 f"{controls.num_experiments} "
                 f"of {controls.num_controls}"
             )
+        named = [n for n in (controls.names, self.control_names) if n != tuple(f"u{j}" for j in range(len(n)))]
+        if len(named) == 2 and tuple(controls.names) != tuple(self.control_names):  # both named, otherwise
+            order = "the same names in another order" if set(controls.names) == set(self.control_names) else "others"
+            raise InputError(
+                f"{name}: expected the controls of system '{self.name}' {list(self.control_names)}, in that order, got "
+                f"{list(controls.names)} ({order}); build the Controls with its values' last axis in the system's "
+                "order and names=... as the system's (a control read as another would be silently wrong)"
+            )
         return controls
 
     def solver_field(self, rhs, controls=None) -> tuple:

@@ -210,6 +210,8 @@ def fit_trajectories(
             f"relevance: expected a feature kernel (its term weights are re-estimated), got kernel {gp.kernel!r}"
         )
     options = dict(shooting=shooting, max_iter=max_iter, rtol=rtol, atol=atol, max_steps=max_steps, progress=progress)
+    if state_noise is not None:  # refused here, before it is recorded (a bad value raised inside _recorded)
+        _state_noise(state_noise, trajectories, dict(dtype=torch.float64, device=trajectories.device))
     scaled = refine_in_units(
         fit_trajectories, gp, system, trajectories, state_noise=state_noise, recorded=_recorded(state_noise),
         relevance=relevance, **options,
