@@ -420,3 +420,19 @@ def test_controls_repeat_gives_n_times_the_profiles_or_refuses(n):
     else:
         with pytest.raises(tms.InputError, match="n: expected an integer >= 1"):
             controls.repeat(n)
+
+
+def test_controls_named_otherwise_than_the_system_are_refused():
+    """Controls named (D, T) for a system whose controls are (T, D) were read by position."""
+    system = tms.MisspecifiedSystem(
+        lambda t, y, u: -u[..., :1] * y, 1, num_controls=2, control_names=["T", "D"], state_names=["x"]
+    )
+    knots = torch.tensor([0.0], dtype=torch.float64)
+    swapped = tms.Controls(knots, torch.tensor([[[0.1, 0.5]]], dtype=torch.float64), names=["D", "T"])
+    data = tms.Trajectories(torch.linspace(0, 1, 5, dtype=torch.float64), torch.ones(1, 5, 1), controls=swapped)
+    with pytest.raises(tms.InputError, match=r"expected the controls of system .*\['T', 'D'\].*got \['D', 'T'\]"):
+        tms.correction_samples(data, system, derivative="central")
+    unnamed = tms.Controls(knots, torch.tensor([[[0.1, 0.5]]], dtype=torch.float64))  # u0, u1: by position
+    by_position = tms.Trajectories(data.times, data.states, controls=unnamed)
+    samples = tms.correction_samples(by_position, system, derivative="central")
+    assert samples.inputs.shape[0] == 5
