@@ -1,0 +1,211 @@
+"""The real-data suite's pieces (issue 41): the classical answer, the folds of each protocol, the metrics, and one
+fold of the study (the package's defaults against the classical answer).
+
+Study code: the library never imports it. Used by :mod:`torchmisspec.paper.study_real_data`.
+
+**The classical answer** (:func:`classical_fit`): the model's uncertain parameters, and the initial states that
+the first row does not give, fitted alone (F = 0) by least squares on log values (``log y`` for positive
+measurements with multiplicative errors, ``log(1 + y)`` for counts), with ``scipy.optimize.least_squares`` over
+:func:`~torchmisspec.simulate` of ``system.at(theta)``; the parameters and those initial states are fitted on a
+log scale (all positive), from the priors' means. A solve that fails gives a large residual (a rejected step).
+
+**Protocols** (:func:`folds`): several experiments: leave one experiment out, predict it from its first row
+(every state given there). One trajectory: rolling origins, fit on the data up to the origin (a window of the last
+``window`` times where set), forecast the next ``horizon`` times: from the measured state at the origin where every
+state is measured, else from the start of the training data with the fitted initial state (each method its own).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import traceback
+import warnings
+
+import numpy as np
+import torch
+
+import torchmisspec as tms
+
+DT = torch.float64
+#: Residual of a trial step whose solve failed (in log units: far worse than any fit).
+FAILED_RESIDUAL = 1e3
+#: Positive measurements' and predictions' floor before the log (a prediction at or below 0 scores as this).
+LOG_FLOOR = 1e-6
+
+
+def log_values(y: torch.Tensor, noise: str) -> torch.Tensor:
+    """What the errors are measured on: ``log(1 + y)`` for counts, ``log y`` otherwise (``y`` clamped at the floor)."""
+    if noise == "counts":
+        return torch.log1p(y.clamp_min(0.0))
+    return torch.log(y.clamp_min(LOG_FLOOR))
+
+
+def log_rmse(pred: torch.Tensor, data: torch.Tensor, noise: str) -> float:
+    """RMSE of the log values over the entries ``data`` has (not NaN); NaN if the prediction is not finite there."""
+    seen = ~torch.isnan(data)
+    diff = log_values(pred[seen], noise) - log_values(data[seen], noise)
+    if not bool(torch.isfinite(pred[seen]).all()):
+        return float("nan")
+    return float(diff.pow(2).mean().sqrt())
+
+
+# ---- the classical answer ---------------------------------------------------------------------------------------
+def _unpack(x: np.ndarray, k: int, first: torch.Tensor, free: torch.Tensor):
+    theta = torch.tensor(np.exp(x[:k]), dtype=DT)
+    y0 = first.clone()
+    y0[free] = torch.tensor(np.exp(x[k:]), dtype=DT)
+    return theta, y0
+
+
+def classical_fit(system: tms.MisspecifiedSystem, train: tms.Trajectories, noise: str, max_nfev: int = 200):
+    """``(theta, y0)``: the parameters and every experiment's initial states ``(K, d)`` of the model alone (F = 0)
+    fitted by least squares on log values (the module's docstring); entries of ``y0`` the first rows give are kept."""
+    from scipy.optimize import least_squares
+
+    experiments = train.experiments()
+    times = [t for t, _ in experiments]
+    first = torch.stack([y[0] for _, y in experiments])
+    free = torch.isnan(first)
+    observed = [~torch.isnan(y[1:]) for _, y in experiments]  # the first row is the starting point, not a residual
+    targets = torch.cat([log_values(y[1:][m], noise) for (_, y), m in zip(experiments, observed, strict=True)])
+    k = system.theta.numel()
+    fill = float(torch.nanmean(torch.cat([y[~torch.isnan(y)] for _, y in experiments])))
+    x0 = np.concatenate([np.log(system.theta.numpy()), np.full(int(free.sum()), math.log(max(fill, 1e-3)))])
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        theta, y0 = _unpack(x, k, first, free)
+        try:
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                sim = tms.simulate(system.at(theta), y0, times if len(times) > 1 else times[0])
+        except Exception:  # noqa: BLE001 - a failed trial solve is a rejected step
+            return np.full(targets.numel(), FAILED_RESIDUAL)
+        paths = sim.states if isinstance(sim.states, tuple) else list(sim.states)
+        pred = torch.cat([log_values(p[1:][m], noise) for p, m in zip(paths, observed, strict=True)])
+        out = (pred - targets).numpy()
+        return np.where(np.isfinite(out), out, FAILED_RESIDUAL)
+
+    fit = least_squares(residuals, x0, method="trf", max_nfev=max_nfev, diff_step=1e-6)
+    return _unpack(fit.x, k, first, free)
+
+
+def classical_predict(system, theta: torch.Tensor, y0: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+    """``(T, d)``: the model alone at ``theta`` from ``y0 (d,)`` over ``times``."""
+    with torch.no_grad():
+        return tms.simulate(system.at(theta), y0[None], times).states[0]
+
+
+# ---- the protocols -----------------------------------------------------------------------------------------------
+def folds(data, protocol: dict, limit: int | None = None) -> list[dict]:
+    """The folds of a data set: ``{"label", "train", "start", "times", "held_out", "from_origin"}``; ``start`` is the
+    test path's first row (NaN where a method must use its own fitted initial state), ``held_out`` the measurements
+    scored (NaN elsewhere) at the last ``len(held_out)`` of ``times``."""
+    trajs = data.trajectories
+    out = []
+    if trajs.num_experiments > 1:
+        chosen = protocol.get("experiments") or range(trajs.num_experiments)
+        for k in chosen:
+            t, y = trajs.experiments()[k]
+            rest = [i for i in range(trajs.num_experiments) if i != k]
+            out.append(dict(label=f"experiment {k + 1}", train=trajs[rest], start=y[0], times=t, held_out=y[1:]))
+    else:
+        t, y = trajs.experiments()[0]
+        h, w = protocol["horizon"], protocol.get("window")
+        for o in protocol["origins"]:  # index of the last training time
+            lo = 0 if w is None else max(0, o - w + 1)
+            train = tms.Trajectories(t[lo : o + 1], y[lo : o + 1][None], state_names=trajs.state_names)
+            full = bool(train.measured.all())
+            begin = o if full else lo
+            label = f"origin {float(t[o]):g}"
+            out.append(
+                dict(
+                    label=label, train=train, start=y[begin], times=t[begin : o + h + 1], held_out=y[o + 1 : o + h + 1]
+                )
+            )
+    return out[:limit]
+
+
+def _exception(stage: str, exc: BaseException) -> dict:
+    frame = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+    where = f"{frame.filename.split('torchmisspec/')[-1]}:{frame.lineno}" if frame else ""
+    return {"stage": stage, "type": type(exc).__name__, "message": str(exc)[:400], "where": where}
+
+
+def _start(fold: dict, fitted: torch.Tensor | None) -> torch.Tensor:
+    """The test path's first state: the fold's, its NaN entries from the method's fitted initial state."""
+    y0 = fold["start"].clone()
+    missing = torch.isnan(y0)
+    if bool(missing.any()):
+        if fitted is None:
+            raise RuntimeError("no fitted initial state for the states the data do not give")
+        y0[missing] = fitted[missing]
+    return y0
+
+
+def _score(pred: torch.Tensor, fold: dict, noise: str) -> float:
+    n = fold["held_out"].shape[0]
+    return log_rmse(pred[-n:], fold["held_out"], noise)
+
+
+def _warned(caught) -> list[str]:
+    seen: list[str] = []
+    for w in caught:
+        text = f"{w.category.__name__}: {str(w.message)[:160]}"
+        if text not in seen:
+            seen.append(text)
+    return seen
+
+
+def run_default(data, fold: dict, num_samples: int, send) -> None:
+    """The package's defaults on one fold: ``fit_correction(train, system)``, ``CorrectedODE.predict`` from the
+    test's start and ``posterior(..., num_samples)``'s 90 % band; each stage's result ``send``-ed as it comes (a
+    stage that raises is recorded with its type and message, and ends the method)."""
+    system, stage = data.system, "fit_correction"
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            t0 = time.perf_counter()
+            gp = tms.fit_correction(fold["train"], system, progress=False)
+            send(fit_seconds=time.perf_counter() - t0, kernel=repr(getattr(gp, "kernel", None))[:120])
+            stage = "predict"
+            fitted = getattr(gp, "initial_states_", None)
+            y0 = _start(fold, None if fitted is None else fitted[0])
+            model = tms.CorrectedODE(system, gp)
+            t0 = time.perf_counter()
+            pred = model.predict(y0, fold["times"])[0]
+            send(default_log_rmse=_score(pred.detach(), fold, data.noise), predict_seconds=time.perf_counter() - t0)
+            stage = "posterior"
+            t0 = time.perf_counter()
+            post = model.posterior(y0, fold["times"], num_samples=num_samples)
+            lower, upper = (b[0, -fold["held_out"].shape[0] :] for b in post.interval(0.9))
+            seconds = time.perf_counter() - t0
+            seen = ~torch.isnan(fold["held_out"])
+            inside = (fold["held_out"] >= lower) & (fold["held_out"] <= upper)
+            finite = torch.isfinite(lower) & torch.isfinite(upper)
+            send(
+                band_seconds=seconds,
+                covered=int((inside & seen).sum()),
+                scored=int(seen.sum()),
+                band_finite=int((finite & seen).sum()),
+            )
+    except Exception as exc:  # noqa: BLE001 - every exception is a result of the study
+        send(exceptions=[_exception(stage, exc)])
+    send(default_warnings=_warned(caught))
+
+
+def run_classical(data, fold: dict, send) -> None:
+    """The classical answer on one fold (:func:`classical_fit`, then the model alone from the test's start)."""
+    stage = "classical fit"
+    try:
+        t0 = time.perf_counter()
+        theta, y0s = classical_fit(data.system, fold["train"], data.noise)
+        stage = "classical predict"
+        pred = classical_predict(data.system, theta, _start(fold, y0s[0]), fold["times"])
+        send(
+            classical_log_rmse=_score(pred, fold, data.noise),
+            classical_seconds=time.perf_counter() - t0,
+            classical_theta=theta.tolist(),
+        )
+    except Exception as exc:  # noqa: BLE001 - every exception is a result of the study
+        send(exceptions=[_exception(stage, exc)])
