@@ -1,0 +1,221 @@
+"""The whole loop as a user runs it, with defaults only, on data the package does not simulate for its own studies:
+a lab's CSV of a system written here (not shipped), columns in the lab's order, ragged times, multiplicative noise,
+states of very different sizes (cells per mL ~1e4, nitrate ~1e-4 mol/L); through the Python API and the command
+line; beside the classical answer (G's uncertain parameter fitted by least squares, F = 0); predictions beyond the
+data's time span. And a public data set (R's Orange trees) with its model, leaving one tree out."""
+
+from __future__ import annotations
+
+import csv
+import math
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec import cli, datasets
+
+DT = torch.float64
+K_N, MORTALITY, Q, DILUTION, N_IN = 2e-4, 0.1, 4e-8, 0.05, 1.5e-3
+
+SYSTEM_FILE = textwrap.dedent(
+    f"""
+    import torch
+    import torchmisspec as tms
+
+
+    def culture(t, y, u, theta):  # phytoplankton P (cells/mL), nitrate N (mol/L), light L set by the lab
+        P, N, L = y[..., 0], y[..., 1], u[..., 0]
+        growth = theta[..., 0] * L * N / ({K_N} + N) * P
+        return torch.stack([growth - {MORTALITY} * P, -{Q} * growth + {DILUTION} * ({N_IN} - N)], dim=-1)
+
+
+    def plankton():
+        return tms.MisspecifiedSystem(
+            culture, 2, num_controls=1, control_names=["light"], state_names=["phyto", "nitrate"],
+            parameters={{"mu": (1.0, 0.3)}}, correction_inputs=["phyto"], correction_outputs=["nitrate"],
+            name="plankton",
+        )
+    """
+)
+
+
+def culture(t, y, u, theta):
+    P, N, L = y[..., 0], y[..., 1], u[..., 0]
+    growth = theta[..., 0] * L * N / (K_N + N) * P
+    return torch.stack([growth - MORTALITY * P, -Q * growth + DILUTION * (N_IN - N)], dim=-1)
+
+
+def _truth():
+    theta = torch.tensor([0.8], dtype=DT)  # the lab's cells grow slower than the prior says ...
+    return tms.MisspecifiedSystem(
+        lambda t, y, u: culture(t, y, u, theta),
+        2,
+        num_controls=1,
+        control_names=["light"],
+        correction=lambda x: 2e-9 * x,  # ... and the cells recycle nitrate, which the model lacks
+        correction_inputs=[0],
+        correction_outputs=[1],
+    )
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """The lab's CSV (columns culture, day, nitrate, light, phyto: not the model's order) and the system file."""
+    folder = tmp_path_factory.mktemp("lab")
+    g = torch.Generator().manual_seed(7)
+    rows = []
+    for k in range(7):
+        days = torch.sort(torch.rand(8 + k % 4, generator=g, dtype=DT) * 20).values
+        days[0] = 0.0
+        y0 = torch.stack(
+            [2e3 + 6e3 * torch.rand(1, generator=g, dtype=DT), 5e-4 + 1e-3 * torch.rand(1, generator=g)], -1
+        )
+        light = 0.4 + 0.6 * torch.rand(1, 1, 1, generator=g, dtype=DT)
+        controls = tms.Controls(torch.zeros(1, dtype=DT), light, names=["light"])
+        y = tms.simulate(_truth(), y0, days, controls=controls).states[0]
+        y = y * torch.exp(0.03 * torch.randn(y.shape, generator=g, dtype=DT))
+        for t, (P, N) in zip(days.tolist(), y.tolist(), strict=True):
+            rows.append([f"C{k + 1}", repr(t), repr(N), repr(float(light)), repr(P)])
+    path = folder / "lab.csv"
+    with path.open("w", newline="") as fh:
+        csv.writer(fh).writerows([["culture", "day", "nitrate", "light", "phyto"], *rows])
+    (folder / "plankton.py").write_text(SYSTEM_FILE)
+    return folder
+
+
+def _system(folder):
+    return tms.systems.load_system(f"{folder / 'plankton.py'}:plankton")
+
+
+def _load(folder, **columns):
+    return tms.Trajectories.load(
+        folder / "lab.csv", time_column="day", experiment_column="culture", control_columns=["light"], **columns
+    )
+
+
+def _classical_mu(system, train) -> float:
+    """The classical answer: mu by least squares on log values, F = 0, each culture from its first measurement."""
+    from scipy.optimize import least_squares
+
+    def residuals(p):
+        s = system.at(torch.tensor(p, dtype=DT))
+        out = []
+        for k, (t, y) in enumerate(train.experiments()):
+            sim = tms.simulate(s, y[:1], t, controls=train.controls[[k]], known_only=True).states[0]
+            out.append((sim.log() - y.log()).flatten().numpy())
+        return np.concatenate(out)
+
+    return float(least_squares(residuals, [1.0]).x[0])
+
+
+def _log_rmse(pred, y) -> float:
+    return float((pred.log() - y.log()).pow(2).mean().sqrt())
+
+
+@pytest.mark.slow
+def test_a_lab_csv_with_columns_in_its_own_order_beats_the_classical_answer_and_forecasts(lab):
+    system = _system(lab)
+    observed = _load(lab, state_columns=["phyto", "nitrate"])  # by name: the file's order is nitrate, light, phyto
+    with pytest.raises(tms.InputError, match=r"same names in another order"):
+        tms.fit_correction(_load(lab, state_columns=["nitrate", "phyto"]), system, progress=False)
+    experiments = observed.experiments()
+    held_out = [0, 3]
+    ratios = []
+    for k in held_out:
+        keep = [j for j in range(observed.num_experiments) if j != k]
+        train = tms.Trajectories(
+            [experiments[j][0] for j in keep],
+            [experiments[j][1] for j in keep],
+            state_names=observed.state_names,
+            controls=observed.controls[keep],
+        )
+        gp = tms.fit_correction(train, system, progress=False)
+        model = tms.CorrectedODE(system, gp)
+        t, y = experiments[k]
+        controls = observed.controls[[k]]
+        default = _log_rmse(model.predict(y[:1], t, controls=controls)[0], y)
+        mu = _classical_mu(system, train)
+        classical = _log_rmse(tms.simulate(system.at(torch.tensor([mu])), y[:1], t, controls=controls).states[0], y)
+        ratios.append(default / classical)
+        beyond = torch.linspace(0.0, 2 * float(t[-1]), 21, dtype=DT)  # twice the data's time span
+        forecast = model.predict(y[:1], beyond, controls=controls)
+        assert bool(torch.isfinite(forecast).all()) and bool((forecast > 0).all())
+    assert math.exp(np.mean(np.log(ratios))) <= 1.05, ratios
+
+
+@pytest.mark.slow
+def test_the_same_lab_csv_through_the_command_line(lab, capsys):
+    folder = lab
+    model = folder / "model.pt"
+    code = cli.main(
+        [
+            "fit", "--data", str(folder / "lab.csv"), "--time-column", "day", "--experiment-column", "culture",
+            "--input-columns", "light", "--system", f"{folder / 'plankton.py'}:plankton", "--out", str(model),
+            "--no-calibrate", "--quiet",
+        ]
+    )  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    gp = tms.CorrectionGP.load(model)
+    reference = tms.fit_correction(_load(folder, state_columns=["phyto", "nitrate"]), _system(folder), progress=False)
+    x = torch.tensor([[5e3], [2e4]], dtype=DT)
+    assert torch.allclose(gp.predict_mean(x), reference.predict_mean(x), rtol=1e-6, atol=0)
+    (folder / "y0.csv").write_text("culture,nitrate,phyto\nnew,0.0009,4000\n")
+    (folder / "light.csv").write_text("culture,day,light\nnew,0,0.7\n")
+    out = folder / "pred.csv"
+    code = cli.main(
+        [
+            "predict", "--model", str(model), "--system", f"{folder / 'plankton.py'}:plankton",
+            "--initial", str(folder / "y0.csv"), "--controls", str(folder / "light.csv"), "--time-column", "day",
+            "--experiment-column", "culture", "--times", "0:40:9", "--out", str(out), "--quiet",
+        ]
+    )  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    with out.open() as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == 9 and table[0]["phyto_mean"] == "4000.0" and table[0]["nitrate_mean"] == "0.0009"
+    values = np.array([[float(v) for k, v in row.items() if k.endswith(("mean", "lower", "upper"))] for row in table])
+    assert np.isfinite(values).all() and (values > 0).all()
+
+
+@pytest.fixture(scope="module")
+def orange_folds():
+    """R's Orange trees (Draper & Smith 1981), logistic growth with r and K uncertain: the defaults against r, K
+    fitted by least squares on log values (F = 0), each predicting a held-out tree from its first measurement, and
+    the defaults' forecast to three times the last age. ``(log-RMSE ratios default / classical, forecasts)``."""
+    from torchmisspec.paper.real_data import classical_fit, classical_predict, log_rmse
+
+    data = datasets.load("orange")
+    experiments = data.trajectories.experiments()
+    ratios, forecasts = [], []
+    for k in (0, 4):
+        keep = [j for j in range(len(experiments)) if j != k]
+        train = tms.Trajectories([experiments[j][0] for j in keep], [experiments[j][1] for j in keep])
+        train = train.with_state_names(data.trajectories.state_names)
+        model = tms.CorrectedODE(data.system, tms.fit_correction(train, data.system, progress=False))
+        t, y = experiments[k]
+        theta, _ = classical_fit(data.system, train, data.noise)
+        default, classical = model.predict(y[:1], t)[0], classical_predict(data.system, theta, y[0], t)
+        ratios.append(log_rmse(default[1:], y[1:], data.noise) / log_rmse(classical[1:], y[1:], data.noise))
+        forecasts.append(model.predict(y[:1], torch.linspace(float(t[0]), 3 * float(t[-1]), 16, dtype=DT)))
+    return ratios, forecasts
+
+
+@pytest.mark.slow
+def test_a_public_data_set_fits_and_forecasts_with_the_defaults(orange_folds):
+    ratios, forecasts = orange_folds
+    assert all(math.isfinite(r) for r in ratios)
+    assert all(bool(torch.isfinite(f).all()) and bool((f > 0).all()) for f in forecasts)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 41 (do no harm: the known model with its parameters fitted through the trajectories is not yet a "
+    "candidate of the default fit); measured 1.06x and 1.09x the classical log-RMSE on these two trees",
+)
+def test_a_public_data_set_is_no_worse_than_the_classical_answer(orange_folds):
+    ratios, _ = orange_folds
+    assert math.exp(np.mean(np.log(ratios))) <= 1.05, ratios
