@@ -66,7 +66,12 @@ BAD_ARRAYS = [
     np.array([[1 + 2j, 0], [0, 1]]),
     [[0.1, 0.2], [0.3]],
     float("nan"),
+    tms.signals.Controls(TIMES, LEVELS),  # objects with __len__ / __getitem__: an index made of one crashed torch
+    TRAJ,
 ]
+#: for elementwise maps (G, F, the selection of F's inputs, the posterior's sd ratio): a NaN state gives a NaN value
+#: there, as a missing entry stays missing; every other bad array is refused
+BAD_FINITE_ARRAYS = BAD_ARRAYS[2:]
 BAD_TIMES = [
     torch.tensor([0.0, 1e300], dtype=DT),
     torch.tensor([0.0, 0.0, 1.0], dtype=DT),
@@ -309,6 +314,12 @@ def _grid(domain=((-1.0, 1.0), (-1.0, 1.0)), size=3):
 
 
 BAD_INDICES = [[0.7], [True, False], [-1], [100], [], "ab", None, [[0, 1]], torch.tensor([0.5, 1.0]), 1.5, [10**30]]
+#: selections of experiments (Trajectories / Controls / CorrectionSamples indexing)
+BAD_SELECTIONS = BAD_INDICES + [
+    3, -4, slice(None, None, -1), slice(0, 0), {0: 1}, ..., True, (torch.tensor([[0.1, 0.2]]), LEVELS), TRAJ,
+    torch.tensor([True, False]), np.array([0.5]),
+]  # fmt: skip
+BAD_DEVICES = ["bogus", 3, torch.int64, torch.complex128, torch.bool, "meta", "cuda:99", None, torch.float16]
 BAD_DIMS = [(0, 5), (0,), "ab", None, (0.5, 1), (True, False), (-3, 0)]
 BAD_OUTPUTS = ["/proc/x.png", str(FILES), 3, str(FILES / "figure.pdf"), str(FILES / "no" / "such" / "f.png")]
 BAD_NAMES = ["", ["x"], [1, 2], ["a", "a"], 3, [None, "b"], ["a", " "]]
@@ -560,11 +571,191 @@ def _load_model(path=None):
     return tms.CorrectionGP.load(FILES / "good.pt" if path is None else path).predict_mean(Y0)
 
 
+# ---------------------------------------------------------------------------------------------- the 0.2 surface
+CHEMO = tms.MisspecifiedSystem(
+    lambda t, y, u: -u * y, 2, num_controls=1, state_names=["X", "S"], control_names=["D"],
+    correction=lambda x: -0.1 * x[..., :1], correction_inputs=["X", "D"], correction_outputs=["X"], name="chemo",
+)  # fmt: skip
+CONTROLS = tms.signals.Controls(TIMES[[0, 3]], torch.tensor([[0.1, 0.3], [0.2, 0.1], [0.3, 0.2]], dtype=DT))
+CTRAJ = tms.simulate(CHEMO, Y0 + 1.0, TIMES, controls=CONTROLS)
+CSAMPLES = tms.correction_samples(CTRAJ, CHEMO, derivative="oracle")
+CGP = tms.CorrectionGP(lengthscale=1.0, outputscale=1e-2, noise_variance=1e-6).fit(CSAMPLES.inputs, CSAMPLES.targets)
+CMODEL = tms.CorrectedODE(CHEMO, CGP)
+U = torch.full((3, 1), 0.2, dtype=DT)
+
+
+def _select(index=(0, 2), what="trajectories"):
+    whole = {"trajectories": CTRAJ, "controls": CONTROLS}[what]
+    picked = whole[index]
+    return picked.flat_states() if what == "trajectories" else picked.values
+
+
+def _subset(rows=(0, 2)):
+    return CSAMPLES.subset(rows).targets
+
+
+def _to(arg=torch.float32, what="trajectories"):
+    whole = {"trajectories": CTRAJ.with_readout(READOUT), "controls": CONTROLS, "readout": READOUT}[what]
+    out = whole.to(arg)
+    return out.flat_states() if what == "trajectories" else out.values if what == "controls" else out.matrix
+
+
+def _repeat(n=2):
+    return CONTROLS.repeat(n).values
+
+
+GRID = TIMES.expand(3, -1)
+THETA, SCALE = torch.tensor([1.0], dtype=DT), torch.tensor([0.1], dtype=DT)
+ONE_READING = {"t": {"a": 1.0}}
+
+
+def _control_function(t=GRID, num_experiments=3, num_controls=1):
+    function = tms.signals.Controls.from_function(lambda s: 0.1 * s.unsqueeze(-1), num_experiments, num_controls)
+    return function.at(t)
+
+
+def _known_rhs(y=Y0, t=0.0, u=U):
+    return CHEMO.known_rhs(y, t, u) + CHEMO.true_rhs(y, t, u)
+
+
+def _select_inputs(y=Y0, u=U):
+    return CHEMO.select_inputs(y, u)
+
+
+def _embed(f=Y0[:, :1]):
+    return CHEMO.embed(f) + CHEMO.true_correction(torch.cat([Y0[:, :1], U], -1))
+
+
+def _at(theta=(0.3,)):
+    system = tms.MisspecifiedSystem(lambda y, th: -th[0] * y, 2, parameters={"k": (0.5, 0.1)})
+    return system.at(theta).known_rhs(Y0)
+
+
+def _fields(matrix=((0.0, 1.0), (-1.0, 0.0)), coef=0.5, positions=((0.0, 0.0),)):
+    linear = tms.systems.LinearField(matrix)(Y0)
+    gravity = tms.systems.PointMassGravity([1.0], positions)(Y0 + 2.0)
+    return linear + tms.systems.QuadraticField(coef)(Y0) + gravity
+
+
+def _simulate_controls(system=CHEMO, controls=CONTROLS, known_only=False, rtol=1e-10):
+    return tms.simulate(system, Y0 + 1.0, TIMES, controls=controls, known_only=known_only, rtol=rtol).states
+
+
+def _predict_controls(y0=Y0 + 1.0, controls=CONTROLS, atol=1e-9):
+    return CMODEL.predict(y0, TIMES, controls=controls, atol=atol)
+
+
+def _with_readout(readout=READOUT, readings=None, state_names=("a", "b")):
+    return TRAJ.with_state_names(state_names).with_readout(readout, readings).readings
+
+
+def _readout_names(weights=ONE_READING, state_names=("a", "b"), names=("b", "a")):
+    readout = tms.Readout.from_weights(weights, state_names)
+    return readout.for_states(names).matrix + len(readout.describe(names))
+
+
+def _reordered(names=("b", "a"), initial_states=Y0):
+    data = TRAJ.with_state_names(["a", "b"]).with_initial_states(initial_states)
+    return data.reordered(names).flat_states()
+
+
+def _save_columns(path=None, state_columns=None, control_columns=("u0",)):
+    target = FILES / "columns.csv" if path is None else path
+    CTRAJ.with_state_names(["y0", "y1"]).save(target, state_columns=state_columns)
+    return tms.Trajectories.load(target, state_columns=state_columns, control_columns=control_columns).flat_states()
+
+
+def _gp_settings(device="cpu", dtype=torch.float64):
+    return (
+        tms.CorrectionGP(device=device, dtype=dtype, **GP_HYPER).fit(SAMPLES.inputs, SAMPLES.targets).predict_mean(Y0)
+    )
+
+
+GP_HYPER = dict(lengthscale=1.0, outputscale=4e-5, noise_variance=1e-4)
+
+
+def _posterior_object(targets=SAMPLES.targets, x=Y0):
+    posterior = FITTED.posterior()
+    return posterior.with_targets(targets).mean(Y0) + posterior.sd_ratio(x).sum()
+
+
+def _map_tasks(fn=math.sqrt, tasks=(1.0, 4.0), each=None):
+    return parallel_results(tms.parallel.map_tasks(fn, tasks, each=each))
+
+
+def parallel_results(results):
+    return torch.tensor([float(r) for r in results], dtype=DT)
+
+
+def _parameter_helpers(theta=THETA, scale=SCALE, num_samples=3):
+    jac = tms.parameters.jacobian(lambda th: Y0 * th[0], theta, scale)
+    posterior = tms.parameters.ParameterPosterior.prior(tms.parameters.check_priors({"k": (1.0, 0.1)}), 3, 1, Y0)
+    return jac.sum() + posterior.sample(num_samples, torch.Generator().manual_seed(0)).sum()
+
+
+def _statistics(dim=0, dtype=torch.float64):
+    mean, se = tms.metrics.mean_and_standard_error(torch.ones(3, 2, dtype=DT), dim)
+    return mean.sum() + se.sum() + tms.metrics.box_grid(((0.0, 1.0),), 3, dtype=dtype)[1].sum()
+
+
 #: independent computations of what some calls return (numpy), checked on every accepted argument
 ORACLES = {}
 
 
 CASES = [
+    (_select, {"index": BAD_SELECTIONS, "what": ["trajectories", "controls"]}),
+    (_subset, {"rows": BAD_SELECTIONS}),
+    (_to, {"arg": BAD_DEVICES, "what": ["trajectories", "controls", "readout"]}),
+    (_repeat, {"n": BAD_NUMBERS}),
+    (_control_function, {"t": BAD_TIMES + BAD_ARRAYS, "num_experiments": BAD_NUMBERS, "num_controls": BAD_NUMBERS}),
+    (_known_rhs, {"y": BAD_FINITE_ARRAYS, "t": BAD_NUMBERS + BAD_TIMES, "u": BAD_FINITE_ARRAYS}),
+    (_select_inputs, {"y": BAD_FINITE_ARRAYS, "u": BAD_FINITE_ARRAYS}),
+    (_embed, {"f": BAD_ARRAYS}),
+    (_at, {"theta": BAD_ARRAYS + BAD_NUMBERS}),
+    (_fields, {"matrix": BAD_ARRAYS, "coef": BAD_NUMBERS, "positions": BAD_ARRAYS}),
+    (
+        _simulate_controls,
+        {
+            "system": [None, "paper_linear", 3, SYSTEM],
+            "controls": [None, CONTROLS[:2], LEVELS, "u", tms.signals.Controls(TIMES, LEVELS)],
+            "known_only": [None, 1, "yes"],
+            "rtol": BAD_NUMBERS,
+        },
+    ),
+    (_predict_controls, {"y0": BAD_ARRAYS, "controls": [None, CONTROLS[:1], LEVELS, 3], "atol": BAD_NUMBERS}),
+    (
+        _with_readout,
+        {
+            "readout": [None, "t = a + b", 3, READOUT.to(torch.float32)],
+            "readings": BAD_ARRAYS,
+            "state_names": BAD_NAMES,
+        },
+    ),  # fmt: skip
+    (
+        _readout_names,
+        {
+            "weights": [{}, {"t": {"c": 1.0}}, {"t": {"a": 10**400}}, "t", {"t": 1.0}],
+            "state_names": BAD_NAMES,
+            "names": BAD_NAMES,
+        },
+    ),  # fmt: skip
+    (_reordered, {"names": BAD_NAMES + [("a", "c")], "initial_states": BAD_ARRAYS}),
+    (
+        _save_columns,
+        {
+            "path": BAD_OUTPUTS[:3] + [str(FILES / "no" / "c.csv"), str(FILES)],
+            "state_columns": BAD_NAMES,
+            "control_columns": BAD_NAMES,
+        },
+    ),  # fmt: skip
+    (_gp_settings, {"device": BAD_DEVICES, "dtype": BAD_DEVICES}),
+    (_posterior_object, {"targets": BAD_ARRAYS, "x": BAD_FINITE_ARRAYS}),
+    (_map_tasks, {"fn": [None, 3, lambda: 1.0], "tasks": [None, 3, "ab", []], "each": [3, lambda: None]}),
+    (
+        _parameter_helpers,
+        {"theta": BAD_ARRAYS, "scale": BAD_ARRAYS + [torch.tensor([-1.0])], "num_samples": BAD_NUMBERS},
+    ),  # fmt: skip
+    (_statistics, {"dim": BAD_NUMBERS, "dtype": BAD_DEVICES}),
     (_simulate, {"y0": BAD_ARRAYS, "times": BAD_TIMES, "max_steps": BAD_NUMBERS}),
     (
         _samples,

@@ -21,11 +21,11 @@ numbers are ``odeint``'s. Non-finite states or a solver that gives up raise :cla
   measurement noise, and the fits are 2.5-4x faster than at the prediction tolerances with the same result
   (pendulum and Lotka-Volterra with 1 % state noise: the same test error to three digits).
 
-Every public function that solves takes ``rtol``/``atol`` keywords to override its default. ``atol`` is in units of
-each state component's own scale (:func:`state_scales`: the power of ten nearest its root mean square over the
-initial states): states of order 1 are solved with ``atol`` itself, states in 1e-3 with ``atol * 1e-3``, so that a
-change of units (mg and g, counts in thousands) scales the solution exactly instead of loosening the solve of small
-states (issue 40: the predictions of a model fitted on states of 1e-3 differed from those of the same model in
+Every public function that solves takes ``rtol``/``atol`` keywords (each in (0, 1)) to override its default. ``atol``
+is in units of each state component's own scale (:func:`state_scales`: the power of ten nearest its root mean square
+over the initial states): states of order 1 are solved with ``atol`` itself, states in 1e-3 with ``atol * 1e-3``, so
+that a change of units (mg and g, counts in thousands) scales the solution exactly instead of loosening the solve of
+small states (issue 40: the predictions of a model fitted on states of 1e-3 differed from those of the same model in
 other units by 1e-6 relative, from the absolute tolerance alone).
 """
 
@@ -293,6 +293,12 @@ def solve(
     """
     max_steps = DEFAULT_MAX_STEPS if max_steps is None else check_positive_int(max_steps, "max_steps")
     rtol, atol = check_real(rtol, "rtol", positive=True), check_real(atol, "atol", positive=True)
+    for name, value in (("rtol", rtol), ("atol", atol)):  # atol is in units of each state's scale
+        if value >= 1.0:
+            raise InputError(
+                f"{name}: expected a tolerance below 1 (an error as large as the state itself accepts any path; the "
+                f"defaults are of order 1e-7), got {value:g}"
+            )
     if not isinstance(method, str):
         raise InputError(f"method: expected a torchdiffeq method name such as 'dopri5', got {method!r:.60}")
     if options is not None and not (isinstance(options, dict) and all(isinstance(k, str) for k in options)):

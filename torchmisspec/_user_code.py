@@ -113,14 +113,14 @@ def checked_output(out, shape: torch.Size, what: str, x: torch.Tensor) -> torch.
     if not isinstance(out, torch.Tensor):
         raise ShapeError(
             f"{what} returned a {type(out).__module__}.{type(out).__name__} for states of shape {tuple(x.shape)}; "
-            f"expected a torch.Tensor of shape {tuple(shape)} (build it with torch operations on the input tensor, "
-            "e.g. torch.stack([...], dim=-1), not NumPy)"
+            f"expected a torch.Tensor of shape {tuple(shape)}, got {type(out).__name__} (build it with torch "
+            "operations on the input tensor, e.g. torch.stack([...], dim=-1), not NumPy)"
         )
     if out.shape != shape:
         got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
         raise ShapeError(
-            f"{what} returned shape {got} for inputs of shape {tuple(x.shape)}; expected {tuple(shape)} (check the "
-            "callable's output: one value per state component it acts on)"
+            f"{what} returned shape {got} for inputs of shape {tuple(x.shape)}; expected {tuple(shape)}, got {got} "
+            "(check the callable's output: one value per state component it acts on)"
         )
     return out
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -69,6 +71,10 @@ def check_device(device, name: str = "device") -> torch.device:
         raise InputError(
             f"{name}: expected a device name such as 'cpu', 'cuda' or 'cuda:1', got {device!r:.60}"
         ) from None
+    if out.type not in ("cpu", "cuda", "mps"):  # 'meta' holds no values; the others are not supported
+        raise InputError(f"{name}: expected a device that holds values, 'cpu' or 'cuda', got {str(out)!r}")
+    if out.type == "mps" and not torch.backends.mps.is_available():
+        raise InputError(f"{name}: expected a device this machine has, got 'mps', which is not available; use 'cpu'")
     if out.type == "cuda" and not torch.cuda.is_available():
         raise InputError(
             f"{name}: expected a device this machine has, got {str(out)!r}: CUDA is not available; use 'cpu'"
@@ -83,6 +89,32 @@ def check_path(path, name: str = "path"):
     if isinstance(path, str) or isinstance(path, os.PathLike):
         return path
     raise InputError(f"{name}: expected a file name (str or pathlib.Path), got {path!r:.60} ({type(path).__name__})")
+
+
+def check_writable(path, name: str = "path") -> Path:
+    """A file name to write: a string or ``os.PathLike``, not a folder, in a folder that exists."""
+    path = Path(check_path(path, name))
+    if path.is_dir():
+        raise InputError(f"{name}: expected a file name, got the folder {str(path)!r}")
+    if not path.parent.is_dir():
+        raise InputError(
+            f"{name}: expected a file in an existing folder, got {str(path)!r} (no folder {str(path.parent)!r})"
+        )
+    return path
+
+
+@contextlib.contextmanager
+def writing(path, name: str = "path"):
+    """Around the write of ``path``: a failure of the file system (no permission, a full disk, a read-only or
+    special folder) becomes an :class:`InputError` naming the file, not the OSError of the writer."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f"{name}: expected a file that can be written, got {str(path)!r} ({unreadable(exc)})") from exc
+    except RuntimeError as exc:  # torch.save reports a file it cannot open as a RuntimeError
+        if "open file failed" not in str(exc) and "No such file" not in str(exc):
+            raise
+        raise InputError(f"{name}: expected a file that can be written, got {str(path)!r} ({unreadable(exc)})") from exc
 
 
 def unreadable(exc: BaseException) -> str:
@@ -111,6 +143,27 @@ def check_ndim(t: torch.Tensor, ndim: int | Sequence[int], name: str, shape_doc:
     allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
     if t.dim() not in allowed:
         raise ShapeError(f"{name}: expected shape {shape_doc}, got {tuple(t.shape)}")
+    return t
+
+
+def check_last_dim(x, size: int, name: str, what: str, *, masks: bool = False) -> torch.Tensor:
+    """``x (..., size)`` as a real floating tensor (arrays and lists converted), or refused naming ``what`` the last
+    axis holds (e.g. ``"the correction inputs of system 's'"``); with ``masks`` a tensor of any dtype (a boolean
+    mask of the same layout) is taken as it is."""
+    x = x if masks and isinstance(x, torch.Tensor) else as_tensor(x, name)
+    if x.dim() < 1 or x.shape[-1] != size:
+        raise ShapeError(f"{name}: expected a last dimension of size {size} ({what}), got shape {tuple(x.shape)}")
+    return x
+
+
+def check_broadcasts(t: torch.Tensor, shape: Sequence[int], name: str) -> torch.Tensor:
+    """``t`` when it broadcasts to ``shape`` without growing it (one value, or one per row), else a ShapeError."""
+    try:
+        fits = torch.broadcast_shapes(t.shape, tuple(shape)) == tuple(shape)
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ShapeError(f"{name}: expected one value or values of shape {tuple(shape)}, got shape {tuple(t.shape)}")
     return t
 
 
@@ -156,17 +209,112 @@ def check_indices(indices, size: int, name: str, *, distinct: bool = True) -> tu
     return out
 
 
-def check_names(names, count: int, name: str, *, default: str | None = None) -> tuple[str, ...] | None:
-    """``count`` distinct non-empty strings (one string alone is a list of one); ``None`` gives ``default0,
-    default1, ...`` (or ``None`` without a default prefix)."""
+def check_names(names, count: int | None, name: str, *, default: str | None = None) -> tuple[str, ...] | None:
+    """``count`` distinct non-empty strings (one string alone is a list of one; ``count=None``: at least one);
+    ``None`` gives ``default0, default1, ...`` (or ``None`` without a default prefix)."""
     if names is None:
-        return None if default is None else tuple(f"{default}{j}" for j in range(count))
+        return None if default is None or count is None else tuple(f"{default}{j}" for j in range(count))
+    many = "one or more" if count is None else count
+    if not isinstance(names, (str, Iterable)) or isinstance(names, (bytes, torch.Tensor, np.ndarray)):
+        raise InputError(
+            f"{name}: expected a list of {many} non-empty strings, got {names!r:.80} ({type(names).__name__})"
+        )
     items = [names] if isinstance(names, str) else list(names)
-    if len(items) != count or not all(isinstance(n, str) and n.strip() for n in items):
-        raise ShapeError(f"{name}: expected {count} non-empty strings (one per component), got {names!r:.200}")
+    wrong = not items if count is None else len(items) != count
+    if wrong or not all(isinstance(n, str) and n.strip() for n in items):
+        raise ShapeError(f"{name}: expected {many} non-empty strings (one per component), got {names!r:.200}")
     if len(set(items)) != len(items):
         raise InputError(f"{name}: expected distinct names, got {items}")
     return tuple(items)
+
+
+def check_selection(
+    index, count: int, name: str = "index", what: str = "experiments", *, empty: bool = False
+) -> list[int]:
+    """The positions ``index`` picks among ``count`` items (``what``): an integer (negative from the end), a slice, a
+    sequence, array or tensor of integers (repeats allowed), or a boolean mask of length ``count``; at least one
+    unless ``empty``.
+    Anything else (floats, strings, ``None``, positions out of range) is refused: indexing a tensor with it raised
+    torch's errors, or read an object with ``__getitem__`` as nested indices (a segmentation fault)."""
+    if isinstance(index, slice):
+        try:
+            picked = list(range(count)[index])
+        except (TypeError, ValueError) as exc:
+            raise InputError(
+                f"{name}: expected a slice of integers of the {count} {what}, got {index!r} ({exc})"
+            ) from None
+    else:
+        items = _selection_items(index, name, what)
+        if items and all(isinstance(i, (bool, np.bool_)) for i in items):
+            if len(items) != count:
+                raise ShapeError(
+                    f"{name}: expected a boolean mask of length {count} (one per {what[:-1]}), got {len(items)}"
+                )
+            picked = [k for k, keep in enumerate(items) if keep]
+        else:
+            bad = [i for i in items if isinstance(i, (bool, np.bool_)) or not isinstance(i, numbers.Integral)]
+            if bad or any(not -count <= i < count for i in items):
+                shown = bad[0] if bad else next(i for i in items if not -count <= i < count)
+                raise InputError(
+                    f"{name}: expected positions among the {count} {what} (integers in [{-count}, {count - 1}]) or a "
+                    f"boolean mask, got {shown!r:.60} ({type(shown).__name__}) in {index!r:.80}"
+                )
+            picked = [int(i) % count for i in items]
+    if not picked and not empty:
+        raise InputError(f"{name}: expected a selection of at least one of the {count} {what}, got {index!r:.80}")
+    return picked
+
+
+def _selection_items(index, name: str, what: str) -> list:
+    """The items of an index that is not a slice (a scalar integer: one item)."""
+    if isinstance(index, np.ndarray):
+        index = torch.from_numpy(index) if index.dtype.kind in "biu" else index.tolist()
+    if isinstance(index, torch.Tensor):
+        if index.dtype != torch.bool and (index.is_floating_point() or index.is_complex()) or index.dim() > 1:
+            raise InputError(
+                f"{name}: expected integer positions or a boolean mask of the {what}, got a tensor of dtype "
+                f"{index.dtype} and shape {tuple(index.shape)}"
+            )
+        return index.detach().cpu().reshape(-1).tolist()  # a bool tensor gives Python bools
+    if isinstance(index, numbers.Integral) and not isinstance(index, (bool, np.bool_)):
+        return [index]
+    if isinstance(index, (list, tuple, range)):
+        return list(index)
+    raise InputError(
+        f"{name}: expected an integer, a slice, a list of integers or a boolean mask of the {what}, got "
+        f"{index!r:.60} ({type(index).__name__})"
+    )
+
+
+def check_to(args: tuple, kwargs: dict, owner: str) -> None:
+    """Refuse arguments of ``owner.to(...)`` that torch would not take, or that name a dtype other than a real
+    floating one (the package's values are real numbers: an integer dtype would be silently kept as float)."""
+    try:
+        probe = torch.empty(0, dtype=DEFAULT_DTYPE).to(*args, **kwargs)
+    except (RuntimeError, TypeError, ValueError, AssertionError) as exc:
+        raise InputError(
+            f"{owner}.to: expected a device ('cpu', 'cuda') and/or a real floating dtype (torch.float32, "
+            f"torch.float64), got {', '.join([repr(a) for a in args] + [f'{k}={v!r}' for k, v in kwargs.items()])} "
+            f"({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})"
+        ) from None
+    if probe.dtype not in _REAL_DTYPES:
+        raise InputError(
+            f"{owner}.to: expected a real floating dtype (torch.float32, torch.float64), got {probe.dtype}"
+        )
+    check_device(probe.device, f"{owner}.to")  # a device that holds values ('meta' does not)
+
+
+def check_generator(generator, device: torch.device) -> torch.Generator | None:
+    """``None`` or a ``torch.Generator`` on the type of ``device`` the draws are made on."""
+    if generator is None:
+        return None
+    if not isinstance(generator, torch.Generator):
+        raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+    if generator.device.type != device.type:
+        raise InputError(
+            f"generator: expected a generator on the draws' device ({device}), got one on {generator.device}"
+        )
+    return generator
 
 
 def check_callable(function, name: str, form: str):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
@@ -174,6 +175,11 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
 
 def _check_candidates(candidates) -> list:
     """The candidate templates as a list, or an error naming what was received."""
+    if isinstance(candidates, (str, CorrectionGP)) or not isinstance(candidates, Iterable):
+        raise InputError(
+            f"candidates: expected a non-empty list of CorrectionGP templates, got {candidates!r:.60} "
+            f"({type(candidates).__name__})"
+        )
     candidates = list(candidates)
     if not candidates or not all(isinstance(c, CorrectionGP) for c in candidates):
         got = [type(c).__name__ for c in candidates] or "an empty list"

@@ -81,7 +81,7 @@ class CorrectedODE(nn.Module):
     def correction(self, y: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         """mu placed on the full state: ``(..., d)`` from states ``(..., d)`` (and controls ``(..., m)`` when F
         depends on them)."""
-        return self._correction(y, None, u)
+        return self._correction(self.system.check_states(y, "y"), None, u)
 
     def _correction(self, y: torch.Tensor, cache, u: torch.Tensor | None = None) -> torch.Tensor:
         x = self.system.select_inputs(y, u)
@@ -381,8 +381,8 @@ class CorrectedODE(nn.Module):
             samples = getattr(self.gp, "samples_", None)
             if samples is None:
                 raise InputError(
-                    "samples: expected the correction samples the GP was fitted on; this GP has none recorded (only "
-                    "fit_correction records them, as gp.samples_): pass calibrate(trajectories, samples)"
+                    "samples: expected the correction samples the GP was fitted on, got none: this GP has none "
+                    "recorded (only fit_correction records them, as gp.samples_): pass calibrate(trajectories, samples)"
                 )
         if getattr(trajectories, "is_partial", False) and trajectories.initial_states is None:
             # a held-out experiment starts where a prediction of a new one would: at its first observed values

@@ -14,7 +14,15 @@ from collections.abc import Callable
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import DEFAULT_DTYPE, as_tensor, check_callable, check_domain, check_finite, check_positive_int
+from ._validation import (
+    DEFAULT_DTYPE,
+    as_tensor,
+    check_callable,
+    check_device,
+    check_domain,
+    check_finite,
+    check_positive_int,
+)
 
 __all__ = [
     "box_grid",
@@ -37,6 +45,9 @@ def box_grid(domain, resolution: int = 101, *, dtype=DEFAULT_DTYPE, device=None)
     """Grid points ``(resolution**n, n)`` over the box and their trapezoidal weights ``(resolution**n,)``."""
     box = check_domain(domain)
     resolution = check_positive_int(resolution, "resolution", minimum=2)
+    if dtype not in (torch.float32, torch.float64):
+        raise InputError(f"dtype: expected torch.float64 or torch.float32, got {dtype!r}")
+    device = check_device(device)
     if resolution ** len(box) > MAX_GRID_POINTS:
         raise InputError(
             f"resolution: a grid of {resolution} points per axis over {len(box)} dimensions has more than "
@@ -101,7 +112,15 @@ def _difference(estimate: Field, truth: Field, x: torch.Tensor) -> torch.Tensor:
 def integrated_norm(field: Field, domain, *, resolution: int = 101) -> float:
     """Integral over D of ||field(y)||_2: the "energy" reference lines of paper Fig 5."""
     _check_fields(field=field)
-    return integrate_over_box(lambda x: torch.linalg.vector_norm(field(x), dim=-1), domain, resolution=resolution)
+
+    def norm(x: torch.Tensor) -> torch.Tensor:
+        value = field(x)
+        if not isinstance(value, torch.Tensor) or value.dim() != 2 or value.shape[0] != x.shape[0]:
+            got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ShapeError(f"field: expected values (M, m) at M = {x.shape[0]} points, got {got}")
+        return torch.linalg.vector_norm(value, dim=-1)
+
+    return integrate_over_box(norm, domain, resolution=resolution)
 
 
 def mean_squared_error(estimate: Field, truth: Field, domain, *, resolution: int = 101) -> float:
@@ -164,6 +183,7 @@ def mean_and_standard_error(values, dim: int = 0) -> tuple[torch.Tensor, torch.T
     ``values`` is a tensor or a sequence of numbers (float64); NaN entries are refused.
     """
     v = as_tensor(values, "values")
+    dim = check_positive_int(dim, "dim", minimum=-max(v.dim(), 1), maximum=max(v.dim(), 1) - 1)
     if v.dim() == 0 or v.shape[dim] == 0:
         raise ShapeError(f"values: expected at least one value along dim {dim}, got shape {tuple(v.shape)}")
     check_finite(v, "values")

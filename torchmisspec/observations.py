@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._errors import InputError, TorchMisspecWarning, warn
+from ._errors import InputError, ShapeError, TorchMisspecWarning, warn
 from ._estimators import (
     AUTO_CANDIDATES,
     ESTIMATOR_ERROR_THRESHOLD,
@@ -56,7 +56,7 @@ from ._estimators import (
 )
 from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_derivative, observed_variance
 from ._stencils import finite_difference, smoothed_derivative
-from ._validation import check_finite, check_positive_int, check_real
+from ._validation import as_tensor, check_finite, check_positive_int, check_real, check_selection
 from .data import Trajectories
 from .parameters import jacobian, parameter_basis
 from .systems import MisspecifiedSystem
@@ -121,9 +121,12 @@ class CorrectionSamples:
 
     def subset(self, rows: torch.Tensor) -> CorrectionSamples:
         """The samples at ``rows`` (a boolean mask or indices)."""
+        rows = torch.tensor(check_selection(rows, self.num_samples, "rows", "samples", empty=True), dtype=torch.long)
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         shared = ("parameters_linear", "linearized_at")  # not per sample
-        return CorrectionSamples(**{k: v if v is None or k in shared else v[rows] for k, v in fields.items()})
+        return CorrectionSamples(
+            **{k: v if v is None or k in shared else v[rows.to(v.device)] for k, v in fields.items()}
+        )
 
     def thinned(self, at_most: int) -> CorrectionSamples:
         """About ``at_most`` of these samples (these themselves when there are no more): each experiment's samples
@@ -144,7 +147,12 @@ class CorrectionSamples:
         """These samples with the parameters moved by ``delta`` ``(k,)`` from the prior mean: the targets
         r - H delta on the corrected components ``outputs`` (exact for a G linear in them, else to first order
         around where the samples were linearised)."""
-        moved = self.residuals - self.basis @ delta.to(self.basis)
+        if self.basis is None:
+            raise InputError("samples: expected samples of a system with uncertain parameters (a basis), got none")
+        delta = as_tensor(delta, "delta", dtype=self.basis.dtype, device=self.basis.device)
+        if delta.shape != self.basis.shape[-1:]:
+            raise ShapeError(f"delta: expected shape {tuple(self.basis.shape[-1:])}, got {tuple(delta.shape)}")
+        moved = self.residuals - self.basis @ delta
         return dataclasses.replace(self, targets=moved[:, list(outputs)].contiguous())
 
     def linearized(self, system, theta: torch.Tensor, outputs) -> CorrectionSamples:
@@ -334,7 +342,9 @@ def correction_samples(
         targets = targets + noise * eps
         check_finite(targets, f"correction samples with noise_std={noise_std!r} added")
         if sample_noise is not None:
-            sample_noise = sample_noise + noise**2
+            if not math.isfinite(noise * noise):  # its variance is added to the samples' own (noise**2 overflowed)
+                raise InputError(f"noise_std: expected a standard deviation whose square is finite, got {noise_std!r}")
+            sample_noise = sample_noise + noise * noise
     return CorrectionSamples(
         inputs=system.select_inputs(flat_states, u),
         targets=targets,

@@ -20,7 +20,7 @@ import torch
 
 from ._errors import InputError, TorchMisspecError
 from ._user_code import one_line
-from ._validation import check_positive_int
+from ._validation import check_arity, check_callable, check_positive_int
 
 __all__ = ["map_tasks", "process_pool", "check_executor"]
 
@@ -44,6 +44,11 @@ def map_tasks(fn: Callable, tasks: Iterable, executor=None, *, each: Callable | 
             gives another number of results than tasks. The tasks' own errors pass unchanged.
     """
     executor = check_executor(executor)
+    check_arity(check_callable(fn, "fn", "fn(task)"), 1, "fn", "fn(task) giving the task's result")
+    if each is not None:
+        check_arity(check_callable(each, "each", "each(result)"), 1, "each", "each(result) called as each arrives")
+    if isinstance(tasks, (str, bytes)) or not isinstance(tasks, Iterable):
+        raise InputError(f"tasks: expected a list (an iterable) of tasks, got {tasks!r:.60} ({type(tasks).__name__})")
     tasks = list(tasks)
     results = []
     if executor is None:

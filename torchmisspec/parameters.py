@@ -52,7 +52,15 @@ from dataclasses import dataclass
 import torch
 
 from ._errors import InputError, NumericalWarning, TorchMisspecWarning, warn
-from ._validation import DEFAULT_DTYPE, check_real
+from ._validation import (
+    DEFAULT_DTYPE,
+    as_tensor,
+    check_callable,
+    check_finite,
+    check_generator,
+    check_positive_int,
+    check_real,
+)
 
 __all__ = [
     "Priors",
@@ -124,6 +132,19 @@ def check_priors(parameters) -> Priors | None:
     )
 
 
+def _theta_and_scale(rhs, theta, scale) -> tuple[torch.Tensor, torch.Tensor]:
+    """``theta (k,)`` finite and ``scale (k,)`` positive, for the differences of a callable ``rhs``."""
+    check_callable(rhs, "rhs", "rhs(theta) giving G at the data with the parameters theta (k,)")
+    theta = check_finite(as_tensor(theta, "theta"), "theta")
+    scale = check_finite(as_tensor(scale, "scale", dtype=theta.dtype, device=theta.device), "scale")
+    if theta.dim() != 1 or scale.shape != theta.shape or not bool((scale > 0).all()):
+        raise InputError(
+            f"theta, scale: expected (k,) parameters and (k,) positive scales, got shapes {tuple(theta.shape)} and "
+            f"{tuple(scale.shape)}" + ("" if scale.shape != theta.shape else " with a scale <= 0")
+        )
+    return theta, scale
+
+
 def parameter_basis(rhs, theta: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, bool]:
     """``(basis, linear)``: G's basis g_k = dG/dtheta_k ``(..., d, k)`` at ``theta`` from ``rhs(theta) -> (..., d)``
     (G at the data with the parameters ``theta``), and whether G is linear in theta there.
@@ -132,6 +153,7 @@ def parameter_basis(rhs, theta: torch.Tensor, scale: torch.Tensor) -> tuple[torc
     must agree with the differences of one step forward to :data:`LINEARITY_TOLERANCE`). A linear G's basis is those
     differences (exact); a nonlinear G's is its Jacobian at ``theta`` by central differences of
     :data:`JACOBIAN_STEP` prior scales, the linearisation the Gauss-Newton / Laplace fit uses (the module's notes)."""
+    theta, scale = _theta_and_scale(rhs, theta, scale)
     base = rhs(theta)
     k = theta.shape[0]
     steps = torch.eye(k, dtype=theta.dtype, device=theta.device) * scale.to(theta)
@@ -148,6 +170,7 @@ def parameter_basis(rhs, theta: torch.Tensor, scale: torch.Tensor) -> tuple[torc
 def jacobian(rhs, theta: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """dG/dtheta ``(..., d, k)`` at ``theta`` by central differences of :data:`JACOBIAN_STEP` prior scales ``scale``
     (``rhs(theta) -> (..., d)``): the basis of a G known to be nonlinear in theta."""
+    theta, scale = _theta_and_scale(rhs, theta, scale)
     h = torch.eye(theta.shape[0], dtype=theta.dtype, device=theta.device) * scale.to(theta) * JACOBIAN_STEP
     cols = [(rhs(theta + h[j]) - rhs(theta - h[j])) / (2 * h[j, j].item()) for j in range(theta.shape[0])]
     return torch.stack(cols, dim=-1)
@@ -253,6 +276,8 @@ class ParameterPosterior:
 
     def sample(self, num_samples: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``num_samples`` draws of theta ``(S, k)`` from the posterior."""
+        num_samples = check_positive_int(num_samples, "num_samples", minimum=0)
+        generator = check_generator(generator, self.covariance.device)
         L = torch.linalg.cholesky(
             self.covariance + 1e-12 * self.covariance.diagonal().max() * torch.eye(len(self.names)).to(self.covariance)
         )

@@ -22,7 +22,8 @@ from collections.abc import Callable, Sequence
 import torch
 
 from ._errors import InputError, ShapeError
-from ._validation import as_tensor, check_names, check_positive_int
+from ._user_code import call_user
+from ._validation import as_tensor, check_names, check_positive_int, check_selection, check_to
 
 __all__ = ["KINDS", "Controls"]
 
@@ -57,6 +58,8 @@ class Controls:
                     f"values: expected a non-empty list of (S_k, m) arrays, got shapes {[tuple(v.shape) for v in vals]}"
                 )
             if isinstance(knots, (list, tuple)) and knots and isinstance(knots[0], (list, tuple, torch.Tensor)):
+                if len(knots) != len(vals):
+                    raise ShapeError(f"knots: expected {len(vals)} knot arrays (one per experiment), got {len(knots)}")
                 kn = [as_tensor(t, f"knots[{k}]", dtype=vals[k].dtype) for k, t in enumerate(knots)]
             else:
                 shared = as_tensor(knots, "knots", dtype=vals[0].dtype)
@@ -149,14 +152,16 @@ class Controls:
     def at(self, t: torch.Tensor) -> torch.Tensor:
         """The controls at times ``t``: a scalar (every experiment at that time) gives ``(K, m)``; ``(K, T)`` gives
         ``(K, T, m)``; any shape ``(K, ...)`` gives ``(K, ..., m)``."""
-        t = torch.as_tensor(t, dtype=self.values.dtype, device=self.values.device)
+        t = as_tensor(t, "t", dtype=self.values.dtype, device=self.values.device)
         if self._function is not None:
             tt = t.expand(self.num_experiments) if t.dim() == 0 else t
-            out = self._function(tt)
+            out = call_user(self._function, tt, "controls: u(t)")
             want = tuple(tt.shape) + (self.num_controls,)
             if not isinstance(out, torch.Tensor) or tuple(out.shape) != want:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 raise ShapeError(f"controls: expected u(t) to map times {tuple(tt.shape)} to {want}, got {got}")
+            if not bool(torch.isfinite(out).all()):  # a control is known: NaN would run the solve on garbage
+                raise InputError("controls: expected u(t) finite at every time (a control is known), got NaN or inf")
             return out.to(self.values)
         K = self.num_experiments
         flat = t.expand(K) if t.dim() == 0 else t
@@ -179,9 +184,8 @@ class Controls:
         return out.reshape(*shape, self.num_controls)
 
     def __getitem__(self, index) -> Controls:
-        """The profiles of a subset of experiments (int, slice, index list or tensor)."""
-        idx = torch.arange(self.num_experiments)[index]
-        idx = idx.reshape(-1)
+        """The profiles of a subset of experiments (int, slice, index list, tensor or boolean mask; at least one)."""
+        idx = torch.tensor(check_selection(index, self.num_experiments), dtype=torch.long)
         out = object.__new__(Controls)
         out.kind, out._function, out.names = self.kind, self._function, self.names
         out.knots, out.values, out.lengths = self.knots[idx], self.values[idx], self.lengths[idx]
@@ -192,6 +196,8 @@ class Controls:
         return self[torch.arange(self.num_experiments).repeat(check_positive_int(n, "n"))]
 
     def to(self, *args, **kwargs) -> Controls:
+        """These profiles on another device and/or in another real floating dtype."""
+        check_to(args, kwargs, "Controls")
         out = self[:]
         out.knots, out.values = self.knots.to(*args, **kwargs), self.values.to(*args, **kwargs)
         out.lengths = self.lengths.to(out.knots.device)
@@ -203,6 +209,10 @@ class Controls:
 
     def __len__(self) -> int:
         return self.num_experiments
+
+    def __iter__(self):
+        """Each experiment's profile as Controls of one (indexing refuses positions out of range)."""
+        return (self[k] for k in range(self.num_experiments))
 
     def __repr__(self) -> str:
         source = "u(t)" if self._function is not None else f"{int(self.lengths.max())} knots, {self.kind}"

@@ -11,11 +11,20 @@ import copy
 from collections.abc import Callable, Iterable, Sequence
 
 import torch
-from torch import nn
 
 from ._errors import InputError, ShapeError, TorchMisspecError
+from ._fields import LinearField, PointMassGravity, QuadraticField, ZeroField
 from ._user_code import call_user, check_signatures, checked_output, import_module, one_line, where
-from ._validation import as_tensor, check_domain, check_finite, check_indices, check_names, check_positive_int
+from ._validation import (
+    as_tensor,
+    check_broadcasts,
+    check_domain,
+    check_finite,
+    check_indices,
+    check_last_dim,
+    check_names,
+    check_positive_int,
+)
 from .parameters import check_priors
 from .signals import Controls
 
@@ -108,7 +117,8 @@ class MisspecifiedSystem:
         clash = [n for n in self.control_names if n in (self.state_names or ())]
         if clash:
             raise InputError(
-                f"control_names: state and control names must be distinct (a name picks one state or one control), "
+                f"control_names: expected names apart from the states' (state and control names must be distinct: a "
+                "name picks one state or one control), "
                 f"got {clash} among the states {list(self.state_names)} and the controls {list(self.control_names)}; "
                 "rename the control(s) or the state(s)"
             )
@@ -198,6 +208,8 @@ class MisspecifiedSystem:
         return len(self.correction_outputs)
 
     def check_states(self, y: torch.Tensor, name: str = "states") -> torch.Tensor:
+        """States ``(..., d)`` of this system as a real floating tensor (arrays and lists converted), or refused."""
+        y = as_tensor(y, name)
         if y.dim() < 1 or y.shape[-1] != self.state_dim:
             raise ShapeError(
                 f"{name}: expected a last dimension of size state_dim={self.state_dim} for system "
@@ -208,6 +220,8 @@ class MisspecifiedSystem:
     def select_inputs(self, y: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         """The correction's inputs ``(..., d_in)`` from states ``(..., d)`` and, when F depends on controls, the
         controls ``(..., m)`` at the same times."""
+        y = self.check_states(y, "y")
+        u = None if u is None else as_tensor(u, "u")
         if self.correction_inputs == tuple(range(self.state_dim)):
             return y
         if not self.uses_controls:
@@ -223,12 +237,14 @@ class MisspecifiedSystem:
 
     def select_outputs(self, v: torch.Tensor) -> torch.Tensor:
         """The correction's output components ``(..., d_out)`` of a full vector field ``(..., d)``."""
+        v = check_last_dim(v, self.state_dim, "v", f"the states of system '{self.name}'", masks=True)
         if self.correction_outputs == tuple(range(self.state_dim)):
             return v
         return v[..., list(self.correction_outputs)]
 
     def embed(self, f: torch.Tensor) -> torch.Tensor:
         """Place a correction ``(..., d_out)`` on its output components of a zero ``(..., d)`` field."""
+        f = check_last_dim(f, self.output_dim, "f", f"the correction outputs of system '{self.name}'", masks=True)
         if self.correction_outputs == tuple(range(self.state_dim)):
             return f
         out = f.new_zeros(f.shape[:-1] + (self.state_dim,))
@@ -257,10 +273,12 @@ class MisspecifiedSystem:
     def check_controls(self, controls, batch: int, name: str = "controls"):
         """``controls`` for a batch of ``batch`` experiments: a :class:`~torchmisspec.signals.Controls` with one
         profile each when this system has controls, ``None`` when it has none (each refused otherwise)."""
+        batch = check_positive_int(batch, "batch")
         if self.num_controls == 0:
             if controls is not None:
                 raise InputError(
-                    f"{name}: system '{self.name}' has no controls (num_controls=0), got {type(controls).__name__}; "
+                    f"{name}: expected None, as system '{self.name}' has no controls (num_controls=0), got "
+                    f"{type(controls).__name__}; "
                     "declare them with MisspecifiedSystem(..., num_controls=m)"
                 )
             return None
@@ -305,6 +323,7 @@ class MisspecifiedSystem:
                 "(only simulation and benchmark systems have one)"
             )
         what = f"system '{self.name}': F"
+        x = check_last_dim(x, self.input_dim, "x", f"the correction inputs of system '{self.name}'")
         return self._call("F", self.correction, x, x.shape[:-1] + (self.output_dim,), what)
 
     def known_rhs(self, y: torch.Tensor, t=None, u: torch.Tensor | None = None) -> torch.Tensor:
@@ -312,6 +331,7 @@ class MisspecifiedSystem:
         broadcast silently by the sums that follow): ``G(y)`` for an autonomous system, else ``G(t, y, u)`` with the
         times ``t`` (a scalar or ``(...)``) and controls ``u (..., m)`` at those states (checked to be given)."""
         what = f"system '{self.name}': G"
+        y = self.check_states(y, "y")  # G is blamed only for what it does with states of the right shape
         theta = () if self.theta is None else (self.theta.to(y),)
         if self.autonomous:
             return self._call("G", lambda z: self.known(z, *theta), y, y.shape, what)
@@ -336,6 +356,7 @@ class MisspecifiedSystem:
     def _time_and_controls(self, y: torch.Tensor, t, u):
         if self.time_dependent and t is None:
             raise InputError(f"system '{self.name}': G depends on time; expected the times t with the states, got None")
+        u = None if u is None else as_tensor(u, "u")
         if self.num_controls and (u is None or u.shape[:-1] != y.shape[:-1] or u.shape[-1] != self.num_controls):
             got = None if u is None else tuple(u.shape)
             raise ShapeError(
@@ -343,9 +364,9 @@ class MisspecifiedSystem:
                 f"{tuple(y.shape[:-1]) + (self.num_controls,)} with the states {tuple(y.shape)}, got {got}. Pass "
                 "each experiment's controls (Trajectories(..., controls=...), predict(..., controls=...))"
             )
-        t = y.new_zeros(()) if t is None else torch.as_tensor(t, dtype=y.dtype, device=y.device)
+        t = y.new_zeros(()) if t is None else check_broadcasts(as_tensor(t, "t", dtype=y.dtype), y.shape[:-1], "t")
         u = y.new_zeros(y.shape[:-1] + (0,)) if u is None else u.to(y)
-        return t, u
+        return t.to(y.device), u
 
     def _call(self, key: str, fn, x: torch.Tensor, shape, what: str) -> torch.Tensor:
         """``fn(x)`` with its output checked; the first batched call also checks that ``fn`` broadcasts over the
@@ -391,56 +412,6 @@ class MisspecifiedSystem:
             f"correction_inputs={list(self.correction_inputs)}, correction_outputs={list(self.correction_outputs)}, "
             f"has_correction={self.has_correction})"
         )
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Vector fields used by the built-in systems. nn.Modules so they follow the states' dtype and device.
-class LinearField(nn.Module):
-    """y -> A y for states ``(..., d)``."""
-
-    def __init__(self, matrix) -> None:
-        super().__init__()
-        self.register_buffer("matrix", torch.as_tensor(matrix, dtype=torch.float64))
-
-    def forward(self, y: torch.Tensor) -> torch.Tensor:
-        return y @ self.matrix.to(dtype=y.dtype, device=y.device).T
-
-
-class QuadraticField(nn.Module):
-    """y -> coef * y**2 componentwise (paper §5.1: F(y) = 0.01 [y1^2, y2^2])."""
-
-    def __init__(self, coef: float) -> None:
-        super().__init__()
-        self.coef = float(coef)
-
-    def forward(self, y: torch.Tensor) -> torch.Tensor:
-        return self.coef * y**2
-
-
-class PointMassGravity(nn.Module):
-    """Acceleration -sum_i m_i (x - x_i) / ||x - x_i||^3 at positions ``x (..., 2)``.
-
-    With ``first_order=True`` it is the first-order field of the state (x1, x2, v1, v2):
-    (v1, v2, a1(x), a2(x)).
-    """
-
-    def __init__(self, masses, positions, *, first_order: bool = False) -> None:
-        super().__init__()
-        self.register_buffer("masses", torch.as_tensor(masses, dtype=torch.float64).reshape(-1))
-        self.register_buffer("positions", torch.as_tensor(positions, dtype=torch.float64).reshape(-1, 2))
-        self.first_order = first_order
-
-    def acceleration(self, x: torch.Tensor) -> torch.Tensor:
-        m = self.masses.to(dtype=x.dtype, device=x.device)
-        p = self.positions.to(dtype=x.dtype, device=x.device)
-        diff = x.unsqueeze(-2) - p  # (..., n_masses, 2)
-        r3 = diff.pow(2).sum(-1).pow(1.5)  # (..., n_masses)
-        return -(m.unsqueeze(-1) * diff / r3.unsqueeze(-1)).sum(-2)
-
-    def forward(self, y: torch.Tensor) -> torch.Tensor:
-        if not self.first_order:
-            return self.acceleration(y)
-        return torch.cat([y[..., 2:4], self.acceleration(y[..., 0:2])], dim=-1)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -497,7 +468,8 @@ def data_driven(system: MisspecifiedSystem) -> MisspecifiedSystem:
     full = tuple(range(system.state_dim))
     if system.correction_inputs != full or system.correction_outputs != full:
         raise InputError(
-            f"system '{system.name}': the data-driven view needs a correction on all components, got "
+            f"system '{system.name}': the data-driven view needs a correction on all components: expected every "
+            "state as an input and an output, got "
             f"correction_inputs={list(system.correction_inputs)}, correction_outputs={list(system.correction_outputs)}"
         )
     return MisspecifiedSystem(
@@ -507,13 +479,6 @@ def data_driven(system: MisspecifiedSystem) -> MisspecifiedSystem:
         domain=system.domain,
         name=f"{system.name}_data_driven",
     )
-
-
-class ZeroField(nn.Module):
-    """y -> 0 (the known model of a fully data-driven estimator)."""
-
-    def forward(self, y: torch.Tensor) -> torch.Tensor:
-        return torch.zeros_like(y)
 
 
 SYSTEMS: dict[str, Callable[[], MisspecifiedSystem]] = {
@@ -526,7 +491,7 @@ def get_system(name: str) -> MisspecifiedSystem:
     """A built-in system by name (see :data:`SYSTEMS`)."""
     try:
         return SYSTEMS[name]()
-    except KeyError:
+    except (KeyError, TypeError):  # TypeError: an unhashable name (a list)
         raise InputError(f"system: expected one of {sorted(SYSTEMS)}, got the unknown name {name!r}") from None
 
 

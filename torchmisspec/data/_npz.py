@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import as_tensor, unreadable
+from .._validation import as_tensor, unreadable, writing
 from ..signals import KINDS, Controls
 from ._readout import Readout
 
@@ -121,7 +121,8 @@ def write_npz(trajectories, path: Path) -> Path:
         )
     if trajectories.initial_states is not None:
         arrays["initial_states"] = _numpy(trajectories.initial_states)
-    np.savez(path, **arrays)
+    with writing(path):
+        np.savez(path, **arrays)
     return path
 
 

@@ -13,15 +13,14 @@ the ODE, where the model's path is read out as H y and compared with the reading
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import as_tensor
-from ._input import _check_distinct, _named, _order_by_name
+from .._validation import as_tensor, check_real, check_to
+from ._input import _check_distinct, _check_state_names, _named, _order_by_name
 
 __all__ = ["Readout"]
 
@@ -63,11 +62,7 @@ class Readout:
             raise ShapeError(f"names: expected {H.shape[0]} names (one per row of matrix), got {len(names)}")
         _check_distinct(names, "readout names", "names")
         if state_names is not None:
-            state_names = tuple(state_names)
-            if len(state_names) != H.shape[1]:
-                raise ShapeError(
-                    f"state_names: expected {H.shape[1]} names (one per column of matrix), got {state_names}"
-                )
+            state_names = _check_state_names(state_names, H.shape[1])  # one per column of the matrix
             clash = [n for n in names if n in state_names]
             if clash:
                 raise InputError(f"names: expected readings named apart from the states, got {clash} in both")
@@ -82,7 +77,7 @@ class Readout:
             raise InputError(
                 f"weights: expected a mapping {{reading: {{state: weight}}}}, got {type(weights).__name__}"
             )
-        state_names = tuple(state_names)
+        state_names = _listed_states(state_names)
         H = torch.zeros(len(weights), len(state_names), dtype=torch.float64)
         for i, (name, row) in enumerate(weights.items()):
             if not isinstance(row, Mapping) or not row:
@@ -90,17 +85,21 @@ class Readout:
             for state, w in row.items():
                 if state not in state_names:
                     raise InputError(f"weights[{name!r}]: expected states among {list(state_names)}, got {state!r}")
-                if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
-                    raise InputError(f"weights[{name!r}][{state!r}]: expected a finite number, got {w!r}")
-                H[i, state_names.index(state)] += float(w)
+                H[i, state_names.index(state)] += check_real(w, f"weights[{name!r}][{state!r}]")
         return cls(H, list(weights), state_names=state_names)
 
     @classmethod
     def parse(cls, definitions: Sequence[str], state_names: Sequence[str]) -> Readout:
         """Readings written as ``"name = w1*state1 + state2 - 0.5 state3"`` (one string per reading; a weight is a
         plain number, 1 when left out). Nothing is evaluated: each term is a number and a state's name."""
+        state_names = _listed_states(state_names)
         if isinstance(definitions, str):
             definitions = [definitions]
+        if not isinstance(definitions, Sequence) or not definitions or not all(isinstance(t, str) for t in definitions):
+            raise InputError(
+                "definitions: expected a list of strings 'name = weight*state + ...' (e.g. ['total = free + bound']), "
+                f"got {definitions!r:.80}"
+            )
         weights: dict[str, dict[str, float]] = {}
         for text in definitions:
             name, eq, expression = str(text).partition("=")
@@ -161,6 +160,8 @@ class Readout:
         """This readout over states named ``state_names`` in that order: its weights' columns matched by name when it
         names its states in another order; itself when it or ``state_names`` names none (the defaults ``y0, y1,
         ...`` name none: the columns are then taken in order). Other names than its own are refused."""
+        if state_names is not None:
+            state_names = _check_state_names(state_names, self.state_dim)
         if self.state_names is None or not _named(state_names) or tuple(state_names) == self.state_names:
             return self
         want = tuple(state_names)
@@ -174,10 +175,14 @@ class Readout:
         return Readout(self.matrix[:, order], self.names, state_names=want)
 
     def to(self, *args, **kwargs) -> Readout:
+        """This readout's weights on another device and/or in another real floating dtype."""
+        check_to(args, kwargs, "Readout")
         return Readout(self.matrix.to(*args, **kwargs), self.names, state_names=self.state_names)
 
     def describe(self, state_names: Sequence[str] | None = None) -> list[str]:
         """Each reading as ``"name = w*state + ..."``."""
+        if state_names is not None:
+            state_names = _check_state_names(state_names, self.state_dim)
         names = state_names or self.state_names or tuple(f"y{j}" for j in range(self.state_dim))
         out = []
         for name, row in zip(self.names, self.matrix.tolist(), strict=True):
@@ -200,6 +205,13 @@ class Readout:
 
     def __repr__(self) -> str:
         return f"Readout({'; '.join(self.describe())})"
+
+
+def _listed_states(state_names) -> tuple[str, ...]:
+    """The states' names a readout is written over: a list of distinct non-empty strings."""
+    if isinstance(state_names, str) or not isinstance(state_names, Sequence) or not state_names:
+        raise InputError(f"state_names: expected a list of the states' names, got {state_names!r:.80}")
+    return _check_state_names(state_names, len(state_names))
 
 
 def check_readout(readout, readings) -> int:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
-from .._errors import IntegrationError, ShapeError
+from .._errors import InputError, IntegrationError, ShapeError
 from .._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
 from .._threads import adaptive_threads
-from .._validation import as_tensor
+from .._validation import as_tensor, check_flag
 from ..systems import MisspecifiedSystem
 from ._input import _is_number
 from ._trajectories import Trajectories
@@ -44,8 +44,11 @@ def simulate(
             conditions that stalled the solve.
 
     Returns:
-        :class:`Trajectories` with ``states (K, T, d)`` (ragged for ragged times).
+        :class:`Trajectories` with ``states (K, T, d)`` (ragged for ragged times), named as the system's states.
     """
+    if not isinstance(system, MisspecifiedSystem):
+        raise InputError(f"system: expected a MisspecifiedSystem, got {type(system).__name__}")
+    known_only = check_flag(known_only, "known_only")
     if isinstance(times, (list, tuple)) and len(times) > 0 and not _is_number(times[0]):
         y0 = as_tensor(y0, "y0")
         y0 = y0.unsqueeze(0) if y0.dim() == 1 else y0
@@ -74,7 +77,7 @@ def simulate(
                 )
                 for i, k in enumerate(idx):
                     states[k] = part.states[i]
-            return Trajectories(grids, states, controls=controls)
+            return Trajectories(grids, states, controls=controls, state_names=system.state_names)
     y0, times = initial_conditions_and_times(y0, times, system.state_dim, system.check_states)
     controls = system.check_controls(controls, y0.shape[0])
     if controls is not None:
@@ -94,7 +97,7 @@ def simulate(
             timed=timed,
             jumps=jumps,
         )
-    return Trajectories(times, states, controls=controls)
+    return Trajectories(times, states, controls=controls, state_names=system.state_names)
 
 
 def simulate_known_each(system: MisspecifiedSystem, trajectories: Trajectories, **options) -> list[torch.Tensor | None]:
@@ -102,6 +105,8 @@ def simulate_known_each(system: MisspecifiedSystem, trajectories: Trajectories, 
     time: ``(T_k, d)`` states, or ``None`` where G cannot be integrated (:class:`IntegrationError`). For when a
     batched ``simulate(..., known_only=True)`` failed: G may diverge where the true system does not, which is what a
     correction may exist to fix. ``options``: as for :func:`simulate`."""
+    if not isinstance(trajectories, Trajectories):
+        raise InputError(f"trajectories: expected a torchmisspec.Trajectories, got {type(trajectories).__name__}")
     out: list[torch.Tensor | None] = []
     first = trajectories.initial_conditions  # missing entries estimated
     controls = trajectories.controls

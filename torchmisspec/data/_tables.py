@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import check_path
+from .._validation import check_path, check_writable, writing
 from ..signals import KINDS, Controls
 from ._input import _check_distinct
 from ._npz import read_npz, write_npz
@@ -56,6 +56,15 @@ def _read_table(path: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
     return header, body
 
 
+def _listed(columns, name: str) -> list | None:
+    """Column names as a list (``None`` stays ``None``); a string or a non-iterable is refused."""
+    if columns is None:
+        return None
+    if isinstance(columns, (str, bytes)) or not isinstance(columns, Iterable):
+        raise InputError(f"{name}: expected a list of column names, got {columns!r:.80} ({type(columns).__name__})")
+    return list(columns)
+
+
 def _columns_to_arrays(
     path: Path,
     header: list[str],
@@ -71,6 +80,10 @@ def _columns_to_arrays(
     per-experiment arrays when the experiments' lengths differ). A control is known at every row: an empty control
     cell is an error."""
     _check_distinct(header, "column names in the header", str(path))
+    state_columns, control_columns = (
+        _listed(state_columns, "state_columns"),
+        _listed(control_columns, "control_columns"),
+    )
     if not isinstance(time_column, str):
         raise InputError(f"time_column: expected a column name, got {type(time_column).__name__}")
     if experiment_column is not None and not isinstance(experiment_column, str):
@@ -86,8 +99,6 @@ def _columns_to_arrays(
     index_columns = [time_column] + ([experiment_column] if experiment_column is not None else [])
     controls = []
     if control_columns is not None:
-        if isinstance(control_columns, str):
-            raise InputError(f"control_columns: expected a list of column names, got the string {control_columns!r}")
         controls = list(control_columns)
         _check_distinct(controls, "control_columns", "control_columns")
         absent = [c for c in controls if c not in header]
@@ -102,8 +113,6 @@ def _columns_to_arrays(
     if state_columns is None:
         names = [c for c in header if c not in index_columns]
     else:
-        if isinstance(state_columns, str):
-            raise InputError(f"state_columns: expected a list of column names, got the string {state_columns!r}")
         names = list(state_columns)
         _check_distinct(names, "state_columns", "state_columns")
         clash = [c for c in names if c in index_columns]
@@ -218,19 +227,20 @@ def write(
     state_columns: Sequence[str] | None,
 ) -> Path:
     """What :meth:`Trajectories.save <torchmisspec.data.Trajectories.save>` does (see there)."""
-    path = Path(check_path(path))
+    path = check_writable(path)
     readout, controls = trajectories.readout, trajectories.controls
     if path.suffix not in _TEXT_FORMATS and path.suffix != ".npz":
         raise InputError(f"path: expected a {_SUFFIXES} file name, got {str(path)!r}")
     if controls is not None and controls.is_function:
         raise InputError(
-            "controls: a profile given as a function u(t) cannot be saved (in any format: only samples are stored); "
-            "sample it first, e.g. Controls(knots, controls.at(knots), kind='linear') at knots (K, S) fine enough"
+            "controls: a profile given as a function u(t) cannot be saved (in any format: only samples are stored): "
+            "expected samples, got a function; sample it first, e.g. Controls(knots, controls.at(knots), "
+            "kind='linear') at knots (K, S) fine enough"
         )
     if path.suffix == ".npz":
         return write_npz(trajectories, path)
     _check_table_can_hold(trajectories, path)
-    names = list(trajectories.state_names) if state_columns is None else list(state_columns)
+    names = list(trajectories.state_names) if state_columns is None else _listed(state_columns, "state_columns")
     if len(names) != trajectories.state_dim:
         raise ShapeError(
             f"state_columns: expected {trajectories.state_dim} names (one per state component), got {names}"
@@ -273,7 +283,7 @@ def write(
         for k, ((t, _), n) in enumerate(zip(trajectories.experiments(), trajectories.lengths, strict=True))
         for row in rows_of(k, t, values[k, :n])
     )
-    with path.open("w", newline="", encoding="utf-8") as fh:
+    with writing(path), path.open("w", newline="", encoding="utf-8") as fh:
         if path.suffix == ".txt":
             fh.write(" ".join(header) + "\n")
             for row in rows:
@@ -290,13 +300,15 @@ def _check_table_can_hold(trajectories, path: Path) -> None:
     controls = trajectories.controls
     if controls is not None and controls.kind != "previous":
         raise InputError(
-            f"controls: a table records the profiles' samples, not how they run between them ({controls.kind!r}): "
+            f"controls: expected piecewise-constant profiles, got kind {controls.kind!r}: a table records the "
+            "profiles' samples, not how they run between them: "
             f"{path.suffix} tables are read back as piecewise constant unless told otherwise; save to .npz, which "
             "keeps the kind"
         )
     if trajectories.initial_states is not None:
         raise InputError(
-            "initial_states: a table holds observations, not the initial_states estimated for them; save to .npz, "
+            "initial_states: expected none in a text table, got initial states: a table holds observations, not the "
+            "initial_states estimated for them; save to .npz, "
             "which keeps them, or write the observations alone: trajectories.with_initial_states(None).save(...)"
         )
 
@@ -359,7 +371,8 @@ def read_with_readout(
     ``readout.state_names``), those without a column all missing; the readout and its readings come with them."""
     if not isinstance(readout, Readout):
         raise InputError(f"readout: expected a torchmisspec.data.Readout or None, got {type(readout).__name__}")
-    names = list(state_columns) if state_columns is not None else list(readout.state_names or [])
+    given = _listed(state_columns, "state_columns")
+    names = given if given is not None else list(readout.state_names or [])
     if len(names) != readout.state_dim:
         raise InputError(
             f"state_columns: expected the names of the {readout.state_dim} states the readout reads from (or a "

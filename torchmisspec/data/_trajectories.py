@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -13,7 +12,7 @@ import torch
 
 from .._errors import InputError, ShapeError
 from .._missing import fill
-from .._validation import as_tensor, states_and_times
+from .._validation import as_tensor, check_selection, check_to, states_and_times
 from ..signals import Controls
 from . import _tables
 from ._input import (
@@ -270,7 +269,8 @@ class Trajectories:
     def with_readout(self, readout: Readout | None, readings=None) -> Trajectories:
         """These trajectories with ``readout`` (``None``: none), its values ``readings`` laid out as :attr:`states`
         (default: the readout of the states themselves, e.g. of a simulation, before its states are masked)."""
-        if isinstance(readout, Readout):
+        check_readout(readout, readings if readout is None else ())  # a Readout or None; readings need one
+        if readout is not None:
             readout = readout.for_states(self.state_names)  # its weights on these states by name, when both name them
         if readout is not None and readings is None:
             readings = tuple(readout(y) for y in self.states) if self.is_ragged else readout(self.states)
@@ -417,11 +417,14 @@ class Trajectories:
     def __len__(self) -> int:
         return self.num_experiments
 
+    def __iter__(self):
+        """Each experiment as a Trajectories of one (indexing refuses positions out of range: no IndexError ends
+        the iteration)."""
+        return (self[k] for k in range(self.num_experiments))
+
     def __getitem__(self, index) -> Trajectories:
-        """A subset of experiments (int, slice, index list or boolean mask)."""
-        if isinstance(index, numbers.Integral) or (isinstance(index, torch.Tensor) and index.dim() == 0):
-            index = [int(index)]
-        picked = torch.arange(self.num_experiments)[index].reshape(-1).tolist()
+        """A subset of experiments (int, slice, index list or boolean mask; at least one experiment)."""
+        picked = check_selection(index, self.num_experiments)
         kept = dict(
             state_names=self.state_names,
             controls=None if self.controls is None else self.controls[picked],
@@ -433,11 +436,14 @@ class Trajectories:
             return Trajectories(
                 [self.times[k] for k in picked], [self.states[k] for k in picked], readings=readings, **kept
             )
-        times = self.times if self.times.dim() == 1 else self.times[index]
-        readings = None if self.readings is None else self.readings[index]
-        return Trajectories(times, self.states[index], readings=readings, **kept)
+        times = self.times if self.times.dim() == 1 else self.times[picked]
+        readings = None if self.readings is None else self.readings[picked]
+        return Trajectories(times, self.states[picked], readings=readings, **kept)
 
     def to(self, *args, **kwargs) -> Trajectories:
+        """These trajectories on another device and/or in another real floating dtype (every field moved)."""
+        check_to(args, kwargs, "Trajectories")
+
         def moved(x):
             if x is None:
                 return None

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from .._errors import InputError, ShapeError, TorchMisspecError
-from .._validation import check_domain, check_path, check_positive_int, check_real
+from .._validation import check_domain, check_path, check_positive_int, check_real, check_writable, writing
 from ..data import Trajectories
 from ..gp import CorrectionGP, _persistence
 from ..metrics import correction_error
@@ -153,7 +153,8 @@ class Campaign:
         if controls is not None:
             if getattr(controls, "_function", None) is not None:
                 raise InputError(
-                    "controls: a Campaign saves its candidates' profiles: give them as samples, not a function"
+                    "controls: expected the candidates' profiles as samples (a Campaign saves them), got a function "
+                    "u(t): sample it, Controls(knots, controls.at(knots))"
                 )
             self.controls = self.system.check_controls(controls, self.candidates.shape[0]).to(
                 dtype=gp.dtype, device=gp.device
@@ -361,8 +362,9 @@ class Campaign:
         y0 = traj.initial_conditions
         if self.controls is not None and traj.controls is None:
             raise InputError(
-                "trajectories: this campaign's experiments have input profiles; tell the measured trajectories with "
-                "the profiles they ran under (Trajectories(..., controls=...))"
+                "trajectories: expected the input profiles the experiments ran under (this campaign's experiments "
+                "have them), got trajectories without controls: tell the measured trajectories with the profiles "
+                "they ran under (Trajectories(..., controls=...))"
             )
         matched, pending = [], list(self.pending)
         if asked is None:
@@ -436,9 +438,7 @@ class Campaign:
     def save(self, path: str | Path) -> Path:
         """Write the campaign (configuration, candidates, data, pending asks, history, model, random state) to
         ``path``, atomically. The system is not saved (it is code): pass it again to :meth:`load`."""
-        path = Path(check_path(path))
-        if not path.parent.is_dir():
-            raise InputError(f"path: expected a file in an existing folder, got {str(path)!r}")
+        path = check_writable(path)
         blob = {
             "format": FORMAT,
             "version": VERSION,
@@ -460,8 +460,9 @@ class Campaign:
             "generator": self.generator.get_state(),
         }
         tmp = path.with_name(path.name + ".tmp")
-        torch.save(blob, tmp)
-        os.replace(tmp, path)
+        with writing(path):
+            torch.save(blob, tmp)
+            os.replace(tmp, path)
         return path
 
     @classmethod

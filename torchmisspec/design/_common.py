@@ -170,8 +170,8 @@ class GPKernel:
             if missing:
                 args = ", ".join(f"{m}=..." for m in missing)
                 raise InputError(
-                    f"gp: the design needs the kernel hyperparameters before any data, but {', '.join(missing)} "
-                    f"{'is' if len(missing) == 1 else 'are'} not set (None) on this unfitted CorrectionGP; pass "
+                    f"gp: expected the kernel hyperparameters a design needs before any data, got {', '.join(missing)} "
+                    f"not set (None) on this unfitted CorrectionGP; pass "
                     f"CorrectionGP({args}) or fit the GP on earlier data first"
                 )
         scales = future_noise(gp)
@@ -387,13 +387,16 @@ def check_system(system, controls=None, *, with_controls: bool = False) -> Missp
         where = "pass controls=... (one input profile per candidate)"
         if not with_controls:
             where = "use design.greedy, random, agnostic, sampling_times, refine or Campaign with controls=..."
+        got = "a design function without them" if not with_controls else "controls=None"
         raise InputError(
-            f"system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is then an "
-            f"initial state and an input profile: {where}"
+            f"controls: expected an input profile per candidate, as system '{system.name}' has inputs u(t) "
+            f"{list(system.control_names)} (a candidate experiment is then an initial state and an input profile), "
+            f"got {got}: {where}"
         )
     if not system.autonomous and not system.num_controls:
         raise InputError(
-            f"system: '{system.name}' depends on time without inputs; designing for such systems is not built yet"
+            f"system: expected an autonomous system or one with inputs u(t), got '{system.name}', which depends on "
+            "time without inputs; designing for such systems is not built yet"
         )
     return system
 

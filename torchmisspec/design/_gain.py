@@ -47,8 +47,8 @@ def _d_out(d_out, gp: CorrectionGP) -> int:
     if d_out is None:
         if gp.output_dim is None:
             raise InputError(
-                "d_out: expected the number of correction outputs (e.g. system.output_dim); it cannot "
-                "be read from an unfitted gp"
+                "d_out: expected the number of correction outputs (e.g. system.output_dim), got None with an "
+                "unfitted gp, from which it cannot be read"
             )
         return int(gp.output_dim)
     return check_positive_int(d_out, "d_out")

@@ -524,6 +524,7 @@ def greedy(
         raise InputError(f"screen: expected 'auto', True or False, got {screen!r}")
     if max_rank is not None:
         max_rank = check_positive_int(max_rank, "max_rank")
+    epsilon = check_real(epsilon, "epsilon", positive=True)
     if method != "stochastic" and (epsilon != EPSILON or generator is not None):
         raise InputError(f"epsilon / generator: expected method='stochastic' with them, got method={method!r}")
     if method == "stochastic":

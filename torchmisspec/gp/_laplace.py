@@ -46,7 +46,10 @@ def laplace_covariance(gp) -> tuple[list[str], torch.Tensor, torch.Tensor]:
         )
     free = gp._free_parameters()
     if not free:
-        raise InputError("laplace_covariance: every hyperparameter is fixed; nothing is uncertain")
+        raise InputError(
+            "laplace_covariance: expected a GP with a free hyperparameter, got one where every hyperparameter is "
+            "fixed (nothing is uncertain): use hyperparameters='fixed'"
+        )
     params = [p for _, p in free]
     names = []
     for name, p in free:

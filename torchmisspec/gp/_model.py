@@ -32,7 +32,7 @@ import torch
 
 from .._errors import FittingError, NotFittedError
 from .._threads import adaptive_threads
-from .._validation import DEFAULT_DTYPE, as_tensor, check_positive_int, check_real
+from .._validation import DEFAULT_DTYPE, as_tensor, check_generator, check_positive_int, check_real
 from . import _conditioning
 from ._exact import IndependentOutputsGP, build_modules, median_distance, noise_module
 from ._fit import fit_model
@@ -552,11 +552,11 @@ class CorrectionGP(Readout):
             :class:`~torchmisspec.gp._paths.FunctionSamples`: ``samples(x)`` maps ``(M, d_in)`` or ``(S, M, d_in)``
             inputs to ``(S, M, d_out)``.
         """
-        from ._paths import FunctionSamples, _check_generator, feature_map
+        from ._paths import FunctionSamples, feature_map
 
         self._require_fitted()
         num_samples = check_positive_int(num_samples, "num_samples")
-        generator = _check_generator(generator, self.device)
+        generator = check_generator(generator, self.device)
         features = feature_map(self, num_features=num_features, feature_error=feature_error, generator=generator)
         if update_error is not None:
             update_error = check_real(update_error, "update_error", positive=True)

@@ -82,7 +82,7 @@ import math
 import torch
 
 from .._errors import InputError, ShapeError
-from .._validation import check_positive_int
+from .._validation import check_generator, check_positive_int
 from ._quadrature import (
     MAX_FREQUENCIES,
     QUADRATURE_FEATURE_ERROR,
@@ -169,18 +169,6 @@ class FeatureMap:
         return mono.unsqueeze(0) * coef.reshape(shape)
 
 
-def _check_generator(generator, device: torch.device) -> torch.Generator | None:
-    if generator is None:
-        return None
-    if not isinstance(generator, torch.Generator):
-        raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
-    if generator.device.type != device.type:
-        raise InputError(
-            f"generator: expected a generator on the GP's device ({device}), got one on {generator.device}"
-        )
-    return generator
-
-
 def feature_map(gp, *, num_features: int | None = None, feature_error: float | None = None, generator=None):
     """The prior features of a fitted :class:`~torchmisspec.CorrectionGP`'s kernel (see the module docstring).
 
@@ -200,7 +188,7 @@ def feature_map(gp, *, num_features: int | None = None, feature_error: float | N
         :class:`FeatureMap`, with the bound reached in ``error_bound`` (and its box in ``box`` for quadrature).
     """
     gp._require_fitted()
-    generator = _check_generator(generator, gp.device)
+    generator = check_generator(generator, gp.device)
     covar = gp.covar_module
     outputscale = covar.outputscale.detach().reshape(-1, 1).to(dtype=gp.dtype, device=gp.device)  # (B, 1)
     return gp.kernel_spec.path_features(gp, covar.base_kernel, outputscale, num_features, feature_error, generator)

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from .._errors import InputError
-from .._validation import check_path, check_real, unreadable
+from .._validation import check_path, check_real, check_writable, unreadable, writing
 from ..parameters import ParameterPosterior
 from ._calibration import BandCalibration
 from ._exact import IndependentOutputsGP
@@ -31,12 +31,10 @@ _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 def save(gp, path: str | Path) -> Path:
     """Write ``gp`` (fitted) to ``path``; the folder must exist."""
-    path = Path(check_path(path))
-    if not path.parent.is_dir():
-        raise InputError(
-            f"path: expected a file in an existing folder, got {str(path)!r} (no folder {str(path.parent)!r})"
-        )
-    torch.save(to_blob(gp), path)
+    path = check_writable(path)
+    blob = to_blob(gp)
+    with writing(path):
+        torch.save(blob, path)
     return path
 
 

@@ -25,6 +25,7 @@ import gpytorch
 import torch
 
 from .._errors import InputError, ShapeError, warn
+from .._validation import as_tensor, check_positive_int
 from . import _mll
 from ._features import FeatureFactorization, check_dense
 from ._inputs import check_inputs
@@ -174,6 +175,12 @@ class Posterior:
         triangular solve, differentiable in ``targets`` (the trajectory fit optimises pseudo-targets through it). Its
         factor is dense (a feature-space factor builds the dense one on first use)."""
         gp, fac = self._gp, self.factor
+        targets = as_tensor(targets, "targets", dtype=gp.dtype, device=gp.device)
+        if targets.shape != gp.train_targets_.shape:
+            raise ShapeError(
+                f"targets: expected {tuple(gp.train_targets_.shape)} targets (one row per training input), got shape "
+                f"{tuple(targets.shape)}"
+            )
         Yb = gp._targets_batched(targets, gp.train_noise_)
         alpha = torch.cholesky_solve(Yb, fac.chol)
         return Posterior(gp, _mll.Factorization(fac.chol, alpha, fac.logdet, (Yb * alpha).sum()))
@@ -310,6 +317,12 @@ class Posterior:
         """
         gp, fac = self._gp, self.factor
         X = gp.train_inputs_
+        x = as_tensor(x, "x", dtype=gp.dtype, device=gp.device)  # paths that left the box may hold inf: no finiteness
+        if x.dim() != 2 or x.shape[1] != gp.input_dim:
+            raise ShapeError(f"x: expected (M, {gp.input_dim}) inputs, got shape {tuple(x.shape)}")
+        chunk = check_positive_int(chunk, "chunk")
+        if x.shape[0] == 0:
+            return x.new_zeros(0)
         with torch.no_grad():
             prior = gp.covar_module.forward(x, x, diag=True).reshape(-1, x.shape[0])  # (1 or d_out, M)
             if isinstance(fac, FeatureFactorization):  # exact, in feature space

@@ -58,7 +58,8 @@ def check_settings(
     if min_gain is not None:
         if not (auto or spec.terms):
             raise InputError(
-                f"min_gain: the price of a feature term is for the feature kernels or 'auto', got {spec.name!r}"
+                f"min_gain: expected kernel 'features', 'features+rbf' or 'auto' (the price of a feature term), got "
+                f"kernel {spec.name!r}"
             )
         min_gain = check_real(min_gain, "min_gain", minimum=0.0)
     if evidence_margin is not None and not auto:
@@ -100,8 +101,11 @@ def check_settings(
         )
     if exact is True and spec.name.endswith("-features") and spec.name in spaced:
         raise InputError(f"exact: expected None or False with kernel {spec.name!r} (a feature space), got True")
-    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
-        raise InputError(f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r}")
+    if dtype not in (torch.float32, torch.float64):  # half precision: torch's kernels (pdist, cholesky) refuse it
+        raise InputError(
+            f"dtype: expected a floating torch.dtype such as torch.float64, got {dtype!r} (torch.float64 or "
+            "torch.float32: half precision is not supported)"
+        )
     return {
         "auto": auto,
         "kernel": spec,
