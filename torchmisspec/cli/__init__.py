@@ -29,6 +29,8 @@ __all__ = ["build_parser", "main"]
 def _demo(args: argparse.Namespace) -> int:
     from ..paper.demo import linear_demo
 
+    if not args.out.strip():
+        raise InputError(f"--out: expected a folder name, got {args.out!r}")
     try:  # the folder is checked before the work, as every command's output
         Path(args.out).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -87,7 +89,16 @@ class _Parser(argparse.ArgumentParser):
     """argparse with its errors on one line (it prints the usage first), exit status 2 as argparse's own."""
 
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see '{self.prog} --help')\n")
+        hint = ""
+        if message.endswith("expected one argument"):  # a value that starts with '-' reads as an option
+            option = message.split()[1].split("/")[-1].rstrip(":")
+            given = [v for a, v in zip(_ARGV, _ARGV[1:], strict=False) if a == option and v.startswith("-")]
+            value = given[0] if given else "VALUE"
+            hint = f"; a value that starts with '-' is written {option}=VALUE: write {option}={value}"
+        self.exit(2, f"{self.prog}: error: {_one_line(message)}{hint} (see '{self.prog} --help')\n")
+
+
+_ARGV: list[str] = []  # the command line being parsed (named in the parser's messages)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -105,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; 0 on success, 2 on any error (one line on stderr)."""
     from .._errors import TorchMisspecError
 
+    _ARGV[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         parser = build_parser()
         args, unknown = parser.parse_known_args(argv)  # argparse's own errors: one line, SystemExit(2)
@@ -128,6 +140,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except TorchMisspecError as exc:
         print(f"torchmisspec {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # the package never exits: the --system code did (at import, or in its function)
+        print(
+            f"torchmisspec {args.command}: error: --system: expected the system's code to return, got "
+            f"SystemExit({exc.code!r}) (it calls exit() or sys.exit() when imported or run); remove that call, or put "
+            "it under if __name__ == '__main__':",
+            file=sys.stderr,
+        )
         return 2
     except OSError as exc:  # a file that cannot be read or written
         print(f"torchmisspec {args.command}: error: {exc.strerror or exc} ({exc.filename or ''})", file=sys.stderr)

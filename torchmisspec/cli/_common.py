@@ -9,6 +9,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .._errors import InputError
+from ._tables import is_number, read_table, text_rows
 
 __all__ = [
     "add_column_options",
@@ -17,10 +18,10 @@ __all__ = [
     "check_names",
     "check_output",
     "describe_system",
+    "input_columns",
     "known_state_names",
     "load_model",
     "read_controls",
-    "parse_times",
     "read_observations",
     "read_states",
 ]
@@ -113,16 +114,14 @@ def read_observations(args: argparse.Namespace, system=None):
     from ..data import Readout, Trajectories
 
     names = list(getattr(system, "state_names", None) or [])
+    inputs = input_columns(args, system)
     wanted = _state_columns_for(args, system, names)
-    inputs = state_columns(args, "input_columns")
     if system is not None and system.num_controls and inputs is None and Path(args.data).suffix != ".npz":
         controls = list(system.control_names)
         raise InputError(
             f"--data: the system also takes {system.num_controls} input(s) {controls}: name their columns in "
             f"{args.data!r} with --input-columns (e.g. --input-columns {','.join(controls)}), in the system's order"
         )
-    if system is not None and inputs is not None:
-        _check_order("--input-columns", inputs, list(system.control_names), "inputs")
     options = dict(
         time_column=args.time_column,
         experiment_column=args.experiment_column or None,  # '' = no experiment column: one experiment
@@ -131,9 +130,9 @@ def read_observations(args: argparse.Namespace, system=None):
     )
     if getattr(args, "readout", None):
         states = wanted or names or default_names(system)
-        observed = Trajectories.load(
-            args.data, state_columns=states, readout=Readout.parse(args.readout, states), **options
-        )
+        readout = Readout.parse(args.readout, states)
+        _check_readings(args, readout, system, states if not (wanted or names) else None)
+        observed = Trajectories.load(args.data, state_columns=states, readout=readout, **options)
         return observed.with_state_names(names) if wanted and names else observed
     present = _present(args.data, names, system) if names and wanted is None else None
     observed = Trajectories.load(args.data, state_columns=present or wanted, **options)
@@ -144,6 +143,60 @@ def read_observations(args: argparse.Namespace, system=None):
     if names and set(observed.state_names) == set(names):  # an archive: its states matched to the system's by name
         return observed.reordered(names)
     return observed
+
+
+def _check_readings(args: argparse.Namespace, readout, system, unnamed: list[str] | None) -> None:
+    """The readings' columns apart from the time, experiment and input columns; for a system that names no states
+    (``unnamed``: the names the readout then uses), no other column of the table left out unread."""
+    from ..data._tables import header
+
+    _check_apart("--readout", "a reading named apart from the table's other columns", list(readout.names), args)
+    columns = header(args.data) if unnamed is not None else None
+    if columns is None:
+        return
+    used = {args.time_column, args.experiment_column, *readout.names, *unnamed}
+    left = [c for c in columns if c not in used and c not in (state_columns(args, "input_columns") or [])]
+    if left:
+        raise InputError(
+            f"--readout: system '{system.name}' names no states, so its state columns cannot be found by name: "
+            f"expected --state-columns naming them in the system's order, got columns {left} that would be left out "
+            f"(e.g. --state-columns {','.join((left + unnamed)[: system.state_dim])}; the readout then names the "
+            "states by them)"
+        )
+
+
+def _check_apart(option: str, what: str, given: list[str], args: argparse.Namespace) -> None:
+    """Refuse ``given`` (the columns ``option`` names) holding the time, experiment or another option's columns."""
+    others = [("--time-column", args.time_column), ("--experiment-column", args.experiment_column)]
+    if option != "--input-columns":
+        others += [("--input-columns", c) for c in state_columns(args, "input_columns") or []]
+    for other, column in others:
+        if column and column in given:
+            which = f"one of the {other}" if other == "--input-columns" else f"the {other}"
+            raise InputError(
+                f"{option}: expected {what}, got {column!r}, {which}; name each column once, with the option it is for"
+            )
+
+
+def input_columns(args: argparse.Namespace, system) -> list[str] | None:
+    """``--input-columns``, checked against ``system``: one column per input, in its order, none the time,
+    experiment or a state column (``None`` when not given)."""
+    inputs = state_columns(args, "input_columns")
+    if inputs is None or system is None:
+        return inputs
+    if not system.num_controls:
+        raise InputError(
+            f"--input-columns: expected no input columns (system '{system.name}' has no inputs u(t)), got {inputs}; "
+            "drop --input-columns"
+        )
+    if len(inputs) != system.num_controls:
+        raise InputError(
+            f"--input-columns: expected {system.num_controls} column(s), one per input of system '{system.name}' "
+            f"({', '.join(system.control_names)}), got {inputs}"
+        )
+    _check_apart("--input-columns", "the columns of the inputs", inputs, args)
+    _check_order("--input-columns", inputs, list(system.control_names), "inputs")
+    return inputs
 
 
 def _state_columns_for(args: argparse.Namespace, system, names: list[str]) -> list[str] | None:
@@ -160,6 +213,8 @@ def _state_columns_for(args: argparse.Namespace, system, names: list[str]) -> li
                     f"{option}: expected a column other than the states, got {column!r}, {label}; name the "
                     f"{option.removeprefix('--').split('-')[0]} column of the file"
                 )
+    if wanted is not None:
+        _check_apart("--state-columns", "the columns of the states", wanted, args)
     if wanted is None or system is None:
         return wanted
     if len(wanted) != system.state_dim:
@@ -223,14 +278,6 @@ def default_names(system) -> list[str]:
     return list(names) if names is not None else [f"y{j}" for j in range(system.state_dim)]
 
 
-def _number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def known_state_names(system, gp=None) -> list[str | None] | None:
     """The states' names the system declares, else those the model was fitted on (``None`` for a state that is not an
     input of the correction), else ``None``."""
@@ -260,34 +307,27 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
     import torch
 
     p = Path(path)
-    if p.suffix in (".npy", ".npz") or not p.is_file():
-        table, _ = read_table(path, option.lstrip("-"), option)
+    if p.suffix not in (".csv", ".tsv", ".txt") or not p.is_file():
+        table, _ = read_table(path, option.lstrip("-"), option)  # an array, or the error naming what is wrong
         names, labels, rows = None, None, table
     else:
-        try:
-            lines = [ln for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputError(
-                f"{option}: expected a UTF-8 text table in {path!r}, but it could not be read "
-                f"({type(exc).__name__}: {str(exc)[:160]})"
-            ) from exc
-        sep = "\t" if lines and "\t" in lines[0] else ","
-        cells = [[c.strip() for c in ln.split(sep)] for ln in lines]
-        if not cells or (len(cells) == 1 and not any(_number(c) for c in cells[0])):
+        cells = text_rows(p, option)
+        if not cells or (len(cells) == 1 and not any(is_number(c) for c in cells[0][1])):
             raise InputError(f"{option}: expected at least one row of states in {path!r}, got none")
-        header = cells[0] if not any(_number(c) for c in cells[0]) else None
+        header = cells[0][1] if not any(is_number(c) for c in cells[0][1]) else None
         body = cells[1:] if header is not None else cells
         if header is None:
-            names, columns, labels = None, list(range(len(body[0]))), None
+            names, columns, labels = None, list(range(len(body[0][1]))), None
         else:
-            names, columns, labels = _header_columns(header, body, path, option, args, system, known)
+            names, columns, labels = _header_columns(header, [r for _, r in body], path, option, args, system, known)
         rows = []
-        for k, row in enumerate(body, start=2 if header is not None else 1):
+        for line, row in body:
             try:
                 rows.append([float(row[c]) for c in columns])
-            except (ValueError, IndexError):
+            except ValueError:
                 raise InputError(
-                    f"{option}: expected a number in every state column of line {k} of {path!r}, got {sep.join(row)!r}"
+                    f"{option}: expected a number in every state column of line {line} of {path!r}, got "
+                    f"{','.join(row)!r}"
                 ) from None
     y0 = torch.as_tensor(rows, dtype=torch.float64)
     y0 = y0.reshape(1, -1) if y0.dim() == 1 else y0
@@ -321,7 +361,7 @@ def _header_columns(header: list[str], body: list[list[str]], path: str, option:
         elif None not in known and args.experiment_column not in header and len(others) == 1:
             # every state by its name and one column of names, not numbers (a lab's sample IDs): its labels
             ids = header.index(others[0])
-            if not any(_number(row[ids]) for row in body if ids < len(row)):
+            if not any(is_number(row[ids]) for row in body if ids < len(row)):
                 wanted, label_column = list(known), others[0]
     if wanted is None and named and not all(c in header for c in named):
         raise InputError(
@@ -366,80 +406,6 @@ def check_names(gp, names, system, option: str) -> list[str]:
             names[i] = n
         return names
     return list(names) if names is not None else default_names(system)
-
-
-def parse_times(text: str):
-    """``start:stop:count`` (equally spaced) or a comma list of times."""
-    import torch
-
-    message = "--times: expected 'start:stop:count' with count >= 1, a comma list of numbers or a file of times, "
-    message += f"got {text!r}"
-    if Path(text).suffix in (".csv", ".tsv", ".txt", ".npy", ".npz") and Path(text).is_file():
-        table, _ = read_table(text, "times", "--times")
-        if table.ndim == 2 and table.shape[1] != 1:
-            raise InputError(f"--times: expected one column of times in {text!r}, got {table.shape[1]} columns")
-        return torch.as_tensor(table.reshape(-1), dtype=torch.float64)
-    try:
-        if ":" in text:
-            start, stop, count = text.split(":")
-            count = int(count)
-            if count < 1:
-                raise InputError(message)
-            return torch.linspace(float(start), float(stop), count, dtype=torch.float64)
-        return torch.tensor([float(v) for v in text.split(",")], dtype=torch.float64)
-    except ValueError as exc:
-        raise InputError(message) from exc
-
-
-def read_table(path: str, what: str, option: str | None = None):
-    """A numeric array from .npz (array ``what`` or the only one), .npy, or CSV/TSV/TXT (an optional header row),
-    and the header's column names (``None`` without one). Nothing is unpickled; unreadable, non-UTF-8 or
-    non-numeric files raise :class:`InputError`."""
-    import numpy as np
-
-    from ..data._npz import npy_array, npz_arrays
-
-    label = option or what  # the option named in messages (``what`` is also the .npz array's name)
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(
-            f"{label}: expected an existing file, got {path!r}, which "
-            + ("is a folder" if p.is_dir() else "does not exist")
-        )
-    if p.suffix not in (".csv", ".tsv", ".txt", ".npz", ".npy"):
-        raise InputError(f"{label}: expected a .csv, .tsv, .txt, .npz or .npy file, got {path!r}")
-    header = None
-    if p.suffix == ".npz":
-        arrays = npz_arrays(p, label)  # a damaged archive, or one array np.save'd under an .npz name: refused
-        if what not in arrays and len(arrays) != 1:
-            raise InputError(
-                f"{label}: expected an array named {what!r} (or a single array) in {path}, got {sorted(arrays)}"
-            )
-        arr = arrays[what] if what in arrays else next(iter(arrays.values()))
-    elif p.suffix == ".npy":
-        arr = npy_array(p, label)
-    else:
-        try:
-            lines = [ln for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
-            sep = "\t" if lines and "\t" in lines[0] else ","
-            if lines:
-                try:
-                    float(lines[0].replace(sep, " ").split()[0])
-                except ValueError:
-                    header = [c.strip() for c in lines[0].split(sep)]
-                    lines = lines[1:]  # a header row
-            arr = np.array([[float(v) for v in ln.replace(sep, " ").split()] for ln in lines], dtype=np.float64)
-        except (ValueError, OSError, UnicodeDecodeError) as exc:
-            raise InputError(
-                f"{label}: expected a numeric table in {path!r} (UTF-8 text, or .npy/.npz without pickled objects), "
-                f"but it could not be read ({type(exc).__name__}: {str(exc)[:160]})"
-            ) from exc
-    if arr.dtype.kind not in "iuf" or arr.size == 0:
-        raise InputError(
-            f"{label}: expected a non-empty array of real numbers in {path!r}, got dtype {arr.dtype}, shape {arr.shape}"
-        )
-    return arr, header
 
 
 def check_output(path: str, suffixes: tuple[str, ...], option: str = "--out") -> Path:
@@ -526,12 +492,7 @@ def read_controls(path: str, args: argparse.Namespace, system, labels: list[str]
     if p.suffix not in _TEXT_FORMATS or not p.is_file():
         raise InputError(f"--controls: expected an existing CSV/TSV/TXT table of input profiles, got {path!r}")
     header, body = _read_table(p)
-    names = state_columns(args, "input_columns") or list(system.control_names)
-    if len(names) != system.num_controls:
-        raise InputError(
-            f"--input-columns: expected {system.num_controls} input column(s) (the system's controls "
-            f"{list(system.control_names)}), got {names}"
-        )
+    names = input_columns(args, system) or list(system.control_names)
     needed = [args.time_column, *names]
     missing = [c for c in needed if c not in header]
     if missing:

@@ -13,15 +13,14 @@ from ._common import (
     check_output,
     known_state_names,
     load_model,
-    parse_times,
     read_controls,
     read_observations,
     read_states,
-    read_table,
     seed,
     write_csv,
     written,
 )
+from ._tables import parse_times, read_table
 
 __all__ = ["add_design"]
 
@@ -79,13 +78,18 @@ def _capacities(args: argparse.Namespace, n: int):
         raise InputError("--capacities: expected the most picks per region with --partition, got none")
     try:
         if "=" in args.capacities:
-            caps = {int(k): int(v) for k, v in (kv.split("=") for kv in args.capacities.split(","))}
+            pairs = [(int(k), int(v)) for k, v in (kv.split("=") for kv in args.capacities.split(","))]
         else:
-            caps = [int(v) for v in args.capacities.split(",")]
+            pairs = list(enumerate(int(v) for v in args.capacities.split(",")))
     except ValueError as exc:
         raise InputError(
             f"--capacities: expected 'label=count,...' or 'count,count,...', got {args.capacities!r}"
         ) from exc
+    labels_given = [k for k, _ in pairs]
+    twice = next((k for k in labels_given if labels_given.count(k) > 1), None)
+    if twice is not None:
+        raise InputError(f"--capacities: expected each region label once, got {twice} twice in {args.capacities!r}")
+    caps = dict(pairs) if "=" in args.capacities else [v for _, v in pairs]
     return labels.long(), caps
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from .._errors import InputError
 from ._common import (
@@ -22,10 +23,18 @@ __all__ = ["POSSIBLE_TERM", "add_calibrate", "add_fit"]
 POSSIBLE_TERM = 0.05
 
 
-def _state_noise(text: str):
-    """``--state-noise``: auto, a percentage, a number, or one number per state."""
+def _state_noise(text: str, system=None):
+    """``--state-noise``: auto, a percentage, a number, or one number per state (of ``system``, when given)."""
     text = text.strip()
-    if text == "auto" or text.endswith("%"):
+    if text == "auto":
+        return text
+    if text.endswith("%"):
+        try:
+            value = float(text[:-1])
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(f"--state-noise: expected a percentage >= 0 (finite), such as 2%, got {text!r}")
         return text
     try:
         values = [float(v) for v in text.split(",")]
@@ -34,7 +43,20 @@ def _state_noise(text: str):
             f"--state-noise: expected auto, a percentage such as 2%, a standard deviation or one per state "
             f"(comma separated), got {text!r}"
         ) from None
+    bad = [v for v in values if not (math.isfinite(v) and v >= 0)]
+    if bad:
+        raise InputError(f"--state-noise: expected standard deviations >= 0 (finite), got {bad[0]}")
+    if system is not None and len(values) not in (1, system.state_dim):
+        raise InputError(
+            f"--state-noise: expected one standard deviation or {system.state_dim} (one per state of system "
+            f"'{system.name}'), got {len(values)}"
+        )
     return values[0] if len(values) == 1 else values
+
+
+def _check_level(level: float) -> None:
+    if not 0 < level < 1:
+        raise InputError(f"--level: expected a band's coverage in (0, 1), got {level}")
 
 
 def _calibrate(model, observed, args: argparse.Namespace):
@@ -49,8 +71,10 @@ def _fit(args: argparse.Namespace) -> int:
     from ..systems import load_system
 
     out = check_output(args.out, (".pt",))
-    _state_noise(args.state_noise)  # checked before the work
+    _check_level(args.level)  # checked before the work
+    _state_noise(args.state_noise)
     system = load_system(args.system)
+    _state_noise(args.state_noise, system)
     observed = read_observations(args, system)
     gp = fit_correction(
         observed, system, derivative=args.derivative, refine=True if args.refine else None, progress=not args.quiet
@@ -108,8 +132,10 @@ def _recalibrate(args: argparse.Namespace) -> int:
     from ..systems import load_system
 
     out = check_output(args.out or args.model, (".pt",))
-    _state_noise(args.state_noise)  # checked before the work
+    _check_level(args.level)  # checked before the work
+    _state_noise(args.state_noise)
     system = load_system(args.system)
+    _state_noise(args.state_noise, system)
     gp = load_model(args.model, system)
     observed = read_observations(args, system)
     if tuple(observed.state_names) != tuple(f"y{j}" for j in range(observed.state_dim)):

@@ -14,13 +14,13 @@ from ._common import (
     check_output,
     known_state_names,
     load_model,
-    parse_times,
     read_controls,
     read_states,
     seed,
     write_csv,
     written,
 )
+from ._tables import parse_times
 
 __all__ = ["add_predict"]
 
