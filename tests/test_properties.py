@@ -563,9 +563,15 @@ def test_a_system_at_theta_is_g_with_theta(theta, y1, y2):
 
 # ------------------------------------------------------------- 10. what a sweep of the 0.2 surface found (fixed)
 def test_an_object_with_getitem_as_an_index_is_refused_not_a_crash():
-    """Indexing controls with a tuple holding a Controls (what Campaign.ask returns, taken for indices) recursed
-    through its __getitem__ inside torch and killed the interpreter (a segmentation fault)."""
+    """A tensor indexed with a tuple holding a Controls (what Campaign.ask returns, taken for indices) recursed
+    through its __getitem__ inside torch and killed the interpreter (a segmentation fault); so did a Trajectories."""
     points, profiles = CANDS[:2], CAND_CONTROLS[:2]
+    with pytest.raises(tms.InputError, match=r"__getitem__: expected tensors \(or indices\), got a Controls"):
+        CANDS[(points, profiles)]
+    with pytest.raises(tms.InputError, match=r"__getitem__: expected tensors \(or indices\), got a Trajectories"):
+        CANDS[(points, CTRAJ[:2])]
+    with pytest.raises(tms.InputError, match=r"stack: expected tensors"):
+        torch.stack([CTRAJ])
     for whole in (CCONTROLS, CTRAJ):
         with pytest.raises(tms.InputError, match=r"index: expected positions among the 4 experiments .*got"):
             whole[(points, profiles)]
@@ -736,3 +742,43 @@ def test_simulate_and_the_samples_check_their_objects():
         CSAMPLES.shifted(torch.zeros(1), [0])
     with pytest.raises(tms.InputError, match=r"noise_std: expected a standard deviation whose square is finite"):
         tms.correction_samples(CTRAJ, CHEMO, derivative="auto", noise_std=1e300)  # OverflowError before
+
+
+def test_a_model_of_other_inputs_is_refused_where_it_is_used():
+    """A model fitted on the inputs (X, D), used with a system whose correction reads (S, D) or (D, X): the same
+    number of inputs, so it ran, reading S as X. Refused now, naming both; names that are only positions (y0, u0)
+    do not count."""
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=1e-2, noise_variance=1e-6).fit(CSAMPLES.inputs, CSAMPLES.targets)
+    gp.input_names_ = ("X", "D")  # as fit_correction records them
+    assert tms.CorrectedODE(CHEMO, gp).predict(CY0, CTIMES, controls=CCONTROLS).shape == (4, 9, 2)
+    unnamed_control = chemostat(control_names=None, correction_inputs=[0, 2])
+    tms.CorrectedODE(unnamed_control, gp)  # u0 is a position, not a name
+    for inputs, order in ((["S", "D"], "other names"), (["D", "X"], "the same names in another order")):
+        other = chemostat(correction_inputs=inputs)
+        with pytest.raises(tms.InputError, match=rf"gp: expected a model of the correction inputs .*got one fitted on "
+                                                 rf"\['X', 'D'\] \({order}\)"):  # fmt: skip
+            tms.CorrectedODE(other, gp)
+        with pytest.raises(tms.InputError, match=r"gp: expected a model of the correction inputs"):
+            tms.design.greedy(CANDS, 2, system=other, times=CTIMES, gp=gp, controls=CAND_CONTROLS)
+        with pytest.raises(tms.InputError, match=r"gp: expected a model of the correction inputs"):
+            tms.correction_error(gp, other, domain=((0, 1), (0, 1)), resolution=3)
+
+
+# ------------------------------------------------------------------------------------- the long profile (-m slow)
+@pytest.mark.slow
+@LONG
+@given(index_strategy, st.sampled_from([torch.float32, torch.float64, "cpu", torch.int64, "bogus", None]))
+def test_subsets_and_dtypes_long(index, arg):
+    test_a_subset_of_experiments_is_the_one_asked_for_or_refused.hypothesis.inner_test(index)
+    test_to_gives_the_dtype_asked_for_or_refuses.hypothesis.inner_test(arg)
+
+
+@pytest.mark.slow
+@settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
+@given(st.permutations([0, 1, 2]), st.lists(st.floats(-3, 3).filter(lambda w: abs(w) > 1e-3), min_size=3, max_size=3),
+       st.integers(0, 3), st.integers(1, 8), st.lists(st.integers(3, 9), min_size=1, max_size=4))  # fmt: skip
+def test_names_masks_and_ragged_data_long(order, weights, k, t, lengths):
+    test_states_permuted_with_their_names_give_the_same_samples_or_a_refusal.hypothesis.inner_test(order)
+    test_a_readout_over_names_in_any_order_reads_the_same_numbers.hypothesis.inner_test(order, weights)
+    test_masking_a_whole_row_is_deleting_it.hypothesis.inner_test(k, t)
+    test_ragged_data_is_each_experiment_on_its_own.hypothesis.inner_test(lengths)

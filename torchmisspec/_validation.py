@@ -6,6 +6,7 @@ import contextlib
 import math
 import numbers
 import os
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -226,6 +227,42 @@ def check_names(names, count: int | None, name: str, *, default: str | None = No
     if len(set(items)) != len(items):
         raise InputError(f"{name}: expected distinct names, got {items}")
     return tuple(items)
+
+
+_POSITION = re.compile(r"[yu]\d+")  # the default names y0, y1, ... / u0, u1, ...: positions, not names
+
+
+def check_input_names(gp, names, owner: str) -> None:
+    """Refuse a model fitted on correction inputs named ``gp.input_names_`` (as :func:`~torchmisspec.fit_correction`
+    records them) where the inputs are ``names`` (e.g. ``system.input_names()``) and some pair of names differs: the
+    model would read one input as another. Default names (``y0``, ``u0``: positions) and unknown names pass."""
+    fitted = getattr(gp, "input_names_", None)
+    if fitted is None or names is None or len(fitted) != len(names):
+        return
+    clash = [(a, b) for a, b in zip(fitted, names, strict=True) if a != b and not (_POSITION.fullmatch(a) or
+                                                                                  _POSITION.fullmatch(b))]  # fmt: skip
+    if clash:
+        order = "the same names in another order" if sorted(fitted) == sorted(names) else "other names"
+        raise InputError(
+            f"gp: expected a model of the correction inputs {list(names)} of {owner}, got one fitted on "
+            f"{list(fitted)} ({order}): it would read {clash[0][1]!r} as {clash[0][0]!r}; fit it on this system's "
+            f"data, or build the system with correction_inputs={list(fitted)}"
+        )
+
+
+class NotATensor:
+    """A container of experiments (with ``__len__`` and ``__getitem__``) that torch must not take for a nested
+    sequence: each item is again such a container, so a tensor indexed with one (``x[(rows, controls)]``, e.g. a
+    Campaign's ``ask`` result taken for indices) recursed without end inside torch and crashed the interpreter.
+    torch hands any operation given one to this ``__torch_function__``, which refuses it."""
+
+    @classmethod
+    def __torch_function__(cls, func, types, args=(), kwargs=None):
+        name = getattr(func, "__name__", str(func))
+        raise InputError(
+            f"{name}: expected tensors (or indices), got a {cls.__name__}, which holds experiments; use its "
+            "fields (e.g. .states, .values) or index it by experiment instead"
+        )
 
 
 def check_selection(

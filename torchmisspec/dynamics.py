@@ -12,7 +12,7 @@ from ._bands import TrajectoryPosterior
 from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
-from ._validation import check_positive_int, check_real
+from ._validation import check_input_names, check_positive_int, check_real
 from .calibration import calibrate_bands
 from .gp import CorrectionGP
 from .observations import _check_trajectories_and_system
@@ -56,6 +56,7 @@ class CorrectedODE(nn.Module):
                 f"{list(system.correction_outputs)}), got one fitted with {gp.input_dim} inputs and "
                 f"{gp.output_dim} outputs"
             )
+        check_input_names(gp, system.input_names(), f"system '{system.name}'")
         self.system = system
         self.gp = gp
         #: G's uncertain parameters: their posterior from the fit (``gp.parameters_``), or the prior when the GP was

@@ -21,6 +21,7 @@ from ._validation import (
     check_device,
     check_domain,
     check_finite,
+    check_input_names,
     check_positive_int,
 )
 
@@ -162,6 +163,7 @@ def correction_error(gp, system, *, domain=None, resolution: int = 101, metric: 
             f"system: expected a torchmisspec.MisspecifiedSystem with its true correction F, got "
             f"{type(system).__name__}"
         )
+    check_input_names(gp, system.input_names(), f"system '{system.name}'")
     domain = system.domain if domain is None else domain
     if domain is None:
         raise InputError(

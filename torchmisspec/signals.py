@@ -23,7 +23,7 @@ import torch
 
 from ._errors import InputError, ShapeError
 from ._user_code import call_user
-from ._validation import as_tensor, check_names, check_positive_int, check_selection, check_to
+from ._validation import NotATensor, as_tensor, check_names, check_positive_int, check_selection, check_to
 
 __all__ = ["KINDS", "Controls"]
 
@@ -31,7 +31,7 @@ __all__ = ["KINDS", "Controls"]
 KINDS = ("previous", "linear")
 
 
-class Controls:
+class Controls(NotATensor):
     """The known input profiles of K experiments.
 
     ``Controls(knots, values, kind="previous")``:

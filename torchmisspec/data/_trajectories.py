@@ -12,7 +12,7 @@ import torch
 
 from .._errors import InputError, ShapeError
 from .._missing import fill
-from .._validation import as_tensor, check_selection, check_to, states_and_times
+from .._validation import NotATensor, as_tensor, check_selection, check_to, states_and_times
 from ..signals import Controls
 from . import _tables
 from ._input import (
@@ -33,7 +33,7 @@ MIN_MEASURED = 3
 
 
 @dataclass(frozen=True)
-class Trajectories:
+class Trajectories(NotATensor):
     """States of K experiments, each observed at its own times.
 
     ``Trajectories(times, states)`` takes either tensors (arrays) for experiments of equal length, or lists with one

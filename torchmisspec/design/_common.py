@@ -11,7 +11,7 @@ import torch
 
 from .._errors import BudgetError, InputError, ShapeError
 from .._linalg import logdet_identity_plus, pivots
-from .._validation import as_tensor, check_finite, check_ndim
+from .._validation import as_tensor, check_finite, check_input_names, check_ndim
 from .._validation import check_times as _check_times
 from ..gp import CorrectionGP
 from ..gp._features import FeatureFactorization
@@ -150,10 +150,18 @@ class GPKernel:
     """
 
     def __init__(
-        self, gp: CorrectionGP, *, input_dim: int | None = None, condition: bool | None = None, exact_data: bool = False
+        self,
+        gp: CorrectionGP,
+        *,
+        input_dim: int | None = None,
+        condition: bool | None = None,
+        exact_data: bool = False,
+        system: MisspecifiedSystem | None = None,
     ) -> None:
         if not isinstance(gp, CorrectionGP):
             raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
+        if system is not None:  # a model of the system's correction inputs, by name
+            check_input_names(gp, system.input_names(), f"system '{system.name}'")
         if not gp.is_fitted and gp.per_output:
             raise InputError(
                 "gp: an unfitted CorrectionGP with per_output=True has no per-output hyperparameters yet; design "

@@ -137,7 +137,7 @@ def variance_reduction(
         condition: condition on the GP's training samples (default: when it is fitted).
     """
     system = check_system(system)
-    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition)
+    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition, system=system)
     x = as_tensor(points, "points", dtype=kern.dtype, device=kern.device)
     check_ndim(x, 2, "points", f"(M, {system.input_dim})")
     if x.shape[1] != system.input_dim:

@@ -112,7 +112,7 @@ def _design_points(indices, candidates, system, times, gp, proxies, states, prox
     if proxy == "corrected" and not gp.is_fitted:
         raise InputError("proxy='corrected': an unfitted gp has no correction to add to G; fit it or pass 'known'")
     # Theorem 1 holds for any kernel: the prior's (the paper's criterion) or the one conditioned on the GP's data
-    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition)
+    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition, system=system)
     cand = check_candidates(candidates, system, dtype=kern.dtype, device=kern.device)
     if isinstance(indices, DesignResult):
         indices = indices.indices

@@ -105,7 +105,7 @@ class _Problem:
         self.criterion = criterion
         if criterion not in CRITERIA:
             raise InputError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
-        self.kern = GPKernel(gp, input_dim=self.system.input_dim, condition=condition)
+        self.kern = GPKernel(gp, input_dim=self.system.input_dim, condition=condition, system=self.system)
         self.domain = None
         if criterion == "domain":
             self.domain = DomainModel(self.kern, self.system, domain, domain_size)

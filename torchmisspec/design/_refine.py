@@ -132,7 +132,7 @@ def refine(
     system = check_system(system, controls, with_controls=True)
     if not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
-    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition)
+    kern = GPKernel(gp, input_dim=system.input_dim, condition=condition, system=system)
     kd = dict(dtype=kern.dtype, device=kern.device)
     y0 = check_candidates(initial_states, system, name="initial_states", **kd)
     lo, span = _box(box, "box (one (lo, hi) per state component)", system.state_dim, kd)

@@ -58,8 +58,8 @@ def check_settings(
     if min_gain is not None:
         if not (auto or spec.terms):
             raise InputError(
-                f"min_gain: expected kernel 'features', 'features+rbf' or 'auto' (the price of a feature term), got "
-                f"kernel {spec.name!r}"
+                f"min_gain: expected a kernel with feature terms (the price of a feature term is for the feature "
+                f"kernels or 'auto', got {spec.name!r})"
             )
         min_gain = check_real(min_gain, "min_gain", minimum=0.0)
     if evidence_margin is not None and not auto:
