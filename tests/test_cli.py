@@ -908,11 +908,6 @@ def test_the_demo_refuses_an_empty_output_folder(tmp_path, capsys, monkeypatch):
     assert not list(tmp_path.iterdir())
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="torchmisspec/_units.py's G_z(z) = G(s z) / s broadcasts a G output of shape (..., 1) to (..., d) before "
-    "the system's shape check (fit_correction works in the data's units); the fix belongs there",
-)
 def test_a_G_of_the_wrong_shape_is_refused_by_fit(named_lab, tmp_path, capsys):
     """The Python API and 'design' refuse it ('G returned shape (24, 1) ...'); 'fit' on states of order 1e-3 (fitted
     in the data's units) exited 0 with a model."""
@@ -922,3 +917,18 @@ def test_a_G_of_the_wrong_shape_is_refused_by_fit(named_lab, tmp_path, capsys):
     (tmp_path / "named.py").write_text(NAMED)
     assert main(_fit(tmp_path, "--out", str(tmp_path / "m.pt"), system="one_output")) == 2
     assert "returned shape" in _one_error_line(capsys, "fit")
+
+
+@pytest.mark.parametrize("command", ["predict", "design"])
+def test_input_columns_for_a_system_without_inputs_are_refused_by_every_command(named_lab, tmp_path, capsys, command):
+    """fit refused them; predict and design left the option unread (exit 0)."""
+    if command == "predict":
+        args = _predict(named_lab, named_lab / "initial.csv", tmp_path / "p.csv", "--input-columns", "ph")
+    else:
+        args = ["design", "--system", f"{named_lab / 'named.py'}:named", "--model", str(named_lab / "model.pt")]
+        args += ["--candidates", str(named_lab / "initial.csv"), "--times", "0:5:3", "--budget", "1", "--quiet"]
+        args += ["--input-columns", "ph", "--out", str(tmp_path / "d.csv")]
+    assert main(args) == 2
+    assert "--input-columns: expected no input columns (system 'named' has no inputs u(t)), got ['ph']" in (
+        _one_error_line(capsys, command)
+    )

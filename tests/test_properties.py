@@ -782,3 +782,15 @@ def test_names_masks_and_ragged_data_long(order, weights, k, t, lengths):
     test_a_readout_over_names_in_any_order_reads_the_same_numbers.hypothesis.inner_test(order, weights)
     test_masking_a_whole_row_is_deleting_it.hypothesis.inner_test(k, t)
     test_ragged_data_is_each_experiment_on_its_own.hypothesis.inner_test(lengths)
+
+
+def test_a_g_of_the_wrong_shape_is_refused_by_the_fit_in_any_units():
+    """G returning (..., 1) for two states: refused on data of order 1, but on data of order 1e-3 (fitted in the
+    data's units, G_z(z) = G(s z) / s) the division by the two scales broadcast it to (..., 2) before the shape
+    check, and the fit returned a model."""
+    narrow = tms.MisspecifiedSystem(lambda y: -y[..., :1], 2, correction=lambda y: 0.1 * y**2, name="narrow")
+    data = tms.simulate(LIN, Y0, TIMES)
+    for c in (1.0, 1e-3):
+        small = tms.Trajectories(TIMES, c * data.states)
+        with pytest.raises(tms.ShapeError, match=r"system 'narrow': G returned shape \(\d+, 1\)"):
+            tms.fit_correction(small, narrow, derivative="central", folds=2, refine=False, progress=False)

@@ -188,7 +188,9 @@ def _scaled_known(system, s: torch.Tensor):
     G = system.known
 
     def back(out, like):
-        return out / s.to(like) if isinstance(out, torch.Tensor) else out  # a wrong type: the system's check says so
+        # a wrong type or shape is returned as it is, for the system's check to name: divided by the d scales, an
+        # output (..., 1) would broadcast to (..., d) and pass it
+        return out / s.to(like) if isinstance(out, torch.Tensor) and out.shape == like.shape else out
 
     if system.autonomous and system.parameters is None:
         return lambda y: back(G(y * s.to(y)), y)
@@ -204,7 +206,8 @@ def _scaled_map(F, s_in: torch.Tensor, s_out: torch.Tensor):
 
     def scaled(x):
         out = F(x * s_in.to(x))
-        return out / s_out.to(out) if isinstance(out, torch.Tensor) else out
+        fits = isinstance(out, torch.Tensor) and out.shape == x.shape[:-1] + s_out.shape
+        return out / s_out.to(out) if fits else out  # another shape: the system's check names it
 
     return scaled
 
