@@ -251,9 +251,9 @@ def render_page(result: dict, wall: float, command: str) -> str:
 
 This page is written by `{command}`; every number on it comes from that run (raw numbers:
 `benchmarks/study_real_data.json`). Machine: {info["cpu"]}, {info["logical_cpus"]} logical CPUs, torch
-{info["torch"]} ({info["torch_threads"]} threads in the parent; each fold in a child process with 1 thread), commit
-{info["git_commit"]} (library modified: {info["library_modified"]}); wall time {wall / 60:.1f} min; each method
-limited to {result["config"]["timeout"]} s per fold.
+{info["torch"]} ({info["torch_threads"]} threads in the parent; each method of each fold in a child process with
+1 thread), commit {info["git_commit"]} (library modified: {info["library_modified"]}); wall time {wall / 60:.1f} min;
+each method limited to {result["config"]["timeout"]} s per fold.
 
 {__doc__.strip()}
 
