@@ -11,6 +11,7 @@ from ._common import (
     add_system_option,
     check_names,
     check_output,
+    input_columns,
     known_state_names,
     load_model,
     read_controls,
@@ -101,6 +102,7 @@ def _design(args: argparse.Namespace) -> int:
 
     out = check_output(args.out, (".csv", ".json"))
     system = load_system(args.system)
+    input_columns(args, system)  # checked before the work (read with --controls)
     if system.num_controls and args.controls is None:
         raise InputError(
             f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is an "

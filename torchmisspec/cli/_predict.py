@@ -12,6 +12,7 @@ from ._common import (
     add_system_option,
     check_names,
     check_output,
+    input_columns,
     known_state_names,
     load_model,
     read_controls,
@@ -41,6 +42,7 @@ def _predict(args: argparse.Namespace) -> int:
         raise InputError(f"--samples: expected at least 2 posterior draws for a band, got {args.samples}")
     times = parse_times(args.times)
     system = load_system(args.system)
+    input_columns(args, system)  # checked before the work (read with --controls)
     if system.num_controls and args.controls is None:
         raise InputError(
             f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; pass their profiles for the "
