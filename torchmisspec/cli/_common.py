@@ -303,7 +303,8 @@ def read_states(path: str, option: str, args: argparse.Namespace, system, known:
     its states: a header without them all is refused), and a
     single other column of names, not numbers (sample IDs), labels the rows when there is no experiment column; any
     other extra column is refused (a data file given by mistake, a time column of another name). Without a
-    header, or from .npy/.npz, every column is a state, in the system's order."""
+    header, or from .npy/.npz, every column is a state, in the system's order. A text table's cells are those of
+    :func:`~torchmisspec.cli._tables.text_rows` (a byte-order mark dropped, CSV quoting, rows of one length)."""
     import torch
 
     p = Path(path)
