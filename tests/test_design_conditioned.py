@@ -126,7 +126,9 @@ def test_corrected_proxies_follow_the_corrected_model(corners):
     assert plan.diagnostics["proxy"] == "corrected"
     rtol, atol = PROXY_TOLERANCES  # a design tolerance: proxies stand in for unknown trajectories
     expected = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES, rtol=rtol, atol=atol)
-    torch.testing.assert_close(plan.proxies, expected)
+    # the proxies were solved in the batch of all candidates, the prediction in a batch of 3: an adaptive batched solve
+    # shares its steps (and its atol is in units of the batch's states), so they agree to the solver's tolerance
+    torch.testing.assert_close(plan.proxies, expected, rtol=10 * rtol, atol=10 * atol)
     accurate = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES)
     torch.testing.assert_close(plan.proxies, accurate, rtol=0, atol=1e-5)
     known = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted, proxy="known")
