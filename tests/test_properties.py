@@ -445,7 +445,9 @@ def test_ragged_data_is_each_experiment_on_its_own(lengths):
     sim = tms.simulate(CHEMO, CY0[:K], grids, controls=CCONTROLS[:K])
     for k, (t, y) in enumerate(sim.experiments()):
         alone = tms.simulate(CHEMO, CY0[k : k + 1], grids[k], controls=CCONTROLS[[k]]).states[0]
-        same(y, alone, rtol=1e-8, atol=1e-11, what=f"experiment {k}")
+        # the stacked solve shares its adaptive steps with the other experiments: the two agree to what an
+        # rtol=1e-10 solve through piecewise-constant inputs achieves (both measured ~1e-8 from an rtol=1e-13 solve)
+        same(y, alone, rtol=1e-7, atol=1e-9, what=f"experiment {k}")
         same(t, grids[k], rtol=0)
     if len(set(lengths)) == 1:
         assert not sim.is_ragged
