@@ -38,6 +38,68 @@ def _balanced_noise(residuals, field, trajectories: Trajectories) -> torch.Tenso
     return (sq0.sum(0) / seen.sum(0).clamp_min(1.0)).clamp_min(1e-12 * size)
 
 
+#: the factors by which a starting correction whose paths cannot be integrated over the experiments is shrunk, in
+#: turn: the last is the known model alone (F = 0, G's learned parameters at their prior mean, the initial states as
+#: observed), which the fit then starts from
+SHRINK = (0.5, 0.1, 0.01, 0.0)
+
+
+def _shrink_until_integrable(tensors, attempt, error=None) -> None:
+    """Shrink ``tensors`` (the starting coefficients or targets, offsets, parameters: each zero at the known model
+    alone) in place by the factors of :data:`SHRINK` until ``attempt()`` (the :class:`IntegrationError` of a solve at
+    their current values, or None) integrates, with a warning saying by how much; raise the last error when even
+    F = 0 cannot be integrated (nothing to start from). ``error``: that of the start, when known already."""
+    error = attempt() if error is None else error
+    if error is None:
+        return
+    start = [t.detach().clone() for t in tensors]
+    for factor in SHRINK:
+        with torch.no_grad():
+            for t, s in zip(tensors, start, strict=True):
+                t.copy_(s * factor)
+        last = attempt()
+        if last is None:
+            what = "the known model alone (F = 0)" if factor == 0 else f"it shrunk by a factor {factor:g}"
+            warn(
+                "fit_trajectories: the starting correction cannot be integrated over the experiments "
+                f"({str(error)[:160]}); the fit starts from {what} instead",
+                TorchMisspecWarning,
+            )
+            return
+    raise IntegrationError(
+        "fit_trajectories: the starting correction cannot be integrated over the experiments, nor any smaller one "
+        f"down to the known model alone (F = 0): {last}"
+    ) from last
+
+
+def _batched(run, copies: int) -> torch.Tensor:
+    """``run(lo, hi)`` (the residuals ``(hi - lo, n, e)`` of copies lo ... hi - 1 in one batched solve) for all
+    ``copies``; a batch whose solve fails is split in halves, and a copy that cannot be integrated alone gives NaN
+    (its Jacobian column is then dropped by the caller: a rejected perturbation, not the end of the fit). Raises the
+    last :class:`IntegrationError` when no copy can be integrated."""
+    parts, pending, error = [], [(0, copies)], None
+    while pending:
+        lo, hi = pending.pop(0)
+        try:
+            parts.append(run(lo, hi))
+        except IntegrationError as exc:
+            error = exc
+            if hi - lo > 1:
+                mid = (lo + hi) // 2
+                pending[:0] = [(lo, mid), (mid, hi)]
+            else:
+                parts.append(None)
+    like = next((r for r in parts if r is not None), None)
+    if like is None:
+        raise error
+    return torch.cat([torch.full_like(like[:1], math.nan) if r is None else r for r in parts])
+
+
+def _dropped(J: torch.Tensor) -> torch.Tensor:
+    """Jacobian columns ``J (rows, cols)`` with a non-finite entry set to 0 (a perturbation that failed: dropped)."""
+    return torch.where(torch.isfinite(J).all(0, keepdim=True), J, torch.zeros((), dtype=J.dtype, device=J.device))
+
+
 def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, *, max_iter, progress, shooting):
     """L-BFGS on the log posterior ``-(sum squares / (2 s2) + prior)`` over ``params`` (and the offsets); a trial
     step that blows up the ODE ends the fit at the best iterate, with a warning. The parameters hold the optimum."""
@@ -46,12 +108,22 @@ def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, 
     every = [*params] + ([] if offsets is None else [offsets])
     best = {"value": -math.inf, "params": None, "evaluations": 0}
 
+    def attempt():  # the IntegrationError of a solve at the current parameters, or None
+        try:
+            with torch.no_grad():
+                residuals(field_and_prior(params[0])[0], offsets, sd)
+        except IntegrationError as exc:
+            return exc
+        return None
+
+    _shrink_until_integrable(every, attempt)  # a start that cannot be integrated: a smaller one that can
+
     def evaluate():
         try:
             field, prior = field_and_prior(params[0])
             sq = residuals(field, offsets, sd).pow(2)
         except IntegrationError:
-            if best["params"] is None:  # the starting correction itself blows up: nothing to fall back on
+            if best["params"] is None:  # the (shrunk) start integrated without gradients, not with them
                 raise
             raise _TrialDiverged from None
         objective = -((sq.reshape(-1, d) / s2).sum() / 2 + prior)  # the log posterior, up to a constant
@@ -362,10 +434,13 @@ def _levenberg_marquardt(
             return make_field, make_fields
         return (lambda b: theta[1](b, vv)), (lambda bs: theta[2](bs, vv))
 
-    def objective(uv, vv, ov):
+    failed = []
+
+    def objective(uv, vv, ov):  # a solve that fails is an infinite misfit: a rejected step
         try:
             r = residuals(fields(vv)[0](coefficients(uv)), ov, sd) / sd
-        except IntegrationError:
+        except IntegrationError as exc:
+            failed[:] = [exc]
             return math.inf, None
         prior = uv.pow(2).sum() + (0 if vv is None else vv.pow(2).sum())
         return 0.5 * float(r.pow(2).sum() + prior), r.reshape(-1)
@@ -374,8 +449,13 @@ def _levenberg_marquardt(
         uv, ov = u.detach().clone(), offsets.detach().clone()
         vv = None if theta is None else theta[0].detach().clone()
         value, r = objective(uv, vv, ov)
-        if r is None:
-            raise FittingError("fit_trajectories: the starting correction cannot be integrated over the experiments")
+        if r is None:  # the start cannot be integrated: a smaller correction (at last G alone) that can
+            _shrink_until_integrable(
+                [uv, ov] + ([] if vv is None else [vv]),
+                lambda: None if objective(uv, vv, ov)[1] is not None else failed[0],
+                failed[0],
+            )
+            value, r = objective(uv, vv, ov)
         lam, evaluations, iterations = 1e-3, 1, 0
         while iterations < max_iter:
             iterations += 1
@@ -429,8 +509,9 @@ def _parameter_columns(residuals, make_fields, beta, v, off, sd) -> torch.Tensor
     j = torch.arange(k, device=v.device)
     vs[j, j] += h
     vs[k + j, j] -= h
-    res = residuals.many(make_fields(beta.unsqueeze(0).expand(2 * k, -1, -1), vs), 2 * k, off, sd)  # (2k, n, d)
-    return ((res[:k] - res[k:]) / (2 * h) / sd).reshape(k, -1).T
+    bs = beta.unsqueeze(0).expand(2 * k, -1, -1)
+    res = _batched(lambda lo, hi: residuals.many(make_fields(bs[lo:hi], vs[lo:hi]), hi - lo, off, sd), 2 * k)
+    return _dropped(((res[:k] - res[k:]) / (2 * h) / sd).reshape(k, -1).T)  # (2k, n, d) -> (n d, k)
 
 
 def _step(value: float, typical: float) -> float:
@@ -453,18 +534,21 @@ def _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fiel
         idx_o = torch.tensor([o for _, o in pairs], device=beta.device)
         stack[rows, idx_i, idx_o] += h
         stack[q + rows, idx_i, idx_o] -= h
-        res = residuals.many(make_fields(stack), 2 * q, off, sd)  # (2q, n, d)
-        diff = (res[:q] - res[q:]) / (2 * h.reshape(-1, 1, 1)) / sd
-        return diff.reshape(q, -1).T
+        res = _batched(lambda lo, hi: residuals.many(make_fields(stack[lo:hi]), hi - lo, off, sd), 2 * q)
+        diff = (res[:q] - res[q:]) / (2 * h.reshape(-1, 1, 1)) / sd  # (q, n, d)
+        return _dropped(diff.reshape(q, -1).T)
     cols = []
     for i, o in pairs:
         h = _step(float(beta[i, o]), typical)
         plus, minus = beta.clone(), beta.clone()
         plus[i, o] += h
         minus[i, o] -= h
-        diff = residuals(make_field(plus), off, sd) - residuals(make_field(minus), off, sd)
+        try:
+            diff = residuals(make_field(plus), off, sd) - residuals(make_field(minus), off, sd)
+        except IntegrationError:  # a perturbation that cannot be integrated: its column is dropped
+            diff = torch.full_like(residuals(make_field(beta), off, sd), math.nan)
         cols.append((diff / (2 * h) / sd).reshape(-1))
-    return torch.stack(cols, dim=-1)
+    return _dropped(torch.stack(cols, dim=-1))
 
 
 def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
@@ -482,8 +566,9 @@ def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
         j = torch.arange(d, device=off.device)
         stack[j, :, j] += h
         stack[d + j, :, j] -= h
-        res = residuals.many(field, 2 * d, stack, sd)  # (2 d, n, e)
+        res = _batched(lambda lo, hi: residuals.many(field, hi - lo, stack[lo:hi], sd), 2 * d)  # (2 d, n, e)
         delta = (res[:d] - res[d:]) / (2 * h) / sd  # (d, n, e)
+        delta = torch.where(torch.isfinite(delta), delta, torch.zeros((), dtype=delta.dtype, device=delta.device))
         for jj in range(d):
             J[torch.arange(n, device=off.device), :, rows, jj] = delta[jj]
         return J.reshape(n * e, K * d)

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._errors import FittingError, InputError, TorchMisspecWarning
+from ._errors import FittingError, InputError, IntegrationError, TorchMisspecWarning, warn
 from ._gp_in_time import observed_rms
 from ._ode import FITTING_TOLERANCES, PREDICTION_TOLERANCES
 from ._trajectory_map import _fit_relevance
@@ -131,9 +131,9 @@ class Identifiability:
             )
 
 
-def _dependencies(system: MisspecifiedSystem, states: torch.Tensor, times, controls) -> torch.Tensor:
+def _dependencies(system: MisspecifiedSystem, states: torch.Tensor, times, controls, correction=True) -> torch.Tensor:
     """``(d, d)`` boolean: entry (a, b) when dy_b/dt depends on y_a through G (its Jacobian at the states, nonzero
-    somewhere) or through F (a an input of F and b one of its outputs)."""
+    somewhere) or, with ``correction``, through F (a an input of F and b one of its outputs)."""
     d = system.state_dim
     y = states.detach().clone().requires_grad_(True)
     out = system.known_rhs(y, times, controls)
@@ -143,7 +143,7 @@ def _dependencies(system: MisspecifiedSystem, states: torch.Tensor, times, contr
         if grad is not None:
             scale = grad.abs().amax().clamp_min(torch.finfo(grad.dtype).tiny)
             depends[:, b] = (grad.abs() > 1e-10 * scale).any(0).cpu()
-    for a in system.correction_inputs:
+    for a in system.correction_inputs if correction else ():
         if a < d:
             for b in system.correction_outputs:
                 depends[a, b] = True
@@ -204,12 +204,16 @@ def identifiability(
     )
 
 
-def initial_guess(trajectories: Trajectories) -> torch.Tensor:
+def initial_guess(trajectories: Trajectories, system: MisspecifiedSystem | None = None) -> torch.Tensor:
     """``(K, d)`` starting values of the initial states: the first observed states (missing entries estimated by
     :meth:`Trajectories.filled`); a component never observed in an experiment starts at its mean over the
     experiments that observe it, or, when it is only read in combinations (:attr:`Trajectories.readout`), at the
-    least-squares solution of the first readings given the states known there. Raises :class:`InputError` for a
-    component no experiment observes at all, neither alone nor in a reading."""
+    least-squares solution of the first readings given the states known there. A component no experiment observes
+    at all, neither alone nor in a reading, starts at the data's scale (the mean magnitude of every observed value,
+    1 when they are all 0; the unmeasured hares of a predator-prey model start at the size of the predator counts),
+    with a warning: the fit through the ODE (:func:`estimate_initial_states`) then estimates it from the measured
+    components it drives. With ``system``, one that drives no measured component through G (nothing could estimate
+    it) raises :class:`InputError`."""
     first = trajectories.initial_conditions
     if trajectories.readout is not None:
         first = _from_readings(trajectories, first)[0]
@@ -221,18 +225,51 @@ def initial_guess(trajectories: Trajectories) -> torch.Tensor:
         values, _ = trajectories.observed_values()
         read = torch.isfinite(values[..., trajectories.state_dim :]).flatten(0, -2).any(0)  # (m,)
         seen = seen | ((trajectories.readout.matrix != 0) & read.unsqueeze(-1)).any(0)
-    never = (~seen.any(0)).nonzero().flatten().tolist()
-    if never:
-        names = ", ".join(repr(trajectories.state_names[j]) for j in never)
-        raise InputError(
-            f"trajectories: component {names} is never observed in any experiment, so its initial values have "
-            "nothing to start from; give each experiment's initial value of it in the first row (an estimate is "
-            "enough: it is refined from the other measurements), or measure it at least once"
-        )
     zero = torch.zeros((), dtype=flat.dtype, device=flat.device)
-    seen = seen & torch.isfinite(flat)
-    mean = torch.where(seen, flat, zero).sum(0) / seen.sum(0).clamp_min(1)
+    known = seen & torch.isfinite(flat)
+    mean = torch.where(known, flat, zero).sum(0) / known.sum(0).clamp_min(1)
+    never = ~seen.any(0)
+    if bool(never.any()):
+        size = flat[torch.isfinite(flat)].abs().mean() if bool(torch.isfinite(flat).any()) else zero
+        size = torch.where(size > 0, size, torch.ones_like(size))
+        mean = torch.where(never, size, mean)
+        _refuse_or_warn(trajectories, system, never, torch.where(torch.isfinite(first), first, mean), float(size))
     return torch.where(torch.isfinite(first), first, mean.expand_as(first))
+
+
+def _refuse_or_warn(trajectories: Trajectories, system, never: torch.Tensor, start: torch.Tensor, size: float):
+    """For :func:`initial_guess`: warn that the components ``never`` (``(d,)``) no experiment observes start at
+    ``size``; with ``system``, raise :class:`InputError` naming those that drive no measured component through G
+    (at the states started from ``start`` ``(K, d)``): nothing could estimate them."""
+    names = trajectories.state_names
+    stuck = torch.zeros_like(never)
+    if system is not None:
+        states = torch.where(torch.isfinite(trajectories.flat_states()), trajectories.flat_states(), start[:1])
+        keep = torch.isfinite(states).all(-1)
+        controls = trajectories.flat_controls()
+        times = trajectories.flat_times()[keep]
+        depends = _dependencies(system, states[keep], times, None if controls is None else controls[keep], False)
+        reach = depends | torch.eye(depends.shape[0], dtype=torch.bool)
+        for _ in range(reach.shape[0]):  # transitive closure: reach[a, b] when a chain a -> ... -> b exists
+            reach = reach | ((reach.to(torch.int64) @ reach.to(torch.int64)) > 0)
+        measured = (~never).cpu()
+        stuck = never.cpu() & ~(reach & measured.unsqueeze(0)).any(1)
+    if bool(stuck.any()):
+        listed = ", ".join(repr(names[j]) for j in stuck.nonzero().flatten().tolist())
+        raise InputError(
+            f"trajectories: component {listed} is never observed in any experiment, so its initial values have "
+            "nothing to start from"
+            + ("" if system is None else " and it drives no measured component, so they cannot be estimated")
+            + "; give each experiment's initial value of it in the first row (an estimate is enough: it is refined "
+            "from the other measurements), or measure it at least once"
+        )
+    listed = ", ".join(repr(names[j]) for j in never.nonzero().flatten().tolist())
+    warn(
+        f"trajectories: component {listed} is never observed in any experiment; its initial values start at "
+        f"{size:.3g} (the mean magnitude of the observed values), from which the fit through the ODE estimates them; "
+        "give a better start as each experiment's first-row value of it",
+        TorchMisspecWarning,
+    )
 
 
 def _from_readings(trajectories: Trajectories, first: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -282,7 +319,7 @@ def estimate_initial_states(
     K, d = free.shape
     start = trajectories.initial_conditions
     if not bool(torch.isfinite(start).all()):  # unmeasured entries without a value: from the other experiments
-        start = initial_guess(trajectories)
+        start = initial_guess(trajectories, system)
     trajectories = trajectories.with_initial_states(start)
     if not bool(free.any()):
         return trajectories.initial_conditions
@@ -398,6 +435,29 @@ def _through_the_ode(
     )
 
 
+def _completed_by_first(at: MisspecifiedSystem, first, trajectories: Trajectories, y0, by_g: Trajectories):
+    """The data completed with the first model (G at theta's posterior mean + F's first model) from ``y0``; where
+    its paths cannot be integrated at the prediction tolerances (a term pruned in its last round can leave a model
+    that blows up), with G alone at theta's posterior mean, and where that fails too, ``by_g`` (step 1's completion),
+    with a warning: the model choice then sees the paths of a simpler model, and the refinement through the ODE
+    fits F to the measured values as always."""
+    try:
+        return complete(at, _mean_field(at, first.posterior()), trajectories, y0)
+    except IntegrationError as exc:
+        error = exc
+    try:
+        completed = complete(at, lambda y, t, u: at.known_rhs(y, t, u), trajectories, y0)
+        what = "the known model alone"
+    except IntegrationError:
+        completed, what = by_g, "the known model alone from its own initial states"
+    warn(
+        f"fit_correction: the first model of F cannot be integrated over the experiments ({str(error)[:160]}); the "
+        f"unmeasured components are filled with the paths of {what} for the choice of F instead",
+        TorchMisspecWarning,
+    )
+    return completed
+
+
 def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories, noise=None) -> Trajectories:
     """The data completed with G alone (step 1 of the module): the unmeasured initial values that no first row gives
     are fitted to the measurements; the given ones are kept (G is wrong: fitting them with G alone would move them to
@@ -406,7 +466,7 @@ def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories, nois
     def known(y, t, u):
         return system.known_rhs(y, t, u)
 
-    start = trajectories.with_initial_states(initial_guess(trajectories))
+    start = trajectories.with_initial_states(initial_guess(trajectories, system))
     given = torch.isfinite(trajectories.initial_conditions)
     if trajectories.readout is not None:  # entries the first readings determine are data too
         given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
@@ -429,7 +489,7 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     y0 = first.initial_states_
     posterior = _first_posterior(system, first, completed) if learn else None
     at = system if posterior is None else system.at(posterior.mean)  # F is chosen at theta's posterior mean
-    completed = complete(at, _mean_field(at, first.posterior()), trajectories, y0)
+    completed = _completed_by_first(at, first, trajectories, y0, completed)
     refine = options.pop("refine", None)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", TorchMisspecWarning)
