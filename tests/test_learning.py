@@ -77,7 +77,7 @@ def test_single_shooting_is_not_biased_by_noisy_start_states(linear_noisy, one_t
 
 def test_no_correction_to_find_warns():
     """The known model is exact (F = 0) and the states are noisy: no correction predicts held-out experiments
-    better than the known model, and fit_correction says so."""
+    better than the known model, and fit_correction says so and returns the known model (issue 41, do no harm)."""
     A = torch.tensor([[-0.1, 1.0], [-1.0, -0.1]], dtype=DT)
     system = MisspecifiedSystem(LinearField(A), 2, known_matrix=A, name="exact")
     traj = noisy(system, 6, 21, 6.0, 2e-2, seed=1)
@@ -85,8 +85,10 @@ def test_no_correction_to_find_warns():
         warnings.simplefilter("always")
         gp = tms.fit_correction(traj, system, derivative="central", order=4)
     messages = [str(w.message) for w in caught if issubclass(w.category, tms.TorchMisspecWarning)]
-    assert any("the data do not support a correction" in m for m in messages)
-    assert not gp.cross_validation_.improves
+    assert any("better than the known model alone" in m and "returning the known model" in m for m in messages)
+    assert not gp.cross_validation_.improves and gp.known_model_
+    y = torch.randn(4, 2, dtype=DT)
+    assert float(gp.predict_mean(y).abs().max()) < 1e-8  # F = 0
 
 
 def test_fallbacks_and_bad_input(linear_noisy):

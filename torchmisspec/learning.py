@@ -17,6 +17,7 @@ import math
 from ._errors import (
     FittingError,
     InputError,
+    IntegrationError,
     LinearAlgebraError,
     TorchMisspecWarning,
     warn,
@@ -30,6 +31,7 @@ from .cross_validation import (
     CrossValidation,
     _check_candidates,
     _check_cv_inputs,
+    _held_out_errors,
     cross_validate,
 )
 from .data import Trajectories
@@ -179,6 +181,65 @@ def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, te
     return posterior, samples
 
 
+#: The known model's stand-in as a correction: a GP whose prior variance is this fraction of the samples' variance
+#: (its posterior mean and variance are F = 0 to this relative precision), so that F = 0 is a fitted model like any
+#: other (predicted, drawn, saved and loaded as one).
+KNOWN_MODEL_OUTPUTSCALE = 1e-12
+
+
+def known_model_template(samples: CorrectionSamples) -> CorrectionGP:
+    """The known model alone (F = 0) as a :class:`CorrectionGP` template: an RBF of the samples' median distance whose
+    output scale is :data:`KNOWN_MODEL_OUTPUTSCALE` times the samples' variance, its noise that variance (nothing
+    learned: fitting it conditions on the samples, and its mean and draws are 0 to that precision)."""
+    var = float(samples.targets.detach().double().pow(2).mean())
+    var = var if math.isfinite(var) and var > 0 else 1.0
+    return CorrectionGP(
+        lengthscale=median_distance(samples.inputs),
+        outputscale=KNOWN_MODEL_OUTPUTSCALE * var,
+        noise_variance=var,
+        device=samples.inputs.device,
+    )
+
+
+def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories):
+    """``(model, its held-out score or None)``: the known model with its uncertain parameters fitted (F = 0; as
+    :func:`fit_correction` fits them under a correction: the closed form from the samples, then through the ODE on
+    the trajectories) as a fitted :class:`CorrectionGP` (:func:`known_model_template`); its score is the sum of
+    squared state errors from each experiment's first state (the parameters fitted on every experiment). Without
+    uncertain parameters the score is ``None`` (the cross-validation's baseline is it)."""
+    template = known_model_template(raw)
+    if system.parameters is None:
+        return template.fit(raw), None
+    posterior, samples = _parameter_passes(raw, system, template)
+    samples = samples.shifted(posterior.mean - system.theta, system.correction_outputs)
+    model, _ = fit_parameters(template.clone().fit(samples), samples, system, trajectories,
+                              posterior.mean - posterior.prior_mean)  # fmt: skip
+    score = float(_held_out_errors(system.at(model.parameters_.mean), trajectories).sum())
+    return model, score
+
+
+def _do_no_harm(cv: CrossValidation, raw, system, trajectories):
+    """The known model (:func:`_known_model`) when no candidate predicts the held-out experiments better than it
+    (``None`` otherwise), with a warning saying so."""
+    try:
+        model, score = _known_model(raw, system, trajectories)
+    except (FittingError, LinearAlgebraError, IntegrationError):
+        return None
+    score = cv.baseline if score is None else score
+    best = min(cv.scores)
+    if best < score:
+        return None
+    fitted = "with its parameters fitted, " if system.parameters is not None else ""
+    warn(
+        f"fit_correction: no correction predicts the held-out experiments better than the known model alone "
+        f"(best held-out error {best:.3g} vs {score:.3g}); returning the known model {fitted}F = 0 (do no harm; "
+        "result.known_model_ is True). Collect more experiments, or check the known model",
+        TorchMisspecWarning,
+    )
+    model.known_model_ = True
+    return model
+
+
 @adaptive_threads()
 def fit_correction(
     trajectories: Trajectories,
@@ -278,7 +339,7 @@ def fit_correction(
     if user_candidates:
         candidates = _check_candidates(candidates)
     samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
-    posterior = None
+    raw, posterior = samples, None
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
         refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
         template = CorrectionGP(device=samples.inputs.device) if gp is None or gp.auto else gp
@@ -303,6 +364,11 @@ def fit_correction(
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
             result = copy.deepcopy(candidates[cv.index]).fit(samples)
+        known = None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories)
+        if known is not None:
+            known.cross_validation_, known.samples_ = cv, raw
+            known.input_names_ = system0.input_names(trajectories)
+            return known
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "

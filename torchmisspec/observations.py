@@ -202,6 +202,27 @@ class CorrectionSamples:
         return dataclasses.replace(self, noise=noisiest)
 
 
+#: Fewest times of an experiment that an estimator of dy/dt can use (a central difference of order 2).
+MIN_DERIVATIVE_TIMES = 3
+
+
+def _without_short(trajectories: Trajectories, system: MisspecifiedSystem, short: list[int], **options):
+    """The samples of the experiments with at least :data:`MIN_DERIVATIVE_TIMES` times (``short`` are the others),
+    their experiment indices those of ``trajectories`` (some must have them); a warning names the experiments left
+    out."""
+    kept = [k for k in range(trajectories.num_experiments) if k not in short]
+    lengths = sorted({trajectories.lengths[k] for k in short})
+    warn(
+        f"correction_samples: {len(short)} experiment(s) ({short[:10]}{' ...' if len(short) > 10 else ''}) have "
+        f"fewer than {MIN_DERIVATIVE_TIMES} times ({lengths}), too few to estimate dy/dt: they give no correction "
+        "samples (a fit still predicts them when it scores candidates on held-out experiments)",
+        TorchMisspecWarning,
+    )
+    samples = correction_samples(trajectories[kept], system, **options)
+    index = torch.tensor(kept, device=samples.experiment.device)
+    return dataclasses.replace(samples, experiment=index[samples.experiment])
+
+
 def correction_samples(
     trajectories: Trajectories,
     system: MisspecifiedSystem,
@@ -272,6 +293,10 @@ def correction_samples(
     if generator is not None and not isinstance(generator, torch.Generator):
         raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
 
+    short = [k for k, n in enumerate(trajectories.lengths) if n < MIN_DERIVATIVE_TIMES]
+    if short and len(short) < trajectories.num_experiments and derivative != "oracle":  # too short to give samples
+        options = dict(derivative=derivative, noise_std=noise_std, generator=generator, order=order, window=window)
+        return _without_short(trajectories, system, short, degree=degree, **options)
     variance = None
     if derivative == "oracle":
         if not system.has_correction:

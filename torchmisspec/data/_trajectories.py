@@ -51,7 +51,8 @@ class Trajectories(NotATensor):
     **Missing values.** A NaN state entry is a component that was not observed at that time (an empty cell of a
     table read by :meth:`load`); :attr:`observed` is the mask of the others. Times can never be missing, and infinite
     values are refused. A component an experiment never observes (or observes fewer than
-    :data:`MIN_MEASURED` times: too few for a derivative) is *not measured* there (:attr:`measured`): partial
+    :data:`MIN_MEASURED` times, too few for a derivative, unless at each of the experiment's own times: an
+    experiment of two rows, both observed, measures it) is *not measured* there (:attr:`measured`): partial
     measurements, e.g. biomass measured and substrate not; :func:`~torchmisspec.fit_correction` learns through the
     ODE then (see :mod:`torchmisspec.partial`), estimating what was not measured. An experiment must observe
     something. A time at which no component was observed carries no data and is dropped (so masking a whole row is
@@ -287,9 +288,12 @@ class Trajectories(NotATensor):
     @property
     def measured(self) -> torch.Tensor:
         """``(K, d)`` boolean: whether experiment k measures component j (at least :data:`MIN_MEASURED` observed
-        values; see the class notes on partial measurements)."""
+        values, or a value at each of its times when it has fewer, e.g. a culture measured twice; see the class
+        notes on partial measurements)."""
         _, states, mask = self.padded()
-        return (torch.isfinite(states) & mask.unsqueeze(-1)).sum(1) >= MIN_MEASURED
+        seen = (torch.isfinite(states) & mask.unsqueeze(-1)).sum(1)
+        every = seen == mask.sum(1, keepdim=True)
+        return (seen >= MIN_MEASURED) | (every & (seen >= 2))
 
     @property
     def is_partial(self) -> bool:

@@ -193,7 +193,13 @@ def run_default(data, fold: dict, num_samples: int, send) -> None:
             warnings.simplefilter("always")
             t0 = time.perf_counter()
             gp = tms.fit_correction(fold["train"], system, progress=False)
-            send(fit_seconds=time.perf_counter() - t0, kernel=repr(getattr(gp, "kernel", None))[:120])
+            found = getattr(gp, "parameters_", None)
+            send(
+                fit_seconds=time.perf_counter() - t0,
+                kernel=repr(getattr(gp, "kernel", None))[:120],
+                known_model=bool(getattr(gp, "known_model_", False)),
+                default_theta=None if found is None else found.mean.tolist(),
+            )
             stage = "predict"
             fitted = getattr(gp, "initial_states_", None)
             y0 = _start(fold, None if fitted is None else fitted[0])
