@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.learning import KNOWN_MODEL_OUTPUTSCALE, known_model_template
+from torchmisspec.learning import KNOWN_MODEL_OUTPUTSCALE, known_model_template, time_pieces
 
 DT = torch.float64
 R_TRUE, K_TRUE = 0.5, 10.0
@@ -108,3 +108,16 @@ def test_a_component_seen_once_is_still_not_measured():
     states[0, 0] = 3.0
     data = tms.Trajectories(times, states[None])
     assert data.measured.tolist() == [[False, True]]
+
+
+def test_one_trajectory_is_scored_on_its_pieces_in_time():
+    """One experiment (hare-lynx, influenza): no second experiment to hold out, so the candidates and the known
+    model are scored on pieces of the trajectory cut in time, each forecast from its first state."""
+    data = _growth(n=1, T=16)
+    pieces = time_pieces(data)
+    assert pieces.lengths == (5, 6, 5)
+    torch.testing.assert_close(torch.cat([t for t, _ in pieces.experiments()]), data.times)
+    with pytest.warns(tms.TorchMisspecWarning, match="returning the known model with its parameters fitted"):
+        gp = tms.fit_correction(data, _system(), progress=False)
+    assert gp.cross_validation_.folds == 3 and gp.known_model_
+    assert time_pieces(_growth(n=1, T=9)) is None and time_pieces(_growth(n=2)) is None

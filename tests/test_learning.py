@@ -96,9 +96,13 @@ def test_fallbacks_and_bad_input(linear_noisy):
     one = traj[[0]]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
-        # one experiment: nothing to hold out, chosen by evidence (kernel="auto")
+        # one experiment of 11 times: scored on its two pieces in time (issue 41), each held out in turn
         single = tms.fit_correction(one, system, refine=False)
-        assert single.cross_validation_ is None and single.auto and len(single.model_selection_) == 4
+        assert single.cross_validation_.folds == 2 and len(single.cross_validation_.gains) == 2
+        # too short for two pieces of 5 times: nothing to hold out, chosen by evidence (kernel="auto")
+        t, y = one.experiments()[0]
+        short = tms.fit_correction(tms.Trajectories(t[:9], y[None, :9]), system, refine=False)
+        assert short.cross_validation_ is None and short.auto and len(short.model_selection_) == 4
         poly = tms.fit_correction(traj, system, gp=tms.CorrectionGP(kernel="polynomial"))
         # a template without a lengthscale is still scored on held-out experiments (for the warning)
         assert poly.kernel == "polynomial" and poly.cross_validation_.candidates == ("polynomial degree=2",)
@@ -217,9 +221,12 @@ def test_given_candidates_are_never_silently_replaced(one_thread, monkeypatch):
     one = tms.simulate(system, torch.tensor([[0.5, -0.3]], dtype=DT), t)
     poly = tms.CorrectionGP(kernel="polynomial", degree=2)
     gp = tms.fit_correction(one, system, candidates=[poly], derivative="oracle")
-    assert gp.kernel == "polynomial" and gp.cross_validation_ is None
-    # one experiment, nothing to hold out: the candidates compete by evidence (every one recorded)
-    chosen = tms.fit_correction(one, system, candidates=[poly, tms.CorrectionGP()], derivative="oracle")
+    # one experiment of 21 times: the candidates scored on its 3 pieces in time (issue 41)
+    assert gp.kernel == "polynomial" and gp.cross_validation_.candidates == ("polynomial degree=2",)
+    assert gp.cross_validation_.folds == 3
+    # too short for two pieces, nothing to hold out: the candidates compete by evidence (every one recorded)
+    short = tms.simulate(system, torch.tensor([[0.5, -0.3]], dtype=DT), t[:9])
+    chosen = tms.fit_correction(short, system, candidates=[poly, tms.CorrectionGP()], derivative="oracle")
     assert chosen.cross_validation_ is None and [r["kernel"] for r in chosen.model_selection_] == ["polynomial", "rbf"]
     with pytest.raises(tms.InputError, match="non-empty list of CorrectionGP templates, got an empty list"):
         tms.fit_correction(one, system, candidates=[], derivative="oracle")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import math
+import warnings
 
 from ._errors import (
     FittingError,
@@ -181,6 +182,47 @@ def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, te
     return posterior, samples
 
 
+#: With one experiment, :func:`fit_correction` scores its candidates on the trajectory cut in time into at most this
+#: many consecutive pieces, each held out in turn (forecast from its first state by a model fitted on the others)...
+TIME_PIECES = 3
+#: ... of at least this many times each (the default derivative estimator's widest stencil).
+MIN_PIECE = 5
+
+
+def time_pieces(trajectories: Trajectories) -> Trajectories | None:
+    """One fully measured experiment (states, no readout) cut in time into :data:`TIME_PIECES` consecutive pieces of
+    at least :data:`MIN_PIECE` times, as experiments of their own (each under the experiment's input profile);
+    ``None`` when it is too short for two pieces, or is not of that kind."""
+    if trajectories.num_experiments != 1 or trajectories.readout is not None or trajectories.is_partial:
+        return None
+    t, y = trajectories.experiments()[0]
+    n = min(TIME_PIECES, t.shape[0] // MIN_PIECE)
+    if n < 2:
+        return None
+    cuts = [round(i * t.shape[0] / n) for i in range(n + 1)]
+    controls = None if trajectories.controls is None else trajectories.controls[[0] * n]
+    return Trajectories(
+        [t[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True)],
+        [y[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True)],
+        state_names=trajectories.state_names,
+        controls=controls,
+    )
+
+
+def _chooser(trajectories: Trajectories, samples: CorrectionSamples, system, derivative: str, estimator: dict):
+    """``(the trajectories the candidates are scored on, their samples)``: the data and (at most about
+    :data:`SELECTION_SAMPLES` of) their samples; one experiment: its :func:`time_pieces` and their own samples (the
+    estimator's warnings were given on the whole); ``(None, None)`` when there is nothing to hold out."""
+    if trajectories.num_experiments >= 2:
+        return trajectories, samples.thinned(SELECTION_SAMPLES)
+    pieces = time_pieces(trajectories)
+    if pieces is None:
+        return None, None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        return pieces, correction_samples(pieces, system, derivative=derivative, **estimator).thinned(SELECTION_SAMPLES)
+
+
 #: The known model's stand-in as a correction: a GP whose prior variance is this fraction of the samples' variance
 #: (its posterior mean and variance are F = 0 to this relative precision), so that F = 0 is a fitted model like any
 #: other (predicted, drawn, saved and loaded as one).
@@ -201,7 +243,7 @@ def known_model_template(samples: CorrectionSamples) -> CorrectionGP:
     )
 
 
-def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories):
+def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored):
     """``(model, its held-out score or None)``: the known model with its uncertain parameters fitted (F = 0; as
     :func:`fit_correction` fits them under a correction: the closed form from the samples, then through the ODE on
     the trajectories) as a fitted :class:`CorrectionGP` (:func:`known_model_template`); its score is the sum of
@@ -214,18 +256,19 @@ def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectorie
     samples = samples.shifted(posterior.mean - system.theta, system.correction_outputs)
     model, _ = fit_parameters(template.clone().fit(samples), samples, system, trajectories,
                               posterior.mean - posterior.prior_mean)  # fmt: skip
-    score = float(_held_out_errors(system.at(model.parameters_.mean), trajectories).sum())
+    score = float(_held_out_errors(system.at(model.parameters_.mean), scored).sum())
     return model, score
 
 
-def _do_no_harm(cv: CrossValidation, raw, system, trajectories):
-    """The known model (:func:`_known_model`) when no candidate predicts the held-out experiments better than it
-    (``None`` otherwise), with a warning saying so."""
+def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored):
+    """The known model (:func:`_known_model`, scored on the cross-validation's data ``scored``) when no candidate
+    predicts the held-out experiments better than it (``None`` otherwise), with a warning saying so."""
     try:
-        model, score = _known_model(raw, system, trajectories)
+        model, score = _known_model(raw, system, trajectories, scored)
     except (FittingError, LinearAlgebraError, IntegrationError):
         return None
-    score = cv.baseline if score is None else score
+    # the known model alone: at the parameters of the choice (the baseline) or at its own, whichever predicts better
+    score = cv.baseline if score is None else min(score, cv.baseline)
     best = min(cv.scores)
     if best < score:
         return None
@@ -269,7 +312,9 @@ def fit_correction(
          template of an RBF or Matern kernel with a free lengthscale, that kernel at each of
          :func:`lengthscale_candidates`; any other template, that model alone (scored, for the warning below);
          ``candidates``, the given unfitted templates. Each candidate's other hyperparameters by marginal
-         likelihood. With fewer than 2 experiments there is nothing to hold out, and ``"evidence"`` is used;
+         likelihood. With one experiment, the pieces of its trajectory (:func:`time_pieces`, cut in time) are held
+         out in turn (each forecast from its first state); when it is too short for two pieces, ``"evidence"`` is
+         used;
        * ``"evidence"``: by the marginal likelihood of the samples alone (:attr:`CorrectionGP.evidence_score`, no
          solve): with neither ``gp`` nor ``candidates``, ``CorrectionGP(kernel="auto")`` (RBF, Matern, feature
          kernels and the library check, see :mod:`torchmisspec.gp`); a ``gp`` template is fitted as it is; among
@@ -297,6 +342,10 @@ def fit_correction(
     their own), so that states in the thousands or in thousandths are fitted as states near 1 (data near 1 are left
     as they are); the model is returned in the user's units (:mod:`torchmisspec._units`). ``cross_validation_``'s
     scores are in the scaled units, where the candidates were compared.
+
+    **Do no harm**: with ``"cv"`` and the default candidates, the known model alone (F = 0) with its uncertain
+    parameters fitted is returned (``result.known_model_`` is ``True``, with a warning) when no candidate predicts
+    the held-out experiments (or pieces) better than it.
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
@@ -347,8 +396,10 @@ def fit_correction(
         system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
     cv = None
     result = None
-    chooser = samples.thinned(SELECTION_SAMPLES)  # the model is chosen on at most about this many samples
-    if select == "cv" and trajectories.num_experiments >= 2:
+    scored, chooser = _chooser(trajectories, samples, system, derivative, estimator) if select == "cv" else (None, None)
+    if chooser is None:
+        chooser = samples.thinned(SELECTION_SAMPLES)  # the model is chosen on at most about this many samples
+    if scored is not None:
         if candidates is None and gp is None:
             candidates = default_candidates(chooser)
         elif candidates is None:
@@ -360,11 +411,13 @@ def fit_correction(
                 ]
             else:
                 candidates = [gp]
-        cv, models = cross_validate(system, trajectories, chooser, candidates, folds=folds, progress=progress)
+        if scored is not trajectories:  # the pieces of one experiment, each its own fold
+            folds = scored.num_experiments
+        cv, models = cross_validate(system, scored, chooser, candidates, folds=folds, progress=progress)
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
             result = copy.deepcopy(candidates[cv.index]).fit(samples)
-        known = None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories)
+        known = None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories, scored)
         if known is not None:
             known.cross_validation_, known.samples_ = cv, raw
             known.input_names_ = system0.input_names(trajectories)
