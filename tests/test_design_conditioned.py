@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 
 import pytest
 import torch
@@ -315,11 +316,17 @@ def test_corrected_proxies_isolate_the_candidates_that_blow_up():
     model = tms.CorrectedODE(system, gp)
     alone, blown = [], []
     for i in range(len(cands)):
-        try:
-            alone.append(model.predict(cands[i : i + 1], times, rtol=1e-6, atol=1e-8)[0])
-        except tms.IntegrationError:
+        with warnings.catch_warnings():  # a forecast that stops early is flagged (issue 41), not raised
+            warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+            try:
+                path = model.predict(cands[i : i + 1], times, rtol=1e-6, atol=1e-8)[0]
+                stopped = bool(model.incomplete.any())
+            except tms.IntegrationError:
+                stopped = True
+        if stopped:
             blown.append(i)
-            alone.append(proxy_trajectories(system, cands[i : i + 1], times)[0])
+            path = proxy_trajectories(system, cands[i : i + 1], times)[0]
+        alone.append(path)
     assert blown, "the test needs candidates that blow up"
     with pytest.warns(tms.TorchMisspecWarning, match=f"blows up from {len(blown)} of 6 candidates"):
         proxies = corrected_proxies(system, gp, cands, times)

@@ -79,6 +79,17 @@ class TrajectoryPosterior:
         update_error: the certified bound on the compression of the draws' update (0: exact).
         state_names: the system's names of the state components (``None`` when it names none): what plots label
             the panels with.
+        fraction_remaining: ``(B,)`` the fraction of each initial condition's draws that remained in the region
+            to the last output time (1 where none left; computed from the NaN of ``samples`` when not given).
+        region: ``(lo, hi)`` ``(d,)`` the region the draws were stopped at (``None``: not bounded).
+
+    Draws that leave the region: a draw that left it (its path diverges under that draw of F) or stalled in it is
+    NaN in ``samples`` from its first output time outside it (or not reached). :attr:`mean`, :attr:`stddev`,
+    :meth:`quantile` and :meth:`interval` come from the draws that remain at each entry: with n of the S draws left
+    there, the band is that of n draws (its ranks ``(n + 1)(1 -/+ level) / 2``), and where n is too few for the
+    level (``level > (n - 1) / (n + 1)``, fewer than S remaining) that entry of the band is NaN, with a warning
+    that says how many entries and why; with all S draws, the band is as always. The band is then conditional on
+    remaining in the region: :attr:`fraction_remaining` says how much of the posterior that is.
     """
 
     times: torch.Tensor
@@ -89,6 +100,13 @@ class TrajectoryPosterior:
     threshold: float
     update_error: float = 0.0
     state_names: tuple[str, ...] | None = None
+    fraction_remaining: torch.Tensor | None = None
+    region: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def __post_init__(self) -> None:
+        if self.fraction_remaining is None and isinstance(self.samples, torch.Tensor) and self.samples.dim() == 4:
+            left = torch.isnan(self.samples).any(-1).any(-1).to(self.samples.dtype)  # (S, B)
+            object.__setattr__(self, "fraction_remaining", 1.0 - left.mean(0))
 
     @property
     def num_samples(self) -> int:
@@ -96,36 +114,48 @@ class TrajectoryPosterior:
 
     @property
     def mean(self) -> torch.Tensor:
-        """``(B, T, d)``: the mean over the sampled paths."""
-        return self.samples.mean(0)
+        """``(B, T, d)``: the mean over the sampled paths (those that remain in the region; NaN where none does)."""
+        if not bool(torch.isnan(self.samples).any()):
+            return self.samples.mean(0)
+        return torch.nanmean(self.samples, 0)
 
     @property
     def stddev(self) -> torch.Tensor:
-        """``(B, T, d)``: the standard deviation over the sampled paths (0 with one draw)."""
+        """``(B, T, d)``: the standard deviation over the sampled paths (those that remain in the region; 0 with one
+        draw, NaN where fewer than two of several remain)."""
         if self.num_samples < 2:
             return torch.zeros_like(self.samples[0])
-        return self.samples.std(0)
+        if not bool(torch.isnan(self.samples).any()):
+            return self.samples.std(0)
+        n = (~torch.isnan(self.samples)).sum(0)
+        squares = (self.samples - torch.nanmean(self.samples, 0)).pow(2).nansum(0)
+        return torch.where(n > 1, squares / (n - 1).clamp_min(1), math.nan).sqrt()
 
     def quantile(self, q) -> torch.Tensor:
-        """Empirical quantile(s) over the sampled paths: ``(B, T, d)`` for a number, ``(Q, B, T, d)`` for Q of them."""
+        """Empirical quantile(s) over the sampled paths (those that remain in the region; NaN where none does):
+        ``(B, T, d)`` for a number, ``(Q, B, T, d)`` for Q of them."""
         qs = as_tensor(q, "q", dtype=self.samples.dtype, device=self.samples.device)
         if qs.dim() > 1 or not bool(((qs >= 0) & (qs <= 1)).all()):
             raise InputError(f"q: expected a quantile or a 1-D list of quantiles in [0, 1], got {q!r:.80}")
-        return path_quantiles(self.samples, qs)
+        if not bool(torch.isnan(self.samples).any()):
+            return path_quantiles(self.samples, qs)
+        return torch.nanquantile(self.samples, qs, dim=0)
 
     def interval(self, level: float = 0.9) -> tuple[torch.Tensor, torch.Tensor]:
         """``(lower, upper)``, each ``(B, T, d)``: the central band of the sampled paths that a new draw falls in with
         probability ``level``: the order statistics at ranks ``(S + 1)(1 -/+ level) / 2`` of the S draws, not the
         plain quantiles, whose band of 64 draws covers 0.87 for ``level=0.9`` (:mod:`torchmisspec._bands`). A level
-        beyond ``(S - 1) / (S + 1)`` gives the draws' range, with a warning naming the draws it needs."""
+        beyond ``(S - 1) / (S + 1)`` gives the draws' range, with a warning naming the draws it needs. Where draws
+        left the region, the band of the n that remain at each entry, NaN (with a warning) where n is too few for
+        the level (the class's docstring)."""
         level = check_real(level, "level", minimum=0.0)
         if level > 1.0:
             raise InputError(f"level: expected a probability in [0, 1], got {level!r}")
-        qs = band_quantiles(
-            level, self.num_samples, dtype=self.samples.dtype, device=self.samples.device, what="interval"
-        )
-        lo_hi = path_quantiles(self.samples, qs)
-        return lo_hi[0], lo_hi[1]
+        S, kw = self.num_samples, dict(dtype=self.samples.dtype, device=self.samples.device)
+        if not bool(torch.isnan(self.samples).any()):
+            lo_hi = path_quantiles(self.samples, band_quantiles(level, S, what="interval", **kw))
+            return lo_hi[0], lo_hi[1]
+        return _remaining_band(self.samples, level)
 
     def covers(self, states, level: float = 0.9) -> torch.Tensor:
         """``(B, T, d)`` booleans: whether ``states (B, T, d)`` (e.g. the true trajectories) lie in the band."""
@@ -148,3 +178,32 @@ class TrajectoryPosterior:
         return dataclasses.replace(
             self, samples=readout(self.samples), mean_path=readout(self.mean_path), state_names=readout.names
         )
+
+
+def _remaining_band(samples: torch.Tensor, level: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """:meth:`TrajectoryPosterior.interval` where some draws of ``samples (S, ...)`` are NaN (they left the region):
+    at each entry the band of the n draws that remain, NaN where fewer than S remain and they are too few for
+    ``level``, with one warning naming how many such entries there are."""
+    S = samples.shape[0]
+    n = (~torch.isnan(samples)).sum(0)
+    lower = torch.full(n.shape, math.nan, dtype=samples.dtype, device=samples.device)
+    upper = lower.clone()
+    need = math.ceil(2.0 / (1.0 - level) - 1.0 - 1e-9) if level < 1.0 else math.inf  # draws the level needs
+    short = 0
+    for k in torch.unique(n).tolist():
+        at = n == k
+        if k < S and k < need and level > 0.0:
+            short += int(at.sum())
+            continue
+        qs = band_quantiles(level, k, dtype=samples.dtype, device=samples.device, what="interval")
+        lo_hi = torch.nanquantile(samples[:, at], qs, dim=0)
+        lower[at], upper[at] = lo_hi[0], lo_hi[1]
+    if short:
+        warn(
+            f"interval: at {short} of {n.numel()} entries fewer than {need} draws remain in the region (of the "
+            f"{S} drawn; the others diverged out of it: posterior.fraction_remaining), too few for the central "
+            f"{level:g} band: those entries are NaN. Draw more (num_samples={max(need, S) * 2}), ask a lower level, "
+            "or shorten the time span",
+            TorchMisspecWarning,
+        )
+    return lower, upper

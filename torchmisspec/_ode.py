@@ -111,6 +111,10 @@ class _Autonomous(torch.nn.Module):
         super().__init__()
         self.field = field
         self.box = box  # (lo, hi): a row whose state leaves the box stops (its derivative is 0 from then on)
+        # with a box checked at the accepted steps (:meth:`stop_outside`): the rows stopped, and the wider box
+        # beyond which a stage's state gets derivative 0 (a guard: the field is never evaluated far outside)
+        self.stopped = None
+        self.guard = None
         self.offsets = offsets  # a timed field: every row's own time is the solver's time plus its offset
         self.nfe = 0
         self.max_evals = max_evals
@@ -143,24 +147,72 @@ class _Autonomous(torch.nn.Module):
                 f"got {shape}; check that G (and F) map states (..., d) to (..., d)"
             )
         if self.box is not None:
-            out = ((y < self.box[0]) | (y > self.box[1])).any(-1, keepdim=True)
+            lo, hi = self.box if self.guard is None else self.guard
+            out = ((y < lo) | (y > hi)).any(-1, keepdim=True)
+            if self.stopped is not None:
+                out = out | self.stopped.unsqueeze(-1)
             f = torch.where(out, torch.zeros((), dtype=f.dtype, device=f.device), f)
         self.last_t, self.last_y, self.last_f = t, y, f
         return f
 
+    def stop_outside(self, state):
+        """After a step of the solver (its state ``state``): the rows whose accepted state is outside the box stop
+        from there (derivative 0, their last derivative too), so that no later step straddles a jump of the field
+        (a row stopped at a stage's state outside the box makes the solver shrink its steps to the crossing)."""
+        new = ((state.y1 < self.box[0]) | (state.y1 > self.box[1])).any(-1) & ~self.stopped
+        if not bool(new.any()):
+            return state
+        self.stopped = self.stopped | new
+        return state._replace(f1=torch.where(new.unsqueeze(-1), torch.zeros((), dtype=state.f1.dtype), state.f1))
 
-def _worst(y: torch.Tensor, f: torch.Tensor, k: int = 5) -> list[int]:
-    """Indices of the initial conditions whose state or derivative is non-finite or largest (most suspect first)."""
-    size = torch.linalg.vector_norm(f.detach().nan_to_num(float("inf"), float("inf"), float("inf")), dim=-1)
-    size = torch.maximum(size, torch.linalg.vector_norm(y.detach().nan_to_num(float("inf")), dim=-1))
-    order = torch.argsort(size, descending=True)
+
+def _worst(y: torch.Tensor, f: torch.Tensor, k: int = 5, box=None) -> list[int]:
+    """Indices of the initial conditions whose state or derivative is non-finite or largest (most suspect first);
+    with ``box``, among the rows still inside it (a row stopped outside it is not what holds the solve back)."""
+    size, order = _sizes(y, f, box)
     return order[: min(k, order.numel())].tolist()
 
 
-def _with_rows(rows: list[int], exc: IntegrationError) -> IntegrationError:
+def _sizes(y: torch.Tensor, f: torch.Tensor, box=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every row's largest norm of state and derivative (inf where not finite), and the rows by it, largest first
+    (with ``box``, only those inside it where any is)."""
+    size = torch.linalg.vector_norm(f.detach().nan_to_num(float("inf"), float("inf"), float("inf")), dim=-1)
+    size = torch.maximum(size, torch.linalg.vector_norm(y.detach().nan_to_num(float("inf")), dim=-1))
+    order = torch.argsort(size, descending=True)
+    if box is not None:
+        inside = ~((y.detach() < box[0]) | (y.detach() > box[1])).any(-1)
+        if bool(inside.any()):
+            order = order[inside[order]]
+    return size, order
+
+
+def _culprits(func, box) -> tuple[list[int], list[int]]:
+    """Where a solve gave up: :func:`_worst`'s rows, and the suspects among them: those whose state or derivative is
+    at least a tenth of the largest (a row far smaller is not what holds the solve back)."""
+    if func.last_y is None:
+        return [], []
+    worst = _worst(func.last_y, func.last_f, box=box)
+    size = _sizes(func.last_y, func.last_f)[0]
+    top = float(size[worst[0]]) if worst else 0.0
+    return worst, [i for i in worst if float(size[i]) >= 0.1 * top]
+
+
+def _with_rows(
+    rows: list[int],
+    exc: IntegrationError,
+    states: torch.Tensor | None = None,
+    nfe: int = 0,
+    suspects: list[int] | None = None,
+) -> IntegrationError:
     """``exc`` carrying ``rows``: the batch rows most likely at fault (largest state or derivative where the solver
-    gave up), for callers that isolate them."""
+    gave up), for callers that isolate them; ``states``: with ``solve(partial=True)``, the solution ``(B, T, d)`` up
+    to where the solve failed (NaN after; ``None`` where none could be kept); ``nfe``: the right-hand-side
+    evaluations the failed solve spent; ``suspects``: those of ``rows`` far larger than the others (all of them by
+    default)."""
     exc.rows = list(rows)
+    exc.suspects = list(rows) if suspects is None else list(suspects)
+    exc.states = states
+    exc.nfe = nfe
     return exc
 
 
@@ -183,14 +235,36 @@ def _solver(func, y0: torch.Tensor, grid: torch.Tensor, method: str, rtol: float
     return solver
 
 
-def _outputs(solver, y0: torch.Tensor, points: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+def _outputs(
+    solver,
+    y0: torch.Tensor,
+    points: torch.Tensor,
+    rows: torch.Tensor | None = None,
+    fill: float | None = None,
+    on_step=None,
+) -> torch.Tensor:
     """The solution at the sorted times ``points (M,)`` (the first is the start): every row's ``(M, B, d)``, or with
     ``rows (M,)`` row ``rows[m]``'s at ``points[m]``, ``(M, d)``. The outputs inside each step are evaluated together
     from the step's interpolating polynomial (torchdiffeq's ``_interp_evaluate``, its arithmetic and its steps, which
-    do not depend on the output times: the same numbers as ``odeint``)."""
+    do not depend on the output times: the same numbers as ``odeint``). With ``fill`` (NaN), the outputs not reached
+    when the solve raises are ``fill`` in the buffer the exception carries (``exc.outputs``). ``on_step(state)``,
+    when given, sees (and may change) the solver's state after every step."""
     points = points.to(solver.dtype)
     n = points.numel()
-    out = torch.empty((n, *y0.shape) if rows is None else (n, y0.shape[-1]), dtype=y0.dtype, device=y0.device)
+    shape = (n, *y0.shape) if rows is None else (n, y0.shape[-1])
+    if fill is None:
+        return _fill_outputs(solver, y0, points, rows, torch.empty(shape, dtype=y0.dtype, device=y0.device), on_step)
+    out = torch.full(shape, fill, dtype=y0.dtype, device=y0.device)
+    try:
+        return _fill_outputs(solver, y0, points, rows, out, on_step)
+    except BaseException as exc:  # the outputs reached so far go with the exception (re-raised as it is)
+        exc.outputs = out
+        raise
+
+
+def _fill_outputs(solver, y0: torch.Tensor, points: torch.Tensor, rows, out: torch.Tensor, on_step) -> torch.Tensor:
+    """:func:`_outputs` into ``out``."""
+    n = points.numel()
     i = int(torch.searchsorted(points, points[0], right=True))  # the outputs at the start: the initial states
     out[:i] = y0 if rows is None else y0[rows[:i]]
     shape = (-1, *([1] * y0.dim())) if rows is None else (-1, 1)
@@ -198,6 +272,8 @@ def _outputs(solver, y0: torch.Tensor, points: torch.Tensor, rows: torch.Tensor 
         state = solver.rk_state
         if points[i] > state.t1:  # torchdiffeq's _advance: step until the next output time is inside the step
             solver.rk_state = solver._adaptive_step(state)
+            if on_step is not None:
+                solver.rk_state = on_step(solver.rk_state)
             continue
         j = max(int(torch.searchsorted(points, state.t1, right=True)), i + 1)  # outputs i .. j - 1 in this step
         x = ((points[i:j] - state.t0) / (state.t1 - state.t0)).to(y0.dtype).reshape(shape)
@@ -231,27 +307,51 @@ def state_scales(y0: torch.Tensor) -> torch.Tensor | None:
     return torch.tensor(scales, dtype=y0.dtype, device=y0.device)
 
 
-def _integrate(func, y0: torch.Tensor, times: torch.Tensor, method: str, rtol: float, atol: float, options):
+def _integrate(
+    func, y0: torch.Tensor, times: torch.Tensor, method: str, rtol: float, atol: float, options, partial=False
+):
     """The solution ``(B, T, d)`` at ``times`` (``(T,)``, or ``(B, T)`` each row's own, relative to the start 0),
     one batched solve. With an adaptive Runge-Kutta method on a long grid each step's outputs are interpolated at
     once, and on per-row grids only each row's own (:func:`_outputs`); otherwise ``odeint`` on the sorted union of
-    the grids, each row's times gathered from it (B times the outputs, and torchdiffeq's loop over every one)."""
+    the grids, each row's times gathered from it (B times the outputs, and torchdiffeq's loop over every one).
+    With ``partial``, an adaptive Runge-Kutta method interpolates the outputs itself on any grid (the same numbers)
+    and an exception raised during the solve carries ``exc.partial``: the solution ``(B, T, d)`` up to the last
+    output reached, NaN after."""
     ragged = times.dim() == 2
     grid, inverse = torch.unique(times.reshape(-1), sorted=True, return_inverse=True) if ragged else (times, None)
-    solver = _solver(func, y0, grid, method, rtol, atol, options) if grid.numel() >= _VECTOR_OUTPUTS else None
+    vector = grid.numel() >= _VECTOR_OUTPUTS or partial
+    solver = _solver(func, y0, grid, method, rtol, atol, options) if vector else None
+    on_step = func.stop_outside if solver is not None and getattr(func, "stopped", None) is not None else None
     if solver is None:
+        if isinstance(func, _Autonomous):  # odeint's steps: the box applies to every stage's state
+            func.stopped = func.guard = None
         sol = odeint(func, y0, grid, method=method, rtol=rtol, atol=atol, options=options).transpose(0, 1)
         if not ragged:
             return sol
         return torch.gather(sol, 1, inverse.reshape(times.shape).unsqueeze(-1).expand(-1, -1, sol.shape[-1]))
+    fill = math.nan if partial else None
     if not ragged:
-        return _outputs(solver, y0, grid).transpose(0, 1)
+        try:
+            return _outputs(solver, y0, grid, fill=fill, on_step=on_step).transpose(0, 1)
+        except BaseException as exc:
+            if hasattr(exc, "outputs"):
+                exc.partial = exc.outputs.transpose(0, 1)
+            raise
     flat = times.reshape(-1)
     order = torch.argsort(flat, stable=True)
-    values = _outputs(solver, y0, flat[order], torch.div(order, times.shape[1], rounding_mode="floor"))
-    out = torch.empty((flat.numel(), y0.shape[-1]), dtype=y0.dtype, device=y0.device)
-    out[order] = values
-    return out.reshape(*times.shape, y0.shape[-1])
+
+    def placed(values: torch.Tensor) -> torch.Tensor:
+        out = torch.empty((flat.numel(), y0.shape[-1]), dtype=y0.dtype, device=y0.device)
+        out[order] = values
+        return out.reshape(*times.shape, y0.shape[-1])
+
+    try:
+        owner = torch.div(order, times.shape[1], rounding_mode="floor")
+        return placed(_outputs(solver, y0, flat[order], owner, fill, on_step))
+    except BaseException as exc:
+        if hasattr(exc, "outputs"):
+            exc.partial = placed(exc.outputs)
+        raise
 
 
 def solve(
@@ -269,6 +369,7 @@ def solve(
     timed: bool = False,
     jumps: torch.Tensor | None = None,
     box: tuple[torch.Tensor, torch.Tensor] | None = None,
+    partial: bool = False,
 ) -> tuple[torch.Tensor, int]:
     """Integrate dy/dt = field(y) from ``y0 (B, d)`` given at ``times[..., 0]``.
 
@@ -287,6 +388,11 @@ def solve(
         box: ``(lo, hi)`` bounds ``(d,)``: a row whose state leaves them stops there (its derivative is set to 0),
             so that a trajectory that blows up does not hold back the batch's steps; its states from then on lie
             outside the box (the caller finds such rows there).
+        partial: keep what the solve computed: an :class:`IntegrationError` raised while integrating carries
+            ``exc.states``, the solution ``(B, T, d)`` up to the last output time reached (and, for rows whose
+            solution turns non-finite, up to their last finite output), NaN after; ``None`` where the method
+            cannot keep it (a method other than torchdiffeq's adaptive Runge-Kutta ones). Every
+            :class:`IntegrationError` of the solve carries ``exc.rows`` (the likeliest culprits) and ``exc.nfe``.
 
     Returns:
         states ``(B, T, d)`` and the number of right-hand-side evaluations.
@@ -330,6 +436,10 @@ def solve(
         grid = torch.stack([rel.min(), rel.max()])  # the span
         offsets = times[:, 0]
     func = _Autonomous(field, max_steps * _EVALS_PER_STEP, what, 0.0, offsets.detach() if timed else None, box)
+    if box is not None and partial:  # the box checked at the accepted steps (_Autonomous.stop_outside)
+        width = box[1] - box[0]
+        func.stopped = torch.zeros(y0.shape[0], dtype=torch.bool, device=y0.device)
+        func.guard = (box[0] - 10.0 * width, box[1] + 10.0 * width)
     if timed and jumps is not None and method in _JUMPING:
         inner = jumps.to(grid).reshape(1, -1) - offsets.detach().to(grid).reshape(-1, 1)
         inner = torch.unique(inner[(inner > grid[0]) & (inner < grid[-1])])
@@ -348,9 +458,9 @@ def solve(
             "model has a singularity there (check G and F)"
         )
     try:
-        sol = _integrate(func, y0, rel, method, rtol, atol, options)  # (B, T, d)
-    except _StepLimit:
-        worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
+        sol = _integrate(func, y0, rel, method, rtol, atol, options, partial)  # (B, T, d)
+    except _StepLimit as exc:
+        worst, suspects = _culprits(func, box)
         raise _with_rows(
             worst,
             IntegrationError(
@@ -361,9 +471,12 @@ def solve(
                 "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
                 "explicit steps)"
             ),
+            getattr(exc, "partial", None),
+            func.nfe,
+            suspects,
         ) from None
-    except _Stalled:
-        worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
+    except _Stalled as exc:
+        worst, suspects = _culprits(func, box)
         raise _with_rows(
             worst,
             IntegrationError(
@@ -373,13 +486,16 @@ def solve(
                 f"state or derivative there: {names(worst)}. Check the model near those states, or shorten the time "
                 "span"
             ),
+            getattr(exc, "partial", None),
+            func.nfe,
+            suspects,
         ) from None
     except TorchMisspecError:  # the field's checks (G of the wrong shape, an error in the user's G): as they are
         raise
     except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
         if func.failed:  # an assertion inside the field (G, F), not the solver's
             raise
-        worst = _worst(func.last_y, func.last_f) if func.last_y is not None else []
+        worst, suspects = _culprits(func, box)
         t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
         raise _with_rows(
             worst,
@@ -388,6 +504,9 @@ def solve(
                 f"derivative there: {names(worst)}. A trajectory probably blows up or reaches a singularity of the "
                 "model: shorten the time span, start closer to the data, or check the model"
             ),
+            getattr(exc, "partial", None),
+            func.nfe,
+            suspects,
         ) from exc
     except ValueError as exc:  # an unknown method or option
         if func.failed:  # raised inside the field (G, F): not a refusal of the solver's settings
@@ -396,11 +515,14 @@ def solve(
     finite = torch.isfinite(sol).all(dim=-1).all(dim=-1)
     if not bool(finite.all()):
         bad = (~finite).nonzero().flatten().tolist()
+        reached = torch.isfinite(sol).all(dim=-1).cumprod(dim=-1).bool()  # (B, T): up to each row's last finite
         raise _with_rows(
             bad,
             IntegrationError(
                 f"{what}: the solution is not finite for {len(bad)} of {sol.shape[0]} initial condition(s) "
                 f"({names(bad)}); the trajectory blows up within the time span"
             ),
+            torch.where(reached.unsqueeze(-1), sol, math.nan) if partial else None,
+            func.nfe,
         )
     return sol, func.nfe

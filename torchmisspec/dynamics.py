@@ -72,6 +72,9 @@ class CorrectedODE(nn.Module):
             system = system.at(record.mean)
         self._known = system  # G at the parameters' posterior mean (the system itself when it has none)
         self.nfe = 0  # right-hand-side evaluations of the last predict()
+        #: ``(B,)`` booleans of the last :meth:`predict` (and :meth:`posterior`'s mean paths): the forecasts whose
+        #: solve failed before their last output time (NaN from the first output time not reached)
+        self.incomplete = None
 
     @property
     def calibration_(self):
@@ -129,7 +132,12 @@ class CorrectedODE(nn.Module):
                 conditions that stalled the solve.
 
         Returns:
-            states ``(B, T, d)`` in the GP's dtype. Raises :class:`IntegrationError` if a trajectory blows up.
+            states ``(B, T, d)`` in the GP's dtype. A forecast whose solve fails before its last output time (its
+            trajectory blows up or stalls there) keeps what was computed up to the failure and is NaN from the first
+            output time not reached: it is flagged in ``model.incomplete`` (``(B,)`` booleans) and named in one
+            :class:`~torchmisspec.TorchMisspecWarning`; the other forecasts are solved again without it.
+            Raises :class:`IntegrationError` where nothing could be computed: every forecast fails before its
+            second output time (or the method keeps nothing: only torchdiffeq's adaptive Runge-Kutta methods do).
 
         Differentiable: when ``y0`` or ``times`` requires grad, or a hyperparameter of the GP does (set
         ``requires_grad_(True)`` on its raw GPyTorch parameter, e.g. ``gp.covar_module.base_kernel.raw_lengthscale``;
@@ -137,11 +145,59 @@ class CorrectedODE(nn.Module):
         solver (torchdiffeq's direct backpropagation), so ``states.sum().backward()`` gives sensitivities.
         Otherwise no graph is built.
         """
-        return self._solve(y0, times, controls, method=method, rtol=rtol, atol=atol, options=options,
-                           max_steps=max_steps)  # fmt: skip
+        y0, times = initial_conditions_and_times(
+            y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
+        )
+        solver = dict(method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
+        return self._forecast(y0, times, self._controls(controls, y0), solver)
 
-    def _solve(self, y0, times, controls, *, box=None, **solver) -> torch.Tensor:
-        """:meth:`predict`'s solve; ``box`` stops the rows that leave it (:func:`torchmisspec._ode.solve`)."""
+    def _forecast(self, y0: torch.Tensor, times: torch.Tensor, controls, solver: dict) -> torch.Tensor:
+        """:meth:`predict`'s solves: all forecasts at once; where the solve fails, the rows it names keep what it
+        computed (NaN after) and the others are solved again together."""
+        B = y0.shape[0]
+        self.incomplete = torch.zeros(B, dtype=torch.bool)
+        out, failure, nfe = None, None, 0
+        pending = torch.arange(B, device=y0.device)
+        while pending.numel():
+            grid = times if times.dim() == 1 else times[pending]
+            u = None if controls is None else controls[pending.tolist()]
+            try:
+                states, named = self._solve(y0[pending], grid, u, partial=True, **solver), []
+                nfe += self.nfe
+            except IntegrationError as exc:
+                states = getattr(exc, "states", None)
+                named = [i for i in getattr(exc, "suspects", []) if i < pending.numel()]
+                if states is None or not named:
+                    raise
+                nfe, failure = nfe + exc.nfe, failure or exc
+            if out is None and not named:
+                return states  # the first solve succeeded
+            out = states.new_full((B, *states.shape[1:]), math.nan) if out is None else out
+            out[pending] = states
+            if not named:
+                break
+            self.incomplete[pending[named].cpu()] = True
+            keep = torch.ones(pending.numel(), dtype=torch.bool, device=pending.device)
+            keep[named] = False
+            pending = pending[keep]
+        self.nfe = nfe
+        reached = torch.isfinite(out).all(-1)  # (B, T)
+        if not bool(reached[:, 1:].any()):  # nothing beyond the initial conditions
+            raise failure
+        stopped = self.incomplete.nonzero().flatten().tolist()
+        last = [float((times if times.dim() == 1 else times[b])[int(reached[b].sum()) - 1]) for b in stopped[:5]]
+        warn(
+            f"CorrectedODE.predict: {len(stopped)} of {B} forecast(s) stop early (initial condition(s) "
+            f"{stopped[:10]}{' ...' if len(stopped) > 10 else ''}, their last output reached at t = "
+            f"{', '.join(f'{t:.4g}' for t in last)}{' ...' if len(stopped) > 5 else ''}): their states are NaN from "
+            f"the first output time not reached, flagged in model.incomplete. The solver: {str(failure)[:300]}",
+            TorchMisspecWarning,
+        )
+        return out
+
+    def _solve(self, y0, times, controls, *, box=None, partial=False, **solver) -> torch.Tensor:
+        """One batched solve of the corrected model; ``box`` stops the rows that leave it, and with ``partial`` a
+        failure carries what was computed (:func:`torchmisspec._ode.solve`)."""
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
@@ -157,7 +213,15 @@ class CorrectedODE(nn.Module):
         field, timed, jumps = self.system.solver_field(rhs, controls)
         with torch.set_grad_enabled(_wants_graph(y0, times) or hyper):
             states, self.nfe = solve(
-                field, y0, times, what="CorrectedODE.predict", timed=timed, jumps=jumps, box=box, **solver
+                field,
+                y0,
+                times,
+                what="CorrectedODE.predict",
+                timed=timed,
+                jumps=jumps,
+                box=box,
+                partial=partial,
+                **solver,
             )
         return states
 
@@ -226,12 +290,22 @@ class CorrectedODE(nn.Module):
                 from the data is never integrated, so a calibrated posterior cannot stall where the GP's own
                 does not (integrating F_c with c = 8 made the solver stall in the issue's trial).
 
+        Diverging draws: a sampled path that leaves the region of the data (``posterior.region``: the box of the
+        initial conditions, the mean paths and the GP's observed states widened ten times its width on each side,
+        as the design's corrected proxies are) is stopped there in the one batched solve (never integrated to the
+        step limit), and is NaN from its first output time outside it; one that stalls inside it keeps what was
+        computed (NaN after) and the others are solved again together. One
+        :class:`~torchmisspec.TorchMisspecWarning` names how many draws left and from which initial conditions; the
+        bands, mean and quantiles come from the draws that remain (:class:`TrajectoryPosterior`), and
+        ``posterior.fraction_remaining`` is the fraction of each initial condition's draws that stayed to the end.
+
         Returns:
             :class:`TrajectoryPosterior`.
 
         Raises:
-            IntegrationError: a sampled path (or a mean path) blows up; the message names which draw and which
-                initial condition.
+            IntegrationError: the mean path cannot be computed beyond the initial conditions (:meth:`predict`; one
+                that fails later is NaN from there, with a warning), or a sampled path fails where the solver names
+                no culprit.
 
         Paths are differentiable with respect to ``y0`` and ``times`` when they require grad (the draws
         themselves are fixed functions: gradients in the hyperparameters go through :meth:`predict` only).
@@ -292,20 +366,12 @@ class CorrectedODE(nn.Module):
         settings = dict(
             method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, timed=timed, jumps=jumps
         )
+        region = _region(y0, mean_path, self.gp)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
-            paths, nfe, diverged = _solve_draws(field, y0.repeat(S, 1), grid, settings, B)
-        self.nfe = nfe
-        if diverged:
-            rows = sorted(diverged)
-            warn(
-                f"CorrectedODE.posterior: {len(rows)} of {S * B} sampled paths cannot be integrated to the end (draw, "
-                f"initial condition: {', '.join(f'({i // B}, {i % B})' for i in rows[:8])}"
-                f"{' ...' if len(rows) > 8 else ''}): under those draws of F the trajectory blows up or stalls. They "
-                "are NaN from then on, and the bands treat them as unbounded (a band they reach is infinite): the "
-                "correction's posterior allows diverging trajectories there. Shorten the time span, or collect data "
-                "nearer those states",
-                TorchMisspecWarning,
-            )
+            paths, self.nfe, stopped = _solve_draws(field, y0.repeat(S, 1), grid, settings, B, region)
+        left = torch.isnan(paths).any(-1).any(-1).reshape(S, B)  # the draws that left the region, or stalled in it
+        if bool(left.any()):
+            _warn_left(left, stopped)
         times_out = times if times.dim() == 2 else times.expand(B, -1)
         support = self._support(mean_path.detach(), None if controls is None else controls.at(times_out.detach()))
         extrapolating = support.amax(dim=-1) > threshold
@@ -331,6 +397,8 @@ class CorrectedODE(nn.Module):
             threshold=threshold,
             update_error=draws.update_error,
             state_names=self.system.state_names,
+            fraction_remaining=1.0 - left.to(y0.dtype).mean(0),
+            region=region,
         )
 
     def initial_states(self, trajectories) -> torch.Tensor:
@@ -426,87 +494,95 @@ class _Mixture:
         return torch.cat(out)
 
 
-def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: int):
-    """All sampled paths in one batched solve. Where it fails (under some draw of F a path blows up or stalls), the
-    row the solver names as the likeliest culprit is integrated alone: if it fails alone too, it is integrated as far
-    as it goes (the longest prefix of its output times that succeeds, by bisection) and is NaN after, and the others
-    are solved again without it; if it does not, the rows are halved until the failing ones are alone. Returns
-    ``(paths (S B, T, d), right-hand-side evaluations, the failing rows)``."""
-    nfe = 0
-    diverged: list[int] = []
-    n_rows = y0.shape[0]
+def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lo, hi)`` ``(d,)``: where :meth:`CorrectedODE.posterior`'s draws stay: the box of the initial conditions,
+    the mean paths (where computed) and the GP's observed states (``gp.samples_.states``, when recorded) widened
+    :data:`~torchmisspec.design._proxy.ESCAPE_WIDTHS` times its width on each side, as the design's corrected proxies
+    are (:func:`~torchmisspec.design._proxy.escape_box`)."""
+    from .design._proxy import escape_box
 
+    d = y0.shape[-1]
+    points = [y0.detach(), mean_path.detach().reshape(-1, d)]
+    states = getattr(getattr(gp, "samples_", None), "states", None)
+    if isinstance(states, torch.Tensor) and states.dim() == 2 and states.shape[-1] == d:
+        points.append(states.detach().to(y0))
+    points = torch.cat(points)
+    return escape_box(points[torch.isfinite(points).all(-1)])
+
+
+def _warn_left(left: torch.Tensor, stopped: list[int]) -> None:
+    """One warning naming the draws ``left (S, B)`` that did not remain in the region to the end (``stopped``: the
+    rows, ``s * B + b``, of those that stalled inside it)."""
+    from .design._proxy import ESCAPE_WIDTHS
+
+    S, B = left.shape
+    per = left.sum(0).tolist()
+    by = ", ".join(f"{b}: {n} of {S}" for b, n in enumerate(per) if n)
+    stalled = f"; {len(stopped)} of them stalled inside it instead" if stopped else ""
+    warn(
+        f"CorrectedODE.posterior: {int(left.sum())} of {S * B} sampled paths left the region (the box of the data, "
+        f"the initial conditions and the mean paths widened {ESCAPE_WIDTHS:g} times its width on each side: "
+        f"posterior.region) and were stopped there{stalled}; by initial condition: {by[:400]}. Under those draws of F "
+        "the trajectory diverges. Their paths are NaN from the first output time outside the region, and the "
+        "bands, mean and quantiles come from the draws that remain (posterior.fraction_remaining: the fraction of "
+        "each initial condition's draws that stayed to the end; where too few remain for a band's level, its "
+        "entries are NaN, with a warning). Shorten the time span, or collect data nearer those states",
+        TorchMisspecWarning,
+    )
+
+
+def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: int, box):
+    """All sampled paths in one batched solve that stops a path where it leaves ``box`` (its derivative 0 from
+    there: a diverging draw never holds the batch's steps back to the step limit). Where the solve still fails (a
+    path stalls inside the box), the rows the solver names keep what it computed up to the failure and the others
+    are solved again together. Returns ``(paths (S B, T, d), NaN from the first output time outside the box or not
+    reached; right-hand-side evaluations of every solve, failed ones included; the rows that stalled)``."""
+    n_rows, T = y0.shape[0], grid.shape[-1]
     timed = settings.get("timed", False)
+    paths = y0.new_full((n_rows, T, y0.shape[-1]), math.nan)
+    stopped: list[int] = []
+    nfe = 0
+    pending = torch.arange(n_rows, device=y0.device)
+    while pending.numel():
+        rows = pending
 
-    def run(rows: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
-        nonlocal nfe
-        sub = times if times.dim() == 1 else times[rows]
-
-        def part(*args: torch.Tensor) -> torch.Tensor:  # the rows' own draws: field sees the whole batch's layout
-            y = args[-1]
-            full = y0.new_zeros(y0.shape).index_copy(0, rows, y)
+        def part(*args: torch.Tensor, rows=rows) -> torch.Tensor:  # the rows' own draws: field sees the whole batch
+            full = y0.new_zeros(y0.shape).index_copy(0, rows, args[-1])
             if not timed:
                 return field(full)[rows]
             t = args[0].new_zeros(n_rows).index_copy(0, rows, args[0])  # the other rows' times are not read
             return field(t, full)[rows]
 
-        out, n = solve(
-            field if rows.numel() == n_rows else part,
-            y0[rows],
-            sub,
-            what="CorrectedODE.posterior",
-            label=lambda i: f"draw {int(rows[i]) // B} of initial condition {int(rows[i]) % B}",
-            **settings,
-        )
-        nfe += n
-        return out
-
-    def alone(row: torch.Tensor) -> tuple[torch.Tensor, bool]:
-        """The one path of ``row`` (1,) as far as it integrates (NaN after), and whether it stops early."""
-        T = grid.shape[-1]
-        lo, hi, best = 1, T, y0[row].unsqueeze(1)  # the first output time is the initial condition itself
-        while lo < hi:
-            mid = (lo + hi + 1) // 2
-            try:
-                best = run(row, grid[..., :mid])
-                lo = mid
-            except IntegrationError:
-                hi = mid - 1
-        out = y0.new_full((1, T, y0.shape[-1]), math.nan)
-        out[:, : best.shape[1]] = best
-        if lo < T:
-            diverged.append(int(row[0]))
-        return out, lo < T
-
-    def paths_of(rows: torch.Tensor) -> torch.Tensor:
-        out = y0.new_empty((rows.numel(), grid.shape[-1], y0.shape[-1]))
-        todo = torch.arange(rows.numel(), device=rows.device)
-        while todo.numel():
-            try:
-                out[todo] = run(rows[todo], grid)
-                break
-            except IntegrationError as exc:
-                named = [i for i in getattr(exc, "rows", []) if i < todo.numel()]
-                stopped = False
-                for i in named:  # the rows the solver names, each alone (those that integrate are done too)
-                    out[todo[i]], early = alone(rows[todo[i : i + 1]])
-                    stopped = stopped or early
-                if not stopped:  # none of the named rows is at fault alone: halve
-                    rest = todo[[i for i in range(todo.numel()) if i not in named]]
-                    if rest.numel() == 0:
-                        break
-                    half = rest.numel() // 2
-                    if half:
-                        out[rest[:half]] = paths_of(rows[rest[:half]])
-                    out[rest[half:]] = paths_of(rows[rest[half:]]) if rest.numel() > 1 else alone(rows[rest])[0]
-                    break
-                keep = torch.ones(todo.numel(), dtype=torch.bool, device=todo.device)
-                keep[named] = False
-                todo = todo[keep]
-        return out
-
-    paths = paths_of(torch.arange(n_rows, device=y0.device))
-    return paths, nfe, diverged
+        try:
+            out, n = solve(
+                field if rows.numel() == n_rows else part,
+                y0[rows],
+                grid if grid.dim() == 1 else grid[rows],
+                what="CorrectedODE.posterior",
+                label=lambda i, rows=rows: f"draw {int(rows[i]) // B} of initial condition {int(rows[i]) % B}",
+                box=box,
+                partial=True,
+                **settings,
+            )
+            nfe += n
+            paths[rows] = out
+            break
+        except IntegrationError as exc:
+            named = [i for i in getattr(exc, "suspects", []) if i < rows.numel()]
+            if not named:
+                raise
+            nfe += exc.nfe
+            if exc.states is not None:  # the others are solved again; the named keep what was computed
+                paths[rows] = exc.states
+            else:  # a method that keeps nothing: the named rows are their initial conditions alone
+                paths[rows[named], 0] = y0[rows[named]]
+            stopped.extend(rows[named].tolist())
+            keep = torch.ones(rows.numel(), dtype=torch.bool, device=rows.device)
+            keep[named] = False
+            pending = rows[keep]
+    lo, hi = (b.to(paths) for b in box)
+    outside = ((paths < lo) | (paths > hi)).any(-1).cumsum(-1) > 0  # (S B, T): from the first output outside
+    return paths.masked_fill(outside.unsqueeze(-1), math.nan), nfe, stopped
 
 
 def _wants_graph(*tensors: torch.Tensor) -> bool:

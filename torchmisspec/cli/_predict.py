@@ -96,7 +96,9 @@ def _predict(args: argparse.Namespace) -> int:
         for name in read.state_names:
             header += [f"{name}_mean", f"{name}_lower", f"{name}_upper"]
     write_csv(out, header, rows)
-    unbounded = int((~torch.isfinite(lower) | ~torch.isfinite(upper)).sum())
+    missing = int((torch.isnan(lower) | torch.isnan(upper)).sum())  # too few draws remain there
+    stopped = int(model.incomplete.sum()) if model.incomplete is not None else 0  # mean paths that stop early
+    left = int((post.fraction_remaining < 1).sum())
     band = f"the central {args.level:.0%} band" + (
         f", calibrated (scale {model.calibration_.scale:.3g}, saved in {args.model})"
         if calibrated
@@ -105,7 +107,14 @@ def _predict(args: argparse.Namespace) -> int:
     print(
         f"predicted {y0.shape[0]} trajectories x {times.numel()} times with {band} from {args.samples} posterior "
         f"draws; written to {out}"
-        + (f"; {unbounded} band entries are unbounded (diverging draws)" if unbounded else "")
+        + (
+            f"; draws of {left} initial condition(s) left the region (at least "
+            f"{float(post.fraction_remaining.min()):.0%} remain): their bands are of the draws that remain"
+            if left
+            else ""
+        )
+        + (f"; {missing} band entries are empty (NaN: too few draws remain there)" if missing else "")
+        + (f"; {stopped} mean path(s) stop early (NaN from there)" if stopped else "")
     )
     if not calibrated:
         print(
