@@ -69,6 +69,7 @@ def test_a_correction_that_helps_is_kept():
     system = tms.MisspecifiedSystem(lambda y: -0.1 * y, 1, name="decay")
     with warnings.catch_warnings():
         warnings.simplefilter("error", tms.TorchMisspecWarning)
+        warnings.filterwarnings("ignore", message="fit_correction: noise 'relative'")  # the default's message
         gp = tms.fit_correction(data, system, progress=False)
     assert not getattr(gp, "known_model_", False)
 

@@ -239,7 +239,7 @@ def test_given_candidates_are_never_silently_replaced(one_thread, monkeypatch):
     assert gp.kernel == "polynomial" and gp.cross_validation_.scores == (float("inf"),)
 
 
-def _fail_held_out(system, trajectories, field=None):
+def _fail_held_out(system, trajectories, field=None, noise=None):
     if field is None:  # the known model's baseline
         return torch.ones(trajectories.num_experiments, dtype=DT)
     raise tms.IntegrationError("made to fail")

@@ -18,7 +18,7 @@ Typical use::
 from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
 from importlib.metadata import version as _version
 
-from . import design, metrics, parallel, parameters, signals, systems
+from . import design, metrics, noise, parallel, parameters, signals, systems
 from ._errors import (
     BudgetError,
     FittingError,
@@ -83,6 +83,7 @@ __all__ = [
     "integrated_error",
     "integrated_norm",
     "metrics",
+    "noise",
     "parallel",
     "parameters",
     "signals",

@@ -100,22 +100,32 @@ def _weights(res: torch.Tensor, comp: torch.Tensor, U: torch.Tensor, d: int):
 
 
 def refine_through_ode(
-    system, gp, trajectories, posterior, *, iterations: int = ITERATIONS, num_draws: int = DRAWS, generator=None
+    system,
+    gp,
+    trajectories,
+    posterior,
+    *,
+    iterations: int = ITERATIONS,
+    num_draws: int = DRAWS,
+    generator=None,
+    noise=None,
 ):
     """theta's posterior from the observed states (the module's notes), starting at ``posterior`` (the closed form,
-    ``gp`` conditioned at its mean). Returns the refined :class:`~torchmisspec.parameters.ParameterPosterior`, or
+    ``gp`` conditioned at its mean); the residuals those of the :class:`~torchmisspec.noise.NoiseModel` ``noise``
+    (default: the differences). Returns the refined :class:`~torchmisspec.parameters.ParameterPosterior`, or
     ``posterior`` unchanged (with a warning) when the trajectories cannot be integrated near it."""
+    transform = (lambda y: y) if noise is None else noise.transform
     _, states, mask = trajectories.padded()
     observed = mask.unsqueeze(-1) & ~torch.isnan(states)  # (K, T, d)
     observed[:, 0] = False  # the first state is where each solve starts
-    target = states[observed]
+    target = transform(states[observed])
     comp = torch.arange(states.shape[-1], device=states.device).expand_as(states)[observed]
     exp = torch.arange(states.shape[0], device=states.device).view(-1, 1, 1).expand_as(states)[observed]
     prior_mean, prior_var = posterior.prior_mean, posterior.prior_scale**2
     step = (0.05 * posterior.stddev).clamp_min(1e-6 * posterior.prior_scale)
 
     def predict(thetas, draws=None):  # (V, n): the observed entries under each theta
-        return _predict(system, gp, posterior, trajectories, thetas, draws)[:, observed]
+        return transform(_predict(system, gp, posterior, trajectories, thetas, draws)[:, observed])
 
     def penalty(theta):
         return float(((theta - prior_mean) ** 2 / prior_var).sum())
@@ -180,14 +190,14 @@ def refine_through_ode(
     return dataclasses.replace(posterior, mean=theta, covariance=0.5 * (cov + cov.T))
 
 
-def fit_parameters(gp, samples, system, trajectories, delta=None):
+def fit_parameters(gp, samples, system, trajectories, delta=None, noise=None):
     """``(gp conditioned at theta's posterior mean, the samples there)``, the posterior (``gp.parameters_``) in
     closed form from the derivative samples (:func:`~torchmisspec.parameters.condition_with_parameters`), then
     refined through the ODE on ``trajectories`` (:func:`refine_through_ode`); ``gp`` has the hyperparameters to
-    use and was trained on ``samples``' inputs, ``system`` declares the parameters."""
+    use and was trained on ``samples``' inputs, ``system`` declares the parameters, ``noise`` the residuals."""
     outputs = system.correction_outputs
     gp, moved = condition_with_parameters(gp, samples, system, delta)
-    refined = refine_through_ode(system, gp, trajectories, gp.parameters_)
+    refined = refine_through_ode(system, gp, trajectories, gp.parameters_, noise=noise)
     if refined is gp.parameters_:
         return gp, moved
     moved = moved.linearized(system, refined.mean, outputs).shifted(refined.mean - refined.prior_mean, outputs)

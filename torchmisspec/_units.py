@@ -244,6 +244,8 @@ def fit_in_units(fit, trajectories: Trajectories, system, *, gp, candidates, est
             return None
         extra["noise_std"] = noise_std / common
     given = {"gp": inner[0]} if candidates is None else {"candidates": inner}
+    if options.get("noise") is not None:  # residuals whose unit matters (counts) in the data's units
+        options = {**options, "noise": options["noise"].in_units(units.state)}
     with _inside():
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

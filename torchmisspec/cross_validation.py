@@ -130,15 +130,30 @@ def student_t_quantile(p: float, df: int) -> float:
     return z + g1 / v + g2 / v**2 + g3 / v**3 + g4 / v**4
 
 
-def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, field=None) -> torch.Tensor:
-    """``(K,)`` sums of squared errors of a model from each experiment's first observed state over its own times.
+def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, field=None, noise=None) -> torch.Tensor:
+    """``(K,)`` sums of squared :func:`predicted_residuals` (0 where not observed; ``inf`` where G alone cannot be
+    integrated over an experiment)."""
+    r = predicted_residuals(system, trajectories, field, noise)
+    if r is None:  # G alone diverges: each experiment alone
+        rtol, atol = FITTING_TOLERANCES
+        each = simulate_known_each(system, trajectories, rtol=rtol, atol=atol)
+        out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
+        for k, ((_, y), pred) in enumerate(zip(trajectories.experiments(), each, strict=True)):
+            out[k] = math.inf if pred is None else float(_residuals(noise, y, pred).nan_to_num(nan=0.0).pow(2).sum())
+        return out
+    return r.nan_to_num(nan=0.0).pow(2).sum((-1, -2)).detach().cpu().to(torch.float64)
+
+
+def predicted_residuals(system: MisspecifiedSystem, trajectories: Trajectories, field=None, noise=None):
+    """``(K, T, d)`` residuals of a model's prediction from each experiment's first observed state over its own times
+    (those of the :class:`~torchmisspec.noise.NoiseModel` ``noise``, default the differences; NaN where a state was
+    not observed or an experiment has ended; ``None`` when G alone cannot be integrated over them together).
 
     ``field(y, rows, t, u)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each
     experiment may have its own model: the folds of the cross-validation), at times ``t`` and controls ``u`` (``None``
     for an autonomous system); ``None``: the known model G alone. One batched solve of every experiment (ragged ones
     on their own times, padded at their end), each under its own controls."""
     rtol, atol = FITTING_TOLERANCES
-    out = torch.empty(trajectories.num_experiments, dtype=torch.float64)
     times, states, mask = trajectories.padded()
     first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
     if times.dim() == 1:
@@ -148,13 +163,8 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
         known, timed, jumps = system.solver_field(system.known_rhs, controls)
         try:
             pred = solve(known, first, times, rtol=rtol, atol=atol, what="the known model", timed=timed, jumps=jumps)[0]
-        except IntegrationError:
-            # the known model alone diverges from some of these states (what a correction may exist to fix):
-            # each experiment alone, and an infinite error where G cannot be integrated
-            each = simulate_known_each(system, trajectories, rtol=rtol, atol=atol)
-            for k, ((_, y), pred) in enumerate(zip(trajectories.experiments(), each, strict=True)):
-                out[k] = math.inf if pred is None else float((pred - y).nan_to_num(nan=0.0).pow(2).sum())
-            return out
+        except IntegrationError:  # the known model alone diverges from some of these states (what F may fix)
+            return None
     else:
         rows = torch.arange(states.shape[0], device=states.device)
         model, timed, jumps = system.solver_field(lambda y, t, u: field(y, rows, t, u), controls)
@@ -169,8 +179,14 @@ def _held_out_errors(system: MisspecifiedSystem, trajectories: Trajectories, fie
             timed=timed,
             jumps=jumps,
         )
-    sq = (pred - states).nan_to_num(nan=0.0).pow(2).sum(-1) * mask  # missing entries (NaN) are not compared
-    return sq.sum(-1).detach().cpu().to(torch.float64)
+    r = _residuals(noise, states, pred)
+    return torch.where(mask.unsqueeze(-1), r, torch.full_like(r, math.nan))  # missing entries: not compared
+
+
+def _residuals(noise, observed: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
+    """The residuals of ``noise`` (a NaN observation stays NaN; a non-finite prediction gives an infinite one)."""
+    r = predicted - observed if noise is None else noise.residuals(observed, predicted)
+    return torch.where(torch.isnan(observed) | torch.isfinite(r), r, torch.full_like(r, math.inf))
 
 
 def _check_candidates(candidates) -> list:
@@ -245,6 +261,7 @@ def cross_validate(
     *,
     folds: int = 5,
     progress: bool = False,
+    noise=None,
 ) -> tuple[CrossValidation, list[CorrectionGP | None]]:
     """Score candidate correction models by how well the corrected model predicts held-out experiments.
 
@@ -261,6 +278,7 @@ def cross_validate(
         candidates: unfitted :class:`CorrectionGP` templates.
         folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
         progress: show a progress bar over the candidates.
+        noise: the :class:`~torchmisspec.noise.NoiseModel` whose residuals are scored (default: the differences).
 
     Returns:
         ``(CrossValidation, models)``: the scores, and each candidate fitted on all samples (``None`` where the fit
@@ -286,17 +304,18 @@ def cross_validate(
                 for f in range(folds):
                     held = [k for k in range(K) if fold_of[k] == f]
                     keep = ~torch.isin(experiment, torch.tensor(held, device=experiment.device))
-                    noise = None if samples.noise is None else samples.noise[keep]
-                    fold_gp = full.condition(samples.inputs[keep], samples.targets[keep], noise=noise)
+                    kept_noise = None if samples.noise is None else samples.noise[keep]
+                    fold_gp = full.condition(samples.inputs[keep], samples.targets[keep], noise=kept_noise)
                     alphas[f, keep] = fold_gp.posterior().weights  # (N_f, d_out)
-                errors = _held_out_errors(system, trajectories, _fold_field(system, full, alphas, folds_t))
+                field = _fold_field(system, full, alphas, folds_t)
+                errors = _held_out_errors(system, trajectories, field, noise)
         except (IntegrationError, FittingError, LinearAlgebraError):
             errors.fill_(math.inf)
         scores.append(float(errors.sum()))
         per_experiment.append(errors)
         models.append(full)
     bar.close()
-    base = _held_out_errors(system, trajectories)
+    base = _held_out_errors(system, trajectories, noise=noise)
     i = min(range(len(scores)), key=scores.__getitem__)
     tiny = torch.finfo(torch.float64).tiny
     ratio = base.clamp_min(tiny) / per_experiment[i].clamp_min(tiny)

@@ -15,6 +15,8 @@ import copy
 import math
 import warnings
 
+import torch
+
 from ._errors import (
     FittingError,
     InputError,
@@ -34,12 +36,14 @@ from .cross_validation import (
     _check_cv_inputs,
     _held_out_errors,
     cross_validate,
+    predicted_residuals,
 )
 from .data import Trajectories
 from .gp import CorrectionGP
 from .gp._exact import median_distance
 from .gp._features import FEATURE_DEGREE
 from .gp._selection import fit_and_score
+from .noise import as_noise_model
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .parameters import posterior_given
 from .partial import fit_partly_measured
@@ -243,7 +247,7 @@ def known_model_template(samples: CorrectionSamples) -> CorrectionGP:
     )
 
 
-def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored):
+def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored, noise):
     """``(model, its held-out score or None)``: the known model with its uncertain parameters fitted (F = 0; as
     :func:`fit_correction` fits them under a correction: the closed form from the samples, then through the ODE on
     the trajectories) as a fitted :class:`CorrectionGP` (:func:`known_model_template`); its score is the sum of
@@ -255,16 +259,16 @@ def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectorie
     posterior, samples = _parameter_passes(raw, system, template)
     samples = samples.shifted(posterior.mean - system.theta, system.correction_outputs)
     model, _ = fit_parameters(template.clone().fit(samples), samples, system, trajectories,
-                              posterior.mean - posterior.prior_mean)  # fmt: skip
-    score = float(_held_out_errors(system.at(model.parameters_.mean), scored).sum())
+                              posterior.mean - posterior.prior_mean, noise)  # fmt: skip
+    score = float(_held_out_errors(system.at(model.parameters_.mean), scored, noise=noise).sum())
     return model, score
 
 
-def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored):
+def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
     """The known model (:func:`_known_model`, scored on the cross-validation's data ``scored``) when no candidate
     predicts the held-out experiments better than it (``None`` otherwise), with a warning saying so."""
     try:
-        model, score = _known_model(raw, system, trajectories, scored)
+        model, score = _known_model(raw, system, trajectories, scored, noise)
     except (FittingError, LinearAlgebraError, IntegrationError):
         return None
     # the known model alone: at the parameters of the choice (the baseline) or at its own, whichever predicts better
@@ -283,6 +287,37 @@ def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored):
     return model
 
 
+def noise_scale(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> torch.Tensor:
+    """``(d,)``: each component's root mean square residual (:class:`~torchmisspec.noise.NoiseModel` ``noise``'s) of
+    the fitted model's mean prediction of every experiment from its first state (its estimated initial states where
+    the data lack them), over the measurements after the first: the measurement noise and what the model misses, as
+    one scale per component (NaN for a component with no such measurement)."""
+    at = system if getattr(gp, "parameters_", None) is None else system.at(gp.parameters_.mean)
+    y0 = getattr(gp, "initial_states_", None)
+    data = trajectories if y0 is None else trajectories.with_initial_states(y0)
+    mean = gp.posterior()
+
+    def field(y, rows, t=None, u=None):
+        x = at.select_inputs(y, u).to(device=gp.device, dtype=gp.dtype)
+        return at.known_rhs(y, t, u) + at.embed(mean.mean(x, check=False).to(y))
+
+    r = predicted_residuals(at, data, field, noise)[:, 1:]  # the first row is where each prediction starts
+    seen = ~torch.isnan(r)
+    count = seen.sum((0, 1))
+    total = r.nan_to_num(nan=0.0).pow(2).sum((0, 1))
+    return torch.where(count > 0, (total / count.clamp_min(1)).sqrt(), torch.full_like(total, math.nan)).detach()
+
+
+def _recorded(result: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> CorrectionGP:
+    """``result`` with ``noise_`` and ``noise_scale_`` (:func:`noise_scale`, ``None`` where it cannot be computed)."""
+    result.noise_ = noise
+    try:
+        result.noise_scale_ = noise_scale(result, system, trajectories, noise)
+    except (IntegrationError, LinearAlgebraError):
+        result.noise_scale_ = None
+    return result
+
+
 @adaptive_threads()
 def fit_correction(
     trajectories: Trajectories,
@@ -295,6 +330,7 @@ def fit_correction(
     folds: int = 5,
     refine: bool | None = None,
     progress: bool = True,
+    noise="auto",
     **estimator,
 ) -> CorrectionGP:
     """Learn the correction from observed states: samples, a model chosen among candidates, optionally refined.
@@ -359,6 +395,13 @@ def fit_correction(
     feature space, see :class:`CorrectionGP`): the choice costs what it costs at that size, whatever N. ``progress``
     (default on) shows bars over the candidates and the refinement's rounds; ``progress=False`` is silent.
 
+    **Noise**: ``noise`` (:mod:`torchmisspec.noise`: ``"auto"``, ``"additive"``, ``"relative"``, ``"counts"``, or a
+    :class:`~torchmisspec.noise.NoiseModel`) says in which space the measurement errors are alike; the held-out
+    predictions are scored and G's uncertain parameters fitted through the ODE with its residuals (logs for
+    ``"relative"``). ``"auto"`` takes relative errors for positive states spanning a factor of 5 or more, and says
+    so. ``result.noise_`` records the model used, ``result.noise_scale_`` (:func:`noise_scale`) the scale of the
+    fitted model's residuals in its space (for bands of new measurements).
+
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
         :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
@@ -366,15 +409,18 @@ def fit_correction(
     _check_trajectories_and_system(trajectories, system)
     refine = check_flag(refine, "refine", none=True)
     check_flag(progress, "progress")
-    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress)
+    noise = as_noise_model(noise, trajectories, announce="fit_correction")
+    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
     scaled = fit_in_units(
         fit_correction, trajectories, system, gp=gp, candidates=candidates, estimator=estimator, **options
     )
     if scaled is not None:  # fitted in the data's own units, returned in the user's (torchmisspec._units)
-        return scaled
+        return _recorded(scaled, system, trajectories, noise)
     if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
-        return fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)
+        options["noise"] = noise
+        result = fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)
+        return _recorded(result, system, trajectories, noise)
     system0 = system
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
@@ -413,15 +459,17 @@ def fit_correction(
                 candidates = [gp]
         if scored is not trajectories:  # the pieces of one experiment, each its own fold
             folds = scored.num_experiments
-        cv, models = cross_validate(system, scored, chooser, candidates, folds=folds, progress=progress)
+        cv, models = cross_validate(system, scored, chooser, candidates, folds=folds, progress=progress, noise=noise)
         result = models[cv.index] if math.isfinite(min(cv.scores)) else None
         if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
             result = copy.deepcopy(candidates[cv.index]).fit(samples)
-        known = None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories, scored)
+        known = (
+            None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories, scored, noise)
+        )
         if known is not None:
             known.cross_validation_, known.samples_ = cv, raw
             known.input_names_ = system0.input_names(trajectories)
-            return known
+            return _recorded(known, system0, trajectories, noise)
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
@@ -454,7 +502,7 @@ def fit_correction(
             result.model_selection_ = selection
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
         delta = posterior.mean - posterior.prior_mean
-        result, samples = fit_parameters(result, samples, system0, trajectories, delta)
+        result, samples = fit_parameters(result, samples, system0, trajectories, delta, noise)
         result.parameters_.warn_if_unidentified("fit_correction")
         if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
             found = result.parameters_
@@ -463,4 +511,4 @@ def fit_correction(
     result.cross_validation_ = cv
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
-    return result
+    return _recorded(result, system0, trajectories, noise)

@@ -500,6 +500,8 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
             "or refit with refine=True (F then matches the measured states through the ODE)",
         )
         warnings.warn_explicit(text, w.category, w.filename, w.lineno)
+    if getattr(result, "known_model_", False):  # no correction chosen (do no harm): F = 0 stays 0
+        refine = False
     if refine is None:  # fit_correction's rule (the feature kernel's terms are re-learned through the ODE), and any
         # model whose samples rest on the first model's paths (F on, or of, a state not measured directly)
         spec = result.kernel_spec

@@ -76,15 +76,19 @@ def _fit(args: argparse.Namespace) -> int:
     system = load_system(args.system)
     _state_noise(args.state_noise, system)
     observed = read_observations(args, system)
+    refine = True if args.refine else None
     gp = fit_correction(
-        observed, system, derivative=args.derivative, refine=True if args.refine else None, progress=not args.quiet
+        observed, system, derivative=args.derivative, refine=refine, progress=not args.quiet, noise=args.noise
     )
     cv = gp.cross_validation_
     times = f"{min(observed.lengths)}-{max(observed.lengths)}" if observed.is_ragged else str(observed.num_times)
     print(
         f"fitted the correction of '{system.name}' on {len(gp.samples_)} samples ({observed.num_experiments} "
-        f"experiments x {times} times, derivative {args.derivative!r}): {gp!r}"
+        f"experiments x {times} times, derivative {args.derivative!r}, noise {gp.noise_.name!r}): {gp!r}"
     )
+    if getattr(gp, "known_model_", False):
+        fitted = ", its parameters fitted" if system.parameters is not None else ""
+        print(f"kept the known model alone (F = 0{fitted}): no correction predicted the held-out data better")
     if cv is not None:
         # partly measured data: the held-out errors compare with the data completed by the first fitted model
         where = "" if getattr(gp, "identifiability_", None) is None else " (on the data completed through the ODE)"
@@ -184,6 +188,14 @@ def add_fit(sub) -> None:
         default="auto",
         help="how dy/dt is estimated from the states: auto (default: the estimator whose self-check on the known "
         "model is best), central, smooth, gp (a Gaussian process in time)",
+    )
+    fit.add_argument(
+        "--noise",
+        default="auto",
+        choices=["auto", "additive", "relative", "counts"],
+        help="how the states' errors are alike, for the model choice and the parameters' fit: additive (one size), "
+        "relative (log-normal, positive states), counts; auto (default): relative when every measured state is "
+        "positive and spans a factor of 5 or more, additive otherwise",
     )
     fit.add_argument("--refine", action="store_true", help="always refine the correction through the ODE")
     fit.add_argument("--no-calibrate", action="store_true", help="save the model without calibrating its bands")

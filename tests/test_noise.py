@@ -1,0 +1,106 @@
+"""Issue 41, noise as measured: the noise models' residuals (closed forms), the automatic choice and its message,
+their checks, and what they change in fit_correction (scale-free model choice and parameter fit)."""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.noise import Additive, Counts, Relative, as_noise_model
+
+DT = torch.float64
+
+
+def _data(values):
+    v = torch.tensor(values, dtype=DT)
+    return tms.Trajectories(torch.arange(v.shape[0], dtype=DT), v[None, :, None])
+
+
+def test_residuals_are_the_closed_forms():
+    obs, pred = torch.tensor([2.0, 10.0, float("nan")], dtype=DT), torch.tensor([1.0, 20.0, 3.0], dtype=DT)
+    torch.testing.assert_close(Additive().residuals(obs, pred)[:2], torch.tensor([1.0, -10.0], dtype=DT))
+    torch.testing.assert_close(
+        Relative().residuals(obs, pred)[:2], torch.tensor([math.log(2), math.log(0.5)], dtype=DT)
+    )
+    torch.testing.assert_close(
+        Counts().residuals(obs, pred)[:2], torch.tensor([math.log(3 / 2), math.log(11 / 21)], dtype=DT)
+    )
+    assert torch.isnan(Relative().residuals(obs, pred)[2])
+    # a prediction at or below 0 is far off in logs, never NaN
+    assert float(Relative().residuals(torch.tensor([1.0], dtype=DT), torch.tensor([-1.0], dtype=DT))) > 700
+
+
+def test_counts_in_the_datas_units_are_the_same_counts():
+    y, scale = torch.tensor([[0.0, 30.0], [120.0, 7.0]], dtype=DT), torch.tensor([100.0, 10.0], dtype=DT)
+    torch.testing.assert_close(Counts().in_units(scale).transform(y / scale), Counts().transform(y))
+    assert Relative().in_units(scale) == Relative()
+
+
+def test_auto_is_relative_for_positive_states_spanning_a_factor_and_says_so():
+    with pytest.warns(tms.TorchMisspecWarning, match="noise 'relative'.*pass noise='additive'"):
+        assert as_noise_model("auto", _data([3.0, 9.0, 30.0]), announce="fit_correction") == Relative()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert as_noise_model("auto", _data([3.0, 4.0, 5.0]), announce="fit_correction") == Additive()  # 1.7x
+        assert as_noise_model("auto", _data([-1.0, 4.0, 50.0]), announce="fit_correction") == Additive()
+
+
+def test_a_starting_value_that_is_not_measured_does_not_decide():
+    """Influenza: R = 0 is given on day 0 only (not measured), I is measured and positive: relative noise."""
+    states = torch.full((1, 6, 2), float("nan"), dtype=DT)
+    states[0, :, 0] = torch.tensor([1.0, 3.0, 25.0, 75.0, 228.0, 296.0], dtype=DT)
+    states[0, 0, 1] = 0.0
+    data = tms.Trajectories(torch.arange(6, dtype=DT), states)
+    assert as_noise_model("auto", data) == Relative() and as_noise_model("relative", data) == Relative()
+
+
+def test_bad_noise_is_refused_with_the_fix():
+    with pytest.raises(tms.InputError, match="expected positive measurements for relative.*noise='counts'"):
+        as_noise_model("relative", _data([0.0, 1.0, 2.0]))
+    with pytest.raises(tms.InputError, match="expected counts \\(0 or more\\)"):
+        as_noise_model("counts", _data([-1.0, 1.0, 2.0]))
+    with pytest.raises(tms.InputError, match="noise: expected 'auto', one of \\['additive', 'relative', 'counts'\\]"):
+        as_noise_model("poisson", _data([1.0, 2.0, 3.0]))
+
+
+def logistic(y, theta):
+    return theta[0] * y * (1 - y / theta[1])
+
+
+def _growth(scale: float, seed: int = 0):
+    """Logistic growth from 0.2 to near K = 10 (a factor of 50), 5 % multiplicative noise, in units ``scale``."""
+    truth = tms.MisspecifiedSystem(lambda y: logistic(y, torch.tensor([0.6, 10.0], dtype=y.dtype)), 1, name="t")
+    g = torch.Generator().manual_seed(seed)
+    y0 = 0.2 + 0.3 * torch.rand(5, 1, generator=g, dtype=DT)
+    clean = tms.simulate(truth, y0, torch.linspace(0, 12, 13, dtype=DT)).states
+    noisy = clean * torch.exp(0.05 * torch.randn(clean.shape, generator=g, dtype=DT))
+    return tms.Trajectories(torch.linspace(0, 12, 13, dtype=DT), scale * noisy)
+
+
+def _system(scale: float):
+    return tms.MisspecifiedSystem(lambda y, th: logistic(y, th), 1, name="logistic",
+                                  parameters={"r": (0.4, 0.3), "K": (8.0 * scale, 5.0 * scale)})  # fmt: skip
+
+
+def test_relative_noise_fits_the_parameters_alike_in_any_units_and_is_recorded():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        fits = [tms.fit_correction(_growth(c), _system(c), progress=False) for c in (1.0, 1e3)]
+    for gp in fits:
+        assert gp.noise_ == Relative()
+    r1, k1 = fits[0].parameters_.mean.tolist()
+    r2, k2 = fits[1].parameters_.mean.tolist()
+    assert r1 == pytest.approx(r2, rel=1e-3) and k1 * 1e3 == pytest.approx(k2, rel=1e-3)
+    assert r1 == pytest.approx(0.6, rel=0.1) and k1 == pytest.approx(10.0, rel=0.1)
+
+
+def test_the_noise_scale_is_the_measurement_noise_when_the_model_is_right():
+    """5 % log-normal noise on logistic growth that G (its parameters fitted) describes exactly: the recorded scale
+    of the residuals in log space is the noise's 0.05 (64 residuals: standard error about 0.0045)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(_growth(1.0, seed=3), _system(1.0), progress=False)
+    assert gp.noise_scale_.shape == (1,)
+    assert float(gp.noise_scale_[0]) == pytest.approx(0.05, abs=0.015)

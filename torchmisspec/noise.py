@@ -1,0 +1,170 @@
+"""How the states were measured: the observation noise model that fits compare predictions with measurements by.
+
+A measured population of 30 and one of 3,000 are not off by the same amount when each is 10 % off: counts, cell
+densities and concentrations carry errors proportional to their size (multiplicative, log-normal), and a fit that
+adds up squared differences lets the largest values decide everything. A noise model says in which space the errors
+are alike:
+
+* :class:`Additive` - ``observed - predicted``: errors of one size whatever the state (the default for states
+  that may be negative or 0);
+* :class:`Relative` - ``log observed - log predicted``: log-normal errors of positive states (a 10 % error is the
+  same anywhere);
+* :class:`Counts` - ``log(1 + observed) - log(1 + predicted)``: counts, whose errors grow with their size and which
+  may be 0 (the log of one plus the count stabilises a Poisson or negative-binomial variance).
+
+:func:`fit_correction <torchmisspec.fit_correction>` compares the held-out predictions of its candidates (and of the
+known model alone) and fits G's uncertain parameters through the ODE with these residuals. ``noise="auto"`` (the
+default) picks :class:`Relative` when every measured state is positive and some component spans a factor of at least
+:data:`RELATIVE_SPAN` (growth, decay, epidemics), :class:`Additive` otherwise, and says which in a one-line message.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ._errors import InputError, TorchMisspecWarning, warn
+from .data import Trajectories
+
+__all__ = ["RELATIVE_SPAN", "Additive", "Counts", "NoiseModel", "Relative", "as_noise_model", "NOISE_MODELS"]
+
+#: ``noise="auto"`` chooses :class:`Relative` when every measured state is positive and a component's largest
+#: measurement is at least this many times its smallest.
+RELATIVE_SPAN = 5.0
+
+
+class NoiseModel:
+    """The space in which measurement errors are alike (subclass it: a ``name`` and :meth:`transform`)."""
+
+    name = ""
+
+    def transform(self, y: torch.Tensor) -> torch.Tensor:
+        """The states in the space where their errors are alike (elementwise)."""
+        raise NotImplementedError
+
+    def residuals(self, observed: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
+        """``transform(observed) - transform(predicted)`` (a non-finite prediction gives a non-finite residual)."""
+        return self.transform(observed) - self.transform(predicted)
+
+    def check(self, observed: torch.Tensor, what: str) -> None:
+        """Refuse measurements this model cannot hold (the default: any finite value)."""
+
+    def in_units(self, scale: torch.Tensor) -> NoiseModel:
+        """The same model for states divided by ``scale`` ``(d,)`` (a fit in the data's units,
+        :mod:`torchmisspec._units`): itself, unless its residuals depend on the unit."""
+        return self
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self)
+
+    def __hash__(self) -> int:
+        return hash(type(self))
+
+
+class Additive(NoiseModel):
+    """Errors of one size whatever the state: ``observed - predicted``."""
+
+    name = "additive"
+
+    def transform(self, y):
+        return y
+
+    def residuals(self, observed, predicted):
+        return observed - predicted
+
+
+class Relative(NoiseModel):
+    """Log-normal errors of positive states: ``log observed - log predicted`` (a prediction at or below 0 is
+    infinitely wrong: its residual is taken at the smallest positive number of its dtype)."""
+
+    name = "relative"
+
+    def transform(self, y):
+        return torch.log(y.clamp_min(torch.finfo(y.dtype).tiny))
+
+    def check(self, observed, what):
+        seen = observed[~torch.isnan(observed)]
+        if bool((seen <= 0).any()):
+            raise InputError(
+                f"noise: expected positive measurements for relative (log-normal) noise, got {int((seen <= 0).sum())} "
+                f"at or below 0 in {what} (smallest {float(seen.min()):.3g}); use noise='counts' for counts that may "
+                "be 0, or noise='additive'"
+            )
+
+
+class Counts(NoiseModel):
+    """Counts (0 allowed): ``log(1 + observed) - log(1 + predicted)``; ``unit`` (``(d,)`` or a number, default 1) is
+    one count in the states' units (a fit in the data's units divides the states by a power of ten)."""
+
+    name = "counts"
+
+    def __init__(self, unit=1.0) -> None:
+        self.unit = unit
+
+    def transform(self, y):
+        unit = torch.as_tensor(self.unit, dtype=y.dtype, device=y.device)
+        return torch.log1p(y.clamp_min(0.0) * unit)
+
+    def in_units(self, scale):
+        return Counts(torch.as_tensor(self.unit, dtype=scale.dtype) * scale)
+
+    def __repr__(self) -> str:
+        return "Counts()" if isinstance(self.unit, float) and self.unit == 1.0 else f"Counts(unit={self.unit})"
+
+    def check(self, observed, what):
+        seen = observed[~torch.isnan(observed)]
+        if bool((seen < 0).any()):
+            raise InputError(
+                f"noise: expected counts (0 or more) for noise='counts', got {int((seen < 0).sum())} negative value(s) "
+                f"in {what} (smallest {float(seen.min()):.3g}); use noise='additive'"
+            )
+
+
+#: the models ``noise=`` names
+NOISE_MODELS = {m.name: m for m in (Additive, Relative, Counts)}
+
+
+def _measured(trajectories: Trajectories) -> torch.Tensor:
+    """``(N, m)``: the values of the components some experiment measures (a starting value given for a state that is
+    not measured, e.g. 0 recovered on day 0, is not a measurement), NaN where not observed."""
+    return trajectories.flat_states()[:, trajectories.measured.any(0)]
+
+
+def _auto(trajectories: Trajectories) -> NoiseModel:
+    flat = _measured(trajectories)
+    seen = ~torch.isnan(flat)
+    if not bool(seen.any()) or bool((flat[seen] <= 0).any()):
+        return Additive()
+    for j in range(flat.shape[1]):
+        col = flat[seen[:, j], j]
+        if col.numel() and float(col.max()) >= RELATIVE_SPAN * float(col.min()):
+            return Relative()
+    return Additive()
+
+
+def as_noise_model(noise, trajectories: Trajectories, *, announce: str | None = None) -> NoiseModel:
+    """The :class:`NoiseModel` ``noise`` names (``"auto"``, ``"additive"``, ``"relative"``, ``"counts"``, or an
+    instance, used as it is), a name checked against ``trajectories``' measurements (the components some experiment
+    measures). With ``"auto"`` and ``announce`` (the caller's name), a one-line
+    :class:`~torchmisspec.TorchMisspecWarning` says which was chosen when it is not additive."""
+    if isinstance(noise, NoiseModel):
+        return noise
+    if isinstance(noise, str) and noise == "auto":
+        model = _auto(trajectories)
+        if announce and not isinstance(model, Additive):
+            warn(
+                f"{announce}: noise '{model.name}' (every measured state is positive and spans a factor of at least "
+                f"{RELATIVE_SPAN:g}: its errors are taken as proportional to its size, compared as logs); pass "
+                "noise='additive' for errors of one size",
+                TorchMisspecWarning,
+            )
+    elif isinstance(noise, str) and noise in NOISE_MODELS:
+        model = NOISE_MODELS[noise]()
+    else:
+        raise InputError(
+            f"noise: expected 'auto', one of {list(NOISE_MODELS)} or a torchmisspec.noise.NoiseModel, got {noise!r:.60}"
+        )
+    model.check(_measured(trajectories), "the measured states")
+    return model
