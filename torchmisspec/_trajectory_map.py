@@ -22,6 +22,7 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
+from ._fit_fallbacks import _batched, _dropped, _shrink_until_integrable, _spanning_inputs
 from ._optim import OptimResult, maximise
 from ._validation import progress_bar
 from .data import Trajectories
@@ -38,71 +39,11 @@ def _balanced_noise(residuals, field, trajectories: Trajectories) -> torch.Tenso
     return (sq0.sum(0) / seen.sum(0).clamp_min(1.0)).clamp_min(1e-12 * size)
 
 
-#: the factors by which a starting correction whose paths cannot be integrated over the experiments is shrunk, in
-#: turn: the last is the known model alone (F = 0, G's learned parameters at their prior mean, the initial states as
-#: observed), which the fit then starts from
-SHRINK = (0.5, 0.1, 0.01, 0.0)
-
-
-def _shrink_until_integrable(tensors, attempt, error=None) -> None:
-    """Shrink ``tensors`` (the starting coefficients or targets, offsets, parameters: each zero at the known model
-    alone) in place by the factors of :data:`SHRINK` until ``attempt()`` (the :class:`IntegrationError` of a solve at
-    their current values, or None) integrates, with a warning saying by how much; raise the last error when even
-    F = 0 cannot be integrated (nothing to start from). ``error``: that of the start, when known already."""
-    error = attempt() if error is None else error
-    if error is None:
-        return
-    start = [t.detach().clone() for t in tensors]
-    for factor in SHRINK:
-        with torch.no_grad():
-            for t, s in zip(tensors, start, strict=True):
-                t.copy_(s * factor)
-        last = attempt()
-        if last is None:
-            what = "the known model alone (F = 0)" if factor == 0 else f"it shrunk by a factor {factor:g}"
-            warn(
-                "fit_trajectories: the starting correction cannot be integrated over the experiments "
-                f"({str(error)[:160]}); the fit starts from {what} instead",
-                TorchMisspecWarning,
-            )
-            return
-    raise IntegrationError(
-        "fit_trajectories: the starting correction cannot be integrated over the experiments, nor any smaller one "
-        f"down to the known model alone (F = 0): {last}"
-    ) from last
-
-
-def _batched(run, copies: int) -> torch.Tensor:
-    """``run(lo, hi)`` (the residuals ``(hi - lo, n, e)`` of copies lo ... hi - 1 in one batched solve) for all
-    ``copies``; a batch whose solve fails is split in halves, and a copy that cannot be integrated alone gives NaN
-    (its Jacobian column is then dropped by the caller: a rejected perturbation, not the end of the fit). Raises the
-    last :class:`IntegrationError` when no copy can be integrated."""
-    parts, pending, error = [], [(0, copies)], None
-    while pending:
-        lo, hi = pending.pop(0)
-        try:
-            parts.append(run(lo, hi))
-        except IntegrationError as exc:
-            error = exc
-            if hi - lo > 1:
-                mid = (lo + hi) // 2
-                pending[:0] = [(lo, mid), (mid, hi)]
-            else:
-                parts.append(None)
-    like = next((r for r in parts if r is not None), None)
-    if like is None:
-        raise error
-    return torch.cat([torch.full_like(like[:1], math.nan) if r is None else r for r in parts])
-
-
-def _dropped(J: torch.Tensor) -> torch.Tensor:
-    """Jacobian columns ``J (rows, cols)`` with a non-finite entry set to 0 (a perturbation that failed: dropped)."""
-    return torch.where(torch.isfinite(J).all(0, keepdim=True), J, torch.zeros((), dtype=J.dtype, device=J.device))
-
-
 def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, *, max_iter, progress, shooting):
-    """L-BFGS on the log posterior ``-(sum squares / (2 s2) + prior)`` over ``params`` (and the offsets); a trial
-    step that blows up the ODE ends the fit at the best iterate, with a warning. The parameters hold the optimum."""
+    """L-BFGS on the log posterior ``-(sum squares / (2 s2) + prior)`` over ``params`` (and the offsets); a start
+    that cannot be integrated is shrunk until it can (:func:`_shrink_until_integrable`), and a trial step that blows
+    up the ODE is rejected (a value far below the best, no slope: the line search shortens the step), with a warning;
+    the parameters hold the best iterate."""
     d = s2.shape[0]
     sd = s2.sqrt()
     every = [*params] + ([] if offsets is None else [offsets])
@@ -118,18 +59,26 @@ def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, 
 
     _shrink_until_integrable(every, attempt)  # a start that cannot be integrated: a smaller one that can
 
+    rejected = [0]
+
     def evaluate():
         try:
             field, prior = field_and_prior(params[0])
             sq = residuals(field, offsets, sd).pow(2)
+            objective = -((sq.reshape(-1, d) / s2).sum() / 2 + prior)  # the log posterior, up to a constant
+            value = float(objective.detach())
         except IntegrationError:
             if best["params"] is None:  # the (shrunk) start integrated without gradients, not with them
                 raise
-            raise _TrialDiverged from None
-        objective = -((sq.reshape(-1, d) / s2).sum() / 2 + prior)  # the log posterior, up to a constant
-        value = float(objective.detach())
+            value = math.nan
         best["evaluations"] += 1
-        if math.isfinite(value) and value > best["value"]:
+        if not math.isfinite(value):  # a trial the ODE cannot follow: far below the best, no slope (rejected:
+            # the line search shortens the step)
+            rejected[0] += 1
+            low = best["value"] - 1e3 * (1.0 + abs(best["value"]))
+            objective = sum((p * 0).sum() for p in every) + low
+            return objective.detach(), objective
+        if value > best["value"]:
             best["value"], best["params"] = value, [p.detach().clone() for p in every]
         return objective.detach(), objective
 
@@ -144,16 +93,16 @@ def _maximise_posterior(params, offsets, field_and_prior, residuals, s2, n_obs, 
         )
     except LinearAlgebraError as exc:
         raise FittingError(f"fit_trajectories failed: {exc}") from exc
-    except _TrialDiverged:
-        # a line-search trial drove the corrected ODE into a blow-up or a stiff region: keep the best iterate
+    if rejected[0]:  # the optimiser may stop on a rejected trial: the best iterate is the result
         with torch.no_grad():
             for p, value in zip(every, best["params"], strict=True):
                 p.copy_(value)
-        result = OptimResult(0, best["evaluations"], best["value"])
+        result = OptimResult(result.iterations, best["evaluations"], best["value"])
         warn(
-            "fit_trajectories: a trial step of the optimiser made the corrected ODE blow up (or stall); the fit "
-            f"stopped there and returns the best correction found ({best['evaluations']} evaluations). Give "
-            "state_noise=... (a larger noise weakens the pull of the data) or fewer max_iter",
+            f"fit_trajectories: a trial step of the optimiser made the corrected ODE blow up (or stall) {rejected[0]} "
+            f"time(s) in {best['evaluations']} evaluations; those steps were rejected (the line search shortened "
+            "them) and the fit returns the best correction found. Give state_noise=... (a larger noise weakens the "
+            "pull of the data) or fewer max_iter",
             TorchMisspecWarning,
         )
     if not all(bool(torch.isfinite(p).all()) for p in every):
@@ -351,8 +300,11 @@ def _fit_relevance(
         if settled:
             break
     bar.close()
-    # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta
-    tmp = gp.condition(X, gp.train_targets_, noise=gp.train_noise_)
+    # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta (at
+    # inputs enough to span the active terms: more terms than samples could not reproduce beta)
+    X, targets, noise = _spanning_inputs(X, gp.train_targets_, gp.train_noise_, base.features, W)
+    Phi = base.features(X)
+    tmp = gp.condition(X, targets, noise=noise)
     with torch.no_grad():
         wt = (W.T / scale) if gp.per_output else (W[:, :1].T / scale)
         tmp.covar_module.base_kernel.weights.copy_(wt.reshape(tmp.covar_module.base_kernel.weights.shape))
@@ -366,7 +318,7 @@ def _fit_relevance(
         base.inclusion.copy_(torch.where(kept, one, torch.where(was_kept, zero, base.inclusion)))
         base.spread.copy_(torch.where(kept | was_kept, zero, base.spread))
         Yhat = _pseudo_targets(tmp, Phi, W, beta)
-    refined = tmp.condition(X, Yhat, noise=gp.train_noise_)
+    refined = tmp.condition(X, Yhat, noise=noise)
     refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations
     refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
@@ -592,11 +544,10 @@ def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) 
         act = W[:, o] > 0
         if bool(act.any()):
             P = Phi[:, act]
-            V[:, o] = P @ torch.linalg.solve(P.T @ P, beta[act, o] / W[act, o])
+            if int(torch.linalg.matrix_rank(P)) == P.shape[1]:
+                V[:, o] = P @ torch.linalg.solve(P.T @ P, beta[act, o] / W[act, o])
+            else:  # the least-squares form (the nearest model the inputs can carry: _spanning_inputs avoids it)
+                V[:, o] = torch.linalg.pinv(P).T @ (beta[act, o] / W[act, o])
     B = posterior.factor.alpha.shape[0]  # one C per output, or one shared: C_o V_o (feature space: never formed)
     CV = posterior.training_covariance_times(V.T.unsqueeze(-1) if B > 1 else V.unsqueeze(0))
     return CV.squeeze(-1).T if B > 1 else CV[0]
-
-
-class _TrialDiverged(Exception):
-    """A line-search trial of the trajectory fit made the ODE blow up (caught inside fit_trajectories)."""
