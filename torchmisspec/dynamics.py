@@ -291,8 +291,8 @@ class CorrectedODE(nn.Module):
                 does not (integrating F_c with c = 8 made the solver stall in the issue's trial).
 
         Diverging draws: a sampled path that leaves the region of the data (``posterior.region``: the box of the
-        initial conditions, the mean paths and the GP's observed states widened ten times its width on each side,
-        as the design's corrected proxies are) is stopped there in the one batched solve (never integrated to the
+        initial conditions, the mean paths and the GP's observed states widened :data:`REGION_WIDTHS` = 2 times its
+        width on each side) is stopped there in the one batched solve (never integrated to the
         step limit), and is NaN from its first output time outside it; one that stalls inside it keeps what was
         computed (NaN after) and the others are solved again together. One
         :class:`~torchmisspec.TorchMisspecWarning` names how many draws left and from which initial conditions; the
@@ -494,12 +494,19 @@ class _Mixture:
         return torch.cat(out)
 
 
+#: :meth:`CorrectedODE.posterior`'s region: the box of the data, the initial conditions and the mean paths widened
+#: this many times its width on each side. On theoph (fold 1, 64 draws) the draws that left it were those that left
+#: the box widened ten times (the design's proxies'), and the diverging draws' way out to that one cost the solve
+#: 4,800 right-hand sides against 1,750 here
+REGION_WIDTHS = 2.0
+
+
 def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor, torch.Tensor]:
     """``(lo, hi)`` ``(d,)``: where :meth:`CorrectedODE.posterior`'s draws stay: the box of the initial conditions,
     the mean paths (where computed) and the GP's observed states (``gp.samples_.states``, when recorded) widened
-    :data:`~torchmisspec.design._proxy.ESCAPE_WIDTHS` times its width on each side, as the design's corrected proxies
-    are (:func:`~torchmisspec.design._proxy.escape_box`)."""
-    from .design._proxy import escape_box
+    :data:`REGION_WIDTHS` times its width on each side (the width as the design's
+    :func:`~torchmisspec.design._proxy.escape_box` takes it: at least a tenth of the component's size)."""
+    from .design._proxy import ESCAPE_WIDTHS, escape_box
 
     d = y0.shape[-1]
     points = [y0.detach(), mean_path.detach().reshape(-1, d)]
@@ -507,21 +514,22 @@ def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor
     if isinstance(states, torch.Tensor) and states.dim() == 2 and states.shape[-1] == d:
         points.append(states.detach().to(y0))
     points = torch.cat(points)
-    return escape_box(points[torch.isfinite(points).all(-1)])
+    points = points[torch.isfinite(points).all(-1)]
+    lo, hi = points.min(0).values, points.max(0).values
+    width = (escape_box(points)[1] - hi) / ESCAPE_WIDTHS  # escape_box's width of the box
+    return lo - REGION_WIDTHS * width, hi + REGION_WIDTHS * width
 
 
 def _warn_left(left: torch.Tensor, stopped: list[int]) -> None:
     """One warning naming the draws ``left (S, B)`` that did not remain in the region to the end (``stopped``: the
     rows, ``s * B + b``, of those that stalled inside it)."""
-    from .design._proxy import ESCAPE_WIDTHS
-
     S, B = left.shape
     per = left.sum(0).tolist()
     by = ", ".join(f"{b}: {n} of {S}" for b, n in enumerate(per) if n)
     stalled = f"; {len(stopped)} of them stalled inside it instead" if stopped else ""
     warn(
         f"CorrectedODE.posterior: {int(left.sum())} of {S * B} sampled paths left the region (the box of the data, "
-        f"the initial conditions and the mean paths widened {ESCAPE_WIDTHS:g} times its width on each side: "
+        f"the initial conditions and the mean paths widened {REGION_WIDTHS:g} times its width on each side: "
         f"posterior.region) and were stopped there{stalled}; by initial condition: {by[:400]}. Under those draws of F "
         "the trajectory diverges. Their paths are NaN from the first output time outside the region, and the "
         "bands, mean and quantiles come from the draws that remain (posterior.fraction_remaining: the fraction of "
