@@ -8,7 +8,10 @@ the ranks at ``(S + 1)(1 -/+ level) / 2`` instead, which makes the expected cove
 ranks are whole numbers (and to within the interpolation between two neighbouring draws elsewhere).
 
 :class:`TrajectoryPosterior` holds the sampled paths of :meth:`CorrectedODE.posterior
-<torchmisspec.CorrectedODE.posterior>` and gives their bands this way (and the bands of what a readout reads).
+<torchmisspec.CorrectedODE.posterior>` and gives their bands this way (and the bands of what a readout reads). A
+draw that left the posterior's region (NaN from there) is left out of its bands: each entry's band is that of the
+draws that remain there (:class:`TrajectoryPosterior`); :func:`path_quantiles`, which counts such a draw as
+unbounded, is what the calibration's held-out bands use.
 """
 
 from __future__ import annotations
@@ -81,7 +84,8 @@ class TrajectoryPosterior:
             the panels with.
         fraction_remaining: ``(B,)`` the fraction of each initial condition's draws that remained in the region
             to the last output time (1 where none left; computed from the NaN of ``samples`` when not given).
-        region: ``(lo, hi)`` ``(d,)`` the region the draws were stopped at (``None``: not bounded).
+        region: ``(lo, hi)`` ``(d,)`` the region of the states the draws were stopped at (``None``: not bounded;
+            kept as it is by :meth:`read`).
 
     Draws that leave the region: a draw that left it (its path diverges under that draw of F) or stalled in it is
     NaN in ``samples`` from its first output time outside it (or not reached). :attr:`mean`, :attr:`stddev`,
