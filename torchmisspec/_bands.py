@@ -196,18 +196,19 @@ def _remaining_band(samples: torch.Tensor, level: float) -> tuple[torch.Tensor, 
     short = 0
     for k in torch.unique(n).tolist():
         at = n == k
-        if k < S and k < need and level > 0.0:
+        if k < S and (k == 0 or (k < need and level > 0.0)):
             short += int(at.sum())
             continue
         qs = band_quantiles(level, k, dtype=samples.dtype, device=samples.device, what="interval")
         lo_hi = torch.nanquantile(samples[:, at], qs, dim=0)
         lower[at], upper[at] = lo_hi[0], lo_hi[1]
     if short:
+        fewer = f"fewer than {need} draws" if need < math.inf else "fewer than all the draws (for a level of 1)"
+        more = f"Draw more (num_samples={max(need, S) * 2}), ask" if need < math.inf else "Ask"
         warn(
-            f"interval: at {short} of {n.numel()} entries fewer than {need} draws remain in the region (of the "
-            f"{S} drawn; the others diverged out of it: posterior.fraction_remaining), too few for the central "
-            f"{level:g} band: those entries are NaN. Draw more (num_samples={max(need, S) * 2}), ask a lower level, "
-            "or shorten the time span",
+            f"interval: at {short} of {n.numel()} entries {fewer} remain in the region (of the {S} drawn; the "
+            f"others diverged out of it: posterior.fraction_remaining), too few for the central {level:g} band: "
+            f"those entries are NaN. {more} a lower level, or shorten the time span",
             TorchMisspecWarning,
         )
     return lower, upper
