@@ -258,10 +258,9 @@ def _refuse_or_warn(trajectories: Trajectories, system, never: torch.Tensor, sta
         listed = ", ".join(repr(names[j]) for j in stuck.nonzero().flatten().tolist())
         raise InputError(
             f"trajectories: component {listed} is never observed in any experiment, so its initial values have "
-            "nothing to start from"
-            + ("" if system is None else " and it drives no measured component, so they cannot be estimated")
-            + "; give each experiment's initial value of it in the first row (an estimate is enough: it is refined "
-            "from the other measurements), or measure it at least once"
+            "nothing to start from and, as it drives no measured component through the known model, nothing to "
+            "estimate them from; give each experiment's initial value of it in the first row, or measure it at "
+            "least once"
         )
     listed = ", ".join(repr(names[j]) for j in never.nonzero().flatten().tolist())
     warn(
