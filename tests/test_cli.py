@@ -221,7 +221,7 @@ def test_fit_command_saves_the_calibrated_model_a_direct_fit_gives(tmp_path, obs
     direct = tms.fit_correction(trajs, tms.systems.paper_linear(), derivative="central")
     x = torch.rand(20, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 2 - 1
     torch.testing.assert_close(loaded.predict_mean(x), direct.predict_mean(x), rtol=1e-7, atol=1e-10)
-    assert "on 55 samples (5 experiments x 11 times, derivative 'central')" in printed
+    assert "on 55 samples (5 experiments x 11 times, derivative 'central', noise 'additive')" in printed
     assert f"chose {direct.cross_validation_.best}" in printed and str(out) in printed
     assert loaded.calibration_ is not None and f"scale={loaded.calibration_.scale:.3g}" in printed
     if loaded.weights is not None:  # a feature kernel: its terms in the data's names, and the ones it may have missed

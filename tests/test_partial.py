@@ -143,7 +143,8 @@ def test_the_whole_loop_with_a_compartment_not_measured(tmp_path, capsys):
     assert observed.is_partial and observed.measured.all(0).tolist() == [True, False]
     system = lab_model()
     with warnings.catch_warnings():
-        warnings.simplefilter("error", tms.TorchMisspecWarning)  # no warning on these data
+        warnings.simplefilter("error", tms.TorchMisspecWarning)  # no warning on these data, but the noise's choice
+        warnings.filterwarnings("ignore", message="fit_correction: noise 'relative'")
         gp = tms.fit_correction(observed, system, progress=False)
     assert gp.identifiability_.summary().startswith("F on dcentral/dt: measured directly")
     assert gp.initial_states_.shape == (8, 2) and torch.allclose(
