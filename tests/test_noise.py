@@ -104,3 +104,36 @@ def test_the_noise_scale_is_the_measurement_noise_when_the_model_is_right():
         gp = tms.fit_correction(_growth(1.0, seed=3), _system(1.0), progress=False)
     assert gp.noise_scale_.shape == (1,)
     assert float(gp.noise_scale_[0]) == pytest.approx(0.05, abs=0.015)
+
+
+def _still(y: float, S: int = 4000, d: int = 1):
+    from torchmisspec._bands import TrajectoryPosterior
+
+    samples = torch.full((S, 1, 3, d), y, dtype=DT)
+    return TrajectoryPosterior(
+        times=torch.arange(3, dtype=DT)[None], samples=samples, mean_path=samples[0], support=torch.zeros(1, 3),
+        extrapolating=torch.zeros(1, dtype=torch.bool), threshold=0.7,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("noise", [Additive(), Relative(), Counts()])
+def test_the_band_of_new_measurements_is_the_noise_around_a_certain_path(noise):
+    """All draws on one path (no uncertainty in F): the 90 % band of new measurements is the noise's own 5-95 %
+    quantiles around it, z = -/+1.645 in the noise model's space (4,000 draws: the 5 % quantile's standard error is
+    0.033 in z)."""
+    scale = torch.tensor([0.1], dtype=DT)
+    measured = _still(50.0).measured(noise, scale, generator=torch.Generator().manual_seed(0))
+    lower, upper = measured.interval(0.9)
+    centre = noise.transform(torch.tensor(50.0, dtype=DT))
+    z_lo, z_hi = (((noise.transform(b) - centre) / scale).mean().item() for b in (lower, upper))
+    assert z_lo == pytest.approx(-1.6449, abs=0.1) and z_hi == pytest.approx(1.6449, abs=0.1)
+
+
+def test_the_band_of_new_measurements_refuses_what_it_cannot_use():
+    with pytest.raises(tms.InputError, match="expected a torchmisspec.noise.NoiseModel"):
+        _still(1.0).measured("relative", torch.tensor([0.1], dtype=DT))
+    with pytest.raises(tms.InputError, match=r"scale: expected \(1,\) standard deviations >= 0"):
+        _still(1.0).measured(Relative(), torch.tensor([-0.1], dtype=DT))
+    # a component never measured (NaN scale) gets no noise
+    none = _still(2.0, S=10, d=2).measured(Relative(), torch.tensor([0.1, math.nan], dtype=DT))
+    assert bool((none.samples[..., 1] == 2.0).all()) and not bool((none.samples[..., 0] == 2.0).all())

@@ -169,6 +169,27 @@ class TrajectoryPosterior:
             raise ShapeError(f"states: expected shape {tuple(lower.shape)} (B, T, d), got {tuple(states.shape)}")
         return (states >= lower) & (states <= upper)
 
+    def measured(self, noise, scale, *, generator: torch.Generator | None = None) -> TrajectoryPosterior:
+        """The posterior of new *measurements* of these states: each sampled path with the measurement noise of
+        ``noise`` (a :class:`~torchmisspec.noise.NoiseModel`) at standard deviation ``scale`` ``(d,)`` in its space
+        added independently at every time (:meth:`NoiseModel.measure <torchmisspec.noise.NoiseModel.measure>`); a
+        fit gives both: ``posterior.measured(gp.noise_, gp.noise_scale_)`` (a component it never measured, scale NaN,
+        gets none). Its :meth:`interval` is the band that new measurements fall in (the bands of the states alone
+        cover the true states, not noisy readings of them)."""
+        from .noise import NoiseModel
+
+        if not isinstance(noise, NoiseModel):
+            raise InputError(f"noise: expected a torchmisspec.noise.NoiseModel (a fit's gp.noise_), got {noise!r:.60}")
+        d = self.samples.shape[-1]
+        scale = as_tensor(scale, "scale", dtype=self.samples.dtype, device=self.samples.device)
+        if scale.shape != (d,) or not bool((torch.isnan(scale) | (torch.isfinite(scale) & (scale >= 0))).all()):
+            raise InputError(
+                f"scale: expected ({d},) standard deviations >= 0 (a fit's gp.noise_scale_; NaN for a component never "
+                f"measured), got {scale.tolist() if scale.numel() <= 8 else tuple(scale.shape)}"
+            )
+        samples = noise.measure(self.samples, scale.nan_to_num(nan=0.0), generator)  # never measured: no noise
+        return dataclasses.replace(self, samples=torch.where(torch.isnan(self.samples), math.nan, samples))
+
     def read(self, readout: Readout) -> TrajectoryPosterior:
         """The posterior of what ``readout`` reads (a :class:`~torchmisspec.data.Readout`, z = H y): every sampled
         path and the mean path read out, ``(.., m)``; :meth:`interval` then gives the readings' band (e.g. the

@@ -41,6 +41,16 @@ class NoiseModel:
         """The states in the space where their errors are alike (elementwise)."""
         raise NotImplementedError
 
+    def inverse(self, z: torch.Tensor) -> torch.Tensor:
+        """The states whose :meth:`transform` is ``z``."""
+        raise NotImplementedError
+
+    def measure(self, y: torch.Tensor, scale: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """New measurements of the states ``y (..., d)``: ``inverse(transform(y) + scale * eps)``, eps standard
+        normal, ``scale (d,)`` the noise's standard deviation in the model's space (a fit's ``noise_scale_``)."""
+        eps = torch.randn(y.shape, generator=generator, dtype=y.dtype, device=y.device)
+        return self.inverse(self.transform(y) + scale.to(y) * eps)
+
     def residuals(self, observed: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
         """``transform(observed) - transform(predicted)`` (a non-finite prediction gives a non-finite residual)."""
         return self.transform(observed) - self.transform(predicted)
@@ -71,6 +81,9 @@ class Additive(NoiseModel):
     def transform(self, y):
         return y
 
+    def inverse(self, z):
+        return z
+
     def residuals(self, observed, predicted):
         return observed - predicted
 
@@ -83,6 +96,9 @@ class Relative(NoiseModel):
 
     def transform(self, y):
         return torch.log(y.clamp_min(torch.finfo(y.dtype).tiny))
+
+    def inverse(self, z):
+        return torch.exp(z)
 
     def check(self, observed, what):
         seen = observed[~torch.isnan(observed)]
@@ -106,6 +122,10 @@ class Counts(NoiseModel):
     def transform(self, y):
         unit = torch.as_tensor(self.unit, dtype=y.dtype, device=y.device)
         return torch.log1p(y.clamp_min(0.0) * unit)
+
+    def inverse(self, z):
+        unit = torch.as_tensor(self.unit, dtype=z.dtype, device=z.device)
+        return torch.expm1(z).clamp_min(0.0) / unit
 
     def in_units(self, scale):
         return Counts(torch.as_tensor(self.unit, dtype=scale.dtype) * scale)
