@@ -71,7 +71,7 @@ def test_a_correction_that_helps_is_kept():
         warnings.simplefilter("error", tms.TorchMisspecWarning)
         warnings.filterwarnings("ignore", message="fit_correction: noise 'relative'")  # the default's message
         gp = tms.fit_correction(data, system, progress=False)
-    assert not getattr(gp, "known_model_", False)
+    assert gp.known_model_ is False
 
 
 def test_an_experiment_of_two_times_gives_no_samples_and_is_kept_by_the_fit():

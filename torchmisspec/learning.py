@@ -309,8 +309,10 @@ def noise_scale(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Traj
 
 
 def _recorded(result: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> CorrectionGP:
-    """``result`` with ``noise_`` and ``noise_scale_`` (:func:`noise_scale`, ``None`` where it cannot be computed)."""
+    """``result`` with ``noise_``, ``noise_scale_`` (:func:`noise_scale`, ``None`` where it cannot be computed) and
+    ``known_model_`` (``False`` unless the known model alone was chosen)."""
     result.noise_ = noise
+    result.known_model_ = bool(getattr(result, "known_model_", False))
     try:
         result.noise_scale_ = noise_scale(result, system, trajectories, noise)
     except (IntegrationError, LinearAlgebraError):
