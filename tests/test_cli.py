@@ -236,6 +236,18 @@ def test_fit_command_saves_the_calibrated_model_a_direct_fit_gives(tmp_path, obs
     assert tms.CorrectionGP.load(tmp_path / "raw.pt").calibration_ is None
 
 
+def test_fit_command_takes_the_noise_model_and_refuses_one_the_data_cannot_have(tmp_path, observed_csv, capsys):
+    """Issue 41: --noise relative on states that cross 0 is one line naming the fix (exit 2), and nothing written;
+    a name the CLI does not know is argparse's own refusal."""
+    out = tmp_path / "model.pt"
+    assert main(_fit_args(observed_csv, out, "--noise", "relative")) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "expected positive measurements for relative" in err and "noise=" in err
+    assert not out.exists()
+    assert main(_fit_args(observed_csv, out, "--noise", "poisson")) == 2
+    assert "invalid choice: 'poisson'" in capsys.readouterr().err
+
+
 def test_fit_command_with_a_user_system(tmp_path, observed_csv, monkeypatch, capsys, request):
     module = tmp_path / "my_lab_model.py"
     module.write_text("import torchmisspec as tms\n\ndef known():\n    return tms.systems.paper_linear()\n")
