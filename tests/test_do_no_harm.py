@@ -122,3 +122,15 @@ def test_one_trajectory_is_scored_on_its_pieces_in_time():
         gp = tms.fit_correction(data, _system(), progress=False)
     assert gp.cross_validation_.folds == 3 and gp.known_model_
     assert time_pieces(_growth(n=1, T=9)) is None and time_pieces(_growth(n=2)) is None
+
+
+def test_the_derivative_estimator_used_is_recorded():
+    """Issue 41 item 6: the estimator derivative='auto' chose is on the samples and on the fitted model."""
+    data = _growth()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        auto = tms.correction_samples(data, _system())
+        assert tms.correction_samples(data, _system(), derivative="central", order=4).derivative == "central order=4"
+        gp = tms.fit_correction(data, _system(), progress=False)
+    assert auto.derivative.split()[0] in ("central", "gp", "smooth") and gp.derivative_ == auto.derivative
+    assert auto.subset(torch.tensor([0, 1])).derivative == auto.derivative

@@ -309,10 +309,12 @@ def noise_scale(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Traj
 
 
 def _recorded(result: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> CorrectionGP:
-    """``result`` with ``noise_``, ``noise_scale_`` (:func:`noise_scale`, ``None`` where it cannot be computed) and
-    ``known_model_`` (``False`` unless the known model alone was chosen)."""
+    """``result`` with ``noise_``, ``noise_scale_`` (:func:`noise_scale`, ``None`` where it cannot be computed),
+    ``known_model_`` (``False`` unless the known model alone was chosen) and ``derivative_`` (the estimator of dy/dt
+    the samples came from, ``derivative="auto"``'s choice included, e.g. ``"central order=4"``)."""
     result.noise_ = noise
     result.known_model_ = bool(getattr(result, "known_model_", False))
+    result.derivative_ = getattr(getattr(result, "samples_", None), "derivative", None)
     try:
         result.noise_scale_ = noise_scale(result, system, trajectories, noise)
     except (IntegrationError, LinearAlgebraError):
@@ -402,7 +404,8 @@ def fit_correction(
     predictions are scored and G's uncertain parameters fitted through the ODE with its residuals (logs for
     ``"relative"``). ``"auto"`` takes relative errors for positive states spanning a factor of 5 or more, and says
     so. ``result.noise_`` records the model used, ``result.noise_scale_`` (:func:`noise_scale`) the scale of the
-    fitted model's residuals in its space (for bands of new measurements).
+    fitted model's residuals in its space (for bands of new measurements); ``result.derivative_`` the estimator of
+    dy/dt used (``"auto"``'s choice, e.g. ``"central order=4"``).
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the

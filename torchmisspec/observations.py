@@ -105,6 +105,7 @@ class CorrectionSamples:
             systems) and inputs ``(N, m)`` (systems with inputs), where G is evaluated again at another theta.
         parameters_linear: whether G is linear in its uncertain parameters.
         linearized_at: for a nonlinear G, the theta ``(k,)`` it is linearised at (``None``: the prior mean).
+        derivative: how dy/dt was obtained, e.g. ``"central order=4"`` (``derivative="auto"``'s choice included).
     """
 
     inputs: torch.Tensor
@@ -118,12 +119,13 @@ class CorrectionSamples:
     controls: torch.Tensor | None = None
     parameters_linear: bool = True
     linearized_at: torch.Tensor | None = None
+    derivative: str | None = None
 
     def subset(self, rows: torch.Tensor) -> CorrectionSamples:
         """The samples at ``rows`` (a boolean mask or indices)."""
         rows = torch.tensor(check_selection(rows, self.num_samples, "rows", "samples", empty=True), dtype=torch.long)
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        shared = ("parameters_linear", "linearized_at")  # not per sample
+        shared = ("parameters_linear", "linearized_at", "derivative")  # not per sample
         return CorrectionSamples(
             **{k: v if v is None or k in shared else v[rows.to(v.device)] for k, v in fields.items()}
         )
@@ -326,11 +328,15 @@ def correction_samples(
             )
         dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
     elif derivative == "central":
-        dydt, _, flat_states = _estimate_flat("central", trajectories, {"order": order})
+        name, options = "central", {"order": order}
+        dydt, _, flat_states = _estimate_flat(name, trajectories, options)
     elif derivative == "smooth":
-        dydt, _, flat_states = _estimate_flat("smooth", trajectories, {"window": window, "degree": degree})
+        name, options = "smooth", {"window": window, "degree": degree}
+        dydt, _, flat_states = _estimate_flat(name, trajectories, options)
     else:
-        dydt, variance, flat_states = _estimate_flat("gp", trajectories, {})
+        name, options = "gp", {}
+        dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
+    used = " ".join([name, *(f"{k}={v}" for k, v in sorted(options.items()))]) if derivative != "oracle" else "oracle"
 
     lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
     experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
@@ -381,4 +387,5 @@ def correction_samples(
         times=t,
         controls=None if system.parameters is None else u,
         parameters_linear=linear,
+        derivative=used,
     )
