@@ -138,6 +138,8 @@ def test_auto_chooses_a_stationary_kernel_for_an_inverse_square_field(gravity_sa
 
 
 ALL = {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 4.0}
+#: the feature kernel below features+rbf: only the nested model can show that the library suffices
+BELOW = {**ALL, "features": 3.5}
 
 
 @pytest.mark.parametrize(
@@ -145,12 +147,16 @@ ALL = {"rbf": 1.0, "matern52": 0.0, "features": 5.0, "features+rbf": 4.0}
     [
         (ALL, 4.5, ["rbf", "matern52", "features"], True),  # the nested model beats features+rbf: library suffices
         (ALL, 4.0, ["rbf", "matern52", "features"], True),  # a tie: the RBF term earns nothing
-        (ALL, 3.0, ["rbf", "matern52"], False),  # the RBF term earns its price
-        ({**ALL, "features": 9.0}, 3.0, ["rbf", "matern52"], False),  # whatever the feature candidates' scores
+        (BELOW, 3.0, ["rbf", "matern52"], False),  # the RBF term earns its price
+        # issue 41: the per-output feature kernel itself beats features+rbf, whatever the shared-weight nested model
+        # scores (a feature kernel of 15.6 was refused for a nested 3.7 against features+rbf's 7.0)
+        ({**ALL, "features": 9.0}, 3.0, ["rbf", "matern52", "features"], True),
+        (ALL, 3.0, ["rbf", "matern52", "features"], True),
         ({"rbf": 1.0, "features": 0.0, "features+rbf": 9.0}, 3.0, ["rbf"], False),  # matern52 failed
         ({"features": 0.0, "features+rbf": 9.0}, 3.0, ["features", "features+rbf"], False),  # nothing stationary
         ({"rbf": 1.0, "matern52": 0.0, "features": 5.0}, None, ["rbf", "matern52", "features"], None),  # per_output
-        (ALL, None, ["rbf", "matern52", "features"], None),  # the nested model failed: features+rbf is untested
+        (BELOW, None, ["rbf", "matern52", "features"], None),  # the nested model failed: features+rbf is untested
+        (ALL, None, ["rbf", "matern52", "features"], True),  # ... but the feature kernel beat it
         ({"features+rbf": 2.0}, None, ["features+rbf"], None),  # nothing else fitted
     ],
 )
@@ -170,9 +176,10 @@ def test_library_check(scores, library_score, eligible, suffices):
         ({"rbf": 1.0, "features": 1.0}, None, 0.0, "rbf"),  # a tie goes to the RBF, whatever the order
         ({"features": 1.0, "rbf": 1.0}, None, 0.0, "rbf"),
         ({"rbf": 1.0, "matern52": 0.0, "features": 3.5}, None, 3.0, "rbf"),  # per_output: no check, the margin holds
-        ({**ALL, "matern52": 3.0}, 3.0, 3.0, "rbf"),  # library rejected; Matern 2 nats above the RBF is not enough
-        ({**ALL, "matern52": 3.0}, 3.0, 0.0, "matern52"),
-        ({**ALL, "matern52": 4.5}, 3.0, 3.0, "matern52"),  # 3.5 nats above the RBF: strong
+        ({**BELOW, "matern52": 3.0}, 3.0, 3.0, "rbf"),  # library rejected; Matern 2 nats above the RBF is not enough
+        ({**BELOW, "matern52": 3.0}, 3.0, 0.0, "matern52"),
+        ({**BELOW, "matern52": 4.5}, 3.0, 3.0, "matern52"),  # 3.5 nats above the RBF: strong
+        ({"rbf": -1.9, "features": 15.6, "features+rbf": 7.0}, 3.7, 3.0, "features"),  # issue 41's realization
         # the library must beat every stationary kernel by the margin, not only the RBF: 5 > 1 + 3 but not > 2.5 + 3
         ({**ALL, "matern52": 2.5}, 4.5, 3.0, "rbf"),
         ({**ALL, "matern52": 1.5, "features": 9.0}, 4.5, 3.0, "features"),

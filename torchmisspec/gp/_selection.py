@@ -8,6 +8,7 @@ hyperparameters); :meth:`CorrectionGP.fit <torchmisspec.CorrectionGP.fit>` fits 
 
 from __future__ import annotations
 
+import math
 import time
 
 from .._errors import FittingError, LinearAlgebraError
@@ -41,9 +42,15 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
       the scientist trusts wherever no data say otherwise. (If no stationary kernel fitted, every candidate is
       eligible: a fit beats none.)
 
+    The feature kernel itself (one set of weights per output, not nested in ``features+rbf``'s shared weights) is a
+    library-only model too: when it scores at least as high as ``features+rbf``, the RBF term does not earn its price
+    either, and the library suffices (issue 41: a feature kernel of score 15.6 was refused because the shared-weight
+    nested model scored 3.7 against features+rbf's 7.0).
+
     So ``features+rbf`` serves as the library's test and is never chosen (unless nothing else fitted). Without it
     (``per_output``, or a failed fit) there is nothing to test and every candidate competes; if it fitted but its
-    nested model did not (``library_score`` is ``None``), nothing is tested either. :func:`auto_choice` then chooses
+    nested model did not (``library_score`` is ``None``), nothing is tested either, unless the feature kernel itself
+    scores at least as high as ``features+rbf``. :func:`auto_choice` then chooses
     among the eligible kernels.
 
     Returns the eligible kernels and whether the library sufficed (``None``: not tested).
@@ -52,6 +59,8 @@ def library_check(scores: dict[str, float], *, library_score: float | None = Non
     if "features+rbf" not in scores:
         return everything, None
     others = [k for k in everything if k != "features+rbf"] or everything
+    if scores.get("features", -math.inf) >= scores["features+rbf"]:  # a library-only model beats it: suffices
+        return others, True
     if library_score is None:
         return others, None
     if library_score >= scores["features+rbf"]:
