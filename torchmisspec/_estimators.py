@@ -362,6 +362,9 @@ def choose_derivative(
         ``correction_samples(..., derivative=name, **options)``), and every candidate's ratio keyed by
         ``(name, tuple(sorted(options.items())))``.
 
+    When the known model cannot be integrated from any observed initial state (nothing to check the estimators on),
+    the first candidate that fits the data is returned unranked (its error NaN), with a warning.
+
     Raises:
         InputError: no candidate fits the number of samples (T < 3), or bad arguments.
     """
@@ -373,7 +376,16 @@ def choose_derivative(
             f"derivative='auto': expected at least 3 samples per trajectory, got T={T}"
             + (" (the shortest experiment)" if trajectories.is_ragged else "")
         )
-    known_copy = _known_model_copy(trajectories, system)
+    try:
+        known_copy = _known_model_copy(trajectories, system)
+    except IntegrationError as exc:  # nothing to check the estimators on: the first that fits, unranked
+        name, options = candidates[0]
+        warn(
+            f"{str(exc).split(';')[0]}: no estimator could be ranked, so {name} {options} (the first that fits the "
+            "data) is used unchecked; the known model blows up over the data, so check G and its parameters",
+            TorchMisspecWarning,
+        )
+        return name, dict(options), {(name, tuple(sorted(options.items()))): math.nan}
     errors: dict[tuple[str, tuple], float] = {}
     for name, options in candidates:
         try:

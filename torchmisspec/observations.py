@@ -317,7 +317,7 @@ def correction_samples(
     elif derivative == "auto":
         name, options, errors = choose_derivative(trajectories, system)
         ratio = errors[(name, tuple(sorted(options.items())))]
-        if not ratio <= ESTIMATOR_ERROR_THRESHOLD:
+        if ratio > ESTIMATOR_ERROR_THRESHOLD:  # NaN: not ranked (choose_derivative said why)
             warn(
                 f"correction_samples: the best derivative estimator ({name} {options}) has an error on the known "
                 f"model of {ratio:.3g} times the size of the correction samples (threshold "
