@@ -24,7 +24,7 @@ import statistics
 import time
 
 from torchmisspec import datasets
-from torchmisspec.benchmarks.reporting import ROOT, machine, write_json, write_page
+from torchmisspec.benchmarks.reporting import ROOT, machine, update_benchmarks, write_json, write_page
 
 from . import real_data
 
@@ -289,9 +289,28 @@ measurements (of those scored).
 {exceptions(result)}"""
 
 
+MARK_START, MARK_END = "<!-- study:real-data:start -->", "<!-- study:real-data:end -->"
+
+
+def render_block(result: dict, wall: float, command: str) -> str:
+    """The study's section of BENCHMARKS.md: the per-data-set table and the goals."""
+    info = result["machine"]
+    return f"""{MARK_START}
+## The real-data suite (`scripts/study_real_data.py`)
+
+Written by `{command}` ({wall / 60:.1f} min, {info["cpu"]}, {info["logical_cpus"]} logical CPUs, commit
+{info["git_commit"]}): seven public data sets, the package's defaults against the classical answer (the model's
+parameters and unknown initial states fitted alone, F = 0, on log values), per fold; see
+[docs/studies/real-data-suite.md](docs/studies/real-data-suite.md).
+
+{table(result)}
+{goals(result)}{MARK_END}
+"""
+
+
 def run(args) -> int:
     """The command line's run: the study (or ``--from-json``), its JSON, its table; ``--markdown`` writes the page
-    (never BENCHMARKS.md)."""
+    and the block of BENCHMARKS.md."""
     import sys
 
     if args.saved is not None:
@@ -305,8 +324,10 @@ def run(args) -> int:
         write_json(result, real_data_json(args))
     print(table(result))
     if args.markdown:
-        write_page(DOC_PAGE, render_page(result, wall, result.get("command", "python scripts/study_real_data.py")))
-        print(f"wrote {DOC_PAGE}")
+        command = result.get("command", "python scripts/study_real_data.py")
+        write_page(DOC_PAGE, render_page(result, wall, command))
+        update_benchmarks(render_block(result, wall, command), MARK_START, MARK_END)
+        print(f"wrote {DOC_PAGE} and the block of BENCHMARKS.md")
     return 0
 
 
