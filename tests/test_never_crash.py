@@ -112,3 +112,24 @@ def test_the_refined_feature_model_is_the_fitted_one_with_fewer_samples_than_ter
     # before: the returned model's paths stalled (IntegrationError); measured now 2.5e-5 against 0.13
     assert misfit(refined, refined.initial_states_) <= misfit(gp, data.initial_conditions)
     assert refined.train_inputs_.shape[0] > samples.inputs.shape[0]  # inputs added to carry the 10 terms
+
+
+def test_a_refinement_that_cannot_be_integrated_keeps_the_chosen_model(one_thread, monkeypatch):
+    """The lynx data, origin 1908: the partly measured fit's last step (the chosen model refined through the ODE)
+    could not be integrated even from G alone, and the IntegrationError ended the default fit; the chosen model is
+    kept unrefined, with a warning."""
+    truth = tms.MisspecifiedSystem(predator_prey, 2, state_names=["prey", "predator"])
+    t = torch.linspace(0, 6, 13, dtype=DT)
+    y = tms.simulate(truth, torch.tensor([[1.5, 1.0], [1.0, 0.6]], dtype=DT), t).states.clone()
+    y[..., 0] = float("nan")
+    data = tms.Trajectories(t, y, state_names=["prey", "predator"])
+    system = tms.MisspecifiedSystem(predator_prey, 2, state_names=["prey", "predator"], correction_outputs=[1])
+    from torchmisspec import partial
+
+    def fails(*args, **kwargs):
+        raise tms.IntegrationError("fit_trajectories: the solver stalled (made to fail)")
+
+    monkeypatch.setattr(partial, "fit_trajectories", fails)
+    with pytest.warns(tms.TorchMisspecWarning, match="refinement of the chosen model through the ODE failed.*kept"):
+        gp = tms.fit_correction(data, system, progress=False, refine=True)
+    assert gp.initial_states_.shape == (2, 2) and bool(torch.isfinite(gp.initial_states_).all())

@@ -473,6 +473,25 @@ def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories, nois
     return complete(system, known, trajectories, y0)
 
 
+def _refined_or_kept(chosen, system, trajectories: Trajectories, y0, progress: bool):
+    """``(model, initial states)``: ``chosen`` refined through the ODE on what was measured
+    (:func:`~torchmisspec.fit_trajectories`), or, when that refinement cannot be integrated (the lynx data: not even
+    G alone from the estimated start), ``chosen`` and ``y0`` as they are, with a warning: a failed refinement is a
+    rejected step, not the end of the fit."""
+    try:
+        result = fit_trajectories(chosen, system, trajectories.with_initial_states(y0), progress=progress)
+    except (IntegrationError, FittingError) as exc:
+        warn(
+            f"fit_correction: the refinement of the chosen model through the ODE failed ({str(exc)[:160]}); kept the "
+            "model chosen on the data completed by the first model, unrefined",
+            TorchMisspecWarning,
+        )
+        return chosen, y0
+    result.cross_validation_, result.samples_ = chosen.cross_validation_, chosen.samples_
+    result.input_names_ = chosen.input_names_
+    return result, result.initial_states_
+
+
 def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, **options):
     """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
     is ``fit_correction`` itself (called on the completed data for the model choice), ``options`` its keywords."""
@@ -499,18 +518,14 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
             "or refit with refine=True (F then matches the measured states through the ODE)",
         )
         warnings.warn_explicit(text, w.category, w.filename, w.lineno)
-    if getattr(result, "known_model_", False):  # no correction chosen (do no harm): F = 0 stays 0
+    if refine is None and getattr(result, "known_model_", False):  # no correction chosen (do no harm): F = 0
         refine = False
     if refine is None:  # fit_correction's rule (the feature kernel's terms are re-learned through the ODE), and any
         # model whose samples rest on the first model's paths (F on, or of, a state not measured directly)
         spec = result.kernel_spec
         refine = system.autonomous and ((spec.terms and spec.feature_space) or report.from_paths)
     if refine:  # F through the ODE on what was measured (not on the completed paths), the initial states with it
-        chosen = result
-        result = fit_trajectories(chosen, at, trajectories.with_initial_states(y0), progress=progress)
-        result.cross_validation_, result.samples_ = chosen.cross_validation_, chosen.samples_
-        result.input_names_ = chosen.input_names_
-        y0 = result.initial_states_
+        result, y0 = _refined_or_kept(result, at, trajectories, y0, progress)
     result.initial_states_ = y0
     result.identifiability_ = report
     if posterior is not None:
