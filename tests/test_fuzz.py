@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 import torchmisspec as tms
 from torchmisspec import plotting
+from torchmisspec._bands import TrajectoryPosterior
 
 DT = torch.float64
 SYSTEM = tms.systems.paper_linear()
@@ -97,6 +98,13 @@ def _no_nan(out) -> None:
     elif isinstance(out, (tuple, list)):
         for item in out:
             _no_nan(item)
+    elif isinstance(out, TrajectoryPosterior):  # a draw that left the region is NaN from there on (documented)
+        gone = torch.isnan(out.samples).any(-1)  # (S, B, T)
+        assert bool((gone.cummax(-1).values == gone).all()), "a draw is NaN before it left the region"
+        assert not bool(torch.isinf(out.samples).any()), "infinite draws returned"
+        assert bool((out.fraction_remaining == 1 - gone[..., -1].double().mean(0)).all())
+        for name in ("times", "mean_path", "support"):
+            _no_nan(getattr(out, name))
     elif hasattr(out, "__dataclass_fields__") and not isinstance(out, tms.design.DesignResult):
         for name in out.__dataclass_fields__:
             _no_nan(getattr(out, name))
@@ -106,7 +114,7 @@ def _no_nan(out) -> None:
     elif isinstance(out, np.ndarray):
         assert bool(np.isfinite(out).all()), "non-finite values returned"
     else:  # a wrapper returning something unexpected (a bound method, ...) would check nothing
-        assert out is None or isinstance(out, int), f"unexpected result type {type(out).__name__}"
+        assert out is None or isinstance(out, (int, str)), f"unexpected result type {type(out).__name__}"
 
 
 def _scaled_rms(d: np.ndarray) -> float:
@@ -378,7 +386,7 @@ def _sampling_times(initial_states=Y0[:2], times=TIMES, per_experiment=3):
 
 
 def _posterior(y0=Y0[:2], times=TIMES, num_samples=4, scale=1.0):
-    return MODEL.posterior(y0, times, num_samples=num_samples, scale=scale, generator=torch.Generator()).samples
+    return MODEL.posterior(y0, times, num_samples=num_samples, scale=scale, generator=torch.Generator())
 
 
 def _mean_se(values=(1.0, 2.0, 3.0)):

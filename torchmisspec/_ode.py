@@ -287,6 +287,15 @@ def _fill_outputs(solver, y0: torch.Tensor, points: torch.Tensor, rows, out: tor
     return out
 
 
+def widened_box(points: torch.Tensor, widths: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lo, hi)`` ``(d,)``: the box of ``points (N, d)`` widened by ``widths`` times its width on each side (a width
+    of at least a tenth of the component's size where the points do not vary): where a solve may stop a row that
+    leaves it (``box=`` of :func:`solve`; the design's proxies and the posterior's draws)."""
+    lo, hi = points.min(0).values, points.max(0).values
+    width = (hi - lo).clamp_min(0.1 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-9)
+    return lo - widths * width, hi + widths * width
+
+
 def power_of_ten(values: torch.Tensor) -> float:
     """The power of ten nearest the root mean square of the finite entries of ``values`` (1 when there are none or
     they are all 0)."""

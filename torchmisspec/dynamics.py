@@ -10,7 +10,7 @@ from torch import nn
 
 from ._bands import TrajectoryPosterior
 from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
-from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
+from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve, widened_box
 from ._threads import adaptive_threads
 from ._validation import check_input_names, check_positive_int, check_real
 from .calibration import calibrate_bands
@@ -504,10 +504,8 @@ REGION_WIDTHS = 2.0
 def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor, torch.Tensor]:
     """``(lo, hi)`` ``(d,)``: where :meth:`CorrectedODE.posterior`'s draws stay: the box of the initial conditions,
     the mean paths (where computed) and the GP's observed states (``gp.samples_.states``, when recorded) widened
-    :data:`REGION_WIDTHS` times its width on each side (the width as the design's
-    :func:`~torchmisspec.design._proxy.escape_box` takes it: at least a tenth of the component's size)."""
-    from .design._proxy import ESCAPE_WIDTHS, escape_box
-
+    :data:`REGION_WIDTHS` times its width on each side (:func:`~torchmisspec._ode.widened_box`, as the design's
+    proxies: a width of at least a tenth of the component's size)."""
     d = y0.shape[-1]
     points = [y0.detach(), mean_path.detach().reshape(-1, d)]
     states = getattr(getattr(gp, "samples_", None), "states", None)
@@ -515,9 +513,7 @@ def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor
         points.append(states.detach().to(y0))
     points = torch.cat(points)
     points = points[torch.isfinite(points).all(-1)]
-    lo, hi = points.min(0).values, points.max(0).values
-    width = (escape_box(points)[1] - hi) / ESCAPE_WIDTHS  # escape_box's width of the box
-    return lo - REGION_WIDTHS * width, hi + REGION_WIDTHS * width
+    return widened_box(points, REGION_WIDTHS)
 
 
 def _warn_left(left: torch.Tensor, stopped: list[int]) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from .._errors import InputError, IntegrationError, TorchMisspecWarning, warn
-from .._ode import SIMULATION_TOLERANCES
+from .._ode import SIMULATION_TOLERANCES, widened_box
 from .._validation import progress_bar
 from ..data import simulate
 from ..parallel import map_tasks
@@ -40,9 +40,7 @@ ESCAPE_WIDTHS = 10.0
 def escape_box(y0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(lo, hi)`` ``(d,)``: the box of the candidates ``y0 (N, d)`` widened by :data:`ESCAPE_WIDTHS` times its
     width on each side (a width of at least a tenth of the component's size where the candidates do not vary)."""
-    lo, hi = y0.min(0).values, y0.max(0).values
-    width = (hi - lo).clamp_min(0.1 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-9)
-    return lo - ESCAPE_WIDTHS * width, hi + ESCAPE_WIDTHS * width
+    return widened_box(y0, ESCAPE_WIDTHS)
 
 
 def _warn_failed(failed: list[int], n: int) -> None:
