@@ -47,3 +47,17 @@ def one_thread():
 def two_threads():
     with _torch_threads(2):
         yield
+
+
+def fast_linear(num_experiments: int):
+    """``(system, trajectories)``: a linear system faster than the paper's with a larger quadratic F, and
+    ``num_experiments`` noise-free experiments of 11 times on [0, 3] (the fits through the ODE's test problem)."""
+    from torchmisspec.systems import LinearField, QuadraticField
+
+    A = 5 * torch.tensor([[0.02, 0.10], [-0.10, -0.06]], dtype=torch.float64)
+    system = tms.MisspecifiedSystem(
+        LinearField(A), 2, correction=QuadraticField(0.2), domain=((-1, 1), (-1, 1)), known_matrix=A, name="fast"
+    )
+    gen = torch.Generator().manual_seed(0)
+    y0 = torch.rand(num_experiments, 2, generator=gen, dtype=torch.float64) * 2 - 1
+    return system, tms.simulate(system, y0, torch.linspace(0, 3, 11, dtype=torch.float64))

@@ -4,9 +4,9 @@ and a component that is never observed has its initial values estimated from a s
 
 import pytest
 import torch
+from conftest import fast_linear
 
 import torchmisspec as tms
-from torchmisspec.systems import LinearField, MisspecifiedSystem, QuadraticField
 
 DT = torch.float64
 
@@ -14,12 +14,7 @@ DT = torch.float64
 @pytest.fixture(scope="module")
 def problem():
     """A linear system with a quadratic F; 4 noise-free experiments, T = 11."""
-    A = 5 * torch.tensor([[0.02, 0.10], [-0.10, -0.06]], dtype=DT)
-    system = MisspecifiedSystem(
-        LinearField(A), 2, correction=QuadraticField(0.2), domain=((-1, 1), (-1, 1)), known_matrix=A, name="fast"
-    )
-    y0 = torch.rand(4, 2, generator=torch.Generator().manual_seed(0), dtype=DT) * 2 - 1
-    traj = tms.simulate(system, y0, torch.linspace(0, 3, 11, dtype=DT))
+    system, traj = fast_linear(4)
     return system, traj
 
 

@@ -3,9 +3,9 @@ derivative-based fit it starts from."""
 
 import pytest
 import torch
+from conftest import fast_linear
 
 import torchmisspec as tms
-from torchmisspec.systems import LinearField, MisspecifiedSystem, QuadraticField
 from torchmisspec.trajectory_fit import shooting_misfit
 
 DT = torch.float64
@@ -14,12 +14,7 @@ DT = torch.float64
 @pytest.fixture(scope="module")
 def problem():
     """A faster linear system than the paper's with a larger quadratic F; 8 noise-free experiments, T = 11."""
-    A = 5 * torch.tensor([[0.02, 0.10], [-0.10, -0.06]], dtype=DT)
-    system = MisspecifiedSystem(
-        LinearField(A), 2, correction=QuadraticField(0.2), domain=((-1, 1), (-1, 1)), known_matrix=A, name="fast"
-    )
-    y0 = torch.rand(8, 2, generator=torch.Generator().manual_seed(0), dtype=DT) * 2 - 1
-    traj = tms.simulate(system, y0, torch.linspace(0, 3, 11, dtype=DT))
+    system, traj = fast_linear(8)
     samples = tms.correction_samples(traj, system, derivative="central", order=2)  # biased at this spacing
     gp = tms.CorrectionGP(lengthscale=1.0, outputscale=0.1, noise_variance=1e-4).fit(samples.inputs, samples.targets)
     return system, traj, gp

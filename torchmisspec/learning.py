@@ -48,7 +48,7 @@ from .observations import CorrectionSamples, _check_trajectories_and_system, cor
 from .parameters import posterior_given
 from .partial import fit_partly_measured
 from .systems import MisspecifiedSystem
-from .trajectory_fit import fit_trajectories
+from .trajectory_fit import _mean_field, fit_trajectories
 
 __all__ = [
     "FEATURE_DEGREE",
@@ -294,14 +294,10 @@ def noise_scale(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Traj
     one scale per component (NaN for a component with no such measurement)."""
     at = system if getattr(gp, "parameters_", None) is None else system.at(gp.parameters_.mean)
     y0 = getattr(gp, "initial_states_", None)
-    data = trajectories if y0 is None else trajectories.with_initial_states(y0)
-    mean = gp.posterior()
-
-    def field(y, rows, t=None, u=None):
-        x = at.select_inputs(y, u).to(device=gp.device, dtype=gp.dtype)
-        return at.known_rhs(y, t, u) + at.embed(mean.mean(x, check=False).to(y))
-
-    r = predicted_residuals(at, data, field, noise)[:, 1:]  # the first row is where each prediction starts
+    data = (trajectories if y0 is None else trajectories.with_initial_states(y0)).to(dtype=gp.dtype, device=gp.device)
+    mean = _mean_field(at, gp.posterior())
+    r = predicted_residuals(at, data, lambda y, rows, t=None, u=None: mean(y, t, u), noise)
+    r = r[:, 1:]  # the first row is where each prediction starts
     seen = ~torch.isnan(r)
     count = seen.sum((0, 1))
     total = r.nan_to_num(nan=0.0).pow(2).sum((0, 1))
@@ -416,16 +412,24 @@ def fit_correction(
     check_flag(progress, "progress")
     noise = as_noise_model(noise, trajectories, announce="fit_correction")
     options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
-    scaled = fit_in_units(
-        fit_correction, trajectories, system, gp=gp, candidates=candidates, estimator=estimator, **options
-    )
+    result = _fit(trajectories, system, gp=gp, candidates=candidates, **options, **estimator)
+    return _recorded(result, system, trajectories, noise)  # once, in the user's units, on the user's data
+
+
+def _fit(
+    trajectories, system, *, select, derivative, folds, refine, progress, noise, gp=None, candidates=None, **estimator
+):
+    """:func:`fit_correction`'s steps, ``noise`` a :class:`~torchmisspec.noise.NoiseModel`; what it calls again on
+    the data in their own units and on partly measured data completed (the records of :func:`_recorded` are the
+    caller's)."""
+    _check_trajectories_and_system(trajectories, system)
+    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
+    scaled = fit_in_units(_fit, trajectories, system, gp=gp, candidates=candidates, estimator=estimator, **options)
     if scaled is not None:  # fitted in the data's own units, returned in the user's (torchmisspec._units)
-        return _recorded(scaled, system, trajectories, noise)
+        return scaled
     if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
-        options["noise"] = noise
-        result = fit_partly_measured(trajectories, system, fit_correction, progress=progress, **options, **estimator)
-        return _recorded(result, system, trajectories, noise)
+        return fit_partly_measured(trajectories, system, _fit, progress=progress, noise=noise, **options, **estimator)
     system0 = system
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
@@ -474,7 +478,7 @@ def fit_correction(
         if known is not None:
             known.cross_validation_, known.samples_ = cv, raw
             known.input_names_ = system0.input_names(trajectories)
-            return _recorded(known, system0, trajectories, noise)
+            return known
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
@@ -516,4 +520,4 @@ def fit_correction(
     result.cross_validation_ = cv
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
-    return _recorded(result, system0, trajectories, noise)
+    return result

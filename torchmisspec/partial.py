@@ -494,7 +494,7 @@ def _refined_or_kept(chosen, system, trajectories: Trajectories, y0, progress: b
 
 def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, **options):
     """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
-    is ``fit_correction`` itself (called on the completed data for the model choice), ``options`` its keywords."""
+    is ``fit_correction``'s steps (called on the completed data for the model choice), ``options`` its keywords."""
     kd = dict(dtype=trajectories.dtype, device=trajectories.device)
     noise = _state_noise(None, trajectories, kd)  # variances of the states and readings, once for every step below
     completed = _completed_by_g(system, trajectories, None if noise is None else noise.sqrt())
