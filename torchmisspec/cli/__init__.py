@@ -164,12 +164,20 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _one_line(exc: BaseException | str) -> str:
-    return " ".join(str(exc).split())
+    """A message on one line, its advice in the command line's words (:data:`_FLAGS`)."""
+    text = " ".join(str(exc).split())
+    for keyword, flag in _FLAGS:
+        text = text.replace(keyword, flag)
+    return text
 
 
 def _warning_line(command: str, message, category, filename, lineno, file=None, line=None) -> None:
     """The library's warnings reach the user as one line each on stderr, without the source line."""
     print(f"torchmisspec {command}: warning: {_one_line(message)}", file=sys.stderr)
+
+
+#: Python keywords in the library's advice and the command line's flags for them.
+_FLAGS = (("noise='additive'", "--noise additive"), ("noise='counts'", "--noise counts"))
 
 
 if __name__ == "__main__":

@@ -92,8 +92,12 @@ def _fit(args: argparse.Namespace) -> int:
     if cv is not None:
         # partly measured data: the held-out errors compare with the data completed by the first fitted model
         where = "" if getattr(gp, "identifiability_", None) is None else " (on the data completed through the ODE)"
+        if getattr(gp, "known_model_", False):  # no candidate chosen: the best of them is not the model saved
+            chose = f"best candidate {cv.best}, not kept"
+        else:
+            chose = f"chose {cv.best}"
         print(
-            f"cross-validation ({cv.folds} folds){where}: chose {cv.best}; held-out error {min(cv.scores):.4g} against "
+            f"cross-validation ({cv.folds} folds){where}: {chose}; held-out error {min(cv.scores):.4g} against "
             f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
         )
     report = getattr(gp, "identifiability_", None)
