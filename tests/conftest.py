@@ -49,9 +49,14 @@ def two_threads():
         yield
 
 
-def fast_linear(num_experiments: int):
-    """``(system, trajectories)``: a linear system faster than the paper's with a larger quadratic F, and
-    ``num_experiments`` noise-free experiments of 11 times on [0, 3] (the fits through the ODE's test problem)."""
+@pytest.fixture(scope="session")
+def fast_linear():
+    """``make(K) -> (system, trajectories)``: a linear system faster than the paper's with a larger quadratic F, and K
+    noise-free experiments of 11 times on [0, 3] (the fits through the ODE's test problem)."""
+    return _fast_linear
+
+
+def _fast_linear(num_experiments: int):
     from torchmisspec.systems import LinearField, QuadraticField
 
     A = 5 * torch.tensor([[0.02, 0.10], [-0.10, -0.06]], dtype=torch.float64)

@@ -4,7 +4,6 @@ and a component that is never observed has its initial values estimated from a s
 
 import pytest
 import torch
-from conftest import fast_linear
 
 import torchmisspec as tms
 
@@ -12,7 +11,7 @@ DT = torch.float64
 
 
 @pytest.fixture(scope="module")
-def problem():
+def problem(fast_linear):
     """A linear system with a quadratic F; 4 noise-free experiments, T = 11."""
     system, traj = fast_linear(4)
     return system, traj

@@ -3,7 +3,6 @@ derivative-based fit it starts from."""
 
 import pytest
 import torch
-from conftest import fast_linear
 
 import torchmisspec as tms
 from torchmisspec.trajectory_fit import shooting_misfit
@@ -12,7 +11,7 @@ DT = torch.float64
 
 
 @pytest.fixture(scope="module")
-def problem():
+def problem(fast_linear):
     """A faster linear system than the paper's with a larger quadratic F; 8 noise-free experiments, T = 11."""
     system, traj = fast_linear(8)
     samples = tms.correction_samples(traj, system, derivative="central", order=2)  # biased at this spacing
