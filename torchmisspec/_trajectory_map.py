@@ -130,6 +130,7 @@ def _fit_relevance(
     start=None,
     rounds: int | None = None,
     parameters: bool = False,
+    theta_start: torch.Tensor | None = None,
 ):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
@@ -145,7 +146,7 @@ def _fit_relevance(
     uncertain parameters of G with the coefficients (single shooting only): theta = m + s v with v ~ N(0, I) is
     part of the Levenberg-Marquardt problem and of the Laplace step, which gives its joint posterior with the
     coefficients, the offsets marginalised; the result's ``parameters_laplace_`` is ``(mean (k,), covariance (k, k),
-    covariance with F held fixed (k, k))``.
+    covariance with F held fixed (k, k))``; ``theta_start`` ``(k,)``: where theta starts (default its prior mean).
     """
     from .gp._features import PRUNE
 
@@ -176,7 +177,9 @@ def _fit_relevance(
         raise FittingError("the joint fit of G's uncertain parameters through the ODE needs single shooting")
     m_theta = None if not k else system.parameters.mean.to(**kd)
     s_theta = None if not k else system.parameters.scale.to(**kd)
-    v = None if not k else torch.zeros(k, **kd)  # theta = m + s v, starting at the prior mean
+    v = None if not k else torch.zeros(k, **kd)  # theta = m + s v, starting at the prior mean ...
+    if k and theta_start is not None:  # ... or where asked (the known model's own fit)
+        v = ((theta_start.to(**kd) - m_theta) / s_theta).clone()
 
     def known_at(vv):  # G at theta = m + s vv (the system as declared when not learning theta)
         return system if vv is None else system.at(m_theta + s_theta * vv)

@@ -192,11 +192,12 @@ def _scaled_known(system, s: torch.Tensor):
         # output (..., 1) would broadcast to (..., d) and pass it
         return out / s.to(like) if isinstance(out, torch.Tensor) and out.shape == like.shape else out
 
-    if system.autonomous and system.parameters is None:
+    takes_theta = system.theta is not None  # declared parameters, or fixed by system.at(theta): G still takes them
+    if system.autonomous and not takes_theta:
         return lambda y: back(G(y * s.to(y)), y)
     if system.autonomous:
         return lambda y, theta: back(G(y * s.to(y), theta), y)
-    if system.parameters is None:
+    if not takes_theta:
         return lambda t, y, u: back(G(t, y * s.to(y), u), y)
     return lambda t, y, u, theta: back(G(t, y * s.to(y), u, theta), y)
 

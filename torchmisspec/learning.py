@@ -25,6 +25,7 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
+from ._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
 from ._parameters_ode import fit_parameters
 from ._threads import adaptive_threads
 from ._units import fit_in_units
@@ -52,6 +53,7 @@ from .trajectory_fit import _mean_field, fit_trajectories
 
 __all__ = [
     "FEATURE_DEGREE",
+    "KNOWN_MODEL_OUTPUTSCALE",
     "LENGTHSCALE_GRID",
     "SELECTION",
     "SIGNIFICANCE",
@@ -60,6 +62,7 @@ __all__ = [
     "cross_validate_lengthscale",
     "default_candidates",
     "fit_correction",
+    "known_model_template",
     "lengthscale_candidates",
 ]
 
@@ -225,26 +228,6 @@ def _chooser(trajectories: Trajectories, samples: CorrectionSamples, system, der
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", TorchMisspecWarning)
         return pieces, correction_samples(pieces, system, derivative=derivative, **estimator).thinned(SELECTION_SAMPLES)
-
-
-#: The known model's stand-in as a correction: a GP whose prior variance is this fraction of the samples' variance
-#: (its posterior mean and variance are F = 0 to this relative precision), so that F = 0 is a fitted model like any
-#: other (predicted, drawn, saved and loaded as one).
-KNOWN_MODEL_OUTPUTSCALE = 1e-12
-
-
-def known_model_template(samples: CorrectionSamples) -> CorrectionGP:
-    """The known model alone (F = 0) as a :class:`CorrectionGP` template: an RBF of the samples' median distance whose
-    output scale is :data:`KNOWN_MODEL_OUTPUTSCALE` times the samples' variance, its noise that variance (nothing
-    learned: fitting it conditions on the samples, and its mean and draws are 0 to that precision)."""
-    var = float(samples.targets.detach().double().pow(2).mean())
-    var = var if math.isfinite(var) and var > 0 else 1.0
-    return CorrectionGP(
-        lengthscale=median_distance(samples.inputs),
-        outputscale=KNOWN_MODEL_OUTPUTSCALE * var,
-        noise_variance=var,
-        device=samples.inputs.device,
-    )
 
 
 def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored, noise):

@@ -40,8 +40,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ._errors import FittingError, InputError, IntegrationError, TorchMisspecWarning, warn
+from ._errors import FittingError, InputError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
 from ._gp_in_time import observed_rms
+from ._known_fit import fit_known_model, forecast_score, known_model_template, time_split
 from ._ode import FITTING_TOLERANCES, PREDICTION_TOLERANCES
 from ._trajectory_map import _fit_relevance
 from .data import Trajectories
@@ -403,14 +404,22 @@ def complete(system: MisspecifiedSystem, rhs, trajectories: Trajectories, initia
 
 
 def _through_the_ode(
-    system: MisspecifiedSystem, trajectories: Trajectories, completed, samples, noise, progress, parameters=False
+    system: MisspecifiedSystem,
+    trajectories: Trajectories,
+    completed,
+    samples,
+    noise,
+    progress,
+    parameters=False,
+    theta_start=None,
 ):
     """The first model of F and the initial states, fitted to what was measured: the feature kernel (monomials up to
     :data:`~torchmisspec.learning.FEATURE_DEGREE`, one set of relevance weights per output) through the ODE, its
     term weights by sparse Bayesian learning (:func:`~torchmisspec.fit_trajectories`' relevance fit), starting
     from F = 0 with a prior as large as G on F's outputs (the missing term may be as large as the known one), for
     at most :data:`FIRST_MODEL_ROUNDS` rounds of relevance updates; with ``parameters``, G's uncertain parameters
-    are learned with it (their Laplace posterior in the result's ``parameters_laplace_``)."""
+    are learned with it (their Laplace posterior in the result's ``parameters_laplace_``), from ``theta_start``
+    (default their prior mean)."""
     filled = completed.filled()
     g = system.select_outputs(system.known_rhs(filled.flat_states(), filled.flat_times(), filled.flat_controls()))
     start = g.pow(2).mean(0).clamp_min(torch.finfo(g.dtype).tiny)  # (d_out,)
@@ -431,6 +440,7 @@ def _through_the_ode(
         start=start,
         rounds=FIRST_MODEL_ROUNDS,
         parameters=parameters,
+        theta_start=theta_start,
     )
 
 
@@ -473,6 +483,18 @@ def _completed_by_g(system: MisspecifiedSystem, trajectories: Trajectories, nois
     return complete(system, known, trajectories, y0)
 
 
+def _completed_by_known(system: MisspecifiedSystem, trajectories: Trajectories, known) -> Trajectories | None:
+    """The data completed with the known model's own fit (its parameters and initial states, F = 0); ``None``
+    without one, or when its paths cannot be integrated at the prediction tolerances."""
+    if known is None:
+        return None
+    at = system if known.theta is None else system.at(known.theta)
+    try:
+        return complete(at, at.known_rhs, trajectories, known.initial_states)
+    except IntegrationError:
+        return None
+
+
 def _refined_or_kept(chosen, system, trajectories: Trajectories, y0, progress: bool):
     """``(model, initial states)``: ``chosen`` refined through the ODE on what was measured
     (:func:`~torchmisspec.fit_trajectories`), or, when that refinement cannot be integrated (the lynx data: not even
@@ -494,16 +516,134 @@ def _refined_or_kept(chosen, system, trajectories: Trajectories, y0, progress: b
 
 def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, **options):
     """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
-    is ``fit_correction``'s steps (called on the completed data for the model choice), ``options`` its keywords."""
+    is ``fit_correction``'s steps (called on the completed data for the model choice), ``options`` its keywords.
+
+    **Do no harm**: with the default candidates and ``select="cv"``, the correction is kept only when it forecasts
+    held-out later times better than the known model alone (:mod:`torchmisspec._known_fit`: each experiment's last
+    third held out, both fitted on the rest, :func:`~torchmisspec._known_fit.forecast_score`); otherwise the known
+    model is returned with its uncertain parameters and initial states fitted to every measurement (F = 0,
+    ``result.known_model_``), with a warning."""
+    defaults = options.get("gp") is None and options.get("candidates") is None and options.get("select") == "cv"
+    noise_model = options["noise"]
+    start = initial_guess(trajectories, system)  # its warning for a component never observed, or its refusal
+    with warnings.catch_warnings():  # the classical answer: the start of the correction's fit, and its rival
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        known = _known_fit_or_none(system, trajectories, noise_model, start)
+    split = time_split(trajectories) if defaults and known is not None else None
+    if split is None:  # a user's model, nothing to hold out, or no known model to compare with
+        return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
+    early, keep = split
+    with warnings.catch_warnings():  # the held-out check's own fits: their advice is the full fit's
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        known_early = _known_fit_or_none(system, early, noise_model)
+        try:
+            trial = _corrected(early, system, fit, progress=False, known=known_early, **options)
+        except (FittingError, IntegrationError, LinearAlgebraError):
+            trial = None
+    if known_early is None:  # the known model cannot be fitted on the earlier times: the correction, as before
+        return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
+    scale = torch.nan_to_num(known_early.scale, nan=1.0).clamp_min(torch.finfo(known_early.scale.dtype).tiny)
+    at = system if known_early.theta is None else system.at(known_early.theta)
+    y0 = known_early.initial_states
+    score_known = forecast_score(at, at.known_rhs, trajectories, y0, keep, noise_model, scale)
+    score_trial = math.inf
+    if trial is not None:
+        found = getattr(trial, "parameters_", None)
+        at_trial = system if found is None else system.at(found.mean)
+        field = _mean_field(at_trial, trial.posterior())
+        score_trial = forecast_score(at_trial, field, trajectories, trial.initial_states_, keep, noise_model, scale)
+    if score_trial < score_known:
+        return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
+    return _known_result(trajectories, system, known, score_trial, score_known)
+
+
+def _known_fit_or_none(system: MisspecifiedSystem, trajectories: Trajectories, noise, start=None):
+    """The known model's fit (:func:`~torchmisspec._known_fit.fit_known_model`) from ``start`` (default
+    :func:`initial_guess`), the initial states the first rows do not give free; ``None`` when G cannot be integrated
+    from there."""
+    given = torch.isfinite(trajectories.initial_conditions)
+    if trajectories.readout is not None:
+        given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
+    start = initial_guess(trajectories, system) if start is None else start
+    try:
+        return fit_known_model(system, trajectories.with_initial_states(start), ~given, noise)
+    except FittingError:
+        return None
+
+
+def _known_result(trajectories: Trajectories, system: MisspecifiedSystem, known, score_trial: float, score_known):
+    """The known model alone fitted to every measurement (``known``, a :class:`~torchmisspec._known_fit.KnownFit`),
+    as a fitted :class:`CorrectionGP` (:func:`~torchmisspec._known_fit.known_model_template`) with ``parameters_``
+    (theta's Laplace posterior), ``initial_states_`` and ``identifiability_``, and a warning saying why."""
+    at = system if known.theta is None else system.at(known.theta)
+    completed = complete(at, at.known_rhs, trajectories, known.initial_states)
+    report = identifiability(system, trajectories, completed=completed)
+    report.check(system.name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        samples = correction_samples(completed, at, derivative="central")
+    result = known_model_template(samples).fit(samples)
+    if known.theta is not None:
+        result.parameters_ = _known_posterior(system, known, completed, samples.inputs.shape[0])
+    result.initial_states_ = known.initial_states
+    result.identifiability_ = report
+    result.cross_validation_, result.samples_ = None, samples
+    result.input_names_ = system.input_names(trajectories)
+    result.known_model_ = True
+    trial = "could not be fitted" if not math.isfinite(score_trial) else f"{score_trial:.3g}"
+    fitted = "its parameters and " if known.theta is not None else ""
+    warn(
+        f"fit_correction: a correction fitted on the first two thirds of each experiment does not forecast the last "
+        f"third better than the known model alone (held-out misfit {trial} vs {score_known:.3g}); returning the known "
+        f"model with {fitted}the initial states the data do not give fitted to every measurement, F = 0 (do no "
+        "harm; result.known_model_ is True). Collect more experiments or longer ones, or check the known model",
+        TorchMisspecWarning,
+    )
+    if known.theta is not None:
+        result.parameters_.warn_if_unidentified("fit_correction")
+    return result
+
+
+def _known_posterior(system: MisspecifiedSystem, known, completed: Trajectories, n: int) -> ParameterPosterior:
+    """theta's posterior from the known model's fit: its Laplace covariance (the initial states marginalised); no F
+    to absorb it (``basis_targets`` 0 at the ``n`` training inputs)."""
+    priors = system.parameters
+    like = completed.flat_states()
+    flat = completed.flat_states()
+    t = None if system.autonomous else completed.flat_times().to(flat)
+    _, linear = parameter_basis(
+        lambda th: system.at(th).known_rhs(flat, t, completed.flat_controls()), known.theta, priors.scale.to(like)
+    )
+    cov = 0.5 * (known.covariance + known.covariance.T)
+    return ParameterPosterior(
+        names=priors.names,
+        prior_mean=priors.mean.to(like),
+        prior_scale=priors.scale.to(like),
+        mean=known.theta.detach().to(like),
+        covariance=cov.detach().to(like),
+        sd_without_correction=known.fixed.diagonal().clamp_min(0).sqrt().detach().to(like),
+        log_evidence=math.nan,
+        basis_targets=like.new_zeros(n, system.output_dim, len(priors)),
+        linear=linear,
+    )
+
+
+def _corrected(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, known, **options):
+    """The correction learned through the ODE (the steps of the module docstring), starting from the known model's
+    own fit ``known`` (a :class:`~torchmisspec._known_fit.KnownFit`: its parameters and initial states, F = 0) where
+    there is one."""
     kd = dict(dtype=trajectories.dtype, device=trajectories.device)
     noise = _state_noise(None, trajectories, kd)  # variances of the states and readings, once for every step below
-    completed = _completed_by_g(system, trajectories, None if noise is None else noise.sqrt())
+    completed = _completed_by_known(system, trajectories, known)
+    if completed is None:
+        completed = _completed_by_g(system, trajectories, None if noise is None else noise.sqrt())
     report = identifiability(system, trajectories, completed=completed)
     report.check(system.name)
     samples = correction_samples(completed, system, derivative="central")  # only their inputs are used
     data = trajectories.with_initial_states(completed.initial_states)
     learn = system.parameters is not None
-    first = _through_the_ode(system, data, completed, samples, noise, progress, parameters=learn)
+    theta_start = None if known is None else known.theta
+    first = _through_the_ode(system, data, completed, samples, noise, progress, learn, theta_start)
     y0 = first.initial_states_
     posterior = _first_posterior(system, first, completed) if learn else None
     at = system if posterior is None else system.at(posterior.mean)  # F is chosen at theta's posterior mean

@@ -1,0 +1,139 @@
+"""Issue 41, the classical answer inside the package: the known model alone (F = 0) fitted through the ODE to what was
+measured (torchmisspec._known_fit), checked against scipy's least squares on the same objective, and the held-out
+later times on which partly measured data keep a correction only when it forecasts them better."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec._known_fit import fit_known_model, forecast_score, time_split
+from torchmisspec.noise import Additive, Relative
+
+DT = torch.float64
+TRUE = (0.8, 0.3)  # infection-like conversion rate and loss rate of a two-state chain
+
+
+def chain(y, theta):
+    """dA/dt = -a A, dB/dt = a A - b B: A not measured, B measured."""
+    a, b = theta[0], theta[1]
+    return torch.stack([-a * y[..., 0], a * y[..., 0] - b * y[..., 1]], dim=-1)
+
+
+def _system(scale=(0.5, 0.5)):
+    return tms.MisspecifiedSystem(
+        chain, 2, name="chain", state_names=["A", "B"], parameters={"a": (0.5, scale[0]), "b": (0.5, scale[1])}
+    )
+
+
+def _data(noise=0.0, multiplicative=False, seed=0, a0=4.0, n=16):
+    truth = tms.MisspecifiedSystem(lambda y: chain(y, torch.tensor(TRUE, dtype=y.dtype)), 2, name="truth")
+    times = torch.linspace(0.0, 8.0, n, dtype=DT)
+    clean = tms.simulate(truth, torch.tensor([[a0, 0.1]], dtype=DT), times).states
+    g = torch.Generator().manual_seed(seed)
+    eps = torch.randn(clean.shape, generator=g, dtype=DT)
+    noisy = clean * torch.exp(noise * eps) if multiplicative else clean + noise * eps
+    noisy[:, 1:, 0] = math.nan  # A given at t = 0 only (the dose), B measured throughout
+    noisy[:, 0, 0] = math.nan  # ... or not at all: its initial value is then fitted
+    return tms.Trajectories(times, noisy, state_names=["A", "B"])
+
+
+def _scipy_fit(data, transform):
+    """The same fit by scipy: theta and A(0) by least squares on transform(B), tight solves, no prior."""
+    from scipy.optimize import least_squares
+
+    times, y = data.experiments()[0]
+    b = y[:, 1].numpy()
+
+    def residuals(x):
+        sim = tms.simulate(_system().at(torch.tensor(x[:2])), torch.tensor([[x[2], b[0]]]), times).states[0]
+        return transform(sim[:, 1].numpy()) - transform(b)
+
+    return least_squares(residuals, np.array([0.5, 0.5, 2.0]), x_scale=1.0, xtol=1e-12, ftol=1e-12).x
+
+
+def _fit(data, noise, scale=(50.0, 50.0)):
+    start = data.initial_conditions.clone()
+    start[:, 0] = 2.0
+    free = torch.tensor([[True, False]])
+    return fit_known_model(_system(scale), data.with_initial_states(start), free, noise)
+
+
+@pytest.mark.parametrize("noise, transform", [(Additive(), lambda v: v), (Relative(), np.log)])
+def test_the_known_models_fit_matches_scipy_least_squares(noise, transform):
+    """An unmeasured initial state and two parameters, noisy data, a prior 100 times wider than the estimates (its
+    penalty negligible): the same minimum as scipy's least squares on the noise model's residuals."""
+    data = _data(noise=0.05, multiplicative=isinstance(noise, Relative))
+    fit = _fit(data, noise)
+    a, b, a0 = _scipy_fit(data, transform)
+    assert fit.theta.tolist() == pytest.approx([a, b], rel=2e-3)
+    assert float(fit.initial_states[0, 0]) == pytest.approx(a0, rel=2e-3)
+    assert float(fit.initial_states[0, 1]) == float(data.initial_conditions[0, 1])  # given: kept
+    assert fit.covariance.shape == (2, 2) and bool((fit.covariance.diagonal() > 0).all())
+    # the initial state's uncertainty widens theta's (marginalised, not held fixed)
+    assert bool((fit.covariance.diagonal() >= fit.fixed.diagonal() * (1 - 1e-9)).all())
+    assert math.isnan(float(fit.scale[0])) and float(fit.scale[1]) > 0  # A is never measured
+
+
+def test_exact_data_give_the_truth():
+    """Noiseless data from the truth: the fit lands on it (theta and the unmeasured initial state)."""
+    data = _data()
+    fit = _fit(data, Additive())
+    assert fit.theta.tolist() == pytest.approx(list(TRUE), rel=1e-4)
+    assert float(fit.initial_states[0, 0]) == pytest.approx(4.0, rel=1e-4)
+
+
+def test_the_time_split_keeps_two_thirds_of_each_long_enough_experiment():
+    data = _data(n=9)
+    early, keep = time_split(data)
+    assert keep.tolist() == [6] and early.lengths == (6,)
+    assert time_split(_data(n=5)) is None  # too short to hold anything out
+
+
+def test_the_forecast_score_is_zero_for_the_truth_and_infinite_when_it_cannot_be_integrated():
+    data = _data()
+    _, keep = time_split(data)
+    truth = _system().at(torch.tensor(TRUE, dtype=DT))
+    y0 = torch.tensor([[4.0, 0.1]], dtype=DT)
+    scale = torch.ones(2, dtype=DT)
+    assert forecast_score(truth, truth.known_rhs, data, y0, keep, Additive(), scale) < 1e-8
+    wrong = _system().at(torch.tensor([0.5, 0.5], dtype=DT))
+    assert forecast_score(wrong, wrong.known_rhs, data, y0, keep, Additive(), scale) > 1e-2
+
+    def blows_up(y, t=None, u=None):
+        return y.pow(3)
+
+    assert forecast_score(truth, blows_up, data, 10 * y0, keep, Additive(), scale) == math.inf
+
+
+def test_partly_measured_data_from_the_known_model_return_it_with_its_parameters_and_initial_state():
+    """The chain with A never measured, 5 % noise, G exact: the default fit keeps no correction (do no harm), and
+    returns the known model with theta and A(0) as its own fit finds them, usable for predictions beyond the data."""
+    data = _data(noise=0.05)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = tms.fit_correction(data, _system(), progress=False)
+    assert gp.known_model_ is True
+    assert any("does not forecast the last third better than the known model" in str(w.message) for w in caught)
+    assert gp.parameters_.mean.tolist() == pytest.approx(list(TRUE), rel=0.1)
+    assert float(gp.initial_states_[0, 0]) == pytest.approx(4.0, rel=0.1)
+    model = tms.CorrectedODE(_system(), gp)
+    times = torch.linspace(0.0, 16.0, 9, dtype=DT)  # twice the data's span
+    pred = model.predict(gp.initial_states_, times)
+    known = tms.simulate(_system().at(gp.parameters_.mean), gp.initial_states_, times).states
+    torch.testing.assert_close(pred, known, rtol=1e-5, atol=1e-7)
+
+
+def test_a_system_with_its_parameters_fixed_is_fitted_on_data_far_from_one():
+    """A system fixed by ``at(theta)`` calls G with theta still: the fit in the data's units (counts in the
+    thousands) must call it so too (it raised TypeError inside G's scaled copy)."""
+    data = _data(noise=0.02)
+    big = tms.Trajectories(data.time_grid, data.states * 1000.0, state_names=["A", "B"])
+    fixed = _system().at(torch.tensor(TRUE, dtype=DT))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = tms.fit_correction(big, fixed, progress=False)
+    assert float(gp.initial_states_[0, 0]) == pytest.approx(4000.0, rel=0.1)

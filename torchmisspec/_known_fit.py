@@ -1,0 +1,333 @@
+"""The known model alone (F = 0) fitted through the ODE to what was measured: the classical answer.
+
+A scientist's first fit of a model that is almost right: G's uncertain parameters and the initial states the data
+do not give, chosen so that G's paths match the measured values (states and readings) in the space where the
+measurement errors are alike (a :class:`~torchmisspec.noise.NoiseModel`: logs for relative errors, ``log(1 + y)``
+for counts). It is what a correction must beat to be worth keeping (do no harm): :mod:`torchmisspec.partial`
+compares the two on held-out later times (:func:`time_split`, :func:`forecast_score`).
+
+The fit is Levenberg-Marquardt on
+
+    sum_j sum_i r_ij^2 / s_j^2 + |v|^2,      theta = m + s_theta v,
+
+r the residuals of component (or reading) j, s_j^2 their mean square at the current point (each component's noise
+estimated with the fit, as a maximum-likelihood fit with unknown variances does), v the parameters in units of their
+prior standard deviations (the prior as a weak penalty: it keeps a parameter the data do not see where the scientist
+put it). The Jacobian is by forward differences, every column in one batched solve (an experiment's initial state
+moves only its own path, so one copy per state component serves every experiment). A trial step whose solve fails or
+does not lower the misfit is rejected and the damping raised: never the end of the fit. theta's covariance is the
+Laplace one at the end, the initial states marginalised.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ._errors import FittingError, IntegrationError
+from ._gp_in_time import observed_rms
+from ._ode import FITTING_TOLERANCES
+from .data import Trajectories
+from .gp import CorrectionGP
+from .gp._exact import median_distance
+from .trajectory_fit import _solve_rhs
+
+__all__ = [
+    "KNOWN_MODEL_OUTPUTSCALE",
+    "KnownFit",
+    "fit_known_model",
+    "forecast_score",
+    "known_model_template",
+    "time_split",
+]
+
+#: most Levenberg-Marquardt iterations (each: one batched solve of 1 + k + d copies, and one of the trial step)
+ITERATIONS = 30
+#: forward-difference step, in units of a parameter's prior sd or of a component's size
+STEP = 1e-4
+#: most solver steps of one batched solve (a trial step that needs more is rejected)
+MAX_STEPS = 4000
+#: the fit stops once an accepted step lowers the misfit by less than this fraction
+TOLERANCE = 1e-7
+#: of each experiment, this fraction of its times (rounded up) is kept by :func:`time_split`, the rest held out ...
+KEEP = 2 / 3
+#: ... when it has at least this many times (shorter ones are kept whole)
+MIN_SPLIT = 6
+
+
+@dataclass(frozen=True)
+class KnownFit:
+    """The known model's fit (:func:`fit_known_model`).
+
+    Attributes:
+        theta: G's uncertain parameters ``(k,)`` (``None`` without them).
+        covariance: their Laplace covariance ``(k, k)``, the initial states marginalised (``None`` without them).
+        fixed: their covariance with the initial states held at the estimate (``None`` without them).
+        initial_states: every experiment's initial state ``(K, d)``.
+        scale: each measured component's (and reading's) root mean square residual ``(d + m,)``, in the noise
+            model's space (NaN where nothing is measured).
+    """
+
+    theta: torch.Tensor | None
+    covariance: torch.Tensor | None
+    fixed: torch.Tensor | None
+    initial_states: torch.Tensor
+    scale: torch.Tensor
+
+
+def _predictor(system, trajectories: Trajectories):
+    """``predict(thetas (V, k) or None, y0 (V, K, d)) -> (V, K, T, d + m)``: the paths of G at each of V parameter
+    values from each copy's initial states, read as the data are (:meth:`Trajectories.observe`), in one solve."""
+    times, _, _ = trajectories.padded()
+    K = trajectories.num_experiments
+    times = times if times.dim() == 2 else times.expand(K, -1)
+    controls = trajectories.controls
+
+    def predict(thetas, y0):
+        V = y0.shape[0]
+        copies = None if thetas is None else [system.at(th) for th in thetas]
+
+        def rhs(y, t, u):
+            if copies is None:
+                return system.known_rhs(y, t, u)
+            rows = y.shape[0] // V
+
+            def part(x, i):
+                return x[i * rows : (i + 1) * rows]
+
+            return torch.cat(
+                [
+                    c.known_rhs(
+                        part(y, i),
+                        part(t, i) if isinstance(t, torch.Tensor) and t.dim() > 0 else t,
+                        None if u is None else part(u, i),
+                    )
+                    for i, c in enumerate(copies)
+                ]
+            )
+
+        repeated = None if controls is None else controls.repeat(V)
+        rtol, atol = FITTING_TOLERANCES
+        solver = dict(rtol=rtol, atol=atol, max_steps=MAX_STEPS, what="the known model's fit")
+        pred, _ = _solve_rhs(system, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), repeated, **solver)
+        return trajectories.observe(pred.reshape(V, K, *pred.shape[1:]))
+
+    return predict
+
+
+def _observed(trajectories: Trajectories):
+    """``(values (K, T, d + m), seen (K, T, d + m))``: the measured values and where they are (each experiment's
+    first row included: where its initial state is estimated, the first values are data like any other)."""
+    values, mask = trajectories.observed_values()
+    return values, torch.isfinite(values) & mask.unsqueeze(-1)
+
+
+def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, noise, *, start=None) -> KnownFit:
+    """The known model alone fitted to ``trajectories`` (the module's notes): G's uncertain parameters (from their
+    prior mean) and the ``free (K, d)`` entries of the initial states (from ``start (K, d)``, default
+    ``trajectories.initial_conditions``; the others are kept), the residuals those of the
+    :class:`~torchmisspec.noise.NoiseModel` ``noise``. Raises :class:`FittingError` when G cannot be integrated from
+    the start."""
+    priors = system.parameters
+    y_start = trajectories.initial_conditions if start is None else start
+    kd = dict(dtype=y_start.dtype, device=y_start.device)
+    k = 0 if priors is None else len(priors)
+    m_theta = None if not k else priors.mean.to(**kd)
+    s_theta = None if not k else priors.scale.to(**kd)
+    values, seen = _observed(trajectories)
+    target = noise.transform(values[seen])
+    comp = torch.arange(values.shape[-1], device=values.device).expand_as(values)[seen]
+    exp = torch.arange(values.shape[0], device=values.device).view(-1, 1, 1).expand_as(values)[seen]
+    cols = free.any(0).nonzero().flatten().tolist()  # state components with a free entry somewhere
+    size = observed_rms(torch.where(torch.isfinite(y_start), y_start, torch.zeros_like(y_start)))
+    size = torch.where(size > 0, size, torch.ones_like(size))
+    predict = _predictor(system, trajectories)
+    K, d = y_start.shape
+
+    def unpack(z):  # (V, p) -> thetas (V, k) or None, y0 (V, K, d)
+        thetas = None if not k else m_theta + s_theta * z[:, :k]
+        y0 = y_start.expand(z.shape[0], K, d).clone()
+        if cols:
+            off = z[:, k:].reshape(z.shape[0], K, len(cols))
+            for c, j in enumerate(cols):
+                y0[:, :, j] = y0[:, :, j] + free[:, j].to(off) * off[:, :, c] * size[j]
+        return thetas, y0
+
+    def residuals(z):  # (V, p) -> (V, n): prediction - observation in the noise model's space (inf where not finite)
+        pred = noise.transform(predict(*unpack(z))[:, seen])
+        r = pred - target
+        return torch.where(torch.isfinite(r), r, torch.full_like(r, math.inf))
+
+    p = k + K * len(cols)
+    z = torch.zeros(p, **kd)
+    active = torch.ones(p, dtype=torch.bool, device=kd["device"])
+    if cols:  # an entry that is not free is not a parameter (its column stays 0)
+        active[k:] = free[:, cols].reshape(-1)
+    try:
+        r = residuals(z[None])[0]
+    except IntegrationError as exc:
+        why = str(exc)[:160]
+        raise FittingError(f"the known model cannot be integrated from the start of its fit ({why})") from exc
+    if not bool(torch.isfinite(r).all()):
+        raise FittingError("the known model's paths from the start of its fit are not finite where measured")
+
+    def weights(r):  # 1 / s_j^2 for each residual: each component's mean square at the current point
+        ms = torch.zeros(values.shape[-1], **kd).index_add_(0, comp, r.pow(2))
+        count = torch.zeros(values.shape[-1], **kd).index_add_(0, comp, torch.ones_like(r))
+        ms = ms / count.clamp_min(1)
+        floor = 1e-12 * float(ms.max()) + torch.finfo(r.dtype).tiny
+        return 1 / ms.clamp_min(floor)[comp]
+
+    def jacobian(z, r):
+        zs = z.expand(k + len(cols), p).clone()
+        for i in range(k):
+            zs[i, i] += STEP
+        for c in range(len(cols)):  # one copy moves component cols[c] of every experiment's initial state
+            zs[k + c, k + c :: len(cols)] += STEP
+        R = residuals(zs)
+        J = torch.zeros(r.shape[0], p, **kd)
+        J[:, :k] = ((R[:k] - r) / STEP).T
+        for c in range(len(cols)):
+            diff = (R[k + c] - r) / STEP
+            J[torch.arange(r.shape[0]), k + exp * len(cols) + c] = diff
+        J = torch.where(torch.isfinite(J), J, torch.zeros_like(J))
+        return J * active.to(J)
+
+    if p == 0:  # nothing to fit: the known model as declared, from the given initial states
+        return _result(z, r, weights(r), k, m_theta, s_theta, unpack, None, active, None, comp, values.shape[-1])
+
+    def misfit(r, w, z):
+        return float((w * r.pow(2)).sum()) + float(z[:k].pow(2).sum())
+
+    lam = 1e-3
+    penalty = torch.cat([torch.ones(k, **kd), torch.zeros(p - k, **kd)])
+    w = weights(r)
+    for _ in range(ITERATIONS):
+        try:
+            J = jacobian(z, r)
+        except IntegrationError:  # a column's solve failed: stop at the current point
+            break
+        A = J.T @ (w[:, None] * J) + torch.diag(penalty)
+        g = J.T @ (w * r) + penalty * z
+        A = A + torch.diag((~active).to(A))  # entries that are not parameters: identity rows, no step
+        base = misfit(r, w, z)
+        improved = False
+        for _ in range(8):
+            step = -torch.linalg.solve(A + lam * torch.diag(A.diagonal() + 1e-12), g) * active.to(g)
+            trial = z + step
+            try:
+                rt = residuals(trial[None])[0]
+                cost = misfit(rt, w, trial) if bool(torch.isfinite(rt).all()) else math.inf
+            except IntegrationError:  # a trial step that cannot be integrated is rejected
+                cost = math.inf
+            if cost < base:
+                improved = True
+                break
+            lam = min(lam * 10.0, 1e10)
+        if not improved:
+            break
+        z, r, lam = trial, rt, max(lam * 0.3, 1e-9)
+        w_new = weights(r)
+        if (base - cost) <= TOLERANCE * base and bool(torch.allclose(w_new, w, rtol=1e-3)):
+            w = w_new
+            break
+        w = w_new
+    return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1])
+
+
+def _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, e) -> KnownFit:
+    """The fit's :class:`KnownFit` at ``z``: theta's Laplace covariance (the initial states marginalised, and held
+    fixed), the initial states and each component's residual scale."""
+    thetas, y0 = unpack(z[None])
+    cov = fixed = None
+    if k:
+        try:
+            J = jacobian(z, r)
+        except IntegrationError:
+            J = None
+        if J is not None:
+            A = J.T @ (w[:, None] * J) + torch.diag(penalty) + torch.diag((~active).to(J))
+            scale = s_theta[:, None] * s_theta[None, :]
+            cov = torch.cholesky_inverse(torch.linalg.cholesky(A))[:k, :k] * scale
+            fixed = torch.cholesky_inverse(torch.linalg.cholesky(A[:k, :k])) * scale
+        else:
+            cov = fixed = torch.diag(s_theta**2)
+    ms = torch.zeros(e, dtype=r.dtype, device=r.device).index_add_(0, comp, r.pow(2))
+    count = torch.zeros(e, dtype=r.dtype, device=r.device).index_add_(0, comp, torch.ones_like(r))
+    scale = torch.where(count > 0, (ms / count.clamp_min(1)).sqrt(), torch.full_like(ms, math.nan))
+    theta = None if thetas is None else thetas[0]
+    return KnownFit(theta=theta, covariance=cov, fixed=fixed, initial_states=y0[0], scale=scale)
+
+
+#: The known model's stand-in as a correction: a GP whose prior variance is this fraction of the samples' variance
+#: (its posterior mean and variance are F = 0 to this relative precision), so that F = 0 is a fitted model like any
+#: other (predicted, drawn, saved and loaded as one).
+KNOWN_MODEL_OUTPUTSCALE = 1e-12
+
+
+def known_model_template(samples) -> CorrectionGP:
+    """The known model alone (F = 0) as a :class:`CorrectionGP` template: an RBF of the samples' median distance whose
+    output scale is :data:`KNOWN_MODEL_OUTPUTSCALE` times the samples' variance, its noise that variance (nothing
+    learned: fitting it conditions on the samples, and its mean and draws are 0 to that precision)."""
+    var = float(samples.targets.detach().double().pow(2).mean())
+    var = var if math.isfinite(var) and var > 0 else 1.0
+    return CorrectionGP(
+        lengthscale=median_distance(samples.inputs),
+        outputscale=KNOWN_MODEL_OUTPUTSCALE * var,
+        noise_variance=var,
+        device=samples.inputs.device,
+    )
+
+
+# ---- held-out later times ----------------------------------------------------------------------------------------
+def time_split(trajectories: Trajectories) -> tuple[Trajectories, torch.Tensor] | None:
+    """``(the earlier times, keep)``: every experiment of at least :data:`MIN_SPLIT` times cut after the first
+    :data:`KEEP` of them (rounded up), shorter ones kept whole, and the ``(K,)`` number of times each keeps; ``None``
+    when no experiment is long enough (nothing to hold out)."""
+    lengths = torch.tensor(trajectories.lengths)
+    keep = torch.where(lengths >= MIN_SPLIT, torch.ceil(lengths * KEEP).long(), lengths)
+    if bool((keep == lengths).all()):
+        return None
+    times = [t[:n] for (t, _), n in zip(trajectories.experiments(), keep.tolist(), strict=True)]
+    states = [y[:n] for (_, y), n in zip(trajectories.experiments(), keep.tolist(), strict=True)]
+    readings = None
+    if trajectories.readings is not None:
+        listed = trajectories.readings if trajectories.is_ragged else list(trajectories.readings)
+        readings = [r[:n] for r, n in zip(listed, keep.tolist(), strict=True)]
+    early = Trajectories(
+        times,
+        states,
+        state_names=trajectories.state_names,
+        controls=trajectories.controls,
+        initial_states=trajectories.initial_states,
+        readout=trajectories.readout,
+        readings=readings,
+    )
+    return early, keep
+
+
+def forecast_score(system, field, trajectories: Trajectories, initial_states, keep, noise, scale) -> float:
+    """The misfit of a model's forecast of the held-out later times (those past each experiment's first ``keep``):
+    the path of ``field(y, t, u)`` (``system``'s solver conventions) from ``initial_states (K, d)`` over every time,
+    its residuals in ``noise``'s space at the held-out measured values, each divided by ``scale`` (``(d + m,)``, the
+    same for the models compared), summed in squares; ``inf`` when the forecast cannot be integrated."""
+    times, _, _ = trajectories.padded()
+    K = trajectories.num_experiments
+    times = times if times.dim() == 2 else times.expand(K, -1)
+    rtol, atol = FITTING_TOLERANCES
+    try:
+        pred, _ = _solve_rhs(
+            system, field, initial_states, times, trajectories.controls, rtol=rtol, atol=atol,
+            max_steps=MAX_STEPS, what="the held-out forecast",
+        )  # fmt: skip
+    except IntegrationError:
+        return math.inf
+    values, seen = _observed(trajectories)
+    late = torch.arange(values.shape[1], device=values.device).view(1, -1) >= keep.to(values.device).view(-1, 1)
+    held = seen & late.unsqueeze(-1)
+    pred = trajectories.observe(pred)
+    r = (noise.transform(pred[held]) - noise.transform(values[held])) / scale.to(values).expand_as(values)[held]
+    total = float(r.pow(2).sum())
+    return total if math.isfinite(total) else math.inf
