@@ -75,6 +75,14 @@ class KnownFit:
     fixed: torch.Tensor | None
     initial_states: torch.Tensor
     scale: torch.Tensor
+    #: the fit's unknowns in the order of :attr:`unknowns_covariance`: ``("theta", i)`` or ``("state", k, j)``
+    unknowns: tuple = ()
+    #: their units (a parameter's prior sd, a component's size) ``(p,)``
+    units: torch.Tensor | None = None
+    #: their Laplace covariance in those units ``(p, p)`` (``None`` where it could not be formed)
+    unknowns_covariance: torch.Tensor | None = None
+    #: the number of residuals the fit matched (each component's measured values, its given first values left out)
+    num_residuals: int = 0
 
 
 def _predictor(system, trajectories: Trajectories):
@@ -137,6 +145,8 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
     m_theta = None if not k else priors.mean.to(**kd)
     s_theta = None if not k else priors.scale.to(**kd)
     values, seen = _observed(trajectories)
+    d = y_start.shape[-1]
+    seen[:, 0, :d] &= free  # a given first value is where the path starts, not a residual
     target = noise.transform(values[seen])
     comp = torch.arange(values.shape[-1], device=values.device).expand_as(values)[seen]
     exp = torch.arange(values.shape[0], device=values.device).view(-1, 1, 1).expand_as(values)[seen]
@@ -161,6 +171,7 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
         return torch.where(torch.isfinite(r), r, torch.full_like(r, math.inf))
 
     p = k + K * len(cols)
+    unknowns = tuple(("theta", i) for i in range(k)) + tuple(("state", e, j) for e in range(K) for j in cols)
     z = torch.zeros(p, **kd)
     active = torch.ones(p, dtype=torch.bool, device=kd["device"])
     if cols:  # an entry that is not free is not a parameter (its column stays 0)
@@ -234,31 +245,49 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
             w = w_new
             break
         w = w_new
-    return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1])
+    described = (unknowns, torch.cat([s_theta if k else z.new_zeros(0), size[cols].repeat(K)]))
+    return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1], described)
 
 
-def _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, e) -> KnownFit:
+def _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, e, described=None) -> KnownFit:
     """The fit's :class:`KnownFit` at ``z``: theta's Laplace covariance (the initial states marginalised, and held
-    fixed), the initial states and each component's residual scale."""
+    fixed), the initial states, each component's residual scale, and the unknowns' covariance (``described``:
+    ``(unknowns, units)``)."""
     thetas, y0 = unpack(z[None])
-    cov = fixed = None
-    if k:
+    cov = fixed = full = None
+    if z.numel():
         try:
             J = jacobian(z, r)
         except IntegrationError:
             J = None
         if J is not None:
             A = J.T @ (w[:, None] * J) + torch.diag(penalty) + torch.diag((~active).to(J))
-            scale = s_theta[:, None] * s_theta[None, :]
-            cov = torch.cholesky_inverse(torch.linalg.cholesky(A))[:k, :k] * scale
+            try:
+                full = torch.cholesky_inverse(torch.linalg.cholesky(A)) * active.to(A)[:, None] * active.to(A)
+            except torch.linalg.LinAlgError:
+                full = None
+    if k:
+        scale = s_theta[:, None] * s_theta[None, :]
+        cov = fixed = torch.diag(s_theta**2)
+        if full is not None:
+            cov = full[:k, :k] * scale
             fixed = torch.cholesky_inverse(torch.linalg.cholesky(A[:k, :k])) * scale
-        else:
-            cov = fixed = torch.diag(s_theta**2)
     ms = torch.zeros(e, dtype=r.dtype, device=r.device).index_add_(0, comp, r.pow(2))
     count = torch.zeros(e, dtype=r.dtype, device=r.device).index_add_(0, comp, torch.ones_like(r))
     scale = torch.where(count > 0, (ms / count.clamp_min(1)).sqrt(), torch.full_like(ms, math.nan))
     theta = None if thetas is None else thetas[0]
-    return KnownFit(theta=theta, covariance=cov, fixed=fixed, initial_states=y0[0], scale=scale)
+    unknowns, units = described if described is not None else ((), None)
+    return KnownFit(
+        theta=theta,
+        covariance=cov,
+        fixed=fixed,
+        initial_states=y0[0],
+        scale=scale,
+        unknowns=unknowns,
+        units=units,
+        unknowns_covariance=full,
+        num_residuals=int(r.numel()),
+    )
 
 
 #: The known model's stand-in as a correction: a GP whose prior variance is this fraction of the samples' variance
@@ -331,3 +360,90 @@ def forecast_score(system, field, trajectories: Trajectories, initial_states, ke
     r = (noise.transform(pred[held]) - noise.transform(values[held])) / scale.to(values).expand_as(values)[held]
     total = float(r.pow(2).sum())
     return total if math.isfinite(total) else math.inf
+
+
+#: the known model fails its own forecast check (:func:`forecast_check`) below this p-value
+CHECK_LEVEL = 0.01
+
+
+def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, noise) -> tuple[float, float]:
+    """The p-value of the known model's forecast of the held-out later times (those past each experiment's first
+    ``keep``) under its own predictive distribution: ``fit`` (:func:`fit_known_model` on the earlier times) predicts
+    them with errors of covariance ``C = D + J Sigma J^T``, D each component's residual variance of the fit (its
+    mean square times n / (n - p), the unknowns' share), J the forecast's Jacobian in the unknowns and Sigma their
+    Laplace covariance (an unknown the earlier times hardly determine widens the forecast it drives). Returns
+    ``(p, Q / n)``: under the model, ``Q / n = r^T C^-1 r / n`` over the n held-out values is F-distributed with
+    (n, residuals - unknowns) degrees of freedom (D is estimated), and a small p-value says the known model cannot
+    forecast these data, so that a correction may; ``Q / n`` is how much wider than predicted its forecast errors
+    were (1 when its bands are right). ``(nan, nan)`` with nothing held out; ``(0, inf)`` when the forecast cannot be
+    integrated."""
+    values, seen = _observed(trajectories)
+    late = torch.arange(values.shape[1], device=values.device).view(1, -1) >= keep.to(values.device).view(-1, 1)
+    held = seen & late.unsqueeze(-1)
+    n_held = int(held.sum())
+    if n_held == 0:
+        return math.nan, math.nan
+    p = len(fit.unknowns)
+    k = 0 if fit.theta is None else fit.theta.numel()
+    thetas = None if fit.theta is None else fit.theta.expand(1 + p, -1).clone()
+    y0 = fit.initial_states.expand(1 + p, *fit.initial_states.shape).clone()
+    for i, what in enumerate(fit.unknowns):  # copy 1 + i: unknown i moved by STEP of its unit
+        if what[0] == "theta":
+            thetas[1 + i, what[1]] += STEP * fit.units[i]
+        else:
+            y0[1 + i, what[1], what[2]] += STEP * fit.units[i]
+    try:
+        pred = noise.transform(_predictor(system, trajectories)(thetas, y0)[:, held])  # (1 + p, n_held)
+    except IntegrationError:
+        return 0.0, math.inf
+    r = pred[0] - noise.transform(values[held])
+    comp = torch.arange(values.shape[-1], device=values.device).expand_as(values)[held]
+    dof = fit.num_residuals / max(fit.num_residuals - p, 1)
+    variance = torch.nan_to_num(fit.scale.pow(2) * dof, nan=math.inf)[comp]
+    C = torch.diag(variance)
+    if p and fit.unknowns_covariance is not None and k + p:
+        J = (pred[1:] - pred[0]) / STEP  # (p, n_held)
+        C = C + J.T @ fit.unknowns_covariance.to(J) @ J
+    if not bool(torch.isfinite(r).all() and torch.isfinite(C).all()):
+        return 0.0, math.inf
+    try:
+        L = torch.linalg.cholesky(C)
+    except torch.linalg.LinAlgError:
+        return 0.0, math.inf
+    ratio = float(torch.cholesky_solve(r[:, None], L).squeeze(-1) @ r) / n_held
+    return f_survival(ratio, n_held, max(fit.num_residuals - p, 1)), ratio
+
+
+def f_survival(x: float, d1: float, d2: float) -> float:
+    """P(X > x) for X ~ F(d1, d2): the regularized incomplete beta function I_{d2 / (d2 + d1 x)}(d2 / 2, d1 / 2)."""
+    if not x > 0:
+        return 1.0
+    return betainc(d2 / 2, d1 / 2, d2 / (d2 + d1 * x))
+
+
+def betainc(a: float, b: float, x: float) -> float:
+    """The regularized incomplete beta function I_x(a, b), by its continued fraction (modified Lentz), on the side
+    where it converges fast (Numerical Recipes, 3rd ed., section 6.4)."""
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    log_front = math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x)
+    if x > (a + 1) / (a + b + 2):  # the symmetric side converges faster
+        return 1.0 - betainc(b, a, 1.0 - x)
+    tiny, c, d = 1e-300, 1.0, 1.0 - (a + b) * x / (a + 1)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 300):
+        for numerator in (
+            m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)),
+            -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1)),
+        ):
+            d = 1.0 + numerator * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + numerator / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-14:
+            break
+    return math.exp(log_front) * h / a

@@ -296,6 +296,7 @@ def _recorded(result: CorrectionGP, system: MisspecifiedSystem, trajectories: Tr
     result.derivative_ = getattr(getattr(result, "samples_", None), "derivative", None)
     try:
         result.noise_scale_ = noise_scale(result, system, trajectories, noise)
+        result.noise_scale_ = result.noise_scale_ * math.sqrt(getattr(result, "dispersion_", 1.0))
     except (IntegrationError, LinearAlgebraError):
         result.noise_scale_ = None
     return result
@@ -364,7 +365,11 @@ def fit_correction(
 
     **Do no harm**: with ``"cv"`` and the default candidates, the known model alone (F = 0) with its uncertain
     parameters fitted is returned (``result.known_model_`` is ``True``, with a warning) when no candidate predicts
-    the held-out experiments (or pieces) better than it.
+    the held-out experiments (or pieces) better than it. With partly measured states, the known model's parameters
+    and the initial states the data do not give are fitted through the ODE to the measured values (the classical
+    answer, :func:`torchmisspec._known_fit.fit_known_model`), the correction's own fit starts there, and the
+    correction is kept only when, fitted on the first two thirds of each experiment's times, it forecasts the last
+    third better than the known model fitted on the same times.
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
