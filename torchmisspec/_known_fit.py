@@ -363,7 +363,7 @@ def forecast_score(system, field, trajectories: Trajectories, initial_states, ke
 
 
 #: the known model fails its own forecast check (:func:`forecast_check`) below this p-value
-CHECK_LEVEL = 0.01
+CHECK_LEVEL = 0.05
 
 
 def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, noise) -> tuple[float, float]:
