@@ -209,12 +209,21 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
     if p == 0:  # nothing to fit: the known model as declared, from the given initial states
         return _result(z, r, weights(r), k, m_theta, s_theta, unpack, None, active, None, comp, values.shape[-1])
 
-    def misfit(r, w, z):
-        return float((w * r.pow(2)).sum()) + float(z[:k].pow(2).sum())
-
-    lam = 1e-3
     penalty = torch.cat([torch.ones(k, **kd), torch.zeros(p - k, **kd)])
-    w = weights(r)
+    z, r, w = _damped_steps(z, r, residuals, jacobian, weights, active, penalty)
+    described = (unknowns, torch.cat([s_theta if k else z.new_zeros(0), size[cols].repeat(K)]))
+    return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1], described)
+
+
+def _damped_steps(z, r, residuals, jacobian, weights, active, penalty):
+    """Levenberg-Marquardt from ``z`` (residuals ``r``) on ``sum w r^2 + sum penalty z^2``, ``w = weights(r)``
+    refreshed after each accepted step: ``(z, r, w)`` at the end. A trial step that cannot be integrated, or does not
+    lower the misfit, is rejected and the damping raised; a Jacobian that cannot be formed ends the fit there."""
+
+    def misfit(r, w, z):
+        return float((w * r.pow(2)).sum()) + float((penalty * z.pow(2)).sum())
+
+    lam, w = 1e-3, weights(r)
     for _ in range(ITERATIONS):
         try:
             J = jacobian(z, r)
@@ -223,30 +232,26 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
         A = J.T @ (w[:, None] * J) + torch.diag(penalty)
         g = J.T @ (w * r) + penalty * z
         A = A + torch.diag((~active).to(A))  # entries that are not parameters: identity rows, no step
-        base = misfit(r, w, z)
-        improved = False
+        base, cost = misfit(r, w, z), math.inf
         for _ in range(8):
-            step = -torch.linalg.solve(A + lam * torch.diag(A.diagonal() + 1e-12), g) * active.to(g)
-            trial = z + step
+            trial = z - torch.linalg.solve(A + lam * torch.diag(A.diagonal() + 1e-12), g) * active.to(g)
             try:
                 rt = residuals(trial[None])[0]
                 cost = misfit(rt, w, trial) if bool(torch.isfinite(rt).all()) else math.inf
             except IntegrationError:  # a trial step that cannot be integrated is rejected
                 cost = math.inf
             if cost < base:
-                improved = True
                 break
             lam = min(lam * 10.0, 1e10)
-        if not improved:
+        if not cost < base:
             break
         z, r, lam = trial, rt, max(lam * 0.3, 1e-9)
+        settled = (base - cost) <= TOLERANCE * base
         w_new = weights(r)
-        if (base - cost) <= TOLERANCE * base and bool(torch.allclose(w_new, w, rtol=1e-3)):
-            w = w_new
+        settled, w = settled and bool(torch.allclose(w_new, w, rtol=1e-3)), w_new
+        if settled:
             break
-        w = w_new
-    described = (unknowns, torch.cat([s_theta if k else z.new_zeros(0), size[cols].repeat(K)]))
-    return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1], described)
+    return z, r, w
 
 
 def _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, e, described=None) -> KnownFit:

@@ -27,6 +27,7 @@ from ._errors import (
 )
 from ._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
 from ._parameters_ode import fit_parameters
+from ._partial_choice import fit_partly_measured
 from ._threads import adaptive_threads
 from ._units import fit_in_units
 from ._validation import check_flag
@@ -47,7 +48,6 @@ from .gp._selection import fit_and_score
 from .noise import as_noise_model
 from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .parameters import posterior_given
-from .partial import fit_partly_measured
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field, fit_trajectories
 
@@ -351,8 +351,8 @@ def fit_correction(
 
     **Partly measured states** (a component some experiment does not measure, :attr:`Trajectories.measured
     <torchmisspec.Trajectories.measured>`): the correction is learned through the ODE
-    (:func:`torchmisspec.partial.fit_partly_measured`: the unmeasured starting values and a first model of F fitted
-    to the measured values, the data completed with its paths, then the steps above on the completed data);
+    (:func:`torchmisspec._partial_choice.fit_partly_measured`: the unmeasured starting values and a first model of
+    F fitted to the measured values, the data completed with its paths, then the steps above on the completed data);
     ``result.identifiability_`` says how the measurements see each output of F (an output none sees is refused), and
     ``result.initial_states_`` holds the estimated ``(K, d)`` initial states. Neither is saved with the model. With
     uncertain parameters of G, they are learned with the first model through the ODE (their Laplace posterior, F's

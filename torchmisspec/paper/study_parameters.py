@@ -19,7 +19,8 @@ out with F in closed form (:mod:`torchmisspec.parameters`).
   posterior (Gauss-Newton on the derivative samples, then through the ODE).
 * **partial**: the identifiable case with the substrate S measured at the start of each experiment only (biomass X
   measured throughout): theta, F's terms and the initial states are fitted together through the ODE to the measured
-  values (a Laplace posterior), and F is chosen at theta's mean (:func:`torchmisspec.partial.fit_partly_measured`).
+  values (a Laplace posterior), and F is chosen at theta's mean
+  (:func:`torchmisspec._partial_choice.fit_partly_measured`).
 
 Each realization: 8 experiments x 20 times with 1 % multiplicative state noise, fitted with defaults
 (``fit_correction``); predictions on 30 new initial states under new input profiles, against the true system. The

@@ -1,0 +1,177 @@
+"""Partly measured data: a correction learned through the ODE, or the known model alone (do no harm).
+
+:func:`fit_partly_measured` is what :func:`~torchmisspec.fit_correction` does when some component is not measured.
+With the default candidates:
+
+1. the known model alone (F = 0) is fitted to the measured values through the ODE: its uncertain parameters and the
+   initial states the data do not give, in the noise model's space (:mod:`torchmisspec._known_fit`, the classical
+   answer a scientist would compute);
+2. it is fitted again on the first two thirds of each experiment's times and must fail to forecast the last third
+   within its own predictive uncertainty (:func:`~torchmisspec._known_fit.forecast_check`: the noise and the
+   spread of its fitted parameters and initial states, an F test at the 5 % level); when it does not fail there is
+   nothing for a correction to learn, and the known model of step 1 is returned at once;
+3. otherwise a correction is learned on the first two thirds too (:mod:`torchmisspec.partial`, its joint fit
+   starting from the known model's), and kept, learned again on every time, only when it forecasts the last third
+   better (:func:`~torchmisspec._known_fit.forecast_score`); otherwise the known model of step 1 is returned.
+
+The known model returned has ``result.known_model_`` set, a warning saying why, and bands widened by what the
+held-out forecast showed (``result.dispersion_``). Real data sets that are one trajectory or partly measured lost to
+the classical answer without these steps (theophylline 1.10x, lynx 1.85x, influenza 1.18x the classical forecast
+error; docs/studies/real-data-suite.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import torch
+
+from ._errors import FittingError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
+from ._known_fit import CHECK_LEVEL, fit_known_model, forecast_check, forecast_score, known_model_template, time_split
+from .data import Trajectories
+from .observations import correction_samples
+from .parameters import ParameterPosterior, parameter_basis
+from .partial import _corrected, _from_readings, complete, identifiability, initial_guess
+from .systems import MisspecifiedSystem
+from .trajectory_fit import _mean_field
+
+__all__ = ["fit_partly_measured"]
+
+
+def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, **options):
+    """:func:`~torchmisspec.fit_correction` for partly measured data (the steps of the module docstring); ``fit``
+    is ``fit_correction``'s steps (called on the completed data for the model choice), ``options`` its keywords.
+
+    **Do no harm**: with the default candidates and ``select="cv"``, the correction is kept only when it forecasts
+    held-out later times better than the known model alone (:mod:`torchmisspec._known_fit`: each experiment's last
+    third held out, both fitted on the rest, :func:`~torchmisspec._known_fit.forecast_score`); otherwise the known
+    model is returned with its uncertain parameters and initial states fitted to every measurement (F = 0,
+    ``result.known_model_``), with a warning."""
+    defaults = options.get("gp") is None and options.get("candidates") is None and options.get("select") == "cv"
+    noise_model = options["noise"]
+    start = initial_guess(trajectories, system)  # its warning for a component never observed, or its refusal
+    with warnings.catch_warnings():  # the classical answer: the start of the correction's fit, and its rival
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        known = _known_fit_or_none(system, trajectories, noise_model, start)
+    split = time_split(trajectories) if defaults and known is not None else None
+    if split is None:  # a user's model, nothing to hold out, or no known model to compare with
+        return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
+    early, keep = split
+    with warnings.catch_warnings():  # the held-out check's own fits: their advice is the full fit's
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        known_early = _known_fit_or_none(system, early, noise_model)
+    if known_early is None:  # the known model cannot be fitted on the earlier times: the correction, as before
+        return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
+    passed, ratio = forecast_check(system, known_early, trajectories, keep, noise_model)
+    if passed >= CHECK_LEVEL:  # nothing the known model cannot forecast: no correction to look for
+        why = (
+            f"the known model fitted on the first two thirds of each experiment forecasts the last third within its "
+            f"own uncertainty (p = {passed:.2g}, {CHECK_LEVEL:g} needed to look for a correction)"
+        )
+        return _known_result(trajectories, system, known, why, ratio)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        try:
+            trial = _corrected(early, system, fit, progress=False, known=known_early, **options)
+        except (FittingError, IntegrationError, LinearAlgebraError):
+            trial = None
+    scale = torch.nan_to_num(known_early.scale, nan=1.0).clamp_min(torch.finfo(known_early.scale.dtype).tiny)
+    at = system if known_early.theta is None else system.at(known_early.theta)
+    y0 = known_early.initial_states
+    score_known = forecast_score(at, at.known_rhs, trajectories, y0, keep, noise_model, scale)
+    score_trial = math.inf
+    if trial is not None:
+        found = getattr(trial, "parameters_", None)
+        at_trial = system if found is None else system.at(found.mean)
+        field = _mean_field(at_trial, trial.posterior())
+        score_trial = forecast_score(at_trial, field, trajectories, trial.initial_states_, keep, noise_model, scale)
+    if score_trial < score_known:
+        return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
+    trial = "could not be fitted" if not math.isfinite(score_trial) else f"{score_trial:.3g}"
+    why = (
+        f"the known model's forecast of the last third of each experiment misses (p = {passed:.2g}), but a correction "
+        f"fitted on the first two thirds does not forecast it better (held-out misfit {trial} vs {score_known:.3g})"
+    )
+    return _known_result(trajectories, system, known, why, ratio)
+
+
+def _known_fit_or_none(system: MisspecifiedSystem, trajectories: Trajectories, noise, start=None):
+    """The known model's fit (:func:`~torchmisspec._known_fit.fit_known_model`) from ``start`` (default
+    :func:`initial_guess`), the initial states the first rows do not give free; ``None`` when G cannot be integrated
+    from there."""
+    given = torch.isfinite(trajectories.initial_conditions)
+    if trajectories.readout is not None:
+        given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
+    start = initial_guess(trajectories, system) if start is None else start
+    try:
+        return fit_known_model(system, trajectories.with_initial_states(start), ~given, noise)
+    except FittingError:
+        return None
+
+
+def _known_result(trajectories: Trajectories, system: MisspecifiedSystem, known, why: str, ratio: float):
+    """The known model alone fitted to every measurement (``known``, a :class:`~torchmisspec._known_fit.KnownFit`),
+    as a fitted :class:`CorrectionGP` (:func:`~torchmisspec._known_fit.known_model_template`) with ``parameters_``
+    (theta's Laplace posterior), ``initial_states_`` and ``identifiability_``, and a warning saying why.
+
+    Its bands are widened by what the held-out later times showed: ``ratio`` (``Q / n`` of
+    :func:`~torchmisspec._known_fit.forecast_check`, the forecast's squared errors over their predicted variance)
+    when above 1 multiplies theta's covariance and the residual variance (``result.dispersion_``; the noise scale
+    :func:`~torchmisspec.fit_correction` records is multiplied by its square root): the model's own error beyond
+    the data, which neither the measurement noise nor the parameters' spread accounts for."""
+    at = system if known.theta is None else system.at(known.theta)
+    completed = complete(at, at.known_rhs, trajectories, known.initial_states)
+    report = identifiability(system, trajectories, completed=completed)
+    report.check(system.name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        samples = correction_samples(completed, at, derivative="central")
+    result = known_model_template(samples).fit(samples)
+    dispersion = ratio if math.isfinite(ratio) and ratio > 1 else 1.0
+    result.dispersion_ = dispersion
+    if known.theta is not None:
+        result.parameters_ = _known_posterior(system, known, completed, samples.inputs.shape[0])
+        result.parameters_ = dataclasses.replace(
+            result.parameters_, covariance=result.parameters_.covariance * dispersion
+        )
+    result.initial_states_ = known.initial_states
+    result.identifiability_ = report
+    result.cross_validation_, result.samples_ = None, samples
+    result.input_names_ = system.input_names(trajectories)
+    result.known_model_ = True
+    fitted = "its parameters and " if known.theta is not None else ""
+    warn(
+        f"fit_correction: {why}; returning the known model with {fitted}the initial states the data do not give "
+        "fitted to every measurement, F = 0 (do no harm; result.known_model_ is True). Collect more experiments or "
+        "longer ones, or check the known model",
+        TorchMisspecWarning,
+    )
+    if known.theta is not None:
+        result.parameters_.warn_if_unidentified("fit_correction")
+    return result
+
+
+def _known_posterior(system: MisspecifiedSystem, known, completed: Trajectories, n: int) -> ParameterPosterior:
+    """theta's posterior from the known model's fit: its Laplace covariance (the initial states marginalised); no F
+    to absorb it (``basis_targets`` 0 at the ``n`` training inputs)."""
+    priors = system.parameters
+    like = completed.flat_states()
+    flat = completed.flat_states()
+    t = None if system.autonomous else completed.flat_times().to(flat)
+    _, linear = parameter_basis(
+        lambda th: system.at(th).known_rhs(flat, t, completed.flat_controls()), known.theta, priors.scale.to(like)
+    )
+    cov = 0.5 * (known.covariance + known.covariance.T)
+    return ParameterPosterior(
+        names=priors.names,
+        prior_mean=priors.mean.to(like),
+        prior_scale=priors.scale.to(like),
+        mean=known.theta.detach().to(like),
+        covariance=cov.detach().to(like),
+        sd_without_correction=known.fixed.diagonal().clamp_min(0).sqrt().detach().to(like),
+        log_evidence=math.nan,
+        basis_targets=like.new_zeros(n, system.output_dim, len(priors)),
+        linear=linear,
+    )
