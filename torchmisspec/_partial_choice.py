@@ -6,10 +6,12 @@ With the default candidates:
 1. the known model alone (F = 0) is fitted to the measured values through the ODE: its uncertain parameters and the
    initial states the data do not give, in the noise model's space (:mod:`torchmisspec._known_fit`, the classical
    answer a scientist would compute);
-2. it is fitted again on the first two thirds of each experiment's times and must fail to forecast the last third
-   within its own predictive uncertainty (:func:`~torchmisspec._known_fit.forecast_check`: the noise and the
-   spread of its fitted parameters and initial states, an F test at the 5 % level); when it does not fail there is
-   nothing for a correction to learn, and the known model of step 1 is returned at once;
+2. it is fitted again on the first two thirds of each experiment's times; with one experiment it must fail to
+   forecast the last third within its own predictive uncertainty (:func:`~torchmisspec._known_fit.forecast_check`:
+   the noise and the spread of its fitted parameters and initial states, an F test at the 5 % level), and when it
+   does not fail, the known model of step 1 is returned at once (a few held-out values of one path are too few to
+   prefer a fitted rival to the scientist's model; with several experiments a parameter can absorb the missing term
+   well enough to pass the check, so the rival is always fitted there);
 3. otherwise a correction is learned on the first two thirds too (:mod:`torchmisspec.partial`, its joint fit
    starting from the known model's; without the final refinement through the ODE, which took minutes on the lynx
    data), and kept, learned again on every time, only when it forecasts the last third better
@@ -66,7 +68,12 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     if known_early is None:  # the known model cannot be fitted on the earlier times: the correction, as before
         return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
     passed, ratio = forecast_check(system, known_early, trajectories, keep, noise_model)
-    if passed >= CHECK_LEVEL:  # nothing the known model cannot forecast: no correction to look for
+    # one trajectory: its last third is a few values of one path, too few for a fitted rival to be preferred to the
+    # model the scientist wrote unless that model demonstrably fails them (influenza: the split alone chose
+    # corrections that forecast 2-10 times worse). Several experiments: the rival is always fitted and compared (a
+    # parameter can absorb the missing term well enough to pass the check, with a confidently wrong value: the
+    # chemostat tutorial's kd, 0.118 +- 0.005 against a true 0.05)
+    if trajectories.num_experiments == 1 and passed >= CHECK_LEVEL:
         why = (
             f"the known model fitted on the first two thirds of each experiment forecasts the last third within its "
             f"own uncertainty (p = {passed:.2g}, {CHECK_LEVEL:g} needed to look for a correction)"
