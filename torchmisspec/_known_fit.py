@@ -389,7 +389,6 @@ def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, nois
     if n_held == 0:
         return math.nan, math.nan
     p = len(fit.unknowns)
-    k = 0 if fit.theta is None else fit.theta.numel()
     thetas = None if fit.theta is None else fit.theta.expand(1 + p, -1).clone()
     y0 = fit.initial_states.expand(1 + p, *fit.initial_states.shape).clone()
     for i, what in enumerate(fit.unknowns):  # copy 1 + i: unknown i moved by STEP of its unit
@@ -406,7 +405,7 @@ def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, nois
     dof = fit.num_residuals / max(fit.num_residuals - p, 1)
     variance = torch.nan_to_num(fit.scale.pow(2) * dof, nan=math.inf)[comp]
     C = torch.diag(variance)
-    if p and fit.unknowns_covariance is not None and k + p:
+    if p and fit.unknowns_covariance is not None:
         J = (pred[1:] - pred[0]) / STEP  # (p, n_held)
         C = C + J.T @ fit.unknowns_covariance.to(J) @ J
     if not bool(torch.isfinite(r).all() and torch.isfinite(C).all()):

@@ -35,8 +35,7 @@ from ._errors import FittingError, IntegrationError, LinearAlgebraError, TorchMi
 from ._known_fit import CHECK_LEVEL, fit_known_model, forecast_check, forecast_score, known_model_template, time_split
 from .data import Trajectories
 from .observations import correction_samples
-from .parameters import ParameterPosterior, parameter_basis
-from .partial import _corrected, _from_readings, complete, identifiability, initial_guess
+from .partial import _corrected, _from_readings, complete, identifiability, initial_guess, laplace_posterior
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field
 
@@ -142,7 +141,8 @@ def _known_result(trajectories: Trajectories, system: MisspecifiedSystem, known,
     dispersion = ratio if math.isfinite(ratio) and ratio > 1 else 1.0
     result.dispersion_ = dispersion
     if known.theta is not None:
-        result.parameters_ = _known_posterior(system, known, completed, samples.inputs.shape[0])
+        n = samples.inputs.shape[0]
+        result.parameters_ = laplace_posterior(system, known.theta, known.covariance, known.fixed, completed, n)
         result.parameters_ = dataclasses.replace(
             result.parameters_, covariance=result.parameters_.covariance * dispersion
         )
@@ -161,27 +161,3 @@ def _known_result(trajectories: Trajectories, system: MisspecifiedSystem, known,
     if known.theta is not None:
         result.parameters_.warn_if_unidentified("fit_correction")
     return result
-
-
-def _known_posterior(system: MisspecifiedSystem, known, completed: Trajectories, n: int) -> ParameterPosterior:
-    """theta's posterior from the known model's fit: its Laplace covariance (the initial states marginalised); no F
-    to absorb it (``basis_targets`` 0 at the ``n`` training inputs)."""
-    priors = system.parameters
-    like = completed.flat_states()
-    flat = completed.flat_states()
-    t = None if system.autonomous else completed.flat_times().to(flat)
-    _, linear = parameter_basis(
-        lambda th: system.at(th).known_rhs(flat, t, completed.flat_controls()), known.theta, priors.scale.to(like)
-    )
-    cov = 0.5 * (known.covariance + known.covariance.T)
-    return ParameterPosterior(
-        names=priors.names,
-        prior_mean=priors.mean.to(like),
-        prior_scale=priors.scale.to(like),
-        mean=known.theta.detach().to(like),
-        covariance=cov.detach().to(like),
-        sd_without_correction=known.fixed.diagonal().clamp_min(0).sqrt().detach().to(like),
-        log_evidence=math.nan,
-        basis_targets=like.new_zeros(n, system.output_dim, len(priors)),
-        linear=linear,
-    )

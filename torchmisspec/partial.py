@@ -570,15 +570,21 @@ def _first_posterior(system: MisspecifiedSystem, first, completed: Trajectories)
     on them (no absorption terms: draws of theta and of F are independent, which overstates the spread where F
     could make up for theta)."""
     found = first.parameters_laplace_
+    if found is None:  # the fit ended before its Laplace step: nothing learned
+        return ParameterPosterior.prior(system.parameters, 0, system.output_dim, completed.flat_states())
+    return laplace_posterior(system, *found, completed)
+
+
+def laplace_posterior(system: MisspecifiedSystem, mean, cov, fixed, completed: Trajectories, n: int = 0):
+    """A :class:`ParameterPosterior` from a fit through the ODE: mean ``(k,)``, Laplace covariance ``(k, k)`` and the
+    covariance with the initial states (and any coefficients of F) held fixed (its diagonal: the standard deviations
+    without a correction); linear or not in theta as G is at the states of ``completed``; no F to absorb theta
+    (``basis_targets`` 0 at ``n`` training inputs)."""
     priors = system.parameters
     like = completed.flat_states()
-    if found is None:  # the fit ended before its Laplace step: nothing learned
-        return ParameterPosterior.prior(priors, 0, system.output_dim, like)
-    mean, cov, fixed = found
-    flat = completed.flat_states()
-    t = None if system.autonomous else completed.flat_times().to(flat)
+    t = None if system.autonomous else completed.flat_times().to(like)
     _, linear = parameter_basis(
-        lambda th: system.at(th).known_rhs(flat, t, completed.flat_controls()), mean, priors.scale.to(mean)
+        lambda th: system.at(th).known_rhs(like, t, completed.flat_controls()), mean, priors.scale.to(mean)
     )
     return ParameterPosterior(
         names=priors.names,
@@ -588,6 +594,6 @@ def _first_posterior(system: MisspecifiedSystem, first, completed: Trajectories)
         covariance=(0.5 * (cov + cov.T)).detach().to(like),
         sd_without_correction=fixed.diagonal().clamp_min(0).sqrt().detach().to(like),
         log_evidence=math.nan,
-        basis_targets=like.new_zeros(0, system.output_dim, len(priors)),
+        basis_targets=like.new_zeros(n, system.output_dim, len(priors)),
         linear=linear,
     )

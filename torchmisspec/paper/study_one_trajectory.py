@@ -36,6 +36,7 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec.benchmarks.reporting import ROOT, machine, run_json, write_json
+from torchmisspec.paper.real_data import _warned
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_one_trajectory.json"
 DTYPE = torch.float64
@@ -292,15 +293,6 @@ def realization(name: str, seed: int, cfg: dict) -> dict:
     rec["warnings"] = _warned(caught)
     rec["wall_seconds"] = time.perf_counter() - t0
     return rec
-
-
-def _warned(caught) -> list[str]:
-    seen: list[str] = []
-    for w in caught:
-        text = f"{w.category.__name__}: {str(w.message)[:200]}"
-        if text not in seen:
-            seen.append(text)
-    return seen
 
 
 #: The summarised quantities: a label and the path into a realization's record.
