@@ -23,6 +23,8 @@ def not_a_system():
     return {"state_dim": 2}
 
 NUMBER = 3
+
+SYSTEM = damped()
 """
 
 
@@ -46,6 +48,13 @@ def test_builtin_names_and_systems_pass_through():
 def test_module_function_spec(user_module):
     system = load_system(f"{user_module}:damped")
     assert isinstance(system, tms.MisspecifiedSystem) and system.name == "damped" and system.state_dim == 2
+
+
+def test_a_module_level_system_is_taken_as_it_is(user_module):
+    """A newcomer's system file builds the system at the top level (``system = MisspecifiedSystem(...)``): naming it
+    was refused as 'expected a function'."""
+    system = load_system(f"{user_module}:SYSTEM")
+    assert isinstance(system, tms.MisspecifiedSystem) and system.name == "damped"
 
 
 def test_file_path_spec(tmp_path, user_module):

@@ -505,7 +505,7 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
 
     Importing a user module runs its code, and so does calling the function: this is what a spec that names
     them asks for, so only pass specs you trust (the package itself never imports anything named in a data file).
-    A :class:`MisspecifiedSystem` passed in is returned as it is.
+    A :class:`MisspecifiedSystem` passed in, or named by the spec (a module-level system), is returned as it is.
 
     Raises:
         InputError: an unknown built-in name, a module that cannot be imported (with the import's error and its
@@ -535,6 +535,8 @@ def load_system(spec: str | MisspecifiedSystem) -> MisspecifiedSystem:
             f"module defines {public[:20]})"
         )
     function = getattr(module, function_name)
+    if isinstance(function, MisspecifiedSystem):  # the system itself, built at the module's top level
+        return function
     if not callable(function):
         raise InputError(f"system {spec!r}: expected {function_name!r} to be a function, got {type(function).__name__}")
     try:
