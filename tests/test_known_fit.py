@@ -179,3 +179,38 @@ def test_the_forecast_check_passes_the_right_model_and_fails_a_wrong_one():
         noisy[:, :, 0] = math.nan
         p_wrong, ratio = _check(tms.Trajectories(times, noisy, state_names=["A", "B"]))
         assert p_wrong < 0.01 and ratio > 3
+
+
+SYSTEM_FILE = """
+import torch
+import torchmisspec as tms
+
+
+def chain(y, theta):
+    a, b = theta[0], theta[1]
+    return torch.stack([-a * y[..., 0], a * y[..., 0] - b * y[..., 1]], dim=-1)
+
+
+system = tms.MisspecifiedSystem(
+    chain, 2, name="chain", state_names=["A", "B"], parameters={"a": (0.5, 50.0), "b": (0.5, 50.0)}
+)
+"""
+
+
+def test_the_cli_says_the_known_model_was_kept_and_why(tmp_path, capsys):
+    """A lab's CSV of one partly measured trajectory (A empty, B measured), the system built at the top of its file:
+    the CLI keeps the known model, says so in one line, and the warning says how the held-out data tested it."""
+    from torchmisspec.cli import main
+
+    data = _data(noise=0.05, multiplicative=True)
+    t, y = data.experiments()[0]
+    rows = ["hour,A,B"] + [f"{float(ti):g},,{float(yi[1]):.6g}" for ti, yi in zip(t, y, strict=True)]
+    (tmp_path / "lab.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    (tmp_path / "chain_system.py").write_text(SYSTEM_FILE, encoding="utf-8")
+    args = ["fit", "--data", str(tmp_path / "lab.csv"), "--system", f"{tmp_path / 'chain_system.py'}:system"]
+    code = main([*args, "--time-column", "hour", "--out", str(tmp_path / "m.pt"), "--quiet"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "kept the known model alone (F = 0, its parameters fitted): the held-out data do not support" in out.out
+    assert "forecasts the last third within its own uncertainty" in out.err
+    assert "a = " in out.out and "b = " in out.out

@@ -88,7 +88,10 @@ def _fit(args: argparse.Namespace) -> int:
     )
     if getattr(gp, "known_model_", False):
         fitted = ", its parameters fitted" if system.parameters is not None else ""
-        print(f"kept the known model alone (F = 0{fitted}): no correction predicted the held-out data better")
+        print(
+            f"kept the known model alone (F = 0{fitted}): the held-out data do not support a correction (the warning "
+            "above says how they were tested)"
+        )
     if cv is not None:
         # partly measured data: the held-out errors compare with the data completed by the first fitted model
         where = "" if getattr(gp, "identifiability_", None) is None else " (on the data completed through the ODE)"
