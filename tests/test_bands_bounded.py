@@ -200,3 +200,40 @@ def test_the_command_line_predicts_with_diverging_draws_and_says_so(tmp_path, ca
     assert "left the region" in captured.err and "Traceback" not in captured.err
     rows = [r.split(",") for r in out.read_text().splitlines()[1:]]
     assert len(rows) == 12 and all(math.isfinite(float(v)) for r in rows for v in r[2:])
+
+
+class _Growth(_Counted):
+    """G(y) = y (exponential growth) that counts its evaluations."""
+
+    def __call__(self, y: torch.Tensor) -> torch.Tensor:
+        self.calls += 1
+        return y
+
+
+def test_a_diverging_mean_path_does_not_carry_the_region_with_it(one_thread):
+    """The UDE Lotka-Volterra case (699 s): the mean path itself grows without bound (the data saw y in [1, 2.7],
+    the forecast goes to e^10), and the region widened around it let rough prior draws of F (lengthscale 0.2) wander
+    over a box thousands wide. The region now stays within the data's box widened ten times, whatever the mean path
+    does, and the draws stop there."""
+    G = _Growth()
+    system = MisspecifiedSystem(G, 1, name="growth")
+    t = torch.linspace(0, 1, 11, dtype=DT)
+    data = tms.Trajectories(t, torch.exp(t).reshape(1, -1, 1), state_names=["y"])
+    samples = tms.correction_samples(data, system, derivative="central")
+    gp = tms.CorrectionGP(lengthscale=0.2, outputscale=4.0, noise_variance=1e-4).fit(samples)
+    gp.samples_ = samples
+    ode = tms.CorrectedODE(system, gp)
+    times = torch.linspace(0, 10, 41, dtype=DT)
+    G.calls = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        post = ode.posterior(
+            torch.ones(1, 1, dtype=DT), times, num_samples=32, generator=torch.Generator().manual_seed(0)
+        )
+    assert float(post.mean_path.max()) > 1e4  # the case: the forecast leaves the data far behind
+    lo, hi = (float(b) for b in post.region)
+    states = samples.states[:, 0]
+    width = float(states.max() - states.min())
+    assert hi <= float(states.max()) + 10 * width + 1e-9 and lo >= float(states.min()) - 10 * width - 1e-9
+    assert float(post.fraction_remaining.max()) < 0.5  # most draws left with the mean path, and were stopped
+    assert G.calls < 5000, G.calls

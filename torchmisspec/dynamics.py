@@ -499,21 +499,35 @@ class _Mixture:
 #: the box widened ten times (the design's proxies'), and the diverging draws' way out to that one cost the solve
 #: 4,800 right-hand sides against 1,750 here
 REGION_WIDTHS = 2.0
+#: ... and never beyond the box of the data and the initial conditions widened this many times (the design's
+#: proxies' box): a mean path that itself diverges (a forecast that leaves the data, where F is the prior's guess)
+#: no longer carries the region with it. On the UDE Lotka-Volterra protocol (one trajectory, RBF lengthscale 0.22,
+#: forecast to t = 10) the mean path's exponential growth made the region 1,600 wide, and the draws, rough prior
+#: functions over all of it, took 699 s
+REGION_LIMIT_WIDTHS = 10.0
 
 
 def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor, torch.Tensor]:
     """``(lo, hi)`` ``(d,)``: where :meth:`CorrectedODE.posterior`'s draws stay: the box of the initial conditions,
     the mean paths (where computed) and the GP's observed states (``gp.samples_.states``, when recorded) widened
     :data:`REGION_WIDTHS` times its width on each side (:func:`~torchmisspec._ode.widened_box`, as the design's
-    proxies: a width of at least a tenth of the component's size)."""
+    proxies: a width of at least a tenth of the component's size), within the box of the initial conditions and the
+    observed states widened :data:`REGION_LIMIT_WIDTHS` times (when the observed states are recorded)."""
     d = y0.shape[-1]
-    points = [y0.detach(), mean_path.detach().reshape(-1, d)]
+
+    def finite(points):
+        points = torch.cat(points)
+        return points[torch.isfinite(points).all(-1)]
+
+    known = [y0.detach()]
     states = getattr(getattr(gp, "samples_", None), "states", None)
     if isinstance(states, torch.Tensor) and states.dim() == 2 and states.shape[-1] == d:
-        points.append(states.detach().to(y0))
-    points = torch.cat(points)
-    points = points[torch.isfinite(points).all(-1)]
-    return widened_box(points, REGION_WIDTHS)
+        known.append(states.detach().to(y0))
+    lo, hi = widened_box(finite([*known, mean_path.detach().reshape(-1, d)]), REGION_WIDTHS)
+    if len(known) == 1:
+        return lo, hi
+    lo_max, hi_max = widened_box(finite(known), REGION_LIMIT_WIDTHS)
+    return torch.maximum(lo, lo_max), torch.minimum(hi, hi_max)
 
 
 def _warn_left(left: torch.Tensor, stopped: list[int]) -> None:
