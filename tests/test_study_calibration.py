@@ -26,3 +26,8 @@ def test_smoke_run_writes_coverages(tmp_path):
         for method in ("fixed", "laplace"):
             means = [setting["coverage"][method][k][0] for k in ("0.5", "0.9", "0.95")]
             assert all(0.0 <= m <= 1.0 for m in means) and means == sorted(means)  # wider bands cover more
+        for run in setting["runs"]:  # the two halves of the output times: their mean is the whole span's coverage
+            for method in ("fixed", "laplace"):
+                first, second = run[method]["coverage_halves_90"]
+                assert 0.0 <= first <= 1.0 and 0.0 <= second <= 1.0
+                assert abs(0.5 * (first + second) - run[method]["coverage"]["0.9"]) < 1e-12

@@ -61,6 +61,19 @@ from .trajectory_fit import _mean_field, _shooting, _solve_rhs, _state_noise, fi
 #: cost, 2 rounds a worse one
 FIRST_MODEL_ROUNDS = 4
 
+
+@dataclass(frozen=True)
+class FirstModel:
+    """How long the first model of F is fitted through the ODE: at most ``rounds`` rounds of relevance updates, the
+    first of at most ``max_iter`` Levenberg-Marquardt iterations (the later ones of at most 10)."""
+
+    rounds: int = FIRST_MODEL_ROUNDS
+    max_iter: int = 30
+
+
+#: The correction's own first model.
+FIRST_MODEL = FirstModel()
+
 __all__ = [
     "Identifiability",
     "complete",
@@ -413,6 +426,7 @@ def _through_the_ode(
     progress,
     parameters=False,
     theta_start=None,
+    first: FirstModel = FIRST_MODEL,
 ):
     """The first model of F and the initial states, fitted to what was measured: the feature kernel (monomials up to
     :data:`~torchmisspec.learning.FEATURE_DEGREE`, one set of relevance weights per output) through the ODE, its
@@ -436,10 +450,10 @@ def _through_the_ode(
         n_obs,
         offsets,
         noise,
-        max_iter=30,
+        max_iter=first.max_iter,
         progress=progress,
         start=start,
-        rounds=FIRST_MODEL_ROUNDS,
+        rounds=first.rounds,
         parameters=parameters,
         theta_start=theta_start,
     )
@@ -515,10 +529,19 @@ def _refined_or_kept(chosen, system, trajectories: Trajectories, y0, progress: b
     return result, result.initial_states_
 
 
-def _corrected(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, progress: bool, known, **options):
+def _corrected(
+    trajectories: Trajectories,
+    system: MisspecifiedSystem,
+    fit,
+    *,
+    progress: bool,
+    known,
+    first: FirstModel = FIRST_MODEL,
+    **options,
+):
     """The correction learned through the ODE (the steps of the module docstring), starting from the known model's
     own fit ``known`` (a :class:`~torchmisspec._known_fit.KnownFit`: its parameters and initial states, F = 0) where
-    there is one."""
+    there is one; its first model fitted as long as ``first`` says."""
     kd = dict(dtype=trajectories.dtype, device=trajectories.device)
     noise = _state_noise(None, trajectories, kd)  # variances of the states and readings, once for every step below
     completed = _completed_by_known(system, trajectories, known)
@@ -530,7 +553,7 @@ def _corrected(trajectories: Trajectories, system: MisspecifiedSystem, fit, *, p
     data = trajectories.with_initial_states(completed.initial_states)
     learn = system.parameters is not None
     theta_start = None if known is None else known.theta
-    first = _through_the_ode(system, data, completed, samples, noise, progress, learn, theta_start)
+    first = _through_the_ode(system, data, completed, samples, noise, progress, learn, theta_start, first)
     y0 = first.initial_states_
     posterior = _first_posterior(system, first, completed) if learn else None
     at = system if posterior is None else system.at(posterior.mean)  # F is chosen at theta's posterior mean

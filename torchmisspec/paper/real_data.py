@@ -209,7 +209,9 @@ def run_default(data, fold: dict, num_samples: int, send) -> None:
             send(default_log_rmse=_score(pred.detach(), fold, data.noise), predict_seconds=time.perf_counter() - t0)
             stage = "posterior"
             t0 = time.perf_counter()
-            post = model.posterior(y0, fold["times"], num_samples=num_samples)
+            post = model.posterior(
+                y0, fold["times"], num_samples=num_samples, generator=torch.Generator().manual_seed(0)
+            )
             if getattr(gp, "noise_scale_", None) is not None:  # the band of new measurements, noise included
                 post = post.measured(gp.noise_, gp.noise_scale_, generator=torch.Generator().manual_seed(0))
             lower, upper = (b[0, -fold["held_out"].shape[0] :] for b in post.interval(0.9))
