@@ -228,6 +228,8 @@ def band(data: dict, model, cfg: dict, rec: dict) -> None:
     truth = tms.simulate(data["system"], data["x0"], data["long"]).states[0]
     inside = (truth >= lower[0]) & (truth <= upper[0])
     rec["band_covers_truth"] = float(inside.to(DTYPE).mean())  # NaN band entries count as not covering
+    half = inside.shape[0] // 2  # over each half of the horizon (issue 41: bands honest over time)
+    rec["band_covers_truth_halves"] = [float(inside[1:half].to(DTYPE).mean()), float(inside[half:].to(DTYPE).mean())]
     remaining = getattr(post, "fraction_remaining", None)
     rec["fraction_remaining"] = None if remaining is None else float(remaining.min())
     rec["band_max_width"] = float((upper - lower)[finite].max()) if bool(finite.any()) else None
@@ -308,6 +310,8 @@ QUANTITIES = {
     "band finite": ("band_finite",),
     "fraction remaining (min)": ("fraction_remaining",),
     "band covers truth (fraction)": ("band_covers_truth",),
+    "band covers truth, first half of the horizon": ("band_covers_truth_halves", 0),
+    "band covers truth, second half of the horizon": ("band_covers_truth_halves", 1),
     "new ICs RMSE corrected": ("new_conditions", "corrected_rmse"),
     "new ICs RMSE G alone": ("new_conditions", "known_rmse"),
     "new ICs incomplete": ("new_conditions", "corrected_incomplete"),
@@ -319,7 +323,10 @@ QUANTITIES = {
 def _get(rec: dict, path: tuple) -> float | None:
     value = rec
     for key in path:
-        value = value.get(key) if isinstance(value, dict) else None
+        if isinstance(key, int):  # a position in a list (the halves of the horizon)
+            value = value[key] if isinstance(value, list) and key < len(value) else None
+        else:
+            value = value.get(key) if isinstance(value, dict) else None
     if isinstance(value, bool):
         return float(value)
     return float(value) if isinstance(value, (int, float)) else None
