@@ -56,9 +56,18 @@ def test_a_starting_value_that_is_not_measured_does_not_decide():
     assert as_noise_model("auto", data) == Relative() and as_noise_model("relative", data) == Relative()
 
 
+def test_a_zero_first_row_does_not_rule_out_relative_noise():
+    """Theophylline: the concentration is 0 before the dose (each subject's first row, where every prediction
+    starts), then positive and spanning a factor of 20: relative noise, as the classical answer takes it (the auto
+    choice was additive). A 0 after the first row still rules it out."""
+    assert as_noise_model("auto", _data([0.0, 10.0, 6.0, 0.5])) == Relative()
+    assert as_noise_model("relative", _data([0.0, 10.0, 6.0, 0.5])) == Relative()
+    assert as_noise_model("auto", _data([1.0, 10.0, 0.0, 0.5])) == Additive()
+
+
 def test_bad_noise_is_refused_with_the_fix():
     with pytest.raises(tms.InputError, match="expected positive measurements for relative.*noise='counts'"):
-        as_noise_model("relative", _data([0.0, 1.0, 2.0]))
+        as_noise_model("relative", _data([1.0, 0.0, 2.0]))
     with pytest.raises(tms.InputError, match="expected counts \\(0 or more\\)"):
         as_noise_model("counts", _data([-1.0, 1.0, 2.0]))
     with pytest.raises(tms.InputError, match="noise: expected 'auto', one of \\['additive', 'relative', 'counts'\\]"):

@@ -26,6 +26,7 @@ from ._errors import (
     warn,
 )
 from ._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
+from ._one_trajectory import refined_rival
 from ._parameters_ode import fit_parameters
 from ._partial_choice import fit_partly_measured
 from ._threads import adaptive_threads
@@ -230,6 +231,17 @@ def _chooser(trajectories: Trajectories, samples: CorrectionSamples, system, der
         return pieces, correction_samples(pieces, system, derivative=derivative, **estimator).thinned(SELECTION_SAMPLES)
 
 
+def _rival_applies(scored, trajectories, result, system, given: bool) -> bool:
+    """Whether :func:`~torchmisspec._one_trajectory.refined_rival` tests the refined feature kernel against the
+    choice: one experiment cut in time (``scored`` its pieces), the default candidates (not ``given``), a chosen
+    model that is not the feature kernel already, and an autonomous system without uncertain parameters (where the
+    refinement through the ODE is what :func:`fit_correction` does by default)."""
+    if given or result is None or scored is None or scored is trajectories:
+        return False
+    features = result.kernel_spec.terms and result.kernel_spec.feature_space
+    return not features and system.autonomous and system.parameters is None
+
+
 def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored, noise):
     """``(model, its held-out score or None)``: the known model with its uncertain parameters fitted (F = 0; as
     :func:`fit_correction` fits them under a correction: the closed form from the samples, then through the ODE on
@@ -334,7 +346,10 @@ def fit_correction(
          ``candidates``, the given unfitted templates. Each candidate's other hyperparameters by marginal
          likelihood. With one experiment, the pieces of its trajectory (:func:`time_pieces`, cut in time) are held
          out in turn (each forecast from its first state); when it is too short for two pieces, ``"evidence"`` is
-         used;
+         used. With one experiment and the default candidates, a chosen model other than the feature kernel is
+         then tested against the feature kernel refined through the ODE on the pieces before the last (its
+         derivative-samples fit alone is what the pieces scored): whichever forecasts the last piece better is
+         kept (:mod:`torchmisspec._one_trajectory`; ``result.one_trajectory_rival_`` records both misfits);
        * ``"evidence"``: by the marginal likelihood of the samples alone (:attr:`CorrectionGP.evidence_score`, no
          solve): with neither ``gp`` nor ``candidates``, ``CorrectionGP(kernel="auto")`` (RBF, Matern, feature
          kernels and the library check, see :mod:`torchmisspec.gp`); a ``gp`` template is fitted as it is; among
@@ -437,7 +452,7 @@ def _fit(
         template = CorrectionGP(device=samples.inputs.device) if gp is None or gp.auto else gp
         posterior, samples = _parameter_passes(samples, system, template)
         system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
-    cv = None
+    cv = rival = None
     result = None
     scored, chooser = _chooser(trajectories, samples, system, derivative, estimator) if select == "cv" else (None, None)
     if chooser is None:
@@ -467,6 +482,12 @@ def _fit(
             known.cross_validation_, known.samples_ = cv, raw
             known.input_names_ = system0.input_names(trajectories)
             return known
+        if _rival_applies(scored, trajectories, result, system0, user_candidates or gp is not None):
+            better, rival = refined_rival(
+                system, scored, chooser, models[cv.index], noise, dict(derivative=derivative, **estimator)
+            )
+            if better:  # the feature kernel on every sample, refined below through the ODE on the trajectory
+                result = default_candidates(chooser)[-1].fit(samples)
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
@@ -506,6 +527,7 @@ def _fit(
             result = fit_trajectories(result, system0.at(found.mean), trajectories, progress=progress)
             result.parameters_ = found
     result.cross_validation_ = cv
+    result.one_trajectory_rival_ = rival  # None unless one_trajectory.refined_rival ran
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
     return result

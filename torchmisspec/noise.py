@@ -14,8 +14,10 @@ are alike:
 
 :func:`fit_correction <torchmisspec.fit_correction>` compares the held-out predictions of its candidates (and of the
 known model alone) and fits G's uncertain parameters through the ODE with these residuals. ``noise="auto"`` (the
-default) picks :class:`Relative` when every measured state is positive and some component spans a factor of at least
-:data:`RELATIVE_SPAN` (growth, decay, epidemics), :class:`Additive` otherwise, and says which in a one-line message.
+default) picks :class:`Relative` when every measured value after each experiment's first row (where every prediction
+starts, so it is never compared) is positive and some component spans a factor of at least :data:`RELATIVE_SPAN`
+(growth, decay, epidemics, concentrations after a dose given at a concentration of 0), :class:`Additive` otherwise,
+and says which in a one-line message.
 """
 
 from __future__ import annotations
@@ -27,8 +29,8 @@ from .data import Trajectories
 
 __all__ = ["RELATIVE_SPAN", "Additive", "Counts", "NoiseModel", "Relative", "as_noise_model", "NOISE_MODELS"]
 
-#: ``noise="auto"`` chooses :class:`Relative` when every measured state is positive and a component's largest
-#: measurement is at least this many times its smallest.
+#: ``noise="auto"`` chooses :class:`Relative` when every measured value after the first rows is positive and a
+#: component's largest measurement is at least this many times its smallest.
 RELATIVE_SPAN = 5.0
 
 
@@ -148,8 +150,15 @@ NOISE_MODELS = {m.name: m for m in (Additive, Relative, Counts)}
 
 def _measured(trajectories: Trajectories) -> torch.Tensor:
     """``(N, m)``: the values of the components some experiment measures (a starting value given for a state that is
-    not measured, e.g. 0 recovered on day 0, is not a measurement), NaN where not observed."""
-    return trajectories.flat_states()[:, trajectories.measured.any(0)]
+    not measured, e.g. 0 recovered on day 0, is not a measurement), NaN where not observed, and NaN for a 0 in an
+    experiment's first row: every prediction starts from that row, so it is never compared in any noise model's
+    space (a concentration of 0 before the dose does not rule out relative errors for the concentrations after it)."""
+    flat = trajectories.flat_states()[:, trajectories.measured.any(0)]
+    first = torch.tensor([0, *trajectories.lengths[:-1]], device=flat.device).cumsum(0)
+    rows = flat[first]
+    flat = flat.clone()
+    flat[first] = torch.where(rows == 0, torch.full_like(rows, float("nan")), rows)
+    return flat
 
 
 def _auto(trajectories: Trajectories) -> NoiseModel:
@@ -175,9 +184,9 @@ def as_noise_model(noise, trajectories: Trajectories, *, announce: str | None = 
         model = _auto(trajectories)
         if announce and not isinstance(model, Additive):
             warn(
-                f"{announce}: noise '{model.name}' (every measured state is positive and spans a factor of at least "
-                f"{RELATIVE_SPAN:g}: its errors are taken as proportional to its size, compared as logs); pass "
-                "noise='additive' for errors of one size",
+                f"{announce}: noise '{model.name}' (every measured value after the first row is positive and spans a "
+                f"factor of at least {RELATIVE_SPAN:g}: its errors are taken as proportional to its size, compared as "
+                "logs); pass noise='additive' for errors of one size",
                 TorchMisspecWarning,
             )
     elif isinstance(noise, str) and noise in NOISE_MODELS:
