@@ -945,3 +945,30 @@ def test_input_columns_for_a_system_without_inputs_are_refused_by_every_command(
     assert "--input-columns: expected no input columns (system 'named' has no inputs u(t)), got ['ph']" in (
         _one_error_line(capsys, command)
     )
+
+
+def test_predict_gives_the_band_of_new_measurements_from_the_saved_noise(lab, lab_model, tmp_path, capsys):
+    """Issue 41 (noise as measured, in the CLI): the model file keeps the fit's noise model and scale, and
+    --measurements writes the band that new measurements fall in (the states' band with that noise added: wider);
+    a model file without them is refused with the fix."""
+    saved = tms.CorrectionGP.load(lab_model)
+    assert saved.noise_ is not None and saved.noise_scale_ is not None and bool((saved.noise_scale_ > 0).all())
+    base = ("--model", str(lab_model), "--initial", str(lab / "initial.csv"), "--times", "0,5,10", "--samples", "32")
+    states, measured = tmp_path / "states.csv", tmp_path / "measured.csv"
+    assert main(_lab(lab, "predict", *base, "--out", str(states))) == 0
+    assert main(_lab(lab, "predict", *base, "--measurements", "--out", str(measured))) == 0
+    out = capsys.readouterr().out
+    assert f"band of new measurements ({saved.noise_.name} noise" in out
+    (header, rows), (header2, rows2) = _table(states), _table(measured)
+    assert header == header2
+    for name in ("biomass", "substrate"):  # wider on average after the initial state (the draws are random)
+        hi, lo = header.index(f"{name}_upper"), header.index(f"{name}_lower")
+        later = [(r, r2) for r, r2 in zip(rows, rows2, strict=True) if float(r[1]) > 0]
+        plain = sum(float(r[hi]) - float(r[lo]) for r, _ in later)
+        noisy = sum(float(r2[hi]) - float(r2[lo]) for _, r2 in later)
+        assert noisy > 1.05 * plain, (name, noisy, plain)
+    bare = tmp_path / "bare.pt"
+    tms.CorrectionGP().fit(saved.train_inputs_, saved.train_targets_).save(bare)
+    assert main(_lab(lab, "predict", "--model", str(bare), *base[2:], "--measurements", "--out", str(measured))) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--measurements: expected a model file written by 'fit'" in err

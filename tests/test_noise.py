@@ -146,3 +146,24 @@ def test_the_band_of_new_measurements_refuses_what_it_cannot_use():
     # a component never measured (NaN scale) gets no noise
     none = _still(2.0, S=10, d=2).measured(Relative(), torch.tensor([0.1, math.nan], dtype=DT))
     assert bool((none.samples[..., 1] == 2.0).all()) and not bool((none.samples[..., 0] == 2.0).all())
+
+
+@pytest.mark.parametrize("noise", [Relative(), Counts(torch.tensor([1.0, 100.0], dtype=DT)), Additive()])
+def test_the_fit_records_travel_with_the_saved_model(tmp_path, noise):
+    """noise_, noise_scale_, known_model_ and dispersion_ (the band of new measurements, and the do-no-harm flag)
+    are saved and read back; a record the file cannot hold is refused naming the file."""
+    X = torch.linspace(0, 1, 8, dtype=DT).reshape(-1, 1)
+    gp = tms.CorrectionGP(lengthscale=0.5).fit(X, torch.sin(X))
+    gp.noise_, gp.noise_scale_ = noise, torch.tensor([0.1, float("nan")], dtype=DT)
+    gp.known_model_, gp.dispersion_ = True, 2.5
+    loaded = tms.CorrectionGP.load(gp.save(tmp_path / "m.pt"))
+    assert loaded.noise_ == noise and repr(loaded.noise_) == repr(noise)
+    assert torch.equal(loaded.noise_scale_.isnan(), gp.noise_scale_.isnan()) and float(loaded.noise_scale_[0]) == 0.1
+    assert loaded.known_model_ is True and loaded.dispersion_ == 2.5
+    if isinstance(noise, Counts):
+        assert torch.equal(torch.as_tensor(loaded.noise_.unit), noise.unit)
+    blob = torch.load(tmp_path / "m.pt", weights_only=True)
+    blob["fit_record"]["noise"] = "poisson"
+    torch.save(blob, tmp_path / "bad.pt")
+    with pytest.raises(tms.InputError, match="bad.pt: expected 'fit_record' with 'noise' one of"):
+        tms.CorrectionGP.load(tmp_path / "bad.pt")

@@ -53,6 +53,12 @@ def _predict(args: argparse.Namespace) -> int:
             f"--controls: expected none, system '{system.name}' has no inputs u(t), got {args.controls!r}; drop it"
         )
     gp = load_model(args.model, system)
+    if args.measurements and getattr(gp, "noise_scale_", None) is None:
+        raise InputError(
+            f"--measurements: expected a model file written by 'fit' with its measurement noise recorded, got "
+            f"{args.model} without it (written by an older version, or a model not fitted to data); refit it with "
+            "'torchmisspec fit', or drop --measurements for the band of the states themselves"
+        )
     y0, names, labels = read_states(args.initial, "--initial", args, system, known_state_names(system, gp))
     names = check_names(gp, names, system, "--initial")
     readout = None
@@ -75,6 +81,8 @@ def _predict(args: argparse.Namespace) -> int:
             scale=None,
             controls=controls,
         )
+    if args.measurements:  # the band that new measurements fall in: the noise the fit found, in its own space
+        post = post.measured(gp.noise_, gp.noise_scale_, generator=torch.Generator().manual_seed(args.seed + 1))
     lower, upper = post.interval(args.level)
     mean = post.mean_path
     rows = []
@@ -99,7 +107,8 @@ def _predict(args: argparse.Namespace) -> int:
     missing = int((torch.isnan(lower) | torch.isnan(upper)).sum())  # too few draws remain there
     stopped = int(model.incomplete.sum()) if model.incomplete is not None else 0  # mean paths that stop early
     left = int((post.fraction_remaining < 1).sum())
-    band = f"the central {args.level:.0%} band" + (
+    of = f" of new measurements ({gp.noise_.name} noise, scale {_scales(gp.noise_scale_)})" if args.measurements else ""
+    band = f"the central {args.level:.0%} band{of}" + (
         f", calibrated (scale {model.calibration_.scale:.3g}, saved in {args.model})"
         if calibrated
         else ", NOT calibrated: the GP's own bands"
@@ -191,5 +200,16 @@ def add_predict(sub) -> None:
     pre.add_argument(
         "--figure", help=f"also draw the prediction and band (the first {MAX_FIGURE_ROWS} initial conditions), .png"
     )
+    pre.add_argument(
+        "--measurements",
+        action="store_true",
+        help="bands of new measurements: the states' band with the measurement noise the fit found added (its noise "
+        "model and scale, saved in the model file); default: the band of the states themselves",
+    )
     pre.add_argument("--quiet", action="store_true", help="no progress output (prediction has no progress bar yet)")
     pre.set_defaults(func=_predict)
+
+
+def _scales(scale) -> str:
+    """Each component's noise scale, short (``-`` for one never measured)."""
+    return ", ".join("-" if v != v else f"{v:.3g}" for v in scale.tolist())

@@ -17,6 +17,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_path, check_real, check_writable, unreadable, writing
+from ..noise import NOISE_MODELS, Counts
 from ..parameters import ParameterPosterior
 from ._calibration import BandCalibration
 from ._exact import IndependentOutputsGP
@@ -137,7 +138,59 @@ def to_blob(gp) -> dict:
     calibration = getattr(gp, "calibration_", None)
     if calibration is not None:  # the bands' calibrated spread travels with the model (absent in older files)
         blob["calibration"] = calibration.to_dict()
+    record = _fit_record(gp)
+    if record is not None:  # additive: how the data were measured and what the fit chose (fit_correction's records)
+        blob["fit_record"] = record
     return blob
+
+
+def _fit_record(gp) -> dict | None:
+    """The records of :func:`~torchmisspec.fit_correction` a saved model needs for its bands of new measurements
+    and its messages: the noise model (its name, and a count's unit), the residual scale per component, whether the
+    known model alone was kept and the factor its bands were widened by; ``None`` when it was not fitted by it (a
+    user-defined noise model is not saved: its code would have to be)."""
+    noise = getattr(gp, "noise_", None)
+    if noise is None or NOISE_MODELS.get(noise.name) is not type(noise):
+        return None
+    unit = None
+    if isinstance(noise, Counts):
+        unit = torch.as_tensor(noise.unit, dtype=torch.float64).detach().cpu().reshape(-1)
+    scale = getattr(gp, "noise_scale_", None)
+    return {
+        "noise": noise.name,
+        "noise_unit": unit,
+        "noise_scale": None if scale is None else scale.detach().cpu().to(torch.float64),
+        "known_model": bool(getattr(gp, "known_model_", False)),
+        "dispersion": float(getattr(gp, "dispersion_", 1.0)),
+    }
+
+
+def _restore_fit_record(gp, record, path) -> None:
+    """Set ``noise_``, ``noise_scale_``, ``known_model_`` and ``dispersion_`` from a file's ``fit_record``
+    (checked; the error names the file)."""
+
+    def bad(what: str):
+        return InputError(f"{path}: expected 'fit_record' with {what}, got {record!r:.120}")
+
+    if not isinstance(record, dict) or record.get("noise") not in NOISE_MODELS:
+        raise bad(f"'noise' one of {sorted(NOISE_MODELS)}")
+    unit, scale = record.get("noise_unit"), record.get("noise_scale")
+    if record["noise"] == "counts":
+        if not (isinstance(unit, torch.Tensor) and unit.numel() >= 1 and bool((unit > 0).all())):
+            raise bad("a positive 'noise_unit' for counts")
+        gp.noise_ = Counts(float(unit) if unit.numel() == 1 else unit.to(torch.float64))
+    else:
+        gp.noise_ = NOISE_MODELS[record["noise"]]()
+    if scale is not None and not (
+        isinstance(scale, torch.Tensor) and scale.dim() == 1 and bool((torch.isnan(scale) | (scale >= 0)).all())
+    ):
+        raise bad("'noise_scale' a (d,) tensor of standard deviations >= 0 (NaN: never measured) or None")
+    gp.noise_scale_ = None if scale is None else scale.to(device=gp.device, dtype=gp.dtype)
+    known, dispersion = record.get("known_model"), record.get("dispersion")
+    if not isinstance(known, bool) or isinstance(dispersion, bool) or not isinstance(dispersion, (int, float)):
+        raise bad("'known_model' a boolean and 'dispersion' a number")
+    gp.known_model_ = known
+    gp.dispersion_ = check_real(float(dispersion), "dispersion", minimum=1.0)
 
 
 def _field(blob: dict, key: str, kind, path: Path, what: str = "CorrectionGP"):
@@ -251,6 +304,8 @@ def from_blob(cls, blob, path, *, device=None):
         )
     if blob.get("calibration") is not None:
         gp.calibration_ = BandCalibration.from_dict(blob["calibration"], path)
+    if blob.get("fit_record") is not None:
+        _restore_fit_record(gp, blob["fit_record"], path)
     return gp
 
 
