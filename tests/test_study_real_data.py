@@ -79,3 +79,19 @@ def test_log_rmse_scores_counts_with_log1p_and_a_failed_prediction_as_nan():
         real_data.log_rmse(torch.tensor([[0.0], [99.0]]).double(), data, "counts"), math.log(10) / 2**0.5
     )
     assert math.isnan(real_data.log_rmse(torch.tensor([[1.0], [float("nan")]]).double(), data + 1, "relative"))
+
+
+def test_sindy_runs_where_every_state_is_measured_and_says_where_it_does_not():
+    """The suite's SINDy column (issue 41, item 1): a forecast on the Orange trees (every state measured), 'does not
+    apply' on the influenza outbreak (only I measured)."""
+    from torchmisspec import datasets
+    from torchmisspec.paper import real_data
+    from torchmisspec.paper.study_real_data import PROTOCOLS
+
+    for name, applies in (("orange", True), ("influenza", False)):
+        data = datasets.load(name)
+        out: dict = {}
+        real_data.run_sindy(data, real_data.folds(data, PROTOCOLS[name])[0], out.update)
+        assert out["sindy_applies"] is applies
+        if applies:
+            assert "sindy_error" not in out and 0.0 < out["sindy_log_rmse"] < 1.0

@@ -230,6 +230,47 @@ def run_default(data, fold: dict, num_samples: int, send) -> None:
     send(default_warnings=_warned(caught))
 
 
+def sindy_applies(data, fold: dict) -> bool:
+    """SINDy (on the derivative samples of the known model's residual) needs every state measured in the training
+    data and an autonomous system."""
+    return not fold["train"].is_partial and data.system.autonomous
+
+
+def run_sindy(data, fold: dict, send) -> None:
+    """SINDy where it applies (:func:`sindy_applies`): the classical fit's parameters, then pysindy's STLSQ on a
+    degree-2 polynomial library fitted to the samples of F = dy/dt - G(y) (central differences; the threshold by
+    cross-validation over experiments, :func:`torchmisspec.paper.study_kernels.sindy`), and G + that F integrated
+    from the test's start. Its failures are recorded as ``sindy_error``, not as the defaults' exceptions."""
+    from .study_kernels import sindy
+
+    if not sindy_applies(data, fold):
+        send(sindy_applies=False)
+        return
+    t0 = time.perf_counter()
+    try:
+        theta, y0s = classical_fit(data.system, fold["train"], data.noise)
+        at = data.system.at(theta)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            samples = tms.correction_samples(fold["train"], at, derivative="central")
+            estimate, info = sindy(samples, samples.experiment)
+
+        def known(y):
+            x = at.select_inputs(y, None)
+            f = estimate(x.detach().reshape(-1, x.shape[-1])).to(y).reshape(*x.shape[:-1], -1)
+            return at.known_rhs(y) + at.embed(f)
+
+        model = tms.MisspecifiedSystem(known, at.state_dim, name="sindy")
+        with torch.no_grad():
+            pred = tms.simulate(model, _start(fold, y0s[0])[None], fold["times"], max_steps=CLASSICAL_MAX_STEPS)
+        score = _score(pred.states[0], fold, data.noise)
+        send(
+            sindy_applies=True, sindy_log_rmse=score, sindy_terms=info["terms"], sindy_seconds=time.perf_counter() - t0
+        )
+    except Exception as exc:  # noqa: BLE001 - a failure of the baseline is a result of the study
+        send(sindy_applies=True, sindy_log_rmse=float("nan"), sindy_error=f"{type(exc).__name__}: {str(exc)[:160]}")
+
+
 def run_classical(data, fold: dict, send) -> None:
     """The classical answer on one fold (:func:`classical_fit`, then the model alone from the test's start)."""
     stage = "classical fit"

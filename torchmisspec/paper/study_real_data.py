@@ -6,7 +6,9 @@ rolling origins (fit on the data up to the origin, forecast the next 3 times). M
 (``fit_correction(train, system)``, then ``CorrectedODE(system, gp).predict``; ``posterior(..., num_samples=64)``
 with the fitted measurement noise, ``.measured(gp.noise_, gp.noise_scale_)``, for the 90 % band of new
 measurements), and the classical answer (the model's uncertain parameters, and the initial states the data
-do not give, fitted alone with F = 0 by least squares on log values: :mod:`torchmisspec.paper.real_data`).
+do not give, fitted alone with F = 0 by least squares on log values: :mod:`torchmisspec.paper.real_data`), and
+SINDy where every state is measured (the classical parameters, then pysindy's STLSQ on a degree-2 polynomial library
+fitted to central-difference samples of F = dy/dt - G(y), G + F integrated; :func:`~real_data.run_sindy`).
 
 Metrics per fold: the log-RMSE of the held-out measurements (``log(1 + y)`` for counts), the default's / the
 classical's (geometric mean over folds per data set), whether the held-out measurements lie in the 90 % band,
@@ -61,6 +63,8 @@ def _child(name: str, index: int, method: str, cfg: dict, out) -> None:
 
     if method == "classical":
         real_data.run_classical(data, fold, send)
+    elif method == "sindy":
+        real_data.run_sindy(data, fold, send)
     else:
         real_data.run_default(data, fold, cfg["num_samples"], send)
     out.put({"done": True})
@@ -68,8 +72,8 @@ def _child(name: str, index: int, method: str, cfg: dict, out) -> None:
 
 def _stage(record: dict, method: str) -> str:
     """The stage a method that ran out of time was in."""
-    if method == "classical":
-        return "classical fit"
+    if method in ("classical", "sindy"):
+        return f"{method} fit"
     for key, stage in (
         ("fit_seconds", "fit_correction"),
         ("default_log_rmse", "predict"),
@@ -113,7 +117,7 @@ def run_fold(name: str, index: int, label: str, cfg: dict) -> dict:
     """One fold: the classical answer, then the package's defaults, each in its own child with its own limit."""
     record: dict = {"label": label, "exceptions": []}
     t0 = time.perf_counter()
-    for method in ("classical", "default"):
+    for method in ("classical", "default", "sindy"):
         _run_method(name, index, method, cfg, record)
     record["wall_seconds"] = time.perf_counter() - t0
     return record
@@ -179,14 +183,43 @@ def summary(runs: list[dict]) -> dict:
         "fit_band_max": max(both) if both else float("nan"),
         "exceptions": sum(len(r["exceptions"]) for r in runs),
         "folds_with_exceptions": sum(bool(r["exceptions"]) for r in runs),
+        **_sindy_summary(runs),
     }
+
+
+def _sindy_summary(runs: list[dict]) -> dict:
+    """SINDy against the classical answer where it applies: the geometric mean of their ratio over the folds both
+    scored, and the folds where it applied but gave no finite forecast (its solve failed or blew up)."""
+    applies = [r for r in runs if r.get("sindy_applies")]
+    pairs = [
+        (r["sindy_log_rmse"], r["classical_log_rmse"])
+        for r in applies
+        if all(
+            isinstance(r.get(k), float) and math.isfinite(r[k]) and r[k] > 0
+            for k in ("sindy_log_rmse", "classical_log_rmse")
+        )
+    ]
+    logs = [math.log(s / c) for s, c in pairs]
+    return {
+        "sindy_folds": len(applies),
+        "sindy_ratio": math.exp(sum(logs) / len(logs)) if logs else float("nan"),
+        "sindy_scored": len(logs),
+        "sindy_failed": sum(not math.isfinite(r.get("sindy_log_rmse", math.nan)) for r in applies),
+    }
+
+
+def _sindy_cell(s: dict) -> str:
+    if not s["sindy_folds"]:
+        return "does not apply"
+    return f"{_fmt(s['sindy_ratio'])} ({s['sindy_scored']} scored, {s['sindy_failed']} failed)"
 
 
 def table(result: dict) -> str:
     lines = [
         "| data set | folds | default / classical log-RMSE (geometric mean) | default better | 90 % band coverage "
-        "(points) | fit s (median) | band s (median) | fit + band s (max) | exceptions (folds) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "(points) | fit s (median) | band s (median) | fit + band s (max) | exceptions (folds) | SINDy / classical "
+        "(geometric mean) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, runs in result["runs"].items():
         s = summary(runs)
@@ -194,7 +227,7 @@ def table(result: dict) -> str:
             f"| {name} | {s['folds']} | {_fmt(s['ratio'])} ({s['scored_pairs']} scored) | {s['wins']} of "
             f"{s['scored_pairs']} | {_fmt(s['coverage'], '.2f')} ({s['band_points']}) | {_fmt(s['fit_median'], '.1f')} "
             f"| {_fmt(s['band_median'], '.1f')} | {_fmt(s['fit_band_max'], '.1f')} | {s['exceptions']} "
-            f"({s['folds_with_exceptions']}) |"
+            f"({s['folds_with_exceptions']}) | {_sindy_cell(s)} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -202,8 +235,8 @@ def table(result: dict) -> str:
 def per_fold(result: dict) -> str:
     lines = [
         "| data set | fold | default log-RMSE | classical log-RMSE | ratio | in band | fit s | band s | classical s "
-        "| kernel | exceptions |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| kernel | exceptions | SINDy log-RMSE |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, runs in result["runs"].items():
         for r in runs:
@@ -214,7 +247,9 @@ def per_fold(result: dict) -> str:
                 f"| {name} | {r['label']} | {_fmt(d)} | {_fmt(c)} | {_fmt(ratio, '.2f')} | "
                 f"{r.get('covered', '-')}/{r.get('scored', '-')} | {_fmt(r.get('fit_seconds'), '.1f')} | "
                 f"{_fmt(r.get('band_seconds'), '.1f')} | {_fmt(r.get('classical_seconds'), '.1f')} | "
-                f"{r.get('kernel', '-')} | {errors} |"
+                f"{r.get('kernel', '-')} | {errors} | "
+                + ("n/a" if not r.get("sindy_applies") else _fmt(r.get("sindy_log_rmse")))
+                + " |"
             )
     return "\n".join(lines) + "\n"
 
