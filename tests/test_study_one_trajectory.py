@@ -65,3 +65,20 @@ def test_smoke_run_records_every_stage(tmp_path):
             assert run["fit_seconds"] > 0 and math.isfinite(run["f_relative_error"])
             assert run["span_failures"] == 0 and run["new_conditions"]["known_rmse"] > 0
     assert "| F rel. error (box) |" in proc.stdout
+
+
+def test_the_docs_page_and_block_are_written_from_a_run(tmp_path):
+    """--markdown's page and BENCHMARKS block come from the run's records (a saved run's too: its summaries are
+    recomputed from its realizations, so quantities added since are shown as missing, not refused)."""
+    import json
+
+    from torchmisspec.paper import study_one_trajectory as study
+
+    saved = json.loads((study.ROOT / "benchmarks" / "study_one_trajectory.json").read_text())
+    page, block = study.render_page(saved), study.render_block(saved)
+    assert page.startswith("# Study: one trajectory") and "## Results" in page
+    assert block.startswith(study.MARK_START) and block.rstrip().endswith(study.MARK_END)
+    f_row = next(line for line in page.splitlines() if line.startswith("| F rel. error (box)"))
+    runs = saved["runs"]["ude_lotka_volterra"]
+    values = sorted(r["f_relative_error"] for r in runs if r.get("f_relative_error") is not None)
+    assert f"[{values[0]:.3g}, {values[-1]:.3g}]" in f_row  # the realizations' own extremes

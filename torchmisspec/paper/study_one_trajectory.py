@@ -35,7 +35,7 @@ import warnings
 import torch
 
 import torchmisspec as tms
-from torchmisspec.benchmarks.reporting import ROOT, machine, run_json, write_json
+from torchmisspec.benchmarks.reporting import ROOT, machine, run_json, update_benchmarks, write_json, write_page
 from torchmisspec.paper.real_data import _warned
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_one_trajectory.json"
@@ -158,6 +158,9 @@ def _fit(data: dict, rec: dict) -> object:
     rec["known_model"] = bool(getattr(gp, "known_model_", False))
     rec["derivative"] = str(getattr(gp, "derivative_", None))
     rec["noise_model"] = repr(getattr(gp, "noise_", None))[:120]
+    rival = getattr(gp, "one_trajectory_rival_", None)
+    rec["rival"] = rival
+    rec["rival_kept"] = bool(rival and rival["refined features"] < rival["chosen"])
     cv = getattr(gp, "cross_validation_", None)
     if cv is not None:
         rec["cv"] = {
@@ -347,7 +350,9 @@ def summary(runs: list[dict]) -> dict:
         }
     kernels: dict = {}
     for r in runs:
-        key = "known model alone" if r.get("known_model") else (r.get("cv") or {}).get("best", r.get("kernel_name"))
+        key = "known model alone" if r.get("known_model") else r.get("kernel_name")
+        if r.get("rival_kept"):  # the refined feature kernel won the held-out last piece over the pieces' choice
+            key = f"{key} (refined; the pieces chose {(r.get('cv') or {}).get('best')})"
         key = "fit failed" if key is None else str(key)
         kernels[key] = kernels.get(key, 0) + 1
     out["kernels"] = kernels
@@ -398,16 +403,17 @@ def _line(rec: dict) -> str:
 
 def table(result: dict) -> str:
     """Median [min, max] per protocol and quantity, then the kernels chosen."""
-    names = list(result["summary"])
+    summaries = {name: summary(runs) for name, runs in result["runs"].items()}  # a saved run's too, as measured
+    names = list(summaries)
     lines = ["| quantity | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for label in QUANTITIES:
         cells = []
         for name in names:
-            s = result["summary"][name][label]
+            s = summaries[name][label]
             cells.append(f"{_fmt(s['median'])} [{_fmt(s['min'])}, {_fmt(s['max'])}] (n={s['count']})")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     for name in names:
-        s = result["summary"][name]
+        s = summaries[name]
         lines.append(
             f"\n{name}: chosen {s['kernels']}; significant gain over G in {s['significant']}; "
             f"exceptions {s['exceptions']}"
@@ -439,5 +445,59 @@ def run(args) -> int:
         write_json(result, run_json(args, DEFAULT_JSON))
     print(table(result))
     if args.markdown:
-        print("--markdown: this study writes no docs page or BENCHMARKS.md block yet (its JSON and table only)")
+        write_page(DOC_PAGE, render_page(result))
+        update_benchmarks(render_block(result), MARK_START, MARK_END)
+        print(f"wrote {DOC_PAGE} and the one-trajectory block of BENCHMARKS.md")
     return 0
+
+
+DOC_PAGE = ROOT / "docs" / "studies" / "one-trajectory.md"
+MARK_START, MARK_END = "<!-- study:one-trajectory:start -->", "<!-- study:one-trajectory:end -->"
+
+
+def _header(result: dict) -> str:
+    info = result.get("machine") or {}
+    return (
+        f"Written by `{result.get('command', 'python scripts/study_one_trajectory.py --markdown')}` on "
+        f"{info.get('cpu', '?')}, {info.get('logical_cpus', '?')} logical CPUs, torch {info.get('torch', '?')}, commit "
+        f"{info.get('git_commit', '?')}; wall time {result.get('wall_seconds', float('nan')) / 60:.1f} min; "
+        f"{result['config']['realizations']} realizations per protocol (seeds 0 ..), median [min, max] (n: "
+        "realizations with a value)."
+    )
+
+
+def render_page(result: dict) -> str:
+    """The docs page: the protocols, then the table of :func:`table`, every number from ``result``."""
+    about = "\n".join(
+        f"- **{name}**: {p['points']} times on [0, {p['span']:g}], forecast to t = {p['horizon']:g}; {p['noise']} "
+        f"Source: {p['source']}."
+        for name, p in result["protocols"].items()
+    )
+    return f"""# Study: one trajectory (the UDE and GP-ODE papers' protocols)
+
+{_header(result)} Raw numbers: `benchmarks/study_one_trajectory.json`.
+
+{__doc__.split(chr(10), 2)[2].strip()}
+
+## Protocols
+
+{about}
+
+## Results
+
+{table(result)}
+Goals (issue 41): no prediction failure inside the data's span, bands within 20 s, errors on new initial conditions
+and forecasts no worse than G alone; on the UDE Lotka-Volterra protocol F's relative error over the data's box
+<= 0.1 (median); the 90 % band's coverage in [0.80, 0.97] over each half of the horizon.
+"""
+
+
+def render_block(result: dict) -> str:
+    """The block of BENCHMARKS.md."""
+    return f"""{MARK_START}
+## One trajectory: the UDE and GP-ODE protocols (`scripts/study_one_trajectory.py`)
+
+{_header(result)} See [docs/studies/one-trajectory.md](docs/studies/one-trajectory.md).
+
+{table(result)}{MARK_END}
+"""
