@@ -32,18 +32,19 @@ import warnings
 import torch
 
 from ._errors import FittingError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
+from ._first_model import FirstModel
 from ._known_fit import CHECK_LEVEL, fit_known_model, forecast_check, forecast_score, known_model_template, time_split
 from .data import Trajectories
 from .observations import correction_samples
-from .partial import FirstModel, _corrected, _from_readings, complete, identifiability, initial_guess, laplace_posterior
+from .partial import _corrected, _from_readings, complete, identifiability, initial_guess, laplace_posterior
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field
 
 __all__ = ["fit_partly_measured"]
 
 #: The rival's first model of F through the ODE (step 3): fewer relevance rounds and Levenberg-Marquardt
-#: iterations than the correction's own (:data:`~torchmisspec.partial.FIRST_MODEL`); on theophylline its first round
-#: ran all 30 iterations for a misfit still falling by 0.04 (of 66) per iteration, 18 of the fit's 28 s
+#: iterations than the correction's own (:data:`~torchmisspec._first_model.FIRST_MODEL`); on theophylline its
+#: first round ran all 30 iterations for a misfit still falling by 0.04 (of 66) per iteration, 18 of the fit's 28 s
 TRIAL_FIRST_MODEL = FirstModel(rounds=2, max_iter=10)
 
 

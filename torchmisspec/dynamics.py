@@ -9,8 +9,9 @@ import torch
 from torch import nn
 
 from ._bands import TrajectoryPosterior
+from ._draws import draws_region, solve_draws, warn_left
 from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
-from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve, widened_box
+from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
 from ._validation import check_input_names, check_positive_int, check_real
 from .calibration import calibrate_bands
@@ -291,10 +292,11 @@ class CorrectedODE(nn.Module):
                 does not (integrating F_c with c = 8 made the solver stall in the issue's trial).
 
         Diverging draws: a sampled path that leaves the region of the data (``posterior.region``: the box of the
-        initial conditions, the mean paths and the GP's observed states widened :data:`REGION_WIDTHS` = 2 times its
-        width on each side) is stopped there in the one batched solve (never integrated to the
-        step limit), and is NaN from its first output time outside it; one that stalls inside it keeps what was
-        computed (NaN after) and the others are solved again together. One
+        initial conditions, the mean paths and the GP's observed states widened
+        :data:`~torchmisspec._draws.REGION_WIDTHS` = 2 times its width on each side, within the observed states'
+        box widened :data:`~torchmisspec._draws.REGION_LIMIT_WIDTHS` = 10 times) is stopped there in the one
+        batched solve (never integrated to the step limit), and is NaN from its first output time outside it; one
+        that stalls inside it keeps what was computed (NaN after) and the others are solved again together. One
         :class:`~torchmisspec.TorchMisspecWarning` names how many draws left and from which initial conditions; the
         bands, mean and quantiles come from the draws that remain (:class:`TrajectoryPosterior`), and
         ``posterior.fraction_remaining`` is the fraction of each initial condition's draws that stayed to the end.
@@ -366,12 +368,12 @@ class CorrectedODE(nn.Module):
         settings = dict(
             method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, timed=timed, jumps=jumps
         )
-        region = _region(y0, mean_path, self.gp)
+        region = draws_region(y0, mean_path, self.gp)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
-            paths, self.nfe, stopped = _solve_draws(field, y0.repeat(S, 1), grid, settings, B, region)
+            paths, self.nfe, stopped = solve_draws(field, y0.repeat(S, 1), grid, settings, B, region)
         left = torch.isnan(paths).any(-1).any(-1).reshape(S, B)  # the draws that left the region, or stalled in it
         if bool(left.any()):
-            _warn_left(left, stopped)
+            warn_left(left, stopped)
         times_out = times if times.dim() == 2 else times.expand(B, -1)
         support = self._support(mean_path.detach(), None if controls is None else controls.at(times_out.detach()))
         extrapolating = support.amax(dim=-1) > threshold
@@ -492,115 +494,6 @@ class _Mixture:
             out.append(p(x[start : start + p.num_samples]))
             start += p.num_samples
         return torch.cat(out)
-
-
-#: :meth:`CorrectedODE.posterior`'s region: the box of the data, the initial conditions and the mean paths widened
-#: this many times its width on each side. On theoph (fold 1, 64 draws) the draws that left it were those that left
-#: the box widened ten times (the design's proxies'), and the diverging draws' way out to that one cost the solve
-#: 4,800 right-hand sides against 1,750 here
-REGION_WIDTHS = 2.0
-#: ... and never beyond the box of the data and the initial conditions widened this many times (the design's
-#: proxies' box): a mean path that itself diverges (a forecast that leaves the data, where F is the prior's guess)
-#: no longer carries the region with it. On the UDE Lotka-Volterra protocol (one trajectory, RBF lengthscale 0.22,
-#: forecast to t = 10) the mean path's exponential growth made the region 1,600 wide, and the draws, rough prior
-#: functions over all of it, took 699 s
-REGION_LIMIT_WIDTHS = 10.0
-
-
-def _region(y0: torch.Tensor, mean_path: torch.Tensor, gp) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(lo, hi)`` ``(d,)``: where :meth:`CorrectedODE.posterior`'s draws stay: the box of the initial conditions,
-    the mean paths (where computed) and the GP's observed states (``gp.samples_.states``, when recorded) widened
-    :data:`REGION_WIDTHS` times its width on each side (:func:`~torchmisspec._ode.widened_box`, as the design's
-    proxies: a width of at least a tenth of the component's size), within the box of the initial conditions and the
-    observed states widened :data:`REGION_LIMIT_WIDTHS` times (when the observed states are recorded)."""
-    d = y0.shape[-1]
-
-    def finite(points):
-        points = torch.cat(points)
-        return points[torch.isfinite(points).all(-1)]
-
-    known = [y0.detach()]
-    states = getattr(getattr(gp, "samples_", None), "states", None)
-    if isinstance(states, torch.Tensor) and states.dim() == 2 and states.shape[-1] == d:
-        known.append(states.detach().to(y0))
-    lo, hi = widened_box(finite([*known, mean_path.detach().reshape(-1, d)]), REGION_WIDTHS)
-    if len(known) == 1:
-        return lo, hi
-    lo_max, hi_max = widened_box(finite(known), REGION_LIMIT_WIDTHS)
-    return torch.maximum(lo, lo_max), torch.minimum(hi, hi_max)
-
-
-def _warn_left(left: torch.Tensor, stopped: list[int]) -> None:
-    """One warning naming the draws ``left (S, B)`` that did not remain in the region to the end (``stopped``: the
-    rows, ``s * B + b``, of those that stalled inside it)."""
-    S, B = left.shape
-    per = left.sum(0).tolist()
-    by = ", ".join(f"{b}: {n} of {S}" for b, n in enumerate(per) if n)
-    stalled = f"; {len(stopped)} of them stalled inside it instead" if stopped else ""
-    warn(
-        f"CorrectedODE.posterior: {int(left.sum())} of {S * B} sampled paths left the region (the box of the data, "
-        f"the initial conditions and the mean paths widened {REGION_WIDTHS:g} times its width on each side: "
-        f"posterior.region) and were stopped there{stalled}; by initial condition: {by[:400]}. Under those draws of F "
-        "the trajectory diverges. Their paths are NaN from the first output time outside the region, and the "
-        "bands, mean and quantiles come from the draws that remain (posterior.fraction_remaining: the fraction of "
-        "each initial condition's draws that stayed to the end; where too few remain for a band's level, its "
-        "entries are NaN, with a warning). Shorten the time span, or collect data nearer those states",
-        TorchMisspecWarning,
-    )
-
-
-def _solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: int, box):
-    """All sampled paths in one batched solve that stops a path where it leaves ``box`` (its derivative 0 from
-    there: a diverging draw never holds the batch's steps back to the step limit). Where the solve still fails (a
-    path stalls inside the box), the rows the solver names keep what it computed up to the failure and the others
-    are solved again together. Returns ``(paths (S B, T, d), NaN from the first output time outside the box or not
-    reached; right-hand-side evaluations of every solve, failed ones included; the rows that stalled)``."""
-    n_rows, T = y0.shape[0], grid.shape[-1]
-    timed = settings.get("timed", False)
-    paths = y0.new_full((n_rows, T, y0.shape[-1]), math.nan)
-    stopped: list[int] = []
-    nfe = 0
-    pending = torch.arange(n_rows, device=y0.device)
-    while pending.numel():
-        rows = pending
-
-        def part(*args: torch.Tensor, rows=rows) -> torch.Tensor:  # the rows' own draws: field sees the whole batch
-            full = y0.new_zeros(y0.shape).index_copy(0, rows, args[-1])
-            if not timed:
-                return field(full)[rows]
-            t = args[0].new_zeros(n_rows).index_copy(0, rows, args[0])  # the other rows' times are not read
-            return field(t, full)[rows]
-
-        try:
-            out, n = solve(
-                field if rows.numel() == n_rows else part,
-                y0[rows],
-                grid if grid.dim() == 1 else grid[rows],
-                what="CorrectedODE.posterior",
-                label=lambda i, rows=rows: f"draw {int(rows[i]) // B} of initial condition {int(rows[i]) % B}",
-                box=box,
-                partial=True,
-                **settings,
-            )
-            nfe += n
-            paths[rows] = out
-            break
-        except IntegrationError as exc:
-            named = [i for i in getattr(exc, "suspects", []) if i < rows.numel()]
-            if not named:
-                raise
-            nfe += exc.nfe
-            if exc.states is not None:  # the others are solved again; the named keep what was computed
-                paths[rows] = exc.states
-            else:  # a method that keeps nothing: the named rows are their initial conditions alone
-                paths[rows[named], 0] = y0[rows[named]]
-            stopped.extend(rows[named].tolist())
-            keep = torch.ones(rows.numel(), dtype=torch.bool, device=rows.device)
-            keep[named] = False
-            pending = rows[keep]
-    lo, hi = (b.to(paths) for b in box)
-    outside = ((paths < lo) | (paths > hi)).any(-1).cumsum(-1) > 0  # (S B, T): from the first output outside
-    return paths.masked_fill(outside.unsqueeze(-1), math.nan), nfe, stopped
 
 
 def _wants_graph(*tensors: torch.Tensor) -> bool:
