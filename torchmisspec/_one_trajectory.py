@@ -29,7 +29,13 @@ from .observations import CorrectionSamples, correction_samples
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field, fit_trajectories
 
-__all__ = ["refined_rival"]
+__all__ = ["feature_template", "refined_rival"]
+
+
+def feature_template(device) -> CorrectionGP:
+    """The default candidates' feature kernel (monomials up to :data:`~torchmisspec.gp._features.FEATURE_DEGREE`,
+    one set of relevance weights per output), unfitted."""
+    return CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, device=device)
 
 
 def _split(pieces: Trajectories) -> tuple[Trajectories, Trajectories]:
@@ -71,8 +77,7 @@ def refined_rival(
         with warnings.catch_warnings():  # the estimator's advice was given on the whole trajectory
             warnings.simplefilter("ignore", TorchMisspecWarning)
             early_samples = correction_samples(early, system, **estimator)
-        device = early_samples.inputs.device
-        features = CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, device=device)
+        features = feature_template(early_samples.inputs.device)
         refined = fit_trajectories(features.fit(early_samples), system, early)
         score_features = _score(system, refined, last, noise)
     except (FittingError, IntegrationError, LinearAlgebraError):

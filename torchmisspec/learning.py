@@ -26,7 +26,7 @@ from ._errors import (
     warn,
 )
 from ._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
-from ._one_trajectory import refined_rival
+from ._one_trajectory import feature_template, refined_rival
 from ._parameters_ode import fit_parameters
 from ._partial_choice import fit_partly_measured
 from ._threads import adaptive_threads
@@ -146,7 +146,7 @@ def default_candidates(samples: CorrectionSamples) -> list[CorrectionGP]:
     relevance weights per output) whose evidence removes the terms the samples do not support."""
     on = {"device": samples.inputs.device}  # the models follow the data's device
     rbf = [CorrectionGP(lengthscale=ell, **on) for ell in lengthscale_candidates(samples)]
-    return [*rbf, CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, **on)]
+    return [*rbf, feature_template(on["device"])]
 
 
 def _by_evidence(pool: list[CorrectionGP], samples: CorrectionSamples) -> CorrectionGP:
@@ -487,7 +487,7 @@ def _fit(
                 system, scored, chooser, models[cv.index], noise, dict(derivative=derivative, **estimator)
             )
             if better:  # the feature kernel on every sample, refined below through the ODE on the trajectory
-                result = default_candidates(chooser)[-1].fit(samples)
+                result = feature_template(samples.inputs.device).fit(samples)
         if not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
