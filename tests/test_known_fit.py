@@ -214,3 +214,27 @@ def test_the_cli_says_the_known_model_was_kept_and_why(tmp_path, capsys):
     assert "kept the known model alone (F = 0, its parameters fitted): the held-out data do not support" in out.out
     assert "forecasts the last third within its own uncertainty" in out.err
     assert "a = " in out.out and "b = " in out.out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_paired_test_of_gains_is_scipys_one_sided_t_test(seed):
+    """significant_gain (cross-validation's warning, and the partly measured rival's test with several experiments)
+    is the one-sided paired t test at the 2.5 % level on the log ratios (scipy's ttest_1samp)."""
+    from scipy.stats import ttest_1samp
+
+    from torchmisspec.cross_validation import significant_gain
+
+    g = torch.Generator().manual_seed(seed)
+    gains = (0.3 * seed / 5 + 0.4 * torch.randn(8, generator=g, dtype=torch.float64)).tolist()
+    p = ttest_1samp(gains, 0.0, alternative="greater").pvalue
+    if abs(p - 0.025) > 1e-3:  # the Cornish-Fisher quantile is within 1e-3 of the exact one
+        assert significant_gain(gains) == (p < 0.025)
+    assert significant_gain([*gains[:2], math.inf]) and not significant_gain([1.0]) and not significant_gain([])
+
+
+def test_the_rivals_gains_per_experiment():
+    from torchmisspec._partial_choice import _gains
+
+    known = torch.tensor([4.0, 0.0, 2.0, math.inf, 1.0], dtype=torch.float64)
+    rival = torch.tensor([1.0, 3.0, math.inf, 5.0, 0.0], dtype=torch.float64)
+    assert _gains(known, rival) == [math.log(4.0), -math.inf, math.inf, math.inf]  # nothing held out: skipped

@@ -342,11 +342,12 @@ def time_split(trajectories: Trajectories) -> tuple[Trajectories, torch.Tensor] 
     return early, keep
 
 
-def forecast_score(system, field, trajectories: Trajectories, initial_states, keep, noise, scale) -> float:
-    """The misfit of a model's forecast of the held-out later times (those past each experiment's first ``keep``):
-    the path of ``field(y, t, u)`` (``system``'s solver conventions) from ``initial_states (K, d)`` over every time,
-    its residuals in ``noise``'s space at the held-out measured values, each divided by ``scale`` (``(d + m,)``, the
-    same for the models compared), summed in squares; ``inf`` when the forecast cannot be integrated."""
+def forecast_score(system, field, trajectories: Trajectories, initial_states, keep, noise, scale) -> torch.Tensor:
+    """``(K,)`` the misfit of a model's forecast of each experiment's held-out later times (those past its first
+    ``keep``): the path of ``field(y, t, u)`` (``system``'s solver conventions) from ``initial_states (K, d)`` over
+    every time, its residuals in ``noise``'s space at the held-out measured values, each divided by ``scale``
+    (``(d + m,)``, the same for the models compared), summed in squares per experiment; ``inf`` everywhere when the
+    forecast cannot be integrated."""
     times, _, _ = trajectories.padded()
     K = trajectories.num_experiments
     times = times if times.dim() == 2 else times.expand(K, -1)
@@ -357,14 +358,15 @@ def forecast_score(system, field, trajectories: Trajectories, initial_states, ke
             max_steps=MAX_STEPS, what="the held-out forecast",
         )  # fmt: skip
     except IntegrationError:
-        return math.inf
+        return torch.full((K,), math.inf, dtype=torch.float64)
     values, seen = _observed(trajectories)
     late = torch.arange(values.shape[1], device=values.device).view(1, -1) >= keep.to(values.device).view(-1, 1)
     held = seen & late.unsqueeze(-1)
     pred = trajectories.observe(pred)
-    r = (noise.transform(pred[held]) - noise.transform(values[held])) / scale.to(values).expand_as(values)[held]
-    total = float(r.pow(2).sum())
-    return total if math.isfinite(total) else math.inf
+    r = (noise.transform(pred) - noise.transform(values)) / scale.to(values)
+    per = torch.where(held, r, torch.zeros((), dtype=r.dtype, device=r.device)).pow(2).sum((1, 2))
+    per = torch.where(torch.isfinite(per), per, torch.full_like(per, math.inf))
+    return per.detach().cpu().to(torch.float64)
 
 
 #: the known model fails its own forecast check (:func:`forecast_check`) below this p-value

@@ -90,16 +90,7 @@ class CrossValidation:
         level 1 - :data:`SIGNIFICANCE`): the evidence that the correction helps at all. An infinite gain (the known
         model alone cannot be integrated over a held-out experiment that the corrected model predicts) is
         significant by itself."""
-        n = len(self.gains)
-        if not self.improves:
-            return False
-        if any(g == math.inf for g in self.gains):
-            return True
-        if n < 2:
-            return False
-        mean = sum(self.gains) / n
-        var = sum((g - mean) ** 2 for g in self.gains) / (n - 1)
-        return mean > self.critical * math.sqrt(var / n)
+        return self.improves and significant_gain(self.gains)
 
     @property
     def critical(self) -> float:
@@ -111,6 +102,22 @@ class CrossValidation:
 #: Standard errors by which the cross-validated correction must beat the known model for :func:`fit_correction`
 #: not to warn.
 SIGNIFICANCE = 0.975
+
+
+def significant_gain(gains) -> bool:
+    """Whether per-experiment gains (``log`` of the known model's error over a rival's, one per held-out
+    experiment) show the rival better: their mean above the :data:`SIGNIFICANCE` quantile of Student's t with
+    n - 1 degrees of freedom times its standard error (a one-sided paired test); an infinite gain (the known model
+    cannot be integrated where the rival can) is significant by itself, fewer than 2 finite gains never are."""
+    gains = list(gains)
+    if any(g == math.inf for g in gains):
+        return True
+    n = len(gains)
+    if n < 2 or not all(math.isfinite(g) for g in gains):
+        return False
+    mean = sum(gains) / n
+    var = sum((g - mean) ** 2 for g in gains) / (n - 1)
+    return mean > student_t_quantile(SIGNIFICANCE, n - 1) * math.sqrt(var / n)
 
 
 def student_t_quantile(p: float, df: int) -> float:

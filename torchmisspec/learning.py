@@ -384,7 +384,8 @@ def fit_correction(
     and the initial states the data do not give are fitted through the ODE to the measured values (the classical
     answer, :func:`torchmisspec._known_fit.fit_known_model`), the correction's own fit starts there, and the
     correction is kept only when, fitted on the first two thirds of each experiment's times, it forecasts the last
-    third better than the known model fitted on the same times.
+    third better than the known model fitted on the same times (with several experiments, significantly so over
+    them: :mod:`torchmisspec._partial_choice`).
 
     With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
     experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
