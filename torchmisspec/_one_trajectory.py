@@ -67,7 +67,8 @@ def refined_rival(
     """``(whether the refined feature kernel forecasts the last piece better, the record)``: ``chosen`` (fitted on
     the pieces' ``samples``) conditioned on the samples of the pieces before the last, against the feature kernel
     fitted on those pieces' own samples (``estimator``: :func:`~torchmisspec.correction_samples`' keywords) and
-    refined through the ODE on them (:func:`~torchmisspec.fit_trajectories`); the record holds both misfits."""
+    refined through the ODE on them (:func:`~torchmisspec.fit_trajectories`); the record holds both misfits and the
+    known model's alone (F = 0) on the same piece."""
     early, last = _split(pieces)
     keep = samples.experiment < pieces.num_experiments - 1
     noise_kept = None if samples.noise is None else samples.noise[keep]
@@ -82,5 +83,14 @@ def refined_rival(
         score_features = _score(system, refined, last, noise)
     except (FittingError, IntegrationError, LinearAlgebraError):
         score_features = float("inf")
-    record = {"chosen": score_chosen, "refined features": score_features, "held out": "the last time piece"}
+    try:
+        score_known = float(_held_out_errors(system, last, None, noise).sum())
+    except IntegrationError:
+        score_known = float("inf")
+    record = {
+        "chosen": score_chosen,
+        "refined features": score_features,
+        "known model": score_known,
+        "held out": "the last time piece",
+    }
     return score_features < score_chosen, record

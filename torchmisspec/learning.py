@@ -489,7 +489,17 @@ def _fit(
             )
             if better:  # the feature kernel on every sample, refined below through the ODE on the trajectory
                 result = feature_template(samples.inputs.device).fit(samples)
-        if not cv.significant:
+        kept_rival = rival is not None and rival["refined features"] < rival["chosen"]
+        if kept_rival:  # what the kept model was tested on: the last piece, against the known model alone too
+            if not rival["refined features"] < rival["known model"]:
+                warn(
+                    f"fit_correction: the feature kernel refined through the ODE forecasts the trajectory's last piece "
+                    f"better than the time pieces' choice ({rival['refined features']:.3g} vs {rival['chosen']:.3g}) "
+                    f"but not better than the known model alone ({rival['known model']:.3g}): the data do not "
+                    "support a correction. Collect more experiments or a longer one, or check the known model",
+                    TorchMisspecWarning,
+                )
+        elif not cv.significant:
             warn(
                 f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
                 f"known model alone (best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a "

@@ -84,7 +84,8 @@ def _fit(args: argparse.Namespace) -> int:
     times = f"{min(observed.lengths)}-{max(observed.lengths)}" if observed.is_ragged else str(observed.num_times)
     print(
         f"fitted the correction of '{system.name}' on {len(gp.samples_)} samples ({observed.num_experiments} "
-        f"experiments x {times} times, derivative {args.derivative!r}, noise {gp.noise_.name!r}): {gp!r}"
+        f"experiment{'s' if observed.num_experiments != 1 else ''} x {times} times, derivative "
+        f"{args.derivative!r}, noise {gp.noise_.name!r}): {gp!r}"
     )
     if getattr(gp, "known_model_", False):
         fitted = ", its parameters fitted" if system.parameters is not None else ""
@@ -102,6 +103,14 @@ def _fit(args: argparse.Namespace) -> int:
         print(
             f"cross-validation ({cv.folds} folds){where}: {chose}; held-out error {min(cv.scores):.4g} against "
             f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
+        )
+    rival = getattr(gp, "one_trajectory_rival_", None)
+    if rival is not None:  # one trajectory: the refined feature kernel against that choice, on the last piece
+        kept = rival["refined features"] < rival["chosen"]
+        print(
+            f"the feature kernel refined through the ODE, forecasting the last time piece: misfit "
+            f"{rival['refined features']:.4g} against {rival['chosen']:.4g} for the cross-validation's choice and "
+            f"{rival['known model']:.4g} for the known model alone: " + ("kept it" if kept else "kept the choice")
         )
     report = getattr(gp, "identifiability_", None)
     if report is not None:  # partly measured states: what the measurements see

@@ -155,7 +155,8 @@ def _figure(post, path, names, labels, args: argparse.Namespace) -> None:
             levels=(args.level,),
             component_labels=names,
             axes=list(axes[b]),
-            title=f"{args.experiment_column or 'experiment'} {labels[b]}",
+            title=f"{args.experiment_column or 'experiment'} {labels[b]}"
+            + (": bands of new measurements" if args.measurements else ""),
             legend=b == 0,
         )
         for ax in axes[b]:
