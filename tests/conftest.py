@@ -66,3 +66,28 @@ def _fast_linear(num_experiments: int):
     gen = torch.Generator().manual_seed(0)
     y0 = torch.rand(num_experiments, 2, generator=gen, dtype=torch.float64) * 2 - 1
     return system, tms.simulate(system, y0, torch.linspace(0, 3, 11, dtype=torch.float64))
+
+
+@pytest.fixture
+def study_smoke(tmp_path):
+    """``run(script) -> (saved JSON, completed process)``: ``scripts/<script> --smoke --json ...`` in a child
+    process (checked to exit 0), and what it saved."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+
+    def run(script: str):
+        out = tmp_path / f"{Path(script).stem}.json"
+        proc = subprocess.run(
+            [sys.executable, str(scripts / script), "--smoke", "--json", str(out)],
+            check=True,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        return json.loads(out.read_text()), proc
+
+    return run

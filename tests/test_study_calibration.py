@@ -1,8 +1,5 @@
 """The calibration study script (issue 10) runs in its smoke mode and reports coverages in [0, 1]."""
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,15 +8,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-def test_smoke_run_writes_coverages(tmp_path):
-    out = tmp_path / "c.json"
-    subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "study_calibration.py"), "--smoke", "--json", str(out)],
-        check=True,
-        capture_output=True,
-        timeout=600,
-    )
-    result = json.loads(out.read_text())
+def test_smoke_run_writes_coverages(study_smoke):
+    result, _ = study_smoke("study_calibration.py")
     assert result["smoke"] is True and len(result["settings"]) == 4
     for setting in result["settings"]:
         assert len(setting["runs"]) == result["config"]["realizations"]

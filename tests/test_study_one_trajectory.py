@@ -2,8 +2,6 @@
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -46,16 +44,8 @@ def test_summary_counts_a_failed_realization():
 
 
 @pytest.mark.slow
-def test_smoke_run_records_every_stage(tmp_path):
-    out = tmp_path / "o.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "study_one_trajectory.py"), "--smoke", "--json", str(out)],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    saved = json.loads(out.read_text())
+def test_smoke_run_records_every_stage(study_smoke):
+    saved, proc = study_smoke("study_one_trajectory.py")
     assert saved["smoke"] is True and list(saved["runs"]) == list(study.PROTOCOLS)
     for runs in saved["runs"].values():
         (run,) = runs
@@ -70,7 +60,6 @@ def test_smoke_run_records_every_stage(tmp_path):
 def test_the_docs_page_and_block_are_written_from_a_run(tmp_path):
     """--markdown's page and BENCHMARKS block come from the run's records (a saved run's too: its summaries are
     recomputed from its realizations, so quantities added since are shown as missing, not refused)."""
-    import json
 
     from torchmisspec.paper import study_one_trajectory as study
 

@@ -1,9 +1,6 @@
 """``scripts/study_real_data.py`` (issue 41's real-data suite): its smoke run, the classical answer, the folds."""
 
-import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,16 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-def test_smoke_run_records_every_fold(tmp_path):
-    out = tmp_path / "r.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "study_real_data.py"), "--smoke", "--json", str(out)],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    saved = json.loads(out.read_text())
+def test_smoke_run_records_every_fold(study_smoke):
+    saved, proc = study_smoke("study_real_data.py")
     assert saved["smoke"] is True and list(saved["runs"]) == ["orange", "hare_lynx"]
     for runs in saved["runs"].values():
         (run,) = runs

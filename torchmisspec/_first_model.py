@@ -17,7 +17,7 @@ from .gp._features import FEATURE_DEGREE
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _shooting
 
-__all__ = ["FIRST_MODEL", "FIRST_MODEL_ROUNDS", "FirstModel", "first_model"]
+__all__ = ["FIRST_MODEL", "FIRST_MODEL_ROUNDS", "FirstModel", "feature_template", "first_model"]
 
 #: rounds of relevance updates of the first model of F (it only completes the data for the model choice that
 #: follows): on the chemostat and drug-model studies' data, 4 rounds gave the same final model as 10 at half the
@@ -36,6 +36,12 @@ class FirstModel:
 
 #: The correction's own first model.
 FIRST_MODEL = FirstModel()
+
+
+def feature_template(device) -> CorrectionGP:
+    """The default candidates' feature kernel (monomials up to :data:`~torchmisspec.gp._features.FEATURE_DEGREE`,
+    one set of relevance weights per output), unfitted."""
+    return CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, device=device)
 
 
 def first_model(
@@ -59,8 +65,7 @@ def first_model(
     filled = completed.filled()
     g = system.select_outputs(system.known_rhs(filled.flat_states(), filled.flat_times(), filled.flat_controls()))
     start = g.pow(2).mean(0).clamp_min(torch.finfo(g.dtype).tiny)  # (d_out,)
-    gp = CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, device=samples.inputs.device)
-    gp = gp.fit(samples)
+    gp = feature_template(samples.inputs.device).fit(samples)
     solver = dict(rtol=FITTING_TOLERANCES[0], atol=FITTING_TOLERANCES[1], max_steps=None, what="fit_correction")
     residuals, n_obs, offsets = _shooting(trajectories, "single", solver, system)
     return _fit_relevance(

@@ -21,21 +21,15 @@ import warnings
 import torch
 
 from ._errors import FittingError, IntegrationError, LinearAlgebraError, TorchMisspecWarning
+from ._first_model import feature_template
 from .cross_validation import _held_out_errors
 from .data import Trajectories
 from .gp import CorrectionGP
-from .gp._features import FEATURE_DEGREE
 from .observations import CorrectionSamples, correction_samples
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field, fit_trajectories
 
-__all__ = ["feature_template", "refined_rival"]
-
-
-def feature_template(device) -> CorrectionGP:
-    """The default candidates' feature kernel (monomials up to :data:`~torchmisspec.gp._features.FEATURE_DEGREE`,
-    one set of relevance weights per output), unfitted."""
-    return CorrectionGP(kernel="features", degree=FEATURE_DEGREE, per_output=True, device=device)
+__all__ = ["refined_rival"]
 
 
 def _split(pieces: Trajectories) -> tuple[Trajectories, Trajectories]:

@@ -25,8 +25,9 @@ from ._errors import (
     TorchMisspecWarning,
     warn,
 )
+from ._first_model import feature_template
 from ._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
-from ._one_trajectory import feature_template, refined_rival
+from ._one_trajectory import refined_rival
 from ._parameters_ode import fit_parameters
 from ._partial_choice import fit_partly_measured
 from ._threads import adaptive_threads
