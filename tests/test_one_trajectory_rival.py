@@ -72,4 +72,5 @@ def test_the_command_line_says_which_model_it_kept(tmp_path, capsys, one_thread)
     assert "(1 experiment x 25 times" in out
     [line] = [x for x in out.splitlines() if x.startswith("the feature kernel refined through the ODE")]
     assert line.endswith("kept it")
+    assert "bands not calibrated: with one experiment, 'torchmisspec calibrate' holds out pieces of its time" in out
     assert tms.CorrectionGP.load(tmp_path / "m.pt").kernel_spec.terms

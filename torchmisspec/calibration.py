@@ -241,7 +241,7 @@ def calibrate_bands(
         :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` makes it the model's default.
 
     Raises:
-        FittingError: no fold could be fitted and integrated, or the uncalibrated bands' paths already fail.
+        FittingError: no fold could be fitted and integrated (a fold that cannot is left out, with a warning).
     """
     # a CorrectedODE (this module does not import dynamics, which imports it): each fold's model is one of its kind
     if not all(hasattr(model, name) for name in ("system", "gp", "posterior")):
@@ -290,9 +290,16 @@ def calibrate_bands(
     fold_warnings = [m for r in results for m in r["numerical"]]
     for message, category in (w for r in results for w in r["other"]):  # anything else reaches the user as it was
         warn(message, category)
-    failed = next((r["failed"] for r in results if r["failed"] is not None), None)
-    if failed is not None:
-        raise FittingError(failed)
+    failed = [r["failed"] for r in results if r["failed"] is not None]
+    if failed and len(failed) == len(results):
+        raise FittingError(failed[0])
+    if failed:  # a fold whose held-out paths cannot be integrated: calibrated on the others, and said
+        warn(
+            f"calibrate_bands: the held-out posterior paths of {len(failed)} of {len(results)} folds cannot be "
+            f"integrated (first: {failed[0][len('calibrate_bands: ') :][:240]}); the bands are calibrated on the "
+            "other folds, and predictions from states like that fold's may fail too",
+            TorchMisspecWarning,
+        )
     if fold_warnings:
         warn(
             f"calibrate_bands: the refit of the GP on {len(fold_warnings)} fold(s) warned (first: "

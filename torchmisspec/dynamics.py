@@ -3,6 +3,7 @@ trajectories under posterior draws of F (:meth:`CorrectedODE.posterior`), with u
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -13,8 +14,10 @@ from ._draws import draws_region, solve_draws, warn_left
 from ._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
 from ._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
 from ._threads import adaptive_threads
+from ._time_pieces import MIN_PIECE, piece_samples, time_pieces
 from ._validation import check_input_names, check_positive_int, check_real
 from .calibration import calibrate_bands
+from .data import Trajectories
 from .gp import CorrectionGP
 from .observations import _check_trajectories_and_system
 from .parameters import ParameterPosterior
@@ -437,6 +440,10 @@ class CorrectedODE(nn.Module):
     def calibrate(self, trajectories, samples=None, **options):
         """Calibrate the bands of :meth:`posterior` on held-out experiments and make the result its default scale.
 
+        With one experiment (every state measured, at least ``2 * MIN_PIECE`` times), the held-out experiments are
+        pieces of its time (:func:`~torchmisspec._time_pieces.time_pieces`): each piece is forecast from its first
+        state by the model refitted on the others (``result.held_out`` is ``"time pieces"``).
+
         ``samples`` default to the ones :func:`~torchmisspec.fit_correction` recorded on the GP (``gp.samples_``).
         See :func:`torchmisspec.calibration.calibrate_bands` (the arguments after ``samples`` are its keywords:
         ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator``, ``executor`` (the folds
@@ -455,12 +462,26 @@ class CorrectedODE(nn.Module):
                     "samples: expected the correction samples the GP was fitted on, got none: this GP has none "
                     "recorded (only fit_correction records them, as gp.samples_): pass calibrate(trajectories, samples)"
                 )
+        pieces = None
+        if isinstance(trajectories, Trajectories) and trajectories.num_experiments == 1:
+            pieces = time_pieces(trajectories)
+            if pieces is None:
+                raise InputError(
+                    "trajectories: calibration holds out experiments, or with one experiment pieces of its time (each "
+                    f"forecast from its first state); expected 2 or more experiments, or one with every state measured "
+                    f"and at least {2 * MIN_PIECE} times, got one of {trajectories.experiments()[0][0].shape[0]} times"
+                    + (" with some state not measured" if trajectories.is_partial else "")
+                    + "; collect another experiment to calibrate, or use the GP's own bands (posterior(..., scale=1.0))"
+                )
+            samples, trajectories = piece_samples(samples, trajectories), pieces
         if getattr(trajectories, "is_partial", False) and trajectories.initial_states is None:
             # a held-out experiment starts where a prediction of a new one would: at its first observed values
             # (an unmeasured component never observed there at its mean over the others), not at values fitted to
             # its own later data, which would hide the initial states' uncertainty from the bands
             trajectories = trajectories.with_initial_states(initial_guess(trajectories))
         result = calibrate_bands(self, trajectories, samples, **options)  # a failure keeps the previous one
+        if pieces is not None:
+            result = dataclasses.replace(result, held_out="time pieces")
         self.gp.calibration_ = result
         return result
 

@@ -31,6 +31,7 @@ from ._one_trajectory import refined_rival
 from ._parameters_ode import fit_parameters
 from ._partial_choice import fit_partly_measured
 from ._threads import adaptive_threads
+from ._time_pieces import time_pieces
 from ._units import fit_in_units
 from ._validation import check_flag
 from .cross_validation import (
@@ -189,33 +190,6 @@ def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, te
         model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
         posterior, samples = posterior_given(model, samples, system, delta)
     return posterior, samples
-
-
-#: With one experiment, :func:`fit_correction` scores its candidates on the trajectory cut in time into at most this
-#: many consecutive pieces, each held out in turn (forecast from its first state by a model fitted on the others)...
-TIME_PIECES = 3
-#: ... of at least this many times each (the default derivative estimator's widest stencil).
-MIN_PIECE = 5
-
-
-def time_pieces(trajectories: Trajectories) -> Trajectories | None:
-    """One fully measured experiment (states, no readout) cut in time into :data:`TIME_PIECES` consecutive pieces of
-    at least :data:`MIN_PIECE` times, as experiments of their own (each under the experiment's input profile);
-    ``None`` when it is too short for two pieces, or is not of that kind."""
-    if trajectories.num_experiments != 1 or trajectories.readout is not None or trajectories.is_partial:
-        return None
-    t, y = trajectories.experiments()[0]
-    n = min(TIME_PIECES, t.shape[0] // MIN_PIECE)
-    if n < 2:
-        return None
-    cuts = [round(i * t.shape[0] / n) for i in range(n + 1)]
-    controls = None if trajectories.controls is None else trajectories.controls[[0] * n]
-    return Trajectories(
-        [t[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True)],
-        [y[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True)],
-        state_names=trajectories.state_names,
-        controls=controls,
-    )
 
 
 def _chooser(trajectories: Trajectories, samples: CorrectionSamples, system, derivative: str, estimator: dict):

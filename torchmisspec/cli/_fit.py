@@ -6,6 +6,7 @@ import argparse
 import math
 
 from .._errors import InputError
+from .._time_pieces import MIN_PIECE
 from ._common import (
     add_data_options,
     add_system_option,
@@ -136,7 +137,11 @@ def _fit(args: argparse.Namespace) -> int:
             print(line)
     if not args.no_calibrate:
         if observed.num_experiments < 2:
-            print("bands not calibrated: calibration holds out experiments and needs at least 2")
+            print(
+                "bands not calibrated: with one experiment, 'torchmisspec calibrate' holds out pieces of its time "
+                f"(every state measured, at least {2 * MIN_PIECE} times); each piece is forecast by a model fitted on "
+                "the others, so the bands come out wider than the full fit's error"
+            )
         else:
             print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
     gp.system_ = describe_system(system)  # later commands check they are given the same system

@@ -17,6 +17,10 @@ from .._errors import InputError
 __all__ = ["BandCalibration"]
 
 
+#: What a calibration can hold out.
+HELD_OUT = ("experiments", "time pieces")
+
+
 @dataclass(frozen=True)
 class BandCalibration:
     """The result of :func:`~torchmisspec.calibration.calibrate_bands`.
@@ -33,6 +37,8 @@ class BandCalibration:
         reached: whether some scale reaches the level (when not, ``scale`` is the smallest doubling whose held-out
             coverage is within one standard error of the best one tried, and a warning was issued).
         num_points: the held-out (time, component) entries compared at each scale.
+        held_out: what was held out: ``"experiments"``, or ``"time pieces"`` of one experiment (each forecast from
+            its first state by the model refitted on the others).
     """
 
     scale: float
@@ -45,11 +51,12 @@ class BandCalibration:
     refit: bool
     num_points: int
     reached: bool = True
+    held_out: str = "experiments"
 
     def __str__(self) -> str:
         return (
             f"BandCalibration(scale={self.scale:.3g}: the central {self.level:.0%} band covers {self.coverage:.3f} "
-            f"of the held-out observations (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds, "
+            f"of the held-out observations (c = 1: {self.coverage_at_one:.3f}); {self.folds} folds of {self.held_out}, "
             f"{'refitted' if self.refit else 'conditioned'} GP"
             + ("" if self.reached else "; the level is out of reach")
             + f", {self.num_points} points)"
@@ -79,4 +86,8 @@ class BandCalibration:
             raise InputError(f"{path}: the band calibration record is damaged ({exc})") from exc
         if not (isinstance(record.scale, float) and math.isfinite(record.scale) and record.scale > 0):
             raise InputError(f"{path}: expected a positive finite calibrated scale, got {record.scale!r}")
+        if record.held_out not in HELD_OUT:
+            raise InputError(
+                f"{path}: expected the calibration's held-out data to be one of {HELD_OUT}, got {record.held_out!r}"
+            )
         return record
