@@ -74,3 +74,20 @@ def test_the_command_line_says_which_model_it_kept(tmp_path, capsys, one_thread)
     assert line.endswith("kept it")
     assert "bands not calibrated: with one experiment, 'torchmisspec calibrate' holds out pieces of its time" in out
     assert tms.CorrectionGP.load(tmp_path / "m.pt").kernel_spec.terms
+
+
+@pytest.mark.slow
+def test_the_not_significant_warning_of_one_experiment_names_its_time_pieces(one_thread):
+    """Hudson's Bay pelts 1900-1915 (one experiment, Lotka-Volterra with its rates uncertain): the cross-validation's
+    folds are pieces of its time, and its warning said 'held-out experiments ... over the 3 experiments'."""
+    from torchmisspec import datasets
+
+    data = datasets.load("hare_lynx")
+    t, y = data.trajectories.experiments()[0]
+    early = tms.Trajectories(t[:16], y[None, :16], state_names=data.trajectories.state_names)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = tms.fit_correction(early, data.system, progress=False)
+    [message] = [str(w.message) for w in caught if "significantly better" in str(w.message)]
+    assert "held-out pieces of the experiment's time" in message and "over the 3 pieces" in message
+    assert "experiments)" not in message and gp.cross_validation_.folds == 3

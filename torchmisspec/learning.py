@@ -475,11 +475,12 @@ def _fit(
                     TorchMisspecWarning,
                 )
         elif not cv.significant:
+            held = "experiments" if scored is trajectories else "pieces of the experiment's time"
             warn(
-                f"fit_correction: no corrected model predicts held-out experiments significantly better than the "
+                f"fit_correction: no corrected model predicts held-out {held} significantly better than the "
                 f"known model alone (best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a "
                 f"correction, {cv.folds} folds; required: a gain of {cv.critical:.3g} standard errors over the "
-                f"{len(cv.gains) or trajectories.num_experiments} experiments): the data do not support a correction. "
+                f"{len(cv.gains) or scored.num_experiments} {held}): the data do not support a correction. "
                 "Collect more experiments, sample the states more densely or with less noise, or check the known model",
                 TorchMisspecWarning,
             )
