@@ -87,7 +87,7 @@ def test_the_guess_of_a_component_never_observed_is_the_data_scale():
         partial.initial_guess(data, lonely)
 
 
-def test_the_refined_feature_model_is_the_fitted_one_with_fewer_samples_than_terms(one_thread):
+def test_the_refined_feature_model_is_the_fitted_one_with_fewer_samples_than_terms(one_thread, monkeypatch):
     """Relevance through the ODE on 6 samples of a degree-3 feature kernel in 2 states (10 terms): the pseudo-targets
     at the 6 samples alone could not carry the fitted coefficients (on the influenza data, 12 days and 20 terms, the
     model returned differed from the fitted one by 1e4 and its paths blew up); inputs are added until they can, so
@@ -98,6 +98,8 @@ def test_the_refined_feature_model_is_the_fitted_one_with_fewer_samples_than_ter
     system = tms.MisspecifiedSystem(lambda y: 0.9 * predator_prey(y), 2)
     samples = tms.correction_samples(data, system, derivative="central")
     gp = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(samples)
+    # the relevance rounds' own model (its sparse rival, torchmisspec._term_price, has fewer terms than samples)
+    monkeypatch.setattr(tms.trajectory_fit, "_sparser", lambda refined, *args: refined)
     refined = tms.fit_trajectories(gp, system, data, max_iter=10)
 
     def misfit(model, y0):

@@ -24,6 +24,7 @@ from ._errors import (
 )
 from ._fit_fallbacks import _batched, _dropped, _shrink_until_integrable, _spanning_inputs
 from ._optim import OptimResult, maximise
+from ._term_price import forward_selection, term_price
 from ._validation import progress_bar
 from .data import Trajectories
 
@@ -131,6 +132,8 @@ def _fit_relevance(
     rounds: int | None = None,
     parameters: bool = False,
     theta_start: torch.Tensor | None = None,
+    only: torch.Tensor | None = None,
+    propose: bool = False,
 ):
     """The feature kernel through the ODE: sparse Bayesian learning of its term weights from the trajectories.
 
@@ -171,6 +174,9 @@ def _fit_relevance(
     if start is not None:
         W = (start.to(**kd).reshape(1, -1) / (p * phi2)).expand(p, d_out).clone()
         beta = torch.zeros_like(W)
+    if only is not None:  # the terms of a proposal (torchmisspec._term_price): the others removed from the start
+        W = torch.where(only, W, torch.zeros_like(W))
+        beta = torch.where(only, beta, torch.zeros_like(beta))
 
     k = len(system.parameters) if parameters else 0
     if k and not (hasattr(residuals, "many") and offsets is not None):
@@ -303,6 +309,7 @@ def _fit_relevance(
         if settled:
             break
     bar.close()
+    record = _relevance_record(residuals, make_field, make_fields, beta, W, offsets, sd, n_obs, gp, propose and not k)
     # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta (at
     # inputs enough to span the active terms: more terms than samples could not reproduce beta)
     X, targets, noise = _spanning_inputs(X, gp.train_targets_, gp.train_noise_, base.features, W)
@@ -325,6 +332,7 @@ def _fit_relevance(
     refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations
     refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
+    refined.relevance_record_ = record
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd[:d]
     if k:  # theta's posterior from the last round's Laplace step, with F's coefficients marginalised and held fixed
@@ -336,6 +344,31 @@ def _fit_relevance(
             scaled = (s_theta[:, None] * c * s_theta[None, :] for c in (cov, fixed))
             refined.parameters_laplace_ = (m_theta + s_theta * v_at, *scaled)
     return refined
+
+
+def _relevance_record(residuals, make_field, make_fields, beta, W, offsets, sd, n_obs, gp, propose: bool) -> dict:
+    """Where the rounds ended: the scaled misfit, the number of kept terms and, with ``propose`` (one weight per
+    coefficient), the sparse set :func:`~torchmisspec._term_price.forward_selection` proposes there (``None``
+    otherwise, or when a solve fails)."""
+    off = None if offsets is None else offsets.detach()
+    with torch.no_grad():
+        try:
+            r = (residuals(make_field(beta), off, sd) / sd).reshape(-1)
+        except IntegrationError:
+            return {"misfit": math.inf, "terms": int((W > 0).sum()), "active": W > 0, "proposal": None}
+        record = {"misfit": float(r.pow(2).sum()), "terms": int((W > 0).sum()), "active": W > 0, "proposal": None}
+        if not propose or not (gp.per_output or W.shape[1] == 1):
+            return record
+        try:
+            J = _coefficient_columns(residuals, make_field, beta, torch.ones_like(W, dtype=torch.bool), off, sd,
+                                     make_fields)  # fmt: skip
+            J_f = None if off is None else _offset_columns(residuals, make_field(beta), off, sd)
+            f = None if off is None else off.reshape(-1)
+            price = term_price(gp, n_obs)
+            record["proposal"] = forward_selection(J, r, beta.reshape(-1), price, J_f, f).reshape(W.shape)
+        except (IntegrationError, LinearAlgebraError, torch.linalg.LinAlgError):
+            pass
+    return record
 
 
 def _robust(cov: torch.Tensor, J_p: torch.Tensor, J_o: torch.Tensor, r: torch.Tensor, residuals, W) -> torch.Tensor:

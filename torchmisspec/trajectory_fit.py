@@ -12,12 +12,16 @@ from __future__ import annotations
 import torch
 
 from ._errors import (
+    FittingError,
     InputError,
+    IntegrationError,
+    LinearAlgebraError,
     NotFittedError,
     ShapeError,
 )
 from ._gp_in_time import estimate_observed_noise, observed_rms
 from ._ode import FITTING_TOLERANCES, solve
+from ._term_price import bic, term_price
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
 from ._units import refine_in_units
@@ -241,9 +245,9 @@ def fit_trajectories(
         relevance=relevance,
     )
     if relevance:
-        refined = _fit_relevance(
-            gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter=max_iter, progress=progress
-        )
+        options = dict(max_iter=max_iter, progress=progress)
+        refined = _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, propose=True, **options)
+        refined = _sparser(refined, gp, system, trajectories, residuals, n_obs, offsets, options)
         refined.refinement_ = recipe
         return refined
     posterior = gp.posterior()  # its factor of C = K + diag(known noise + floor) is fixed; the targets are not
@@ -269,6 +273,30 @@ def fit_trajectories(
     if offsets is not None:
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2[:d].sqrt()
     refined.refinement_ = recipe
+    return refined
+
+
+def _sparser(refined, gp, system, trajectories, residuals, n_obs, offsets, options) -> CorrectionGP:
+    """``refined`` or the refit through the ODE of the sparse terms proposed where its rounds ended
+    (:mod:`torchmisspec._term_price`), whichever has the lower BIC through the ODE (the scaled misfit of the
+    observed states, plus the price of each kept term)."""
+    record = refined.relevance_record_
+    proposal = record["proposal"]
+    if proposal is None or not bool(proposal.any()) or torch.equal(proposal, record["active"]):
+        return refined
+    price = term_price(gp, n_obs)
+    start = None if offsets is None else offsets.detach().clone()
+    try:
+        rival = _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, refined.state_noise_,
+                               only=proposal, **options)  # fmt: skip
+    except (FittingError, IntegrationError, LinearAlgebraError):
+        rival = None
+    if rival is not None:
+        ours, theirs = rival.relevance_record_, record
+        if bic(ours["misfit"], ours["terms"], price) < bic(theirs["misfit"], theirs["terms"], price):
+            return rival
+    if start is not None:  # the offsets as the kept fit left them
+        offsets.data.copy_(start)
     return refined
 
 
