@@ -190,7 +190,9 @@ def fit_trajectories(
             trajectories (sparse Bayesian learning through the ODE: MAP coefficients, a Laplace posterior,
             MacKay's update, repeated): the terms the observed states do not support are removed. What is then
             optimised are the coefficients of the terms (and the initial states); the result's pseudo-targets
-            reproduce the fitted coefficients exactly.
+            reproduce the fitted coefficients exactly. Where the rounds end, a sparse set of terms proposed by
+            BIC in the linearised misfit is refitted the same way and kept when its BIC through the ODE is lower
+            (:mod:`torchmisspec._term_price`; ``result.relevance_record_`` holds the misfit and the terms kept).
 
     Returns:
         a new fitted :class:`CorrectionGP` (hyperparameters fixed at ``gp``'s values) whose training targets are the
