@@ -19,11 +19,10 @@ lower BIC through the ODE (:func:`bic`), so the rival is judged on the trajector
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from ._linalg import cholesky
+from .gp._relevance import term_price as _price
 
 __all__ = ["bic", "forward_selection", "term_price"]
 
@@ -32,10 +31,9 @@ _MARGIN = 1e-9
 
 
 def term_price(gp, n_obs: int) -> float:
-    """The price of a term in nats: ``gp.min_gain`` when set, else BIC's ``log(n_obs) / 2`` (``n_obs`` scalar
-    measurements), as the samples' fit prices a term by its own count."""
-    given = getattr(gp, "min_gain", None)
-    return float(given) if given is not None else 0.5 * math.log(max(n_obs, 2))
+    """The price of a term through the ODE: the samples' rule (:func:`~torchmisspec.gp._relevance.term_price`:
+    ``gp.min_gain`` when set, else ``log(n_obs) / 2``) with ``n_obs`` the scalar measurements of the trajectories."""
+    return _price(getattr(gp, "min_gain", None), n_obs)
 
 
 def bic(misfit: float, terms: int, price: float) -> float:

@@ -309,7 +309,11 @@ def _fit_relevance(
         if settled:
             break
     bar.close()
-    record = _relevance_record(residuals, make_field, make_fields, beta, W, offsets, sd, n_obs, gp, propose and not k)
+    record = None  # the misfit where the rounds ended and the sparse proposal: only for fit_trajectories' rival
+    if propose or only is not None:
+        record = _relevance_record(
+            residuals, make_field, make_fields, beta, W, offsets, sd, n_obs, gp, propose and not k
+        )
     # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta (at
     # inputs enough to span the active terms: more terms than samples could not reproduce beta)
     X, targets, noise = _spanning_inputs(X, gp.train_targets_, gp.train_noise_, base.features, W)

@@ -22,7 +22,7 @@ from .._errors import FittingError, LinearAlgebraError, NumericalWarning, warn
 from .._optim import maximise
 from . import _mll
 from ._exact import IndependentOutputsGP, median_distance
-from ._relevance import fit_relevance, term_inclusion, unit_information_weights
+from ._relevance import fit_relevance, term_inclusion, term_price, unit_information_weights
 from ._sum import fit_sum
 
 __all__ = ["fit_model", "optimise", "fit_features", "fit_sum_kernel", "lengthscale_box", "initialise"]
@@ -108,7 +108,7 @@ def fit_sum_kernel(gp, X, Y, noise, *, max_iter: int) -> tuple[int, int]:
         lengthscale=gp.fixed["lengthscale"],
         max_iter=max_iter,
         outputscale=float(gp.fixed["outputscale"]),
-        min_gain=0.5 * math.log(X.shape[0]) if gp.min_gain is None else gp.min_gain,
+        min_gain=term_price(gp.min_gain, X.shape[0]),
     )
     if gp.fixed["noise_variance"] is None:
         with torch.no_grad():
@@ -127,7 +127,7 @@ def fit_features(gp, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | Non
     floor = gp.fixed["noise_variance"]
     groups = [[o] for o in range(Y.shape[1])] if gp.per_output else [list(range(Y.shape[1]))]
     # the price of a term: per learned weight (shared by the outputs of a group or not), as evidence_score counts
-    price = 0.5 * math.log(X.shape[0]) if gp.min_gain is None else gp.min_gain
+    price = term_price(gp.min_gain, X.shape[0])
     weights, floors, inclusion, spread, iterations = [], [], [], [], 0
     for cols in groups:
         known = None if noise is None else noise[:, cols]

@@ -18,7 +18,7 @@ from .._errors import FittingError
 from .._linalg import cholesky
 from ._features import PRUNE, _posterior
 
-__all__ = ["fit_relevance", "noise_groups", "term_gain", "term_inclusion", "unit_information_weights"]
+__all__ = ["fit_relevance", "noise_groups", "term_gain", "term_inclusion", "term_price", "unit_information_weights"]
 
 #: Relative change of the log weights (and noise) below which the fixed-point iteration has converged.
 _TOLERANCE = 1e-9
@@ -341,6 +341,12 @@ def _price_move(Phi, Y, known, w: torch.Tensor, s: float, min_gain: float, scale
     _, j, value = max(moves)
     w[j] = value
     return True
+
+
+def term_price(min_gain: float | None, n: int) -> float:
+    """The price of a term in nats: ``min_gain`` when the user set one, else BIC's ``log(n) / 2`` for ``n``
+    measurements (the Occam factor of the unit-information slab)."""
+    return float(min_gain) if min_gain is not None else 0.5 * math.log(max(n, 2))
 
 
 def term_gain(theta: torch.Tensor, m: int) -> torch.Tensor:
