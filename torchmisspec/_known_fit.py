@@ -28,7 +28,7 @@ import torch
 
 from ._errors import FittingError, IntegrationError
 from ._gp_in_time import observed_rms
-from ._ode import FITTING_TOLERANCES
+from ._ode import EVALS_PER_STEP, FITTING_TOLERANCES, trial_budget
 from .data import Trajectories
 from .gp import CorrectionGP
 from .gp._exact import median_distance
@@ -85,41 +85,25 @@ class KnownFit:
     num_residuals: int = 0
 
 
-def _predictor(system, trajectories: Trajectories):
-    """``predict(thetas (V, k) or None, y0 (V, K, d)) -> (V, K, T, d + m)``: the paths of G at each of V parameter
-    values from each copy's initial states, read as the data are (:meth:`Trajectories.observe`), in one solve."""
+def _predictor(system, trajectories: Trajectories, cost: dict | None = None):
+    """``predict(thetas (V, k) or None, y0 (V, K, d), max_steps) -> (V, K, T, d + m)``: the paths of G at each of V
+    parameter values from each copy's initial states, read as the data are (:meth:`Trajectories.observe`), in one
+    solve of at most ``max_steps`` steps; ``cost["steps"]`` (where given) is set to the solver steps it took."""
     times, _, _ = trajectories.padded()
     K = trajectories.num_experiments
     times = times if times.dim() == 2 else times.expand(K, -1)
     controls = trajectories.controls
 
-    def predict(thetas, y0):
+    def predict(thetas, y0, max_steps=MAX_STEPS):
         V = y0.shape[0]
-        copies = None if thetas is None else [system.at(th) for th in thetas]
-
-        def rhs(y, t, u):
-            if copies is None:
-                return system.known_rhs(y, t, u)
-            rows = y.shape[0] // V
-
-            def part(x, i):
-                return x[i * rows : (i + 1) * rows]
-
-            return torch.cat(
-                [
-                    c.known_rhs(
-                        part(y, i),
-                        part(t, i) if isinstance(t, torch.Tensor) and t.dim() > 0 else t,
-                        None if u is None else part(u, i),
-                    )
-                    for i, c in enumerate(copies)
-                ]
-            )
+        rhs = system.known_rhs if thetas is None else system.copies_rhs(thetas)
 
         repeated = None if controls is None else controls.repeat(V)
         rtol, atol = FITTING_TOLERANCES
-        solver = dict(rtol=rtol, atol=atol, max_steps=MAX_STEPS, what="the known model's fit")
-        pred, _ = _solve_rhs(system, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), repeated, **solver)
+        solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="the known model's fit")
+        pred, nfe = _solve_rhs(system, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), repeated, **solver)
+        if cost is not None:
+            cost["steps"] = nfe / EVALS_PER_STEP
         return trajectories.observe(pred.reshape(V, K, *pred.shape[1:]))
 
     return predict
@@ -132,9 +116,12 @@ def _observed(trajectories: Trajectories):
     return values, torch.isfinite(values) & mask.unsqueeze(-1)
 
 
-def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, noise, *, start=None) -> KnownFit:
-    """The known model alone fitted to ``trajectories`` (the module's notes): G's uncertain parameters (from their
-    prior mean) and the ``free (K, d)`` entries of the initial states (from ``start (K, d)``, default
+def fit_known_model(
+    system, trajectories: Trajectories, free: torch.Tensor, noise, *, start=None, theta_start=None
+) -> KnownFit:
+    """The known model alone fitted to ``trajectories`` (the module's notes): G's uncertain parameters (from
+    ``theta_start``, default their prior mean) and the ``free (K, d)`` entries of the initial states (from ``start
+    (K, d)``, default
     ``trajectories.initial_conditions``; the others are kept), the residuals those of the
     :class:`~torchmisspec.noise.NoiseModel` ``noise``. Raises :class:`FittingError` when G cannot be integrated from
     the start."""
@@ -153,7 +140,8 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
     cols = free.any(0).nonzero().flatten().tolist()  # state components with a free entry somewhere
     size = observed_rms(torch.where(torch.isfinite(y_start), y_start, torch.zeros_like(y_start)))
     size = torch.where(size > 0, size, torch.ones_like(size))
-    predict = _predictor(system, trajectories)
+    solved = {"steps": 0.0}
+    predict = _predictor(system, trajectories, solved)
     K, d = y_start.shape
 
     def unpack(z):  # (V, p) -> thetas (V, k) or None, y0 (V, K, d)
@@ -165,14 +153,16 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
                 y0[:, :, j] = y0[:, :, j] + free[:, j].to(off) * off[:, :, c] * size[j]
         return thetas, y0
 
-    def residuals(z):  # (V, p) -> (V, n): prediction - observation in the noise model's space (inf where not finite)
-        pred = noise.transform(predict(*unpack(z))[:, seen])
+    def residuals(z, max_steps=MAX_STEPS):  # (V, p) -> (V, n): prediction - observation in the noise model's space
+        pred = noise.transform(predict(*unpack(z), max_steps)[:, seen])  # (inf where not finite)
         r = pred - target
         return torch.where(torch.isfinite(r), r, torch.full_like(r, math.inf))
 
     p = k + K * len(cols)
     unknowns = tuple(("theta", i) for i in range(k)) + tuple(("state", e, j) for e in range(K) for j in cols)
     z = torch.zeros(p, **kd)
+    if k and theta_start is not None:
+        z[:k] = (theta_start.to(**kd) - m_theta) / s_theta
     active = torch.ones(p, dtype=torch.bool, device=kd["device"])
     if cols:  # an entry that is not free is not a parameter (its column stays 0)
         active[k:] = free[:, cols].reshape(-1)
@@ -210,20 +200,22 @@ def fit_known_model(system, trajectories: Trajectories, free: torch.Tensor, nois
         return _result(z, r, weights(r), k, m_theta, s_theta, unpack, None, active, None, comp, values.shape[-1])
 
     penalty = torch.cat([torch.ones(k, **kd), torch.zeros(p - k, **kd)])
-    z, r, w = _damped_steps(z, r, residuals, jacobian, weights, active, penalty)
+    z, r, w = _damped_steps(z, r, residuals, jacobian, weights, active, penalty, solved)
     described = (unknowns, torch.cat([s_theta if k else z.new_zeros(0), size[cols].repeat(K)]))
     return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1], described)
 
 
-def _damped_steps(z, r, residuals, jacobian, weights, active, penalty):
+def _damped_steps(z, r, residuals, jacobian, weights, active, penalty, solved):
     """Levenberg-Marquardt from ``z`` (residuals ``r``) on ``sum w r^2 + sum penalty z^2``, ``w = weights(r)``
-    refreshed after each accepted step: ``(z, r, w)`` at the end. A trial step that cannot be integrated, or does not
-    lower the misfit, is rejected and the damping raised; a Jacobian that cannot be formed ends the fit there."""
+    refreshed after each accepted step: ``(z, r, w)`` at the end. A trial step that cannot be integrated within its
+    step budget (:func:`~torchmisspec._ode.trial_budget` of ``solved["steps"]``, the current point's solver steps),
+    or does not lower the misfit, is rejected and the damping raised; a Jacobian that cannot be formed ends the fit
+    there."""
 
     def misfit(r, w, z):
         return float((w * r.pow(2)).sum()) + float((penalty * z.pow(2)).sum())
 
-    lam, w = 1e-3, weights(r)
+    lam, w, steps = 1e-3, weights(r), solved["steps"]
     for _ in range(ITERATIONS):
         try:
             J = jacobian(z, r)
@@ -236,7 +228,7 @@ def _damped_steps(z, r, residuals, jacobian, weights, active, penalty):
         for _ in range(8):
             trial = z - torch.linalg.solve(A + lam * torch.diag(A.diagonal() + 1e-12), g) * active.to(g)
             try:
-                rt = residuals(trial[None])[0]
+                rt = residuals(trial[None], trial_budget(steps, MAX_STEPS))[0]
                 cost = misfit(rt, w, trial) if bool(torch.isfinite(rt).all()) else math.inf
             except IntegrationError:  # a trial step that cannot be integrated is rejected
                 cost = math.inf
@@ -245,7 +237,7 @@ def _damped_steps(z, r, residuals, jacobian, weights, active, penalty):
             lam = min(lam * 10.0, 1e10)
         if not cost < base:
             break
-        z, r, lam = trial, rt, max(lam * 0.3, 1e-9)
+        z, r, lam, steps = trial, rt, max(lam * 0.3, 1e-9), solved["steps"]
         settled = (base - cost) <= TOLERANCE * base
         w_new = weights(r)
         settled, w = settled and bool(torch.allclose(w_new, w, rtol=1e-3)), w_new

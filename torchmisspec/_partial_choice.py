@@ -72,7 +72,10 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     early, keep = split
     with warnings.catch_warnings():  # the held-out check's own fits: their advice is the full fit's
         warnings.simplefilter("ignore", TorchMisspecWarning)
-        known_early = _known_fit_or_none(system, early, noise_model)
+        # from the fit to every time (its initial states and parameters), or where that one started
+        known_early = _known_fit_or_none(system, early, noise_model, known.initial_states, known.theta)
+        if known_early is None:
+            known_early = _known_fit_or_none(system, early, noise_model)
     if known_early is None:  # the known model cannot be fitted on the earlier times: the correction, as before
         return _corrected(trajectories, system, fit, progress=progress, known=known, **options)
     passed, ratio = forecast_check(system, known_early, trajectories, keep, noise_model)
@@ -147,16 +150,16 @@ def _gains(known: torch.Tensor, rival: torch.Tensor) -> list[float]:
     return out
 
 
-def _known_fit_or_none(system: MisspecifiedSystem, trajectories: Trajectories, noise, start=None):
-    """The known model's fit (:func:`~torchmisspec._known_fit.fit_known_model`) from ``start`` (default
-    :func:`initial_guess`), the initial states the first rows do not give free; ``None`` when G cannot be integrated
-    from there."""
+def _known_fit_or_none(system: MisspecifiedSystem, trajectories: Trajectories, noise, start=None, theta=None):
+    """The known model's fit (:func:`~torchmisspec._known_fit.fit_known_model`) from the initial states ``start``
+    (default :func:`initial_guess`) and the parameters ``theta`` (default their prior mean), the initial states the
+    first rows do not give free; ``None`` when G cannot be integrated from there."""
     given = torch.isfinite(trajectories.initial_conditions)
     if trajectories.readout is not None:
         given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
     start = initial_guess(trajectories, system) if start is None else start
     try:
-        return fit_known_model(system, trajectories.with_initial_states(start), ~given, noise)
+        return fit_known_model(system, trajectories.with_initial_states(start), ~given, noise, theta_start=theta)
     except FittingError:
         return None
 

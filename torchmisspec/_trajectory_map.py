@@ -23,6 +23,7 @@ from ._errors import (
     warn,
 )
 from ._fit_fallbacks import _batched, _dropped, _shrink_until_integrable, _spanning_inputs
+from ._ode import EVALS_PER_STEP, trial_budget
 from ._optim import OptimResult, maximise
 from ._term_price import forward_selection, term_price
 from ._validation import progress_bar
@@ -200,26 +201,15 @@ def _fit_relevance(
         return field
 
     def make_fields(bs, vs=None):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
-        # vs: (k,) one theta for every copy (one call of G; default the current v), or (m, k) copy c's theta
+        # vs: (k,) one theta for every copy (one call of G; default the current v), or (m, k) copy c's theta (one
+        # call of G per distinct theta, over the rows of the copies that share it)
         vs = v if vs is None else vs
-        shared = known_at(vs) if vs is None or vs.dim() == 1 else None
-        copies = None if shared is not None else [known_at(vv) for vv in vs]
+        known = known_at(vs).known_rhs if vs is None or vs.dim() == 1 else system.copies_rhs(m_theta + s_theta * vs)
 
         def field(y, t=None, u=None):
             f = base.features(system.select_inputs(y, u)).reshape(bs.shape[0], -1, p)  # (m, K, p)
             mixed = torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
-            if copies is None:
-                return shared.known_rhs(y, t, u) + system.embed(mixed)
-            rows = y.shape[0] // len(copies)
-            known = [
-                c.known_rhs(
-                    y[i * rows : (i + 1) * rows],
-                    t[i * rows : (i + 1) * rows] if isinstance(t, torch.Tensor) and t.dim() > 0 else t,
-                    None if u is None else u[i * rows : (i + 1) * rows],
-                )
-                for i, c in enumerate(copies)
-            ]
-            return torch.cat(known) + system.embed(mixed)
+            return known(y, t, u) + system.embed(mixed)
 
         return field
 
@@ -272,13 +262,15 @@ def _fit_relevance(
         # Laplace: Gauss-Newton Hessian of the scaled misfit in (coefficients, initial-state offsets)
         off = None if offsets is None else offsets.detach()
         with torch.no_grad():
-            J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
-            q = J_b.shape[1]
-            if k:  # G's parameters: columns and prior N(0, 1) in units of their prior sd
-                J_b = torch.cat([J_b, _parameter_columns(residuals, make_fields, beta, v, off, sd)], dim=1)
+            q = int(active.sum())
+            if off is not None:  # single shooting: the coefficients', G's parameters' and offsets' columns at once
+                J_b = _joint_columns(residuals, make_fields, beta, active, v if k else None, off, sd)
+                J_b, Jo = J_b[:, : q + k], J_b[:, q + k :]
+            else:  # multiple shooting (no parameters, no offsets)
+                J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
+            # G's parameters' prior N(0, 1) in units of their prior sd
             H = J_b.T @ J_b + torch.diag(torch.cat([1.0 / W[active], torch.ones(k, **kd)]))
             if off is not None:  # the offsets' block: column j moves component j of every initial state
-                Jo = _offset_columns(residuals, make_field(beta), off, sd)  # (n d, K d)
                 Kx, dd = off.shape
                 Hbo = J_b.T @ Jo
                 Hoo = Jo.T @ Jo + torch.eye(Kx * dd, **kd)  # the offsets' prior N(0, 1) in units of sd
@@ -364,9 +356,12 @@ def _relevance_record(residuals, make_field, make_fields, beta, W, offsets, sd, 
         if not propose or not (gp.per_output or W.shape[1] == 1):
             return record
         try:
-            J = _coefficient_columns(residuals, make_field, beta, torch.ones_like(W, dtype=torch.bool), off, sd,
-                                     make_fields)  # fmt: skip
-            J_f = None if off is None else _offset_columns(residuals, make_field(beta), off, sd)
+            every = torch.ones_like(W, dtype=torch.bool)
+            if off is None:
+                J, J_f = _coefficient_columns(residuals, make_field, beta, every, off, sd, make_fields), None
+            else:
+                J = _joint_columns(residuals, make_fields, beta, every, None, off, sd)
+                J, J_f = J[:, : every.numel()], J[:, every.numel() :]
             f = None if off is None else off.reshape(-1)
             price = term_price(gp, n_obs)
             record["proposal"] = forward_selection(J, r, beta.reshape(-1), price, J_f, f).reshape(W.shape)
@@ -428,9 +423,9 @@ def _levenberg_marquardt(
 
     failed = []
 
-    def objective(uv, vv, ov):  # a solve that fails is an infinite misfit: a rejected step
+    def objective(uv, vv, ov, max_steps=None):  # a solve that fails is an infinite misfit: a rejected step
         try:
-            r = residuals(fields(vv)[0](coefficients(uv)), ov, sd) / sd
+            r = residuals(fields(vv)[0](coefficients(uv)), ov, sd, max_steps) / sd
         except IntegrationError as exc:
             failed[:] = [exc]
             return math.inf, None
@@ -449,14 +444,13 @@ def _levenberg_marquardt(
             )
             value, r = objective(uv, vv, ov)
         lam, evaluations, iterations = 1e-3, 1, 0
+        steps = residuals.last / EVALS_PER_STEP  # the current point's solve: the trial steps' budget
         while iterations < max_iter:
             iterations += 1
             b = coefficients(uv)
             field, fields_ = fields(vv)
-            J_u = _coefficient_columns(residuals, field, b, active, ov, sd, fields_) * root  # (n d, q)
-            J_o = _offset_columns(residuals, field(b), ov, sd)  # (n d, K d)
-            parts = [J_u] if theta is None else [J_u, _parameter_columns(residuals, theta[2], b, vv, ov, sd)]
-            J = torch.cat([*parts, J_o], dim=1)
+            J = _joint_columns(residuals, make_fields, b, active, vv, ov, sd)
+            J[:, :q] *= root
             prior = torch.cat([uv] + ([] if vv is None else [vv]) + [torch.zeros(K * d, **kd)])
             grad = J.T @ r + prior
             H = J.T @ J
@@ -471,7 +465,7 @@ def _levenberg_marquardt(
                     continue
                 new_u, new_o = uv + step[:q], ov + step[q + k :].reshape(K, d)
                 new_v = None if vv is None else vv + step[q : q + k]
-                new_value, new_r = objective(new_u, new_v, new_o)
+                new_value, new_r = objective(new_u, new_v, new_o, trial_budget(steps))
                 evaluations += 1
                 if new_value < value:
                     accepted = True
@@ -481,7 +475,7 @@ def _levenberg_marquardt(
                 break
             gain = value - new_value
             uv, vv, ov, value, r = new_u, new_v, new_o, new_value, new_r
-            lam = max(lam / 10.0, 1e-9)
+            lam, steps = max(lam * 0.3, 1e-9), residuals.last / EVALS_PER_STEP
             if gain <= 1e-8 * max(value, 1.0):
                 break
         u.data.copy_(uv)
@@ -489,6 +483,57 @@ def _levenberg_marquardt(
         if theta is not None:
             theta[0].copy_(vv)
     return iterations, evaluations
+
+
+def _joint_columns(residuals, make_fields, beta, active, v, off, sd) -> torch.Tensor:
+    """``(n e, q + k + K d)``: d (residual / s) by central differences with respect to the active coefficients
+    (:func:`_coefficient_columns`), G's parameters ``v (k,)`` where learned (:func:`_parameter_columns`; ``None``:
+    k = 0) and the initial-state offsets (:func:`_offset_columns`), all 2 (q + k + d) perturbed models in one batched
+    solve (``make_fields(bs, vs)``, ``vs`` ``(m, k)`` one theta per copy, or ``None``): one solve per Jacobian
+    instead of three (the per-step cost of a solve of a few states barely grows with its copies). A coefficient's or
+    parameter's perturbation that cannot be integrated gives a column of zeros (dropped), an offset's zeros where
+    its experiments' residuals are not finite."""
+    typical = float(beta.abs().max()) * 1e-3
+    pairs = active.nonzero(as_tuple=False).tolist()
+    q, k, (K, d) = len(pairs), 0 if v is None else v.numel(), off.shape
+    m = 2 * (q + k + d)
+    hq = torch.tensor([_step(float(beta[i, o]), typical) for i, o in pairs], dtype=beta.dtype, device=beta.device)
+    h = 1e-5  # the parameters' (in prior sds) and the offsets' (in state noise) step
+    bs = beta.unsqueeze(0).repeat(m, 1, 1)
+    rows = torch.arange(q, device=beta.device)
+    idx_i = torch.tensor([i for i, _ in pairs], dtype=torch.long, device=beta.device)
+    idx_o = torch.tensor([o for _, o in pairs], dtype=torch.long, device=beta.device)
+    bs[rows, idx_i, idx_o] += hq
+    bs[q + rows, idx_i, idx_o] -= hq
+    vs = None if v is None else v.unsqueeze(0).repeat(m, 1)
+    if k:
+        j = torch.arange(k, device=v.device)
+        vs[2 * q + j, j] += h
+        vs[2 * q + k + j, j] -= h
+    offs = off.unsqueeze(0).repeat(m, 1, 1)
+    j, at = torch.arange(d, device=off.device), 2 * (q + k)
+    offs[at + j, :, j] += h
+    offs[at + d + j, :, j] -= h
+
+    def run(lo, hi):
+        return residuals.many(make_fields(bs[lo:hi], None if vs is None else vs[lo:hi]), hi - lo, offs[lo:hi], sd)
+
+    res = _batched(run, m)  # (m, n, e)
+    steps = torch.cat([hq, torch.full((k + d,), h, dtype=beta.dtype, device=beta.device)])
+    plus = torch.cat([res[:q], res[2 * q : 2 * q + k], res[at : at + d]])
+    minus = torch.cat([res[q : 2 * q], res[2 * q + k : at], res[at + d :]])
+    delta = (plus - minus) / (2 * steps.reshape(-1, 1, 1)) / sd  # (q + k + d, n, e)
+    zero = torch.zeros((), dtype=delta.dtype, device=delta.device)
+    whole = torch.isfinite(delta[: q + k]).all(-1).all(-1)[:, None, None]  # a failed model: its column dropped
+    delta = torch.cat(
+        [torch.where(whole, delta[: q + k], zero), torch.where(delta[q + k :].isfinite(), delta[q + k :], zero)]
+    )
+    n, e = delta.shape[1], delta.shape[2]
+    J_o = torch.zeros((n, e, K, d), dtype=delta.dtype, device=delta.device)
+    experiment = residuals.experiment
+    for jj in range(d):  # moving component jj of every initial state at once: each experiment's own column
+        J_o[torch.arange(n, device=off.device), :, experiment, jj] = delta[q + k + jj]
+    return torch.cat([delta[: q + k].reshape(q + k, -1).T, J_o.reshape(n * e, K * d)], dim=1)
 
 
 def _parameter_columns(residuals, make_fields, beta, v, off, sd) -> torch.Tensor:

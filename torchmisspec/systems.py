@@ -353,6 +353,30 @@ class MisspecifiedSystem:
         fixed.theta, fixed.parameters, fixed._vectorised = theta, None, dict(self._vectorised)
         return fixed
 
+    def copies_rhs(self, thetas: torch.Tensor):
+        """``rhs(y, t, u)``: G for a batch of ``V`` copies of this system, copy c's rows (the c-th of ``V`` equal
+        blocks of ``y``'s rows) at ``thetas[c]`` ``(V, k)``; one call of G per distinct theta, over the rows of the
+        copies that share it (the perturbed copies of a fit's Jacobian: the state offsets' and the coefficients'
+        copies share the current theta)."""
+        unique, inverse = torch.unique(thetas.detach(), dim=0, return_inverse=True)
+        groups = [(self.at(unique[g]), (inverse == g).nonzero().flatten()) for g in range(unique.shape[0])]
+        V, cache = thetas.shape[0], {}
+
+        def rhs(y, t=None, u=None):
+            rows = y.shape[0] // V
+            if len(groups) == 1:
+                return groups[0][0].known_rhs(y, t, u)
+            if rows not in cache:  # each group's rows, once per batch size
+                block = torch.arange(rows, device=y.device)
+                cache[rows] = [(c.unsqueeze(-1).to(y.device) * rows + block).reshape(-1) for _, c in groups]
+            out = torch.empty_like(y)
+            for (at, _), idx in zip(groups, cache[rows], strict=True):
+                tt = t[idx] if isinstance(t, torch.Tensor) and t.dim() > 0 else t
+                out[idx] = at.known_rhs(y[idx], tt, None if u is None else u[idx])
+            return out
+
+        return rhs
+
     def _time_and_controls(self, y: torch.Tensor, t, u):
         if self.time_dependent and t is None:
             raise InputError(f"system '{self.name}': G depends on time; expected the times t with the states, got None")

@@ -20,7 +20,7 @@ from ._errors import (
     ShapeError,
 )
 from ._gp_in_time import estimate_observed_noise, observed_rms
-from ._ode import FITTING_TOLERANCES, solve
+from ._ode import DEFAULT_MAX_STEPS, FITTING_TOLERANCES, solve
 from ._term_price import bic, term_price
 from ._threads import adaptive_threads
 from ._trajectory_map import _balanced_noise, _fit_relevance, _maximise_posterior
@@ -303,11 +303,12 @@ def _sparser(refined, gp, system, trajectories, residuals, n_obs, offsets, optio
 
 
 def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: MisspecifiedSystem):
-    """``residuals(field, off, sd)``: the errors (prediction - observation) ``(n, d + m)`` of a right-hand side
-    ``field`` in the states and any readings (:meth:`Trajectories.observe`; single shooting: from the observed first
-    states moved by ``off * sd[:d]``, its rows experiment after experiment, ``residuals.experiment (n,)`` naming each
-    row's experiment); the number of observations compared; the initial-state offsets to optimise (single shooting)
-    or ``None``."""
+    """``residuals(field, off, sd, max_steps=None)``: the errors (prediction - observation) ``(n, d + m)`` of a
+    right-hand side ``field`` in the states and any readings (:meth:`Trajectories.observe`; single shooting: from the
+    observed first states moved by ``off * sd[:d]``, its rows experiment after experiment, ``residuals.experiment
+    (n,)`` naming each row's experiment; ``max_steps`` lowers the solve's step limit, ``residuals.last`` is the last
+    solve's right-hand-side evaluations); the number of observations compared; the initial-state offsets to optimise
+    (single shooting) or ``None``."""
     d = trajectories.state_dim
     observe = trajectories.observe
     if shooting == "multiple":
@@ -317,13 +318,13 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
         seen = torch.isfinite(ends)
         zero = torch.zeros((), dtype=ends.dtype, device=ends.device)
 
-        def residuals(field, off, sd):  # noqa: ARG001 - the same signature as single shooting's
-            pred, nfe = _solve_rhs(system, field, starts, times, controls, **solver)
-            residuals.nfe += nfe
+        def residuals(field, off, sd, max_steps=None):  # noqa: ARG001 - the same signature as single shooting's
+            pred, nfe = _solve_rhs(system, field, starts, times, controls, **_limited(solver, max_steps))
+            residuals.nfe, residuals.last = residuals.nfe + nfe, nfe
             return torch.where(seen, observe(pred[:, -1]) - ends, zero)  # missing entries: 0
 
         residuals.experiment = None
-        residuals.nfe = 0
+        residuals.nfe = residuals.last = 0
         residuals.seen = seen
         return residuals, int(seen.sum()), None
     # every experiment in one batched solve, ragged ones too: each row on its own times (padded at its end by
@@ -339,13 +340,13 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
     zero = torch.zeros((), dtype=first.dtype, device=first.device)
     seen = torch.isfinite(states)  # missing entries (NaN) are compared as 0
 
-    def residuals(field, off, sd):
+    def residuals(field, off, sd, max_steps=None):
         y0 = first if off is None else first + off * sd[:d]
-        pred, nfe = _solve_rhs(system, field, y0, times, controls, **solver)
-        residuals.nfe += nfe
+        pred, nfe = _solve_rhs(system, field, y0, times, controls, **_limited(solver, max_steps))
+        residuals.nfe, residuals.last = residuals.nfe + nfe, nfe
         return torch.where(seen, observe(pred) - states, zero)[mask]  # (n, d + m), experiment after experiment
 
-    residuals.nfe = 0  # right-hand-side evaluations of every solve (batched: one per step stage)
+    residuals.nfe = residuals.last = 0  # right-hand-side evaluations of every solve, and of the last one
     residuals.experiment = torch.arange(states.shape[0], device=first.device).unsqueeze(-1).expand_as(mask)[mask]
 
     def many(field, copies: int, off, sd):
@@ -362,6 +363,14 @@ def _shooting(trajectories: Trajectories, shooting: str, solver: dict, system: M
     residuals.many = many
     residuals.seen = seen[mask]
     return residuals, int(residuals.seen.sum()), offsets
+
+
+def _limited(solver: dict, max_steps: int | None) -> dict:
+    """``solver`` with its step limit lowered to ``max_steps`` (where given: a trial step's budget)."""
+    if max_steps is None:
+        return solver
+    cap = solver.get("max_steps") or DEFAULT_MAX_STEPS
+    return {**solver, "max_steps": min(cap, max_steps)}
 
 
 def _check_starts(first: torch.Tensor, why: str = "", fix: str | None = None) -> None:
