@@ -159,3 +159,17 @@ def test_a_held_out_prediction_that_blows_up_is_stopped_at_the_box_and_scores_in
     left = int(torch.isinf(r[1, :, 0]).nonzero()[0])
     assert 1 <= left <= 4  # beyond the box (hi = 1 + 10 widths) before t = 1, where the true path blows up
     assert HELD_OUT_WIDTHS == 10.0
+
+
+def test_a_component_given_only_at_the_start_does_not_bound_the_prediction():
+    """R of an SIR-like chain is 0 at the start and never measured after: its growth is not a blow-up (the box of
+    a component measured only in the first row is unbounded), and the measured component's residuals stay 0."""
+    times = torch.linspace(0.0, 3.0, 7, dtype=DT)
+    system = tms.MisspecifiedSystem(lambda y: torch.stack([-y[..., 0], y[..., 0]], dim=-1), 2)
+    truth = tms.simulate(system, torch.tensor([[100.0, 0.0]], dtype=DT), times).states
+    states = truth.clone()
+    states[:, 1:, 1] = math.nan
+    r = predicted_residuals(
+        system, tms.Trajectories(times, states), lambda y, rows, t=None, u=None: system.known_rhs(y)
+    )
+    assert float(r[0, :, 0].abs().max()) < 1e-2  # the solver tolerance on values of 100

@@ -164,7 +164,9 @@ def predicted_residuals(system: MisspecifiedSystem, trajectories: Trajectories, 
     ``field(y, rows, t, u)``: the right-hand side for states ``y (B, d)`` of the experiments ``rows`` (each
     experiment may have its own model: the folds of the cross-validation), at times ``t`` and controls ``u`` (``None``
     for an autonomous system); ``None``: the known model G alone. One batched solve of every experiment (ragged ones
-    on their own times, padded at their end), each under its own controls."""
+    on their own times, padded at their end), each under its own controls; with ``field``, a path that leaves the box
+    of the measured states widened :data:`HELD_OUT_WIDTHS` times is stopped there, its residuals infinite from
+    then on."""
     rtol, atol = FITTING_TOLERANCES
     times, states, mask = trajectories.padded()
     first = trajectories.initial_conditions  # missing first entries estimated (Trajectories.filled)
@@ -180,7 +182,7 @@ def predicted_residuals(system: MisspecifiedSystem, trajectories: Trajectories, 
     else:
         rows = torch.arange(states.shape[0], device=states.device)
         model, timed, jumps = system.solver_field(lambda y, t, u: field(y, rows, t, u), controls)
-        box = widened_box(torch.cat([first, states.reshape(-1, first.shape[-1])]), HELD_OUT_WIDTHS)
+        box = widened_box(_measured_points(states, mask), HELD_OUT_WIDTHS)
         pred, _ = solve(
             model,
             first,
@@ -198,6 +200,15 @@ def predicted_residuals(system: MisspecifiedSystem, trajectories: Trajectories, 
         pred = torch.where(left, torch.full_like(pred, math.inf), pred)
     r = _residuals(noise, states, pred)
     return torch.where(mask.unsqueeze(-1), r, torch.full_like(r, math.nan))  # missing entries: not compared
+
+
+def _measured_points(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``(K T, d)``: the padded ``states (K, T, d)`` where measured (``mask (K, T)`` their rows), NaN elsewhere and
+    in every component no experiment measures after its first row (a state given only at the start, or estimated
+    there, says nothing about how far its path may go: its box is unbounded)."""
+    later = torch.isfinite(states[:, 1:]) & mask[:, 1:].unsqueeze(-1)
+    kept = mask.unsqueeze(-1) & later.any(1).any(0)
+    return torch.where(kept, states, torch.full_like(states, math.nan)).reshape(-1, states.shape[-1])
 
 
 def _residuals(noise, observed: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
