@@ -10,14 +10,19 @@ are alike:
 * :class:`Relative` - ``log observed - log predicted``: log-normal errors of positive states (a 10 % error is the
   same anywhere);
 * :class:`Counts` - ``log(1 + observed) - log(1 + predicted)``: counts, whose errors grow with their size and which
-  may be 0 (the log of one plus the count stabilises a Poisson or negative-binomial variance).
+  may be 0 (the log of one plus the count stabilises a negative-binomial variance, up to proportional to the
+  square of the count: animals trapped, cases of a large outbreak);
+* :class:`Poisson` - ``2 sqrt(observed + 3/8) - 2 sqrt(predicted + 3/8)``: counts of independent events (variance
+  proportional to the count: cells counted in a chamber, decays, colonies), their dispersion fitted, and the bands of
+  new measurements drawn as counts (Poisson or negative binomial).
 
 :func:`fit_correction <torchmisspec.fit_correction>` compares the held-out predictions of its candidates (and of the
 known model alone) and fits G's uncertain parameters through the ODE with these residuals. ``noise="auto"`` (the
-default) picks :class:`Relative` when every measured value after each experiment's first row (where every prediction
-starts, so it is never compared) is positive and some component spans a factor of at least :data:`RELATIVE_SPAN`
-(growth, decay, epidemics, concentrations after a dose given at a concentration of 0), :class:`Additive` otherwise,
-and says which in a one-line message.
+default) picks :class:`Counts` when the measured values are whole numbers, 0 or more, with a 0 after each
+experiment's first row (where every prediction starts, so it is never compared); :class:`Relative` when every measured
+value after the first rows is positive and some component spans a factor of at least :data:`RELATIVE_SPAN` (growth,
+decay, epidemics, concentrations after a dose given at a concentration of 0); :class:`Additive` otherwise; and says
+which in a one-line message.
 """
 
 from __future__ import annotations
@@ -27,7 +32,17 @@ import torch
 from ._errors import InputError, TorchMisspecWarning, warn
 from .data import Trajectories
 
-__all__ = ["RELATIVE_SPAN", "Additive", "Counts", "NoiseModel", "Relative", "as_noise_model", "NOISE_MODELS"]
+__all__ = [
+    "RELATIVE_SPAN",
+    "Additive",
+    "CountNoise",
+    "Counts",
+    "NoiseModel",
+    "Poisson",
+    "Relative",
+    "as_noise_model",
+    "NOISE_MODELS",
+]
 
 #: ``noise="auto"`` chooses :class:`Relative` when every measured value after the first rows is positive and a
 #: component's largest measurement is at least this many times its smallest.
@@ -112,40 +127,82 @@ class Relative(NoiseModel):
             )
 
 
-class Counts(NoiseModel):
-    """Counts (0 allowed): ``log(1 + observed) - log(1 + predicted)``; ``unit`` (``(d,)`` or a number, default 1) is
-    one count in the states' units (a fit in the data's units divides the states by a power of ten)."""
-
-    name = "counts"
+class CountNoise(NoiseModel):
+    """A noise model of counts (0 allowed; subclass it: a ``name``, :meth:`transform` and :meth:`inverse`);
+    ``unit`` (``(d,)`` or a number, default 1) is one count in the states' units (a fit in the data's units divides
+    the states by a power of ten)."""
 
     def __init__(self, unit=1.0) -> None:
         self.unit = unit
 
-    def transform(self, y):
-        unit = torch.as_tensor(self.unit, dtype=y.dtype, device=y.device)
-        return torch.log1p(y.clamp_min(0.0) * unit)
-
-    def inverse(self, z):
-        unit = torch.as_tensor(self.unit, dtype=z.dtype, device=z.device)
-        return torch.expm1(z).clamp_min(0.0) / unit
+    def _unit(self, like: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(self.unit, dtype=like.dtype, device=like.device)
 
     def in_units(self, scale):
-        return Counts(torch.as_tensor(self.unit, dtype=scale.dtype) * scale)
+        return type(self)(torch.as_tensor(self.unit, dtype=scale.dtype) * scale)
 
     def __repr__(self) -> str:
-        return "Counts()" if isinstance(self.unit, float) and self.unit == 1.0 else f"Counts(unit={self.unit})"
+        name = type(self).__name__
+        return f"{name}()" if isinstance(self.unit, float) and self.unit == 1.0 else f"{name}(unit={self.unit})"
 
     def check(self, observed, what):
         seen = observed[~torch.isnan(observed)]
         if bool((seen < 0).any()):
             raise InputError(
-                f"noise: expected counts (0 or more) for noise='counts', got {int((seen < 0).sum())} negative value(s) "
-                f"in {what} (smallest {float(seen.min()):.3g}); use noise='additive'"
+                f"noise: expected counts (0 or more) for noise='{self.name}', got {int((seen < 0).sum())} negative "
+                f"value(s) in {what} (smallest {float(seen.min()):.3g}); use noise='additive'"
             )
 
 
+class Counts(CountNoise):
+    """Counts whose spread grows with their size (negative-binomial-like, a variance up to proportional to the
+    square of the count): ``log(1 + observed) - log(1 + predicted)``."""
+
+    name = "counts"
+
+    def transform(self, y):
+        return torch.log1p(y.clamp_min(0.0) * self._unit(y))
+
+    def inverse(self, z):
+        return torch.expm1(z).clamp_min(0.0) / self._unit(z)
+
+
+class Poisson(CountNoise):
+    """Counts of independent events, Poisson with a dispersion (quasi-Poisson: variance ``phi`` times the mean):
+    ``2 sqrt(observed + 3/8) - 2 sqrt(predicted + 3/8)`` (Anscombe's transform: unit variance for Poisson counts,
+    so a fit's residual scale per component, ``noise_scale_``, is ``sqrt(phi)``: about 1 for Poisson counts, above
+    for overdispersed ones). :meth:`measure` draws counts: Poisson where ``phi <= 1``, negative binomial of mean
+    ``mu`` and variance ``phi mu`` (a gamma-Poisson mixture) above."""
+
+    name = "poisson"
+
+    def transform(self, y):
+        return 2.0 * torch.sqrt(y.clamp_min(0.0) * self._unit(y) + 0.375)
+
+    def inverse(self, z):
+        return ((z / 2.0).pow(2) - 0.375).clamp_min(0.0) / self._unit(z)
+
+    def measure(self, y, scale, generator=None):
+        """New counts at the states ``y (..., d)`` (their means), in the states' units: ``phi = scale^2`` per
+        component; NaN where ``y`` is NaN (a draw that left its region)."""
+        mu = (y.clamp_min(0.0) * self._unit(y)).nan_to_num(0.0)
+        phi = scale.to(y).pow(2).nan_to_num(1.0).expand_as(mu)
+        extra = (phi - 1.0).clamp_min(0.0)
+        over = extra > 0
+        rate = mu
+        if bool(over.any()):  # gamma-Poisson: rate ~ Gamma(mu / (phi - 1), scale phi - 1): mean mu, var mu (phi - 1)
+            shape = torch.where(over & (mu > 0), mu / extra.clamp_min(1e-300), torch.ones_like(mu))
+            seed = int(torch.randint(2**62, (1,), generator=generator))  # the gamma sampler takes no generator
+            with torch.random.fork_rng(devices=[] if y.device.type == "cpu" else [y.device]):
+                torch.manual_seed(seed)
+                gamma = torch.distributions.Gamma(shape, torch.ones_like(shape)).sample()
+            rate = torch.where(over & (mu > 0), gamma * extra, mu)
+        counts = torch.poisson(rate, generator=generator)
+        return torch.where(torch.isnan(y), y, counts / self._unit(y))
+
+
 #: the models ``noise=`` names
-NOISE_MODELS = {m.name: m for m in (Additive, Relative, Counts)}
+NOISE_MODELS = {m.name: m for m in (Additive, Relative, Counts, Poisson)}
 
 
 def _measured(trajectories: Trajectories) -> torch.Tensor:
@@ -164,7 +221,11 @@ def _measured(trajectories: Trajectories) -> torch.Tensor:
 def _auto(trajectories: Trajectories) -> NoiseModel:
     flat = _measured(trajectories)
     seen = ~torch.isnan(flat)
-    if not bool(seen.any()) or bool((flat[seen] <= 0).any()):
+    values = flat[seen]
+    if bool(values.numel()) and bool((values >= 0).all()) and bool((values == values.round()).all()):
+        if bool((values == 0).any()):  # whole numbers with zeros: counts (logs cannot hold the zeros)
+            return Counts()
+    if not bool(seen.any()) or bool((values <= 0).any()):
         return Additive()
     for j in range(flat.shape[1]):
         col = flat[seen[:, j], j]
@@ -182,7 +243,15 @@ def as_noise_model(noise, trajectories: Trajectories, *, announce: str | None = 
         return noise
     if isinstance(noise, str) and noise == "auto":
         model = _auto(trajectories)
-        if announce and not isinstance(model, Additive):
+        if announce and isinstance(model, Counts):
+            warn(
+                f"{announce}: noise 'counts' (the measured values are whole numbers, 0 or more, with zeros: their "
+                "errors are taken to grow with the count, compared as log(1 + count)); pass noise='poisson' for "
+                "counts of independent events (variance proportional to the count), or noise='additive' for errors of "
+                "one size",
+                TorchMisspecWarning,
+            )
+        elif announce and not isinstance(model, Additive):
             warn(
                 f"{announce}: noise '{model.name}' (every measured value after the first row is positive and spans a "
                 f"factor of at least {RELATIVE_SPAN:g}: its errors are taken as proportional to its size, compared as "

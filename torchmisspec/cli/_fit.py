@@ -7,6 +7,7 @@ import math
 
 from .._errors import InputError
 from .._time_pieces import MIN_PIECE
+from ..noise import NOISE_MODELS
 from ._common import (
     add_data_options,
     add_system_option,
@@ -213,10 +214,12 @@ def add_fit(sub) -> None:
     fit.add_argument(
         "--noise",
         default="auto",
-        choices=["auto", "additive", "relative", "counts"],
-        help="how the states' errors are alike, for the model choice and the parameters' fit: additive (one size), "
-        "relative (log-normal, positive states), counts; auto (default): relative when every measured state is "
-        "positive and spans a factor of 5 or more, additive otherwise",
+        choices=["auto", *NOISE_MODELS],
+        help="how the states' errors are alike, for the model choice, the parameters' fit and the bands: additive "
+        "(one size), relative (log-normal, positive states), counts (log(1 + count): spread growing with the count), "
+        "poisson (counts of independent events, their dispersion fitted); auto (default): relative when every "
+        "measured state is positive and spans a factor of 5 or more, counts for whole numbers with zeros, additive "
+        "otherwise",
     )
     fit.add_argument("--refine", action="store_true", help="always refine the correction through the ODE")
     fit.add_argument("--no-calibrate", action="store_true", help="save the model without calibrating its bands")

@@ -17,7 +17,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_path, check_real, check_writable, unreadable, writing
-from ..noise import NOISE_MODELS, Counts
+from ..noise import NOISE_MODELS, CountNoise
 from ..parameters import ParameterPosterior
 from ._calibration import BandCalibration
 from ._exact import IndependentOutputsGP
@@ -153,7 +153,7 @@ def _fit_record(gp) -> dict | None:
     if noise is None or NOISE_MODELS.get(noise.name) is not type(noise):
         return None
     unit = None
-    if isinstance(noise, Counts):
+    if isinstance(noise, CountNoise):
         unit = torch.as_tensor(noise.unit, dtype=torch.float64).detach().cpu().reshape(-1)
     scale = getattr(gp, "noise_scale_", None)
     return {
@@ -175,12 +175,13 @@ def _restore_fit_record(gp, record, path) -> None:
     if not isinstance(record, dict) or record.get("noise") not in NOISE_MODELS:
         raise bad(f"'noise' one of {sorted(NOISE_MODELS)}")
     unit, scale = record.get("noise_unit"), record.get("noise_scale")
-    if record["noise"] == "counts":
+    model = NOISE_MODELS[record["noise"]]
+    if issubclass(model, CountNoise):
         if not (isinstance(unit, torch.Tensor) and unit.numel() >= 1 and bool((unit > 0).all())):
-            raise bad("a positive 'noise_unit' for counts")
-        gp.noise_ = Counts(float(unit) if unit.numel() == 1 else unit.to(torch.float64))
+            raise bad(f"a positive 'noise_unit' for {record['noise']}")
+        gp.noise_ = model(float(unit) if unit.numel() == 1 else unit.to(torch.float64))
     else:
-        gp.noise_ = NOISE_MODELS[record["noise"]]()
+        gp.noise_ = model()
     if scale is not None and not (
         isinstance(scale, torch.Tensor) and scale.dim() == 1 and bool((torch.isnan(scale) | (scale >= 0)).all())
     ):
