@@ -245,8 +245,11 @@ def test_fit_command_takes_the_noise_model_and_refuses_one_the_data_cannot_have(
     assert len(err.splitlines()) == 1 and "expected positive measurements for relative" in err
     assert "--noise counts" in err and "--noise additive" in err and "noise=" not in err  # the CLI's own flags
     assert not out.exists()
-    assert main(_fit_args(observed_csv, out, "--noise", "poisson")) == 2
-    assert "invalid choice: 'poisson'" in capsys.readouterr().err
+    assert main(_fit_args(observed_csv, out, "--noise", "poisson")) == 2  # counts cannot be negative
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "expected counts (0 or more) for --noise poisson" in err
+    assert main(_fit_args(observed_csv, out, "--noise", "gaussian")) == 2
+    assert "invalid choice: 'gaussian'" in capsys.readouterr().err
 
 
 def test_fit_command_with_a_user_system(tmp_path, observed_csv, monkeypatch, capsys, request):

@@ -87,7 +87,7 @@ def test_known_per_sample_noise_stays_part_of_the_prior(problem, one_thread):
 def test_batched_jacobian_columns_equal_one_solve_per_column():
     """The Gauss-Newton Jacobian of the feature coefficients: every perturbed model in one batched solve (ragged
     experiments included) gives the columns of one solve per perturbation, to solver tolerance."""
-    from torchmisspec import _trajectory_map as tm
+    from torchmisspec import _jacobian as tm
     from torchmisspec import trajectory_fit as tf
     from torchmisspec.gp._features import FeatureKernel
 

@@ -177,7 +177,7 @@ def _warning_line(command: str, message, category, filename, lineno, file=None, 
 
 
 #: Python keywords in the library's advice and the command line's flags for them.
-_FLAGS = (("noise='additive'", "--noise additive"), ("noise='counts'", "--noise counts"))
+_FLAGS = tuple((f"noise='{name}'", f"--noise {name}") for name in ("additive", "relative", "counts", "poisson"))
 
 
 if __name__ == "__main__":
