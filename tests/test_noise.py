@@ -150,9 +150,10 @@ def test_the_band_of_new_measurements_refuses_what_it_cannot_use():
     assert bool((none.samples[..., 1] == 2.0).all()) and not bool((none.samples[..., 0] == 2.0).all())
 
 
-@pytest.mark.parametrize(
-    "noise", [Relative(), Counts(torch.tensor([1.0, 100.0], dtype=DT)), Additive(), Poisson(torch.tensor([1.0, 0.1], dtype=DT))]
-)
+COUNTED = (Counts(torch.tensor([1.0, 100.0], dtype=DT)), Poisson(torch.tensor([1.0, 0.1], dtype=DT)))
+
+
+@pytest.mark.parametrize("noise", [Relative(), Additive(), *COUNTED])
 def test_the_fit_records_travel_with_the_saved_model(tmp_path, noise):
     """noise_, noise_scale_, known_model_ and dispersion_ (the band of new measurements, and the do-no-harm flag)
     are saved and read back; a record the file cannot hold is refused naming the file."""

@@ -147,3 +147,32 @@ def test_auto_takes_whole_numbers_with_zeros_as_counts_and_says_so():
         assert as_noise_model("auto", data, announce="fit_correction") == Counts()
     fractional = tms.Trajectories(torch.arange(5, dtype=DT), (values + 0.5)[None, :, None])
     assert as_noise_model("auto", fractional).name == "relative"  # positive, spanning a factor of 5
+
+
+def test_a_component_without_noise_gets_none():
+    """Scale 0 (the bands give it to a component never measured) leaves the states as they are."""
+    y = torch.tensor([[12.3, 40.0]], dtype=DT).expand(1000, 2)
+    draws = Poisson().measure(y, torch.tensor([0.0, 1.0], dtype=DT), generator=torch.Generator().manual_seed(0))
+    assert bool((draws[:, 0] == 12.3).all()) and float(draws[:, 1].std()) > 3
+
+
+@pytest.mark.parametrize("noise", ["counts", "poisson"])
+def test_counts_of_a_partly_measured_outbreak_in_the_hundreds_are_fitted(noise):
+    """Influenza days 0-10 (S = 762 given on day 0 only, I measured): the count models fit it in the data's units
+    (a count's unit per component met the flattened residuals of the known model's fit and raised a shape error),
+    near the relative model's beta 1.58 and gamma 0.43; the known model's bands say nothing about F's support."""
+    from torchmisspec import datasets
+
+    t, y = datasets.load("influenza").trajectories.experiments()[0]
+    train = tms.Trajectories(t[:11], y[:11][None], state_names=["S", "I", "R"])
+    system = datasets.load("influenza").system
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(train, system, noise=noise, progress=False)
+    assert gp.noise_.name == noise and gp.known_model_
+    beta, gamma = gp.parameters_.mean.tolist()
+    assert beta == pytest.approx(1.58, abs=0.1) and gamma == pytest.approx(0.43, abs=0.05)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tms.CorrectedODE(system, gp).posterior(y[:1], t, num_samples=16, scale=1.0)
+    assert not [w for w in caught if "support" in str(w.message)]

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec import _known_fit, _ode
 from torchmisspec import _jacobian as tm
+from torchmisspec import _known_fit, _ode
 from torchmisspec import trajectory_fit as tf
 from torchmisspec.cross_validation import HELD_OUT_WIDTHS, predicted_residuals
 from torchmisspec.gp._features import FeatureKernel

@@ -134,7 +134,7 @@ def fit_known_model(
     values, seen = _observed(trajectories)
     d = y_start.shape[-1]
     seen[:, 0, :d] &= free  # a given first value is where the path starts, not a residual
-    target = noise.transform(values[seen])
+    target = noise.transform(values)[seen]  # elementwise per component (a count's unit is per component)
     comp = torch.arange(values.shape[-1], device=values.device).expand_as(values)[seen]
     exp = torch.arange(values.shape[0], device=values.device).view(-1, 1, 1).expand_as(values)[seen]
     cols = free.any(0).nonzero().flatten().tolist()  # state components with a free entry somewhere
@@ -154,7 +154,7 @@ def fit_known_model(
         return thetas, y0
 
     def residuals(z, max_steps=MAX_STEPS):  # (V, p) -> (V, n): prediction - observation in the noise model's space
-        pred = noise.transform(predict(*unpack(z), max_steps)[:, seen])  # (inf where not finite)
+        pred = noise.transform(predict(*unpack(z), max_steps))[:, seen]  # (inf where not finite)
         r = pred - target
         return torch.where(torch.isfinite(r), r, torch.full_like(r, math.inf))
 
@@ -391,10 +391,10 @@ def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, nois
         else:
             y0[1 + i, what[1], what[2]] += STEP * fit.units[i]
     try:
-        pred = noise.transform(_predictor(system, trajectories)(thetas, y0)[:, held])  # (1 + p, n_held)
+        pred = noise.transform(_predictor(system, trajectories)(thetas, y0))[:, held]  # (1 + p, n_held)
     except IntegrationError:
         return 0.0, math.inf
-    r = pred[0] - noise.transform(values[held])
+    r = pred[0] - noise.transform(values)[held]
     comp = torch.arange(values.shape[-1], device=values.device).expand_as(values)[held]
     dof = fit.num_residuals / max(fit.num_residuals - p, 1)
     variance = torch.nan_to_num(fit.scale.pow(2) * dof, nan=math.inf)[comp]

@@ -380,7 +380,7 @@ class CorrectedODE(nn.Module):
         times_out = times if times.dim() == 2 else times.expand(B, -1)
         support = self._support(mean_path.detach(), None if controls is None else controls.at(times_out.detach()))
         extrapolating = support.amax(dim=-1) > threshold
-        if bool(extrapolating.any()):
+        if bool(extrapolating.any()) and not getattr(self.gp, "known_model_", False):  # F = 0 has no support to leave
             n = int(extrapolating.sum())
             first = extrapolating.nonzero().flatten()[:10].tolist()
             warn(

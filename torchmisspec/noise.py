@@ -136,7 +136,11 @@ class CountNoise(NoiseModel):
         self.unit = unit
 
     def _unit(self, like: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(self.unit, dtype=like.dtype, device=like.device)
+        """The unit for ``like (..., e)``: per component, and 1 for columns beyond the states' (readings)."""
+        unit = torch.as_tensor(self.unit, dtype=like.dtype, device=like.device)
+        if unit.dim() == 1 and like.dim() and like.shape[-1] > unit.numel() > 1:
+            unit = torch.cat([unit, unit.new_ones(like.shape[-1] - unit.numel())])
+        return unit
 
     def in_units(self, scale):
         return type(self)(torch.as_tensor(self.unit, dtype=scale.dtype) * scale)
@@ -184,7 +188,8 @@ class Poisson(CountNoise):
 
     def measure(self, y, scale, generator=None):
         """New counts at the states ``y (..., d)`` (their means), in the states' units: ``phi = scale^2`` per
-        component; NaN where ``y`` is NaN (a draw that left its region)."""
+        component (a scale of 0: ``y`` itself, no noise, as for the other models); NaN where ``y`` is NaN (a draw
+        that left its region)."""
         mu = (y.clamp_min(0.0) * self._unit(y)).nan_to_num(0.0)
         phi = scale.to(y).pow(2).nan_to_num(1.0).expand_as(mu)
         extra = (phi - 1.0).clamp_min(0.0)
@@ -197,8 +202,9 @@ class Poisson(CountNoise):
                 torch.manual_seed(seed)
                 gamma = torch.distributions.Gamma(shape, torch.ones_like(shape)).sample()
             rate = torch.where(over & (mu > 0), gamma * extra, mu)
-        counts = torch.poisson(rate, generator=generator)
-        return torch.where(torch.isnan(y), y, counts / self._unit(y))
+        counts = torch.poisson(rate, generator=generator) / self._unit(y)
+        none = (scale.to(y) == 0).expand_as(y)  # a component with no noise (never measured: the bands' NaN -> 0)
+        return torch.where(torch.isnan(y) | none, y, counts)
 
 
 #: the models ``noise=`` names
