@@ -5,6 +5,7 @@ has, flagged."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -82,37 +83,49 @@ def test_bands_come_from_the_draws_that_remain(quadratic, one_thread):
     [message] = [m for m in messages if "left the region" in m]
     assert f"{n_left} of {S * B} sampled paths left the region" in message
     assert "initial condition" in message and "fraction_remaining" in message
-    # the band: the order statistics of the draws that remain at each time, at ranks (n + 1)(1 -/+ level) / 2 (a
-    # central 0.5 band needs 3 draws: at least that many remain everywhere; too few for a level: the next test)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", tms.TorchMisspecWarning)
+    # the band: the order statistics of all the draws at each time, at ranks (S + 1)(1 -/+ level) / 2, a draw that
+    # left counted at the edge it crossed (censored: the quadratic draws blow up upwards); as the draws that remain
+    # when the sides are not recorded (conditional on remaining, as before)
+    crossed = post.escaped[torch.isnan(post.samples)]
+    assert bool((crossed != 0).all())  # every draw that left crossed an edge in its one component
+    censored = torch.where(post.escaped > 0, hi, torch.where(post.escaped < 0, lo, post.samples))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         lower, upper = post.interval(0.5)
+        kept_lower, kept_upper = dataclasses.replace(post, escaped=None).interval(0.5)
     for b in range(B):
         for t in range(TIMES.numel()):
+            expected = torch.quantile(censored[:, b, t, 0], band_quantiles(0.5, S))
+            assert torch.allclose(torch.stack([lower[b, t, 0], upper[b, t, 0]]), expected)
             values = post.samples[:, b, t, 0]
             values = values[torch.isfinite(values)]
             expected = torch.quantile(values, band_quantiles(0.5, values.numel()))
-            assert torch.allclose(torch.stack([lower[b, t, 0], upper[b, t, 0]]), expected)
+            assert torch.allclose(torch.stack([kept_lower[b, t, 0], kept_upper[b, t, 0]]), expected)
+    assert bool((upper >= kept_upper).all())  # the draws that diverged upwards no longer pull the band down
+    edge = bool(((lower <= lo) | (upper >= hi)).any())
+    assert edge == any("reaches its edge" in str(w.message) for w in caught)
     assert bool(torch.isfinite(lower).all() & torch.isfinite(upper).all())
     assert bool(torch.isfinite(post.mean).all() & torch.isfinite(post.stddev).all())
     assert bool(torch.isfinite(post.quantile([0.1, 0.5, 0.9])).all())
 
 
-def test_too_few_remaining_draws_give_nan_for_those_entries_only_with_a_warning(quadratic, one_thread):
+def test_too_few_remaining_draws_reach_the_regions_edge_finite_with_a_warning(quadratic, one_thread):
+    """More than the band's tail of the draws left upwards: the band's upper end is the region's edge there (finite,
+    with a warning); without the sides recorded, those entries are NaN as before, with that warning."""
     G, ode = quadratic
     post, _ = _posterior(ode, num_samples=20)  # a 0.9 band needs 19 draws
     n = torch.isfinite(post.samples[..., 0]).sum(0)  # (B, T) draws remaining
     short = n < 19
     assert bool(short.any()) and not bool(short.all())
-    with pytest.warns(tms.TorchMisspecWarning, match=r"interval: at \d+ of 12 entries fewer than 19 draws") as rec:
+    with pytest.warns(tms.TorchMisspecWarning, match=r"interval: at \d+ of 12 entries so many draws left"):
         lower, upper = post.interval(0.9)
+    assert bool(torch.isfinite(lower).all() & torch.isfinite(upper).all())
+    assert bool((upper[..., 0][short] == post.region[1]).all())
+    blind = dataclasses.replace(post, escaped=None)
+    with pytest.warns(tms.TorchMisspecWarning, match=r"interval: at \d+ of 12 entries fewer than 19 draws") as rec:
+        lower, upper = blind.interval(0.9)
     assert any("NaN" in str(w.message) and "num_samples" in str(w.message) for w in rec)
     assert torch.equal(torch.isnan(lower[..., 0]), short) and torch.equal(torch.isnan(upper[..., 0]), short)
-    # a level the remaining draws allow everywhere: finite, no warning
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", tms.TorchMisspecWarning)
-        lower, upper = post.interval(0.5)
-    assert bool(torch.isfinite(lower).all() & torch.isfinite(upper).all())
 
 
 def test_all_draws_remaining_is_unchanged(one_thread):

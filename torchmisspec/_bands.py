@@ -86,14 +86,21 @@ class TrajectoryPosterior:
             to the last output time (1 where none left; computed from the NaN of ``samples`` when not given).
         region: ``(lo, hi)`` ``(d,)`` the region of the states the draws were stopped at (``None``: not bounded;
             kept as it is by :meth:`read`).
+        escaped: ``(S, B, T, d)`` int8, where a draw left the region: +1 / -1 for each component that was above /
+            below it where the draw crossed its edge, from there on (0 elsewhere; ``None``: not recorded, and after
+            :meth:`read`).
 
     Draws that leave the region: a draw that left it (its path diverges under that draw of F) or stalled in it is
     NaN in ``samples`` from its first output time outside it (or not reached). :attr:`mean`, :attr:`stddev`,
     :meth:`quantile` and :meth:`interval` come from the draws that remain at each entry: with n of the S draws left
     there, the band is that of n draws (its ranks ``(n + 1)(1 -/+ level) / 2``), and where n is too few for the
     level (``level > (n - 1) / (n + 1)``, fewer than S remaining) that entry of the band is NaN, with a warning
-    that says how many entries and why; with all S draws, the band is as always. The band is then conditional on
-    remaining in the region: :attr:`fraction_remaining` says how much of the posterior that is.
+    that says how many entries and why; with all S draws, the band is as always. :meth:`interval` counts a draw that
+    left the region across an edge in a component (:attr:`escaped`) as lying beyond that edge (censored there, not
+    dropped: dropping the draws that diverge upwards would pull the band's upper end down), so where more than
+    the band's tail of the draws left on one side, that end of the band is the region's edge, with a warning: the
+    band says how far it can tell, and stays finite. :attr:`fraction_remaining` says how much of the posterior
+    remained.
     """
 
     times: torch.Tensor
@@ -106,6 +113,7 @@ class TrajectoryPosterior:
     state_names: tuple[str, ...] | None = None
     fraction_remaining: torch.Tensor | None = None
     region: tuple[torch.Tensor, torch.Tensor] | None = None
+    escaped: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.fraction_remaining is None and isinstance(self.samples, torch.Tensor) and self.samples.dim() == 4:
@@ -159,7 +167,9 @@ class TrajectoryPosterior:
         if not bool(torch.isnan(self.samples).any()):
             lo_hi = path_quantiles(self.samples, band_quantiles(level, S, what="interval", **kw))
             return lo_hi[0], lo_hi[1]
-        return _remaining_band(self.samples, level)
+        if self.escaped is None or self.region is None or self.escaped.shape != self.samples.shape:
+            return _remaining_band(self.samples, level)
+        return _censored_band(self.samples, self.escaped, self.region, level)
 
     def covers(self, states, level: float = 0.9) -> torch.Tensor:
         """``(B, T, d)`` booleans: whether ``states (B, T, d)`` (e.g. the true trajectories) lie in the band."""
@@ -200,9 +210,35 @@ class TrajectoryPosterior:
         if readout.state_dim != d:
             raise ShapeError(f"readout: expected weights over the {d} states, got {readout.state_dim} columns")
         readout = readout.for_states(self.state_names, "the posterior's system")  # by name, when both name them
-        return dataclasses.replace(
-            self, samples=readout(self.samples), mean_path=readout(self.mean_path), state_names=readout.names
+        return dataclasses.replace(  # a reading of draws that left the region: dropped from its band, not censored
+            self,
+            samples=readout(self.samples),
+            mean_path=readout(self.mean_path),
+            state_names=readout.names,
+            escaped=None,
         )
+
+
+def _censored_band(samples: torch.Tensor, escaped: torch.Tensor, region, level: float):
+    """:meth:`TrajectoryPosterior.interval` with the draws that left the region across an edge in a component
+    (``escaped`` +1 / -1) counted at that edge (censored: beyond it, how far unknown), the others as
+    :func:`_remaining_band`: the band is finite, and where more than its tail of the draws left on one side, that
+    end is the region's edge (one warning says at how many entries)."""
+    lo, hi = (b.to(samples) for b in region)
+    gone = torch.isnan(samples)
+    values = torch.where(gone & (escaped > 0), hi, samples)
+    values = torch.where(gone & (escaped < 0), lo, values)
+    lower, upper = _remaining_band(values, level)
+    at_edge = (lower <= lo) | (upper >= hi)
+    if bool(at_edge.any()):
+        warn(
+            f"interval: at {int(at_edge.sum())} of {at_edge.numel()} entries so many draws left the region "
+            f"(posterior.region) on one side that the central {level:g} band reaches its edge there: the states may "
+            "lie anywhere beyond it (posterior.fraction_remaining says how many draws remained). Shorten the time "
+            "span, or collect data where the paths go",
+            TorchMisspecWarning,
+        )
+    return lower, upper
 
 
 def _remaining_band(samples: torch.Tensor, level: float) -> tuple[torch.Tensor, torch.Tensor]:

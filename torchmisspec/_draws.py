@@ -74,7 +74,9 @@ def solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: 
     there: a diverging draw never holds the batch's steps back to the step limit). Where the solve still fails (a
     path stalls inside the box), the rows the solver names keep what it computed up to the failure and the others
     are solved again together. Returns ``(paths (S B, T, d), NaN from the first output time outside the box or not
-    reached; right-hand-side evaluations of every solve, failed ones included; the rows that stalled)``."""
+    reached; right-hand-side evaluations of every solve, failed ones included; the rows that stalled; escaped
+    (S B, T, d) int8: from a path's first output outside the box on, +1 / -1 for each component that was above /
+    below the box there, 0 elsewhere)``."""
     n_rows, T = y0.shape[0], grid.shape[-1]
     timed = settings.get("timed", False)
     paths = y0.new_full((n_rows, T, y0.shape[-1]), math.nan)
@@ -119,5 +121,10 @@ def solve_draws(field, y0: torch.Tensor, grid: torch.Tensor, settings: dict, B: 
             keep[named] = False
             pending = rows[keep]
     lo, hi = (b.to(paths) for b in box)
-    outside = ((paths < lo) | (paths > hi)).any(-1).cumsum(-1) > 0  # (S B, T): from the first output outside
-    return paths.masked_fill(outside.unsqueeze(-1), math.nan), nfe, stopped
+    above, below = paths > hi, paths < lo
+    outside = (above | below).any(-1).cumsum(-1) > 0  # (S B, T): from the first output outside
+    first = outside.to(torch.int8).argmax(-1)  # the first output outside (0 where none: masked below)
+    rows = torch.arange(paths.shape[0], device=paths.device)
+    side = above[rows, first].to(torch.int8) - below[rows, first].to(torch.int8)  # (S B, d): where it crossed
+    escaped = torch.where(outside.unsqueeze(-1), side.unsqueeze(1), torch.zeros((), dtype=torch.int8))
+    return paths.masked_fill(outside.unsqueeze(-1), math.nan), nfe, stopped, escaped

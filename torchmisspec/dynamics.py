@@ -373,7 +373,7 @@ class CorrectedODE(nn.Module):
         )
         region = draws_region(y0, mean_path, self.gp)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
-            paths, self.nfe, stopped = solve_draws(field, y0.repeat(S, 1), grid, settings, B, region)
+            paths, self.nfe, stopped, escaped = solve_draws(field, y0.repeat(S, 1), grid, settings, B, region)
         left = torch.isnan(paths).any(-1).any(-1).reshape(S, B)  # the draws that left the region, or stalled in it
         if bool(left.any()):
             warn_left(left, stopped)
@@ -404,6 +404,7 @@ class CorrectedODE(nn.Module):
             state_names=self.system.state_names,
             fraction_remaining=1.0 - left.to(y0.dtype).mean(0),
             region=region,
+            escaped=escaped.reshape(S, B, *escaped.shape[1:]),
         )
 
     def initial_states(self, trajectories) -> torch.Tensor:
