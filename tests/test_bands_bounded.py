@@ -250,3 +250,26 @@ def test_a_diverging_mean_path_does_not_carry_the_region_with_it(one_thread):
     assert hi <= float(states.max()) + 10 * width + 1e-9 and lo >= float(states.min()) - 10 * width - 1e-9
     assert float(post.fraction_remaining.max()) < 0.5  # most draws left with the mean path, and were stopped
     assert G.calls < 5000, G.calls
+
+
+def test_a_draw_that_left_in_one_component_leaves_the_other_anywhere_in_the_region():
+    """Two states; 15 of 20 draws left across the upper edge of the first: its band's upper end is that edge, and
+    the second component of those draws, unknown, counts at either edge: its band is the whole region, finite."""
+    from torchmisspec._bands import TrajectoryPosterior
+
+    S = 20
+    samples = torch.full((S, 1, 1, 2), math.nan, dtype=DT)
+    samples[:5, 0, 0] = torch.tensor([[0.1, 0.2], [0.2, 0.1], [0.3, 0.3], [0.4, 0.5], [0.5, 0.4]], dtype=DT)
+    escaped = torch.zeros(samples.shape, dtype=torch.int8)
+    escaped[5:, 0, 0, 0] = 1
+    region = (torch.tensor([-1.0, -2.0], dtype=DT), torch.tensor([1.0, 2.0], dtype=DT))
+    post = TrajectoryPosterior(
+        times=torch.zeros(1, 1, dtype=DT), samples=samples, mean_path=samples[0], support=torch.zeros(1, 1),
+        extrapolating=torch.zeros(1, dtype=torch.bool), threshold=0.7, region=region, escaped=escaped,
+    )  # fmt: skip
+    with pytest.warns(tms.TorchMisspecWarning, match="reaches its edge"):
+        lower, upper = post.interval(0.5)
+    first = torch.cat([samples[:5, 0, 0, 0], torch.ones(15, dtype=DT)])
+    expected = torch.quantile(first, band_quantiles(0.5, S))
+    assert torch.allclose(torch.stack([lower[0, 0, 0], upper[0, 0, 0]]), expected) and float(upper[0, 0, 0]) == 1.0
+    assert float(lower[0, 0, 1]) == -2.0 and float(upper[0, 0, 1]) == 2.0

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -221,14 +222,21 @@ class TrajectoryPosterior:
 
 def _censored_band(samples: torch.Tensor, escaped: torch.Tensor, region, level: float):
     """:meth:`TrajectoryPosterior.interval` with the draws that left the region across an edge in a component
-    (``escaped`` +1 / -1) counted at that edge (censored: beyond it, how far unknown), the others as
-    :func:`_remaining_band`: the band is finite, and where more than its tail of the draws left on one side, that
+    (``escaped`` +1 / -1) counted at that edge (censored: beyond it, how far unknown), its other components anywhere
+    in the region (at the lower edge for the band's lower end, the upper for its upper end), the draws that stalled
+    as :func:`_remaining_band`: the band is finite, and where more than its tail of the draws left on one side, that
     end is the region's edge (one warning says at how many entries)."""
     lo, hi = (b.to(samples) for b in region)
     gone = torch.isnan(samples)
     values = torch.where(gone & (escaped > 0), hi, samples)
     values = torch.where(gone & (escaped < 0), lo, values)
-    lower, upper = _remaining_band(values, level)
+    # a component of a draw that left across another component's edge: anywhere in the region, so the band's lower
+    # end counts it at the lower edge and its upper end at the upper edge (the widest band it could be)
+    unknown = gone & (escaped == 0) & (escaped != 0).any(-1, keepdim=True)
+    lower = _remaining_band(torch.where(unknown, lo, values), level)[0]
+    with warnings.catch_warnings():  # the same entries: warned once, above
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        upper = _remaining_band(torch.where(unknown, hi, values), level)[1]
     at_edge = (lower <= lo) | (upper >= hi)
     if bool(at_edge.any()):
         warn(
