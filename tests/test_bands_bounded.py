@@ -253,8 +253,9 @@ def test_a_diverging_mean_path_does_not_carry_the_region_with_it(one_thread):
 
 
 def test_a_draw_that_left_in_one_component_leaves_the_other_anywhere_in_the_region():
-    """Two states; 15 of 20 draws left across the upper edge of the first: its band's upper end is that edge, and
-    the second component of those draws, unknown, counts at either edge: its band is the whole region, finite."""
+    """Two states; 15 of 20 draws left across the upper edge of the first: its band's upper end is that edge; the
+    second component of those draws is unknown, and the 5 that remain are too few for a 0.9 band: its band is the
+    whole region, finite. With 3 of 20 gone, the second component's 0.5 band is that of the 17 that remain."""
     from torchmisspec._bands import TrajectoryPosterior
 
     S = 20
@@ -268,8 +269,15 @@ def test_a_draw_that_left_in_one_component_leaves_the_other_anywhere_in_the_regi
         extrapolating=torch.zeros(1, dtype=torch.bool), threshold=0.7, region=region, escaped=escaped,
     )  # fmt: skip
     with pytest.warns(tms.TorchMisspecWarning, match="reaches its edge"):
-        lower, upper = post.interval(0.5)
+        lower, upper = post.interval(0.9)  # needs 19 draws
     first = torch.cat([samples[:5, 0, 0, 0], torch.ones(15, dtype=DT)])
-    expected = torch.quantile(first, band_quantiles(0.5, S))
+    expected = torch.quantile(first, band_quantiles(0.9, S))
     assert torch.allclose(torch.stack([lower[0, 0, 0], upper[0, 0, 0]]), expected) and float(upper[0, 0, 0]) == 1.0
     assert float(lower[0, 0, 1]) == -2.0 and float(upper[0, 0, 1]) == 2.0
+    few = samples.clone()
+    few[:17, 0, 0] = torch.rand(17, 2, generator=torch.Generator().manual_seed(0), dtype=DT) - 0.5
+    gone = escaped.clone()
+    gone[:17] = 0
+    lower, upper = dataclasses.replace(post, samples=few, escaped=gone).interval(0.5)
+    expected = torch.quantile(few[:17, 0, 0, 1], band_quantiles(0.5, 17))
+    assert torch.allclose(torch.stack([lower[0, 0, 1], upper[0, 0, 1]]), expected)

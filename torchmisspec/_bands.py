@@ -100,8 +100,8 @@ class TrajectoryPosterior:
     left the region across an edge in a component (:attr:`escaped`) as lying beyond that edge (censored there, not
     dropped: dropping the draws that diverge upwards would pull the band's upper end down), so where more than
     the band's tail of the draws left on one side, that end of the band is the region's edge, with a warning: the
-    band says how far it can tell, and stays finite. :attr:`fraction_remaining` says how much of the posterior
-    remained.
+    band says how far it can tell, and stays finite (where too few draws remain for a component that did not cross,
+    the band is the whole region). :attr:`fraction_remaining` says how much of the posterior remained.
     """
 
     times: torch.Tensor
@@ -222,30 +222,32 @@ class TrajectoryPosterior:
 
 def _censored_band(samples: torch.Tensor, escaped: torch.Tensor, region, level: float):
     """:meth:`TrajectoryPosterior.interval` with the draws that left the region across an edge in a component
-    (``escaped`` +1 / -1) counted at that edge (censored: beyond it, how far unknown), its other components anywhere
-    in the region (at the lower edge for the band's lower end, the upper for its upper end), the draws that stalled
-    as :func:`_remaining_band`: the band is finite, and where more than its tail of the draws left on one side, that
-    end is the region's edge (one warning says at how many entries)."""
+    (``escaped`` +1 / -1) counted at that edge (censored: beyond it, how far unknown); the other components of such
+    a draw, and the draws that stalled, as :func:`_remaining_band` (left out), except where too few remain for the
+    level: there the band is the whole region (they may be anywhere in it). The band is finite, and where more than
+    its tail of the draws left on one side, that end is the region's edge (one warning says at how many entries)."""
     lo, hi = (b.to(samples) for b in region)
     gone = torch.isnan(samples)
     values = torch.where(gone & (escaped > 0), hi, samples)
     values = torch.where(gone & (escaped < 0), lo, values)
-    # a component of a draw that left across another component's edge: anywhere in the region, so the band's lower
-    # end counts it at the lower edge and its upper end at the upper edge (the widest band it could be)
-    unknown = gone & (escaped == 0) & (escaped != 0).any(-1, keepdim=True)
-    lower = _remaining_band(torch.where(unknown, lo, values), level)[0]
-    with warnings.catch_warnings():  # the same entries: warned once, above
+    with warnings.catch_warnings():  # entries too few draws remain for: the region, warned below
         warnings.simplefilter("ignore", TorchMisspecWarning)
-        upper = _remaining_band(torch.where(unknown, hi, values), level)[1]
+        lower, upper = _remaining_band(values, level)
+    left = gone & (escaped != 0).any(-1, keepdim=True)  # (S, ...): components of draws that left the region
+    unknown = torch.isnan(lower) & left.any(0)
+    lower = torch.where(unknown, lo.expand_as(lower), lower)
+    upper = torch.where(unknown, hi.expand_as(upper), upper)
     at_edge = (lower <= lo) | (upper >= hi)
     if bool(at_edge.any()):
         warn(
             f"interval: at {int(at_edge.sum())} of {at_edge.numel()} entries so many draws left the region "
-            f"(posterior.region) on one side that the central {level:g} band reaches its edge there: the states may "
-            "lie anywhere beyond it (posterior.fraction_remaining says how many draws remained). Shorten the time "
-            "span, or collect data where the paths go",
+            f"(posterior.region) that the central {level:g} band reaches its edge there: the states may lie anywhere "
+            "beyond it (posterior.fraction_remaining says how many draws remained). Shorten the time span, or collect "
+            "data where the paths go",
             TorchMisspecWarning,
         )
+    if bool(torch.isnan(lower).any()):  # draws that stalled inside the region, too many: as before
+        _remaining_band(values, level)
     return lower, upper
 
 
