@@ -120,10 +120,4 @@ def test_batched_jacobian_columns_equal_one_solve_per_column():
     batched = tm._coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
     assert one.shape == batched.shape == (ragged.num_samples * 2, int(active.sum()))
     torch.testing.assert_close(batched, one, rtol=1e-5, atol=1e-6 * float(one.abs().max()))
-    # the initial-state offsets' columns likewise (2 d perturbed models in one solve)
-    field = make_field(beta)
-    batched_o = tm._offset_columns(residuals, field, off, sd)
-    del residuals.many  # the one-solve-per-perturbation path
-    one_o = tm._offset_columns(residuals, field, off, sd)
-    assert batched_o.shape == (ragged.num_samples * 2, 3 * 2)
-    torch.testing.assert_close(batched_o, one_o, rtol=1e-5, atol=1e-6 * float(one_o.abs().max()))
+    # the offsets' and parameters' columns: tests/test_trial_budget.py (the joint Jacobian)

@@ -123,16 +123,35 @@ def test_the_joint_jacobian_equals_its_three_parts():
     sd = torch.full((2,), 1e-2, dtype=DT)
     off = 0.1 * torch.randn(offsets.shape, generator=gen, dtype=DT)
     joint = tm._joint_columns(residuals, make_fields, beta, active, v, off, sd)
-    parts = torch.cat(
-        [
-            tm._coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields),
-            tm._parameter_columns(residuals, make_fields, beta, v, off, sd),
-            tm._offset_columns(residuals, make_field(beta), off, sd),
-        ],
-        dim=1,
-    )
-    assert joint.shape == parts.shape == (ragged.num_samples * 2, int(active.sum()) + 2 + 3 * 2)
-    torch.testing.assert_close(joint, parts, rtol=1e-5, atol=1e-6 * float(parts.abs().max()))
+    # the reference: one solve per perturbation, plain central differences
+    cols, h = [], 1e-5
+    typical = float(beta.abs().max()) * 1e-3
+    for i, o in active.nonzero().tolist():
+        step = tm._step(float(beta[i, o]), typical)
+        plus, minus = beta.clone(), beta.clone()
+        plus[i, o] += step
+        minus[i, o] -= step
+        diff = residuals(make_field(plus), off, sd) - residuals(make_field(minus), off, sd)
+        cols.append(diff / (2 * step) / sd)
+    for j in range(2):
+        dv = torch.zeros(2, dtype=DT)
+        dv[j] = h
+        up = residuals(make_fields(beta.unsqueeze(0), v + dv), off, sd)
+        down = residuals(make_fields(beta.unsqueeze(0), v - dv), off, sd)
+        cols.append((up - down) / (2 * h) / sd)
+    rows = residuals.experiment
+    offset_cols = {}
+    for j in range(2):  # offset (experiment e, component j) moves only experiment e's rows
+        up, down = off.clone(), off.clone()
+        up[:, j] += h
+        down[:, j] -= h
+        delta = (residuals(make_field(beta), up, sd) - residuals(make_field(beta), down, sd)) / (2 * h) / sd
+        for e in range(3):
+            offset_cols[e, j] = torch.where((rows == e).unsqueeze(-1), delta, torch.zeros_like(delta))
+    cols += [offset_cols[e, j] for e in range(3) for j in range(2)]  # the columns' order: experiment, component
+    reference = torch.stack([c.reshape(-1) for c in cols], dim=1)
+    assert joint.shape == reference.shape == (ragged.num_samples * 2, int(active.sum()) + 2 + 3 * 2)
+    torch.testing.assert_close(joint, reference, rtol=1e-5, atol=1e-6 * float(reference.abs().max()))
 
 
 def test_the_widened_box_ignores_nan_and_leaves_an_unseen_component_unbounded():

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -230,9 +229,7 @@ def _censored_band(samples: torch.Tensor, escaped: torch.Tensor, region, level: 
     gone = torch.isnan(samples)
     values = torch.where(gone & (escaped > 0), hi, samples)
     values = torch.where(gone & (escaped < 0), lo, values)
-    with warnings.catch_warnings():  # entries too few draws remain for: the region, warned below
-        warnings.simplefilter("ignore", TorchMisspecWarning)
-        lower, upper = _remaining_band(values, level)
+    lower, upper = _remaining_band(values, level, quiet=True)  # entries too few remain for: the region, below
     left = gone & (escaped != 0).any(-1, keepdim=True)  # (S, ...): components of draws that left the region
     unknown = torch.isnan(lower) & left.any(0)
     lower = torch.where(unknown, lo.expand_as(lower), lower)
@@ -247,14 +244,14 @@ def _censored_band(samples: torch.Tensor, escaped: torch.Tensor, region, level: 
             TorchMisspecWarning,
         )
     if bool(torch.isnan(lower).any()):  # draws that stalled inside the region, too many: as before
-        _remaining_band(values, level)
+        _warn_short(int(torch.isnan(lower).sum()), lower.numel(), samples.shape[0], level)
     return lower, upper
 
 
-def _remaining_band(samples: torch.Tensor, level: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _remaining_band(samples: torch.Tensor, level: float, quiet: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """:meth:`TrajectoryPosterior.interval` where some draws of ``samples (S, ...)`` are NaN (they left the region):
     at each entry the band of the n draws that remain, NaN where fewer than S remain and they are too few for
-    ``level``, with one warning naming how many such entries there are."""
+    ``level``, with one warning naming how many such entries there are (none when ``quiet``)."""
     S = samples.shape[0]
     n = (~torch.isnan(samples)).sum(0)
     lower = torch.full(n.shape, math.nan, dtype=samples.dtype, device=samples.device)
@@ -269,13 +266,19 @@ def _remaining_band(samples: torch.Tensor, level: float) -> tuple[torch.Tensor, 
         qs = band_quantiles(level, k, dtype=samples.dtype, device=samples.device, what="interval")
         lo_hi = torch.nanquantile(samples[:, at], qs, dim=0)
         lower[at], upper[at] = lo_hi[0], lo_hi[1]
-    if short:
-        fewer = f"fewer than {need} draws" if need < math.inf else "fewer than all the draws (for a level of 1)"
-        more = f"Draw more (num_samples={max(need, S) * 2}), ask" if need < math.inf else "Ask"
-        warn(
-            f"interval: at {short} of {n.numel()} entries {fewer} remain in the region (of the {S} drawn; the "
-            f"others diverged out of it: posterior.fraction_remaining), too few for the central {level:g} band: "
-            f"those entries are NaN. {more} a lower level, or shorten the time span",
-            TorchMisspecWarning,
-        )
+    if short and not quiet:
+        _warn_short(short, n.numel(), S, level)
     return lower, upper
+
+
+def _warn_short(short: int, total: int, S: int, level: float) -> None:
+    """The warning of :func:`_remaining_band`: at ``short`` of ``total`` entries too few of the ``S`` draws remain."""
+    need = math.ceil(2.0 / (1.0 - level) - 1.0 - 1e-9) if level < 1.0 else math.inf
+    fewer = f"fewer than {need} draws" if need < math.inf else "fewer than all the draws (for a level of 1)"
+    more = f"Draw more (num_samples={max(need, S) * 2}), ask" if need < math.inf else "Ask"
+    warn(
+        f"interval: at {short} of {total} entries {fewer} remain in the region (of the {S} drawn; the "
+        f"others diverged out of it: posterior.fraction_remaining), too few for the central {level:g} band: "
+        f"those entries are NaN. {more} a lower level, or shorten the time span",
+        TorchMisspecWarning,
+    )

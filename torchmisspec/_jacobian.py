@@ -13,17 +13,17 @@ import torch
 from ._errors import IntegrationError
 from ._fit_fallbacks import _batched, _dropped
 
-__all__ = ["_coefficient_columns", "_joint_columns", "_offset_columns", "_parameter_columns"]
+__all__ = ["_coefficient_columns", "_joint_columns"]
 
 
 def _joint_columns(residuals, make_fields, beta, active, v, off, sd) -> torch.Tensor:
     """``(n e, q + k + K d)``: d (residual / s) by central differences with respect to the active coefficients
-    (:func:`_coefficient_columns`), G's parameters ``v (k,)`` where learned (:func:`_parameter_columns`; ``None``:
-    k = 0) and the initial-state offsets (:func:`_offset_columns`), all 2 (q + k + d) perturbed models in one batched
-    solve (``make_fields(bs, vs)``, ``vs`` ``(m, k)`` one theta per copy, or ``None``): one solve per Jacobian
-    instead of three (the per-step cost of a solve of a few states barely grows with its copies). A coefficient's or
-    parameter's perturbation that cannot be integrated gives a column of zeros (dropped), an offset's zeros where
-    its experiments' residuals are not finite."""
+    (as :func:`_coefficient_columns`), G's parameters ``v (k,)`` where learned (``None``: k = 0) and the
+    initial-state offsets (moving component j of every initial state at once gives each experiment's own column),
+    all 2 (q + k + d) perturbed models in one batched solve (``make_fields(bs, vs)``, ``vs`` ``(m, k)`` one theta
+    per copy, or ``None``): one solve per Jacobian (the per-step cost of a solve of a few states barely grows with
+    its copies). A coefficient's or parameter's perturbation that cannot be integrated gives a column of zeros
+    (dropped), an offset's zeros where its experiments' residuals are not finite."""
     typical = float(beta.abs().max()) * 1e-3
     pairs = active.nonzero(as_tuple=False).tolist()
     q, k, (K, d) = len(pairs), 0 if v is None else v.numel(), off.shape
@@ -67,21 +67,6 @@ def _joint_columns(residuals, make_fields, beta, active, v, off, sd) -> torch.Te
     return torch.cat([delta[: q + k].reshape(q + k, -1).T, J_o.reshape(n * e, K * d)], dim=1)
 
 
-def _parameter_columns(residuals, make_fields, beta, v, off, sd) -> torch.Tensor:
-    """``(n d, k)``: d (residual / s) / d v for G's uncertain parameters theta = m + s v, by central differences,
-    the 2 k perturbed models in one batched solve (``make_fields(bs, vs)``: copy c with coefficients bs[c] and
-    parameters vs[c])."""
-    k = v.numel()
-    h = 1e-5
-    vs = v.unsqueeze(0).repeat(2 * k, 1)
-    j = torch.arange(k, device=v.device)
-    vs[j, j] += h
-    vs[k + j, j] -= h
-    bs = beta.unsqueeze(0).expand(2 * k, -1, -1)
-    res = _batched(lambda lo, hi: residuals.many(make_fields(bs[lo:hi], vs[lo:hi]), hi - lo, off, sd), 2 * k)
-    return _dropped(((res[:k] - res[k:]) / (2 * h) / sd).reshape(k, -1).T)  # (2k, n, d) -> (n d, k)
-
-
 def _step(value: float, typical: float) -> float:
     """A central-difference step for a parameter of size ``value`` among parameters of size ``typical``."""
     return 1e-5 * max(abs(value), typical, 1e-12)
@@ -117,33 +102,3 @@ def _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fiel
             diff = torch.full_like(residuals(make_field(beta), off, sd), math.nan)
         cols.append((diff / (2 * h) / sd).reshape(-1))
     return _dropped(torch.stack(cols, dim=-1))
-
-
-def _offset_columns(residuals, field, off, sd) -> torch.Tensor:
-    """``(n e, K d)``: d (residual / s) / d offsets by central differences (e = d + m residual columns, the states
-    and any readings); experiments are independent, so moving component j of every initial state at once gives
-    each experiment's own column."""
-    rows = residuals.experiment  # (n,)
-    K, d = off.shape
-    n = rows.shape[0]
-    e = sd.shape[-1]
-    J = torch.zeros((n, e, K, d), dtype=off.dtype, device=off.device)
-    h = 1e-5
-    if hasattr(residuals, "many"):  # the 2 d perturbed offsets in one batched solve
-        stack = off.unsqueeze(0).repeat(2 * d, 1, 1)
-        j = torch.arange(d, device=off.device)
-        stack[j, :, j] += h
-        stack[d + j, :, j] -= h
-        res = _batched(lambda lo, hi: residuals.many(field, hi - lo, stack[lo:hi], sd), 2 * d)  # (2 d, n, e)
-        delta = (res[:d] - res[d:]) / (2 * h) / sd  # (d, n, e)
-        delta = torch.where(torch.isfinite(delta), delta, torch.zeros((), dtype=delta.dtype, device=delta.device))
-        for jj in range(d):
-            J[torch.arange(n, device=off.device), :, rows, jj] = delta[jj]
-        return J.reshape(n * e, K * d)
-    for j in range(d):
-        plus, minus = off.clone(), off.clone()
-        plus[:, j] += h
-        minus[:, j] -= h
-        delta = (residuals(field, plus, sd) - residuals(field, minus, sd)) / (2 * h) / sd  # (n, e)
-        J[torch.arange(n, device=off.device), :, rows, j] = delta
-    return J.reshape(n * e, K * d)
