@@ -384,7 +384,10 @@ def fit_correction(
 
     Returns:
         the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
-        :class:`CrossValidation` (``None`` without it) and ``result.samples_`` the correction samples.
+        :class:`CrossValidation` (``None`` without it), ``result.samples_`` the correction samples,
+        ``result.trajectories_`` the data and ``result.fit_options_`` the keywords of this call (``noise`` as the
+        model chosen): a :class:`~torchmisspec.design.Campaign` started from the result holds those data and refits
+        with those options. None of these is saved with the model.
     """
     _check_trajectories_and_system(trajectories, system)
     refine = check_flag(refine, "refine", none=True)
@@ -392,7 +395,10 @@ def fit_correction(
     noise = as_noise_model(noise, trajectories, announce="fit_correction")
     options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
     result = _fit(trajectories, system, gp=gp, candidates=candidates, **options, **estimator)
-    return _recorded(result, system, trajectories, noise)  # once, in the user's units, on the user's data
+    result = _recorded(result, system, trajectories, noise)  # once, in the user's units, on the user's data
+    result.trajectories_ = trajectories  # what a Campaign started from this fit holds, and refits with these options
+    result.fit_options_ = dict(gp=gp, candidates=candidates, **{**options, "progress": False}, **estimator)
+    return result
 
 
 def _fit(

@@ -25,6 +25,7 @@ from ._input import (
     _order_by_name,
     _per_experiment,
 )
+from ._join import concatenate
 from ._readout import Readout, check_readout, joined
 
 #: A component observed fewer times than this in an experiment is *not measured* there (too few values for a
@@ -443,6 +444,14 @@ class Trajectories(NotATensor):
         times = self.times if self.times.dim() == 1 else self.times[picked]
         readings = None if self.readings is None else self.readings[picked]
         return Trajectories(times, self.states[picked], readings=readings, **kept)
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[Trajectories]) -> Trajectories:
+        """The experiments of ``parts`` (Trajectories over the same states, readout and kind of inputs), in order, as
+        one (ragged when their lengths differ; the first part's dtype and device). States are matched by name (a part
+        with the same names in another order is reordered); a part whose states are unnamed (``y0, y1, ...``) takes
+        the others' names in order. Estimated initial states are kept only when every part has them."""
+        return concatenate(cls, parts)
 
     def to(self, *args, **kwargs) -> Trajectories:
         """These trajectories on another device and/or in another real floating dtype (every field moved)."""

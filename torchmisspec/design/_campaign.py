@@ -3,9 +3,11 @@
 A :class:`Campaign` holds the candidate initial conditions, the observation times, the prior and everything measured
 so far. ``ask(k)`` designs the next batch greedily *given the data* (the gains are conditioned on every sample
 collected, and with data the proxies are the corrected model's trajectories by default); ``tell(trajectories)``
-turns measured trajectories into correction samples and refits the GP (hyperparameters by marginal likelihood once
-the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every round; ``save`` /
-``load`` write and read the whole campaign (tensors and plain values only, never code).
+adds the measured experiments and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that
+function on every experiment with the same options (one way to learn, the same choice of model; an experiment held
+already is not added again); otherwise the samples are added and the GP refitted (hyperparameters by marginal
+likelihood once the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every
+round; ``save`` / ``load`` write and read the whole campaign (tensors and plain values only, never code).
 
 For a system with inputs u(t), a candidate experiment is an initial state *and* an input profile: the campaign takes
 ``controls`` (one profile per candidate), ``ask`` returns the states with their profiles, and ``tell`` matches each
@@ -23,12 +25,14 @@ import torch
 from .._errors import InputError, ShapeError, TorchMisspecError
 from .._validation import check_domain, check_path, check_positive_int, check_real, check_writable, writing
 from ..data import Trajectories
+from ..data._join import known_experiments
 from ..gp import CorrectionGP, _persistence
+from ..learning import fit_correction
 from ..metrics import correction_error
 from ..observations import correction_samples
 from ..parallel import check_executor
-from ..signals import Controls
 from ..systems import MisspecifiedSystem
+from ._campaign_data import controls_blob, controls_from, data_blob, data_from, options_blob, options_from
 from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
 from ._greedy import greedy
@@ -42,27 +46,6 @@ MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to 
 # a measured first state (noisy) matches the nearest pending ask within this fraction of the candidates' range per
 # coordinate, when no pending ask matches exactly and every other pending ask is at least twice as far
 NEAR_TOL = 0.1
-
-
-def _controls_blob(controls: Controls) -> dict:
-    """The profiles as plain tensors and strings (what :meth:`Campaign.save` writes)."""
-    lengths = controls.lengths.tolist()
-    return {
-        "knots": [controls.knots[k, :n].cpu() for k, n in enumerate(lengths)],
-        "values": [controls.values[k, :n].cpu() for k, n in enumerate(lengths)],
-        "kind": controls.kind,
-        "names": list(controls.names),
-    }
-
-
-def _controls_from(blob, path) -> Controls | None:
-    """The profiles :func:`_controls_blob` wrote (``None`` for a campaign without inputs)."""
-    if blob is None:
-        return None
-    try:
-        return Controls(list(blob["knots"]), list(blob["values"]), kind=blob["kind"], names=blob["names"])
-    except (KeyError, TypeError, TorchMisspecError) as exc:
-        raise InputError(f"{path}: field 'controls' is damaged ({type(exc).__name__}: {exc})") from exc
 
 
 def _hyperparameters(gp: CorrectionGP) -> dict:
@@ -85,10 +68,11 @@ class Campaign:
         candidates: ``(N, d)`` candidate initial conditions.
         times: ``(T,)`` observation times of every experiment (the first is the initial condition's).
         gp: a :class:`~torchmisspec.CorrectionGP`, not modified: a prior whose hyperparameters are set (e.g.
-            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`) to start without data, or a fitted GP (e.g.
-            from :func:`~torchmisspec.fit_correction`) to start from the samples it was fitted on: the first ``ask``
-            is then conditioned on them, and ``tell`` refits on them plus the new experiments. Any model the
-            package fits works (per-output kernels, feature kernels, per-sample noise).
+            :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`) to start without data, or a fitted GP to
+            start from the samples it was fitted on: the first ``ask`` is then conditioned on them. A result of
+            :func:`~torchmisspec.fit_correction` also brings its trajectories (``data``) and its options
+            (``fit_options``): ``tell`` then refits with ``fit_correction`` on every experiment (see :meth:`tell`).
+            Any model the package fits works (per-output kernels, feature kernels, per-sample noise).
         criterion: ``"information"`` (the paper's) or ``"domain"`` (variance of F over D), see
             :func:`~torchmisspec.design.greedy`.
         proxy: ``"known"`` or ``"corrected"``; default ``"corrected"`` once there are data, ``"known"`` before.
@@ -109,6 +93,8 @@ class Campaign:
 
     Attributes:
         gp: the current model: the prior before any data, then the GP fitted on every sample.
+        data: every measured experiment (a :class:`~torchmisspec.Trajectories`) for a campaign started from
+            :func:`~torchmisspec.fit_correction`'s result, else ``None``; ``fit_options`` that fit's keywords.
         history: one dictionary per ``ask`` and per ``tell`` (plain values: picks, gains, hyperparameters, the error of
             the correction over the domain when the system carries its true F, notes).
     """
@@ -186,11 +172,21 @@ class Campaign:
         self._inputs: list[torch.Tensor] = []
         self._targets: list[torch.Tensor] = []
         self._noise: list[torch.Tensor | None] = []
+        #: the measured trajectories and fit_correction's options, for a campaign started from its fit (else None)
+        self.data, self.fit_options = None, None
         if gp.is_fitted:  # what is known already: the first design is conditioned on the samples gp was fitted on
-            self._inputs = [gp.train_inputs_.detach().clone()]
-            self._targets = [gp.train_targets_.detach().clone()]
-            self._noise = [None if gp.train_noise_ is None else gp.train_noise_.detach().clone()]
-            self.gp = gp
+            self._hold(gp)
+            data, options = getattr(gp, "trajectories_", None), getattr(gp, "fit_options_", None)
+            if isinstance(data, Trajectories) and isinstance(options, dict):  # fit_correction's: its data and rule
+                self.data = data.to(dtype=gp.dtype, device=gp.device)
+                self.fit_options = dict(options)
+
+    def _hold(self, gp: CorrectionGP) -> None:
+        """Hold ``gp`` and the samples it was fitted on (each once)."""
+        self._inputs = [gp.train_inputs_.detach().clone()]
+        self._targets = [gp.train_targets_.detach().clone()]
+        self._noise = [None if gp.train_noise_ is None else gp.train_noise_.detach().clone()]
+        self.gp = gp
 
     # --------------------------------------------------------------------------------------------- state
     @property
@@ -199,7 +195,7 @@ class Campaign:
 
     @property
     def num_experiments(self) -> int:
-        return len(self.measured)
+        return len(self.measured) if self.data is None else self.data.num_experiments
 
     @property
     def remaining(self) -> torch.Tensor:
@@ -346,10 +342,49 @@ class Campaign:
         experiments answer the pending asks in the order they were asked. By default each experiment's first state is
         matched to a pending ask: exactly, or, a measured and so noisy first state, the nearest pending ask within
         10 % of the candidates' range in every coordinate when it is at most half as far as any other pending ask.
-        Experiments nobody asked for are accepted and noted as such in the history. Samples come from
-        :func:`~torchmisspec.correction_samples` with the campaign's ``derivative`` and ``noise_std``. Nothing changes
-        if anything fails (bad input, a failed fit).
+        Experiments nobody asked for are accepted and noted as such in the history. An experiment the campaign holds
+        already (the same times and values: the data of the fit it started from, or one told before) is recognised
+        and not added again; with nothing new, the model is unchanged.
+
+        How the model is refitted: a campaign started from :func:`~torchmisspec.fit_correction`'s result holds its
+        trajectories and refits on them and the new ones with the same call (the same options, candidates and
+        choice rule: held-out experiments, do no harm); otherwise the samples of
+        :func:`~torchmisspec.correction_samples` (the campaign's ``derivative`` and ``noise_std``) are added and the
+        GP refitted by marginal likelihood (``refit_after``). Nothing changes if anything fails (bad input, a failed
+        fit).
         """
+        traj = self._checked(trajectories)
+        start = time.perf_counter()
+        known = known_experiments(traj, self.data if self.data is not None else None)
+        told = traj.num_experiments
+        if all(known):
+            return self._noted(told, told, start)
+        if any(known):
+            traj = traj[[k for k, seen in enumerate(known) if not seen]]
+        if asked is not None and any(known):
+            asked = asked if isinstance(asked, str) else [a for a, seen in zip(asked, known, strict=False) if not seen]
+        matched, pending = self._matched(traj, asked)
+        state = self.generator.get_state()
+        try:
+            if self.data is not None:
+                data = Trajectories.concatenate([self.data, traj])
+                gp, note = fit_correction(data, self.system, **self.fit_options), "refitted by fit_correction"
+            else:
+                data, (gp, note) = None, self._refit_samples(traj)
+        except BaseException:
+            self.generator.set_state(state)  # a retry draws what an uninterrupted campaign draws
+            raise
+        # every check passed and the fit worked: commit
+        if data is not None:
+            self.data = data
+            self._hold(gp)
+        self.pending = pending
+        self.measured += matched
+        self.gp = gp
+        self._record_tell(matched, note, start, told - len(matched))
+        return gp
+
+    def _checked(self, trajectories) -> Trajectories:
         if not isinstance(trajectories, Trajectories):
             raise InputError(f"trajectories: expected a Trajectories, got {type(trajectories).__name__}")
         if trajectories.state_dim != self.system.state_dim:
@@ -357,16 +392,18 @@ class Campaign:
                 f"trajectories: expected states of dimension {self.system.state_dim} (system "
                 f"'{self.system.name}'), got {trajectories.state_dim}"
             )
-        traj = trajectories.to(dtype=self.candidates.dtype, device=self.candidates.device)
-        start = time.perf_counter()
-        y0 = traj.initial_conditions
-        if self.controls is not None and traj.controls is None:
+        if self.controls is not None and trajectories.controls is None:
             raise InputError(
                 "trajectories: expected the input profiles the experiments ran under (this campaign's experiments "
                 "have them), got trajectories without controls: tell the measured trajectories with the profiles "
                 "they ran under (Trajectories(..., controls=...))"
             )
+        return trajectories.to(dtype=self.candidates.dtype, device=self.candidates.device)
+
+    def _matched(self, traj: Trajectories, asked) -> tuple[list[int], list[int]]:
+        """The candidate each experiment answers (-1: none) and the asks still pending after them."""
         matched, pending = [], list(self.pending)
+        y0 = traj.initial_conditions
         if asked is None:
             for k, row in enumerate(y0):
                 idx = self._match(row, pending, None if self.controls is None else traj.controls[[k]])
@@ -376,44 +413,49 @@ class Campaign:
         else:
             matched = self._given_asks(asked, y0.shape[0], pending)
             pending = [p for p in pending if p not in matched]
-        state = self.generator.get_state()
-        try:
-            samples = correction_samples(
-                traj,
-                self.system,
-                derivative=self.config["derivative"],
-                noise_std=self.config["noise_std"],
-                generator=self.generator,
-            )
-            inputs = self._inputs + [samples.inputs]
-            targets = self._targets + [samples.targets]
-            noise = self._noise + [samples.noise]
-            gp, note = self._fit(inputs, targets, noise)
-        except BaseException:
-            self.generator.set_state(state)  # a retry draws what an uninterrupted campaign draws
-            raise
-        # every check passed and the fit worked: commit
-        self._inputs, self._targets, self._noise = inputs, targets, noise
-        self.pending = pending
-        self.measured += matched
-        self.gp = gp
+        return matched, pending
+
+    def _refit_samples(self, traj: Trajectories) -> tuple[CorrectionGP, str]:
+        samples = correction_samples(
+            traj,
+            self.system,
+            derivative=self.config["derivative"],
+            noise_std=self.config["noise_std"],
+            generator=self.generator,
+        )
+        inputs = self._inputs + [samples.inputs]
+        targets = self._targets + [samples.targets]
+        noise = self._noise + [samples.noise]
+        gp, note = self._fit(inputs, targets, noise)
+        self._inputs, self._targets, self._noise = inputs, targets, noise  # the caller commits the rest
+        return gp, note
+
+    def _noted(self, told: int, known: int, start: float) -> CorrectionGP:
+        """A tell of experiments the campaign holds already: recorded, nothing added, the model unchanged."""
+        self._record_tell([], "nothing new: every experiment told is held already; model unchanged", start, known)
+        return self.gp
+
+    def _record_tell(self, matched: list[int], note: str, start: float, known: int) -> None:
+        gp = self.gp
         entry = {
             "event": "tell",
             "experiments": len(matched),
             "indices": matched,
             "unrequested": sum(i < 0 for i in matched),
+            "already_held": known,
             "samples": self.num_samples,
             "hyperparameters": _hyperparameters(gp),
-            "learned": note == "learned",
+            "learned": note in ("learned", "refitted by fit_correction"),
             "note": note,
             "seconds": time.perf_counter() - start,
         }
         if entry["unrequested"]:
             entry["note"] += f"; {entry['unrequested']} experiment(s) not asked for (initial conditions not pending)"
+        if known and matched:
+            entry["note"] += f"; {known} experiment(s) held already (the same times and values), not added again"
         if self.system.has_correction and (self.config["domain"] is not None or self.system.domain is not None):
             entry["error"] = correction_error(gp, self.system, domain=self.config["domain"], resolution=51)
         self.history.append(entry)
-        return gp
 
     def _fit(self, inputs, targets, noise) -> tuple[CorrectionGP, str]:
         X, Y = torch.cat(inputs), torch.cat(targets)
@@ -446,7 +488,7 @@ class Campaign:
             "config": dict(self.config),
             "candidates": self.candidates.cpu(),
             "times": self.times.cpu(),
-            "controls": None if self.controls is None else _controls_blob(self.controls),
+            "controls": None if self.controls is None else controls_blob(self.controls),
             "prior": _persistence.config_of(self.prior),
             "prior_model": _persistence.to_blob(self.prior) if self.prior.is_fitted else None,
             "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
@@ -458,6 +500,8 @@ class Campaign:
             "measured": list(self.measured),
             "history": self.history,
             "generator": self.generator.get_state(),
+            "data": None if self.data is None else data_blob(self.data),
+            "fit_options": None if self.fit_options is None else options_blob(self.fit_options),
         }
         tmp = path.with_name(path.name + ".tmp")
         with writing(path):
@@ -505,7 +549,7 @@ class Campaign:
                 refit_after=cfg["refit_after"],
                 pilot=cfg["pilot"],
                 seed=cfg["seed"],
-                controls=_controls_from(blob.get("controls"), path),
+                controls=controls_from(blob.get("controls"), path),
             )
         except (KeyError, TypeError) as exc:
             raise InputError(f"{path}: field 'config' is damaged ({type(exc).__name__}: {exc})") from exc
@@ -541,6 +585,10 @@ class Campaign:
             camp.generator.set_state(state)
         except RuntimeError as exc:
             raise InputError(f"{path}: field 'generator' is damaged ({exc})") from exc
+        camp.data = data_from(blob.get("data"), path, **dd)
+        camp.fit_options = options_from(blob.get("fit_options"), path)
+        if (camp.data is None) != (camp.fit_options is None):
+            raise InputError(f"{path}: expected both 'data' and 'fit_options' or neither; the file is damaged")
         model = blob.get("model")
         if model is not None:
             camp.gp = _persistence.from_blob(CorrectionGP, model, path)

@@ -1,0 +1,142 @@
+"""What a :class:`~torchmisspec.design.Campaign` started from :func:`~torchmisspec.fit_correction` saves beside its
+samples: the measured trajectories and the options of the fit it refits with, as tensors and plain values only
+(:meth:`Campaign.save` never writes code, and :meth:`Campaign.load` checks what it reads)."""
+
+from __future__ import annotations
+
+import torch
+
+from .._errors import InputError, TorchMisspecError
+from ..data import Readout, Trajectories
+from ..gp import CorrectionGP, _persistence
+from ..noise import NOISE_MODELS, CountNoise
+from ..signals import Controls
+
+#: The options of :func:`~torchmisspec.fit_correction` saved as plain values (``gp`` and ``candidates`` as template
+#: configurations, ``noise`` by name).
+PLAIN = ("select", "derivative", "folds", "refine", "progress")
+
+
+def controls_blob(controls: Controls) -> dict:
+    """The profiles as plain tensors and strings."""
+    lengths = controls.lengths.tolist()
+    return {
+        "knots": [controls.knots[k, :n].cpu() for k, n in enumerate(lengths)],
+        "values": [controls.values[k, :n].cpu() for k, n in enumerate(lengths)],
+        "kind": controls.kind,
+        "names": list(controls.names),
+    }
+
+
+def controls_from(blob, path, field: str = "controls") -> Controls | None:
+    """The profiles :func:`controls_blob` wrote (``None`` for none)."""
+    if blob is None:
+        return None
+    try:
+        return Controls(list(blob["knots"]), list(blob["values"]), kind=blob["kind"], names=blob["names"])
+    except (KeyError, TypeError, TorchMisspecError) as exc:
+        raise InputError(f"{path}: field {field!r} is damaged ({type(exc).__name__}: {exc})") from exc
+
+
+def data_blob(traj: Trajectories) -> dict:
+    """``traj`` as tensors and strings (one entry per experiment)."""
+    controls = traj.controls
+    return {
+        "times": [t.detach().cpu() for t, _ in traj.experiments()],
+        "states": [y.detach().cpu() for _, y in traj.experiments()],
+        "state_names": list(traj.state_names),
+        "controls": None if controls is None else controls_blob(controls),
+        "readout": None if traj.readout is None else {
+            "matrix": traj.readout.matrix.detach().cpu(), "names": list(traj.readout.names),
+        },
+        "readings": None if traj.readings is None else [
+            r.detach().cpu() for r in (traj.readings if isinstance(traj.readings, tuple) else traj.readings.unbind(0))
+        ],
+        "initial_states": None if traj.initial_states is None else traj.initial_states.detach().cpu(),
+    }  # fmt: skip
+
+
+def data_from(blob, path, dtype: torch.dtype, device) -> Trajectories | None:
+    """The trajectories :func:`data_blob` wrote (``None`` for a campaign without them); damaged: an InputError."""
+    if blob is None:
+        return None
+    try:
+        controls, r = controls_from(blob["controls"], path, "data"), blob["readout"]
+        readout = None if r is None else Readout(r["matrix"], r["names"], state_names=blob["state_names"])
+        readings = None if blob["readings"] is None else list(blob["readings"])
+        traj = Trajectories(
+            list(blob["times"]), list(blob["states"]), state_names=blob["state_names"], controls=controls,
+            initial_states=blob["initial_states"], readout=readout, readings=readings,
+        )  # fmt: skip
+    except (KeyError, TypeError, TorchMisspecError) as exc:
+        raise InputError(f"{path}: field 'data' is damaged ({type(exc).__name__}: {exc})") from exc
+    return traj.to(dtype=dtype, device=device)
+
+
+def options_blob(options: dict) -> dict:
+    """``fit_correction``'s keywords as plain values; an option that is code (a user's noise model, a template
+    with a feature library, an estimator's function) cannot be saved: an InputError says which."""
+    out = {}
+    for key, value in options.items():
+        if key == "noise":
+            out[key] = _noise_blob(value)
+        elif key == "gp":
+            out[key] = None if value is None else _persistence.config_of(value)
+        elif key == "candidates":
+            out[key] = None if value is None else [_persistence.config_of(t) for t in value]
+        elif value is None or isinstance(value, (str, int, float, bool)):
+            out[key] = value
+        else:
+            raise InputError(
+                f"save: the campaign refits with fit_correction's option {key}={value!r:.60}, which is not a plain "
+                "value and cannot be saved (a file never holds code); start the campaign from a fit without it"
+            )
+    return out
+
+
+def options_from(blob, path) -> dict | None:
+    """The keywords :func:`options_blob` wrote (``None`` for a campaign without them)."""
+    if blob is None:
+        return None
+    if not isinstance(blob, dict):
+        raise InputError(f"{path}: field 'fit_options' is damaged (expected a dictionary, got {type(blob).__name__})")
+    out = {}
+    for key, value in blob.items():
+        where = f"{path} (field 'fit_options', {key})"
+        if key == "noise":
+            out[key] = _noise_from(value, where)
+        elif key == "gp":
+            out[key] = None if value is None else _persistence.from_config(CorrectionGP, value, where)
+        elif key == "candidates":
+            out[key] = None if value is None else [_persistence.from_config(CorrectionGP, v, where) for v in value]
+        elif value is None or isinstance(value, (str, int, float, bool)):
+            out[key] = value
+        else:
+            raise InputError(f"{where}: expected a plain value, got {type(value).__name__}")
+    return out
+
+
+def _noise_blob(noise) -> dict | None:
+    if noise is None or isinstance(noise, str):
+        return noise
+    if NOISE_MODELS.get(noise.name) is not type(noise):
+        raise InputError(
+            f"save: the campaign refits with the noise model {noise!r}, which is code and cannot be saved; start the "
+            f"campaign from a fit with one of {sorted(NOISE_MODELS)}"
+        )
+    unit = torch.as_tensor(noise.unit, dtype=torch.float64).reshape(-1) if isinstance(noise, CountNoise) else None
+    return {"name": noise.name, "unit": unit}
+
+
+def _noise_from(blob, where: str):
+    if blob is None or isinstance(blob, str):
+        return blob
+    if not isinstance(blob, dict) or blob.get("name") not in NOISE_MODELS:
+        raise InputError(f"{where}: expected a noise model's name among {sorted(NOISE_MODELS)}, got {blob!r:.80}")
+    model = NOISE_MODELS[blob["name"]]
+    if not issubclass(model, CountNoise):
+        return model()
+    unit = blob.get("unit")
+    if not (isinstance(unit, torch.Tensor) and unit.numel() >= 1 and bool((unit > 0).all())):
+        raise InputError(f"{where}: expected a positive count unit, got {unit!r:.80}")
+    return model(float(unit) if unit.numel() == 1 else unit)
