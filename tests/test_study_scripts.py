@@ -155,3 +155,17 @@ def test_continuous_design_study_smoke(tmp_path):
         assert run["gain"]["refined"] >= run["gain"]["greedy"] > 0  # refine never returns a worse design
         assert all(0 < e < float("inf") for e in run["error"].values())
     assert "refined / greedy" in stdout
+
+
+@pytest.mark.slow
+def test_campaign_loop_study_smoke(tmp_path):
+    """One README round per truth: nothing fails, the campaign's model holds each sample once, as a direct fit of
+    every experiment does; the former rule (samples added) held the lab's samples twice."""
+    out = tmp_path / "c.json"
+    stdout = _script("study_campaign_loop.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["smoke"] and {r["truth"] for r in result["runs"]} == {"cubic", "saturating"}
+    for run in result["runs"]:
+        assert "loop_error" not in run and run["loop_samples"] == run["loop_distinct"] == run["direct_samples"]
+        assert run["former_samples"] > run["former_distinct"]  # the README's extra tell, added again
+    assert "refit by `fit_correction` on the campaign's data (now)" in stdout

@@ -16,6 +16,13 @@ least 9 of 10), whether the round failed, whether the model holds each sample on
 distinct and as many as fit_correction's own on the 11 experiments), and the same round with the campaign's former
 rule as the peer (the samples added to the fit's and the GP refitted by marginal likelihood: a campaign started from
 a GP that does not carry its data, which is what every campaign did before).
+
+Where the round ends above 1.05x with the cubic truth, the fit it started from was nearly exact (the feature kernel
+found -eps x^3 to a fraction of its posterior standard deviation), and the three corner experiments the design asks
+for move the coefficient by about half a standard deviation or keep a spurious term within about one: a direct fit of
+the 11 experiments gives the same model. With the saturating truth the cross-validation's lengthscale moves with
+the corner experiments. The refined feature kernel as a rival of the choice (as for one trajectory) fixed one
+realization and cost 15-60 s per fit; it is not in the package (CHANGELOG).
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ K_SPRING, DAMPING, EPS = 1.0, 0.2, 0.3
 #: The measurement noise's standard deviation (the states span about -3 to 3).
 NOISE = 0.02
 FULL = {"realizations": 10, "n_test": 20}
-SMOKE = {"realizations": 2, "n_test": 5}
+SMOKE = {"realizations": 1, "n_test": 5}
 #: Issue 42's floor: the error after one round within this factor of the fit's, in at least 9 of 10 realizations.
 RATIO_GOAL, SHARE_GOAL = 1.05, 0.9
 BOX = [(-2.0, 2.0), (-2.0, 2.0)]
@@ -201,8 +208,8 @@ def _median(values: list[float]) -> float | None:
     return float(torch.tensor(values, dtype=DT).median()) if values else None
 
 
-def _fmt(x) -> str:
-    return "failed" if x is None else f"{x:.3f}"
+def _fmt(x, spec: str = ".3f") -> str:
+    return "failed" if x is None else format(x, spec)
 
 
 def table(result: dict) -> str:
@@ -233,9 +240,9 @@ def per_realization(result: dict) -> str:
     ]
     for r in result["runs"]:
         lines.append(
-            f"| {r['truth']} | {r['seed']} | {r.get('fit_model')}, {r['fit_rmse']:.4f} | {r.get('loop_model')}, "
-            f"{_fmt(r.get('loop_rmse'))} | {_fmt(r.get('loop_ratio'))} | "
-            f"{_fmt(r.get('former_rmse'))} | {_fmt(r.get('former_ratio'))} | {r.get('loop_samples')} / "
+            f"| {r['truth']} | {r['seed']} | {r.get('fit_model')}, {r['fit_rmse']:.2g} | {r.get('loop_model')}, "
+            f"{_fmt(r.get('loop_rmse'), '.2g')} | {_fmt(r.get('loop_ratio'))} | "
+            f"{_fmt(r.get('former_rmse'), '.2g')} | {_fmt(r.get('former_ratio'))} | {r.get('loop_samples')} / "
             f"{r.get('direct_samples')} |"
         )
     keys = ("loop_error", "former_error")
