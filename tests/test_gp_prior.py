@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
+from torchmisspec import design
 from torchmisspec.paper._setup import LINEAR_PRIOR
 from torchmisspec.systems import LinearField, MisspecifiedSystem
 
@@ -66,3 +67,26 @@ def test_bad_input():
         tms.CorrectionGP.prior(zero, noise_variance=1e-4)
     with pytest.raises(tms.InputError, match="system: expected a MisspecifiedSystem"):
         tms.CorrectionGP.prior("paper_linear", noise_variance=1e-4)
+
+
+def test_a_prior_for_f_on_an_input_evaluates_g_at_the_inputs_and_scales_each_side():
+    """F on a biomass (side 3) and a temperature the lab sets (side 12): G is evaluated on the grid over both, the
+    temperature given to G as its control, and each input's lengthscale is the fraction of its own side (issue 42:
+    this raised IndexError, and one lengthscale served both units)."""
+
+    def growth(t, y, u):  # G(t, y, u): logistic growth at a rate set by the temperature
+        rate = 0.05 * u[..., 0]
+        return torch.stack([rate * y[..., 0] * (1 - y[..., 0] / 3.0), -0.1 * y[..., 1]], dim=-1)
+
+    system = tms.MisspecifiedSystem(
+        growth, 2, num_controls=1, correction_inputs=[0, 2], correction_outputs=[0], domain=[(0.0, 3.0), (10.0, 22.0)]
+    )
+    gp = tms.CorrectionGP.prior(system, noise_variance=1e-4, grid_size=9)
+    x = design.candidates.grid(system.domain, 9)
+    g = 0.05 * x[:, 1] * x[:, 0] * (1 - x[:, 0] / 3.0)  # G's output 0 on the grid, by hand
+    assert gp.outputscale == pytest.approx((0.1 * float(g.abs().median())) ** 2)
+    assert gp.kernel_spec.input_scale == pytest.approx((3 / 7.5, 12 / 7.5))
+    per_input = [gp.lengthscale * c for c in gp.kernel_spec.input_scale]
+    assert per_input == pytest.approx([0.5 * 3.0, 0.5 * 12.0])
+    with pytest.raises(tms.InputError, match="expected None for system .* with 1 control"):
+        tms.CorrectionGP.prior(system, noise_variance=1e-4, states=torch.zeros(4, 2))

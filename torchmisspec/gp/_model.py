@@ -212,7 +212,10 @@ class CorrectionGP(Readout):
         * ``outputscale = (relative_size * g)^2`` with ``g`` the median over D of ``||G_out(y)|| / sqrt(d_out)``,
           the known model's size on the correction's outputs (the median, not the mean: G may be singular in D,
           as a point mass is at its own position);
-        * ``lengthscale = lengthscale_fraction *`` the mean side length of D (``system.domain``);
+        * ``lengthscale = lengthscale_fraction *`` the mean side length of D (``system.domain``); where D's sides
+          differ (a biomass over 3 units and a temperature over 12 degrees) the kernel sees each input divided by its
+          side over the mean side (``input_scale``), so that each input's lengthscale is that fraction of its own
+          side;
         * ``noise_variance``: the variance of the samples' noise, which only the experimenter knows (required).
 
         On the paper's §5.1 system (G(y) = A y on D = [-1, 1]^2) the defaults give lengthscale 1 and an output
@@ -226,7 +229,9 @@ class CorrectionGP(Readout):
             lengthscale_fraction: the lengthscale as a fraction of D's mean side length, > 0.
             kernel: a stationary kernel with a lengthscale: ``"rbf"``, ``"matern52"`` or such an object.
             states: ``(M, d)`` full states at which G is evaluated; default: a ``grid_size`` per axis grid over D
-                in the correction inputs, the other state components at 0.
+                in the correction inputs (states, then controls: F may depend on the system's inputs, and G is then
+                evaluated at those controls, at t = 0), the other components at 0. A system with controls takes
+                the default only.
             grid_size: points per axis of the default grid (at least 2).
             **kwargs: other constructor arguments (``dtype``, ``device``, ``max_iter``).
         """

@@ -41,18 +41,10 @@ def prior_hyperparameters(
     noise_variance = check_real(noise_variance, "noise_variance", positive=True)
     kd = dict(dtype=dtype, device=device)
     box = torch.as_tensor(system.domain, **kd)  # (d_in, 2)
-    if states is None:
-        from ..design.candidates import grid  # the package's one grid over a box (checks grid_size >= 2)
-
-        inputs = grid(system.domain, grid_size, **kd)
-        states = torch.zeros((inputs.shape[0], system.state_dim), **kd)
-        states[:, list(system.correction_inputs)] = inputs
-    else:
-        states = as_tensor(states, "states", **kd)
-        if states.dim() != 2 or states.shape[1] != system.state_dim:
-            raise ShapeError(f"states: expected (M, {system.state_dim}) full states, got {tuple(states.shape)}")
+    states, controls = _evaluation_points(system, states, grid_size, kd)
     with torch.no_grad():
-        g = system.select_outputs(system.known_rhs(states))
+        t = None if system.autonomous else torch.zeros(states.shape[0], **kd)
+        g = system.select_outputs(system.known_rhs(states, t, controls))
     size = g.norm(dim=-1) / math.sqrt(g.shape[-1])
     size = size[torch.isfinite(size)]
     if size.numel() == 0 or not float(size.median()) > 0:
@@ -61,5 +53,31 @@ def prior_hyperparameters(
             "for F; pass CorrectionGP(outputscale=...) yourself"
         )
     outputscale = (relative_size * float(size.median())) ** 2
-    lengthscale = fraction * float((box[:, 1] - box[:, 0]).mean())
+    widths = box[:, 1] - box[:, 0]
+    lengthscale = fraction * float(widths.mean())
+    if spec.input_scale is None and bool((widths != widths[0]).any()):  # D's sides differ: a lengthscale per input
+        spec = type(spec)(**{**spec.config(), "input_scale": tuple((widths / widths.mean()).tolist())})
     return {"kernel": spec, "lengthscale": lengthscale, "outputscale": outputscale, "noise_variance": noise_variance}
+
+
+def _evaluation_points(system, states, grid_size: int, kd: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``(states (M, d), controls (M, m) or None)`` at which G's size is taken: by default a ``grid_size`` per axis
+    grid over D in the correction inputs (states, then controls), every other component at 0; or the user's
+    ``states`` (a system with controls takes the default grid only: D gives the controls' values)."""
+    m = system.num_controls
+    if states is None:
+        from ..design.candidates import grid  # the package's one grid over a box (checks grid_size >= 2)
+
+        inputs = grid(system.domain, grid_size, **kd)
+        full = torch.zeros((inputs.shape[0], system.state_dim + m), **kd)
+        full[:, list(system.correction_inputs)] = inputs
+        return full[:, : system.state_dim], (full[:, system.state_dim :] if m else None)
+    if m:
+        raise InputError(
+            f"states: expected None for system '{system.name}' with {m} control(s) (G is evaluated on a grid over D, "
+            "whose sides give the controls' values), got states; leave states out"
+        )
+    states = as_tensor(states, "states", **kd)
+    if states.dim() != 2 or states.shape[1] != system.state_dim:
+        raise ShapeError(f"states: expected (M, {system.state_dim}) full states, got {tuple(states.shape)}")
+    return states, None
