@@ -101,3 +101,36 @@ def test_a_fit_whose_options_are_code_cannot_be_saved_in_a_campaign(fitted, tmp_
     with pytest.raises(tms.InputError, match="option generator=.*not a plain value and cannot be saved"):
         camp.save(tmp_path / "camp.pt")
     assert not (tmp_path / "camp.pt").exists()
+
+
+def test_a_campaign_with_uncertain_parameters_designs_at_their_estimate_and_refits_them():
+    """G with an uncertain damping c (issue 42: a Campaign refused such systems): started from fit_correction's
+    result, the designs run on G at c's posterior mean and tell refits c with F; without an estimate of c the
+    campaign refuses, saying how to start."""
+    D = torch.float64
+
+    def G(y, theta):
+        return torch.stack([y[..., 1], -y[..., 0] - theta[0] * y[..., 1]], -1)
+
+    truth = tms.MisspecifiedSystem(
+        lambda y: G(y, torch.tensor([0.3], dtype=D)), 2, correction=lambda x: -0.5 * torch.sin(2 * x),
+        correction_inputs=[0], correction_outputs=[1],
+    )  # fmt: skip
+    system = tms.MisspecifiedSystem(G, 2, correction_inputs=[0], correction_outputs=[1], parameters={"c": (0.4, 0.15)})
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 6, 25, dtype=D)
+    clean = tms.simulate(truth, torch.rand(5, 2, generator=g, dtype=D) * 4 - 2, t)
+    data = tms.Trajectories(t, clean.states + 0.01 * torch.randn(clean.states.shape, generator=g, dtype=D))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(data, system, progress=False)
+        camp = design.Campaign(system, design.candidates.grid([(-2, 2), (-2, 2)], 9), t, gp)
+        assert torch.equal(camp.designed_on.theta, gp.parameters_.mean)
+        asked = camp.ask(2)
+        after = camp.tell(tms.simulate(truth, asked, t))
+    assert camp.data.num_experiments == 7 and after.parameters_ is not None
+    assert abs(float(after.parameters_.mean[0]) - 0.3) < 3 * float(after.parameters_.stddev[0]) + 0.01
+    assert float(after.parameters_.stddev[0]) <= float(gp.parameters_.stddev[0]) * 1.05
+    assert torch.equal(camp.designed_on.theta, after.parameters_.mean)
+    with pytest.raises(tms.InputError, match="holds no estimate of them; start the campaign from fit_correction"):
+        design.Campaign(system, design.candidates.grid([(-2, 2), (-2, 2)], 5), t, tms.CorrectionGP(lengthscale=1.0))

@@ -120,11 +120,11 @@ class Campaign:
     ) -> None:
         self.system = check_system(system, controls, with_controls=True)
         self.executor = check_executor(executor)
-        if system.parameters is not None:
+        if system.parameters is not None and getattr(gp, "parameters_", None) is None:
             raise InputError(
-                f"system: '{system.name}' has uncertain parameters {list(system.parameters.names)}, and a Campaign "
-                "learns F only (not built yet: theta with F between rounds); fix them, e.g. at the fit's posterior "
-                "mean: Campaign(system.at(gp.parameters_.mean), ...)"
+                f"system: '{system.name}' has uncertain parameters {list(system.parameters.names)}, and gp holds no "
+                "estimate of them; start the campaign from fit_correction's result (which learns them with F, and "
+                "which tell then refits), or fix them: Campaign(system.at(theta), ...)"
             )
         if not isinstance(gp, CorrectionGP):
             raise InputError(f"gp: expected a CorrectionGP (the prior), got {type(gp).__name__}")
@@ -192,6 +192,14 @@ class Campaign:
     @property
     def num_samples(self) -> int:
         return sum(x.shape[0] for x in self._inputs)
+
+    @property
+    def designed_on(self) -> MisspecifiedSystem:
+        """The system the designs run on: with uncertain parameters, G at their current posterior mean (the design
+        scores what the experiments tell about F with theta there: a plug-in, theta's spread is not in the gains)."""
+        if self.system.parameters is None:
+            return self.system
+        return self.system.at(self.gp.parameters_.mean)
 
     @property
     def num_experiments(self) -> int:
@@ -272,7 +280,7 @@ class Campaign:
             plan = greedy(
                 self.candidates[pool],
                 k - n_pilot,
-                system=self.system,
+                system=self.designed_on,
                 times=self.times,
                 gp=self.gp,
                 criterion=self.config["criterion"],
