@@ -363,9 +363,9 @@ def test_a_lab_csv_of_a_system_with_an_uncertain_parameter_through_the_cli(tmp_p
     assert len((tmp_path / "next.csv").read_text().splitlines()) == 3
 
 
-def test_a_campaign_refuses_uncertain_parameters_with_the_fix():
+def test_a_campaign_refuses_uncertain_parameters_without_their_estimate_with_the_fix():
     _, system = _oscillator(0.3, absorb=False)
     gp = tms.CorrectionGP(lengthscale=1.0, outputscale=0.1, noise_variance=1e-4)
-    with pytest.raises(tms.InputError, match=r"Campaign\(system.at\(gp.parameters_.mean\)"):
+    with pytest.raises(tms.InputError, match=r"start the campaign from fit_correction.*Campaign\(system.at\(theta\)"):
         tms.design.Campaign(system, torch.rand(5, 2, dtype=D), torch.linspace(0, 1, 5, dtype=D), gp)
     assert tms.parameters.ParameterPosterior is ParameterPosterior

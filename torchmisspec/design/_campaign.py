@@ -32,7 +32,7 @@ from ..metrics import correction_error
 from ..observations import correction_samples
 from ..parallel import check_executor
 from ..systems import MisspecifiedSystem
-from ._campaign_data import controls_blob, controls_from, data_blob, data_from, options_blob, options_from
+from . import _campaign_data as plain
 from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
 from ._greedy import greedy
@@ -46,18 +46,6 @@ MATCH_TOL = 1e-9  # relative tolerance for matching a told initial condition to 
 # a measured first state (noisy) matches the nearest pending ask within this fraction of the candidates' range per
 # coordinate, when no pending ask matches exactly and every other pending ask is at least twice as far
 NEAR_TOL = 0.1
-
-
-def _hyperparameters(gp: CorrectionGP) -> dict:
-    out = {}
-    for name in ("lengthscale", "outputscale", "noise_variance"):
-        value = getattr(gp, name)
-        if value is None:
-            continue
-        out[name] = float(value) if not isinstance(value, torch.Tensor) or value.numel() == 1 else value.tolist()
-    if gp.is_fitted:
-        out["log_marginal_likelihood"] = float(gp.log_marginal_likelihood_)
-    return out
 
 
 class Campaign:
@@ -452,7 +440,7 @@ class Campaign:
             "unrequested": sum(i < 0 for i in matched),
             "already_held": known,
             "samples": self.num_samples,
-            "hyperparameters": _hyperparameters(gp),
+            "hyperparameters": plain.hyperparameters(gp),
             "learned": note in ("learned", "refitted by fit_correction"),
             "note": note,
             "seconds": time.perf_counter() - start,
@@ -496,7 +484,7 @@ class Campaign:
             "config": dict(self.config),
             "candidates": self.candidates.cpu(),
             "times": self.times.cpu(),
-            "controls": None if self.controls is None else controls_blob(self.controls),
+            "controls": None if self.controls is None else plain.controls_blob(self.controls),
             "prior": _persistence.config_of(self.prior),
             "prior_model": _persistence.to_blob(self.prior) if self.prior.is_fitted else None,
             "model": _persistence.to_blob(self.gp) if self.gp.is_fitted else None,
@@ -508,8 +496,8 @@ class Campaign:
             "measured": list(self.measured),
             "history": self.history,
             "generator": self.generator.get_state(),
-            "data": None if self.data is None else data_blob(self.data),
-            "fit_options": None if self.fit_options is None else options_blob(self.fit_options),
+            "data": None if self.data is None else plain.data_blob(self.data),
+            "fit_options": None if self.fit_options is None else plain.options_blob(self.fit_options),
         }
         tmp = path.with_name(path.name + ".tmp")
         with writing(path):
@@ -557,7 +545,7 @@ class Campaign:
                 refit_after=cfg["refit_after"],
                 pilot=cfg["pilot"],
                 seed=cfg["seed"],
-                controls=controls_from(blob.get("controls"), path),
+                controls=plain.controls_from(blob.get("controls"), path),
             )
         except (KeyError, TypeError) as exc:
             raise InputError(f"{path}: field 'config' is damaged ({type(exc).__name__}: {exc})") from exc
@@ -593,8 +581,8 @@ class Campaign:
             camp.generator.set_state(state)
         except RuntimeError as exc:
             raise InputError(f"{path}: field 'generator' is damaged ({exc})") from exc
-        camp.data = data_from(blob.get("data"), path, **dd)
-        camp.fit_options = options_from(blob.get("fit_options"), path)
+        camp.data = plain.data_from(blob.get("data"), path, **dd)
+        camp.fit_options = plain.options_from(blob.get("fit_options"), path)
         if (camp.data is None) != (camp.fit_options is None):
             raise InputError(f"{path}: expected both 'data' and 'fit_options' or neither; the file is damaged")
         model = blob.get("model")

@@ -1,6 +1,7 @@
-"""What a :class:`~torchmisspec.design.Campaign` started from :func:`~torchmisspec.fit_correction` saves beside its
-samples: the measured trajectories and the options of the fit it refits with, as tensors and plain values only
-(:meth:`Campaign.save` never writes code, and :meth:`Campaign.load` checks what it reads)."""
+"""What a :class:`~torchmisspec.design.Campaign` writes as plain values: its input profiles, its model's
+hyperparameters (the history), and for a campaign started from :func:`~torchmisspec.fit_correction` the measured
+trajectories and the options of the fit it refits with, as tensors and plain values only (:meth:`Campaign.save`
+never writes code, and :meth:`Campaign.load` checks what it reads)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,19 @@ from ..signals import Controls
 #: The options of :func:`~torchmisspec.fit_correction` saved as plain values (``gp`` and ``candidates`` as template
 #: configurations, ``noise`` by name).
 PLAIN = ("select", "derivative", "folds", "refine", "progress")
+
+
+def hyperparameters(gp: CorrectionGP) -> dict:
+    """``gp``'s hyperparameters (and log marginal likelihood once fitted) as plain values, for the history."""
+    out = {}
+    for name in ("lengthscale", "outputscale", "noise_variance"):
+        value = getattr(gp, name)
+        if value is None:
+            continue
+        out[name] = float(value) if not isinstance(value, torch.Tensor) or value.numel() == 1 else value.tolist()
+    if gp.is_fitted:
+        out["log_marginal_likelihood"] = float(gp.log_marginal_likelihood_)
+    return out
 
 
 def controls_blob(controls: Controls) -> dict:
