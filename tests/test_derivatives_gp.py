@@ -234,3 +234,27 @@ def test_auto_on_per_experiment_grids():
     samples = correction_samples(traj, system)
     assert samples.targets.shape == (84, 1)
     assert (samples.noise is not None) == (name == "gp")
+
+
+def test_fit_correction_gives_the_estimators_advice_only_where_held_out_data_do_not_contradict_it():
+    """Issue 42: the self-check's warning fired on every fit, also where the cross-validation found the correction
+    significantly better than the known model. Sparse pendulum data with its missing term: significant, no advice;
+    the same times from the known model alone (nothing to correct): the advice is given, with the do-no-harm one.
+    On the command line the advice names the command's flags."""
+    from torchmisspec.cli import _one_line
+    from torchmisspec.observations import ESTIMATOR_ADVICE
+
+    data = pendulum_data(K=10, T=11)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = tms.fit_correction(data, pendulum(), progress=False)
+    assert gp.cross_validation_.significant
+    assert not [w for w in caught if str(w.message).startswith(ESTIMATOR_ADVICE)]
+    known = simulate(pendulum(), data.initial_conditions, data.time_grid, known_only=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = tms.fit_correction(known, pendulum(), progress=False)
+    advice = [str(w.message) for w in caught if str(w.message).startswith(ESTIMATOR_ADVICE)]
+    assert gp.known_model_ and len(advice) == 1
+    line = _one_line(advice[0])
+    assert "--derivative names one" in line and "--refine" in line and "tms." not in line

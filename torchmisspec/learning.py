@@ -49,7 +49,7 @@ from .gp._exact import median_distance
 from .gp._features import FEATURE_DEGREE
 from .gp._selection import fit_and_score
 from .noise import as_noise_model
-from .observations import CorrectionSamples, _check_trajectories_and_system, correction_samples
+from .observations import ESTIMATOR_ADVICE, CorrectionSamples, _check_trajectories_and_system, correction_samples
 from .parameters import posterior_given
 from .systems import MisspecifiedSystem
 from .trajectory_fit import _mean_field, fit_trajectories
@@ -215,6 +215,27 @@ def _rival_applies(scored, trajectories, result, system, given: bool) -> bool:
         return False
     features = result.kernel_spec.terms and result.kernel_spec.feature_space
     return not features and system.autonomous and system.parameters is None
+
+
+def _held_advice(caught) -> list:
+    """The derivative estimator's warnings among ``caught`` (held back); every other warning given now."""
+    held = []
+    for w in caught:
+        if issubclass(w.category, TorchMisspecWarning) and str(w.message).startswith(ESTIMATOR_ADVICE):
+            held.append(w)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return held
+
+
+def _give_advice(held: list, cv: CrossValidation | None) -> None:
+    """The estimator's held warnings, unless the cross-validation ``cv`` found the correction significantly better
+    than the known model on held-out data: the estimator's error then did not stop the correction from predicting
+    (the advice would not change what the user does)."""
+    if cv is not None and cv.significant:
+        return
+    for w in held:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored, noise):
@@ -427,7 +448,10 @@ def _fit(
     user_candidates = candidates is not None
     if user_candidates:
         candidates = _check_candidates(candidates)
-    samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
+    advice = _held_advice(caught)  # the estimator's advice: given below unless held-out data contradict it
     raw, posterior = samples, None
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
         refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
@@ -460,6 +484,7 @@ def _fit(
         known = (
             None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories, scored, noise)
         )
+        _give_advice(advice, cv)
         if known is not None:
             known.cross_validation_, known.samples_ = cv, raw
             known.input_names_ = system0.input_names(trajectories)
@@ -496,6 +521,8 @@ def _fit(
                 f"{', '.join(cv.candidates)}); chose among them by evidence instead",
                 TorchMisspecWarning,
             )
+    if cv is None:
+        _give_advice(advice, None)
     if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
         auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
         pool = candidates if user_candidates else [auto if gp is None else gp]

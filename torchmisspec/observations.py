@@ -225,6 +225,11 @@ def _without_short(trajectories: Trajectories, system: MisspecifiedSystem, short
     return dataclasses.replace(samples, experiment=index[samples.experiment])
 
 
+#: How the derivative estimator's self-check warning begins (:func:`~torchmisspec.fit_correction` gives it only
+#: where the held-out data do not show the correction predicting significantly better than the known model).
+ESTIMATOR_ADVICE = "correction_samples: the best derivative estimator"
+
+
 def correction_samples(
     trajectories: Trajectories,
     system: MisspecifiedSystem,
@@ -319,7 +324,7 @@ def correction_samples(
         ratio = errors[(name, tuple(sorted(options.items())))]
         if ratio > ESTIMATOR_ERROR_THRESHOLD:  # NaN: not ranked (choose_derivative said why)
             warn(
-                f"correction_samples: the best derivative estimator ({name} {options}) has an error on the known "
+                f"{ESTIMATOR_ADVICE} ({name} {options}) has an error on the known "
                 f"model of {ratio:.3g} times the size of the correction samples (threshold "
                 f"{ESTIMATOR_ERROR_THRESHOLD}): the learned correction would mostly fit estimator error. Fixes: "
                 "sample the states more densely in time, try another estimator (estimator_error tells which is "

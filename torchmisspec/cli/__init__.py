@@ -177,7 +177,11 @@ def _warning_line(command: str, message, category, filename, lineno, file=None, 
 
 
 #: Python keywords in the library's advice and the command line's flags for them.
-_FLAGS = tuple((f"noise='{name}'", f"--noise {name}") for name in ("additive", "relative", "counts", "poisson"))
+_FLAGS = tuple((f"noise='{name}'", f"--noise {name}") for name in ("additive", "relative", "counts", "poisson")) + (
+    ("estimator_error tells which is best", "--derivative names one: central, smooth or gp"),
+    ("fit the correction through the ODE with tms.fit_trajectories", "refine it through the ODE with --refine"),
+    ("refit with refine=True", "refit with --refine"),
+)
 
 
 if __name__ == "__main__":
