@@ -134,3 +134,23 @@ def test_a_campaign_with_uncertain_parameters_designs_at_their_estimate_and_refi
     assert torch.equal(camp.designed_on.theta, after.parameters_.mean)
     with pytest.raises(tms.InputError, match="holds no estimate of them; start the campaign from fit_correction"):
         design.Campaign(system, design.candidates.grid([(-2, 2), (-2, 2)], 5), t, tms.CorrectionGP(lengthscale=1.0))
+
+
+def test_a_campaigns_data_are_saved_with_their_inputs_readout_and_ragged_lengths():
+    from torchmisspec.data import Readout
+    from torchmisspec.design import _campaign_data as plain
+    from torchmisspec.signals import Controls
+
+    t = [torch.linspace(0, 1, 4, dtype=DT), torch.linspace(0, 2, 6, dtype=DT)]
+    y = [torch.rand(4, 2, dtype=DT), torch.rand(6, 2, dtype=DT)]
+    readout = Readout([[1.0, 1.0]], ["total"], state_names=["a", "b"])
+    controls = Controls([0.0, 1.0], torch.rand(2, 2, 1, dtype=DT))
+    traj = tms.Trajectories(t, y, state_names=["a", "b"], controls=controls, readout=readout,
+                            readings=[yk.sum(-1, keepdim=True) for yk in y])  # fmt: skip
+    back = plain.data_from(plain.data_blob(traj), "camp.pt", DT, traj.device)
+    assert back.lengths == (4, 6) and back.state_names == ("a", "b") and back.readout.names == ("total",)
+    assert known_experiments(back, traj) == [True, True]
+    torch.testing.assert_close(back.controls.at(torch.tensor([[0.5], [1.5]], dtype=DT)),
+                               traj.controls.at(torch.tensor([[0.5], [1.5]], dtype=DT)))  # fmt: skip
+    with pytest.raises(tms.InputError, match="camp.pt: field 'data' is damaged"):
+        plain.data_from({"times": []}, "camp.pt", DT, traj.device)

@@ -21,7 +21,7 @@ def concatenate(cls, parts):
     parts = aligned(parts)
     first = parts[0]
     every = [e for p in parts for e in p.experiments()]
-    readings = None if first.readout is None else [r for p in parts for r in _readings(p)]
+    readings = None if first.readout is None else [r for p in parts for r in readings_of(p)]
     y0 = None
     if all(p.initial_states is not None for p in parts):
         y0 = torch.cat([p.initial_states for p in parts])
@@ -88,7 +88,8 @@ def _check_alike(first, other, k: int) -> None:
         raise InputError(f"parts[{k}]: expected experiments {has} input profiles, as parts[0], got the other kind")
 
 
-def _readings(p) -> list[torch.Tensor]:
+def readings_of(p) -> list[torch.Tensor]:
+    """Each experiment's readings ``(T_k, m)`` of ``p`` (which has a readout)."""
     return list(p.readings) if isinstance(p.readings, tuple) else list(p.readings.unbind(0))
 
 
@@ -107,7 +108,7 @@ def _controls(profiles: list[Controls]) -> Controls:
 
 def _key(traj, k: int) -> tuple:
     t, y = traj.experiments()[k]
-    r = None if traj.readings is None else _readings(traj)[k]
+    r = None if traj.readings is None else readings_of(traj)[k]
     return t.detach().cpu().double(), y.detach().cpu().double(), None if r is None else r.detach().cpu().double()
 
 

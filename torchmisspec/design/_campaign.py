@@ -346,19 +346,20 @@ class Campaign:
         trajectories and refits on them and the new ones with the same call (the same options, candidates and
         choice rule: held-out experiments, do no harm); otherwise the samples of
         :func:`~torchmisspec.correction_samples` (the campaign's ``derivative`` and ``noise_std``) are added and the
-        GP refitted by marginal likelihood (``refit_after``). Nothing changes if anything fails (bad input, a failed
-        fit).
+        GP refitted by marginal likelihood (``refit_after``); the campaign's ``derivative`` and ``noise_std`` apply to
+        this second way only (the first uses the fit's own options). Nothing changes if anything fails (bad input, a
+        failed fit).
         """
         traj = self._checked(trajectories)
         start = time.perf_counter()
-        known = known_experiments(traj, self.data if self.data is not None else None)
+        known = known_experiments(traj, self.data)
         told = traj.num_experiments
         if all(known):
-            return self._noted(told, told, start)
+            return self._noted(told, start)
         if any(known):
             traj = traj[[k for k, seen in enumerate(known) if not seen]]
-        if asked is not None and any(known):
-            asked = asked if isinstance(asked, str) else [a for a, seen in zip(asked, known, strict=False) if not seen]
+            if isinstance(asked, (list, tuple)) and len(asked) == told:  # another length: _given_asks says so
+                asked = [a for a, seen in zip(asked, known, strict=True) if not seen]
         matched, pending = self._matched(traj, asked)
         state = self.generator.get_state()
         try:
@@ -426,7 +427,7 @@ class Campaign:
         self._inputs, self._targets, self._noise = inputs, targets, noise  # the caller commits the rest
         return gp, note
 
-    def _noted(self, told: int, known: int, start: float) -> CorrectionGP:
+    def _noted(self, known: int, start: float) -> CorrectionGP:
         """A tell of experiments the campaign holds already: recorded, nothing added, the model unchanged."""
         self._record_tell([], "nothing new: every experiment told is held already; model unchanged", start, known)
         return self.gp

@@ -9,6 +9,7 @@ import torch
 
 from .._errors import InputError, TorchMisspecError
 from ..data import Readout, Trajectories
+from ..data._join import readings_of
 from ..gp import CorrectionGP, _persistence
 from ..noise import NOISE_MODELS, CountNoise
 from ..signals import Controls
@@ -63,9 +64,7 @@ def data_blob(traj: Trajectories) -> dict:
         "readout": None if traj.readout is None else {
             "matrix": traj.readout.matrix.detach().cpu(), "names": list(traj.readout.names),
         },
-        "readings": None if traj.readings is None else [
-            r.detach().cpu() for r in (traj.readings if isinstance(traj.readings, tuple) else traj.readings.unbind(0))
-        ],
+        "readings": None if traj.readings is None else [r.detach().cpu() for r in readings_of(traj)],
         "initial_states": None if traj.initial_states is None else traj.initial_states.detach().cpu(),
     }  # fmt: skip
 
