@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._bands import band_quantiles, path_quantiles
+from torchmisspec.prediction._bands import band_quantiles, path_quantiles
 
 
 @pytest.mark.parametrize("S, level", [(39, 0.9), (64, 0.9), (64, 0.5), (99, 0.95)])

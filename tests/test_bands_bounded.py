@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._bands import band_quantiles
+from torchmisspec.prediction._bands import band_quantiles
 from torchmisspec.systems import MisspecifiedSystem
 
 DT = torch.float64
@@ -256,7 +256,7 @@ def test_a_draw_that_left_in_one_component_leaves_the_other_anywhere_in_the_regi
     """Two states; 15 of 20 draws left across the upper edge of the first: its band's upper end is that edge; the
     second component of those draws is unknown, and the 5 that remain are too few for a 0.9 band: its band is the
     whole region, finite. With 3 of 20 gone, the second component's 0.5 band is that of the 17 that remain."""
-    from torchmisspec._bands import TrajectoryPosterior
+    from torchmisspec.prediction._bands import TrajectoryPosterior
 
     S = 20
     samples = torch.full((S, 1, 1, 2), math.nan, dtype=DT)

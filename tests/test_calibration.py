@@ -1,4 +1,4 @@
-"""Calibration of the predicted bands on held-out experiments (issue 10: ``torchmisspec.calibration``)."""
+"""Calibration of the predicted bands on held-out experiments (issue 10: ``torchmisspec.prediction.calibration``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.calibration import BISECTION_STEPS
+from torchmisspec.prediction.calibration import BISECTION_STEPS
 
 DT = torch.float64
 
@@ -203,7 +203,7 @@ def test_a_model_refined_through_the_ode_has_each_fold_refined_the_same_way(data
     """fit_correction refines the feature kernel through the ODE; the folds used to be fitted to the samples alone, a
     worse model whose held-out errors made the bands cover 0.98 of the true states in the end-to-end study. The
     refinement's settings are recorded on the model, saved with it, and repeated on every fold's experiments."""
-    import torchmisspec.calibration as calibration
+    import torchmisspec.prediction.calibration as calibration
 
     system, traj, samples = data
     gp = tms.CorrectionGP(kernel="features", degree=2).fit(samples)

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._time_pieces import MIN_PIECE, piece_samples, time_pieces
 from torchmisspec.gp._calibration import BandCalibration
+from torchmisspec.learning.choice._time_pieces import MIN_PIECE, piece_samples, time_pieces
 
 DT = torch.float64
 
@@ -54,7 +54,7 @@ def test_one_experiment_is_calibrated_on_its_time_pieces(one):
     assert cal.num_points == 2 * (traj.lengths[0] - cal.folds)
     assert model.gp.calibration_ is cal and "folds of time pieces" in str(cal)
     # the same calibration by hand: the pieces as experiments, the samples relabelled
-    by_hand = tms.calibration.calibrate_bands(
+    by_hand = tms.prediction.calibration.calibrate_bands(
         model, time_pieces(traj), piece_samples(samples, traj), num_samples=16,
         generator=torch.Generator().manual_seed(0), progress=False,
     )  # fmt: skip

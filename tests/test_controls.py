@@ -273,8 +273,8 @@ def test_the_fit_through_the_ode_runs_each_experiment_under_its_own_inputs(shoot
     known = tms.MisspecifiedSystem(system.known, 1, num_controls=1, correction_inputs=[0, 1], time_dependent=False)
     gp = tms.fit_correction(traj, known, select="evidence", derivative="central", progress=False)
     refined = tms.fit_trajectories(gp, known, traj, shooting=shooting, max_iter=15)
-    before = tms.trajectory_fit.shooting_misfit(gp, known, traj)
-    after = tms.trajectory_fit.shooting_misfit(refined, known, traj)
+    before = tms.learning.refinement.trajectory_fit.shooting_misfit(gp, known, traj)
+    after = tms.learning.refinement.trajectory_fit.shooting_misfit(refined, known, traj)
     assert after < 0.25 * before, (before, after)  # measured: 0.060 -> 0.0025 (single), 0.0023 (multiple)
     stripped = tms.Trajectories(traj.time_grid, traj.states)
     with pytest.raises(tms.InputError):

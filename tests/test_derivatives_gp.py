@@ -11,7 +11,7 @@ import torch
 import torchmisspec as tms
 from torchmisspec._errors import InputError
 from torchmisspec.data import Trajectories, simulate
-from torchmisspec.observations import (
+from torchmisspec.learning.samples.observations import (
     ESTIMATOR_ERROR_THRESHOLD,
     choose_derivative,
     correction_samples,
@@ -242,7 +242,7 @@ def test_fit_correction_gives_the_estimators_advice_only_where_held_out_data_do_
     the same times from the known model alone (nothing to correct): the advice is given, with the do-no-harm one.
     On the command line the advice names the command's flags."""
     from torchmisspec.cli import _one_line
-    from torchmisspec.observations import ESTIMATOR_ADVICE
+    from torchmisspec.learning.samples.observations import ESTIMATOR_ADVICE
 
     data = pendulum_data(K=10, T=11)
     with warnings.catch_warnings(record=True) as caught:

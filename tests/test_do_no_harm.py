@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.learning import KNOWN_MODEL_OUTPUTSCALE, known_model_template, time_pieces
+from torchmisspec.learning.fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template, time_pieces
 
 DT = torch.float64
 R_TRUE, K_TRUE = 0.5, 10.0

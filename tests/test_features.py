@@ -11,8 +11,8 @@ import torch
 import torchmisspec as tms
 from torchmisspec.gp._features import monomial_names, monomial_powers, monomials
 from torchmisspec.gp._relevance import _evidence, fit_relevance, unit_information_weights
+from torchmisspec.learning.refinement.trajectory_fit import shooting_misfit
 from torchmisspec.systems import LinearField, MisspecifiedSystem
-from torchmisspec.trajectory_fit import shooting_misfit
 
 DT = torch.float64
 

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 import torchmisspec as tms
 from torchmisspec import plotting
-from torchmisspec._bands import TrajectoryPosterior
+from torchmisspec.prediction._bands import TrajectoryPosterior
 
 DT = torch.float64
 SYSTEM = tms.systems.paper_linear()

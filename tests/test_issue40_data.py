@@ -283,7 +283,7 @@ def test_a_readout_is_attached_to_the_states_by_name():
 
 
 def test_a_posterior_reads_a_named_readout_by_name():
-    from torchmisspec._bands import TrajectoryPosterior
+    from torchmisspec.prediction._bands import TrajectoryPosterior
 
     samples = torch.rand(3, 1, 4, 2, dtype=DT, generator=torch.Generator().manual_seed(1))
     post = TrajectoryPosterior(

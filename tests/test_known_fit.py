@@ -1,6 +1,6 @@
 """Issue 41, the classical answer inside the package: the known model alone (F = 0) fitted through the ODE to what was
-measured (torchmisspec._known_fit), checked against scipy's least squares on the same objective, and the held-out
-later times on which partly measured data keep a correction only when it forecasts them better."""
+measured (torchmisspec.learning.refinement._known_fit), checked against scipy's least squares on the same objective, and
+the held-out later times on which partly measured data keep a correction only when it forecasts them better."""
 
 import math
 import warnings
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._known_fit import fit_known_model, forecast_check, forecast_score, time_split
+from torchmisspec.learning.refinement._known_fit import fit_known_model, forecast_check, forecast_score, time_split
 from torchmisspec.noise import Additive, Relative
 
 DT = torch.float64
@@ -143,7 +143,7 @@ def test_the_incomplete_beta_function_matches_scipy():
     from scipy.special import betainc as reference
     from scipy.stats import f
 
-    from torchmisspec._known_fit import betainc, f_survival
+    from torchmisspec.learning.refinement._known_fit import betainc, f_survival
 
     for a in (0.5, 1.0, 2.5, 7.0, 30.0):
         for b in (0.5, 1.0, 3.0, 12.0):
@@ -222,7 +222,7 @@ def test_the_paired_test_of_gains_is_scipys_one_sided_t_test(seed):
     is the one-sided paired t test at the 2.5 % level on the log ratios (scipy's ttest_1samp)."""
     from scipy.stats import ttest_1samp
 
-    from torchmisspec.cross_validation import significant_gain
+    from torchmisspec.learning.choice.cross_validation import significant_gain
 
     g = torch.Generator().manual_seed(seed)
     gains = (0.3 * seed / 5 + 0.4 * torch.randn(8, generator=g, dtype=torch.float64)).tolist()
@@ -233,7 +233,7 @@ def test_the_paired_test_of_gains_is_scipys_one_sided_t_test(seed):
 
 
 def test_the_rivals_gains_per_experiment():
-    from torchmisspec._partial_choice import _gains
+    from torchmisspec.learning.choice._partial_choice import _gains
 
     known = torch.tensor([4.0, 0.0, 2.0, math.inf, 1.0], dtype=torch.float64)
     rival = torch.tensor([1.0, 3.0, math.inf, 5.0, 0.0], dtype=torch.float64)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.learning import LENGTHSCALE_GRID, cross_validate_lengthscale
+from torchmisspec.learning.fit import LENGTHSCALE_GRID, cross_validate_lengthscale
 from torchmisspec.systems import LinearField, MisspecifiedSystem
 
 DT = torch.float64
@@ -161,7 +161,7 @@ def test_fit_trajectories_bad_shooting_and_state_noise(linear_noisy):
 
 
 def test_student_t_quantiles_and_the_critical_value():
-    from torchmisspec.cross_validation import CrossValidation, student_t_quantile
+    from torchmisspec.learning.choice.cross_validation import CrossValidation, student_t_quantile
 
     # reference values of the 97.5 % quantile (standard tables)
     for df, value in ((1, 12.706), (2, 4.303), (3, 3.182), (4, 2.776), (9, 2.262), (29, 2.045), (1000, 1.962)):
@@ -234,7 +234,7 @@ def test_given_candidates_are_never_silently_replaced(one_thread, monkeypatch):
     with pytest.raises(tms.InputError, match="non-empty list of CorrectionGP templates, got an empty list"):
         tms.fit_correction(one, system, candidates=[], derivative="oracle")
     many = tms.simulate(system, torch.tensor([[0.5, -0.3], [0.2, 0.4], [-0.5, 0.1]], dtype=DT), t)
-    from torchmisspec import cross_validation
+    from torchmisspec.learning.choice import cross_validation
 
     monkeypatch.setattr(cross_validation, "_held_out_errors", _fail_held_out)
     with pytest.warns(tms.TorchMisspecWarning, match="every candidate failed cross-validation.*polynomial"):
@@ -276,7 +276,7 @@ def test_thinned_keeps_each_experiments_ends_evenly_spaced():
 def test_the_model_is_chosen_on_a_subsample_and_fitted_on_all(linear_noisy, one_thread, monkeypatch):
     """Above SELECTION_SAMPLES the candidates are scored on each experiment's samples thinned evenly; the chosen
     template is then fitted on every sample (its lengthscale the chosen one); at or below it nothing changes."""
-    import torchmisspec.learning as learning
+    import torchmisspec.learning.fit as learning
 
     system, traj, test = linear_noisy
     monkeypatch.setattr(learning, "SELECTION_SAMPLES", 40)

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._estimators import _estimate_flat
-from torchmisspec._gp_in_time import _gp_time
-from torchmisspec.observations import finite_difference, gp_derivative, smoothed_derivative
-from torchmisspec.trajectory_fit import _shooting
+from torchmisspec.learning.refinement.trajectory_fit import _shooting
+from torchmisspec.learning.samples._estimators import _estimate_flat
+from torchmisspec.learning.samples._gp_in_time import _gp_time
+from torchmisspec.learning.samples.observations import finite_difference, gp_derivative, smoothed_derivative
 
 DT = torch.float64
 
@@ -257,9 +257,9 @@ def test_samples_skip_missing_outputs_and_fill_what_g_needs(sir):
 def test_auto_chooses_on_data_with_missing_entries(sir):
     system, _, times, states = sir
     traj = tms.Trajectories(times, _with_holes(states, 0.05))
-    name, options, errors = tms.observations.choose_derivative(traj, system)
+    name, options, errors = tms.learning.samples.observations.choose_derivative(traj, system)
     assert math.isfinite(errors[(name, tuple(sorted(options.items())))])
-    assert math.isfinite(tms.observations.estimator_error(traj, system, derivative="central", order=2))
+    assert math.isfinite(tms.learning.samples.observations.estimator_error(traj, system, derivative="central", order=2))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
         samples = tms.correction_samples(traj, system)
@@ -366,7 +366,7 @@ def test_a_missing_state_column_in_ragged_data_is_named(sir, tmp_path):
     for call in (
         lambda: tms.correction_samples(traj, system),
         lambda: tms.fit_correction(traj, system),
-        lambda: tms.observations.estimator_error(traj, system, derivative="central"),
+        lambda: tms.learning.samples.observations.estimator_error(traj, system, derivative="central"),
     ):
         with pytest.raises(tms.ShapeError, match=msg):
             call()

@@ -72,7 +72,7 @@ def test_a_component_never_observed_starts_from_the_data_scale_and_is_estimated(
 def test_the_guess_of_a_component_never_observed_is_the_data_scale():
     """Without a system (CorrectedODE.initial_states, calibrate) the guess is made and said; with one, a component
     that drives no measured component is still refused (nothing could estimate it; test_partial has that case)."""
-    from torchmisspec import partial
+    from torchmisspec.learning.refinement import partial
 
     t = torch.linspace(0, 1, 5, dtype=DT)
     y = torch.stack([torch.full((5,), float("nan"), dtype=DT), torch.linspace(-2.0, 4.0, 5, dtype=DT)], -1)[None]
@@ -98,7 +98,8 @@ def test_the_refined_feature_model_is_the_fitted_one_with_fewer_samples_than_ter
     system = tms.MisspecifiedSystem(lambda y: 0.9 * predator_prey(y), 2)
     samples = tms.correction_samples(data, system, derivative="central")
     gp = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(samples)
-    # the relevance rounds' own model (its sparse rival, torchmisspec._term_price, has fewer terms than samples)
+    # the relevance rounds' own model (its sparse rival, torchmisspec.learning.refinement._term_price, has fewer terms
+    # than samples)
     monkeypatch.setattr(tms.trajectory_fit, "_sparser", lambda refined, *args: refined)
     refined = tms.fit_trajectories(gp, system, data, max_iter=10)
 
@@ -120,7 +121,7 @@ def test_a_refinement_that_cannot_be_integrated_keeps_the_chosen_model(one_threa
     y[..., 0] = float("nan")
     data = tms.Trajectories(t, y, state_names=["prey", "predator"])
     system = tms.MisspecifiedSystem(predator_prey, 2, state_names=["prey", "predator"], correction_outputs=[1])
-    from torchmisspec import partial
+    from torchmisspec.learning.refinement import partial
 
     def fails(*args, **kwargs):
         raise tms.IntegrationError("fit_trajectories: the solver stalled (made to fail)")

@@ -118,7 +118,7 @@ def test_the_noise_scale_is_the_measurement_noise_when_the_model_is_right():
 
 
 def _still(y: float, S: int = 4000, d: int = 1):
-    from torchmisspec._bands import TrajectoryPosterior
+    from torchmisspec.prediction._bands import TrajectoryPosterior
 
     samples = torch.full((S, 1, 3, d), y, dtype=DT)
     return TrajectoryPosterior(

@@ -1,4 +1,5 @@
-"""Tests of torchmisspec.observations: derivative estimators and correction samples F~ = dy/dt - G(y)."""
+"""Tests of torchmisspec.learning.samples.observations: derivative estimators and correction samples F~ = dy/dt -
+G(y)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import torch
 
 from torchmisspec._errors import InputError, ShapeError
 from torchmisspec.data import Trajectories, simulate
-from torchmisspec.observations import (
+from torchmisspec.learning.samples.observations import (
     CorrectionSamples,
     correction_samples,
     finite_difference,

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._one_trajectory import _split
-from torchmisspec.learning import time_pieces
+from torchmisspec.learning.choice._one_trajectory import _split
+from torchmisspec.learning.fit import time_pieces
 from torchmisspec.paper import study_one_trajectory as protocol
 
 DT = torch.float64

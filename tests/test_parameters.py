@@ -10,7 +10,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.parameters import ParameterPosterior, check_priors, parameter_basis, parameter_posterior
+from torchmisspec.learning.theta.closed_form import condition_with_parameters, parameter_posterior, posterior_given
+from torchmisspec.parameters import ParameterPosterior, check_priors, parameter_basis
 
 D = torch.float64
 
@@ -85,7 +86,7 @@ def test_f_posterior_with_theta_integrated_matches_brute_force(problem):
     residuals = residuals[:, [1]]
     gp = _gp(X, residuals)
     declared = SimpleNamespace(parameters=priors, correction_outputs=[0])  # what the closed form reads of a system
-    conditioned, _ = tms.parameters.condition_with_parameters(gp, _samples(X, residuals, basis), declared)
+    conditioned, _ = condition_with_parameters(gp, _samples(X, residuals, basis), declared)
     post = conditioned.parameters_
     mean, cov, _, total, r, H, K = _brute(gp, X, residuals, basis, [0], priors.mean, priors.scale, {})
     xs = torch.linspace(-2.5, 2.5, 7, dtype=D)[:, None]
@@ -237,7 +238,7 @@ def test_nonlinear_parameter_map_and_laplace_match_brute_force():
     samples = tms.correction_samples(_data(truth, 3), system, derivative="gp")
     assert not samples.parameters_linear
     gp = tms.CorrectionGP(lengthscale=0.7, outputscale=0.3, noise_variance=1e-3).fit(samples.inputs, samples.targets)
-    post, linearized = tms.parameters.posterior_given(gp, samples, system)
+    post, linearized = posterior_given(gp, samples, system)
     assert not post.linear
     dydt = samples.residuals + system.known_rhs(samples.states)
     m, s = float(system.parameters.mean[0]), float(system.parameters.scale[0])
@@ -289,17 +290,17 @@ def test_prior_only_model_and_refusals():
     assert not torch.equal(refined.train_targets_, plain_fit.train_targets_)
     # its calibration folds refine F the same way at their own theta, which they keep (not the prior)
     seen = []
-    original = tms.calibration.fit_trajectories
+    original = tms.prediction.calibration.fit_trajectories
 
     def spy(gp, system, *args, **kw):
         seen.append(system.parameters is None)
         return original(gp, system, *args, **kw)
 
-    tms.calibration.fit_trajectories = spy
+    tms.prediction.calibration.fit_trajectories = spy
     try:
         tms.CorrectedODE(system, refined).calibrate(data, folds=2, progress=False)
     finally:
-        tms.calibration.fit_trajectories = original
+        tms.prediction.calibration.fit_trajectories = original
     assert seen and all(seen)  # each fold's F refined with theta fixed at the fold's estimate
     with pytest.raises(tms.InputError, match=r"system.at\(gp.parameters_.mean\)"):
         tms.fit_trajectories(refined, system, data)  # G would run at the prior mean: refused, with the fix

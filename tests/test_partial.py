@@ -14,8 +14,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec import partial
 from torchmisspec.cli import main
+from torchmisspec.learning.refinement import partial
 
 DT = torch.float64
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._gp_in_time import _gp_neg_mll
 from torchmisspec.data import Trajectories, simulate
-from torchmisspec.observations import correction_samples, estimator_error
-from torchmisspec.trajectory_fit import shooting_misfit
+from torchmisspec.learning.refinement.trajectory_fit import shooting_misfit
+from torchmisspec.learning.samples._gp_in_time import _gp_neg_mll
+from torchmisspec.learning.samples.observations import correction_samples, estimator_error
 
 DT = torch.float64
 LENGTHS = (11, 15, 21, 11, 17)

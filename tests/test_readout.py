@@ -13,9 +13,9 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec import partial
 from torchmisspec.cli import main
-from torchmisspec.trajectory_fit import _shooting
+from torchmisspec.learning.refinement import partial
+from torchmisspec.learning.refinement.trajectory_fit import _shooting
 
 DT = torch.float64
 

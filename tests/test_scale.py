@@ -15,8 +15,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec._units import data_units
 from torchmisspec.gp._rescale import rescaled
+from torchmisspec.learning._units import data_units
 
 DT = torch.float64
 TOLERANCE = 1e-4  # the goal: max |pred_c / c - pred_1| / max |pred_1|

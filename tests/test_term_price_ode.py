@@ -1,4 +1,4 @@
-"""The sparse rival of the feature kernel refined through the ODE (torchmisspec._term_price)."""
+"""The sparse rival of the feature kernel refined through the ODE (torchmisspec.learning.refinement._term_price)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from torchmisspec._term_price import _whitened, bic, forward_selection, term_price
+from torchmisspec.learning.refinement._term_price import _whitened, bic, forward_selection, term_price
 
 DT = torch.float64
 

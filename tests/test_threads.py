@@ -8,7 +8,7 @@ import time
 import pytest
 import torch
 
-from torchmisspec import _threads
+from torchmisspec import parallel as _threads
 
 
 @pytest.fixture

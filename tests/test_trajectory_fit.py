@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.trajectory_fit import shooting_misfit
+from torchmisspec.learning.refinement.trajectory_fit import shooting_misfit
 
 DT = torch.float64
 
@@ -87,9 +87,9 @@ def test_known_per_sample_noise_stays_part_of_the_prior(problem, one_thread):
 def test_batched_jacobian_columns_equal_one_solve_per_column():
     """The Gauss-Newton Jacobian of the feature coefficients: every perturbed model in one batched solve (ragged
     experiments included) gives the columns of one solve per perturbation, to solver tolerance."""
-    from torchmisspec import _jacobian as tm
-    from torchmisspec import trajectory_fit as tf
     from torchmisspec.gp._features import FeatureKernel
+    from torchmisspec.learning.refinement import _jacobian as tm
+    from torchmisspec.learning.refinement import trajectory_fit as tf
 
     system = tms.systems.paper_linear()
     g = torch.Generator().manual_seed(0)

@@ -9,11 +9,12 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec import _jacobian as tm
-from torchmisspec import _known_fit, _ode
-from torchmisspec import trajectory_fit as tf
-from torchmisspec.cross_validation import HELD_OUT_WIDTHS, predicted_residuals
+from torchmisspec import _ode
 from torchmisspec.gp._features import FeatureKernel
+from torchmisspec.learning.choice.cross_validation import HELD_OUT_WIDTHS, predicted_residuals
+from torchmisspec.learning.refinement import _jacobian as tm
+from torchmisspec.learning.refinement import _known_fit
+from torchmisspec.learning.refinement import trajectory_fit as tf
 from torchmisspec.noise import Additive
 
 DT = torch.float64

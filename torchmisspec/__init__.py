@@ -32,16 +32,16 @@ from ._errors import (
     TorchMisspecError,
     TorchMisspecWarning,
 )
-from .calibration import BandCalibration, calibrate_bands
 from .data import Readout, Trajectories, simulate
-from .dynamics import CorrectedODE, TrajectoryPosterior
 from .gp import CorrectionGP, GPPosterior, Posterior
-from .learning import cross_validate, fit_correction
+from .learning.fit import cross_validate, fit_correction
+from .learning.refinement.trajectory_fit import fit_trajectories
+from .learning.samples.observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
-from .observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
+from .prediction.calibration import BandCalibration, calibrate_bands
+from .prediction.dynamics import CorrectedODE, TrajectoryPosterior
 from .signals import Controls
 from .systems import MisspecifiedSystem
-from .trajectory_fit import fit_trajectories
 
 try:
     __version__ = _version("torchmisspec")

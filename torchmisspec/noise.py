@@ -77,7 +77,7 @@ class NoiseModel:
 
     def in_units(self, scale: torch.Tensor) -> NoiseModel:
         """The same model for states divided by ``scale`` ``(d,)`` (a fit in the data's units,
-        :mod:`torchmisspec._units`): itself, unless its residuals depend on the unit."""
+        :mod:`torchmisspec.learning._units`): itself, unless its residuals depend on the unit."""
         return self
 
     def __repr__(self) -> str:

@@ -71,7 +71,8 @@ def lab_data(cultures: int, seed: int = 3) -> tms.Trajectories:
 def _worker(cultures: int, before: bool) -> dict:
     import warnings
 
-    from torchmisspec import _ode, learning
+    from torchmisspec import _ode
+    from torchmisspec.learning import fit as learning
 
     if before:  # the earlier behaviour: every candidate on all samples, torchdiffeq's one-by-one output
         learning.SELECTION_SAMPLES = 2**40  # more than any file: an integer, as thinned() asks

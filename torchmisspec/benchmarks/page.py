@@ -258,7 +258,7 @@ and under 30 s on this machine.
 The same work ({c["sizes"]}; median of the repeats) in a fresh process, on a quiet machine and beside one busy
 process (a pure-Python spin loop that keeps a core busy), with the package's adaptive thread count (the default:
 the heavy calls use no more torch threads than there are free cores, read from `/proc/loadavg` at each call; see
-`torchmisspec._threads`) and with torch's own setting (`TORCHMISSPEC_THREADS=torch`, {quiet_ref["threads"]} threads).
+`torchmisspec.parallel.adaptive_threads`) and with torch's own setting (`TORCHMISSPEC_THREADS=torch`, {quiet_ref["threads"]} threads).
 Targets: quiet speed within 10 % of torch's setting; busy within 1.5x of quiet.
 
 | policy, machine | fit | predict | design | fit / quiet | predict / quiet | design / quiet |

@@ -19,9 +19,9 @@ import warnings
 import torch
 
 import torchmisspec as tms
-from torchmisspec._threads import adaptive_threads
 from torchmisspec.design.candidates import uniform_box
-from torchmisspec.observations import gp_derivative
+from torchmisspec.learning.samples.observations import gp_derivative
+from torchmisspec.parallel import adaptive_threads
 
 from .reporting import machine, timed, update_benchmarks
 
@@ -62,7 +62,7 @@ def posterior_cost(smoke: bool, repeats: int) -> dict:
     with adaptive_threads():
         _, t_draws, _ = timed(
             lambda: gp.sample_functions(
-                S, update_error=tms.dynamics.UPDATE_ERROR, generator=torch.Generator().manual_seed(1)
+                S, update_error=tms.prediction.dynamics.UPDATE_ERROR, generator=torch.Generator().manual_seed(1)
             ),
             repeats,
         )
@@ -76,7 +76,7 @@ def posterior_cost(smoke: bool, repeats: int) -> dict:
         "features": features.num_features,
         "feature_kind": features.kind,
         "feature_bound": features.error_bound,
-        "basis": gp.sample_functions(S, update_error=tms.dynamics.UPDATE_ERROR)._X.shape[0],
+        "basis": gp.sample_functions(S, update_error=tms.prediction.dynamics.UPDATE_ERROR)._X.shape[0],
         "mean_seconds": t_mean,
         "mean_all": all_mean,
         "mean_rhs_evaluations": nfe_mean,

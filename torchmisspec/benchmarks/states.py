@@ -13,7 +13,7 @@ from .reporting import timed
 def bench_realdata(smoke: bool, repeats: int) -> dict:
     """Issue 9's cost targets: derivative="gp" on 40 experiments x 21 times (target < 1 s) and fit_trajectories on
     the same data (target < 30 s), paper 5.1's system with 1 % state noise."""
-    from torchmisspec.observations import gp_derivative
+    from torchmisspec.learning.samples.observations import gp_derivative
 
     system = tms.systems.paper_linear()
     gen = torch.Generator().manual_seed(0)
@@ -29,7 +29,7 @@ def bench_realdata(smoke: bool, repeats: int) -> dict:
     samples = tms.correction_samples(noisy, system, derivative="gp")
     start = tms.CorrectionGP().fit(samples)
     refined, fit_seconds, fit_all = timed(lambda: tms.fit_trajectories(start, system, noisy), 1 if smoke else 2)
-    from torchmisspec.trajectory_fit import shooting_misfit
+    from torchmisspec.learning.refinement.trajectory_fit import shooting_misfit
 
     return {
         "experiments": K,

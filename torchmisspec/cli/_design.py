@@ -48,11 +48,11 @@ def _gp(args: argparse.Namespace, system, observed=None):
     if args.data is not None:
         observed = read_observations(args, system) if observed is None else observed
         if given:  # the user's prior, conditioned on the data
-            from ..observations import correction_samples
+            from ..learning.samples.observations import correction_samples
 
             samples = correction_samples(observed, system, derivative=args.derivative)
             return CorrectionGP(kernel=args.kernel, **given).condition(samples), f"the given prior and {args.data}"
-        from ..learning import fit_correction
+        from ..learning.fit import fit_correction
 
         gp = fit_correction(observed, system, derivative=args.derivative, progress=not args.quiet)
         return gp, f"a model fitted on {args.data}"

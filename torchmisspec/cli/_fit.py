@@ -6,7 +6,7 @@ import argparse
 import math
 
 from .._errors import InputError
-from .._time_pieces import MIN_PIECE
+from ..learning.choice._time_pieces import MIN_PIECE
 from ..noise import NOISE_MODELS
 from ._common import (
     add_data_options,
@@ -68,8 +68,8 @@ def _calibrate(model, observed, args: argparse.Namespace):
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from ..dynamics import CorrectedODE
-    from ..learning import fit_correction
+    from ..learning.fit import fit_correction
+    from ..prediction.dynamics import CorrectedODE
     from ..systems import load_system
 
     out = check_output(args.out, (".pt",))
@@ -153,8 +153,8 @@ def _fit(args: argparse.Namespace) -> int:
 
 
 def _recalibrate(args: argparse.Namespace) -> int:
-    from ..dynamics import CorrectedODE
-    from ..observations import correction_samples
+    from ..learning.samples.observations import correction_samples
+    from ..prediction.dynamics import CorrectedODE
     from ..systems import load_system
 
     out = check_output(args.out or args.model, (".pt",))

@@ -31,7 +31,7 @@ MAX_FIGURE_ROWS = 6  # initial conditions drawn in the figure (one row of panels
 def _predict(args: argparse.Namespace) -> int:
     import torch
 
-    from ..dynamics import CorrectedODE
+    from ..prediction.dynamics import CorrectedODE
     from ..systems import load_system
 
     out = check_output(args.out, (".csv",))

@@ -8,7 +8,8 @@ A :class:`Readout` names m such quantities and their weights, z = H y with H ``(
 
 Readings cannot give derivatives of a single state, so a component seen only through a readout counts as not
 measured (:attr:`Trajectories.measured <torchmisspec.Trajectories.measured>`), and the correction is learned through
-the ODE, where the model's path is read out as H y and compared with the readings (:mod:`torchmisspec.partial`).
+the ODE, where the model's path is read out as H y and compared with the readings
+(:mod:`torchmisspec.learning.refinement.partial`).
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ import torch
 
 from .._errors import InputError, IntegrationError, ShapeError
 from .._ode import SIMULATION_TOLERANCES, initial_conditions_and_times, solve
-from .._threads import adaptive_threads
 from .._validation import as_tensor, check_flag
+from ..parallel import adaptive_threads
 from ..systems import MisspecifiedSystem
 from ._input import _is_number
 from ._trajectories import Trajectories

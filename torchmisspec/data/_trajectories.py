@@ -11,7 +11,6 @@ from pathlib import Path
 import torch
 
 from .._errors import InputError, ShapeError
-from .._missing import fill
 from .._validation import NotATensor, as_tensor, check_selection, check_to, states_and_times
 from ..signals import Controls
 from . import _tables
@@ -26,6 +25,7 @@ from ._input import (
     _per_experiment,
 )
 from ._join import concatenate
+from ._missing import fill
 from ._readout import Readout, check_readout, joined
 
 #: A component observed fewer times than this in an experiment is *not measured* there (too few values for a
@@ -55,9 +55,9 @@ class Trajectories(NotATensor):
     :data:`MIN_MEASURED` times, too few for a derivative, unless at each of the experiment's own times: an
     experiment of two rows, both observed, measures it) is *not measured* there (:attr:`measured`): partial
     measurements, e.g. biomass measured and substrate not; :func:`~torchmisspec.fit_correction` learns through the
-    ODE then (see :mod:`torchmisspec.partial`), estimating what was not measured. An experiment must observe
-    something. A time at which no component was observed carries no data and is dropped (so masking a whole row is
-    the same as deleting it; the experiment may then become shorter than the others, i.e. ragged). The
+    ODE then (see :mod:`torchmisspec.learning.refinement.partial`), estimating what was not measured. An experiment must
+    observe something. A time at which no component was observed carries no data and is dropped (so masking a whole row
+    is the same as deleting it; the experiment may then become shorter than the others, i.e. ragged). The
     package's functions use only observed entries: the derivative estimators fit each component from its own
     observed times, :func:`~torchmisspec.correction_samples` fills what a sample's G(y) and inputs need from the
     estimator's fit, and the comparisons with the data (cross-validation, :func:`~torchmisspec.fit_trajectories`,

@@ -32,13 +32,7 @@ from ._baselines import agnostic, marginal_gains, random
 from ._campaign import Campaign
 from ._common import DesignResult
 from ._domain import CRITERIA, variance_reduction
-from ._gain import (
-    ProxyCheck,
-    information_gain,
-    proxy_check,
-    proxy_gap_bound,
-    true_information_gain,
-)
+from ._gain import ProxyCheck, information_gain, proxy_check, proxy_gap_bound, true_information_gain
 from ._greedy import greedy
 from ._proxy import proxy_trajectories
 from ._refine import Refinement, refine

@@ -27,9 +27,9 @@ from .._validation import check_domain, check_path, check_positive_int, check_re
 from ..data import Trajectories
 from ..data._join import known_experiments
 from ..gp import CorrectionGP, _persistence
-from ..learning import fit_correction
+from ..learning.fit import fit_correction
+from ..learning.samples.observations import correction_samples
 from ..metrics import correction_error
-from ..observations import correction_samples
 from ..parallel import check_executor
 from ..systems import MisspecifiedSystem
 from . import _campaign_data as plain

@@ -44,10 +44,9 @@ import time
 import torch
 
 from .._errors import InputError
-from .._threads import adaptive_threads
 from .._validation import check_flag, check_positive_int, check_real, progress_bar
 from ..gp import CorrectionGP
-from ..parallel import check_executor
+from ..parallel import adaptive_threads, check_executor
 from ..systems import MisspecifiedSystem
 from ._common import (
     DesignResult,

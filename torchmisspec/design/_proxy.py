@@ -58,7 +58,7 @@ def _warn_failed(failed: list[int], n: int) -> None:
 def _corrected(system, gp, y0: torch.Tensor, times: torch.Tensor, controls, box) -> tuple[torch.Tensor, list[int]]:
     """The corrected proxies from ``y0`` and the rows where G's had to stand in (see :func:`corrected_proxies`): those
     whose solve fails, and those that leave ``box`` (:func:`escape_box`)."""
-    from ..dynamics import CorrectedODE
+    from ..prediction.dynamics import CorrectedODE
 
     model = CorrectedODE(system, gp)
     failed: list[int] = []

@@ -66,7 +66,7 @@ def _objective(system, gp, kern, times, proxy):
     """``f(y0 (K, d), controls) -> information gain`` (a differentiable scalar, in the states and the profiles'
     levels)."""
     if proxy == "corrected":
-        from ..trajectory_fit import _mean_field
+        from ..learning.refinement.trajectory_fit import _mean_field
 
         rhs = _mean_field(system, gp.posterior())
     else:

@@ -1,8 +1,8 @@
 """The record of a calibration of a correction GP's bands (:class:`BandCalibration`), kept and saved with the GP.
 
-:func:`torchmisspec.calibration.calibrate_bands` finds the factor ``c`` on the posterior draws' deviation from the
-posterior mean; :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` stores the result on the GP
-(``gp.calibration_``), so that ``gp.save`` / ``CorrectionGP.load`` carry it and every later posterior of that GP uses
+:func:`torchmisspec.prediction.calibration.calibrate_bands` finds the factor ``c`` on the posterior draws' deviation
+from the posterior mean; :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` stores the result on the
+GP (``gp.calibration_``), so that ``gp.save`` / ``CorrectionGP.load`` carry it and every later posterior of that GP uses
 it. The record holds plain values only (a file never holds code).
 """
 
@@ -23,7 +23,7 @@ HELD_OUT = ("experiments", "time pieces")
 
 @dataclass(frozen=True)
 class BandCalibration:
-    """The result of :func:`~torchmisspec.calibration.calibrate_bands`.
+    """The result of :func:`~torchmisspec.prediction.calibration.calibrate_bands`.
 
     Attributes:
         scale: the calibrated factor ``c`` on the posterior draws' deviation from the posterior mean (1: the GP's

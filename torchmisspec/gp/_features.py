@@ -103,7 +103,7 @@ __all__ = [
 ]
 
 #: Highest degree of the monomials of the feature-kernel candidate of :func:`~torchmisspec.fit_correction` (and
-#: of the first model of partly measured data, :mod:`torchmisspec.partial`).
+#: of the first model of partly measured data, :mod:`torchmisspec.learning.refinement.partial`).
 FEATURE_DEGREE = 3
 
 #: A term is removed when ``w_j mean(phi_j^2)`` (its share of the prior variance) falls below this fraction of the

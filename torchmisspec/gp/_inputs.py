@@ -28,7 +28,7 @@ def check_inputs(gp, x, name: str) -> torch.Tensor:
 
 def unpack(inputs, targets, noise):
     """``fit(samples)`` or ``fit(inputs, targets, noise=...)``: the three arrays."""
-    from ..observations import CorrectionSamples
+    from ..learning.samples.observations import CorrectionSamples
 
     if isinstance(inputs, CorrectionSamples):
         if targets is not None or noise is not None:

@@ -31,8 +31,8 @@ import gpytorch
 import torch
 
 from .._errors import FittingError, NotFittedError
-from .._threads import adaptive_threads
 from .._validation import DEFAULT_DTYPE, as_tensor, check_generator, check_positive_int, check_real
+from ..parallel import adaptive_threads
 from . import _conditioning
 from ._exact import IndependentOutputsGP, build_modules, median_distance, noise_module
 from ._fit import fit_model
@@ -112,8 +112,8 @@ class CorrectionGP(Readout):
     saved with the model).
     """
 
-    #: the :class:`~torchmisspec.calibration.BandCalibration` of this fit's bands (``CorrectedODE.calibrate``), saved
-    #: with the model; ``None`` until calibrated, and again after a refit
+    #: the :class:`~torchmisspec.prediction.calibration.BandCalibration` of this fit's bands
+    #: (``CorrectedODE.calibrate``), saved with the model; ``None`` until calibrated, and again after a refit
     calibration_ = None
     #: the system it corrects (name, state_dim, correction_inputs, correction_outputs), when the command line fitted
     #: it; saved with the model and checked by the command line
@@ -551,7 +551,7 @@ class CorrectionGP(Readout):
                 (shared RBF / Matern kernels; ``None``: the exact canonical basis). Makes long paths cheaper.
             scale: a factor c > 0 on every draw's deviation from the posterior mean, ``mu + c (F_s - mu)``: draws
                 from the posterior with its covariance times c^2 (a calibrated spread, see
-                :mod:`torchmisspec.calibration`); 1 by default.
+                :mod:`torchmisspec.prediction.calibration`); 1 by default.
 
         Returns:
             :class:`~torchmisspec.gp._paths.FunctionSamples`: ``samples(x)`` maps ``(M, d_in)`` or ``(S, M, d_in)``

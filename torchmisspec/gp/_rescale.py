@@ -1,8 +1,8 @@
 """A model in other units: :func:`rescaled` rewrites a fitted :class:`~torchmisspec.CorrectionGP` exactly for inputs
 multiplied by ``s_in`` and outputs by ``s_out`` (per column), :func:`rescaled_template` an unfitted template.
 
-Used by :mod:`torchmisspec._units` (the fits in the data's units). If F_z is the model in one set of units, the same
-model in the other is F(x) = s_out F_z(x / s_in): its training inputs, targets and known noise are rescaled, and so
+Used by :mod:`torchmisspec.learning._units` (the fits in the data's units). If F_z is the model in one set of units, the
+same model in the other is F(x) = s_out F_z(x / s_in): its training inputs, targets and known noise are rescaled, and so
 are the hyperparameters that carry units:
 
 * the output scale and the noise variance, by the outputs' squared scales (a feature kernel's output scale stays at 1:

@@ -9,8 +9,8 @@ import torch
 
 from .. import design as _design
 from .. import plotting
-from ..dynamics import CorrectedODE
 from ..metrics import correction_error, mean_squared_error
+from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
 from . import _layout
 from ._measures import _BAND_SAMPLES, _bands, _pick, _rmse, _setup_numbers, _study_figure

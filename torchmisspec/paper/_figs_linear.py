@@ -9,9 +9,9 @@ import torch
 
 from .. import plotting
 from .._validation import progress_bar
-from ..dynamics import CorrectedODE
 from ..gp import CorrectionGP
 from ..metrics import box_grid, correction_error, integrated_norm
+from ..prediction.dynamics import CorrectedODE
 from . import _layout
 from ._measures import _BAND_SAMPLES, _bands, _mean_se, _pick, _rmse
 from ._session import Session, _generator, _linear_fit_run, _LinearFit, _session

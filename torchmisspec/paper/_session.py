@@ -15,9 +15,9 @@ from .. import design as _design
 from .._errors import InputError
 from ..data import Trajectories, simulate
 from ..design import candidates as _candidates
-from ..dynamics import CorrectedODE
 from ..gp import CorrectionGP
-from ..observations import correction_samples
+from ..learning.samples.observations import correction_samples
+from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem, paper_gravity, paper_linear
 from ._setup import (
     GRAVITY_CANDIDATES,

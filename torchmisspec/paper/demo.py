@@ -17,10 +17,10 @@ import torch
 from .._validation import check_positive_int
 from ..data import simulate
 from ..design.candidates import uniform_box
-from ..dynamics import CorrectedODE
 from ..gp import CorrectionGP
+from ..learning.samples.observations import correction_samples
 from ..metrics import correction_error, integrated_norm, trajectory_rmse
-from ..observations import correction_samples
+from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem, paper_linear
 from ._setup import NOISE_STD
 

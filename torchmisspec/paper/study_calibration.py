@@ -327,9 +327,9 @@ which makes no allowance for their own uncertainty, so where ML-II is overconfid
 narrow. Rows "laplace": `posterior(..., hyperparameters="laplace")`, the same number of draws split among 8 sets of
 hyperparameters drawn from the Laplace approximation of their posterior in log space (with a weak N(fitted value,
 2^2) prior on each log hyperparameter, `CorrectionGP.laplace_covariance`), the same data and the same seeds. Rows
-"calibrated": the "fixed" GP after `CorrectedODE.calibrate(train, samples)` (`torchmisspec.calibration`): each of
-min(K, 10) folds of the training experiments is held out, the GP refitted by marginal likelihood on the others, and
-the factor c on the sampled paths' deviation from the mean path is the smallest under which the held-out observed
+"calibrated": the "fixed" GP after `CorrectedODE.calibrate(train, samples)` (`torchmisspec.prediction.calibration`):
+each of min(K, 10) folds of the training experiments is held out, the GP refitted by marginal likelihood on the others,
+and the factor c on the sampled paths' deviation from the mean path is the smallest under which the held-out observed
 states lie in the central 90 % band 90 % of the time; no test data are used. Rows "features": the feature kernel
 `CorrectionGP(kernel="features", degree=3, per_output=True)` on the same samples, its terms chosen by evidence less
 a price per term, each kept term with the unit-information prior, and the bands widened by the removed terms' chance

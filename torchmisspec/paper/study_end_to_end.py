@@ -26,10 +26,7 @@ from pathlib import Path
 import torch
 
 import torchmisspec as tms
-from torchmisspec.benchmarks.reporting import (
-    ROOT,
-    run_study,
-)
+from torchmisspec.benchmarks.reporting import ROOT, run_study
 from torchmisspec.metrics import mean_and_standard_error
 from torchmisspec.parallel import map_tasks
 

@@ -25,10 +25,7 @@ import warnings
 import torch
 
 import torchmisspec as tms
-from torchmisspec.benchmarks.reporting import (
-    ROOT,
-    run_study,
-)
+from torchmisspec.benchmarks.reporting import ROOT, run_study
 from torchmisspec.metrics import mean_and_standard_error
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_input_design.json"

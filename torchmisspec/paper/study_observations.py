@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 
 import torchmisspec as tms
-from torchmisspec.observations import choose_derivative
+from torchmisspec.learning.samples.observations import choose_derivative
 
 from . import _setup as paper_setup
 

@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 from torchmisspec.benchmarks.reporting import BENCHMARKS_MD, ROOT, machine, update_benchmarks, write_page
+from torchmisspec.learning.samples.observations import ESTIMATOR_ERROR_THRESHOLD
 from torchmisspec.metrics import mean_and_standard_error
-from torchmisspec.observations import ESTIMATOR_ERROR_THRESHOLD
 
 from . import _setup as paper_setup
 from .study_observations import (

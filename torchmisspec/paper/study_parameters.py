@@ -8,7 +8,7 @@ mu(S) = 0.8 S / (0.5 + S), feed 3.0:
 
 with two uncertain parameters of G, the death rate kd (true 0.05) and the inverse yield q (true 2.0), whose priors
 are off by 30 % (means 0.065 and 2.6, standard deviations 0.03 and 1.0). G is linear in both, so they are integrated
-out with F in closed form (:mod:`torchmisspec.parameters`).
+out with F in closed form (:mod:`torchmisspec.learning.theta.closed_form`).
 
 * **identifiable**: a missing maintenance uptake F(X) = -0.3 X / (0.5 + X) on dS/dt, depending on X only: F cannot
   absorb either parameter's effect (kd acts on dX/dt; q's basis mu(S) X depends on S too);
@@ -20,7 +20,7 @@ out with F in closed form (:mod:`torchmisspec.parameters`).
 * **partial**: the identifiable case with the substrate S measured at the start of each experiment only (biomass X
   measured throughout): theta, F's terms and the initial states are fitted together through the ODE to the measured
   values (a Laplace posterior), and F is chosen at theta's mean
-  (:func:`torchmisspec._partial_choice.fit_partly_measured`).
+  (:func:`torchmisspec.learning.choice._partial_choice.fit_partly_measured`).
 
 Each realization: 8 experiments x 20 times with 1 % multiplicative state noise, fitted with defaults
 (``fit_correction``); predictions on 30 new initial states under new input profiles, against the true system. The
@@ -44,10 +44,7 @@ import warnings
 import torch
 
 import torchmisspec as tms
-from torchmisspec.benchmarks.reporting import (
-    ROOT,
-    run_study,
-)
+from torchmisspec.benchmarks.reporting import ROOT, run_study
 
 from ._ratios import describe, paired_ratio
 

@@ -19,10 +19,10 @@ Two systems the package does not ship elsewhere, each with one of its two compon
   on [0, 12], 1 % multiplicative noise.
 
 Each realization is fitted with the defaults (``fit_correction``, which learns through the ODE when a component is
-not measured, see :mod:`torchmisspec.partial`), and predicts 20 new experiments (new doses; new initial states and
-input profiles) from their true initial states. Reported per component: the corrected model's RMSE over the known
-model's (mean ± standard error over realizations, and the range per realization), the same for the fit of the
-same data with *every* component measured (what not measuring costs), the error of the estimated initial values of
+not measured, see :mod:`torchmisspec.learning.refinement.partial`), and predicts 20 new experiments (new doses; new
+initial states and input profiles) from their true initial states. Reported per component: the corrected model's RMSE
+over the known model's (mean ± standard error over realizations, and the range per realization), the same for the fit of
+the same data with *every* component measured (what not measuring costs), the error of the estimated initial values of
 the unmeasured component, and the seconds of one fit.
 """
 

@@ -1,0 +1,554 @@
+"""From observed trajectories to a fitted correction in one call: :func:`fit_correction`.
+
+The steps a user would otherwise chain by hand: correction samples from the states (:func:`~torchmisspec.
+correction_samples`, ``derivative="auto"`` by default), a :class:`~torchmisspec.CorrectionGP` on them chosen by
+**cross-validation on trajectories** (by default among RBF kernels over a grid of lengthscales and a feature kernel
+with automatic relevance, a sparse polynomial correction), and the trajectory-matching refinement
+(:func:`~torchmisspec.fit_trajectories`) when a feature kernel is chosen or on request.
+
+Why the model is chosen by cross-validation on trajectories, and how:
+:mod:`torchmisspec.learning.choice.cross_validation`.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+
+import torch
+
+from .._errors import FittingError, InputError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
+from .._validation import check_flag
+from ..data import Trajectories
+from ..gp import CorrectionGP
+from ..gp._exact import median_distance
+from ..gp._features import FEATURE_DEGREE
+from ..gp._selection import fit_and_score
+from ..noise import as_noise_model
+from ..parallel import adaptive_threads
+from ..systems import MisspecifiedSystem
+from ._units import fit_in_units
+from .choice._one_trajectory import refined_rival
+from .choice._partial_choice import fit_partly_measured
+from .choice._time_pieces import time_pieces
+from .choice.cross_validation import (
+    SIGNIFICANCE,
+    CrossValidation,
+    _check_candidates,
+    _check_cv_inputs,
+    _held_out_errors,
+    cross_validate,
+    predicted_residuals,
+)
+from .refinement._first_model import feature_template
+from .refinement._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
+from .refinement.trajectory_fit import _mean_field, fit_trajectories
+from .samples.observations import (
+    ESTIMATOR_ADVICE,
+    CorrectionSamples,
+    _check_trajectories_and_system,
+    correction_samples,
+)
+from .theta.closed_form import posterior_given
+from .theta.through_ode import fit_parameters
+
+__all__ = [
+    "FEATURE_DEGREE",
+    "KNOWN_MODEL_OUTPUTSCALE",
+    "LENGTHSCALE_GRID",
+    "SELECTION",
+    "SIGNIFICANCE",
+    "CrossValidation",
+    "cross_validate",
+    "cross_validate_lengthscale",
+    "default_candidates",
+    "fit_correction",
+    "known_model_template",
+    "lengthscale_candidates",
+]
+
+#: Candidate lengthscales of the cross-validation, as multiples of the median distance between the samples' inputs
+#: (the marginal-likelihood lengthscale is always added to them).
+LENGTHSCALE_GRID = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
+#: Above this many samples :func:`fit_correction` chooses its model on a subsample (each experiment's samples
+#: thinned evenly, :meth:`CorrectionSamples.thinned`) and refits the chosen one on all of them: a candidate's
+#: marginal-likelihood fit costs O(N^3) per step and the choice needs about 13 of them, while the held-out
+#: experiments' predictions that score them change little once the samples are dense (BENCHMARKS.md, "The default
+#: fit on a growing lab file": on 20 cultures the subsample and all 1,491 samples choose the same model, same error).
+SELECTION_SAMPLES = 1000
+#: The rules :func:`fit_correction` chooses a model by (its ``select``).
+SELECTION = ("cv", "evidence")
+
+
+def lengthscale_candidates(samples: CorrectionSamples, template: CorrectionGP | None = None) -> list[float]:
+    """The default candidate lengthscales: :data:`LENGTHSCALE_GRID` times the median distance between the samples'
+    inputs, plus the marginal-likelihood lengthscale of ``template`` (default ``CorrectionGP()``) on all samples."""
+    template = CorrectionGP(device=samples.inputs.device) if template is None else template
+    scale = median_distance(samples.inputs)
+    candidates = {round(g * scale, 12) for g in LENGTHSCALE_GRID}
+    try:
+        candidates.add(
+            round(float(template.clone(kernel=template.kernel_spec, lengthscale=None).fit(samples).lengthscale), 12)
+        )
+    except (FittingError, LinearAlgebraError):
+        pass
+    return sorted(candidates)
+
+
+def cross_validate_lengthscale(
+    system: MisspecifiedSystem,
+    trajectories: Trajectories,
+    samples: CorrectionSamples,
+    *,
+    gp: CorrectionGP | None = None,
+    lengthscales=None,
+    folds: int = 5,
+) -> CrossValidation:
+    """Score candidate lengthscales of one kernel by how well the corrected model predicts held-out experiments
+    (:func:`cross_validate` over ``gp`` with each lengthscale fixed).
+
+    Args:
+        system: the misspecified system.
+        trajectories: the observations the samples came from (experiment k of the samples is experiment k here).
+        samples: the correction samples (:func:`~torchmisspec.correction_samples`).
+        gp: a template :class:`CorrectionGP` (kernel, fixed values; default ``CorrectionGP()``): a shared RBF or
+            Matern kernel whose lengthscale is not fixed.
+        lengthscales: the candidates (default: :func:`lengthscale_candidates`).
+        folds: number of folds (experiment k is in fold ``k % folds``); at most the number of experiments.
+
+    Returns:
+        :class:`CrossValidation`.
+    """
+    folds = _check_cv_inputs(system, trajectories, samples, folds)
+    template = CorrectionGP(device=samples.inputs.device) if gp is None else gp
+    if not isinstance(template, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(template).__name__}")
+    kernel = "auto" if template.auto else template.kernel  # an unfitted auto model holds an RBF until it is fitted
+    searchable = not template.auto and template.kernel_spec.stationary and template.kernel_spec.has_lengthscale
+    if not searchable or template.fixed["lengthscale"] is not None or template.per_output:
+        raise InputError(
+            "gp: cross-validation chooses the lengthscale of a shared RBF or Matern kernel; got kernel "
+            f"{kernel!r}, lengthscale={template.fixed['lengthscale']}, per_output={template.per_output}"
+        )
+    if lengthscales is None:
+        lengthscales = lengthscale_candidates(samples, template)
+    else:
+        lengthscales = sorted(float(v) for v in lengthscales)
+        if not lengthscales or not all(math.isfinite(v) and v > 0 for v in lengthscales):
+            raise InputError(f"lengthscales: expected positive numbers, got {lengthscales}")
+    candidates = [template.clone(kernel=template.kernel_spec, lengthscale=ell) for ell in lengthscales]
+    return cross_validate(system, trajectories, samples, candidates, folds=folds)[0]
+
+
+def default_candidates(samples: CorrectionSamples) -> list[CorrectionGP]:
+    """The models :func:`fit_correction` chooses from by default: an RBF GP at each of
+    :func:`lengthscale_candidates`, and a feature kernel (monomials up to :data:`FEATURE_DEGREE`, one set of
+    relevance weights per output) whose evidence removes the terms the samples do not support."""
+    on = {"device": samples.inputs.device}  # the models follow the data's device
+    rbf = [CorrectionGP(lengthscale=ell, **on) for ell in lengthscale_candidates(samples)]
+    return [*rbf, feature_template(on["device"])]
+
+
+def _by_evidence(pool: list[CorrectionGP], samples: CorrectionSamples) -> CorrectionGP:
+    """The candidate of highest evidence score (:attr:`CorrectionGP.evidence_score`), each fitted by marginal
+    likelihood on the samples; one candidate is fitted alone (``kernel="auto"`` then chooses among its own kernels).
+    ``result.model_selection_`` records every candidate (as ``kernel="auto"`` does)."""
+    if len(pool) == 1:
+        return copy.deepcopy(pool[0]).fit(samples)
+    fitted = [copy.deepcopy(c) for c in pool]
+    records = [fit_and_score(c, samples) for c in fitted]
+    ok = [i for i, r in enumerate(records) if r["score"] is not None]
+    if not ok:
+        raise FittingError(
+            "fit_correction: every candidate failed to fit: "
+            + "; ".join(f"{r['kernel']}: {r['error']}" for r in records)
+        )
+    best = max(ok, key=lambda i: records[i]["score"])
+    for i, r in enumerate(records):
+        r["chosen"] = i == best
+    result = fitted[best]
+    result.model_selection_ = records
+    return result
+
+
+#: passes of the fit of G's uncertain parameters before the model is chosen: each fits the GP's hyperparameters on
+#: the samples at the current estimate of theta and updates theta's posterior (its mean moves the targets)
+PARAMETER_PASSES = 3
+
+
+def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, template: CorrectionGP):
+    """``(theta's posterior, the samples)`` after :data:`PARAMETER_PASSES` alternations of the GP's hyperparameters
+    (``template``, by marginal likelihood on the samples at the current theta) and theta's closed-form posterior given
+    them; for a G nonlinear in theta, each pass's posterior is Gauss-Newton's to convergence (the samples linearised
+    at each step's mean, :mod:`torchmisspec.learning.theta.closed_form`), and the samples come back linearised at the
+    last mean."""
+    outputs, posterior = system.correction_outputs, None
+    for _ in range(PARAMETER_PASSES):
+        delta = None if posterior is None else posterior.mean - system.theta
+        moved = samples if delta is None else samples.shifted(delta, outputs)
+        model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
+        posterior, samples = posterior_given(model, samples, system, delta)
+    return posterior, samples
+
+
+def _chooser(trajectories: Trajectories, samples: CorrectionSamples, system, derivative: str, estimator: dict):
+    """``(the trajectories the candidates are scored on, their samples)``: the data and (at most about
+    :data:`SELECTION_SAMPLES` of) their samples; one experiment: its :func:`time_pieces` and their own samples (the
+    estimator's warnings were given on the whole); ``(None, None)`` when there is nothing to hold out."""
+    if trajectories.num_experiments >= 2:
+        return trajectories, samples.thinned(SELECTION_SAMPLES)
+    pieces = time_pieces(trajectories)
+    if pieces is None:
+        return None, None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        return pieces, correction_samples(pieces, system, derivative=derivative, **estimator).thinned(SELECTION_SAMPLES)
+
+
+def _rival_applies(scored, trajectories, result, system, given: bool) -> bool:
+    """Whether :func:`~torchmisspec.learning.choice._one_trajectory.refined_rival` tests the refined feature kernel
+    against the choice: one experiment cut in time (``scored`` its pieces), the default candidates (not ``given``), a
+    chosen model that is not the feature kernel already, and an autonomous system without uncertain parameters (where
+    the refinement through the ODE is what :func:`fit_correction` does by default)."""
+    if given or result is None or scored is None or scored is trajectories:
+        return False
+    features = result.kernel_spec.terms and result.kernel_spec.feature_space
+    return not features and system.autonomous and system.parameters is None
+
+
+def _held_advice(caught) -> list:
+    """The derivative estimator's warnings among ``caught`` (held back); every other warning given now."""
+    held = []
+    for w in caught:
+        if issubclass(w.category, TorchMisspecWarning) and str(w.message).startswith(ESTIMATOR_ADVICE):
+            held.append(w)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return held
+
+
+def _give_advice(held: list, cv: CrossValidation | None) -> None:
+    """The estimator's held warnings, unless the cross-validation ``cv`` found the correction significantly better
+    than the known model on held-out data: the estimator's error then did not stop the correction from predicting
+    (the advice would not change what the user does)."""
+    if cv is not None and cv.significant:
+        return
+    for w in held:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+
+def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored, noise):
+    """``(model, its held-out score or None)``: the known model with its uncertain parameters fitted (F = 0; as
+    :func:`fit_correction` fits them under a correction: the closed form from the samples, then through the ODE on
+    the trajectories) as a fitted :class:`CorrectionGP` (:func:`known_model_template`); its score is the sum of
+    squared state errors from each experiment's first state (the parameters fitted on every experiment). Without
+    uncertain parameters the score is ``None`` (the cross-validation's baseline is it)."""
+    template = known_model_template(raw)
+    if system.parameters is None:
+        return template.fit(raw), None
+    posterior, samples = _parameter_passes(raw, system, template)
+    samples = samples.shifted(posterior.mean - system.theta, system.correction_outputs)
+    model, _ = fit_parameters(template.clone().fit(samples), samples, system, trajectories,
+                              posterior.mean - posterior.prior_mean, noise)  # fmt: skip
+    score = float(_held_out_errors(system.at(model.parameters_.mean), scored, noise=noise).sum())
+    return model, score
+
+
+def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
+    """The known model (:func:`_known_model`, scored on the cross-validation's data ``scored``) when no candidate
+    predicts the held-out experiments better than it (``None`` otherwise), with a warning saying so."""
+    try:
+        model, score = _known_model(raw, system, trajectories, scored, noise)
+    except (FittingError, LinearAlgebraError, IntegrationError):
+        return None
+    # the known model alone: at the parameters of the choice (the baseline) or at its own, whichever predicts better
+    score = cv.baseline if score is None else min(score, cv.baseline)
+    best = min(cv.scores)
+    if best < score:
+        return None
+    fitted = "with its parameters fitted, " if system.parameters is not None else ""
+    warn(
+        f"fit_correction: no correction predicts the held-out experiments better than the known model alone "
+        f"(best held-out error {best:.3g} vs {score:.3g}); returning the known model {fitted}F = 0 (do no harm; "
+        "result.known_model_ is True). Collect more experiments, or check the known model",
+        TorchMisspecWarning,
+    )
+    model.known_model_ = True
+    return model
+
+
+def noise_scale(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> torch.Tensor:
+    """``(d,)``: each component's root mean square residual (:class:`~torchmisspec.noise.NoiseModel` ``noise``'s) of
+    the fitted model's mean prediction of every experiment from its first state (its estimated initial states where
+    the data lack them), over the measurements after the first: the measurement noise and what the model misses, as
+    one scale per component (NaN for a component with no such measurement)."""
+    at = system if getattr(gp, "parameters_", None) is None else system.at(gp.parameters_.mean)
+    y0 = getattr(gp, "initial_states_", None)
+    data = (trajectories if y0 is None else trajectories.with_initial_states(y0)).to(dtype=gp.dtype, device=gp.device)
+    mean = _mean_field(at, gp.posterior())
+    r = predicted_residuals(at, data, lambda y, rows, t=None, u=None: mean(y, t, u), noise)
+    r = r[:, 1:]  # the first row is where each prediction starts
+    seen = ~torch.isnan(r)
+    count = seen.sum((0, 1))
+    total = r.nan_to_num(nan=0.0).pow(2).sum((0, 1))
+    return torch.where(count > 0, (total / count.clamp_min(1)).sqrt(), torch.full_like(total, math.nan)).detach()
+
+
+def _recorded(result: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> CorrectionGP:
+    """``result`` with ``noise_``, ``noise_scale_`` (:func:`noise_scale`, ``None`` where it cannot be computed),
+    ``known_model_`` (``False`` unless the known model alone was chosen) and ``derivative_`` (the estimator of dy/dt
+    the samples came from, ``derivative="auto"``'s choice included, e.g. ``"central order=4"``)."""
+    result.noise_ = noise
+    result.known_model_ = bool(getattr(result, "known_model_", False))
+    result.derivative_ = getattr(getattr(result, "samples_", None), "derivative", None)
+    try:
+        result.noise_scale_ = noise_scale(result, system, trajectories, noise)
+        result.noise_scale_ = result.noise_scale_ * math.sqrt(getattr(result, "dispersion_", 1.0))
+    except (IntegrationError, LinearAlgebraError):
+        result.noise_scale_ = None
+    return result
+
+
+@adaptive_threads()
+def fit_correction(
+    trajectories: Trajectories,
+    system: MisspecifiedSystem,
+    *,
+    gp: CorrectionGP | None = None,
+    candidates=None,
+    select: str = "cv",
+    derivative: str = "auto",
+    folds: int = 5,
+    refine: bool | None = None,
+    progress: bool = True,
+    noise="auto",
+    **estimator,
+) -> CorrectionGP:
+    """Learn the correction from observed states: samples, a model chosen among candidates, optionally refined.
+
+    The package's one entry point for choosing a model. Its steps:
+
+    1. ``samples = correction_samples(trajectories, system, derivative=derivative, **estimator)`` (its warning
+       when the derivative estimator is unreliable applies);
+    2. a model is fitted on the samples and chosen among candidates by the rule ``select`` names:
+
+       * ``"cv"`` (default): by :func:`cross_validate`, the error of the corrected model's predictions of held-out
+         experiments (robust to the derivative estimator's correlated errors, see the module's notes). Candidates:
+         with neither ``gp`` nor ``candidates`` given, :func:`default_candidates` (RBF kernels over a grid of
+         lengthscales and a feature kernel with automatic relevance, a sparse polynomial correction); with a ``gp``
+         template of an RBF or Matern kernel with a free lengthscale, that kernel at each of
+         :func:`lengthscale_candidates`; any other template, that model alone (scored, for the warning below);
+         ``candidates``, the given unfitted templates. Each candidate's other hyperparameters by marginal
+         likelihood. With one experiment, the pieces of its trajectory (:func:`time_pieces`, cut in time) are held
+         out in turn (each forecast from its first state); when it is too short for two pieces, ``"evidence"`` is
+         used. With one experiment and the default candidates, a chosen model other than the feature kernel is
+         then tested against the feature kernel refined through the ODE on the pieces before the last (its
+         derivative-samples fit alone is what the pieces scored): whichever forecasts the last piece better is
+         kept (:mod:`torchmisspec.learning.choice._one_trajectory`; ``result.one_trajectory_rival_`` records both
+         misfits);
+       * ``"evidence"``: by the marginal likelihood of the samples alone (:attr:`CorrectionGP.evidence_score`, no
+         solve): with neither ``gp`` nor ``candidates``, ``CorrectionGP(kernel="auto")`` (RBF, Matern, feature
+         kernels and the library check, see :mod:`torchmisspec.gp`); a ``gp`` template is fitted as it is; among
+         ``candidates`` the highest score wins. Cheaper, and right when the samples' errors are independent (exact
+         or GP-in-time derivatives of dense data); a fixed lengthscale is a template's:
+         ``gp=CorrectionGP(lengthscale=0.5)``.
+    3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE; by default
+       (``refine=None``) exactly when the chosen model is a feature kernel, whose term weights are then re-learned
+       from the trajectories (the derivative estimator's bias shows up in the samples as spurious terms, which
+       the trajectories do not support), for autonomous systems (with inputs or time the fit through the ODE runs
+       each experiment under its own profile, but is not yet validated by a study: ask for it with ``refine=True``);
+       with uncertain parameters, ``refine=True`` refines F at theta's posterior mean after theta's own fit through
+       the ODE (by default it does not).
+
+    **Partly measured states** (a component some experiment does not measure, :attr:`Trajectories.measured
+    <torchmisspec.Trajectories.measured>`): the correction is learned through the ODE
+    (:func:`torchmisspec.learning.choice._partial_choice.fit_partly_measured`: the unmeasured starting values and a
+    first model of F fitted to the measured values, the data completed with its paths, then the steps above on the
+    completed data); ``result.identifiability_`` says how the measurements see each output of F (an output none sees is
+    refused), and ``result.initial_states_`` holds the estimated ``(K, d)`` initial states. Neither is saved with the
+    model. With uncertain parameters of G, they are learned with the first model through the ODE (their Laplace
+    posterior, F's terms and the initial states marginalised) and F is chosen at their posterior mean.
+
+    **Units**: every step runs on the states divided by a power of ten near each component's size (and readings by
+    their own), so that states in the thousands or in thousandths are fitted as states near 1 (data near 1 are left
+    as they are); the model is returned in the user's units (:mod:`torchmisspec.learning._units`).
+    ``cross_validation_``'s scores are in the scaled units, where the candidates were compared.
+
+    **Do no harm**: with ``"cv"`` and the default candidates, the known model alone (F = 0) with its uncertain
+    parameters fitted is returned (``result.known_model_`` is ``True``, with a warning) when no candidate predicts
+    the held-out experiments (or pieces) better than it. With partly measured states, the known model's parameters
+    and the initial states the data do not give are fitted through the ODE to the measured values (the classical
+    answer, :func:`torchmisspec.learning.refinement._known_fit.fit_known_model`), the correction's own fit starts there,
+    and the correction is kept only when, fitted on the first two thirds of each experiment's times, it forecasts the
+    last third better than the known model fitted on the same times (with several experiments, significantly so over
+    them: :mod:`torchmisspec.learning.choice._partial_choice`).
+
+    With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
+    experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
+    not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).
+
+    Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and, with ``"cv"``, one batched
+    solve of the held-out experiments per candidate; about 13 candidates by default. Above
+    :data:`SELECTION_SAMPLES` samples the candidates are fitted and scored on a subsample (each experiment's
+    samples thinned evenly, :meth:`CorrectionSamples.thinned`; the held-out experiments are still predicted over all
+    their times) and the chosen one is refitted on every sample (an RBF kernel above ``LARGE_N`` samples then in a
+    feature space, see :class:`CorrectionGP`): the choice costs what it costs at that size, whatever N. ``progress``
+    (default on) shows bars over the candidates and the refinement's rounds; ``progress=False`` is silent.
+
+    **Noise**: ``noise`` (:mod:`torchmisspec.noise`: ``"auto"``, ``"additive"``, ``"relative"``, ``"counts"``, or a
+    :class:`~torchmisspec.noise.NoiseModel`) says in which space the measurement errors are alike; the held-out
+    predictions are scored and G's uncertain parameters fitted through the ODE with its residuals (logs for
+    ``"relative"``). ``"auto"`` takes relative errors for positive states spanning a factor of 5 or more, and says
+    so. ``result.noise_`` records the model used, ``result.noise_scale_`` (:func:`noise_scale`) the scale of the
+    fitted model's residuals in its space (for bands of new measurements); ``result.derivative_`` the estimator of
+    dy/dt used (``"auto"``'s choice, e.g. ``"central order=4"``).
+
+    Returns:
+        the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
+        :class:`CrossValidation` (``None`` without it), ``result.samples_`` the correction samples,
+        ``result.trajectories_`` the data and ``result.fit_options_`` the keywords of this call (``noise`` as the
+        model chosen): a :class:`~torchmisspec.design.Campaign` started from the result holds those data and refits
+        with those options. None of these is saved with the model.
+    """
+    _check_trajectories_and_system(trajectories, system)
+    refine = check_flag(refine, "refine", none=True)
+    check_flag(progress, "progress")
+    noise = as_noise_model(noise, trajectories, announce="fit_correction")
+    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
+    result = _fit(trajectories, system, gp=gp, candidates=candidates, **options, **estimator)
+    result = _recorded(result, system, trajectories, noise)  # once, in the user's units, on the user's data
+    result.trajectories_ = trajectories  # what a Campaign started from this fit holds, and refits with these options
+    result.fit_options_ = dict(gp=gp, candidates=candidates, **{**options, "progress": False}, **estimator)
+    return result
+
+
+def _fit(
+    trajectories, system, *, select, derivative, folds, refine, progress, noise, gp=None, candidates=None, **estimator
+):
+    """:func:`fit_correction`'s steps, ``noise`` a :class:`~torchmisspec.noise.NoiseModel`; what it calls again on
+    the data in their own units and on partly measured data completed (the records of :func:`_recorded` are the
+    caller's)."""
+    _check_trajectories_and_system(trajectories, system)
+    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
+    scaled = fit_in_units(_fit, trajectories, system, gp=gp, candidates=candidates, estimator=estimator, **options)
+    if scaled is not None:  # fitted in the data's own units, returned in the user's (torchmisspec.learning._units)
+        return scaled
+    if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
+        options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
+        return fit_partly_measured(trajectories, system, _fit, progress=progress, noise=noise, **options, **estimator)
+    system0 = system
+    if gp is not None and not isinstance(gp, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
+    if candidates is not None and gp is not None:
+        raise InputError("candidates: expected either a gp template or a list of candidates, got both")
+    if not (isinstance(select, str) and select in SELECTION):
+        raise InputError(
+            f"select: expected 'cv' (held-out experiments) or 'evidence' (marginal likelihood), got {select!r}"
+        )
+    user_candidates = candidates is not None
+    if user_candidates:
+        candidates = _check_candidates(candidates)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
+    advice = _held_advice(caught)  # the estimator's advice: given below unless held-out data contradict it
+    raw, posterior = samples, None
+    if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
+        refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
+        template = CorrectionGP(device=samples.inputs.device) if gp is None or gp.auto else gp
+        posterior, samples = _parameter_passes(samples, system, template)
+        system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
+    cv = rival = None
+    result = None
+    scored, chooser = _chooser(trajectories, samples, system, derivative, estimator) if select == "cv" else (None, None)
+    if chooser is None:
+        chooser = samples.thinned(SELECTION_SAMPLES)  # the model is chosen on at most about this many samples
+    if scored is not None:
+        if candidates is None and gp is None:
+            candidates = default_candidates(chooser)
+        elif candidates is None:
+            # auto: scored as it is
+            free = not gp.auto and gp.kernel_spec.stationary and gp.fixed["lengthscale"] is None
+            if free and not gp.per_output:
+                candidates = [
+                    gp.clone(kernel=gp.kernel_spec, lengthscale=ell) for ell in lengthscale_candidates(chooser, gp)
+                ]
+            else:
+                candidates = [gp]
+        if scored is not trajectories:  # the pieces of one experiment, each its own fold
+            folds = scored.num_experiments
+        cv, models = cross_validate(system, scored, chooser, candidates, folds=folds, progress=progress, noise=noise)
+        result = models[cv.index] if math.isfinite(min(cv.scores)) else None
+        if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
+            result = copy.deepcopy(candidates[cv.index]).fit(samples)
+        known = (
+            None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories, scored, noise)
+        )
+        _give_advice(advice, cv)
+        if known is not None:
+            known.cross_validation_, known.samples_ = cv, raw
+            known.input_names_ = system0.input_names(trajectories)
+            return known
+        if _rival_applies(scored, trajectories, result, system0, user_candidates or gp is not None):
+            better, rival = refined_rival(
+                system, scored, chooser, models[cv.index], noise, dict(derivative=derivative, **estimator)
+            )
+            if better:  # the feature kernel on every sample, refined below through the ODE on the trajectory
+                result = feature_template(samples.inputs.device).fit(samples)
+        kept_rival = rival is not None and rival["refined features"] < rival["chosen"]
+        if kept_rival:  # what the kept model was tested on: the last piece, against the known model alone too
+            if not rival["refined features"] < rival["known model"]:
+                warn(
+                    f"fit_correction: the feature kernel refined through the ODE forecasts the trajectory's last piece "
+                    f"better than the time pieces' choice ({rival['refined features']:.3g} vs {rival['chosen']:.3g}) "
+                    f"but not better than the known model alone ({rival['known model']:.3g}): the data do not "
+                    "support a correction. Collect more experiments or a longer one, or check the known model",
+                    TorchMisspecWarning,
+                )
+        elif not cv.significant:
+            held = "experiments" if scored is trajectories else "pieces of the experiment's time"
+            warn(
+                f"fit_correction: no corrected model predicts held-out {held} significantly better than the "
+                f"known model alone (best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a "
+                f"correction, {cv.folds} folds; required: a gain of {cv.critical:.3g} standard errors over the "
+                f"{len(cv.gains) or scored.num_experiments} {held}): the data do not support a correction. "
+                "Collect more experiments, sample the states more densely or with less noise, or check the known model",
+                TorchMisspecWarning,
+            )
+        if result is None:
+            warn(
+                f"fit_correction: every candidate failed cross-validation (a fit or a held-out prediction failed: "
+                f"{', '.join(cv.candidates)}); chose among them by evidence instead",
+                TorchMisspecWarning,
+            )
+    if cv is None:
+        _give_advice(advice, None)
+    if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
+        auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
+        pool = candidates if user_candidates else [auto if gp is None else gp]
+        result = _by_evidence(pool, chooser)
+        if chooser is not samples:  # the chosen kernel (an auto model's choice), fitted on every sample
+            chosen = getattr(result, "model_selection_", None)
+            result = result.clone(kernel=result.kernel_spec).fit(samples)
+            result.model_selection_ = chosen
+    if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
+        refine = result.kernel_spec.terms and result.kernel_spec.feature_space and system.autonomous
+    if refine:  # a new model: the record of the evidence's choice carried over
+        selection = getattr(result, "model_selection_", None)
+        result = fit_trajectories(result, system, trajectories, progress=progress)
+        if selection is not None:
+            result.model_selection_ = selection
+    if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
+        delta = posterior.mean - posterior.prior_mean
+        result, samples = fit_parameters(result, samples, system0, trajectories, delta, noise)
+        result.parameters_.warn_if_unidentified("fit_correction")
+        if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
+            found = result.parameters_
+            result = fit_trajectories(result, system0.at(found.mean), trajectories, progress=progress)
+            result.parameters_ = found
+    result.cross_validation_ = cv
+    result.one_trajectory_rival_ = rival  # None unless one_trajectory.refined_rival ran
+    result.samples_ = samples
+    result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
+    return result
