@@ -370,3 +370,69 @@ def test_a_campaign_refuses_uncertain_parameters_without_their_estimate_with_the
     with pytest.raises(tms.InputError, match=r"start the campaign from fit_correction.*Campaign\(system.at\(theta\)"):
         tms.design.Campaign(system, torch.rand(5, 2, dtype=D), torch.linspace(0, 1, 5, dtype=D), gp)
     assert tms.parameters.ParameterPosterior is ParameterPosterior
+
+
+def test_absorbed_fraction_matches_a_hand_written_posterior_mean(problem):
+    """``absorbed`` (issue 42, item 3): 1 - ||g_k - m_k||^2 / ||g_k||^2 over every component, m_k F's posterior mean
+    at the samples given the targets g_k, written here with a hand-written Cholesky solve; a component F does not act
+    on counts whole."""
+    X, residuals, basis, priors = problem
+    gp = _gp(X, residuals[:, [1]])
+    post = parameter_posterior(gp, residuals, basis, [1], priors)
+    K = gp.covar_module(X, X).to_dense().detach()
+    L = torch.linalg.cholesky(K + gp.noise_variance * torch.eye(X.shape[0], dtype=D))
+    m = K @ torch.cholesky_solve(basis[:, 1, :], L)  # (N, k): F's mean given each g_k on the corrected component
+    left = ((basis[:, 1, :] - m) ** 2).sum(0) + (basis[:, 0, :] ** 2).sum(0)
+    total = (basis[:, 1, :] ** 2).sum(0) + (basis[:, 0, :] ** 2).sum(0)
+    torch.testing.assert_close(post.absorbed, 1 - left / total, rtol=1e-8, atol=1e-10)
+    # F on the only component G's parameter moves, and g smooth in x: F stands in for nearly all of it
+    smooth = torch.cat([X, 0.5 * X**2], dim=1).unsqueeze(1)  # (N, 1, 2)
+    gp1 = _gp(X, residuals[:, [1]])
+    alone = parameter_posterior(gp1, residuals[:, [1]], smooth, [0], priors)
+    assert bool((alone.absorbed > 0.9).all())
+
+
+def _posterior(mean, sd, absorbed):
+    one = torch.ones(1, dtype=D)
+    return ParameterPosterior(
+        names=("half_life",),
+        prior_mean=20.0 * one,
+        prior_scale=5.0 * one,
+        mean=mean * one,
+        covariance=(sd**2) * one[:, None],
+        sd_without_correction=0.5 * one,
+        log_evidence=0.0,
+        basis_targets=torch.zeros(3, 1, 1, dtype=D),
+        absorbed=None if absorbed is None else absorbed * one,
+    )
+
+
+def test_an_absorbable_parameter_that_drifted_is_not_identified_whatever_its_width():
+    """Issue 42, item 3: a half-life that F can stand in for, estimated 9 +- 2.3 against a prior of 20 +- 5 (the
+    Laplace width of a parameter entering as 1 / theta shrinks as it drifts low), is reported not identified, and the
+    message says where the estimate went; the same width near the prior, or a parameter F cannot absorb, is
+    identified."""
+    drifted = _posterior(9.0, 2.3, 0.95)
+    assert drifted.identified == (False,)
+    (problem,) = drifted.problems()
+    assert "estimate 9 +- 2.3, 2.2 prior sd from its prior 20 +- 5" in problem
+    assert "95%" in problem and "not evidence" in problem
+    assert _posterior(19.0, 2.3, 0.95).identified == (True,)  # moved 0.2 prior sd: the width is believed
+    assert _posterior(9.0, 2.3, 0.1).identified == (True,)  # F cannot stand in for it: the data moved it
+    assert _posterior(9.0, 2.3, None).identified == (True,)  # not computed (a record from before): width alone
+    wide = _posterior(12.0, 4.0, 0.95)
+    assert wide.identified == (False,) and "posterior sd 0.80 of the prior's (estimate 12 +- 4" in wide.problems()[0]
+
+
+def test_absorbed_round_trips_through_the_record():
+    post = _posterior(9.0, 2.3, 0.95)
+    back = ParameterPosterior.from_dict(
+        post.to_dict(), "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1, dtype=D)
+    )
+    torch.testing.assert_close(back.absorbed, post.absorbed)
+    old = {key: v for key, v in post.to_dict().items() if key != "absorbed"}
+    assert ParameterPosterior.from_dict(old, "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1)).absorbed is None
+    with pytest.raises(tms.InputError, match="'absorbed'"):
+        ParameterPosterior.from_dict(
+            {**post.to_dict(), "absorbed": torch.ones(2)}, "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1)
+        )

@@ -33,6 +33,8 @@ __all__ = [
     "IDENTIFIED_RATIO",
     "CORRELATION_LIMIT",
     "LINEARITY_TOLERANCE",
+    "ABSORBED_LIMIT",
+    "MOVED_LIMIT",
 ]
 
 #: theta_k counts as identified from the data when its posterior standard deviation is at most this fraction of its
@@ -40,6 +42,13 @@ __all__ = [
 IDENTIFIED_RATIO = 0.5
 #: parameters whose posterior correlation exceeds this in absolute value are reported as only jointly determined
 CORRELATION_LIMIT = 0.95
+#: theta_k counts as absorbable by F when F's posterior mean, given G's change with theta_k as targets, reproduces at
+#: least this fraction of that change (its squared norm over the samples): F and theta_k then trade off
+ABSORBED_LIMIT = 0.5
+#: an absorbable theta_k whose estimate moved more than this many prior standard deviations from the prior mean is
+#: not identified, whatever its posterior width (issue 42: the Laplace width of a parameter entering G as 1 / theta
+#: shrinks as its estimate drifts low, so a narrow posterior can sit far from the truth)
+MOVED_LIMIT = 1.0
 #: relative tolerance of the numerical check that G is linear in its uncertain parameters
 LINEARITY_TOLERANCE = 1e-6
 #: the central differences of a nonlinear G's Jacobian in theta, in prior scales
@@ -149,6 +158,9 @@ class ParameterPosterior:
             (F's absorption of each, :meth:`draw_terms`).
         linear: whether G is linear in theta (else the posterior is the Laplace approximation at the MAP, and
             :attr:`log_evidence` the linearised model's).
+        absorbed: per parameter, the fraction of G's change with it that F's posterior mean reproduces at the samples
+            ``(k,)`` (1: F can stand in for it entirely; over every state component, so a parameter that also moves a
+            component F does not act on is absorbed less); ``None`` where the fit did not compute it.
     """
 
     names: tuple[str, ...]
@@ -160,6 +172,7 @@ class ParameterPosterior:
     log_evidence: float
     basis_targets: torch.Tensor
     linear: bool = True
+    absorbed: torch.Tensor | None = None
 
     @property
     def stddev(self) -> torch.Tensor:
@@ -173,10 +186,25 @@ class ParameterPosterior:
         return self.covariance / (sd[:, None] * sd[None, :])
 
     @property
+    def moved(self) -> torch.Tensor:
+        """How far each estimate went from its prior mean, in prior standard deviations ``(k,)``."""
+        return (self.mean - self.prior_mean.to(self.mean)).abs() / self.prior_scale.to(self.mean)
+
+    @property
+    def absorbable(self) -> tuple[bool, ...]:
+        """Per parameter: whether F can stand in for it (:attr:`absorbed` at least :data:`ABSORBED_LIMIT`)."""
+        if self.absorbed is None:
+            return (False,) * len(self.names)
+        return tuple(bool(v) for v in (self.absorbed >= ABSORBED_LIMIT))
+
+    @property
     def identified(self) -> tuple[bool, ...]:
-        """Per parameter: whether the data determined it (posterior sd at most :data:`IDENTIFIED_RATIO` of the
-        prior's)."""
-        return tuple(bool(v) for v in (self.stddev <= IDENTIFIED_RATIO * self.prior_scale.to(self.stddev)))
+        """Per parameter: whether the data determined it: posterior sd at most :data:`IDENTIFIED_RATIO` of the
+        prior's, and not a parameter F can stand in for whose estimate moved more than :data:`MOVED_LIMIT` prior
+        standard deviations (there the width measures the model's curvature, not what the data say about it)."""
+        narrow = self.stddev <= IDENTIFIED_RATIO * self.prior_scale.to(self.stddev)
+        drifted = [a and float(m) > MOVED_LIMIT for a, m in zip(self.absorbable, self.moved, strict=True)]
+        return tuple(bool(n) and not d for n, d in zip(narrow, drifted, strict=True))
 
     def as_dict(self) -> dict[str, tuple[float, float]]:
         """``{name: (posterior mean, posterior sd)}``."""
@@ -199,17 +227,8 @@ class ParameterPosterior:
         out = []
         s0 = self.prior_scale.to(self.stddev)
         for j, name in enumerate(self.names):
-            if self.identified[j]:
-                continue
-            ratio = float(self.stddev[j] / s0[j])
-            without = float(self.sd_without_correction[j] / s0[j])
-            reason = (
-                f"the correction F can absorb its effect on G (without F the same data would determine it to "
-                f"{without:.2f} of the prior's sd): a parameter error and a missing term look alike here"
-                if without <= IDENTIFIED_RATIO
-                else "these data hardly depend on it"
-            )
-            out.append(f"{name}: posterior sd {ratio:.2f} of the prior's, so it stays close to its prior; {reason}")
+            if not self.identified[j]:
+                out.append(self._problem(j, name, s0))
         corr = self.correlation
         k = len(self.names)
         for i in range(k):
@@ -220,6 +239,28 @@ class ParameterPosterior:
                         "combination of the two is determined"
                     )
         return out
+
+    def _problem(self, j: int, name: str, s0: torch.Tensor) -> str:
+        """Why parameter ``j`` is not identified, and where its estimate went."""
+        ratio = float(self.stddev[j] / s0[j])
+        where = (
+            f"estimate {float(self.mean[j]):.4g} +- {float(self.stddev[j]):.2g}, {float(self.moved[j]):.1f} prior sd "
+            f"from its prior {float(self.prior_mean[j]):.4g} +- {float(s0[j]):.2g}"
+        )
+        if self.absorbable[j] and ratio <= IDENTIFIED_RATIO:
+            return (
+                f"{name}: {where}; the correction F reproduces {float(self.absorbed[j]):.0%} of its effect on G, so "
+                "the data cannot tell this parameter's error from a missing term, and its narrow posterior is not "
+                "evidence of where it is: do not read the estimate as measured"
+            )
+        without = float(self.sd_without_correction[j] / s0[j])
+        reason = (
+            f"the correction F can absorb its effect on G (without F the same data would determine it to "
+            f"{without:.2f} of the prior's sd): a parameter error and a missing term look alike here"
+            if without <= IDENTIFIED_RATIO or self.absorbable[j]
+            else "these data hardly depend on it"
+        )
+        return f"{name}: posterior sd {ratio:.2f} of the prior's ({where}); {reason}"
 
     def warn_if_unidentified(self, where: str) -> None:
         problems = self.problems()
@@ -310,6 +351,7 @@ class ParameterPosterior:
             "log_evidence": float(self.log_evidence),
             "basis_targets": self.basis_targets.detach().cpu(),
             "linear": bool(self.linear),
+            **({} if self.absorbed is None else {"absorbed": self.absorbed.detach().cpu()}),
         }
 
     @classmethod
@@ -345,4 +387,17 @@ class ParameterPosterior:
         linear = values.get("linear", True)  # files written before nonlinear parameters: linear
         if not isinstance(linear, bool):
             raise InputError(f"{path}: expected 'linear' True or False, got {linear!r:.40}")
-        return cls(tuple(names), **{key: values[key].to(like) for key in shapes}, log_evidence=evidence, linear=linear)
+        absorbed = values.get("absorbed")  # files written before issue 42: not computed
+        if absorbed is not None and not (
+            isinstance(absorbed, torch.Tensor)
+            and tuple(absorbed.shape) == (k,)
+            and bool(torch.isfinite(absorbed).all())
+        ):
+            raise InputError(f"{path}: expected 'absorbed' a finite float tensor of shape ({k},), got {absorbed!r:.60}")
+        return cls(
+            tuple(names),
+            **{key: values[key].to(like) for key in shapes},
+            log_evidence=evidence,
+            linear=linear,
+            absorbed=None if absorbed is None else absorbed.to(like),
+        )

@@ -93,6 +93,7 @@ def parameter_posterior(
     info = torch.einsum("njk,njl->kl", CinvH, Hc)
     b = torch.einsum("njk,nj->k", CinvH, rc)
     noise = _noise(gp, Hc)
+    absorbed = _absorbed(noise, CinvH, Hc, [basis[:, j, :] for j in others])
     info0 = torch.einsum("njk,njl->kl", Hc / noise.unsqueeze(-1), Hc)
     evidence = fit_r.log_marginal_likelihood
     n = residuals.shape[0]
@@ -120,6 +121,7 @@ def parameter_posterior(
         log_evidence=float(evidence),
         basis_targets=Hc.detach().clone(),
         linear=linear,
+        absorbed=absorbed,
     )
 
 
@@ -162,6 +164,17 @@ def condition_with_parameters(gp, samples, system, delta=None):
     out = gp.condition(moved.inputs, moved.targets, noise=moved.noise)
     out.parameters_ = posterior
     return out, moved
+
+
+def _absorbed(noise: torch.Tensor, CinvH: torch.Tensor, Hc: torch.Tensor, others: list) -> torch.Tensor:
+    """The fraction of each g_k that F's posterior mean reproduces at the samples ``(k,)``: with C = K + N, the mean
+    given the targets g_k is K C^-1 g_k = g_k - N C^-1 g_k, so what F leaves is N C^-1 g_k on the corrected
+    components, and all of g_k on the components F does not act on (``others``, each ``(N, k)``)."""
+    left = (noise.unsqueeze(-1) * CinvH).pow(2).sum((0, 1))
+    total = Hc.pow(2).sum((0, 1))
+    for g in others:
+        left, total = left + g.pow(2).sum(0), total + g.pow(2).sum(0)
+    return (1 - left / total.clamp_min(1e-300)).clamp(0, 1)
 
 
 def _noise(gp, Hc: torch.Tensor) -> torch.Tensor:
