@@ -13,6 +13,7 @@ from torchmisspec.gp import CorrectionGP
 from torchmisspec.plotting import (
     DESIGN_STYLES,
     SERIES_STYLES,
+    ColorScale,
     correction_error_fn,
     plot_component_error_maps,
     plot_design,
@@ -155,11 +156,27 @@ def test_plot_error_map_callable_and_grid_agree(tmp_path):
 
 def test_plot_error_map_log_scale_and_dashed_box():
     fig = plot_error_map(
-        lambda x: x.pow(2).sum(-1) + 1e-6, DOMAIN, resolution=11, log_scale=True, dashed_box=((-0.5, 0.5), (-1.0, 1.0))
+        lambda x: x.pow(2).sum(-1) + 1e-6,
+        DOMAIN,
+        resolution=11,
+        scale=ColorScale(log=True),
+        dashed_box=((-0.5, 0.5), (-1.0, 1.0)),
     )
     ax = fig.axes[0]
     assert type(ax.images[0].norm).__name__ == "LogNorm"
     assert len(ax.patches) == 1
+
+
+def test_plot_error_map_colour_scale_limits_and_its_checks():
+    grid = np.arange(25, dtype=float).reshape(5, 5)
+    fig = plot_error_map(grid, DOMAIN, scale=ColorScale(vmin=2, vmax=10.0))
+    assert fig.axes[0].images[0].get_clim() == (2.0, 10.0)
+    with pytest.raises(InputError, match=r"scale: expected a ColorScale \(e.g. ColorScale\(log=True"):
+        plot_error_map(grid, DOMAIN, scale={"log": True})
+    with pytest.raises(InputError, match="ColorScale.log: expected True or False, got 'yes'"):
+        ColorScale(log="yes")
+    with pytest.raises(InputError, match="ColorScale.vmax: expected a finite number, got nan"):
+        ColorScale(vmax=float("nan"))
 
 
 def test_plot_error_map_colour_scale_ignores_non_finite_values():

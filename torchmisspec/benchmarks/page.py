@@ -5,6 +5,15 @@ from __future__ import annotations
 
 from .fitting import MAX_ITER
 
+#: The contention rows, in the page's order: the first is the reference the ratios divide by.
+_CONTENTION_ROWS = (
+    "torch's setting, quiet",
+    "adaptive (default), quiet",
+    "torch's setting, busy",
+    "adaptive (default), busy",
+)
+_CONTENTION_TASKS = ("fit", "predict", "design")
+
 
 def _verdict(ok: bool) -> str:
     return "met" if ok else "**not met**"
@@ -26,16 +35,13 @@ def load_line(load: list[float]) -> str:
     return " / ".join(f"{x:.2f}" for x in load) if load else "n/a"
 
 
-def render_markdown(r: dict) -> str:
-    """BENCHMARKS.md from the results of a full run: every figure comes from ``r``, none is typed in."""
+def _header(r: dict) -> list[str]:
+    """The page's title, the command, the machine, its load and how the benchmarks are measured."""
     m = r["machine"]
-    f, g, p, d, n = r["fit"], r["gradient"], r["predict"], r["design"], r["naive"]
-    ours, gd, gc, sk = f["ours"], f["gpytorch_default"], f["gpytorch_cholesky"], f["sklearn"]
     mem = f"{m['memory_gb']:.0f} GB RAM" if m["memory_gb"] else "RAM unknown"
-    warm = ", after a warm start on a 500-point subsample" if f["N"] > 1000 else ""
     hardware = f"{m['cpu']}, {m['logical_cpus']} logical CPUs, {mem}, {'a' if m['gpu'] else 'no'} GPU"
     software = f"python {m['python']}, torch {m['torch']}, gpytorch {m['gpytorch']}, scikit-learn {m['scikit-learn']}"
-    lines = [
+    return [
         f"""# Benchmarks
 
 All figures below come from one run of
@@ -54,10 +60,18 @@ measured on:
   {load_line(r["load_after"])} (the run's own threads count towards the load average).
 
 This page is written by that command (`--markdown`) from the measured numbers, also kept in [`benchmarks/results.json`](benchmarks/results.json) with every repeat. Each benchmark
-reports the median of {r["repeats"]} repeats (the gradient ablation: {g["evaluation_repeats"]} evaluations) and
+reports the median of {r["repeats"]} repeats (the gradient ablation: {r["gradient"]["evaluation_repeats"]} evaluations) and
 measures its peers in the same run, on the same data. `--smoke` runs tiny sizes (`tests/test_benchmark_script.py`
-checks that it runs); `--only fit|gradient|predict|design|naive` runs one benchmark.
+checks that it runs); `--only fit|gradient|predict|design|naive` runs one benchmark."""
+    ]
 
+
+def _fit_section(f: dict) -> list[str]:
+    """``--only fit``: CorrectionGP's fit against stock GPyTorch (twice) and scikit-learn, with the targets' verdicts."""
+    ours, gd, gc, sk = f["ours"], f["gpytorch_default"], f["gpytorch_cholesky"], f["sklearn"]
+    warm = ", after a warm start on a 500-point subsample" if f["N"] > 1000 else ""
+    return [
+        f"""
 ## Fitting: CorrectionGP vs stock GPyTorch and scikit-learn (`--only fit`)
 
 N = {f["N"]} samples of paper 5.1's correction ({f["trajectories"]} random trajectories x {f["times_per_trajectory"]} times on [0, 6], oracle noise std 1e-2),
@@ -106,8 +120,28 @@ What makes it fast: one Cholesky serves both outputs (GPyTorch factorizes the ex
 output); the gradient 0.5 tr((alpha alpha^T - m C^-1) dC/dtheta) uses C^-1 from `cholesky_inverse` and autograd
 through the O(N^2) kernel only, never through the factorization (measured alone in the next section); the output
 scale is profiled out in closed form (two hyperparameters left for L-BFGS); a warm start on a subsample.
-Optimisation runs in log space, like scikit-learn's.
+Optimisation runs in log space, like scikit-learn's."""
+    ]
 
+
+def _speedup_claim(sizes: list[dict]) -> tuple[float, float, str]:
+    """The smallest and largest measured speed-up of the analytic gradient, and how they compare with the 3-4x once
+    claimed."""
+    speedups = [row["speedup"] for row in sizes]
+    lo, hi = min(speedups), max(speedups)
+    if lo >= 3.0:
+        claim = "at least the claimed 3-4x" if hi > 4.0 else "within the claimed 3-4x"
+    elif hi >= 3.0:
+        claim = "the claimed 3-4x at some sizes only"
+    else:
+        claim = "**below the claimed 3-4x**"
+    return lo, hi, claim
+
+
+def _gradient_section(g: dict) -> list[str]:
+    """``--only gradient``: one value + gradient and a whole fit, analytic gradient vs autograd through the Cholesky."""
+    lines = [
+        f"""
 ## The gradient trick: analytic gradient vs autograd through the Cholesky (`--only gradient`)
 
 One value + gradient of the exact log marginal likelihood (shared RBF kernel with output scale, Gaussian noise,
@@ -130,14 +164,7 @@ kernel matrix and its backward.
             f"{row['value_relative_difference']:.1e} |"
         )
     gf = g["fit"]
-    speedups = [row["speedup"] for row in g["sizes"]]
-    lo, hi = min(speedups), max(speedups)
-    if lo >= 3.0:
-        claim = "at least the claimed 3-4x" if hi > 4.0 else "within the claimed 3-4x"
-    elif hi >= 3.0:
-        claim = "the claimed 3-4x at some sizes only"
-    else:
-        claim = "**below the claimed 3-4x**"
+    lo, hi, claim = _speedup_claim(g["sizes"])
     lines.append(f"""
 Verdict: the old documentation claimed the analytic gradient is "3-4x cheaper than backpropagating through the
 Cholesky"; measured {lo:.2f}x to {hi:.2f}x at N = {", ".join(str(row["N"]) for row in g["sizes"])}: {claim}.
@@ -154,8 +181,14 @@ modules), so the two rows differ only in how the gradient is computed:
 
 - Fit time autograd / analytic: **{gf["speedup"]:.2f}x** ({gf["speedup_per_evaluation"]:.2f}x per evaluation).
 - The library's `CorrectionGP().fit` on the same data (analytic gradient, profiled output scale, warm start):
-  {gf["library"]:.2f} s in this section's own measurement.
+  {gf["library"]:.2f} s in this section's own measurement.""")
+    return lines
 
+
+def _predict_section(p: dict) -> list[str]:
+    """``--only predict``: CorrectedODE.predict against GPyTorch's predictive distribution and mean-only path."""
+    return [
+        f"""
 ## Prediction: cached posterior vs GPyTorch's predictive distribution per step (`--only predict`)
 
 {p["initial_conditions"]} new initial conditions, {p["output_times"]} output times on [0, 6], GP trained on
@@ -178,8 +211,14 @@ is by `fit`:
 - Speed-up vs the predictive distribution: **{p["gpytorch"]["speedup"]:.1f}x** (target: at least 10x:
   {_verdict(p["gpytorch"]["speedup"] >= 10)}).
 - Speed-up vs GPyTorch's fastest mean-only path: **{p["gpytorch_fast"]["speedup"]:.1f}x** (no target was set
-  against this peer).
+  against this peer)."""
+    ]
 
+
+def _design_section(d: dict) -> list[str]:
+    """``--only design``: lazy greedy's time and peak memory at scale, one row per set-up."""
+    lines = [
+        """
 ## Experimental design at scale (`--only design`)
 
 Candidates uniform in [-1, 1]^2 (paper 5.1's system), T = 20 times on [0, 6], RBF kernel, noise variance 1e-4;
@@ -188,7 +227,8 @@ candidates. Peak memory is the process's high-water mark (VmHWM), imports includ
 most 3 s and 1 GB. No peer is timed at this size; the comparison with the naive greedy is in the next section.
 
 | candidates | K | lengthscale | output scale | wall time (median) | repeats (s) | peak memory | after imports + warm-up | exact gain evaluations | screening | target |
-|---|---|---|---|---|---|---|---|---|---|---|""")
+|---|---|---|---|---|---|---|---|---|---|---|"""
+    ]
     for v in d.values():
         diag = v["diagnostics"]
         screen = f"{'on' if diag.get('screening') else 'off'}, rank {diag.get('rank')}, {diag.get('bounds', 0)} bounds"
@@ -204,8 +244,14 @@ lazy greedy would re-evaluate most candidates at most steps. Lazy greedy therefo
 a rigorous upper bound from a Nystrom (pivoted-Cholesky) approximation of the kernel and evaluates exactly only
 those that can still win; the picks are still plain greedy's (exact gains decide). For a rough kernel (the
 lengthscale-0.3 row) the bound is too loose, screening switches itself off, and the time is what plain lazy greedy
-costs: the 3 s target is for the smooth case only.
+costs: the 3 s target is for the smooth case only.""")
+    return lines
 
+
+def _naive_section(n: dict) -> list[str]:
+    """``--only naive``: lazy and plain greedy against Algorithm 1 done literally, same picks required."""
+    lines = [
+        """
 ## Lazy greedy vs the naive greedy of Algorithm 1 (`--only naive`)
 
 Candidates uniform in [-1, 1]^2, RBF lengthscale 1, noise variance 1e-4. Peer, in the same run: naive, Algorithm 1
@@ -215,7 +261,8 @@ Schur-complement downdates of every candidate's T x T conditional covariance. La
 Algorithm 2 with a growing Cholesky factor. Target: identical picks, lazy at least 20x faster than naive.
 
 | candidates | T | K | output scale | naive (repeats) | plain greedy | lazy greedy (repeats) | lazy speed-up vs naive | identical picks | target |
-|---|---|---|---|---|---|---|---|---|---|""")
+|---|---|---|---|---|---|---|---|---|---|"""
+    ]
     for key, v in n.items():
         ok = v["identical_picks"] and v["speedup_lazy_vs_naive"] >= 20
         lines.append(
@@ -230,8 +277,14 @@ repeats), so the ratio moves between full runs. At this small size the vectorise
 batched T x T Cholesky per step beats lazy greedy's bookkeeping) at O(N K T^2) memory; lazy greedy is the default
 because its memory stays O(N T^2 + (K T)^2), which is what makes 10,000 candidates fit in 1 GB.
 """)
-    rd = r["realdata"]
-    lines.append(f"""
+    return lines
+
+
+def _realdata_section(rd: dict) -> list[str]:
+    """``--only realdata``: the costs of learning from states (gp_derivative, fit_trajectories) against issue 9's
+    targets."""
+    return [
+        f"""
 ## Learning from states: costs (`--only realdata`)
 
 Paper 5.1's system, {rd["experiments"]} experiments x {rd["times"]} times on [0, 6], state noise 1 % of each
@@ -249,10 +302,15 @@ and under 30 s on this machine.
   torchdiffeq) of all {rd["experiments"] * (rd["times"] - 1)} intervals; one-interval misfit
   {rd["misfit_before"]:.3g} -> {rd["misfit_after"]:.3g}; integrated error of F_hat over D {rd["error_before"]:.4g} ->
   {rd["error_after"]:.4g}.
-""")
-    c = r["contention"]
-    quiet_ref = c["torch's setting, quiet"]
-    lines.append(f"""
+"""
+    ]
+
+
+def _contention_section(c: dict) -> list[str]:
+    """``--only contention``: the adaptive thread count against torch's setting on a quiet and a busy machine."""
+    quiet_ref = c[_CONTENTION_ROWS[0]]
+    lines = [
+        f"""
 ## A busy machine: adaptive thread count (`--only contention`)
 
 The same work ({c["sizes"]}; median of the repeats) in a fresh process, on a quiet machine and beside one busy
@@ -262,23 +320,36 @@ the heavy calls use no more torch threads than there are free cores, read from `
 Targets: quiet speed within 10 % of torch's setting; busy within 1.5x of quiet.
 
 | policy, machine | fit | predict | design | fit / quiet | predict / quiet | design / quiet |
-|---|---|---|---|---|---|---|""")
-    for key in (
-        "torch's setting, quiet",
-        "adaptive (default), quiet",
-        "torch's setting, busy",
-        "adaptive (default), busy",
-    ):
+|---|---|---|---|---|---|---|"""
+    ]
+    for key in _CONTENTION_ROWS:
         v = c[key]
-        ratios = " | ".join(f"{v[k] / quiet_ref[k]:.2f}x" for k in ("fit", "predict", "design"))
+        ratios = " | ".join(f"{v[k] / quiet_ref[k]:.2f}x" for k in _CONTENTION_TASKS)
         lines.append(f"| {key} | {v['fit']:.3f} s | {v['predict']:.3f} s | {v['design']:.2f} s | {ratios} |")
     a_q, a_b = c["adaptive (default), quiet"], c["adaptive (default), busy"]
-    quiet_ok = all(a_q[k] <= 1.1 * quiet_ref[k] for k in ("fit", "predict", "design"))
-    busy_ok = all(a_b[k] <= 1.5 * a_q[k] for k in ("fit", "predict", "design"))
+    quiet_ok = all(a_q[k] <= 1.1 * quiet_ref[k] for k in _CONTENTION_TASKS)
+    busy_ok = all(a_b[k] <= 1.5 * a_q[k] for k in _CONTENTION_TASKS)
     lines.append(f"""
 - Quiet, adaptive vs torch's setting: {_verdict(quiet_ok)} (within 10 % on every task).
-- Busy vs quiet with the adaptive count: {", ".join(f"{k} {a_b[k] / a_q[k]:.2f}x" for k in ("fit", "predict", "design"))}:
+- Busy vs quiet with the adaptive count: {", ".join(f"{k} {a_b[k] / a_q[k]:.2f}x" for k in _CONTENTION_TASKS)}:
   {_verdict(busy_ok)} (1.5x target). With one core taken, one thread on the free core is the best a process can do;
   work that two threads speed up by more than 1.5x on a quiet machine cannot meet the target there.
 """)
+    return lines
+
+
+def render_markdown(r: dict) -> str:
+    """BENCHMARKS.md from the results of a full run: every figure comes from ``r``, none is typed in.
+
+    Each section is one helper returning its lines; the page is their lines joined by newlines."""
+    lines = [
+        *_header(r),
+        *_fit_section(r["fit"]),
+        *_gradient_section(r["gradient"]),
+        *_predict_section(r["predict"]),
+        *_design_section(r["design"]),
+        *_naive_section(r["naive"]),
+        *_realdata_section(r["realdata"]),
+        *_contention_section(r["contention"]),
+    ]
     return "\n".join(lines)

@@ -16,6 +16,7 @@ re-learned).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -371,6 +372,100 @@ def _sequential_setup(setup: str, seed: int, n_candidates: int | None):
     raise InputError(f"setup: expected one of {SEQUENTIAL_SETUPS}, got {setup!r}")
 
 
+@dataclass(frozen=True)
+class _SequentialProblem:
+    """What every strategy of the sequential study shares: the set-up, the prior, the data and the error measure."""
+
+    system: MisspecifiedSystem
+    candidates: torch.Tensor
+    times: torch.Tensor
+    prior: CorrectionGP
+    noise_std: float
+    seed: int  # the study's; campaign r draws its sample noise from seed * 1000 + r
+    inputs: torch.Tensor  # (N, T, d_in) correction inputs along every candidate's true trajectory
+    error: Callable[[CorrectionGP], float]
+
+
+@dataclass
+class _SequentialRecord:
+    """The sequential study's results as realizations add them: errors, campaign picks, learned hyperparameters."""
+
+    errors: dict[str, torch.Tensor]  # strategy -> (R, len(ks))
+    picks: dict[str, list]  # sequential strategy -> its first kmax picks, one list per realization
+    hyper: list[dict] = field(default_factory=list)  # the first campaign's hyperparameters at kmax, per realization
+
+
+def _clean_samples(system: MisspecifiedSystem, candidates: torch.Tensor, times: torch.Tensor):
+    """Inputs and exact correction targets along every candidate's true trajectory, simulated once and reused."""
+    states = simulate(system, candidates, times).states
+    inputs = system.select_inputs(states)
+    clean = system.select_outputs(system.true_rhs(states) - system.known(states))
+    return inputs, clean
+
+
+def _error_quadrature(system: MisspecifiedSystem, resolution: int, squared: bool):
+    """The grid, its weights (normalised to a mean when ``squared``) and the true F on it, for every error."""
+    points, weights = box_grid(system.domain, resolution)
+    if squared:
+        weights = weights / weights.sum()
+    return points, weights, system.true_correction(points)
+
+
+def _energy_reference(system: MisspecifiedSystem, truth, weights, squared: bool, resolution: int) -> dict[str, float]:
+    """The energy of F in the study's metric (its mean square, or the integral of its norm): the errors' yardstick."""
+    if squared:
+        return {"mean energy of F": float((truth.pow(2).sum(-1) * weights).sum())}
+    return {"energy of F": integrated_norm(system.true_correction, system.domain, resolution=resolution)}
+
+
+def _one_shot_errors(problem: _SequentialProblem, order: dict, targets: torch.Tensor, ks, errors: dict, r: int):
+    """Realization ``r``'s error at each K of the prior conditioned on the first K experiments of each fixed order."""
+    inputs = problem.inputs
+    for name, idx in order.items():
+        for j, k in enumerate(ks):
+            x = inputs[idx[:k]].reshape(-1, inputs.shape[-1])
+            y = targets[idx[:k]].reshape(-1, targets.shape[-1])
+            errors[name][r, j] = problem.error(problem.prior.condition(x, y))
+
+
+def _campaign(problem: _SequentialProblem, criterion: str, batch: int, kmax: int, r: int, track: bool):
+    """A campaign of ``kmax`` experiments in rounds of ``batch``; with ``track``, its own GP's error after each."""
+    camp = _design.Campaign(
+        problem.system,
+        problem.candidates,
+        problem.times,
+        problem.prior,
+        criterion=criterion,
+        derivative="oracle",
+        noise_std=problem.noise_std,
+        seed=problem.seed * 1000 + r,
+    )
+    own = {}
+    while camp.num_experiments < kmax:
+        y0 = camp.ask(min(batch, kmax - camp.num_experiments))
+        camp.tell(simulate(problem.system, y0, problem.times))
+        if track:
+            own[camp.num_experiments] = problem.error(camp.gp)
+    return camp, own
+
+
+def _sequential_errors(problem: _SequentialProblem, names, sequential, learned, ks, record: _SequentialRecord, r: int):
+    """Realization ``r`` of every sequential strategy: the prior's error on each campaign's first K experiments
+    (and the first campaign's own model's, as ``learned``), into ``record`` with the picks and hyperparameters."""
+    errors, kmax, T = record.errors, ks[-1], problem.times.numel()
+    for name, (crit, b) in zip(names, sequential, strict=True):
+        first = name == names[0]
+        camp, own = _campaign(problem, crit, b, kmax, r, track=first)
+        X, Y = torch.cat(camp._inputs), torch.cat(camp._targets)
+        for j, k in enumerate(ks):
+            errors[name][r, j] = problem.error(problem.prior.condition(X[: k * T], Y[: k * T]))
+            if learned and first:
+                errors[learned][r, j] = own[k]
+        record.picks[name].append(camp.asked[:kmax])
+        if first:
+            record.hyper.append(camp.history[-1]["hyperparameters"])
+
+
 def sequential_study(
     setup: str = "linear",
     ks=None,
@@ -411,73 +506,34 @@ def sequential_study(
     realizations = check_positive_int(realizations, "realizations")
     ks = _check_ks(range(1, 21 if setup == "linear" else 11) if ks is None else ks, candidates.shape[0])
     sequential = [(c, check_positive_int(b, "batch size")) for c, b in sequential]
-    kmax = ks[-1]
     prior = CorrectionGP(**prior_kw)
     plans = {
-        "paper design": _design.greedy(candidates, kmax, system=system, times=times, gp=prior),
-        "domain design": _design.greedy(candidates, kmax, system=system, times=times, gp=prior, criterion="domain"),
+        "paper design": _design.greedy(candidates, ks[-1], system=system, times=times, gp=prior),
+        "domain design": _design.greedy(candidates, ks[-1], system=system, times=times, gp=prior, criterion="domain"),
     }
-    states = simulate(system, candidates, times).states
-    inputs = system.select_inputs(states)
-    clean = system.select_outputs(system.true_rhs(states) - system.known(states))
-    points, weights = box_grid(system.domain, resolution)
+    inputs, clean = _clean_samples(system, candidates, times)
     squared = metric == "mean_squared"
-    if squared:
-        weights = weights / weights.sum()
-    truth = system.true_correction(points)
+    points, weights, truth = _error_quadrature(system, resolution, squared)
 
     def error(gp) -> float:
         return _grid_error(gp, truth, points, weights, squared=squared)
 
+    problem = _SequentialProblem(system, candidates, times, prior, noise_std, seed, inputs, error)
     seq = [f"sequential {c} (rounds of {b})" for c, b in sequential]
     learned = f"{seq[0]}, learned GP" if sequential[0][1] == 1 else None  # its model after every experiment
     names = list(plans) + seq + ([learned] if learned else []) + ["random"]
     errors = {n: torch.empty(realizations, len(ks), dtype=torch.float64) for n in names}
-    picks: dict[str, list] = {n: [] for n in seq}
-    hyper: list[dict] = []
+    record = _SequentialRecord(errors, {n: [] for n in seq})
     with progress_bar(progress, realizations, f"sequential study ({setup})") as bar:
         for r in range(realizations):
             gen = torch.Generator().manual_seed(seed * 100_003 + r)
             targets = clean + noise_std * torch.randn(clean.shape, generator=gen, dtype=clean.dtype)
             order = {name: plan.indices for name, plan in plans.items()}
             order["random"] = torch.randperm(candidates.shape[0], generator=gen)
-            for name, idx in order.items():
-                for j, k in enumerate(ks):
-                    x = inputs[idx[:k]].reshape(-1, inputs.shape[-1])
-                    y = targets[idx[:k]].reshape(-1, targets.shape[-1])
-                    errors[name][r, j] = error(prior.condition(x, y))
-            for name, (crit, b) in zip(seq, sequential, strict=True):
-                camp = _design.Campaign(
-                    system,
-                    candidates,
-                    times,
-                    prior,
-                    criterion=crit,
-                    derivative="oracle",
-                    noise_std=noise_std,
-                    seed=seed * 1000 + r,
-                )
-                own = {}
-                while camp.num_experiments < kmax:
-                    y0 = camp.ask(min(b, kmax - camp.num_experiments))
-                    camp.tell(simulate(system, y0, times))
-                    if name == seq[0]:
-                        own[camp.num_experiments] = error(camp.gp)
-                X, Y = torch.cat(camp._inputs), torch.cat(camp._targets)
-                T = times.numel()
-                for j, k in enumerate(ks):
-                    errors[name][r, j] = error(prior.condition(X[: k * T], Y[: k * T]))
-                    if learned and name == seq[0]:
-                        errors[learned][r, j] = own[k]
-                picks[name].append(camp.asked[:kmax])
-                if name == seq[0]:
-                    hyper.append(camp.history[-1]["hyperparameters"])
+            _one_shot_errors(problem, order, targets, ks, errors, r)
+            _sequential_errors(problem, seq, sequential, learned, ks, record, r)
             bar.update(1)
-    references = (
-        {"mean energy of F": float((truth.pow(2).sum(-1) * weights).sum())}
-        if squared
-        else {"energy of F": integrated_norm(system.true_correction, system.domain, resolution=resolution)}
-    )
+    references = _energy_reference(system, truth, weights, squared, resolution)
     meta = {
         "system": system.name,
         "setup": setup,
@@ -487,8 +543,8 @@ def sequential_study(
         "seed": seed,
         "prior": prior_kw,
         "designs": {name: plan.indices.tolist() for name, plan in plans.items()},
-        "sequential_picks": picks,
-        "learned_hyperparameters_at_kmax": hyper,
+        "sequential_picks": record.picks,
+        "learned_hyperparameters_at_kmax": record.hyper,
         "quadrature": f"trapezoid, {resolution} x {resolution}",
     }
     what = "mean over D of ||F_hat - F||_2^2" if squared else "integral over D of ||F_hat - F||_2"

@@ -9,10 +9,10 @@ its own layout (the paper's figures are composed that way in :mod:`torchmisspec.
 
 Figures: :func:`plot_trajectories` (phase plane: true, misspecified, corrected and further sets),
 :func:`plot_training_and_test` (training and test panels side by side), :func:`plot_error_map` (a scalar error over a
-box), :func:`plot_component_error_maps` (one error map per setting and output component), :func:`plot_design`
-(candidates and the picks of several designs), :func:`plot_error_curves` (error against the number of experiments),
-:func:`plot_prediction_bands` (uncertainty bands of predicted trajectories against time) and :func:`plot_calibration`
-(empirical against nominal coverage of the bands).
+box, its colour scale a :class:`ColorScale`), :func:`plot_component_error_maps` (one error map per setting and
+output component), :func:`plot_design` (candidates and the picks of several designs), :func:`plot_error_curves`
+(error against the number of experiments), :func:`plot_prediction_bands` (uncertainty bands of predicted
+trajectories against time) and :func:`plot_calibration` (empirical against nominal coverage of the bands).
 :func:`correction_error_fn` builds the error callables the heat maps take from a system with a known F and a fitted
 GP.
 
@@ -35,7 +35,7 @@ from ._common import PANEL_SIZE as PANEL_SIZE
 from ._curves import CURVE_MARKERS, plot_error_curves
 from ._design import DESIGN_STYLES, plot_design
 from ._heatmaps import HEAT_LEVELS as HEAT_LEVELS
-from ._heatmaps import correction_error_fn, plot_component_error_maps, plot_error_map
+from ._heatmaps import ColorScale, correction_error_fn, plot_component_error_maps, plot_error_map
 from ._trajectories import SERIES_STYLES, TRAJECTORY_STYLES, plot_training_and_test, plot_trajectories
 from ._uncertainty import BAND_LEVELS, plot_calibration, plot_prediction_bands
 
@@ -43,6 +43,7 @@ __all__ = [
     "plot_trajectories",
     "plot_training_and_test",
     "plot_error_map",
+    "ColorScale",
     "plot_component_error_maps",
     "correction_error_fn",
     "plot_design",

@@ -96,6 +96,88 @@ def _design_styles(pick_names: Sequence[str], proxy_names: Sequence[str], styles
     return out
 
 
+def _check_picks(picks, n: int) -> dict[str, np.ndarray]:
+    """Each design's picks as integer indices into the ``n`` candidates, keyed by the design's name as text."""
+    if not isinstance(picks, Mapping):
+        raise InputError(f"picks: expected a dict design name -> indices, got {type(picks).__name__}")
+    return {str(name): _indices(idx, n, f"picks[{name!r}]") for name, idx in picks.items()}
+
+
+def _check_proxies(proxies, proxy_dims: Sequence[int]) -> tuple[dict[str, np.ndarray], Sequence[int]]:
+    """The trajectories to draw, as ``(K, T, d)`` arrays by name, and the two components checked against each."""
+    proxy_arrays = {}
+    if proxies is not None:
+        if not isinstance(proxies, Mapping):
+            raise InputError(f"proxies: expected a dict name -> (K, T, d) trajectories, got {type(proxies).__name__}")
+        for name, tr in proxies.items():
+            arr = _states(tr, f"proxies[{name!r}]")
+            proxy_dims = _check_dims(proxy_dims, arr.shape[2], "proxy_dims")
+            proxy_arrays[str(name)] = arr
+    return proxy_arrays, proxy_dims
+
+
+def _draw_proxies(ax: Axes, proxy_arrays: dict[str, np.ndarray], dims: Sequence[int], style_of: dict) -> None:
+    """Each name's trajectories as thin lines in its colour and line style, one legend entry per name."""
+    for name, arr in proxy_arrays.items():
+        style = style_of[name]
+        for k in range(arr.shape[0]):
+            ax.plot(
+                arr[k, :, dims[0]],
+                arr[k, :, dims[1]],
+                color=style["color"],
+                linestyle=style["linestyle"],
+                linewidth=0.9,
+                alpha=0.7,
+                zorder=2,
+                label=f"{name} trajectories" if k == 0 else None,
+            )
+
+
+def _draw_picks(ax: Axes, cand: np.ndarray, picked: dict[str, np.ndarray], style_of: dict) -> None:
+    """Each design's picks as hollow markers, so that picks shared by several designs stay visible."""
+    for name, idx in picked.items():
+        style = style_of[name]
+        ax.scatter(
+            cand[idx, 0],
+            cand[idx, 1],
+            s=style["size"],
+            marker=style["marker"],
+            facecolors="none",
+            edgecolors=style["color"],
+            linewidths=1.6,
+            zorder=4,
+            label=f"{name} (K={idx.size})",
+        )
+
+
+def _draw_masses(ax: Axes, mass_groups: dict[str, np.ndarray]) -> None:
+    """The point masses, one colour per group, marker area growing with |m| (relative to the largest of all)."""
+    mass_colors = ("goldenrod", "tab:red", "tab:purple")
+    all_m = np.concatenate([g[:, 2] for g in mass_groups.values()]) if mass_groups else np.ones(1)
+    m_max = float(np.abs(all_m).max()) or 1.0
+    for j, (label, arr) in enumerate(mass_groups.items()):
+        ax.scatter(
+            arr[:, 0],
+            arr[:, 1],
+            s=40 + 360 * np.abs(arr[:, 2]) / m_max,
+            marker="o",
+            color=mass_colors[j % len(mass_colors)],
+            edgecolors="black",
+            linewidths=0.8,
+            zorder=5,
+            label=label,
+        )
+
+
+def _legend_with_even_masses(ax: Axes, legend: bool | str, mass_groups: dict[str, np.ndarray]) -> None:
+    """Place the legend; its mass markers get one size, since on the map they scale with m, not in the legend."""
+    drawn = _place_legend(ax, ax.get_legend_handles_labels()[0], legend)
+    if drawn is not None:
+        for handle, text in zip(drawn.legend_handles, drawn.get_texts(), strict=True):
+            if text.get_text() in mass_groups:
+                handle.set_sizes([70.0])
+
+
 def plot_design(
     candidates_xy,
     picks: Mapping[str, Any] | None = None,
@@ -134,17 +216,8 @@ def plot_design(
     if cand.ndim != 2 or cand.shape[1] != 2:
         raise ShapeError(f"candidates_xy: expected shape (N, 2), got {cand.shape}")
     n = cand.shape[0]
-    if not isinstance(picks, Mapping):
-        raise InputError(f"picks: expected a dict design name -> indices, got {type(picks).__name__}")
-    picked = {str(name): _indices(idx, n, f"picks[{name!r}]") for name, idx in picks.items()}
-    proxy_arrays = {}
-    if proxies is not None:
-        if not isinstance(proxies, Mapping):
-            raise InputError(f"proxies: expected a dict name -> (K, T, d) trajectories, got {type(proxies).__name__}")
-        for name, tr in proxies.items():
-            arr = _states(tr, f"proxies[{name!r}]")
-            proxy_dims = _check_dims(proxy_dims, arr.shape[2], "proxy_dims")
-            proxy_arrays[str(name)] = arr
+    picked = _check_picks(picks, n)
+    proxy_arrays, proxy_dims = _check_proxies(proxies, proxy_dims)
     style_of = _design_styles(list(picked), list(proxy_arrays), styles)
     mass_groups = _masses(masses) if masses is not None else {}
     box = check_domain(domain, dim=2) if domain is not None else None
@@ -152,57 +225,15 @@ def plot_design(
 
     fig, ax = _axes(ax, figsize=(PANEL_SIZE[0] + 1.9, PANEL_SIZE[1]))  # room for the legend on the right
     ax.scatter(cand[:, 0], cand[:, 1], s=8, color="0.7", label=f"candidates (N={n})", zorder=1)
-    for name, arr in proxy_arrays.items():
-        style = style_of[name]
-        for k in range(arr.shape[0]):
-            ax.plot(
-                arr[k, :, proxy_dims[0]],
-                arr[k, :, proxy_dims[1]],
-                color=style["color"],
-                linestyle=style["linestyle"],
-                linewidth=0.9,
-                alpha=0.7,
-                zorder=2,
-                label=f"{name} trajectories" if k == 0 else None,
-            )
-    for name, idx in picked.items():
-        style = style_of[name]
-        ax.scatter(
-            cand[idx, 0],
-            cand[idx, 1],
-            s=style["size"],
-            marker=style["marker"],
-            facecolors="none",
-            edgecolors=style["color"],
-            linewidths=1.6,
-            zorder=4,
-            label=f"{name} (K={idx.size})",
-        )
-    mass_colors = ("goldenrod", "tab:red", "tab:purple")
-    all_m = np.concatenate([g[:, 2] for g in mass_groups.values()]) if mass_groups else np.ones(1)
-    m_max = float(np.abs(all_m).max()) or 1.0
-    for j, (label, arr) in enumerate(mass_groups.items()):
-        ax.scatter(
-            arr[:, 0],
-            arr[:, 1],
-            s=40 + 360 * np.abs(arr[:, 2]) / m_max,
-            marker="o",
-            color=mass_colors[j % len(mass_colors)],
-            edgecolors="black",
-            linewidths=0.8,
-            zorder=5,
-            label=label,
-        )
+    _draw_proxies(ax, proxy_arrays, proxy_dims, style_of)
+    _draw_picks(ax, cand, picked, style_of)
+    _draw_masses(ax, mass_groups)
     if box is not None:
         _draw_box(ax, box, label="domain D")
     ax.set_xlabel(axis_labels[0])
     ax.set_ylabel(axis_labels[1])
     ax.set_title(title if title is not None else "Experimental design")
     ax.set_aspect("equal", adjustable="datalim")
-    drawn = _place_legend(ax, ax.get_legend_handles_labels()[0], legend)
-    if drawn is not None:
-        for handle, text in zip(drawn.legend_handles, drawn.get_texts(), strict=True):
-            if text.get_text() in mass_groups:
-                handle.set_sizes([70.0])  # mass markers scale with m on the map, not in the legend
+    _legend_with_even_masses(ax, legend, mass_groups)
     ax.grid(True, alpha=0.3)
     return _finish(fig, path, dpi)

@@ -1,9 +1,10 @@
-"""Error heat maps over a box: :func:`plot_error_map`, :func:`plot_component_error_maps`, and
-:func:`correction_error_fn` (the error callables they take)."""
+"""Error heat maps over a box: :func:`plot_error_map` (its colour scale a :class:`ColorScale`),
+:func:`plot_component_error_maps`, and :func:`correction_error_fn` (the error callables they take)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -11,7 +12,7 @@ import numpy as np
 import torch
 
 from .._errors import InputError, ShapeError, TorchMisspecError
-from .._validation import check_domain, check_positive_int
+from .._validation import check_domain, check_flag, check_positive_int, check_real
 from ._common import DPI, PANEL_SIZE, _as_array, _axes, _check_dims, _draw_box, _finish, _new_figure, _states
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -22,6 +23,30 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..systems import MisspecifiedSystem
 
 HEAT_LEVELS = 48  # colour levels of the heat maps
+
+
+@dataclass(frozen=True)
+class ColorScale:
+    """The colour scale of :func:`plot_error_map`: linear or logarithmic, its limits fixed or read from the values.
+
+    Attributes:
+        log: logarithmic colour scale (non-positive values are left blank).
+        vmin: lower limit (default ``None``: the smallest finite value, the smallest positive one when ``log``).
+        vmax: upper limit (default ``None``: the largest finite value, the largest positive one when ``log``).
+
+    Example: ``plot_error_map(fn, domain, scale=ColorScale(log=True, vmax=1.0))``.
+    """
+
+    log: bool = False
+    vmin: float | None = None
+    vmax: float | None = None
+
+    def __post_init__(self) -> None:
+        check_flag(self.log, "ColorScale.log")
+        for name in ("vmin", "vmax"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, check_real(value, f"ColorScale.{name}"))
 
 
 def _grid_points(domain, resolution: int) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
@@ -145,9 +170,7 @@ def plot_error_map(
     ax: Axes | None = None,
     cbar_label: str = r"$\|\hat F(y) - F(y)\|_2$",
     axis_labels: tuple[str, str] = ("$y_1$", "$y_2$"),
-    log_scale: bool = False,
-    vmin: float | None = None,
-    vmax: float | None = None,
+    scale: ColorScale | None = None,
     dashed_box=None,
     path: str | Path | None = None,
     dpi: int = DPI,
@@ -160,16 +183,21 @@ def plot_error_map(
             module docstring for the orientation).
         domain: ``((x_lo, x_hi), (y_lo, y_hi))``, e.g. ``system.domain``.
         traces: optional ``(K, T, d)`` trajectories drawn as white lines with dots (components ``trace_dims``).
-        log_scale: logarithmic colour scale (non-positive values are left blank).
-        vmin: lower colour-scale limit (default: the smallest finite value).
-        vmax: upper colour-scale limit (default: the largest finite value).
+        scale: the colour scale, a :class:`ColorScale` (default ``ColorScale()``: linear, from the smallest to the
+            largest finite value); e.g. ``ColorScale(log=True)``, ``ColorScale(vmin=0.0, vmax=1.0)``.
         dashed_box: optional ``((x_lo, x_hi), (y_lo, y_hi))`` drawn dashed, e.g. the region D inside a larger map.
     """
     domain = check_domain(domain, dim=2)
     resolution = check_positive_int(resolution, "resolution", minimum=2)
+    if scale is None:
+        scale = ColorScale()
+    elif not isinstance(scale, ColorScale):
+        raise InputError(
+            f"scale: expected a ColorScale (e.g. ColorScale(log=True, vmin=1e-3)), got {type(scale).__name__}"
+        )
     grid = _scalar_grid(error_fn_or_grid, domain, resolution, "error_fn_or_grid")
     fig, ax = _axes(ax, figsize=(PANEL_SIZE[0] + 0.6, PANEL_SIZE[1]))
-    im = _draw_heat(ax, grid, domain, vmin=vmin, vmax=vmax, log_scale=log_scale)
+    im = _draw_heat(ax, grid, domain, vmin=scale.vmin, vmax=scale.vmax, log_scale=scale.log)
     fig.colorbar(im, ax=ax, label=cbar_label)
     if traces is not None:
         _overlay_traces(ax, traces, trace_dims, "traces")
@@ -212,7 +240,8 @@ def plot_component_error_maps(
         traces: optional setting name -> ``(K, T, d)`` training trajectories overlaid on that setting's panels.
         component_labels: the C column titles / colour-bar labels (default ``|F̂_i - F_i|``, i = 1..C).
         settings_as_columns: transpose the layout (settings across, components down).
-        log_scale: as in :func:`plot_error_map`.
+        log_scale: logarithmic colour scales (non-positive values are left blank), as ``ColorScale(log=True)`` in
+            :func:`plot_error_map`.
         dashed_box: as in :func:`plot_error_map`.
     """
     if not isinstance(maps, Mapping) or len(maps) == 0:
