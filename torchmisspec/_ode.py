@@ -547,8 +547,8 @@ def _integrate_explained(func: _Autonomous, y0, rel, settings: dict, partial: bo
                 f"evaluations, {EVALS_PER_STEP} per step, so that it binds every method: {func.nfe - 1} of them) and "
                 f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
                 f"up; the initial conditions with the largest state or derivative at that point: {names}. Check "
-                "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
-                "explicit steps)"
+                "those initial conditions, shorten the time span, or raise max_steps=... (solver=Solver(max_steps=...) "
+                "for the corrected model; a stiff problem needs many explicit steps)"
             )
         elif isinstance(exc, _Stalled):
             message = (

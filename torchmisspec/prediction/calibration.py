@@ -235,7 +235,8 @@ def calibrate_bands(
             client's executor) to run the folds on, or ``None`` (here, one after another): the same result either
             way. A process pool must be able to pickle the model (a system whose functions are defined at a module's
             top level; an executor that pickles by value, as Dask's, takes lambdas too).
-        **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, solver settings).
+        **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, or the solver's
+            settings as ``solver=Solver(...)``, :class:`~torchmisspec.Solver`).
 
     Returns:
         :class:`BandCalibration`; ``model.posterior(..., scale=result.scale)`` uses it, and
