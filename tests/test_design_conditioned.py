@@ -126,7 +126,7 @@ def test_corrected_proxies_follow_the_corrected_model(corners):
     plan = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted)
     assert plan.diagnostics["proxy"] == "corrected"
     rtol, atol = PROXY_TOLERANCES  # a design tolerance: proxies stand in for unknown trajectories
-    expected = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES, rtol=rtol, atol=atol)
+    expected = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES, solver=tms.Solver(rtol=rtol, atol=atol))
     # the proxies were solved in the batch of all candidates, the prediction in a batch of 3: an adaptive batched solve
     # shares its steps (and its atol is in units of the batch's states), so they agree to the solver's tolerance
     torch.testing.assert_close(plan.proxies, expected, rtol=10 * rtol, atol=10 * atol)
@@ -238,7 +238,7 @@ def test_proxy_check_for_both_proxies():
     assert conditioned.proxy_gain < corrected.proxy_gain  # the data already explain part of it
     # the proxy gain of the corrected check is the criterion along the corrected model's trajectories
     rtol, atol = PROXY_TOLERANCES
-    paths = tms.CorrectedODE(system, fitted).predict(cand[idx], TIMES, rtol=rtol, atol=atol)
+    paths = tms.CorrectedODE(system, fitted).predict(cand[idx], TIMES, solver=tms.Solver(rtol=rtol, atol=atol))
     pts = system.select_inputs(paths).reshape(-1, 2)
     assert corrected.proxy_gain == pytest.approx(design.information_gain(pts, fitted, condition=False), rel=1e-10)
     with pytest.raises(tms.InputError, match="proxy: expected"):
@@ -319,7 +319,7 @@ def test_corrected_proxies_isolate_the_candidates_that_blow_up():
         with warnings.catch_warnings():  # a forecast that stops early is flagged (issue 41), not raised
             warnings.simplefilter("ignore", tms.TorchMisspecWarning)
             try:
-                path = model.predict(cands[i : i + 1], times, rtol=1e-6, atol=1e-8)[0]
+                path = model.predict(cands[i : i + 1], times, solver=tms.Solver(rtol=1e-6, atol=1e-8))[0]
                 stopped = bool(model.incomplete.any())
             except tms.IntegrationError:
                 stopped = True

@@ -71,9 +71,9 @@ def test_prediction_never_refactorizes(linear_system, paper_times, fitted, monke
 def test_batched_prediction_equals_single_solves(linear_system, paper_times, fitted, generator):
     ode = tms.CorrectedODE(linear_system, fitted)
     y0 = torch.rand(4, 2, generator=generator, dtype=torch.float64)
-    batched = ode.predict(y0, paper_times, rtol=1e-10, atol=1e-12)
+    batched = ode.predict(y0, paper_times, solver=tms.Solver(rtol=1e-10, atol=1e-12))
     for k in range(4):
-        single = ode.predict(y0[k], paper_times, rtol=1e-10, atol=1e-12)
+        single = ode.predict(y0[k], paper_times, solver=tms.Solver(rtol=1e-10, atol=1e-12))
         torch.testing.assert_close(batched[k], single[0], rtol=0, atol=1e-8)
 
 

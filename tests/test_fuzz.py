@@ -294,7 +294,7 @@ def _predict_mean(x=Y0):
 
 
 def _ode(y0=Y0[:2], times=TIMES, max_steps=2000):
-    return tms.CorrectedODE(SYSTEM, FITTED).predict(y0, times, max_steps=max_steps)
+    return tms.CorrectedODE(SYSTEM, FITTED).predict(y0, times, solver=tms.Solver(max_steps=max_steps))
 
 
 def _greedy(candidates=CANDIDATES, budget=3, times=TIMES, method="lazy"):
@@ -650,7 +650,7 @@ def _simulate_controls(system=CHEMO, controls=CONTROLS, known_only=False, rtol=1
 
 
 def _predict_controls(y0=Y0 + 1.0, controls=CONTROLS, atol=1e-9):
-    return CMODEL.predict(y0, TIMES, controls=controls, atol=atol)
+    return CMODEL.predict(y0, TIMES, controls=controls, solver=tms.Solver(atol=atol))
 
 
 def _with_readout(readout=READOUT, readings=None, state_names=("a", "b")):

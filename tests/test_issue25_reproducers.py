@@ -83,7 +83,7 @@ def test_random_checks_the_proxies_shape(fitted):
 def test_solver_options_must_be_a_dict(fitted):
     system, gp, candidates, times = fitted
     with pytest.raises(tms.InputError, match=r"options: expected a dict of torchdiffeq solver options .* got 'x'"):
-        tms.CorrectedODE(system, gp).predict(candidates[:2], times, options="x")
+        tms.CorrectedODE(system, gp).predict(candidates[:2], times, solver=tms.Solver(options="x"))
 
 
 @pytest.mark.parametrize(

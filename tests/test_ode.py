@@ -34,7 +34,7 @@ def test_step_limit_in_predict_and_proxies():
         system, tms.CorrectionGP(lengthscale=1.0, outputscale=1e-4, noise_variance=1e-4).fit(s.inputs, s.targets)
     )
     with pytest.raises(tms.IntegrationError, match=r"CorrectedODE.predict: the solver took more than 2 steps"):
-        ode.predict(Y0, times, max_steps=2)
+        ode.predict(Y0, times, solver=tms.Solver(max_steps=2))
     gravity = tms.systems.paper_gravity()
     cand = torch.tensor([[1.0, 0.0, 0.0, 0.45]], dtype=DT)
     with pytest.raises(tms.IntegrationError, match="more than 3 steps"):

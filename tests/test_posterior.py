@@ -82,7 +82,7 @@ def test_sampled_path_of_a_linear_correction_is_the_closed_form(one_thread):
     y0 = torch.tensor([[1.0, 0.0], [0.0, -0.5]], dtype=DT)
     times = torch.linspace(0, 2, 5, dtype=DT)
     post = tms.CorrectedODE(system, gp).posterior(
-        y0, times, num_samples=4, generator=torch.Generator().manual_seed(3), rtol=1e-10, atol=1e-12
+        y0, times, num_samples=4, generator=torch.Generator().manual_seed(3), solver=tms.Solver(rtol=1e-10, atol=1e-12)
     )
     draws = gp.sample_functions(4, generator=torch.Generator().manual_seed(3))  # the same draws (same seed)
     probe = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=DT)
@@ -126,7 +126,7 @@ def test_blowing_up_draws_are_named_and_left_out_of_the_band():
     gp.fit(X, torch.zeros(5, 1, dtype=DT))
     ode = tms.CorrectedODE(system, gp)
     y0, times = torch.tensor([[1.0], [2.0]], dtype=DT), torch.linspace(0, 5, 6, dtype=DT)
-    kw = dict(num_samples=8, generator=torch.Generator().manual_seed(0), max_steps=2000, scale=1.0)
+    kw = dict(num_samples=8, generator=torch.Generator().manual_seed(0), solver=tms.Solver(max_steps=2000), scale=1.0)
     with pytest.warns(tms.TorchMisspecWarning, match=r"of 16 sampled paths left the region .* 0: \d of 8"):
         post = ode.posterior(y0, times, **kw)
     paths = post.samples[..., 0]  # (S, B, T)
@@ -155,13 +155,13 @@ def test_predict_gradient_in_the_initial_conditions(linear, one_thread):
     ode = tms.CorrectedODE(system, gp)
     times = torch.linspace(0, 2, 5, dtype=DT)
     y0 = torch.tensor([[0.3, -0.4]], dtype=DT, requires_grad=True)
-    ode.predict(y0, times, rtol=1e-10, atol=1e-12)[:, -1].sum().backward()
+    ode.predict(y0, times, solver=tms.Solver(rtol=1e-10, atol=1e-12))[:, -1].sum().backward()
     h, fd = 1e-6, []
     for i in range(2):
         e = torch.zeros(1, 2, dtype=DT)
         e[0, i] = h
-        plus = ode.predict(y0.detach() + e, times, rtol=1e-10, atol=1e-12)[:, -1].sum()
-        minus = ode.predict(y0.detach() - e, times, rtol=1e-10, atol=1e-12)[:, -1].sum()
+        plus = ode.predict(y0.detach() + e, times, solver=tms.Solver(rtol=1e-10, atol=1e-12))[:, -1].sum()
+        minus = ode.predict(y0.detach() - e, times, solver=tms.Solver(rtol=1e-10, atol=1e-12))[:, -1].sum()
         fd.append(float(plus - minus) / (2 * h))
     assert torch.allclose(y0.grad[0], torch.tensor(fd, dtype=DT), rtol=1e-5, atol=1e-7)
 
@@ -173,7 +173,7 @@ def test_predict_gradient_in_a_hyperparameter(linear, one_thread):
     y0, times = torch.tensor([[0.5, 0.5]], dtype=DT), torch.linspace(0, 4, 3, dtype=DT)
 
     def value():
-        return ode.predict(y0, times, rtol=1e-10, atol=1e-12)[:, -1].sum()
+        return ode.predict(y0, times, solver=tms.Solver(rtol=1e-10, atol=1e-12))[:, -1].sum()
 
     try:
         raw.requires_grad_(True)

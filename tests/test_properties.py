@@ -604,7 +604,7 @@ def test_a_tolerance_of_one_or_more_is_refused(tolerance):
     with pytest.raises(tms.InputError, match=r"tol: expected a tolerance below 1 .*got"):
         tms.simulate(CHEMO, CY0, CTIMES, controls=CCONTROLS, **tolerance)
     with pytest.raises(tms.InputError, match=r"tol: expected a tolerance below 1"):
-        CMODEL.predict(CY0, CTIMES, controls=CCONTROLS, **tolerance)
+        CMODEL.predict(CY0, CTIMES, controls=CCONTROLS, solver=tms.Solver(**tolerance))
 
 
 def test_the_systems_methods_take_arrays_and_check_the_states_before_g_sees_them():

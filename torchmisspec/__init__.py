@@ -40,6 +40,7 @@ from .learning.samples.observations import CorrectionSamples, correction_samples
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
 from .prediction.calibration import BandCalibration, calibrate_bands
 from .prediction.dynamics import CorrectedODE, TrajectoryPosterior
+from .prediction.solver import Solver
 from .signals import Controls
 from .systems import MisspecifiedSystem
 
@@ -70,6 +71,7 @@ __all__ = [
     "NotFittedError",
     "NotPositiveDefiniteError",
     "ShapeError",
+    "Solver",
     "TorchMisspecError",
     "Trajectories",
     "calibrate_bands",

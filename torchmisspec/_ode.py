@@ -386,6 +386,28 @@ def _integrate(
         raise
 
 
+def check_solver_settings(method, rtol, atol, options, max_steps) -> tuple[float, float, int]:
+    """``(rtol, atol, max_steps)`` checked (``max_steps`` :data:`DEFAULT_MAX_STEPS` for ``None``), with ``method`` and
+    ``options`` checked too: one check for :func:`solve` and :class:`~torchmisspec.Solver`, so that bad settings are
+    refused with the same message wherever they are given."""
+    max_steps = DEFAULT_MAX_STEPS if max_steps is None else check_positive_int(max_steps, "max_steps")
+    rtol, atol = check_real(rtol, "rtol", positive=True), check_real(atol, "atol", positive=True)
+    for name, value in (("rtol", rtol), ("atol", atol)):  # atol is in units of each state's scale
+        if value >= 1.0:
+            raise InputError(
+                f"{name}: expected a tolerance below 1 (an error as large as the state itself accepts any path; the "
+                f"defaults are of order 1e-7), got {value:g}"
+            )
+    if not isinstance(method, str):
+        raise InputError(f"method: expected a torchdiffeq method name such as 'dopri5', got {method!r:.60}")
+    if options is not None and not (isinstance(options, dict) and all(isinstance(k, str) for k in options)):
+        raise InputError(
+            f"options: expected a dict of torchdiffeq solver options (e.g. {{'step_size': 0.01}}) or None, got "
+            f"{options!r:.60} ({type(options).__name__})"
+        )
+    return rtol, atol, max_steps
+
+
 def solve(
     field: Callable[[torch.Tensor], torch.Tensor],
     y0: torch.Tensor,
@@ -429,21 +451,7 @@ def solve(
     Returns:
         states ``(B, T, d)`` and the number of right-hand-side evaluations.
     """
-    max_steps = DEFAULT_MAX_STEPS if max_steps is None else check_positive_int(max_steps, "max_steps")
-    rtol, atol = check_real(rtol, "rtol", positive=True), check_real(atol, "atol", positive=True)
-    for name, value in (("rtol", rtol), ("atol", atol)):  # atol is in units of each state's scale
-        if value >= 1.0:
-            raise InputError(
-                f"{name}: expected a tolerance below 1 (an error as large as the state itself accepts any path; the "
-                f"defaults are of order 1e-7), got {value:g}"
-            )
-    if not isinstance(method, str):
-        raise InputError(f"method: expected a torchdiffeq method name such as 'dopri5', got {method!r:.60}")
-    if options is not None and not (isinstance(options, dict) and all(isinstance(k, str) for k in options)):
-        raise InputError(
-            f"options: expected a dict of torchdiffeq solver options (e.g. {{'step_size': 0.01}}) or None, got "
-            f"{options!r:.60} ({type(options).__name__})"
-        )
+    rtol, atol, max_steps = check_solver_settings(method, rtol, atol, options, max_steps)
     if y0.dtype not in _FLOAT_DTYPES:
         raise InputError(
             f"{what}: expected float32 or float64 states, got {y0.dtype} (half precision cannot meet the solver's "
@@ -452,98 +460,18 @@ def solve(
     scales = state_scales(y0)
     atol = atol if scales is None else atol * scales  # in units of each state's scale (module docstring)
 
-    def names(rows: list[int]) -> str:
-        more = " ..." if len(rows) > 10 else ""
-        if label is None:
-            return f"indices {rows[:10]}{more}"
-        return "; ".join(label(i) for i in rows[:10]) + more
-
-    if times.dim() == 1:
-        grid, rel = times, times
-        offsets = times.new_zeros(y0.shape[0])
-    else:
-        # One solve for every row; row b starts at times[b, 0], so shift every row to start at 0 (a timed field gets
-        # each row's own time back) and read each row at its own times (_integrate).
-        rel = times - times[:, :1]
-        grid = torch.stack([rel.min(), rel.max()])  # the span
-        offsets = times[:, 0]
+    grid, rel, offsets = _shifted_grid(times, y0.shape[0])
     func = _Autonomous(field, max_steps * EVALS_PER_STEP, what, 0.0, offsets.detach() if timed else None, box)
     if box is not None and partial:  # the box checked at the accepted steps (_Autonomous.stop_outside)
         width = box[1] - box[0]
         func.stopped = torch.zeros(y0.shape[0], dtype=torch.bool, device=y0.device)
         func.guard = (box[0] - 10.0 * width, box[1] + 10.0 * width)
     if timed and jumps is not None and method in _JUMPING:
-        inner = jumps.to(grid).reshape(1, -1) - offsets.detach().to(grid).reshape(-1, 1)
-        inner = torch.unique(inner[(inner > grid[0]) & (inner < grid[-1])])
-        if inner.numel():
-            options = {**(options or {}), "jump_t": inner}
-    span = f"[{float(grid[0]):.4g}, {float(grid[-1]):.4g}]"
+        options = _with_jumps(options, jumps, offsets, grid)
     func.min_advance = _STALL_FRACTION * float(grid[-1] - grid[0])
-    with torch.no_grad():
-        f0 = field(grid[0] + offsets, y0) if timed else field(y0)
-    if not isinstance(f0, torch.Tensor) or f0.shape != y0.shape:
-        func(grid[0], y0)  # raises the shape error
-    if not bool(torch.isfinite(f0).all()):
-        bad = (~torch.isfinite(f0).all(-1)).nonzero().flatten().tolist()
-        raise IntegrationError(
-            f"{what}: the right-hand side is not finite at {len(bad)} initial condition(s) ({names(bad)}); the "
-            "model has a singularity there (check G and F)"
-        )
-    try:
-        sol = _integrate(func, y0, rel, method, rtol, atol, options, partial)  # (B, T, d)
-    except _StepLimit as exc:
-        worst, suspects = _culprits(func, box)
-        raise _with_rows(
-            worst,
-            IntegrationError(
-                f"{what}: the solver took more than {max_steps} steps (the budget is counted in right-hand-side "
-                f"evaluations, {EVALS_PER_STEP} per step, so that it binds every method: {func.nfe - 1} of them) and "
-                f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
-                f"up; the initial conditions with the largest state or derivative at that point: {names(worst)}. Check "
-                "those initial conditions, shorten the time span, or raise max_steps=... (a stiff problem needs many "
-                "explicit steps)"
-            ),
-            getattr(exc, "partial", None),
-            func.nfe,
-            suspects,
-        ) from None
-    except _Stalled as exc:
-        worst, suspects = _culprits(func, box)
-        raise _with_rows(
-            worst,
-            IntegrationError(
-                f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by "
-                f"less than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity "
-                f"of the model or a state where the field changes abruptly; the initial conditions with the largest "
-                f"state or derivative there: {names(worst)}. Check the model near those states, or shorten the time "
-                "span"
-            ),
-            getattr(exc, "partial", None),
-            func.nfe,
-            suspects,
-        ) from None
-    except TorchMisspecError:  # the field's checks (G of the wrong shape, an error in the user's G): as they are
-        raise
-    except AssertionError as exc:  # torchdiffeq signals step-size underflow and non-finite states with assertions
-        if func.failed:  # an assertion inside the field (G, F), not the solver's
-            raise
-        worst, suspects = _culprits(func, box)
-        t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
-        raise _with_rows(
-            worst,
-            IntegrationError(
-                f"{what}: the solver gave up{t} ({str(exc)[:120]}); the initial conditions with the largest state or "
-                f"derivative there: {names(worst)}. A trajectory probably blows up or reaches a singularity of the "
-                "model: shorten the time span, start closer to the data, or check the model"
-            ),
-            getattr(exc, "partial", None),
-            func.nfe,
-            suspects,
-        ) from exc
-    except ValueError as exc:  # an unknown method or option
-        if func.failed:  # raised inside the field (G, F): not a refusal of the solver's settings
-            raise
-        raise InputError(f"{what}: expected solver settings torchdiffeq accepts, got a refusal: {exc}") from exc
+    _check_start(field, func, y0, grid, offsets, timed, label)
+    settings = dict(method=method, rtol=rtol, atol=atol, options=options)
+    sol = _integrate_explained(func, y0, rel, settings, partial, box=box, label=label, max_steps=max_steps)
     finite = torch.isfinite(sol).all(dim=-1).all(dim=-1)
     if not bool(finite.all()):
         bad = (~finite).nonzero().flatten().tolist()
@@ -552,9 +480,95 @@ def solve(
             bad,
             IntegrationError(
                 f"{what}: the solution is not finite for {len(bad)} of {sol.shape[0]} initial condition(s) "
-                f"({names(bad)}); the trajectory blows up within the time span"
+                f"({_row_names(bad, label)}); the trajectory blows up within the time span"
             ),
             torch.where(reached.unsqueeze(-1), sol, math.nan) if partial else None,
             func.nfe,
         )
     return sol, func.nfe
+
+
+def _row_names(rows: list[int], label) -> str:
+    """The first ten of ``rows`` for an error message: by ``label(i)`` where given, else as indices."""
+    more = " ..." if len(rows) > 10 else ""
+    if label is None:
+        return f"indices {rows[:10]}{more}"
+    return "; ".join(label(i) for i in rows[:10]) + more
+
+
+def _shifted_grid(times: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(grid, rel, offsets)``: the solver's grid, every row's times relative to the solve's start, and each row's
+    start time. Per-row grids ``(B, T)`` are shifted to start at 0, so that one solve serves every row (a timed
+    field gets each row's own time back) and each row is read at its own times (:func:`_integrate`)."""
+    if times.dim() == 1:
+        return times, times, times.new_zeros(batch)
+    rel = times - times[:, :1]
+    return torch.stack([rel.min(), rel.max()]), rel, times[:, 0]  # the span
+
+
+def _with_jumps(options, jumps: torch.Tensor, offsets: torch.Tensor, grid: torch.Tensor):
+    """``options`` with torchdiffeq's ``jump_t``: the field's jumps inside the span on the solver's (shifted) time,
+    so that an adaptive solver never steps across one."""
+    inner = jumps.to(grid).reshape(1, -1) - offsets.detach().to(grid).reshape(-1, 1)
+    inner = torch.unique(inner[(inner > grid[0]) & (inner < grid[-1])])
+    return {**(options or {}), "jump_t": inner} if inner.numel() else options
+
+
+def _check_start(field, func: _Autonomous, y0, grid, offsets, timed: bool, label) -> None:
+    """Refuse a field of the wrong shape or not finite at the initial conditions, before any step: the message then
+    names the initial conditions, not a step of the solver."""
+    with torch.no_grad():
+        f0 = field(grid[0] + offsets, y0) if timed else field(y0)
+    if not isinstance(f0, torch.Tensor) or f0.shape != y0.shape:
+        func(grid[0], y0)  # raises the shape error
+    if not bool(torch.isfinite(f0).all()):
+        bad = (~torch.isfinite(f0).all(-1)).nonzero().flatten().tolist()
+        raise IntegrationError(
+            f"{func.what}: the right-hand side is not finite at {len(bad)} initial condition(s) "
+            f"({_row_names(bad, label)}); the model has a singularity there (check G and F)"
+        )
+
+
+def _integrate_explained(func: _Autonomous, y0, rel, settings: dict, partial: bool, *, box, label, max_steps: int):
+    """:func:`_integrate`, with the solver's failures raised as :class:`IntegrationError` saying what happened, where,
+    and which initial conditions are likeliest at fault (on ``exc.rows``), and a refusal of the solver's settings as
+    :class:`InputError`; an error of the field itself passes unchanged."""
+    what, span = func.what, f"[{float(rel.min()):.4g}, {float(rel.max()):.4g}]"
+    try:
+        return _integrate(func, y0, rel, **settings, partial=partial)
+    except (_StepLimit, _Stalled, AssertionError) as exc:
+        if isinstance(exc, AssertionError) and func.failed:  # an assertion inside the field (G, F), not the solver's
+            raise
+        worst, suspects = _culprits(func, box)
+        names = _row_names(worst, label)
+        if isinstance(exc, _StepLimit):
+            message = (
+                f"{what}: the solver took more than {max_steps} steps (the budget is counted in right-hand-side "
+                f"evaluations, {EVALS_PER_STEP} per step, so that it binds every method: {func.nfe - 1} of them) and "
+                f"stopped at t = {float(func.last_t):.4g} of {span}. The problem is stiff there or a trajectory blows "
+                f"up; the initial conditions with the largest state or derivative at that point: {names}. Check "
+                "those initial conditions, shorten the time span, or raise max_steps=... (solver=Solver(max_steps=...) "
+                "for the corrected model; a stiff problem needs many explicit steps)"
+            )
+        elif isinstance(exc, _Stalled):
+            message = (
+                f"{what}: the solver stalled at t = {float(func.last_t):.6g} of {span}: 100 steps advanced time by "
+                f"less than {_STALL_FRACTION:g} of the span, so a trajectory blows up there, or reaches a singularity "
+                f"of the model or a state where the field changes abruptly; the initial conditions with the largest "
+                f"state or derivative there: {names}. Check the model near those states, or shorten the time span"
+            )
+        else:  # torchdiffeq signals step-size underflow and non-finite states with assertions
+            t = "" if func.last_t is None else f" at t = {float(func.last_t):.4g} of {span}"
+            message = (
+                f"{what}: the solver gave up{t} ({str(exc)[:120]}); the initial conditions with the largest state or "
+                f"derivative there: {names}. A trajectory probably blows up or reaches a singularity of the "
+                "model: shorten the time span, start closer to the data, or check the model"
+            )
+        error = _with_rows(worst, IntegrationError(message), getattr(exc, "partial", None), func.nfe, suspects)
+        raise error from (exc if isinstance(exc, AssertionError) else None)
+    except TorchMisspecError:  # the field's checks (G of the wrong shape, an error in the user's G): as they are
+        raise
+    except ValueError as exc:  # an unknown method or option
+        if func.failed:  # raised inside the field (G, F): not a refusal of the solver's settings
+            raise
+        raise InputError(f"{what}: expected solver settings torchdiffeq accepts, got a refusal: {exc}") from exc

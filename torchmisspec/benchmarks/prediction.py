@@ -29,7 +29,7 @@ def bench_predict(smoke: bool, repeats: int) -> dict:
     rtol, atol = 1e-7, 1e-9
 
     def ours():
-        return ode.predict(y0, times, rtol=rtol, atol=atol)
+        return ode.predict(y0, times, solver=tms.Solver(rtol=rtol, atol=atol))
 
     # the GPyTorch ExactGP (eval mode) with the same hyperparameters and data; one copy per peer so that each keeps
     # its own prediction strategy (GPyTorch caches the training solve on the first eval call)

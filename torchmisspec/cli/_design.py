@@ -97,37 +97,12 @@ def _capacities(args: argparse.Namespace, n: int):
 def _design(args: argparse.Namespace) -> int:
     import torch
 
-    from .. import design
     from ..systems import load_system
 
     out = check_output(args.out, (".csv", ".json"))
     system = load_system(args.system)
     input_columns(args, system)  # checked before the work (read with --controls)
-    if system.num_controls and args.controls is None:
-        raise InputError(
-            f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is an "
-            "initial state and an input profile: pass --controls profiles.csv (columns: the --experiment-column "
-            "labelling the rows of --candidates, the time, the inputs)"
-        )
-    if args.controls is not None and not system.num_controls:
-        raise InputError(
-            f"--controls: expected none, system '{system.name}' has no inputs u(t), got {args.controls!r}; drop it"
-        )
-    if args.controls is not None and args.criterion != "information":
-        raise InputError(
-            f"--controls: expected --criterion information (input profiles are designed by it), got {args.criterion}"
-        )
-    times = parse_times(args.times)
-    if args.samples_per_experiment is not None and not 1 <= args.samples_per_experiment <= len(times):
-        raise InputError(
-            f"--samples-per-experiment: expected 1 to {len(times)} (the number of --times), got "
-            f"{args.samples_per_experiment}"
-        )
-    if args.readout and args.data is None:  # a readout names columns of --data: nothing would read it
-        raise InputError(
-            f"--readout: expected --data whose columns it names (the design reads no other table), got "
-            f"--readout {args.readout[0]!r} without --data; drop it, or fit on --data"
-        )
+    times = _times_and_checked_options(args, system)
     early = _gp(args, system) if args.model is not None else None  # a model file is checked before the candidates
     observed = read_observations(args, system) if args.data is not None and early is None else None  # read first
     known = known_state_names(system, None if early is None else early[0])
@@ -154,61 +129,12 @@ def _design(args: argparse.Namespace) -> int:
     common = dict(
         system=system, times=times, gp=gp, progress=not args.quiet, partition=partition, capacities=capacities
     )
-    if args.method == "random":
-        seed = torch.Generator().manual_seed(args.seed)
-        plan = design.random(candidates, args.budget, generator=seed, controls=controls, **common)
-    elif args.method == "agnostic":
-        plan = design.agnostic(candidates, args.budget, controls=controls, **common)
-    else:
-        draws = {"generator": torch.Generator().manual_seed(args.seed)} if args.method == "stochastic" else {}
-        plan = design.greedy(
-            candidates,
-            args.budget,
-            method=args.method,
-            **draws,
-            criterion=args.criterion,
-            proxy=args.proxy,
-            controls=controls,
-            **common,
-        )
-    when = None  # with --samples-per-experiment: the times to measure in each chosen experiment
-    if args.samples_per_experiment is not None:
-        picked = design.sampling_times(
-            plan.points,
-            times,
-            args.samples_per_experiment,
-            system=system,
-            gp=gp,
-            criterion=args.criterion,
-            proxy=args.proxy,
-            progress=not args.quiet,
-            controls=None if controls is None else controls[plan.indices.tolist()],
-        )
-        when = [[float(x) for x in t.tolist()] for t in picked.times]
+    plan = _plan(args, candidates, controls, common, torch.Generator().manual_seed(args.seed))
+    when = None if args.samples_per_experiment is None else _measurement_times(args, plan, controls, common)
     units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
     conditioned = plan.diagnostics.get("conditioned", 0)
     if out.suffix == ".json":
-        text = json.dumps(
-            {
-                "system": system.name,
-                "model": source,
-                "method": plan.method,
-                "budget": args.budget,
-                "indices": plan.indices.tolist(),
-                "gains": plan.gains.tolist(),
-                "information_gain": plan.information_gain,
-                "points": [dict(zip(names, p, strict=True)) for p in plan.points.tolist()],
-                "labels": None if labels is None else [labels[i] for i in plan.indices.tolist()],
-                "criterion": args.criterion,
-                "conditioned_on_samples": conditioned,
-                "proxy": plan.diagnostics.get("proxy"),
-                "units": units,
-                "times": when,
-            },
-            indent=2,
-        )
-        with written(out) as tmp:
-            tmp.write_text(text)
+        _write_json(out, args, plan, dict(system=system.name, model=source, units=units, times=when), names, labels)
     else:
         label = [] if labels is None else [args.experiment_column]  # the candidates' own labels, when they have them
         rows = [
@@ -228,6 +154,105 @@ def _design(args: argparse.Namespace) -> int:
         + f"written to {out}"
     )
     return 0
+
+
+def _times_and_checked_options(args: argparse.Namespace, system):
+    """``--times`` read, and the options that must go together checked before any work: input profiles for a system
+    with inputs (and only then, designed by information), the samples per experiment within the times, a readout
+    with data."""
+    if system.num_controls and args.controls is None:
+        raise InputError(
+            f"--system: '{system.name}' has inputs u(t) {list(system.control_names)}; a candidate experiment is an "
+            "initial state and an input profile: pass --controls profiles.csv (columns: the --experiment-column "
+            "labelling the rows of --candidates, the time, the inputs)"
+        )
+    if args.controls is not None and not system.num_controls:
+        raise InputError(
+            f"--controls: expected none, system '{system.name}' has no inputs u(t), got {args.controls!r}; drop it"
+        )
+    if args.controls is not None and args.criterion != "information":
+        raise InputError(
+            f"--controls: expected --criterion information (input profiles are designed by it), got {args.criterion}"
+        )
+    times = parse_times(args.times)
+    if args.samples_per_experiment is not None and not 1 <= args.samples_per_experiment <= len(times):
+        raise InputError(
+            f"--samples-per-experiment: expected 1 to {len(times)} (the number of --times), got "
+            f"{args.samples_per_experiment}"
+        )
+    if args.readout and args.data is None:  # a readout names columns of --data: nothing would read it
+        raise InputError(
+            f"--readout: expected --data whose columns it names (the design reads no other table), got "
+            f"--readout {args.readout[0]!r} without --data; drop it, or fit on --data"
+        )
+    return times
+
+
+def _plan(args: argparse.Namespace, candidates, controls, common: dict, generator):
+    """The design by ``--method``: random (drawn with ``generator``), agnostic, or a greedy one (the stochastic
+    greedy's draws with ``generator``)."""
+    from .. import design
+
+    if args.method == "random":
+        return design.random(candidates, args.budget, generator=generator, controls=controls, **common)
+    if args.method == "agnostic":
+        return design.agnostic(candidates, args.budget, controls=controls, **common)
+    draws = {"generator": generator} if args.method == "stochastic" else {}
+    return design.greedy(
+        candidates,
+        args.budget,
+        method=args.method,
+        **draws,
+        criterion=args.criterion,
+        proxy=args.proxy,
+        controls=controls,
+        **common,
+    )
+
+
+def _measurement_times(args: argparse.Namespace, plan, controls, common: dict) -> list[list[float]]:
+    """``--samples-per-experiment``: the times to measure in each chosen experiment
+    (:func:`~torchmisspec.design.sampling_times`)."""
+    from .. import design
+
+    picked = design.sampling_times(
+        plan.points,
+        common["times"],
+        args.samples_per_experiment,
+        system=common["system"],
+        gp=common["gp"],
+        criterion=args.criterion,
+        proxy=args.proxy,
+        progress=not args.quiet,
+        controls=None if controls is None else controls[plan.indices.tolist()],
+    )
+    return [[float(x) for x in t.tolist()] for t in picked.times]
+
+
+def _write_json(out, args: argparse.Namespace, plan, about: dict, names, labels) -> None:
+    """The design as JSON: the picks, their gains and points, and ``about`` (the system's and the model's names, the
+    gains' units, the measurement times)."""
+    text = json.dumps(
+        {
+            "system": about["system"],
+            "model": about["model"],
+            "method": plan.method,
+            "budget": args.budget,
+            "indices": plan.indices.tolist(),
+            "gains": plan.gains.tolist(),
+            "information_gain": plan.information_gain,
+            "points": [dict(zip(names, p, strict=True)) for p in plan.points.tolist()],
+            "labels": None if labels is None else [labels[i] for i in plan.indices.tolist()],
+            "criterion": args.criterion,
+            "conditioned_on_samples": plan.diagnostics.get("conditioned", 0),
+            "proxy": plan.diagnostics.get("proxy"),
+            "units": about["units"],
+            "times": about["times"],
+        },
+        indent=2,
+    )
+    with written(out) as tmp:
+        tmp.write_text(text)
 
 
 def _times(values: list[float]) -> str:

@@ -82,13 +82,36 @@ def _fit(args: argparse.Namespace) -> int:
     gp = fit_correction(
         observed, system, derivative=args.derivative, refine=refine, progress=not args.quiet, noise=args.noise
     )
-    cv = gp.cross_validation_
     times = f"{min(observed.lengths)}-{max(observed.lengths)}" if observed.is_ragged else str(observed.num_times)
     print(
         f"fitted the correction of '{system.name}' on {len(gp.samples_)} samples ({observed.num_experiments} "
         f"experiment{'s' if observed.num_experiments != 1 else ''} x {times} times, derivative "
         f"{args.derivative!r}, noise {gp.noise_.name!r}): {gp!r}"
     )
+    _print_choice(gp, system)
+    _print_learned(gp, observed)
+    if gp.weights is not None:  # a feature kernel: its terms, in the data's names
+        _print_terms(gp, system, list(observed.state_names))
+    if not args.no_calibrate:
+        if observed.num_experiments < 2:
+            print(
+                "bands not calibrated: with one experiment, 'torchmisspec calibrate' holds out pieces of its time "
+                f"(every state measured, at least {2 * MIN_PIECE} times); each piece is forecast by a model fitted on "
+                "the others, so the bands come out wider than the full fit's error"
+            )
+        else:
+            print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
+    gp.system_ = describe_system(system)  # later commands check they are given the same system
+    with written(out) as tmp:
+        gp.save(tmp)
+    print(f"written to {out}")
+    return 0
+
+
+def _print_choice(gp, system) -> None:
+    """What the fit chose and why: the known model kept alone, the cross-validation's choice against the known model,
+    and with one trajectory the refined feature kernel against that choice."""
+    cv = gp.cross_validation_
     if getattr(gp, "known_model_", False):
         fitted = ", its parameters fitted" if system.parameters is not None else ""
         print(
@@ -114,6 +137,11 @@ def _fit(args: argparse.Namespace) -> int:
             f"{rival['refined features']:.4g} against {rival['chosen']:.4g} for the cross-validation's choice and "
             f"{rival['known model']:.4g} for the known model alone: " + ("kept it" if kept else "kept the choice")
         )
+
+
+def _print_learned(gp, observed) -> None:
+    """What the fit learned besides F: the unmeasured states estimated through the ODE (and what the measurements
+    see of them), and the posterior of G's uncertain parameters."""
     report = getattr(gp, "identifiability_", None)
     if report is not None:  # partly measured states: what the measurements see
         unmeasured = ", ".join(report.unmeasured)
@@ -125,31 +153,20 @@ def _fit(args: argparse.Namespace) -> int:
         print(f"  {summary}")
     if getattr(gp, "parameters_", None) is not None:  # G's uncertain parameters, learned with F
         print("uncertain parameters of G, posterior mean +- sd:\n  " + gp.parameters_.summary().replace("\n", "\n  "))
-    if gp.weights is not None:  # a feature kernel: its terms, in the data's names
-        names = list(observed.state_names)
-        terms = list(gp.terms([names[i] for i in system.correction_inputs], all_terms=True))
-        for o, j in enumerate(system.correction_outputs):
-            kept = [str(t) for t in terms if t.output == o and t.weight > 0]
-            line = f"correction of d{names[j]}/dt: " + (" ".join(kept) if kept else "0 (no term kept)")
-            maybe = [t for t in terms if t.output == o and t.weight == 0 and t.inclusion >= POSSIBLE_TERM]
-            if maybe:  # removed terms the data could not rule out (their chance widens the bands)
-                maybe = sorted(maybe, key=lambda t: -t.inclusion)
-                line += "; possibly also " + ", ".join(f"{t.name} (chance {t.inclusion:.2f})" for t in maybe)
-            print(line)
-    if not args.no_calibrate:
-        if observed.num_experiments < 2:
-            print(
-                "bands not calibrated: with one experiment, 'torchmisspec calibrate' holds out pieces of its time "
-                f"(every state measured, at least {2 * MIN_PIECE} times); each piece is forecast by a model fitted on "
-                "the others, so the bands come out wider than the full fit's error"
-            )
-        else:
-            print(f"calibrated bands: {_calibrate(CorrectedODE(system, gp), observed, args)}")
-    gp.system_ = describe_system(system)  # later commands check they are given the same system
-    with written(out) as tmp:
-        gp.save(tmp)
-    print(f"written to {out}")
-    return 0
+
+
+def _print_terms(gp, system, names: list[str]) -> None:
+    """A feature kernel's terms of each correction output, in the data's names: those kept, and the removed ones
+    whose chance of being present is at least :data:`POSSIBLE_TERM` (they widen the bands)."""
+    terms = list(gp.terms([names[i] for i in system.correction_inputs], all_terms=True))
+    for o, j in enumerate(system.correction_outputs):
+        kept = [str(t) for t in terms if t.output == o and t.weight > 0]
+        line = f"correction of d{names[j]}/dt: " + (" ".join(kept) if kept else "0 (no term kept)")
+        maybe = [t for t in terms if t.output == o and t.weight == 0 and t.inclusion >= POSSIBLE_TERM]
+        if maybe:  # removed terms the data could not rule out (their chance widens the bands)
+            maybe = sorted(maybe, key=lambda t: -t.inclusion)
+            line += "; possibly also " + ", ".join(f"{t.name} (chance {t.inclusion:.2f})" for t in maybe)
+        print(line)
 
 
 def _recalibrate(args: argparse.Namespace) -> int:

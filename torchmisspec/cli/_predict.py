@@ -32,10 +32,47 @@ def _predict(args: argparse.Namespace) -> int:
     import torch
 
     from ..prediction.dynamics import CorrectedODE
-    from ..systems import load_system
 
     out = check_output(args.out, (".csv",))
     figure = None if args.figure is None else check_output(args.figure, (".png",), "--figure")
+    system, gp, times, y0, names, labels, readout, controls = _read_inputs(args)
+    model = CorrectedODE(system, gp)
+    calibrated = model.calibration_ is not None
+    with warnings.catch_warnings():
+        # the command says itself, once, whether the bands are calibrated
+        warnings.filterwarnings("ignore", message=".*not calibrated.*")
+        post = model.posterior(
+            y0,
+            times,
+            num_samples=args.samples,
+            generator=torch.Generator().manual_seed(args.seed),
+            scale=None,
+            controls=controls,
+        )
+    if args.measurements:  # the band that new measurements fall in: the noise the fit found, in its own space
+        post = post.measured(gp.noise_, gp.noise_scale_, generator=torch.Generator().manual_seed(args.seed + 1))
+    lower, upper = post.interval(args.level)
+    header, rows = _table(post, lower, upper, times.tolist(), names, labels, readout, args)
+    write_csv(out, header, rows)
+    print(_summary(args, model, post, (lower, upper), times.numel(), out))
+    if not calibrated:
+        print(
+            f"torchmisspec predict: warning: the model's bands are not calibrated (with few experiments they are "
+            f"usually too narrow); run 'torchmisspec calibrate --model {args.model} --data ...' first",
+            file=sys.stderr,
+        )
+    if figure is not None:
+        _figure(post, figure, names, labels, args)
+        shown = min(y0.shape[0], MAX_FIGURE_ROWS)
+        print(f"figure of {'the first ' + str(shown) if shown < y0.shape[0] else shown} initial condition(s): {figure}")
+    return 0
+
+
+def _read_inputs(args: argparse.Namespace) -> tuple:
+    """``(system, gp, times, y0, names, labels, readout, controls)``: the command's inputs read and checked, every
+    cheap check before the model file is read and the work begins."""
+    from ..systems import load_system
+
     if not 0 < args.level < 1:
         raise InputError(f"--level: expected a band's coverage in (0, 1), got {args.level}")
     if args.samples < 2:
@@ -68,28 +105,19 @@ def _predict(args: argparse.Namespace) -> int:
         readout = Readout.parse(args.readout, names)
     labels = labels if labels is not None else [str(b) for b in range(y0.shape[0])]
     controls = None if args.controls is None else read_controls(args.controls, args, system, labels)
-    model = CorrectedODE(system, gp)
-    calibrated = model.calibration_ is not None
-    with warnings.catch_warnings():
-        # the command says itself, once, whether the bands are calibrated
-        warnings.filterwarnings("ignore", message=".*not calibrated.*")
-        post = model.posterior(
-            y0,
-            times,
-            num_samples=args.samples,
-            generator=torch.Generator().manual_seed(args.seed),
-            scale=None,
-            controls=controls,
-        )
-    if args.measurements:  # the band that new measurements fall in: the noise the fit found, in its own space
-        post = post.measured(gp.noise_, gp.noise_scale_, generator=torch.Generator().manual_seed(args.seed + 1))
-    lower, upper = post.interval(args.level)
+    return system, gp, times, y0, names, labels, readout, controls
+
+
+def _table(post, lower, upper, times: list[float], names, labels, readout, args) -> tuple[list, list]:
+    """``(header, rows)`` of the prediction's CSV: one row per initial condition and time, the mean and the band of
+    every state (and of every reading of ``readout``)."""
     mean = post.mean_path
+    B, d = mean.shape[0], mean.shape[-1]
     rows = []
-    for b in range(y0.shape[0]):
-        for i, t in enumerate(times.tolist()):
+    for b in range(B):
+        for i, t in enumerate(times):
             values = []
-            for j in range(system.state_dim):
+            for j in range(d):
                 values += [float(mean[b, i, j]), float(lower[b, i, j]), float(upper[b, i, j])]
             rows.append([labels[b], t, *values])
     header = [args.experiment_column or "experiment", args.time_column]
@@ -98,23 +126,32 @@ def _predict(args: argparse.Namespace) -> int:
     if readout is not None:  # the readings' bands too: the quantiles of the draws read out
         read = post.read(readout)
         low, high = read.interval(args.level)
-        for row, (b, i) in zip(rows, ((b, i) for b in range(y0.shape[0]) for i in range(times.numel())), strict=True):
+        for row, (b, i) in zip(rows, ((b, i) for b in range(B) for i in range(len(times))), strict=True):
             for r in range(low.shape[-1]):
                 row += [float(read.mean_path[b, i, r]), float(low[b, i, r]), float(high[b, i, r])]
         for name in read.state_names:
             header += [f"{name}_mean", f"{name}_lower", f"{name}_upper"]
-    write_csv(out, header, rows)
+    return header, rows
+
+
+def _summary(args: argparse.Namespace, model, post, interval, num_times: int, out) -> str:
+    """The line that says what was predicted: the band (calibrated or not), and the draws that left the region, the
+    band entries left empty and the mean paths that stop early, where any."""
+    import torch
+
+    lower, upper = interval
+    gp = model.gp
     missing = int((torch.isnan(lower) | torch.isnan(upper)).sum())  # too few draws remain there
     stopped = int(model.incomplete.sum()) if model.incomplete is not None else 0  # mean paths that stop early
     left = int((post.fraction_remaining < 1).sum())
     of = f" of new measurements ({gp.noise_.name} noise, scale {_scales(gp.noise_scale_)})" if args.measurements else ""
     band = f"the central {args.level:.0%} band{of}" + (
         f", calibrated (scale {model.calibration_.scale:.3g}, saved in {args.model})"
-        if calibrated
+        if model.calibration_ is not None
         else ", NOT calibrated: the GP's own bands"
     )
-    print(
-        f"predicted {y0.shape[0]} trajectories x {times.numel()} times with {band} from {args.samples} posterior "
+    return (
+        f"predicted {lower.shape[0]} trajectories x {num_times} times with {band} from {args.samples} posterior "
         f"draws; written to {out}"
         + (
             f"; draws of {left} initial condition(s) left the region (at least "
@@ -125,17 +162,6 @@ def _predict(args: argparse.Namespace) -> int:
         + (f"; {missing} band entries are empty (NaN: too few draws remain there)" if missing else "")
         + (f"; {stopped} mean path(s) stop early (NaN from there)" if stopped else "")
     )
-    if not calibrated:
-        print(
-            f"torchmisspec predict: warning: the model's bands are not calibrated (with few experiments they are "
-            f"usually too narrow); run 'torchmisspec calibrate --model {args.model} --data ...' first",
-            file=sys.stderr,
-        )
-    if figure is not None:
-        _figure(post, figure, names, labels, args)
-        shown = min(y0.shape[0], MAX_FIGURE_ROWS)
-        print(f"figure of {'the first ' + str(shown) if shown < y0.shape[0] else shown} initial condition(s): {figure}")
-    return 0
 
 
 def _figure(post, path, names, labels, args: argparse.Namespace) -> None:

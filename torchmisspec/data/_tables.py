@@ -84,6 +84,34 @@ def _columns_to_arrays(
         _listed(state_columns, "state_columns"),
         _listed(control_columns, "control_columns"),
     )
+    experiment_column = _index_columns(path, header, time_column, experiment_column)
+    index_columns = [time_column] + ([experiment_column] if experiment_column is not None else [])
+    controls = _control_names(path, header, control_columns, index_columns, state_columns)
+    index_columns = index_columns + controls
+    names = _state_names(path, header, state_columns, index_columns)
+    value_columns = [time_column, *names, *controls]
+    first_control = 1 + len(names)
+    labelable = state_columns is None and experiment_column is None  # a number column may be a label
+    values = _values(path, header, body, value_columns, first_control, labelable)
+    labels, order = _experiment_labels(path, header, body, experiment_column)
+    per = _per_experiment(path, header, values, labels, order, experiment_column, value_columns)
+    control = None
+    if controls:
+        knots = [torch.from_numpy(p[:, 0].copy()) for p in per]
+        control = (knots, [torch.from_numpy(p[:, first_control:].copy()) for p in per], controls)
+    if len({len(p) for p in per}) > 1:  # ragged: one array per experiment
+        times_list = [torch.from_numpy(p[:, 0].copy()) for p in per]
+        return times_list, [torch.from_numpy(p[:, 1:first_control].copy()) for p in per], names, control
+    times = np.stack([p[:, 0] for p in per])
+    states = np.stack([p[:, 1:first_control] for p in per])
+    if np.all(times == times[:1]):
+        times = times[0]
+    return torch.from_numpy(times), torch.from_numpy(states), names, control
+
+
+def _index_columns(path: Path, header: list[str], time_column, experiment_column) -> str | None:
+    """The time and experiment columns checked against the header; the experiment column as found (``None`` where
+    the default ``"experiment"`` is absent: one experiment, or several told apart by nothing)."""
     if not isinstance(time_column, str):
         raise InputError(f"time_column: expected a column name, got {type(time_column).__name__}")
     if experiment_column is not None and not isinstance(experiment_column, str):
@@ -96,20 +124,28 @@ def _columns_to_arrays(
         experiment_column = None
     if experiment_column == time_column:
         raise InputError(f"experiment_column: expected a column other than the time column, got {time_column!r}")
-    index_columns = [time_column] + ([experiment_column] if experiment_column is not None else [])
-    controls = []
-    if control_columns is not None:
-        controls = list(control_columns)
-        _check_distinct(controls, "control_columns", "control_columns")
-        absent = [c for c in controls if c not in header]
-        if absent:
-            raise InputError(f"{path}: expected control columns {controls}, got columns {header} (missing {absent})")
-        clash = [c for c in controls if c in index_columns or (state_columns is not None and c in state_columns)]
-        if clash:
-            raise InputError(
-                f"control_columns: expected columns other than the time, experiment and states, got {clash}"
-            )
-        index_columns = index_columns + controls
+    return experiment_column
+
+
+def _control_names(path: Path, header: list[str], control_columns, index_columns: list[str], state_columns) -> list:
+    """The control columns (none by default), checked: distinct, in the header, none of them an index or state
+    column."""
+    if control_columns is None:
+        return []
+    controls = list(control_columns)
+    _check_distinct(controls, "control_columns", "control_columns")
+    absent = [c for c in controls if c not in header]
+    if absent:
+        raise InputError(f"{path}: expected control columns {controls}, got columns {header} (missing {absent})")
+    clash = [c for c in controls if c in index_columns or (state_columns is not None and c in state_columns)]
+    if clash:
+        raise InputError(f"control_columns: expected columns other than the time, experiment and states, got {clash}")
+    return controls
+
+
+def _state_names(path: Path, header: list[str], state_columns, index_columns: list[str]) -> list[str]:
+    """The state columns: those named (checked: distinct, in the header, no index column), or by default every
+    column that is not an index (time, experiment, control) column; at least one."""
     if state_columns is None:
         names = [c for c in header if c not in index_columns]
     else:
@@ -123,67 +159,82 @@ def _columns_to_arrays(
             raise InputError(f"{path}: expected state columns {names}, got columns {header} (missing {missing})")
     if not names:
         raise InputError(f"{path}: expected at least one state column besides {index_columns}, got columns {header}")
+    return names
 
-    value_columns = [time_column, *names, *controls]
+
+def _values(path: Path, header, body, value_columns: list[str], first_control: int, labelable: bool) -> np.ndarray:
+    """``(rows, columns)`` float64: the time, state and control cells of every row (NaN where a state is missing);
+    a time or a control cannot be missing, and no value may be infinite."""
     where = [header.index(c) for c in value_columns]
-    first_control = 1 + len(names)
     values = np.empty((len(body), len(value_columns)), dtype=np.float64)
     for r, (line, row) in enumerate(body):
         for c, col in enumerate(where):
-            cell = row[col]
-            if cell.lower() in _MISSING:
-                value = math.nan
-            else:
-                try:
-                    value = float(cell)
-                except ValueError:
-                    label = c > 0 and state_columns is None and experiment_column is None
-                    raise InputError(
-                        f"{path}: expected a number in column {header[col]!r} on line {line}, got {cell!r}"
-                        + (" (a missing value is an empty cell, NaN or NA)" if c > 0 else "")
-                        + (
-                            f"; if {header[col]!r} labels the experiments, name it with experiment_column="
-                            f"{header[col]!r} (--experiment-column {header[col]} on the command line)"
-                            if label
-                            else ""
-                        )
-                    ) from None
-            if c == 0 and not math.isfinite(value):
-                raise InputError(
-                    f"{path}: expected a finite time in column {header[col]!r} on line {line}, got {cell!r} (times "
-                    "cannot be missing: drop the row, or fill in its time)"
-                )
-            if c >= first_control and not math.isfinite(value):
-                raise InputError(
-                    f"{path}: expected a value of the control {header[col]!r} on line {line}, got {cell!r} (a control "
-                    "is known at every row: fill it in, e.g. repeat the last value of a piecewise-constant input)"
-                )
-            if math.isinf(value):
-                raise InputError(
-                    f"{path}: expected a finite number in column {header[col]!r} on line {line}, got {cell!r} "
-                    "(an empty cell, NaN or NA is a missing value; infinite values are refused)"
-                )
-            values[r, c] = value
-    if experiment_column is None:
-        labels = [""] * len(body)
-        order = [""]
+            values[r, c] = _cell(path, header[col], row[col], line, c, first_control, labelable)
+    return values
+
+
+def _cell(path: Path, column: str, cell: str, line: int, c: int, first_control: int, labelable: bool) -> float:
+    """One cell of value column ``c`` (0 the time, from ``first_control`` on the controls) read as a number, with
+    the fix in the message where it cannot be: a column of labels not named as the experiment column, a missing
+    time or control, an infinite value."""
+    if cell.lower() in _MISSING:
+        value = math.nan
     else:
-        labels = [row[header.index(experiment_column)] for _, row in body]
-        blank = next((line for (line, _), label in zip(body, labels, strict=True) if not label), None)
-        if blank is not None:
-            raise InputError(
-                f"{path}: expected an experiment label in column {experiment_column!r} on line {blank}, got an empty "
-                "cell"
-            )
-        try:  # numeric labels: 1 and 1.0 are the same experiment, sorted by value
-            numbers = [float(label) for label in labels]
-            if all(np.isfinite(numbers)):
-                labels = [str(int(n)) if n == int(n) else repr(n) for n in numbers]
-                order = sorted(dict.fromkeys(labels), key=float)
-            else:
-                order = list(dict.fromkeys(labels))
+        try:
+            value = float(cell)
         except ValueError:
-            order = list(dict.fromkeys(labels))  # text labels keep the order in which they first appear
+            raise InputError(
+                f"{path}: expected a number in column {column!r} on line {line}, got {cell!r}"
+                + (" (a missing value is an empty cell, NaN or NA)" if c > 0 else "")
+                + (
+                    f"; if {column!r} labels the experiments, name it with experiment_column="
+                    f"{column!r} (--experiment-column {column} on the command line)"
+                    if c > 0 and labelable
+                    else ""
+                )
+            ) from None
+    if c == 0 and not math.isfinite(value):
+        raise InputError(
+            f"{path}: expected a finite time in column {column!r} on line {line}, got {cell!r} (times "
+            "cannot be missing: drop the row, or fill in its time)"
+        )
+    if c >= first_control and not math.isfinite(value):
+        raise InputError(
+            f"{path}: expected a value of the control {column!r} on line {line}, got {cell!r} (a control "
+            "is known at every row: fill it in, e.g. repeat the last value of a piecewise-constant input)"
+        )
+    if math.isinf(value):
+        raise InputError(
+            f"{path}: expected a finite number in column {column!r} on line {line}, got {cell!r} "
+            "(an empty cell, NaN or NA is a missing value; infinite values are refused)"
+        )
+    return value
+
+
+def _experiment_labels(path: Path, header, body, experiment_column) -> tuple[list[str], list[str]]:
+    """``(labels, order)``: every row's experiment label and the experiments in order: numeric labels by value (1
+    and 1.0 one experiment), text labels as they first appear; one unlabelled experiment without the column."""
+    if experiment_column is None:
+        return [""] * len(body), [""]
+    labels = [row[header.index(experiment_column)] for _, row in body]
+    blank = next((line for (line, _), label in zip(body, labels, strict=True) if not label), None)
+    if blank is not None:
+        raise InputError(
+            f"{path}: expected an experiment label in column {experiment_column!r} on line {blank}, got an empty cell"
+        )
+    try:  # numeric labels: 1 and 1.0 are the same experiment, sorted by value
+        numbers = [float(label) for label in labels]
+        if all(np.isfinite(numbers)):
+            labels = [str(int(n)) if n == int(n) else repr(n) for n in numbers]
+            return labels, sorted(dict.fromkeys(labels), key=float)
+        return labels, list(dict.fromkeys(labels))
+    except ValueError:
+        return labels, list(dict.fromkeys(labels))  # text labels keep the order in which they first appear
+
+
+def _per_experiment(path: Path, header, values, labels, order, experiment_column, value_columns) -> list:
+    """Each experiment's rows of ``values``, sorted by time; a time given twice in one experiment is refused (with
+    how to name the experiment column where none was found)."""
     rows_of = {label: [] for label in order}
     for r, label in enumerate(labels):
         rows_of[label].append(r)
@@ -204,18 +255,7 @@ def _columns_to_arrays(
                 f"more than once{what}"
             )
         per.append(block)
-    control = None
-    if controls:
-        knots = [torch.from_numpy(p[:, 0].copy()) for p in per]
-        control = (knots, [torch.from_numpy(p[:, first_control:].copy()) for p in per], controls)
-    if len({len(p) for p in per}) > 1:  # ragged: one array per experiment
-        times_list = [torch.from_numpy(p[:, 0].copy()) for p in per]
-        return times_list, [torch.from_numpy(p[:, 1:first_control].copy()) for p in per], names, control
-    times = np.stack([p[:, 0] for p in per])
-    states = np.stack([p[:, 1:first_control] for p in per])
-    if np.all(times == times[:1]):
-        times = times[0]
-    return torch.from_numpy(times), torch.from_numpy(states), names, control
+    return per
 
 
 def write(

@@ -235,7 +235,8 @@ def calibrate_bands(
             client's executor) to run the folds on, or ``None`` (here, one after another): the same result either
             way. A process pool must be able to pickle the model (a system whose functions are defined at a module's
             top level; an executor that pickles by value, as Dask's, takes lambdas too).
-        **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, solver settings).
+        **posterior_options: passed to ``model.posterior`` (e.g. ``hyperparameters="laplace"``, or the solver's
+            settings as ``solver=Solver(...)``, :class:`~torchmisspec.Solver`).
 
     Returns:
         :class:`BandCalibration`; ``model.posterior(..., scale=result.scale)`` uses it, and
@@ -244,36 +245,99 @@ def calibrate_bands(
     Raises:
         FittingError: no fold could be fitted and integrated (a fold that cannot is left out, with a warning).
     """
-    # a CorrectedODE (this module does not import dynamics, which imports it): each fold's model is one of its kind
-    if not all(hasattr(model, name) for name in ("system", "gp", "posterior")):
-        raise InputError(
-            f"model: expected a CorrectedODE (torchmisspec.CorrectedODE(system, gp)), got {type(model).__name__}"
-        )
+    _check_model(model, posterior_options)
     system, gp = model.system, model.gp
     level = _check_level(level)
     refit = check_flag(refit, "refit")
     num_samples = check_positive_int(num_samples, "num_samples")
-    if "scale" in posterior_options or "num_samples" in posterior_options:
-        raise InputError(
-            "posterior_options: expected neither scale nor num_samples (calibrate_bands sets them), got "
-            f"{sorted(set(posterior_options) & {'scale', 'num_samples'})}"
-        )
     _check_trajectories_and_system(trajectories, system)
     folds = _check_cv_inputs(system, trajectories, samples, folds)
     absolute, relative = _state_noise(state_noise, trajectories, gp.dtype, gp.device)
     noisy = bool(absolute.any() or relative.any())
     seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
     executor = check_executor(executor)
+    tasks = _fold_tasks(model, trajectories, samples, folds, refit, seed, num_samples, noisy, posterior_options)
+    bar = progress_bar(progress, folds, "calibrate: refit and predict each fold", "fold")
+    results = map_tasks(_fold, tasks, executor, each=lambda _: bar.update())
+    bar.close()
+    held_out = _held_out(results, gp)
+    # the band the user's posterior.interval(level) draws from num_samples paths (times the noise draws)
+    quantiles = band_quantiles(
+        level, num_samples * (NOISE_DRAWS if noisy else 1), dtype=gp.dtype, device=gp.device, what="calibrate"
+    )
+    paths = [p for r in held_out for p in r["paths"]]  # (mean path, deviations, noise draws or None, observed)
+    total = sum(int(torch.isfinite(obs).sum()) for *_, obs in paths)  # missing entries (NaN) are not compared
+    coverage = _coverage(paths, quantiles, absolute, relative, total)
+    scale, tried, reached = _smallest_covering_scale(coverage, level, total)
+    final = next(v for c, v in reversed(tried) if c == scale)
+    if not reached:
+        warn(
+            f"calibrate_bands: no scale up to {2.0**MAX_LOG2_SCALE:g} makes the central {level:g} band cover the "
+            f"held-out observations (at best {final:.3f}, from scale {scale:.3g}, which is kept): some held-out bands "
+            "have no spread to widen (a fold whose refit explained the signal away as noise, or observations far from "
+            "every draw); these bands stay unreliable",
+            TorchMisspecWarning,
+        )
+    return BandCalibration(
+        scale=scale,
+        level=level,
+        coverage_at_one=tried[0][1],
+        coverage=final,
+        scales=tuple(c for c, _ in tried),
+        coverages=tuple(v for _, v in tried),
+        folds=len(held_out),
+        refit=refit,
+        num_points=total,
+        reached=reached,
+    )
+
+
+def _check_model(model, posterior_options: dict) -> None:
+    """Refuse a model that is not a :class:`~torchmisspec.CorrectedODE` (this module does not import dynamics, which
+    imports it: each fold's model is one of the model's kind), and posterior options that calibration sets itself."""
+    if not all(hasattr(model, name) for name in ("system", "gp", "posterior")):
+        raise InputError(
+            f"model: expected a CorrectedODE (torchmisspec.CorrectedODE(system, gp)), got {type(model).__name__}"
+        )
+    if "scale" in posterior_options or "num_samples" in posterior_options:
+        raise InputError(
+            "posterior_options: expected neither scale nor num_samples (calibrate_bands sets them), got "
+            f"{sorted(set(posterior_options) & {'scale', 'num_samples'})}"
+        )
+
+
+def _coverage(paths: list, quantiles, absolute: torch.Tensor, relative: torch.Tensor, total: int):
+    """``coverage(c)``: the fraction of the ``total`` held-out observations inside the band at scale c, each path's
+    deviation from its mean path times c (plus its noise draws): the same draws at every c, never re-integrated."""
+
+    def coverage(c: float) -> float:
+        hits = 0
+        for mean, dev, z, obs in paths:
+            draws = mean + c * dev
+            if z is not None:
+                draws = (draws.unsqueeze(1) + (absolute + relative * draws.abs()).unsqueeze(1) * z).flatten(0, 1)
+            lo, hi = path_quantiles(draws, quantiles)  # a diverged path makes its side of the band unbounded
+            hits += int(((obs >= lo) & (obs <= hi)).sum())  # False where obs is NaN (missing)
+        return hits / max(total, 1)
+
+    return coverage
+
+
+def _fold_tasks(model, trajectories, samples, folds, refit, seed, num_samples, noisy, posterior_options) -> list:
+    """One task per fold for :func:`_fold` (through an executor: each holds everything its fold needs, what every
+    fold shares computed once). A model refined through the ODE has each fold refined the same way, keeping the term
+    weights where the GP is conditioned rather than refitted."""
+    gp = model.gp
     refinement = getattr(gp, "refinement_", None)
     if refinement is not None and not refit:  # conditioning keeps the hyperparameters: the term weights too
         refinement = {**refinement, "relevance": False}
-    common = dict(  # what every fold needs, computed once
+    common = dict(
         experiments=trajectories.experiments(),
         values=trajectories.observed_values()[0],  # (K, T_max, d + m): the states and any readings
         first=trajectories.initial_conditions,  # missing first entries estimated (Trajectories.filled)
         model_type=type(model),
         parameters=getattr(model, "parameters_", None),
-        system=system,
+        system=model.system,
         gp=gp,
         trajectories=trajectories,
         samples=samples,
@@ -285,9 +349,12 @@ def calibrate_bands(
         noisy=noisy,
         posterior_options=posterior_options,
     )
-    bar = progress_bar(progress, folds, "calibrate: refit and predict each fold", "fold")
-    results = map_tasks(_fold, [dict(common, fold=f) for f in range(folds)], executor, each=lambda _: bar.update())
-    bar.close()
+    return [dict(common, fold=f) for f in range(folds)]
+
+
+def _held_out(results: list[dict], gp) -> list[dict]:
+    """The folds' results that hold paths, with what the folds warned passed on: their fits' numerical warnings in
+    one summary, anything else as it was, and the folds whose held-out paths could not be integrated."""
     fold_warnings = [m for r in results for m in r["numerical"]]
     for message, category in (w for r in results for w in r["other"]):  # anything else reaches the user as it was
         warn(message, category)
@@ -312,36 +379,24 @@ def calibrate_bands(
     held_out = [r for r in results if r["paths"] is not None]
     if not held_out:
         raise FittingError("calibrate_bands: no fold could be fitted; calibrate with more experiments")
-    # the band the user's posterior.interval(level) draws from num_samples paths (times the noise draws)
-    quantiles = band_quantiles(
-        level, num_samples * (NOISE_DRAWS if noisy else 1), dtype=gp.dtype, device=gp.device, what="calibrate"
-    )
-    paths = [p for r in held_out for p in r["paths"]]  # (mean path, deviations, noise draws or None, observed)
-    total = sum(int(torch.isfinite(obs).sum()) for *_, obs in paths)  # missing entries (NaN) are not compared
+    return held_out
 
-    def coverage(c: float) -> float:
-        """Held-out coverage of the band at scale c (the same draws at every c)."""
-        hits = 0
-        for mean, dev, z, obs in paths:
-            draws = mean + c * dev
-            if z is not None:
-                draws = (draws.unsqueeze(1) + (absolute + relative * draws.abs()).unsqueeze(1) * z).flatten(0, 1)
-            lo, hi = path_quantiles(draws, quantiles)  # a diverged path makes its side of the band unbounded
-            hits += int(((obs >= lo) & (obs <= hi)).sum())  # False where obs is NaN (missing)
-        return hits / max(total, 1)
 
-    tried: list[tuple[float, float]] = []
+def _smallest_covering_scale(coverage, level: float, total: int) -> tuple[float, list[tuple[float, float]], bool]:
+    """``(scale, tried, reached)``: the smallest scale c whose held-out ``coverage(c)`` reaches ``level``, found by
+    bisection in log2 c (coverage grows with c: the paths are the same at every c); ``tried`` the (c, coverage)
+    pairs evaluated, c = 1 first; ``reached`` False where no scale up to ``2**MAX_LOG2_SCALE`` covers (then the
+    smallest doubling within one standard error of the best coverage over ``total`` points is kept)."""
+    tried: list[tuple[float, float]] = [(1.0, coverage(1.0))]
 
     def covers_at(log2c: float) -> bool:
         value = coverage(2.0**log2c)
         tried.append((2.0**log2c, value))
         return value >= level
 
-    at_one = coverage(1.0)
-    tried.append((1.0, at_one))
     # bracket [lo, hi] in log2 c with coverage below the level at lo and at least the level at hi
     reached = True
-    if at_one >= level:
+    if tried[0][1] >= level:
         lo, hi = MIN_LOG2_SCALE, 0.0
         if covers_at(lo):
             lo = hi = MIN_LOG2_SCALE  # even the narrowest scale covers
@@ -370,25 +425,4 @@ def calibrate_bands(
             hi = mid
         else:
             lo = mid
-    scale = 2.0**hi
-    final = next(v for c, v in reversed(tried) if c == scale)
-    if not reached:
-        warn(
-            f"calibrate_bands: no scale up to {2.0**MAX_LOG2_SCALE:g} makes the central {level:g} band cover the "
-            f"held-out observations (at best {final:.3f}, from scale {scale:.3g}, which is kept): some held-out bands "
-            "have no spread to widen (a fold whose refit explained the signal away as noise, or observations far from "
-            "every draw); these bands stay unreliable",
-            TorchMisspecWarning,
-        )
-    return BandCalibration(
-        scale=scale,
-        level=level,
-        coverage_at_one=at_one,
-        coverage=final,
-        scales=tuple(c for c, _ in tried),
-        coverages=tuple(v for _, v in tried),
-        folds=len(held_out),
-        refit=refit,
-        num_points=total,
-        reached=reached,
-    )
+    return 2.0**hi, tried, reached

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from .._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
-from .._ode import PREDICTION_TOLERANCES, initial_conditions_and_times, solve
+from .._ode import initial_conditions_and_times, solve
 from .._validation import check_input_names, check_positive_int, check_real
 from ..data import Trajectories
 from ..gp import CorrectionGP
@@ -24,6 +24,7 @@ from ..systems import MisspecifiedSystem
 from ._bands import TrajectoryPosterior
 from ._draws import draws_region, solve_draws, warn_left
 from .calibration import calibrate_bands
+from .solver import Solver, as_solver
 
 __all__ = ["SUPPORT_THRESHOLD", "UPDATE_ERROR", "CorrectedODE", "TrajectoryPosterior"]
 
@@ -114,11 +115,7 @@ class CorrectedODE(nn.Module):
         y0,
         times,
         *,
-        method: str = "dopri5",
-        rtol: float = PREDICTION_TOLERANCES[0],
-        atol: float = PREDICTION_TOLERANCES[1],
-        options: dict | None = None,
-        max_steps: int | None = None,
+        solver: Solver | None = None,
         controls=None,
     ) -> torch.Tensor:
         """Integrate the corrected model from every initial condition in one batched solve.
@@ -128,12 +125,10 @@ class CorrectedODE(nn.Module):
             times: ``(T,)`` shared, or ``(B, T)`` per initial condition; strictly increasing.
             controls: for a system with controls, the B experiments' input profiles
                 (:class:`~torchmisspec.signals.Controls`; each experiment its own, still one solve).
-            method: torchdiffeq method (dopri5 by default).
-            rtol: relative tolerance (the package's prediction tolerance by default: see :mod:`torchmisspec._ode`).
-            atol: absolute tolerance (likewise).
-            options: further torchdiffeq solver options.
-            max_steps: most solver steps (default 10,000); beyond it :class:`IntegrationError` names the initial
-                conditions that stalled the solve.
+            solver: the solver's settings (:class:`~torchmisspec.Solver`: method, tolerances, step limit, options);
+                default ``Solver()``: dopri5 at the package's prediction tolerances (see :mod:`torchmisspec._ode`),
+                at most 10,000 steps, beyond which :class:`IntegrationError` names the initial conditions that stalled
+                the solve.
 
         Returns:
             states ``(B, T, d)`` in the GP's dtype. A forecast whose solve fails before its last output time (its
@@ -152,8 +147,7 @@ class CorrectedODE(nn.Module):
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
-        solver = dict(method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps)
-        return self._forecast(y0, times, self._controls(controls, y0), solver)
+        return self._forecast(y0, times, self._controls(controls, y0), as_solver(solver).keywords())
 
     def _forecast(self, y0: torch.Tensor, times: torch.Tensor, controls, solver: dict) -> torch.Tensor:
         """:meth:`predict`'s solves: all forecasts at once; where the solve fails, the rows it names keep what it
@@ -240,11 +234,7 @@ class CorrectedODE(nn.Module):
         num_features: int | None = None,
         feature_error: float | None = None,
         update_error: float | None = UPDATE_ERROR,
-        method: str = "dopri5",
-        rtol: float = PREDICTION_TOLERANCES[0],
-        atol: float = PREDICTION_TOLERANCES[1],
-        options: dict | None = None,
-        max_steps: int | None = None,
+        solver: Solver | None = None,
         support_threshold: float | None = None,
         hyperparameters: str = "fixed",
         hyperparameter_samples: int = 8,
@@ -275,11 +265,8 @@ class CorrectedODE(nn.Module):
             update_error: the draws' update is compressed onto a subset of the training inputs with a certified bound
                 of ``update_error`` times the prior standard deviation on the change (default :data:`UPDATE_ERROR`;
                 ``None``: exact); ``posterior.update_error`` is the bound reached.
-            method: the solver, as for :meth:`predict`.
-            rtol: the solver's relative tolerance, as for :meth:`predict`.
-            atol: the solver's absolute tolerance, as for :meth:`predict`.
-            options: the solver's options, as for :meth:`predict`.
-            max_steps: the solver's step limit, as for :meth:`predict`.
+            solver: the solver's settings (:class:`~torchmisspec.Solver`), as for :meth:`predict`: for the mean
+                paths and the sampled paths alike.
             support_threshold: the extrapolation threshold in (0, 1].
             hyperparameters: ``"fixed"`` (default: the fitted values) or ``"laplace"``: the draws are split among
                 ``hyperparameter_samples`` sets of hyperparameters drawn from the Laplace approximation of their
@@ -315,62 +302,21 @@ class CorrectedODE(nn.Module):
         Paths are differentiable with respect to ``y0`` and ``times`` when they require grad (the draws
         themselves are fixed functions: gradients in the hyperparameters go through :meth:`predict` only).
         """
-        threshold = (
-            SUPPORT_THRESHOLD
-            if support_threshold is None
-            else check_real(support_threshold, "support_threshold", positive=True)
-        )
-        if threshold > 1.0:
-            raise InputError(f"support_threshold: expected a ratio of standard deviations in (0, 1], got {threshold!r}")
+        threshold = _check_threshold(support_threshold)
         num_samples = check_positive_int(num_samples, "num_samples")
-        if scale is None and self.calibration_ is None:
-            warn(
-                "CorrectedODE.posterior: these bands are the GP's own, not calibrated on held-out experiments; with "
-                "few experiments they are usually too narrow (docs/studies/calibration.md). Call "
-                "model.calibrate(observed) once (it is kept and saved with the GP), or pass scale=1.0 to use the "
-                "GP's own bands knowingly",
-                TorchMisspecWarning,
-            )
-        if scale is None:
-            scale = 1.0 if self.calibration_ is None else self.calibration_.scale
-        scale = check_real(scale, "scale", positive=True)
+        scale = self._band_scale(scale)
+        solver = as_solver(solver)
         y0, times = initial_conditions_and_times(
             y0, times, self.system.state_dim, self.system.check_states, dtype=self.gp.dtype, device=self.gp.device
         )
-        B, d = y0.shape
-        S = num_samples
-        if hyperparameters not in ("fixed", "laplace"):
-            raise InputError(f"hyperparameters: expected 'fixed' or 'laplace', got {hyperparameters!r}")
-        options_f = dict(
-            num_features=num_features, feature_error=feature_error, generator=generator, update_error=update_error
-        )
-        if hyperparameters == "fixed":
-            draws = self.gp.sample_functions(S, **options_f)
-        else:
-            M = min(check_positive_int(hyperparameter_samples, "hyperparameter_samples"), S)
-            gps = self.gp.hyperparameter_samples(M, generator=generator)
-            sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
-            draws = _Mixture([g.sample_functions(n, **options_f) for g, n in zip(gps, sizes, strict=True)])
+        B, S = y0.shape[0], num_samples
+        options = dict(num_features=num_features, feature_error=feature_error, update_error=update_error)
+        draws = self._function_draws(S, hyperparameters, hyperparameter_samples, dict(options, generator=generator))
         controls = self._controls(controls, y0)
-        mean_path = self.predict(
-            y0, times, method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, controls=controls
-        )
-        system, known = self.system, self._known
-        theta = None
-        if self.parameters_ is not None:  # a draw of theta with each draw of F (parameters.py)
-            p = self.parameters_
-            theta = p.draw_field(system, self.gp, p.sample(S, generator=generator) - p.mean, B)
-
-        def rhs(y: torch.Tensor, t, u) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
-            x = system.select_inputs(y, u)
-            out = known.known_rhs(y, t, u) + system.embed(draws(x.reshape(S, B, -1)).reshape(S * B, -1))
-            return out if theta is None else out + theta(y, t, u, x)
-
-        field, timed, jumps = system.solver_field(rhs, None if controls is None else controls.repeat(S))
+        mean_path = self.predict(y0, times, solver=solver, controls=controls)
+        field, timed, jumps = self._draws_field(draws, S, B, controls, generator)
         grid = times if times.dim() == 1 else times.repeat(S, 1)
-        settings = dict(
-            method=method, rtol=rtol, atol=atol, options=options, max_steps=max_steps, timed=timed, jumps=jumps
-        )
+        settings = dict(**solver.keywords(), timed=timed, jumps=jumps)
         region = draws_region(y0, mean_path, self.gp)
         with torch.set_grad_enabled(_wants_graph(y0, times)):
             paths, self.nfe, stopped, escaped = solve_draws(field, y0.repeat(S, 1), grid, settings, B, region)
@@ -378,18 +324,7 @@ class CorrectedODE(nn.Module):
         if bool(left.any()):
             warn_left(left, stopped)
         times_out = times if times.dim() == 2 else times.expand(B, -1)
-        support = self._support(mean_path.detach(), None if controls is None else controls.at(times_out.detach()))
-        extrapolating = support.amax(dim=-1) > threshold
-        if bool(extrapolating.any()) and not getattr(self.gp, "known_model_", False):  # F = 0 has no support to leave
-            n = int(extrapolating.sum())
-            first = extrapolating.nonzero().flatten()[:10].tolist()
-            warn(
-                f"CorrectedODE.posterior: {n} of {B} predicted path(s) leave the data's support (the posterior "
-                f"standard deviation of F along the mean path exceeds {threshold:.3g} times the prior's; initial "
-                f"conditions {first}{' ...' if n > 10 else ''}): there the correction is the prior's guess and the "
-                "bands are as wide as the prior. Collect data nearer those states, or trust those paths less",
-                TorchMisspecWarning,
-            )
+        support, extrapolating = self._extrapolation(mean_path, times_out, controls, threshold)
         samples = paths.reshape(S, B, *paths.shape[1:])
         if scale != 1.0:  # the paths' deviations from the mean path, scaled (never a re-integration)
             samples = mean_path + scale * (samples - mean_path)
@@ -406,6 +341,67 @@ class CorrectedODE(nn.Module):
             region=region,
             escaped=escaped.reshape(S, B, *escaped.shape[1:]),
         )
+
+    def _band_scale(self, scale) -> float:
+        """The bands' scale: ``scale`` checked, or the calibrated one (1 before any calibration, said in a warning,
+        since the GP's own bands are usually too narrow)."""
+        if scale is None and self.calibration_ is None:
+            warn(
+                "CorrectedODE.posterior: these bands are the GP's own, not calibrated on held-out experiments; with "
+                "few experiments they are usually too narrow (docs/studies/calibration.md). Call "
+                "model.calibrate(observed) once (it is kept and saved with the GP), or pass scale=1.0 to use the "
+                "GP's own bands knowingly",
+                TorchMisspecWarning,
+            )
+        if scale is None:
+            scale = 1.0 if self.calibration_ is None else self.calibration_.scale
+        return check_real(scale, "scale", positive=True)
+
+    def _function_draws(self, S: int, hyperparameters: str, hyperparameter_samples: int, options: dict):
+        """S posterior draws of F as one callable ``(S, M, d_in) -> (S, M, d_out)``: at the fitted hyperparameters
+        (``"fixed"``), or split among hyperparameter sets drawn from their Laplace posterior (``"laplace"``)."""
+        if hyperparameters not in ("fixed", "laplace"):
+            raise InputError(f"hyperparameters: expected 'fixed' or 'laplace', got {hyperparameters!r}")
+        if hyperparameters == "fixed":
+            return self.gp.sample_functions(S, **options)
+        M = min(check_positive_int(hyperparameter_samples, "hyperparameter_samples"), S)
+        gps = self.gp.hyperparameter_samples(M, generator=options["generator"])
+        sizes = [S // M + (1 if m < S % M else 0) for m in range(M)]
+        return _Mixture([g.sample_functions(n, **options) for g, n in zip(gps, sizes, strict=True)])
+
+    def _draws_field(self, draws, S: int, B: int, controls, generator):
+        """The solver's field of the S x B sampled paths (:meth:`MisspecifiedSystem.solver_field
+        <torchmisspec.MisspecifiedSystem.solver_field>`): rows s * B ... s * B + B - 1 follow G + F_s, and G at a
+        draw of its parameters theta with each draw of F when G has uncertain parameters."""
+        system, known = self.system, self._known
+        theta = None
+        if self.parameters_ is not None:  # a draw of theta with each draw of F (parameters.py)
+            p = self.parameters_
+            theta = p.draw_field(system, self.gp, p.sample(S, generator=generator) - p.mean, B)
+
+        def rhs(y: torch.Tensor, t, u) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
+            x = system.select_inputs(y, u)
+            out = known.known_rhs(y, t, u) + system.embed(draws(x.reshape(S, B, -1)).reshape(S * B, -1))
+            return out if theta is None else out + theta(y, t, u, x)
+
+        return system.solver_field(rhs, None if controls is None else controls.repeat(S))
+
+    def _extrapolation(self, mean_path: torch.Tensor, times_out: torch.Tensor, controls, threshold: float):
+        """``(support (B, T), extrapolating (B,))`` along the mean paths (:meth:`_support`), with one warning naming
+        the paths that leave the data's support (none for a model known to need no correction: F = 0 has none)."""
+        support = self._support(mean_path.detach(), None if controls is None else controls.at(times_out.detach()))
+        extrapolating = support.amax(dim=-1) > threshold
+        if bool(extrapolating.any()) and not getattr(self.gp, "known_model_", False):
+            n, B = int(extrapolating.sum()), extrapolating.shape[0]
+            first = extrapolating.nonzero().flatten()[:10].tolist()
+            warn(
+                f"CorrectedODE.posterior: {n} of {B} predicted path(s) leave the data's support (the posterior "
+                f"standard deviation of F along the mean path exceeds {threshold:.3g} times the prior's; initial "
+                f"conditions {first}{' ...' if n > 10 else ''}): there the correction is the prior's guess and the "
+                "bands are as wide as the prior. Collect data nearer those states, or trust those paths less",
+                TorchMisspecWarning,
+            )
+        return support, extrapolating
 
     def initial_states(self, trajectories) -> torch.Tensor:
         """``(K, d)`` every experiment's initial state under this model: the first observed states, with each
@@ -449,8 +445,8 @@ class CorrectedODE(nn.Module):
         See :func:`torchmisspec.prediction.calibration.calibrate_bands` (the arguments after ``samples`` are its
         keywords: ``level``, ``folds``, ``num_samples``, ``refit``, ``state_noise``, ``generator``, ``executor`` (the
         folds through a ``concurrent.futures.Executor``) and options for :meth:`posterior`, e.g.
-        ``hyperparameters="laplace"``, which later calls should then use too). Costs one GP fit per fold plus about
-        ten held-out posteriors per fold.
+        ``hyperparameters="laplace"``, which later calls should then use too, or ``solver=Solver(...)``). Costs one
+        GP fit per fold plus about ten held-out posteriors per fold.
 
         Returns:
             the :class:`~torchmisspec.prediction.calibration.BandCalibration`, also kept on the GP as
@@ -517,6 +513,17 @@ class _Mixture:
             out.append(p(x[start : start + p.num_samples]))
             start += p.num_samples
         return torch.cat(out)
+
+
+def _check_threshold(support_threshold) -> float:
+    """The extrapolation threshold of :meth:`CorrectedODE.posterior`: a ratio of standard deviations in (0, 1]
+    (:data:`SUPPORT_THRESHOLD` for ``None``)."""
+    if support_threshold is None:
+        return SUPPORT_THRESHOLD
+    threshold = check_real(support_threshold, "support_threshold", positive=True)
+    if threshold > 1.0:
+        raise InputError(f"support_threshold: expected a ratio of standard deviations in (0, 1], got {threshold!r}")
+    return threshold
 
 
 def _wants_graph(*tensors: torch.Tensor) -> bool:
