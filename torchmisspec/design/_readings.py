@@ -456,9 +456,9 @@ def readout_information_gain(
     if isinstance(indices, torch.Tensor):
         indices = indices.reshape(-1).tolist()
     cand = check_candidates(candidates, _check_system(system))
-    idx = list(check_indices(indices, cand.shape[0], "indices"))
-    if not idx:
+    if len(indices) == 0:
         return 0.0
+    idx = list(check_indices(indices, cand.shape[0], "indices"))
     prob = _ReadoutProblem(criterion, cand, 1, system, times, gp, proxy, condition, None, None, 0.0)
     with torch.no_grad():
         ld, _ = logdet_identity_plus(prob.cov.joint(idx), 1.0, "I + Sigma_S (readings)")
