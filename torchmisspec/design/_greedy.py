@@ -492,6 +492,12 @@ def greedy(
             is not submodular in general, so it has no (1 - 1/e) guarantee and lazy bounds do not apply:
             ``method="lazy"`` then evaluates every remaining gain (the same picks as ``"plain"``). Conditioning,
             both proxies and partition budgets work with both. See :mod:`torchmisspec.design._domain`.
+            Or a :class:`~torchmisspec.design.ReadoutCriterion`: experiments that read only combinations H y of
+            the states (a :class:`~torchmisspec.Readout`), scored by the information about F of their noisy
+            readings, linearised through the ODE along the proxy paths (monotone submodular: the guarantees above
+            hold; see :mod:`torchmisspec.design._readings`). It computes its own proxies (on a finer grid), takes
+            conditioning, both proxies and partitions, and refuses ``proxies``, ``domain``, ``controls`` and
+            ``method="stochastic"``; ``"lazy"`` and ``"plain"`` run its vectorised engine, ``"naive"`` the reference.
         domain: ``criterion="domain"`` only: the box D, one ``(lo, hi)`` per correction input (default
             ``system.domain``).
         domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all,
