@@ -1,14 +1,13 @@
 """The design loop: ask for the next experiments, tell what was measured, refit, repeat (sequential design).
 
 A :class:`Campaign` holds the candidate initial conditions, the observation times, the prior and everything measured
-so far. ``ask(k)`` designs the next batch greedily *given the data* (the gains are conditioned on every sample
-collected, and with data the proxies are the corrected model's trajectories by default; when the data read only
-combinations of the states, a :class:`~torchmisspec.Readout`, the criterion is the readings' information through the
-ODE, :class:`~torchmisspec.design.ReadoutCriterion`); ``tell(trajectories)``
-adds the measured experiments and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that
-function on every experiment with the same options (one way to learn, the same choice of model; an experiment held
-already is not added again); otherwise the samples are added and the GP refitted (hyperparameters by marginal
-likelihood once the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every
+so far. ``ask(k)`` designs the next batch greedily *given the data* (gains conditioned on every sample collected,
+proxies by default the corrected model's once there are data; data read through a :class:`~torchmisspec.Readout`:
+designed by :class:`~torchmisspec.design.ReadoutCriterion`); ``tell(trajectories)`` adds the measured experiments
+and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that function on every experiment with the
+same options (one way to learn, the same choice of model; an experiment held already is not added again); otherwise
+the samples are added and the GP refitted (hyperparameters by marginal likelihood once the data hold ``refit_after``
+samples, the prior's fixed values before). ``history`` records every
 round; ``save`` / ``load`` write and read the whole campaign (tensors and plain values only, never code).
 
 For a system with inputs u(t), a candidate experiment is an initial state *and* an input profile: the campaign takes
@@ -39,7 +38,7 @@ from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
 from ._greedy import greedy
 from ._proxy import PROXIES
-from ._readings import ReadoutCriterion
+from ._readings import campaign_criterion
 
 __all__ = ["Campaign"]
 
@@ -287,25 +286,8 @@ class Campaign:
         return picks, gains, info
 
     def _criterion(self):
-        """The design's criterion: the configured one, or, when the campaign's data carry a readout (experiments that
-        read combinations H y of the states) and the criterion is the information, the readings' information through
-        the ODE (:class:`~torchmisspec.design.ReadoutCriterion`): such experiments give no derivative samples, so the
-        paper's criterion would score what is not measured. The readings' noise is the fit's estimate
-        (``gp.state_noise_``), else the one the data show (:func:`estimate_observed_noise`)."""
-        criterion = self.config["criterion"]
-        readout = None if self.data is None else self.data.readout
-        if readout is None or criterion != "information":
-            return criterion
-        noise = None
-        var = getattr(self.gp, "state_noise_", None)
-        d, m = self.system.state_dim, readout.num_readings
-        if not (isinstance(var, torch.Tensor) and var.numel() == d + m):
-            from ..learning.samples._gp_in_time import estimate_observed_noise
-
-            std = estimate_observed_noise(self.data)
-            if std is not None and std.numel() == d + m and bool((std[d:] > 0).all()):
-                noise = tuple(float(v) for v in std[d:])
-        return ReadoutCriterion(readout, noise_std=noise)
+        """The configured criterion, or the readings' one when the data carry a readout (:func:`campaign_criterion`)."""
+        return campaign_criterion(self.config["criterion"], self.data, self.gp, self.system)
 
     # --------------------------------------------------------------------------------------------- tell
     def _match(self, y0: torch.Tensor, pending: list[int], profile=None) -> int:

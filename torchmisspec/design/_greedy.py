@@ -61,7 +61,7 @@ from ._common import (
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
 from ._proxy import choose_proxy, proxy_paths
-from ._readings import ReadoutCriterion
+from ._readings import ReadoutCriterion, readout_design
 from ._screening import CHUNK_BYTES, LowRank
 
 __all__ = ["greedy"]
@@ -546,10 +546,13 @@ def greedy(
                 "use method='lazy'"
             )
     if isinstance(criterion, ReadoutCriterion):
-        return _readout_design(
-            criterion, candidates, budget, system, times, gp, method, partition, capacities, proxies, tie_tol,
-            condition, proxy, domain, domain_size, controls, executor, progress,
+        options = dict(
+            candidates=candidates, budget=budget, system=system, times=times, gp=gp, method=method,
+            partition=partition, capacities=capacities, proxies=proxies, tie_tol=tie_tol, condition=condition,
+            proxy=proxy, domain=domain, domain_size=domain_size, controls=controls, executor=executor,
+            progress=progress,
         )  # fmt: skip
+        return readout_design(criterion, options, _Feasible)
     prob = _Problem(
         candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
         condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
@@ -576,33 +579,3 @@ def greedy(
             picks, gains, evals, info = _naive(prob, progress)
     info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy, "criterion": prob.criterion}
     return prob.result(picks, gains, method, evals, time.perf_counter() - start, info)
-
-
-def _readout_design(
-    criterion, candidates, budget, system, times, gp, method, partition, capacities, proxies, tie_tol, condition,
-    proxy, domain, domain_size, controls, executor, progress,
-) -> DesignResult:  # fmt: skip
-    """``greedy`` with a :class:`ReadoutCriterion`: the readings' information through the ODE
-    (:mod:`torchmisspec.design._readings`); the options it does not take are refused by name."""
-    from ._readings import _ReadoutProblem, readout_greedy
-
-    given = {
-        "proxies": proxies is not None,
-        "domain": domain is not None or domain_size is not None,
-        "controls": controls is not None,
-        "method='stochastic'": method == "stochastic",
-    }
-    refused = [name for name, on in given.items() if on]
-    if refused:
-        raise InputError(
-            f"criterion=ReadoutCriterion(...): expected none of {refused}, got them; the readings' criterion "
-            "computes its own proxies on a finer grid, scores information about F anywhere, is built for systems "
-            "without inputs, and runs the plain or naive engine (method='lazy' runs the plain one)"
-        )
-    if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
-        raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
-    prob = _ReadoutProblem(
-        criterion, candidates, budget, system, times, gp, proxy, condition, partition, capacities, tie_tol,
-        executor, progress,
-    )  # fmt: skip
-    return readout_greedy(prob, method, _Feasible)

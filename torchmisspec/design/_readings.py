@@ -74,7 +74,13 @@ from ..systems import MisspecifiedSystem
 from ._common import DesignResult, GPKernel, check_candidates, check_system, check_times
 from ._proxy import PROXY_TOLERANCES, choose_proxy, proxy_paths
 
-__all__ = ["ReadoutCriterion", "ReadoutSensitivity", "readout_sensitivity", "readout_information_gain"]
+__all__ = [
+    "ReadoutCriterion",
+    "ReadoutSensitivity",
+    "readout_sensitivity",
+    "readout_information_gain",
+    "readout_design",
+]
 
 #: without a given noise or a fitted estimate, sigma_z is this fraction of each reading's RMS along the proxies
 DEFAULT_NOISE_FRACTION = 0.01
@@ -463,3 +469,55 @@ def readout_information_gain(
     with torch.no_grad():
         ld, _ = logdet_identity_plus(prob.cov.joint(idx), 1.0, "I + Sigma_S (readings)")
     return 0.5 * float(ld)
+
+
+def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> DesignResult:
+    """``greedy`` with a :class:`ReadoutCriterion`: the readings' information through the ODE
+    (:mod:`torchmisspec.design._readings`); ``options``: greedy's keywords (those it does not take refused by name);
+    ``feasible``: greedy's feasibility tracker (the picks left, a partition's capacities)."""
+    o = options
+    proxies, domain, domain_size, controls, method = (
+        o[k] for k in ("proxies", "domain", "domain_size", "controls", "method")
+    )
+    tie_tol = o["tie_tol"]
+    given = {
+        "proxies": proxies is not None,
+        "domain": domain is not None or domain_size is not None,
+        "controls": controls is not None,
+        "method='stochastic'": method == "stochastic",
+    }
+    refused = [name for name, on in given.items() if on]
+    if refused:
+        raise InputError(
+            f"criterion=ReadoutCriterion(...): expected none of {refused}, got them; the readings' criterion "
+            "computes its own proxies on a finer grid, scores information about F anywhere, is built for systems "
+            "without inputs, and runs the plain or naive engine (method='lazy' runs the plain one)"
+        )
+    if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
+        raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
+    prob = _ReadoutProblem(
+        criterion, o["candidates"], o["budget"], o["system"], o["times"], o["gp"], o["proxy"], o["condition"],
+        o["partition"], o["capacities"], tie_tol, o["executor"], o["progress"],
+    )  # fmt: skip
+    return readout_greedy(prob, method, feasible)
+
+
+def campaign_criterion(criterion: str, data, gp: CorrectionGP, system: MisspecifiedSystem):
+    """A campaign's criterion: ``criterion``, or, when its data carry a readout (experiments that read combinations
+    H y of the states) and the criterion is the information, the readings' information through the ODE
+    (:class:`ReadoutCriterion`): such experiments give no derivative samples, so the paper's criterion would score
+    what is not measured. The readings' noise is the fit's estimate (``gp.state_noise_``), else the one the data
+    show (``estimate_observed_noise``), else the default."""
+    readout = None if data is None else data.readout
+    if readout is None or criterion != "information":
+        return criterion
+    noise = None
+    var = getattr(gp, "state_noise_", None)
+    d, m = system.state_dim, readout.num_readings
+    if not (isinstance(var, torch.Tensor) and var.numel() == d + m):
+        from ..learning.samples._gp_in_time import estimate_observed_noise
+
+        std = estimate_observed_noise(data)
+        if std is not None and std.numel() == d + m and bool((std[d:] > 0).all()):
+            noise = tuple(float(v) for v in std[d:])
+    return ReadoutCriterion(readout, noise_std=noise)
