@@ -143,7 +143,7 @@ def test_design_readout_study_smoke(tmp_path):
     for run in result["runs"]["2"]:
         assert len(run["designed_points"]) == len(run["random_points"]) == 2
         assert all(0 < run[arm] < float("inf") for arm in ("designed", "random"))
-    assert "designed / random (mean ± se)" in stdout
+    assert "better / tied / worse" in stdout
 
 
 @pytest.mark.slow
