@@ -135,6 +135,18 @@ def test_partial_study_smoke(tmp_path):
 
 
 @pytest.mark.slow
+def test_design_readout_study_smoke(tmp_path):
+    out = tmp_path / "dr.json"
+    stdout = _script("study_design_readout.py", "--smoke", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["smoke"] and set(result["runs"]) == {"2"}
+    for run in result["runs"]["2"]:
+        assert len(run["designed_points"]) == len(run["random_points"]) == 2
+        assert all(0 < run[arm] < float("inf") for arm in ("designed", "random"))
+    assert "better / tied / worse" in stdout
+
+
+@pytest.mark.slow
 def test_sampling_times_study_smoke(tmp_path):
     out = tmp_path / "st.json"
     stdout = _script("study_sampling_times.py", "--smoke", "--json", str(out))

@@ -16,6 +16,10 @@ Public functions:
 * :func:`information_gain` - f of a set of sample points.
 * :func:`variance_reduction` - the domain criterion (``greedy(..., criterion="domain")``): the mean posterior variance
   of F over the domain D that a set of samples removes.
+* :class:`ReadoutCriterion` - the criterion for experiments that read only combinations H y of the states (a
+  :class:`~torchmisspec.Readout`): the information of the readings about F, linearised through the ODE
+  (``greedy(..., criterion=ReadoutCriterion(readout))``; :func:`readout_sensitivity`,
+  :func:`readout_information_gain`; the maths in :mod:`torchmisspec.design._readings`).
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
 * :func:`refine` - a design's initial states moved by gradients of the criterion, beyond the candidate list.
 * :func:`sampling_times` - which times to measure in given experiments under a per-experiment sample budget.
@@ -35,6 +39,7 @@ from ._domain import CRITERIA, variance_reduction
 from ._gain import ProxyCheck, information_gain, proxy_check, proxy_gap_bound, true_information_gain
 from ._greedy import greedy
 from ._proxy import proxy_trajectories
+from ._readings import ReadoutCriterion, ReadoutSensitivity, readout_information_gain, readout_sensitivity
 from ._refine import Refinement, refine
 from ._times import SamplingTimes, sampling_times
 
@@ -43,6 +48,8 @@ __all__ = [
     "Campaign",
     "DesignResult",
     "ProxyCheck",
+    "ReadoutCriterion",
+    "ReadoutSensitivity",
     "Refinement",
     "SamplingTimes",
     "agnostic",
@@ -54,6 +61,8 @@ __all__ = [
     "proxy_gap_bound",
     "proxy_trajectories",
     "random",
+    "readout_information_gain",
+    "readout_sensitivity",
     "refine",
     "sampling_times",
     "true_information_gain",

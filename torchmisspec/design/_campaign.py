@@ -1,12 +1,13 @@
 """The design loop: ask for the next experiments, tell what was measured, refit, repeat (sequential design).
 
 A :class:`Campaign` holds the candidate initial conditions, the observation times, the prior and everything measured
-so far. ``ask(k)`` designs the next batch greedily *given the data* (the gains are conditioned on every sample
-collected, and with data the proxies are the corrected model's trajectories by default); ``tell(trajectories)``
-adds the measured experiments and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that
-function on every experiment with the same options (one way to learn, the same choice of model; an experiment held
-already is not added again); otherwise the samples are added and the GP refitted (hyperparameters by marginal
-likelihood once the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every
+so far. ``ask(k)`` designs the next batch greedily *given the data* (gains conditioned on every sample collected,
+proxies by default the corrected model's once there are data; data read through a :class:`~torchmisspec.Readout`:
+designed by :class:`~torchmisspec.design.ReadoutCriterion`); ``tell(trajectories)`` adds the measured experiments
+and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that function on every experiment with the
+same options (one way to learn, the same choice of model; an experiment held already is not added again); otherwise
+the samples are added and the GP refitted (hyperparameters by marginal likelihood once the data hold ``refit_after``
+samples, the prior's fixed values before). ``history`` records every
 round; ``save`` / ``load`` write and read the whole campaign (tensors and plain values only, never code).
 
 For a system with inputs u(t), a candidate experiment is an initial state *and* an input profile: the campaign takes
@@ -37,6 +38,7 @@ from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
 from ._greedy import greedy
 from ._proxy import PROXIES
+from ._readings import campaign_criterion
 
 __all__ = ["Campaign"]
 
@@ -271,7 +273,7 @@ class Campaign:
                 system=self.designed_on,
                 times=self.times,
                 gp=self.gp,
-                criterion=self.config["criterion"],
+                criterion=self._criterion(),
                 proxy=proxy,
                 controls=None if self.controls is None else self.controls[pool.tolist()],
                 executor=self.executor,
@@ -282,6 +284,10 @@ class Campaign:
             info = {key: v for key, v in plan.diagnostics.items() if isinstance(v, (int, float, str, bool))}
             info["selection_seconds"] = plan.elapsed
         return picks, gains, info
+
+    def _criterion(self):
+        """The configured criterion, or the readings' one when the data carry a readout (:func:`campaign_criterion`)."""
+        return campaign_criterion(self.config["criterion"], self.data, self.gp, self.system)
 
     # --------------------------------------------------------------------------------------------- tell
     def _match(self, y0: torch.Tensor, pending: list[int], profile=None) -> int:

@@ -61,6 +61,7 @@ from ._common import (
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
 from ._proxy import choose_proxy, proxy_paths
+from ._readings import ReadoutCriterion, readout_design
 from ._screening import CHUNK_BYTES, LowRank
 
 __all__ = ["greedy"]
@@ -491,6 +492,12 @@ def greedy(
             is not submodular in general, so it has no (1 - 1/e) guarantee and lazy bounds do not apply:
             ``method="lazy"`` then evaluates every remaining gain (the same picks as ``"plain"``). Conditioning,
             both proxies and partition budgets work with both. See :mod:`torchmisspec.design._domain`.
+            Or a :class:`~torchmisspec.design.ReadoutCriterion`: experiments that read only combinations H y of
+            the states (a :class:`~torchmisspec.Readout`), scored by the information about F of their noisy
+            readings, linearised through the ODE along the proxy paths (monotone submodular: the guarantees above
+            hold; see :mod:`torchmisspec.design._readings`). It computes its own proxies (on a finer grid), takes
+            conditioning, both proxies and partitions, and refuses ``proxies``, ``domain``, ``controls`` and
+            ``method="stochastic"``; ``"lazy"`` and ``"plain"`` run its vectorised engine, ``"naive"`` the reference.
         domain: ``criterion="domain"`` only: the box D, one ``(lo, hi)`` per correction input (default
             ``system.domain``).
         domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all,
@@ -538,6 +545,14 @@ def greedy(
                 f"holds there), got {'a partition' if partition is not None else f'criterion={criterion!r}'}; "
                 "use method='lazy'"
             )
+    if isinstance(criterion, ReadoutCriterion):
+        options = dict(
+            candidates=candidates, budget=budget, system=system, times=times, gp=gp, method=method,
+            partition=partition, capacities=capacities, proxies=proxies, tie_tol=tie_tol, condition=condition,
+            proxy=proxy, domain=domain, domain_size=domain_size, controls=controls, executor=executor,
+            progress=progress,
+        )  # fmt: skip
+        return readout_design(criterion, options, _Feasible)
     prob = _Problem(
         candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
         condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,

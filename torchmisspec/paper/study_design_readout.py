@@ -1,0 +1,237 @@
+"""Study of issue 42 (item 2): designing experiments that read only a combination of the states.
+
+The system is a predator-prey model the package does not ship elsewhere, prey x and predators p, whose lab model
+lacks the prey's self-limitation F(x) = -0.4 x^2 / (1 + x):
+
+    dx/dt = x - 0.6 x p + F(x),        dp/dt = -0.8 p + 0.5 x p.
+
+Each experiment starts from a chosen initial state (known: the lab sets it) and reads only the *total* biomass
+z = x + p at 13 equally spaced times on [0, 6], with Gaussian noise of standard deviation 0.02; neither state is
+measured on its own, so no derivative samples exist and ``fit_correction`` learns F through the ODE.
+
+Each realization draws 200 candidate initial states uniformly in [0.3, 3]^2 and, for K = 2, 4, 8 experiments,
+compares
+
+* **designed**: ``design.greedy`` with ``criterion=design.ReadoutCriterion(total, noise_std=0.02)`` (the readings'
+  information about F linearised through the ODE along the known model's paths; before any data, with a stated
+  prior: RBF, lengthscale 1, output scale 0.5);
+* **random**: K of the same candidates drawn uniformly.
+
+Both sets are simulated with the true F, read with noise, and fitted with ``fit_correction`` (defaults). The score is
+the integrated error of F over the candidates' prey range x in [0.3, 3] (``torchmisspec.correction_error``).
+Reported per K: the mean ± standard error of each arm's error, the mean ± standard error of the per-realization
+ratio designed / random, its geometric mean (:mod:`torchmisspec.paper._ratios`), and in how many realizations the
+design's error was lower, the same (both fits kept the known model alone, F = 0, by ``fit_correction``'s do-no-harm
+rule: an error of 1.1516, the integral of |F|) or higher than random's. The issue's goal: the arithmetic mean
+ratio, averaged over K = 2, 4, 8, at most 0.9.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import torch
+
+import torchmisspec as tms
+from torchmisspec import design
+from torchmisspec.benchmarks.reporting import ROOT, run_study
+from torchmisspec.data import Readout
+from torchmisspec.metrics import mean_and_standard_error
+from torchmisspec.parallel import map_tasks
+
+from ._ratios import paired_ratio
+
+DEFAULT_JSON = ROOT / "benchmarks" / "study_design_readout.json"
+DOC_PAGE = ROOT / "docs" / "studies" / "design-readout.md"
+MARK_START = "<!-- study:design-readout:start -->"
+MARK_END = "<!-- study:design-readout:end -->"
+DT = torch.float64
+SEED = 42_200
+FULL = {"realizations": 10, "ks": [2, 4, 8], "candidates": 200, "times": 13}
+SMOKE = {"realizations": 1, "ks": [2], "candidates": 40, "times": 9}
+GOAL = 0.9
+PRIOR = {"lengthscale": 1.0, "outputscale": 0.5, "noise_variance": 1e-3}
+NOISE = 0.02
+BOX = (0.3, 3.0)
+DOMAIN = [BOX]
+NAMES = ["prey", "predators"]
+
+
+def _lotka_volterra(y):
+    x, p = y[..., 0], y[..., 1]
+    return torch.stack([x - 0.6 * x * p, -0.8 * p + 0.5 * x * p], dim=-1)
+
+
+def system(*, truth: bool = False) -> tms.MisspecifiedSystem:
+    """The lab's model (no F), or the truth (``truth``)."""
+    F = (lambda x: -0.4 * x**2 / (1 + x)) if truth else None
+    return tms.MisspecifiedSystem(
+        _lotka_volterra,
+        2,
+        correction=F,
+        correction_inputs=[0],
+        correction_outputs=[0],
+        state_names=NAMES,
+        domain=DOMAIN,
+        name="predator-prey",
+    )
+
+
+def readout() -> Readout:
+    """What each experiment reads: the total biomass."""
+    return Readout.parse(["total = prey + predators"], NAMES)
+
+
+def _measure(y0: torch.Tensor, times: torch.Tensor, g: torch.Generator) -> tms.Trajectories:
+    """The experiments from ``y0``: initial states known, then only the noisy total."""
+    clean = tms.simulate(system(truth=True), y0, times).states
+    H = readout()
+    z = H(clean)
+    z = z + NOISE * torch.randn(z.shape, generator=g, dtype=DT)
+    states = torch.full_like(clean, math.nan)
+    states[:, 0] = y0
+    return tms.Trajectories(times, states, state_names=NAMES, readout=H, readings=z)
+
+
+def _error(trajectories: tms.Trajectories) -> tuple[float, float]:
+    """The integrated error of F of ``fit_correction``'s fit, and the fit's seconds."""
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(trajectories, system(), progress=False)
+    seconds = time.perf_counter() - start
+    return float(tms.correction_error(gp, system(truth=True), domain=DOMAIN)), seconds
+
+
+def run_one(K: int, seed: int, cfg: dict) -> dict:
+    """One realization of one K: both arms on the same candidates, fitted on readings with independent noise."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = BOX
+    candidates = lo + (hi - lo) * torch.rand(cfg["candidates"], 2, generator=g, dtype=DT)
+    times = torch.linspace(0, 6, cfg["times"], dtype=DT)
+    start = time.perf_counter()
+    plan = design.greedy(
+        candidates,
+        K,
+        system=system(),
+        times=times,
+        gp=tms.CorrectionGP(**PRIOR),
+        criterion=design.ReadoutCriterion(readout(), noise_std=NOISE),
+    )
+    design_seconds = time.perf_counter() - start
+    drawn = torch.randperm(cfg["candidates"], generator=g)[:K]
+    out = {"seed": seed, "design_seconds": design_seconds}
+    for name, idx in (("designed", plan.indices), ("random", drawn)):
+        err, seconds = _error(_measure(candidates[idx], times, g))
+        out[name] = err
+        out[f"{name}_fit_seconds"] = seconds
+        out[f"{name}_points"] = candidates[idx].tolist()
+    return out
+
+
+def _task(args: tuple) -> dict:
+    return run_one(*args)
+
+
+def study(cfg: dict, log=print, executor=None) -> dict:
+    """Every realization of every K (independent, seeded tasks: through ``executor`` the same numbers)."""
+    tasks = [(K, SEED + 100 * K + r, cfg) for K in cfg["ks"] for r in range(cfg["realizations"])]
+    results = map_tasks(_task, tasks, executor)
+    runs = {str(K): [] for K in cfg["ks"]}
+    for (K, seed, _), one in zip(tasks, results, strict=True):
+        runs[str(K)].append(one)
+        log(f"K={K} seed {seed}: designed {one['designed']:.4f}, random {one['random']:.4f}")
+    return {"config": cfg, "prior": PRIOR, "noise": NOISE, "goal": GOAL, "runs": runs}
+
+
+def _mean_se(values) -> str:
+    m, se = mean_and_standard_error(torch.tensor(values, dtype=DT))
+    return f"{float(m):.4f} ± {float(se):.4f}"
+
+
+#: two errors within this relative difference are a tie (both fits kept the known model alone: F = 0)
+TIE = 1e-6
+
+
+def _record(designed, random) -> str:
+    """Realizations where the design's error was lower / the same / higher than random's."""
+    ties = sum(abs(a - b) <= TIE * max(a, b) for a, b in zip(designed, random, strict=True))
+    better = sum(a < b and abs(a - b) > TIE * max(a, b) for a, b in zip(designed, random, strict=True))
+    return f"{better} / {ties} / {len(designed) - better - ties}"
+
+
+def table(result: dict) -> str:
+    lines = [
+        "| K | designed error | random error | designed / random (mean ± se) | geometric mean "
+        "| better / tied / worse |",
+        "|---|---|---|---|---|---|",
+    ]
+    means = []
+    for K, runs in result["runs"].items():
+        a, b = [r["designed"] for r in runs], [r["random"] for r in runs]
+        stats = paired_ratio(a, b)
+        means.append(stats["mean"])
+        se = stats["mean_se"]
+        lines.append(
+            f"| {K} | {_mean_se(a)} | {_mean_se(b)} | {stats['mean']:.3f} ± {0.0 if math.isnan(se) else se:.3f} | "
+            f"{stats['geometric']:.3f} ×/÷ {stats['geometric_factor']:.3f} | {_record(a, b)} |"
+        )
+    overall = sum(means) / len(means)
+    verdict = "met" if overall <= result["goal"] else "**not met**"
+    lines += ["", f"Mean ratio averaged over K: **{overall:.3f}** (goal <= {result['goal']}: {verdict})."]
+    return "\n".join(lines) + "\n"
+
+
+def per_realization(result: dict) -> str:
+    lines = ["| K | seed | designed | random | ratio | fit s (designed, random) |", "|---|---|---|---|---|---|"]
+    for K, runs in result["runs"].items():
+        for r in runs:
+            lines.append(
+                f"| {K} | {r['seed']} | {r['designed']:.4f} | {r['random']:.4f} | {r['designed'] / r['random']:.3f} | "
+                f"{r['designed_fit_seconds']:.1f}, {r['random_fit_seconds']:.1f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def _command(result: dict) -> str:
+    workers = result.get("workers")
+    return "python scripts/study_design_readout.py --markdown" + ("" if workers is None else f" --workers {workers}")
+
+
+def render_block(result: dict, wall: float) -> str:
+    info = result["machine"]
+    return f"""{MARK_START}
+## Designing for readouts (`scripts/study_design_readout.py`)
+
+Written by `{_command(result)}` ({wall / 60:.1f} min, {info["cpu"]}, {info["logical_cpus"]} logical CPUs): integrated
+error of F learned from readings of the total biomass, experiments designed by the readings' criterion against
+random ones, {result["config"]["realizations"]} realizations per K; see
+[docs/studies/design-readout.md](docs/studies/design-readout.md).
+
+{table(result)}{MARK_END}
+"""
+
+
+def render_page(result: dict, wall: float) -> str:
+    info = result["machine"]
+    return f"""# Study: designing experiments that read a combination of the states
+
+This page is written by `{_command(result)}`; every number on it comes from that run (raw numbers:
+`benchmarks/study_design_readout.json`). Machine: {info["cpu"]}, {info["logical_cpus"]} logical CPUs, torch
+{info["torch"]}, commit {info["git_commit"]}; wall time {wall / 60:.1f} min.
+
+{__doc__.strip()}
+
+{table(result)}
+Per realization (integrated error of F over x in [0.3, 3]):
+
+{per_realization(result)}"""
+
+
+def run(args) -> int:
+    """The study's command line run (:func:`~torchmisspec.benchmarks.reporting.run_study`)."""
+    import sys
+
+    return run_study(args, sys.modules[__name__])
