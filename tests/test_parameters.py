@@ -372,27 +372,29 @@ def test_a_campaign_refuses_uncertain_parameters_without_their_estimate_with_the
     assert tms.parameters.ParameterPosterior is ParameterPosterior
 
 
-def test_absorbed_fraction_matches_a_hand_written_posterior_mean(problem):
-    """``absorbed`` (issue 42, item 3): 1 - ||g_k - m_k||^2 / ||g_k||^2 over every component, m_k F's posterior mean
-    at the samples given the targets g_k, written here with a hand-written Cholesky solve; a component F does not act
-    on counts whole."""
+def test_sd_with_a_larger_correction_matches_brute_force(problem):
+    """``sd_larger_correction`` (issue 42, item 3): theta's posterior sd with F's prior variance LARGER_CORRECTION
+    times the fitted one, against the hand-written Gaussian conditioning with that K; near the prior's where F can
+    stand in for the parameter (a basis that is a smooth function of F's input alone), well inside it where the
+    basis also moves a component F does not act on."""
+    from torchmisspec.parameters import LARGER_CORRECTION
+
     X, residuals, basis, priors = problem
     gp = _gp(X, residuals[:, [1]])
     post = parameter_posterior(gp, residuals, basis, [1], priors)
+    other = {0: float((residuals[:, 0] ** 2).sum()) / (X.shape[0] - 2)}
     K = gp.covar_module(X, X).to_dense().detach()
-    L = torch.linalg.cholesky(K + gp.noise_variance * torch.eye(X.shape[0], dtype=D))
-    m = K @ torch.cholesky_solve(basis[:, 1, :], L)  # (N, k): F's mean given each g_k on the corrected component
-    left = ((basis[:, 1, :] - m) ** 2).sum(0) + (basis[:, 0, :] ** 2).sum(0)
-    total = (basis[:, 1, :] ** 2).sum(0) + (basis[:, 0, :] ** 2).sum(0)
-    torch.testing.assert_close(post.absorbed, 1 - left / total, rtol=1e-8, atol=1e-10)
-    # F on the only component G's parameter moves, and g smooth in x: F stands in for nearly all of it
-    smooth = torch.cat([X, 0.5 * X**2], dim=1).unsqueeze(1)  # (N, 1, 2)
-    gp1 = _gp(X, residuals[:, [1]])
-    alone = parameter_posterior(gp1, residuals[:, [1]], smooth, [0], priors)
-    assert bool((alone.absorbed > 0.9).all())
+    C = LARGER_CORRECTION * K + gp.noise_variance * torch.eye(X.shape[0], dtype=D)
+    H1, H0 = basis[:, 1, :], basis[:, 0, :]
+    info = H1.T @ torch.linalg.solve(C, H1) + H0.T @ H0 / other[0]
+    want = torch.linalg.inv(torch.diag(priors.scale**-2) + info).diagonal().sqrt()
+    torch.testing.assert_close(post.sd_larger_correction, want, rtol=1e-6, atol=1e-12)
+    smooth = torch.cat([X, 0.5 * X**2], dim=1).unsqueeze(1)  # (N, 1, 2): functions of F's input
+    alone = parameter_posterior(gp, residuals[:, [1]], smooth, [0], priors)
+    assert bool((alone.sd_larger_correction > 0.5 * priors.scale).all()) and alone.identified == (False, False)
 
 
-def _posterior(mean, sd, absorbed):
+def _posterior(mean, sd, larger):
     one = torch.ones(1, dtype=D)
     return ParameterPosterior(
         names=("half_life",),
@@ -403,36 +405,55 @@ def _posterior(mean, sd, absorbed):
         sd_without_correction=0.5 * one,
         log_evidence=0.0,
         basis_targets=torch.zeros(3, 1, 1, dtype=D),
-        absorbed=None if absorbed is None else absorbed * one,
+        sd_larger_correction=None if larger is None else larger * one,
     )
 
 
-def test_an_absorbable_parameter_that_drifted_is_not_identified_whatever_its_width():
+def test_an_absorbable_parameter_is_not_identified_whatever_its_width():
     """Issue 42, item 3: a half-life that F can stand in for, estimated 9 +- 2.3 against a prior of 20 +- 5 (the
-    Laplace width of a parameter entering as 1 / theta shrinks as it drifts low), is reported not identified, and the
-    message says where the estimate went; the same width near the prior, or a parameter F cannot absorb, is
-    identified."""
-    drifted = _posterior(9.0, 2.3, 0.95)
+    Laplace width of a parameter entering as 1 / theta shrinks as it drifts low; with F = 0 returned, the parameter
+    takes up the missing term), is reported not identified, and the message says where the estimate went; the same
+    width for a parameter F cannot absorb is identified."""
+    drifted = _posterior(9.0, 2.3, 4.5)
     assert drifted.identified == (False,)
     (problem,) = drifted.problems()
     assert "estimate 9 +- 2.3, 2.2 prior sd from its prior 20 +- 5" in problem
-    assert "95%" in problem and "not evidence" in problem
-    assert _posterior(19.0, 2.3, 0.95).identified == (True,)  # moved 0.2 prior sd: the width is believed
-    assert _posterior(9.0, 2.3, 0.1).identified == (True,)  # F cannot stand in for it: the data moved it
+    assert "larger would leave it at 0.90 of the prior's sd" in problem and "not evidence" in problem
+    assert _posterior(19.0, 2.3, 4.5).identified == (False,)  # near its prior too: the data cannot say where it is
+    assert _posterior(9.0, 2.3, 2.4).identified == (True,)  # a larger F could not stand in for it: the data moved it
     assert _posterior(9.0, 2.3, None).identified == (True,)  # not computed (a record from before): width alone
-    wide = _posterior(12.0, 4.0, 0.95)
+    wide = _posterior(12.0, 4.0, 4.5)
     assert wide.identified == (False,) and "posterior sd 0.80 of the prior's (estimate 12 +- 4" in wide.problems()[0]
 
 
-def test_absorbed_round_trips_through_the_record():
-    post = _posterior(9.0, 2.3, 0.95)
+def test_what_a_correction_could_absorb_stays_on_record():
+    """``absorbing``: the known model alone returned (F = 0 absorbs nothing) keeps what the candidates' F could
+    absorb, so a parameter that took up the missing term is not reported identified."""
+    known = _posterior(11.6, 0.6, 0.6)
+    assert known.identified == (True,)
+    kept = known.absorbing(_posterior(12.0, 2.0, 4.0))
+    assert kept.identified == (False,) and float(kept.sd_larger_correction) == pytest.approx(4.0)
+    assert known.absorbing(None) is known and known.absorbing(_posterior(12.0, 2.0, None)) is known
+    got = _posterior(11.6, 0.6, None).absorbing(_posterior(12.0, 2.0, 3.0)).sd_larger_correction
+    assert float(got) == pytest.approx(3.0)
+
+
+def test_sd_larger_correction_round_trips_through_the_record():
+    post = _posterior(9.0, 2.3, 4.5)
     back = ParameterPosterior.from_dict(
         post.to_dict(), "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1, dtype=D)
     )
-    torch.testing.assert_close(back.absorbed, post.absorbed)
-    old = {key: v for key, v in post.to_dict().items() if key != "absorbed"}
-    assert ParameterPosterior.from_dict(old, "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1)).absorbed is None
-    with pytest.raises(tms.InputError, match="'absorbed'"):
+    torch.testing.assert_close(back.sd_larger_correction, post.sd_larger_correction)
+    old = {key: v for key, v in post.to_dict().items() if key != "sd_larger_correction"}
+    assert (
+        ParameterPosterior.from_dict(old, "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1)).sd_larger_correction
+        is None
+    )
+    with pytest.raises(tms.InputError, match="'sd_larger_correction'"):
         ParameterPosterior.from_dict(
-            {**post.to_dict(), "absorbed": torch.ones(2)}, "m.pt", num_samples=3, output_dim=1, like=torch.zeros(1)
+            {**post.to_dict(), "sd_larger_correction": torch.ones(2)},
+            "m.pt",
+            num_samples=3,
+            output_dim=1,
+            like=torch.zeros(1),
         )

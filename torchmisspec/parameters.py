@@ -7,6 +7,7 @@ learned: :mod:`torchmisspec.learning.theta`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -33,8 +34,7 @@ __all__ = [
     "IDENTIFIED_RATIO",
     "CORRELATION_LIMIT",
     "LINEARITY_TOLERANCE",
-    "ABSORBED_LIMIT",
-    "MOVED_LIMIT",
+    "LARGER_CORRECTION",
 ]
 
 #: theta_k counts as identified from the data when its posterior standard deviation is at most this fraction of its
@@ -42,13 +42,9 @@ __all__ = [
 IDENTIFIED_RATIO = 0.5
 #: parameters whose posterior correlation exceeds this in absolute value are reported as only jointly determined
 CORRELATION_LIMIT = 0.95
-#: theta_k counts as absorbable by F when F's posterior mean, given G's change with theta_k as targets, reproduces at
-#: least this fraction of that change (its squared norm over the samples): F and theta_k then trade off
-ABSORBED_LIMIT = 0.5
-#: an absorbable theta_k whose estimate moved more than this many prior standard deviations from the prior mean is
-#: not identified, whatever its posterior width (issue 42: the Laplace width of a parameter entering G as 1 / theta
-#: shrinks as its estimate drifts low, so a narrow posterior can sit far from the truth)
-MOVED_LIMIT = 1.0
+#: how much larger (in variance) a correction is allowed to be in the check of whether F can stand in for a
+#: parameter: the data must still determine theta_k when F's prior variance is this many times the fitted one
+LARGER_CORRECTION = 100.0
 #: relative tolerance of the numerical check that G is linear in its uncertain parameters
 LINEARITY_TOLERANCE = 1e-6
 #: the central differences of a nonlinear G's Jacobian in theta, in prior scales
@@ -158,9 +154,10 @@ class ParameterPosterior:
             (F's absorption of each, :meth:`draw_terms`).
         linear: whether G is linear in theta (else the posterior is the Laplace approximation at the MAP, and
             :attr:`log_evidence` the linearised model's).
-        absorbed: per parameter, the fraction of G's change with it that F's posterior mean reproduces at the samples
-            ``(k,)`` (1: F can stand in for it entirely; over every state component, so a parameter that also moves a
-            component F does not act on is absorbed less); ``None`` where the fit did not compute it.
+        sd_larger_correction: per parameter, the posterior standard deviation the same samples would give with F's
+            prior variance :data:`LARGER_CORRECTION` times the fitted one ``(k,)``: near the prior's where F could
+            stand in for the parameter had it been allowed to be larger (its fitted size, not the data, then decides
+            the parameter); ``None`` where the fit did not compute it.
     """
 
     names: tuple[str, ...]
@@ -172,7 +169,7 @@ class ParameterPosterior:
     log_evidence: float
     basis_targets: torch.Tensor
     linear: bool = True
-    absorbed: torch.Tensor | None = None
+    sd_larger_correction: torch.Tensor | None = None
 
     @property
     def stddev(self) -> torch.Tensor:
@@ -192,19 +189,23 @@ class ParameterPosterior:
 
     @property
     def absorbable(self) -> tuple[bool, ...]:
-        """Per parameter: whether F can stand in for it (:attr:`absorbed` at least :data:`ABSORBED_LIMIT`)."""
-        if self.absorbed is None:
+        """Per parameter: whether F could stand in for it: with F allowed :data:`LARGER_CORRECTION` times its fitted
+        variance, the data would leave it undetermined (:attr:`sd_larger_correction` above :data:`IDENTIFIED_RATIO`
+        of the prior's)."""
+        if self.sd_larger_correction is None:
             return (False,) * len(self.names)
-        return tuple(bool(v) for v in (self.absorbed >= ABSORBED_LIMIT))
+        limit = IDENTIFIED_RATIO * self.prior_scale.to(self.sd_larger_correction)
+        return tuple(bool(v) for v in (self.sd_larger_correction > limit))
 
     @property
     def identified(self) -> tuple[bool, ...]:
         """Per parameter: whether the data determined it: posterior sd at most :data:`IDENTIFIED_RATIO` of the
-        prior's, and not a parameter F can stand in for whose estimate moved more than :data:`MOVED_LIMIT` prior
-        standard deviations (there the width measures the model's curvature, not what the data say about it)."""
+        prior's, and not a parameter F can stand in for (:attr:`absorbable`). Where F can, the data cannot tell the
+        parameter's error from a missing term whatever the width says: the width then measures F's prior (a small F
+        is preferred, so the parameter takes up what is missing) or the curvature of G in it (the Laplace width of a
+        parameter entering G as 1 / theta shrinks as its estimate drifts low), not where the parameter is."""
         narrow = self.stddev <= IDENTIFIED_RATIO * self.prior_scale.to(self.stddev)
-        drifted = [a and float(m) > MOVED_LIMIT for a, m in zip(self.absorbable, self.moved, strict=True)]
-        return tuple(bool(n) and not d for n, d in zip(narrow, drifted, strict=True))
+        return tuple(bool(n) and not a for n, a in zip(narrow, self.absorbable, strict=True))
 
     def as_dict(self) -> dict[str, tuple[float, float]]:
         """``{name: (posterior mean, posterior sd)}``."""
@@ -240,6 +241,16 @@ class ParameterPosterior:
                     )
         return out
 
+    def absorbing(self, other: ParameterPosterior | None) -> ParameterPosterior:
+        """This posterior with :attr:`sd_larger_correction` at least ``other``'s (per parameter): what a correction
+        could stand in for stays on record when the model returned has another F, or none (the known model alone,
+        F = 0, whose parameters then take up what is missing)."""
+        if other is None or other.sd_larger_correction is None:
+            return self
+        theirs = other.sd_larger_correction.to(self.mean)
+        mine = theirs if self.sd_larger_correction is None else torch.maximum(self.sd_larger_correction, theirs)
+        return dataclasses.replace(self, sd_larger_correction=mine)
+
     def _problem(self, j: int, name: str, s0: torch.Tensor) -> str:
         """Why parameter ``j`` is not identified, and where its estimate went."""
         ratio = float(self.stddev[j] / s0[j])
@@ -248,10 +259,12 @@ class ParameterPosterior:
             f"from its prior {float(self.prior_mean[j]):.4g} +- {float(s0[j]):.2g}"
         )
         if self.absorbable[j] and ratio <= IDENTIFIED_RATIO:
+            larger = float(self.sd_larger_correction[j] / s0[j])
             return (
-                f"{name}: {where}; the correction F reproduces {float(self.absorbed[j]):.0%} of its effect on G, so "
-                "the data cannot tell this parameter's error from a missing term, and its narrow posterior is not "
-                "evidence of where it is: do not read the estimate as measured"
+                f"{name}: {where}; a correction F allowed to be larger would leave it at {larger:.2f} of the prior's "
+                "sd, so F could stand in for its effect on G: the data cannot tell this parameter's error from a "
+                "missing term, and its narrow posterior (set by F's fitted size) is not evidence of where it is: do "
+                "not read the estimate as measured"
             )
         without = float(self.sd_without_correction[j] / s0[j])
         reason = (
@@ -351,7 +364,7 @@ class ParameterPosterior:
             "log_evidence": float(self.log_evidence),
             "basis_targets": self.basis_targets.detach().cpu(),
             "linear": bool(self.linear),
-            **({} if self.absorbed is None else {"absorbed": self.absorbed.detach().cpu()}),
+            **({} if self.sd_larger_correction is None else {"sd_larger_correction": self.sd_larger_correction.cpu()}),
         }
 
     @classmethod
@@ -387,17 +400,16 @@ class ParameterPosterior:
         linear = values.get("linear", True)  # files written before nonlinear parameters: linear
         if not isinstance(linear, bool):
             raise InputError(f"{path}: expected 'linear' True or False, got {linear!r:.40}")
-        absorbed = values.get("absorbed")  # files written before issue 42: not computed
-        if absorbed is not None and not (
-            isinstance(absorbed, torch.Tensor)
-            and tuple(absorbed.shape) == (k,)
-            and bool(torch.isfinite(absorbed).all())
-        ):
-            raise InputError(f"{path}: expected 'absorbed' a finite float tensor of shape ({k},), got {absorbed!r:.60}")
+        larger = values.get("sd_larger_correction")  # files written before issue 42: not computed
+        shaped = isinstance(larger, torch.Tensor) and tuple(larger.shape) == (k,)
+        if larger is not None and not (shaped and bool(torch.isfinite(larger).all())):
+            raise InputError(
+                f"{path}: expected 'sd_larger_correction' a finite float tensor of shape ({k},), got {larger!r:.60}"
+            )
         return cls(
             tuple(names),
             **{key: values[key].to(like) for key in shapes},
             log_evidence=evidence,
             linear=linear,
-            absorbed=None if absorbed is None else absorbed.to(like),
+            sd_larger_correction=None if larger is None else larger.to(like),
         )

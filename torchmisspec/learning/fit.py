@@ -182,13 +182,16 @@ def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, te
     (``template``, by marginal likelihood on the samples at the current theta) and theta's closed-form posterior given
     them; for a G nonlinear in theta, each pass's posterior is Gauss-Newton's to convergence (the samples linearised
     at each step's mean, :mod:`torchmisspec.learning.theta.closed_form`), and the samples come back linearised at the
-    last mean."""
-    outputs, posterior = system.correction_outputs, None
+    last mean. The posterior's ``absorbed`` is the largest over the passes: the first fits F to the residuals at the
+    prior mean, where F carries all that is missing, and a later pass may shrink F once theta takes that up (the
+    trade-off ``absorbed`` exists to report)."""
+    outputs, posterior, seen = system.correction_outputs, None, None
     for _ in range(PARAMETER_PASSES):
         delta = None if posterior is None else posterior.mean - system.theta
         moved = samples if delta is None else samples.shifted(delta, outputs)
         model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
         posterior, samples = posterior_given(model, samples, system, delta)
+        posterior = seen = posterior.absorbing(seen)
     return posterior, samples
 
 
@@ -487,6 +490,9 @@ def _fit(
         )
         _give_advice(advice, cv)
         if known is not None:
+            if posterior is not None:  # what the candidates' F could absorb of each parameter, F = 0 returned
+                known.parameters_ = known.parameters_.absorbing(posterior)
+                known.parameters_.warn_if_unidentified("fit_correction")
             known.cross_validation_, known.samples_ = cv, raw
             known.input_names_ = system0.input_names(trajectories)
             return known
@@ -542,6 +548,7 @@ def _fit(
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
         delta = posterior.mean - posterior.prior_mean
         result, samples = fit_parameters(result, samples, system0, trajectories, delta, noise)
+        result.parameters_ = result.parameters_.absorbing(posterior)
         result.parameters_.warn_if_unidentified("fit_correction")
         if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
             found = result.parameters_

@@ -114,7 +114,8 @@ def run_one(task: tuple[int, dict]) -> dict:
     y0n, un = experiments(cfg["n_test"], g)
     out = {"seed": seed, "fit_seconds": seconds, "names": list(post.names), "mean": post.mean.tolist()}
     out |= {"sd": post.stddev.tolist(), "identified": list(post.identified), "moved": post.moved.tolist()}
-    out["absorbed"] = None if post.absorbed is None else post.absorbed.tolist()
+    larger = post.sd_larger_correction
+    out["sd_larger_correction"] = None if larger is None else larger.tolist()
     true = torch.tensor(list(TRUE.values()), dtype=DT)
     out["truth_sd"] = ((post.mean - true).abs() / post.stddev).tolist()
     out["warned_h"] = any("h: " in w and "not determined" in w for w in seen)
@@ -166,10 +167,11 @@ def per_realization(result: dict) -> str:
     head = " | ".join(
         f"{k} (true {result['true'][k]}, prior {result['priors'][k][0]} +- {result['priors'][k][1]})" for k in names
     )
-    lines = [f"| seed | {head} | h absorbed | h warned | RMSE / known |", "|---" * (len(names) + 4) + "|"]
+    lines = [f"| seed | {head} | h sd, F allowed larger | h warned | RMSE / known |", "|---" * (len(names) + 4) + "|"]
     for r in result["runs"]:
         ests = " | ".join(f"{m:.3g} +- {s:.2g}" for m, s in zip(r["mean"], r["sd"], strict=True))
-        absorbed = "-" if r["absorbed"] is None else f"{r['absorbed'][0]:.2f}"
+        larger = r.get("sd_larger_correction")
+        absorbed = "-" if larger is None else f"{larger[0]:.2g}"
         lines.append(f"| {r['seed']} | {ests} | {absorbed} | {r['warned_h']} | {r['rmse'] / r['rmse_known']:.3f} |")
     return "\n".join(lines) + "\n"
 

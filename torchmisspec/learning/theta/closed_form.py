@@ -50,8 +50,9 @@ import math
 
 import torch
 
-from ..._errors import NumericalWarning, warn
-from ...parameters import ParameterPosterior, Priors
+from ..._errors import InputError, NumericalWarning, warn
+from ..._linalg import cholesky
+from ...parameters import LARGER_CORRECTION, ParameterPosterior, Priors
 
 __all__ = ["parameter_posterior", "posterior_given", "condition_with_parameters", "GAUSS_NEWTON_STEPS"]
 
@@ -93,16 +94,17 @@ def parameter_posterior(
     info = torch.einsum("njk,njl->kl", CinvH, Hc)
     b = torch.einsum("njk,nj->k", CinvH, rc)
     noise = _noise(gp, Hc)
-    absorbed = _absorbed(noise, CinvH, Hc, [basis[:, j, :] for j in others])
     info0 = torch.einsum("njk,njl->kl", Hc / noise.unsqueeze(-1), Hc)
     evidence = fit_r.log_marginal_likelihood
     n = residuals.shape[0]
+    info_others = torch.zeros(k, k, dtype=dtype, device=device)
     for j in others:  # components F does not act on: r_j = g_j^T delta + noise, the noise estimated at delta
         Hj, rj = basis[:, j, :], residuals[:, j]
         var = float(((rj - Hj @ delta) ** 2).sum()) / max(n - k, 1)
         var = max(var, 1e-12 * float((rj**2).mean()) + 1e-300)
         info = info + Hj.T @ Hj / var
         info0 = info0 + Hj.T @ Hj / var
+        info_others = info_others + Hj.T @ Hj / var
         b = b + Hj.T @ rj / var
         evidence += -0.5 * (float((rj**2).sum()) / var + n * math.log(2 * math.pi * var))
     A = torch.diag(1 / S) + info
@@ -121,7 +123,7 @@ def parameter_posterior(
         log_evidence=float(evidence),
         basis_targets=Hc.detach().clone(),
         linear=linear,
-        absorbed=absorbed,
+        sd_larger_correction=_sd_larger_correction(gp, Hc, info_others, S),
     )
 
 
@@ -166,15 +168,23 @@ def condition_with_parameters(gp, samples, system, delta=None):
     return out, moved
 
 
-def _absorbed(noise: torch.Tensor, CinvH: torch.Tensor, Hc: torch.Tensor, others: list) -> torch.Tensor:
-    """The fraction of each g_k that F's posterior mean reproduces at the samples ``(k,)``: with C = K + N, the mean
-    given the targets g_k is K C^-1 g_k = g_k - N C^-1 g_k, so what F leaves is N C^-1 g_k on the corrected
-    components, and all of g_k on the components F does not act on (``others``, each ``(N, k)``)."""
-    left = (noise.unsqueeze(-1) * CinvH).pow(2).sum((0, 1))
-    total = Hc.pow(2).sum((0, 1))
-    for g in others:
-        left, total = left + g.pow(2).sum(0), total + g.pow(2).sum(0)
-    return (1 - left / total.clamp_min(1e-300)).clamp(0, 1)
+def _sd_larger_correction(gp, Hc: torch.Tensor, info_others: torch.Tensor, S: torch.Tensor) -> torch.Tensor | None:
+    """theta's posterior standard deviations ``(k,)`` with F's prior variance :data:`LARGER_CORRECTION` times the
+    fitted one (C = a K + diag(noise) on each corrected output): where a larger F could stand in for a parameter, the
+    data leave it near its prior. ``None`` where the dense training covariance is out of reach (many samples)."""
+    try:
+        K, diag = gp._kernel_parts(gp.train_inputs_, gp.train_noise_)
+    except InputError:
+        return None
+    K, diag, info = K.detach().to(Hc), diag.detach().to(Hc), info_others.clone()
+    n = Hc.shape[0]
+    for o in range(Hc.shape[1]):
+        C = LARGER_CORRECTION * K[min(o, K.shape[0] - 1)]
+        C = C + torch.diag(diag[min(o, diag.shape[0] - 1)].expand(n))
+        L = cholesky(C)
+        info = info + Hc[:, o, :].T @ torch.cholesky_solve(Hc[:, o, :], L)
+    A = torch.diag(1 / S) + info
+    return torch.cholesky_inverse(torch.linalg.cholesky(0.5 * (A + A.T))).diagonal().clamp_min(0).sqrt()
 
 
 def _noise(gp, Hc: torch.Tensor) -> torch.Tensor:
