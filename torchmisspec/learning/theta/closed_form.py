@@ -53,7 +53,13 @@ import torch
 from ..._errors import NumericalWarning, warn
 from ...parameters import ParameterPosterior, Priors
 
-__all__ = ["parameter_posterior", "posterior_given", "condition_with_parameters", "GAUSS_NEWTON_STEPS"]
+__all__ = [
+    "parameter_posterior",
+    "posterior_given",
+    "condition_with_parameters",
+    "GAUSS_NEWTON_STEPS",
+    "PARAMETER_PASSES",
+]
 
 #: most Gauss-Newton steps of a nonlinear G's posterior per hyperparameter pass (each: one closed-form posterior)
 GAUSS_NEWTON_STEPS = 20
@@ -162,6 +168,26 @@ def condition_with_parameters(gp, samples, system, delta=None):
     out = gp.condition(moved.inputs, moved.targets, noise=moved.noise)
     out.parameters_ = posterior
     return out, moved
+
+
+#: passes of the fit of G's uncertain parameters before the model is chosen: each fits the GP's hyperparameters on
+#: the samples at the current estimate of theta and updates theta's posterior (its mean moves the targets)
+PARAMETER_PASSES = 3
+
+
+def _parameter_passes(samples, system, template):
+    """``(theta's posterior, the correction samples)`` after :data:`PARAMETER_PASSES` alternations of the
+    hyperparameters of the GP ``template`` (by marginal likelihood on the samples at the current theta) and theta's
+    closed-form posterior given them (:func:`~torchmisspec.fit_correction` chooses F at its mean); for a G nonlinear
+    in theta, each pass's posterior is Gauss-Newton's to convergence (the samples linearised at each step's mean, the
+    module's notes), and the samples come back linearised at the last mean."""
+    outputs, posterior = system.correction_outputs, None
+    for _ in range(PARAMETER_PASSES):
+        delta = None if posterior is None else posterior.mean - system.theta
+        moved = samples if delta is None else samples.shifted(delta, outputs)
+        model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
+        posterior, samples = posterior_given(model, samples, system, delta)
+    return posterior, samples
 
 
 def _noise(gp, Hc: torch.Tensor) -> torch.Tensor:
