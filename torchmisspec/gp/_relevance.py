@@ -11,6 +11,7 @@ terms' slab (:func:`unit_information_weights`) and each term's posterior chance 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -60,6 +61,79 @@ def _evidence(Phi, Y, D, w) -> float:
     return total
 
 
+@dataclass(frozen=True)
+class _Data:
+    """What every iteration of :func:`fit_relevance` reads: the features ``Phi (N, p)``, targets ``Y (N, m)`` and
+    known noise (or ``None``), each term's mean square feature ``scale_phi (p,)``, the targets' second moment, the
+    floor's lower bound and whether the floor is learned; without known noise the sufficient statistics
+    ``Phi^T Phi``, ``Phi^T Y`` and the targets' sums of squares, which make every iteration O(p^3)."""
+
+    Phi: torch.Tensor
+    Y: torch.Tensor
+    known: torch.Tensor | None
+    scale_phi: torch.Tensor
+    second: float
+    s_min: float
+    learn_floor: bool
+    G0: torch.Tensor | None = None
+    B0: torch.Tensor | None = None
+    yy: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, Phi: torch.Tensor, Y: torch.Tensor, known, floor) -> _Data:
+        """The fit's data, after refusing targets that are all zero (every weight would be 0)."""
+        second = float(Y.pow(2).mean())
+        if not second > 0:
+            raise FittingError(
+                "targets: expected some non-zero samples to learn the feature weights from, got all zeros (every "
+                "weight would be 0)"
+            )
+        scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p,)
+        data = cls(Phi, Y, known, scale_phi, second, _MIN_NOISE * second, floor is None)
+        if known is not None:
+            return data
+        return replace(data, G0=Phi.T @ Phi, B0=Phi.T @ Y, yy=Y.pow(2).sum(0))  # B0 (p, m), yy (m,)
+
+    @property
+    def homoscedastic(self) -> bool:
+        """No known noise: one noise variance for every sample (the floor)."""
+        return self.known is None
+
+
+@dataclass(frozen=True)
+class _Sums:
+    """One fixed-point iteration's sums over the outputs, per active term: the squared posterior means ``num``, the
+    well-determinedness factors ``gam_sum``, whether every output's best weight is 0 (``dead``); without known
+    noise, the residual sum of squares, its degrees of freedom and the coefficients' posterior variances ``var``."""
+
+    num: torch.Tensor
+    gam_sum: torch.Tensor
+    dead: torch.Tensor
+    resid: float
+    dof: float
+    var: torch.Tensor | None
+
+
+class _PriceSearch:
+    """The moves of the price ``min_gain`` per term from each converged state: the best converged state so far by
+    log evidence less the price (``best``: ``(value, w, floor)``), and the moves made (at most 4 per term)."""
+
+    def __init__(self, data: _Data, min_gain: float):
+        self.data, self.min_gain = data, min_gain
+        self.best, self.moves = None, 0
+
+    def step(self, w: torch.Tensor, s: float) -> bool:
+        """At a converged state (w, s): keep it if it is the best so far, then one move of the price (``w`` changed
+        in place); whether a move was made."""
+        d = self.data
+        self.best = _better(self.best, d.Phi, d.Y, d.known, w, s, self.min_gain)
+        p = d.Phi.shape[1]
+        if self.moves < 4 * p and _price_move(d.Phi, d.Y, d.known, w, s, self.min_gain, d.scale_phi, d.second):
+            self.moves += 1
+            return True
+        return False
+
+
 def fit_relevance(
     Phi: torch.Tensor,
     Y: torch.Tensor,
@@ -84,129 +158,135 @@ def fit_relevance(
     Returns:
         ``(w (p,), floor, iterations)``.
     """
-    N, p = Phi.shape
-    m = Y.shape[1]
-    second = float(Y.pow(2).mean())
-    if not second > 0:
-        raise FittingError(
-            "targets: expected some non-zero samples to learn the feature weights from, got all zeros (every "
-            "weight would be 0)"
-        )
-    scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)  # (p,)
-    w = second / (p * scale_phi)
-    learn_floor = floor is None
-    s = 0.1 * second if learn_floor else float(floor)
-    s_min = _MIN_NOISE * second
-    homoscedastic = known is None
-    if homoscedastic:  # sufficient statistics: every iteration is O(p^3)
-        G0 = Phi.T @ Phi
-        B0 = Phi.T @ Y  # (p, m)
-        yy = Y.pow(2).sum(0)  # (m,)
+    data = _Data.of(Phi, Y, known, floor)
+    w = data.second / (Phi.shape[1] * data.scale_phi)
+    s = 0.1 * data.second if data.learn_floor else float(floor)
     iterations = 0
     readmitted = torch.zeros_like(w, dtype=torch.bool)  # each term re-enters at most once: no remove/re-admit cycle
-    best, moves = None, 0  # with a price: the best converged state by evidence less price, and the moves made
+    price = _PriceSearch(data, min_gain)  # with a price: the best converged state by evidence less price
     plain_done = False  # plain relevance has converged (its re-admissions done)
     history: list[float] = []  # the log evidence after each iteration (known noise, learned floor)
-
-    def price_step() -> bool:
-        """At a converged state (w, s): keep it if it is the best so far, then one move of the price."""
-        nonlocal best, moves
-        best = _better(best, Phi, Y, known, w, s, min_gain)
-        if moves < 4 * p and _price_move(Phi, Y, known, w, s, min_gain, scale_phi, second):
-            moves += 1
-            return True
-        return False
-
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is returned
-        act = w > 0
-        if not bool(act.any()):  # no term left: F = 0, and the noise is all of the targets' variance
-            if learn_floor:
-                s = max(second if homoscedastic else _golden_floor(Phi, Y, known, w, s_min, 10.0 * second), s_min)
-            if min_gain > 0 and price_step():  # a converged state too: a term may still be worth its price
+        if not bool((w > 0).any()):  # no term left: F = 0, and the noise is all of the targets' variance
+            s = _empty_floor(data, w, s)
+            if min_gain > 0 and price.step(w, s):  # a converged state too: a term may still be worth its price
                 continue
             break
-        wa = w[act]
-        num = torch.zeros_like(wa)
-        gam_sum = torch.zeros_like(wa)
-        dead = torch.ones_like(wa, dtype=torch.bool)
-        resid, dof = 0.0, 0.0
-        for o in range(m):
-            if homoscedastic:
-                G = G0[act][:, act] / s
-                b = B0[act, o] / s
-            else:
-                d = known[:, o] + s
-                P = Phi[:, act]
-                G = P.T @ (P / d.unsqueeze(-1))
-                b = P.T @ (Y[:, o] / d)
-            try:
-                Sigma, mu, _ = _posterior(G, b, wa)
-            except torch.linalg.LinAlgError as exc:
-                raise FittingError(
-                    f"the feature-kernel fit failed: the coefficient posterior is singular ({exc})"
-                ) from exc
-            gam = (1.0 - Sigma.diagonal() / wa).clamp(0.0, 1.0)
-            num += mu.pow(2)
-            gam_sum += gam
-            dead &= mu.pow(2) <= gam * Sigma.diagonal()  # this output's best weight for the term is 0
-            if homoscedastic:
-                Ga = G0[act][:, act]
-                r2 = float(yy[o] - 2.0 * mu @ B0[act, o] + mu @ Ga @ mu)
-                resid += max(r2, 0.0)
-                dof += N - float(gam.sum())
-                var = Sigma.diagonal()
-        new = torch.zeros_like(w)
-        new[act] = num / gam_sum.clamp_min(torch.finfo(w.dtype).tiny)
-        if homoscedastic:
-            # Tipping & Faul (2003): with the term left out of C, its sparsity and quality factors are
-            # s_j = 1 / Sigma_jj - 1 / w_j and q_oj = mu_oj / Sigma_jj, and its evidence-optimal weight given the
-            # others is exactly 0 iff sum_o q_oj^2 <= m s_j, i.e. sum_o mu_oj^2 <= m Sigma_jj gamma_j (no
-            # cancellation, whatever the noise): such a term is removed at once instead of shrinking geometrically
-            # over hundreds of fixed-point iterations
-            irrelevant = torch.zeros_like(w, dtype=torch.bool)
-            irrelevant[act] = num <= gam_sum * var
-            new[irrelevant] = 0.0
-        else:
-            # with known noise each output has its own factors: a term whose best weight is 0 for every output has
-            # a shared best weight of 0 (each output's evidence falls as the weight grows), exactly so for one
-            new[act.nonzero().flatten()[dead]] = 0.0
-        new[new * scale_phi < PRUNE * second] = 0.0
-        new_s = s
-        if learn_floor:
-            if homoscedastic:
-                new_s = max(resid / max(dof, 1.0), s_min)
-            else:
-                new_s = _golden_floor(Phi, Y, known, new, s_min, 10.0 * second)
-        both = (new > 0) & (w > 0)
-        change = float((new[both].log() - w[both].log()).abs().max()) if bool(both.any()) else 0.0
-        change = max(change, abs(math.log(new_s / s)))
-        pruned = bool(((new == 0) & (w > 0)).any())
+        new, new_s, change, pruned = _fixed_point(data, w, s)
         w, s = new, new_s
-        plateau = False
-        if learn_floor and not homoscedastic:  # the evidence's recent history (module constants above)
-            history.append(_evidence(Phi, Y, _noise(Phi, m, known, s), w))
-            before, recent = history[:-_PLATEAU_ITERATIONS], history[-_PLATEAU_ITERATIONS:]
-            plateau = bool(before) and max(recent) < max(before) + _PLATEAU_NATS
-        # beside known noise the golden-section floor moves by its resolution from one iteration to the next, and
-        # the weights with it: converged at that resolution
-        if (
-            change < (_TOLERANCE if homoscedastic or not learn_floor else _GOLDEN_RESOLUTION) or plateau
-        ) and not pruned:
-            if not plain_done:  # plain relevance first: its converged state is where the price starts from
-                if (
-                    homoscedastic
-                    and s >= _READD_NOISE * second
-                    and _readd(w, s, G0, B0, m, scale_phi, second, readmitted)
-                ):
-                    continue  # a removed term is relevant given the final others: back in, iterate again
-                plain_done = True
-            if min_gain > 0 and price_step():
-                history.clear()  # a new state to converge from: its plateau is measured from here
-                continue
-            break
-    if best is not None and best[0] > _penalised(Phi, Y, known, w, s, min_gain):
-        w, s = best[1], best[2]
+        if not (_converged(data, change, history, w, s) and not pruned):
+            continue
+        if not plain_done:  # plain relevance first: its converged state is where the price starts from
+            if _readmits(data, w, s, readmitted):
+                continue  # a removed term is relevant given the final others: back in, iterate again
+            plain_done = True
+        if min_gain > 0 and price.step(w, s):
+            history.clear()  # a new state to converge from: its plateau is measured from here
+            continue
+        break
+    if price.best is not None and price.best[0] > _penalised(Phi, Y, known, w, s, min_gain):
+        w, s = price.best[1], price.best[2]
     return w, s, iterations
+
+
+def _empty_floor(data: _Data, w: torch.Tensor, s: float) -> float:
+    """The floor with no term left (F = 0): all of the targets' variance, or beside known noise the golden-section
+    search's; ``s`` itself when the floor is fixed."""
+    if not data.learn_floor:
+        return s
+    if data.homoscedastic:
+        return max(data.second, data.s_min)
+    return max(_golden_floor(data.Phi, data.Y, data.known, w, data.s_min, 10.0 * data.second), data.s_min)
+
+
+def _output_sums(data: _Data, w: torch.Tensor, s: float, act: torch.Tensor) -> _Sums:
+    """The sums over the outputs of one fixed-point iteration (:class:`_Sums`) at the weights ``w`` and floor ``s``,
+    from each output's coefficient posterior over the active terms ``act``."""
+    wa = w[act]
+    num = torch.zeros_like(wa)
+    gam_sum = torch.zeros_like(wa)
+    dead = torch.ones_like(wa, dtype=torch.bool)
+    resid, dof, var = 0.0, 0.0, None
+    N = data.Phi.shape[0]
+    for o in range(data.Y.shape[1]):
+        if data.homoscedastic:
+            G = data.G0[act][:, act] / s
+            b = data.B0[act, o] / s
+        else:
+            d = data.known[:, o] + s
+            P = data.Phi[:, act]
+            G = P.T @ (P / d.unsqueeze(-1))
+            b = P.T @ (data.Y[:, o] / d)
+        try:
+            Sigma, mu, _ = _posterior(G, b, wa)
+        except torch.linalg.LinAlgError as exc:
+            raise FittingError(f"the feature-kernel fit failed: the coefficient posterior is singular ({exc})") from exc
+        gam = (1.0 - Sigma.diagonal() / wa).clamp(0.0, 1.0)
+        num += mu.pow(2)
+        gam_sum += gam
+        dead &= mu.pow(2) <= gam * Sigma.diagonal()  # this output's best weight for the term is 0
+        if data.homoscedastic:
+            Ga = data.G0[act][:, act]
+            r2 = float(data.yy[o] - 2.0 * mu @ data.B0[act, o] + mu @ Ga @ mu)
+            resid += max(r2, 0.0)
+            dof += N - float(gam.sum())
+            var = Sigma.diagonal()
+    return _Sums(num, gam_sum, dead, resid, dof, var)
+
+
+def _fixed_point(data: _Data, w: torch.Tensor, s: float) -> tuple[torch.Tensor, float, float, bool]:
+    """``(new weights, new floor, largest relative change, whether a term was removed)``: one fixed-point iteration
+    (MacKay's update of the weights, the irrelevant terms removed at once, the floor's update where it is learned)."""
+    act = w > 0
+    sums = _output_sums(data, w, s, act)
+    new = torch.zeros_like(w)
+    new[act] = sums.num / sums.gam_sum.clamp_min(torch.finfo(w.dtype).tiny)
+    if data.homoscedastic:
+        # Tipping & Faul (2003): with the term left out of C, its sparsity and quality factors are
+        # s_j = 1 / Sigma_jj - 1 / w_j and q_oj = mu_oj / Sigma_jj, and its evidence-optimal weight given the
+        # others is exactly 0 iff sum_o q_oj^2 <= m s_j, i.e. sum_o mu_oj^2 <= m Sigma_jj gamma_j (no
+        # cancellation, whatever the noise): such a term is removed at once instead of shrinking geometrically
+        # over hundreds of fixed-point iterations
+        irrelevant = torch.zeros_like(w, dtype=torch.bool)
+        irrelevant[act] = sums.num <= sums.gam_sum * sums.var
+        new[irrelevant] = 0.0
+    else:
+        # with known noise each output has its own factors: a term whose best weight is 0 for every output has
+        # a shared best weight of 0 (each output's evidence falls as the weight grows), exactly so for one
+        new[act.nonzero().flatten()[sums.dead]] = 0.0
+    new[new * data.scale_phi < PRUNE * data.second] = 0.0
+    new_s = s
+    if data.learn_floor:
+        if data.homoscedastic:
+            new_s = max(sums.resid / max(sums.dof, 1.0), data.s_min)
+        else:
+            new_s = _golden_floor(data.Phi, data.Y, data.known, new, data.s_min, 10.0 * data.second)
+    both = (new > 0) & (w > 0)
+    change = float((new[both].log() - w[both].log()).abs().max()) if bool(both.any()) else 0.0
+    change = max(change, abs(math.log(new_s / s)))
+    return new, new_s, change, bool(((new == 0) & (w > 0)).any())
+
+
+def _converged(data: _Data, change: float, history: list[float], w: torch.Tensor, s: float) -> bool:
+    """Whether the iteration that moved the weights and floor by ``change`` (to ``w``, ``s``) has converged: the
+    change below the tolerance (beside known noise with a learned floor, the golden-section search's resolution:
+    the floor moves by it from one iteration to the next, and the weights with it), or there, the log evidence
+    (appended to ``history``) on a plateau (module constants above)."""
+    plateau = False
+    if data.learn_floor and not data.homoscedastic:
+        history.append(_evidence(data.Phi, data.Y, _noise(data.Phi, data.Y.shape[1], data.known, s), w))
+        before, recent = history[:-_PLATEAU_ITERATIONS], history[-_PLATEAU_ITERATIONS:]
+        plateau = bool(before) and max(recent) < max(before) + _PLATEAU_NATS
+    tolerance = _TOLERANCE if data.homoscedastic or not data.learn_floor else _GOLDEN_RESOLUTION
+    return change < tolerance or plateau
+
+
+def _readmits(data: _Data, w: torch.Tensor, s: float, readmitted: torch.Tensor) -> bool:
+    """Whether a removed term re-enters at plain relevance's converged state (:func:`_readd`, ``w`` changed in
+    place): only without known noise and above :data:`_READD_NOISE` of the targets' second moment."""
+    if not (data.homoscedastic and s >= _READD_NOISE * data.second):
+        return False
+    return _readd(w, s, data.G0, data.B0, data.Y.shape[1], data.scale_phi, data.second, readmitted)
 
 
 def _noise(Phi: torch.Tensor, m: int, known: torch.Tensor | None, floor: float) -> torch.Tensor:

@@ -127,6 +127,117 @@ def _least_valuable(Phi, w, K, Y, D) -> tuple[int, float]:
     return int(kept.nonzero().flatten()[i]), float(gain[i])
 
 
+class _SumFit:
+    """:func:`fit_sum`'s optimisation: the log hyperparameters (the weights, the RBF term's scale and lengthscale,
+    the noise floor; a fixed lengthscale or floor is held), the boxes that keep line-search trials sane, and the terms
+    still in the model (``keep``: removed ones have weight exactly 0), with the exact log marginal likelihood as the
+    objective. Starts from the feature fit ``(w0, s0)`` (removed weights small, not 0: the RBF term may change what
+    is relevant), the RBF term at a tenth of the targets' second moment and the lengthscale at the median distance."""
+
+    def __init__(self, Phi, X, Y, known0, w0, s0, *, floor, lengthscale, outputscale: float, max_iter: int):
+        second = float(Y.pow(2).mean())
+        self.Phi, self.Y, self.known0, self.outputscale, self.max_iter = Phi, Y, known0, outputscale, max_iter
+        self.second = second
+        self.scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)
+        kd = {"dtype": X.dtype, "device": X.device}
+        self.lower = _LOG_FLOOR + torch.log(second / self.scale_phi)
+        self.log_w = torch.maximum(torch.log(w0.clamp_min(1e-300)), self.lower + 2.0).clone().requires_grad_(True)
+        self.log_a = torch.tensor(math.log(0.1 * second), **kd, requires_grad=True)
+        dist = median_distance(X)
+        self.log_l = torch.tensor(
+            math.log(dist if lengthscale is None else lengthscale), **kd, requires_grad=lengthscale is None
+        )
+        self.log_s = torch.tensor(
+            math.log(max(s0, 1e-12 * second) if floor is None else floor), **kd, requires_grad=floor is None
+        )
+        self.params = [self.log_w, self.log_a] + ([self.log_l] if lengthscale is None else [])
+        self.params += [self.log_s] if floor is None else []
+        self.l_box = (math.log(1e-3 * dist), math.log(1e3 * dist))
+        self.s_box = (math.log(1e-12 * second), math.log(10 * second))
+        self.sq = torch.cdist(X, X).pow(2)  # once: every evaluation of the objective reuses it
+        self.keep = torch.ones_like(w0, dtype=torch.bool)
+
+    def kernel_matrix(self, wts: torch.Tensor) -> torch.Tensor:
+        """``K`` with the weights ``wts`` (removed terms at 0) and the current RBF term."""
+        wts = torch.where(self.keep, wts, torch.zeros_like(wts))
+        rbf = torch.exp(-0.5 * self.sq / self.log_l.exp().pow(2))
+        return (self.Phi * wts) @ self.Phi.T + self.outputscale * self.log_a.exp() * rbf
+
+    def noise(self) -> torch.Tensor:
+        """``(N, m)``: the samples' noise variances, known noise plus the current floor."""
+        return self.known0 + self.log_s.exp()
+
+    def clamp(self) -> None:
+        """Back into the box (fixed values are left as given)."""
+        second = self.second
+        with torch.no_grad():  # keep line-search trials in a sane box; fixed values are left as given
+            self.log_w.clamp_(min=self.lower)
+            if self.log_l.requires_grad:
+                self.log_l.clamp_(*self.l_box)
+            if self.log_s.requires_grad:
+                self.log_s.clamp_(*self.s_box)
+            self.log_a.clamp_(math.log(1e-12 * second), math.log(1e3 * second))
+
+    def evaluate(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The objective at the current (clamped) hyperparameters, and its surrogate for autograd."""
+        self.clamp()
+        value = _exact_mll(self.kernel_matrix(self.log_w.exp()), self.Y, self.noise())
+        return value, value  # autograd through the factorization: the value is its own surrogate
+
+    def optimise(self) -> int:
+        """L-BFGS over the free hyperparameters; its iterations."""
+        try:
+            result = maximise(
+                self.params,
+                self.evaluate,
+                max_iter=self.max_iter,
+                normaliser=float(self.Y.numel()),
+                tolerance_grad=1e-9,
+                tolerance_change=1e-9,
+                history_size=100,
+                desc="fit features+rbf",
+            )
+        except (torch.linalg.LinAlgError, LinearAlgebraError) as exc:
+            raise FittingError(
+                f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})"
+            ) from exc
+        self.clamp()  # L-BFGS's last step is taken after the last evaluation: back into the box it was evaluated in
+        return result.iterations
+
+    def prune(self) -> None:
+        """Remove the terms whose share of the prior variance fell below :data:`PRUNE_SUM`."""
+        with torch.no_grad():
+            self.keep &= self.log_w.exp() * self.scale_phi >= PRUNE_SUM * self.second
+
+    def remove_cheap(self, min_gain: float) -> bool:
+        """Remove, one at a time, the kept terms whose best evidence gain given the rest (:func:`_least_valuable`)
+        is at most ``min_gain`` nats; whether any was removed."""
+        removed = False
+        with torch.no_grad():
+            while bool(self.keep.any()):
+                w = self.log_w.exp()
+                j, gain = _least_valuable(self.Phi, w * self.keep, self.kernel_matrix(w), self.Y, self.noise())
+                if gain > min_gain:
+                    break
+                self.keep[j] = False
+                removed = True
+        return removed
+
+    def final(self) -> tuple[torch.Tensor, float]:
+        """``(weights, log marginal likelihood)`` where the fit ended, the weights below :data:`PRUNE_SUM` at 0."""
+        with torch.no_grad():
+            w = self.log_w.exp() * self.keep
+            w[w * self.scale_phi < PRUNE_SUM * self.second] = 0.0
+            try:
+                return w, float(_exact_mll(self.kernel_matrix(w), self.Y, self.noise()))
+            except (torch.linalg.LinAlgError, LinearAlgebraError) as exc:  # round-off with a floor near 0: say so
+                raise FittingError(
+                    "the features+rbf fit failed: with the learned noise floor "
+                    f"{float(self.log_s.exp()):.3g} the covariance is not numerically positive definite ({exc}); the "
+                    "samples look noiseless: fix a small noise_variance, or use kernel='features'"
+                ) from exc
+
+
 def fit_sum(
     kernel: FeaturesPlusRBF,
     X: torch.Tensor,
@@ -145,101 +256,25 @@ def fit_sum(
     included, :func:`_least_valuable`) is at most ``min_gain`` nats are then removed one at a time, and the rest
     re-fitted once. Returns ``(floor, lml, iterations)``.
     """
-
     second = float(Y.pow(2).mean())
     if not second > 0:
         raise FittingError("targets: expected some non-zero samples to learn the kernel from, got all zeros")
     Phi = kernel.features(X).detach() * math.sqrt(outputscale)  # the output scale folded into the features
-    scale_phi = Phi.pow(2).mean(0).clamp_min(torch.finfo(Phi.dtype).tiny)
     known0 = torch.zeros_like(Y) if known is None else known
     w0, s0, _ = fit_relevance(Phi, Y, known, floor=floor, max_iter=10 * max_iter, min_gain=min_gain)
-    kd = {"dtype": X.dtype, "device": X.device}
-    # start: the feature fit's weights (removed ones small, not 0: the RBF term may change what is relevant),
-    # the RBF term at a tenth of the targets' second moment, the lengthscale at the median distance
-    lower = _LOG_FLOOR + torch.log(second / scale_phi)
-    log_w = torch.maximum(torch.log(w0.clamp_min(1e-300)), lower + 2.0).clone().requires_grad_(True)
-    log_a = torch.tensor(math.log(0.1 * second), **kd, requires_grad=True)
-    dist = median_distance(X)
-    log_l = torch.tensor(
-        math.log(dist if lengthscale is None else lengthscale), **kd, requires_grad=lengthscale is None
+    fit = _SumFit(
+        Phi, X, Y, known0, w0, s0, floor=floor, lengthscale=lengthscale, outputscale=outputscale, max_iter=max_iter
     )
-    log_s = torch.tensor(
-        math.log(max(s0, 1e-12 * second) if floor is None else floor), **kd, requires_grad=floor is None
-    )
-    params = [log_w, log_a] + ([log_l] if lengthscale is None else []) + ([log_s] if floor is None else [])
-    l_box = (math.log(1e-3 * dist), math.log(1e3 * dist))
-    s_box = (math.log(1e-12 * second), math.log(10 * second))
-
-    sq = torch.cdist(X, X).pow(2)  # once: every evaluation of the objective reuses it
-
-    keep = torch.ones_like(w0, dtype=torch.bool)  # the terms still in the model (removed ones: weight exactly 0)
-
-    def kernel_matrix(wts: torch.Tensor) -> torch.Tensor:
-        wts = torch.where(keep, wts, torch.zeros_like(wts))
-        return (Phi * wts) @ Phi.T + outputscale * log_a.exp() * torch.exp(-0.5 * sq / log_l.exp().pow(2))
-
-    def clamp() -> None:
-        with torch.no_grad():  # keep line-search trials in a sane box; fixed values are left as given
-            log_w.clamp_(min=lower)
-            if log_l.requires_grad:
-                log_l.clamp_(*l_box)
-            if log_s.requires_grad:
-                log_s.clamp_(*s_box)
-            log_a.clamp_(math.log(1e-12 * second), math.log(1e3 * second))
-
-    def evaluate() -> tuple[torch.Tensor, torch.Tensor]:
-        clamp()
-        value = _exact_mll(kernel_matrix(log_w.exp()), Y, known0 + log_s.exp())
-        return value, value  # autograd through the factorization: the value is its own surrogate
-
-    def optimise() -> int:
-        try:
-            result = maximise(
-                params,
-                evaluate,
-                max_iter=max_iter,
-                normaliser=float(Y.numel()),
-                tolerance_grad=1e-9,
-                tolerance_change=1e-9,
-                history_size=100,
-                desc="fit features+rbf",
-            )
-        except (torch.linalg.LinAlgError, LinearAlgebraError) as exc:
-            raise FittingError(
-                f"the features+rbf fit failed: the covariance lost positive definiteness ({exc})"
-            ) from exc
-        clamp()  # L-BFGS's last step is taken after the last evaluation: back into the box it was evaluated in
-        return result.iterations
-
-    iterations = optimise()
+    iterations = fit.optimise()
+    fit.prune()
+    if min_gain > 0 and fit.remove_cheap(min_gain):  # the RBF term and the noise take up what they explained
+        iterations += fit.optimise()
+    w, lml = fit.final()
     with torch.no_grad():
-        keep &= log_w.exp() * scale_phi >= PRUNE_SUM * second
-    if min_gain > 0:
-        removed = False
-        with torch.no_grad():
-            while bool(keep.any()):
-                j, gain = _least_valuable(Phi, log_w.exp() * keep, kernel_matrix(log_w.exp()), Y, known0 + log_s.exp())
-                if gain > min_gain:
-                    break
-                keep[j] = False
-                removed = True
-        if removed:  # the RBF term and the noise take up what the removed terms explained
-            iterations += optimise()
-    with torch.no_grad():
-        w = log_w.exp() * keep
-        w[w * scale_phi < PRUNE_SUM * second] = 0.0
-        try:
-            lml = float(_exact_mll(kernel_matrix(w), Y, known0 + log_s.exp()))
-        except (torch.linalg.LinAlgError, LinearAlgebraError) as exc:  # round-off with a floor near 0: say so
-            raise FittingError(
-                "the features+rbf fit failed: with the learned noise floor "
-                f"{float(log_s.exp()):.3g} the covariance is not numerically positive definite ({exc}); the samples "
-                "look noiseless: fix a small noise_variance, or use kernel='features'"
-            ) from exc
         kernel.features_kernel.weights.copy_(w)
-        kernel.raw_rbf_scale.copy_(log_a.reshape(1))
+        kernel.raw_rbf_scale.copy_(fit.log_a.reshape(1))
         if lengthscale is None:
-            kernel.lengthscale = log_l.exp().reshape(1, 1)
-    if not all(bool(torch.isfinite(p).all()) for p in params):
+            kernel.lengthscale = fit.log_l.exp().reshape(1, 1)
+    if not all(bool(torch.isfinite(p).all()) for p in fit.params):
         raise FittingError("the features+rbf fit diverged: a hyperparameter became non-finite; rescale the data")
-    return float(log_s.detach().exp()), lml, iterations
+    return float(fit.log_s.detach().exp()), lml, iterations

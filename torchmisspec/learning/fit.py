@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from dataclasses import dataclass
 
 import torch
 
@@ -29,6 +30,7 @@ from ..noise import as_noise_model
 from ..parallel import adaptive_threads
 from ..systems import MisspecifiedSystem
 from ._units import fit_in_units
+from .choice._do_no_harm import _do_no_harm
 from .choice._one_trajectory import refined_rival
 from .choice._partial_choice import fit_partly_measured
 from .choice._time_pieces import time_pieces
@@ -37,7 +39,6 @@ from .choice.cross_validation import (
     CrossValidation,
     _check_candidates,
     _check_cv_inputs,
-    _held_out_errors,
     cross_validate,
     predicted_residuals,
 )
@@ -50,7 +51,7 @@ from .samples.observations import (
     _check_trajectories_and_system,
     correction_samples,
 )
-from .theta.closed_form import posterior_given
+from .theta.closed_form import _parameter_passes
 from .theta.through_ode import fit_parameters
 
 __all__ = [
@@ -172,29 +173,6 @@ def _by_evidence(pool: list[CorrectionGP], samples: CorrectionSamples) -> Correc
     return result
 
 
-#: passes of the fit of G's uncertain parameters before the model is chosen: each fits the GP's hyperparameters on
-#: the samples at the current estimate of theta and updates theta's posterior (its mean moves the targets)
-PARAMETER_PASSES = 3
-
-
-def _parameter_passes(samples: CorrectionSamples, system: MisspecifiedSystem, template: CorrectionGP):
-    """``(theta's posterior, the samples)`` after :data:`PARAMETER_PASSES` alternations of the GP's hyperparameters
-    (``template``, by marginal likelihood on the samples at the current theta) and theta's closed-form posterior given
-    them; for a G nonlinear in theta, each pass's posterior is Gauss-Newton's to convergence (the samples linearised
-    at each step's mean, :mod:`torchmisspec.learning.theta.closed_form`), and the samples come back linearised at the
-    last mean. The posterior's ``absorbed`` is the largest over the passes: the first fits F to the residuals at the
-    prior mean, where F carries all that is missing, and a later pass may shrink F once theta takes that up (the
-    trade-off ``absorbed`` exists to report)."""
-    outputs, posterior, seen = system.correction_outputs, None, None
-    for _ in range(PARAMETER_PASSES):
-        delta = None if posterior is None else posterior.mean - system.theta
-        moved = samples if delta is None else samples.shifted(delta, outputs)
-        model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
-        posterior, samples = posterior_given(model, samples, system, delta)
-        posterior = seen = posterior.absorbing(seen)
-    return posterior, samples
-
-
 def _chooser(trajectories: Trajectories, samples: CorrectionSamples, system, derivative: str, estimator: dict):
     """``(the trajectories the candidates are scored on, their samples)``: the data and (at most about
     :data:`SELECTION_SAMPLES` of) their samples; one experiment: its :func:`time_pieces` and their own samples (the
@@ -239,46 +217,6 @@ def _give_advice(held: list, cv: CrossValidation | None) -> None:
         return
     for w in held:
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-
-
-def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectories: Trajectories, scored, noise):
-    """``(model, its held-out score or None)``: the known model with its uncertain parameters fitted (F = 0; as
-    :func:`fit_correction` fits them under a correction: the closed form from the samples, then through the ODE on
-    the trajectories) as a fitted :class:`CorrectionGP` (:func:`known_model_template`); its score is the sum of
-    squared state errors from each experiment's first state (the parameters fitted on every experiment). Without
-    uncertain parameters the score is ``None`` (the cross-validation's baseline is it)."""
-    template = known_model_template(raw)
-    if system.parameters is None:
-        return template.fit(raw), None
-    posterior, samples = _parameter_passes(raw, system, template)
-    samples = samples.shifted(posterior.mean - system.theta, system.correction_outputs)
-    model, _ = fit_parameters(template.clone().fit(samples), samples, system, trajectories,
-                              posterior.mean - posterior.prior_mean, noise)  # fmt: skip
-    score = float(_held_out_errors(system.at(model.parameters_.mean), scored, noise=noise).sum())
-    return model, score
-
-
-def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
-    """The known model (:func:`_known_model`, scored on the cross-validation's data ``scored``) when no candidate
-    predicts the held-out experiments better than it (``None`` otherwise), with a warning saying so."""
-    try:
-        model, score = _known_model(raw, system, trajectories, scored, noise)
-    except (FittingError, LinearAlgebraError, IntegrationError):
-        return None
-    # the known model alone: at the parameters of the choice (the baseline) or at its own, whichever predicts better
-    score = cv.baseline if score is None else min(score, cv.baseline)
-    best = min(cv.scores)
-    if best < score:
-        return None
-    fitted = "with its parameters fitted, " if system.parameters is not None else ""
-    warn(
-        f"fit_correction: no correction predicts the held-out experiments better than the known model alone "
-        f"(best held-out error {best:.3g} vs {score:.3g}); returning the known model {fitted}F = 0 (do no harm; "
-        "result.known_model_ is True). Collect more experiments, or check the known model",
-        TorchMisspecWarning,
-    )
-    model.known_model_ = True
-    return model
 
 
 def noise_scale(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> torch.Tensor:
@@ -440,7 +378,64 @@ def _fit(
     if trajectories.is_partial:  # some components not measured: learned through the ODE (partial.py)
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
         return fit_partly_measured(trajectories, system, _fit, progress=progress, noise=noise, **options, **estimator)
-    system0 = system
+    user_candidates = candidates is not None
+    candidates = _checked_choice(gp, candidates, select)
+    samples, advice = _samples_and_advice(trajectories, system, derivative, estimator)
+    raw, posterior, declared, refine_f = samples, None, system, False
+    if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
+        refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
+        template = CorrectionGP(device=samples.inputs.device) if gp is None or gp.auto else gp
+        posterior, samples = _parameter_passes(samples, system, template)
+        system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
+    scored, chooser = _chooser(trajectories, samples, system, derivative, estimator) if select == "cv" else (None, None)
+    if chooser is None:
+        chooser = samples.thinned(SELECTION_SAMPLES)  # the model is chosen on at most about this many samples
+    data = _ChoiceData(system, declared, trajectories, samples, raw, chooser, scored, noise,
+                       dict(derivative=derivative, **estimator))  # fmt: skip
+    cv = rival = result = None
+    if scored is not None:
+        given = user_candidates or gp is not None
+        result, cv, rival, known = _by_cross_validation(data, gp, candidates, given, folds, progress, advice)
+        if known is not None:
+            if posterior is not None:  # what a larger F could stand in for stays on record, F = 0 returned
+                known.parameters_ = known.parameters_.absorbing(posterior)
+                known.parameters_.warn_if_unidentified("fit_correction")
+            return known
+    if cv is None:
+        _give_advice(advice, None)
+    if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
+        auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
+        result = _evidence_choice(candidates if user_candidates else [auto if gp is None else gp], chooser, samples)
+    result, samples = _refined(result, data, posterior, refine, refine_f, progress)
+    result.cross_validation_ = cv
+    result.one_trajectory_rival_ = rival  # None unless one_trajectory.refined_rival ran
+    result.samples_ = samples
+    result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
+    return result
+
+
+@dataclass(frozen=True)
+class _ChoiceData:
+    """What :func:`_fit` chooses a model on: the system (at theta's posterior mean) and the one declared, the data,
+    every sample (at theta's mean) and the estimator's own (``raw``), the samples the candidates are fitted on
+    (``chooser``: at most about :data:`SELECTION_SAMPLES`), the trajectories (or time pieces) they are scored on
+    (``scored``; ``None`` without cross-validation), the noise model and the estimator's options (``derivative``
+    included)."""
+
+    system: MisspecifiedSystem
+    declared: MisspecifiedSystem
+    trajectories: Trajectories
+    samples: CorrectionSamples
+    raw: CorrectionSamples
+    chooser: CorrectionSamples
+    scored: Trajectories | None
+    noise: object
+    estimator: dict
+
+
+def _checked_choice(gp, candidates, select):
+    """``candidates`` checked (:func:`_check_candidates`; ``None`` stays ``None``), after refusing a ``gp`` that is
+    not a template, both a ``gp`` and ``candidates``, and an unknown rule ``select``."""
     if gp is not None and not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
     if candidates is not None and gp is not None:
@@ -449,113 +444,124 @@ def _fit(
         raise InputError(
             f"select: expected 'cv' (held-out experiments) or 'evidence' (marginal likelihood), got {select!r}"
         )
-    user_candidates = candidates is not None
-    if user_candidates:
-        candidates = _check_candidates(candidates)
+    return None if candidates is None else _check_candidates(candidates)
+
+
+def _samples_and_advice(trajectories, system, derivative, estimator: dict):
+    """``(the correction samples, the estimator's warnings held back)``: every other warning given now; the held
+    ones are given later unless held-out data contradict them (:func:`_give_advice`)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         samples = correction_samples(trajectories, system, derivative=derivative, **estimator)
-    advice = _held_advice(caught)  # the estimator's advice: given below unless held-out data contradict it
-    raw, posterior = samples, None
-    if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
-        refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
-        template = CorrectionGP(device=samples.inputs.device) if gp is None or gp.auto else gp
-        posterior, samples = _parameter_passes(samples, system, template)
-        system, samples = system.at(posterior.mean), samples.shifted(posterior.mean - system.theta, outputs)
-    cv = rival = None
-    result = None
-    scored, chooser = _chooser(trajectories, samples, system, derivative, estimator) if select == "cv" else (None, None)
-    if chooser is None:
-        chooser = samples.thinned(SELECTION_SAMPLES)  # the model is chosen on at most about this many samples
-    if scored is not None:
-        if candidates is None and gp is None:
-            candidates = default_candidates(chooser)
-        elif candidates is None:
-            # auto: scored as it is
-            free = not gp.auto and gp.kernel_spec.stationary and gp.fixed["lengthscale"] is None
-            if free and not gp.per_output:
-                candidates = [
-                    gp.clone(kernel=gp.kernel_spec, lengthscale=ell) for ell in lengthscale_candidates(chooser, gp)
-                ]
-            else:
-                candidates = [gp]
-        if scored is not trajectories:  # the pieces of one experiment, each its own fold
-            folds = scored.num_experiments
-        cv, models = cross_validate(system, scored, chooser, candidates, folds=folds, progress=progress, noise=noise)
-        result = models[cv.index] if math.isfinite(min(cv.scores)) else None
-        if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
-            result = copy.deepcopy(candidates[cv.index]).fit(samples)
-        known = (
-            None if user_candidates or gp is not None else _do_no_harm(cv, raw, system0, trajectories, scored, noise)
+    return samples, _held_advice(caught)
+
+
+def _cv_candidates(gp, candidates, chooser: CorrectionSamples) -> list:
+    """The candidates the cross-validation scores: the given ones; without, :func:`default_candidates`; a ``gp``
+    template with a free lengthscale at each of :func:`lengthscale_candidates`; any other template (auto
+    included) scored as it is."""
+    if candidates is not None:
+        return candidates
+    if gp is None:
+        return default_candidates(chooser)
+    free = not gp.auto and gp.kernel_spec.stationary and gp.fixed["lengthscale"] is None
+    if free and not gp.per_output:
+        return [gp.clone(kernel=gp.kernel_spec, lengthscale=ell) for ell in lengthscale_candidates(chooser, gp)]
+    return [gp]
+
+
+def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, progress, advice):
+    """``(model or None, cv, the one-trajectory rival's record or None, the known model or None)``: the candidates
+    scored on held-out data (:func:`cross_validate`), the chosen one fitted on every sample; the known model alone
+    where no candidate beats it (do no harm, unless candidates or a template were ``given``), or the refined feature
+    kernel where it forecasts one trajectory's last piece better; the warnings of an unsupported correction."""
+    scored, chooser, samples = data.scored, data.chooser, data.samples
+    candidates = _cv_candidates(gp, candidates, chooser)
+    if scored is not data.trajectories:  # the pieces of one experiment, each its own fold
+        folds = scored.num_experiments
+    cv, models = cross_validate(
+        data.system, scored, chooser, candidates, folds=folds, progress=progress, noise=data.noise
+    )
+    result = models[cv.index] if math.isfinite(min(cv.scores)) else None
+    if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
+        result = copy.deepcopy(candidates[cv.index]).fit(samples)
+    known = None if given else _do_no_harm(cv, data.raw, data.declared, data.trajectories, scored, data.noise)
+    _give_advice(advice, cv)
+    if known is not None:
+        known.cross_validation_, known.samples_ = cv, data.raw
+        known.input_names_ = data.declared.input_names(data.trajectories)
+        return None, cv, None, known
+    rival = None
+    if _rival_applies(scored, data.trajectories, result, data.declared, given):
+        better, rival = refined_rival(data.system, scored, chooser, models[cv.index], data.noise, data.estimator)
+        if better:  # the feature kernel on every sample, refined below through the ODE on the trajectory
+            result = feature_template(samples.inputs.device).fit(samples)
+    _warn_unsupported(cv, rival, scored, data.trajectories)
+    if result is None:
+        warn(
+            f"fit_correction: every candidate failed cross-validation (a fit or a held-out prediction failed: "
+            f"{', '.join(cv.candidates)}); chose among them by evidence instead",
+            TorchMisspecWarning,
         )
-        _give_advice(advice, cv)
-        if known is not None:
-            if posterior is not None:  # what the candidates' F could absorb of each parameter, F = 0 returned
-                known.parameters_ = known.parameters_.absorbing(posterior)
-                known.parameters_.warn_if_unidentified("fit_correction")
-            known.cross_validation_, known.samples_ = cv, raw
-            known.input_names_ = system0.input_names(trajectories)
-            return known
-        if _rival_applies(scored, trajectories, result, system0, user_candidates or gp is not None):
-            better, rival = refined_rival(
-                system, scored, chooser, models[cv.index], noise, dict(derivative=derivative, **estimator)
-            )
-            if better:  # the feature kernel on every sample, refined below through the ODE on the trajectory
-                result = feature_template(samples.inputs.device).fit(samples)
-        kept_rival = rival is not None and rival["refined features"] < rival["chosen"]
-        if kept_rival:  # what the kept model was tested on: the last piece, against the known model alone too
-            if not rival["refined features"] < rival["known model"]:
-                warn(
-                    f"fit_correction: the feature kernel refined through the ODE forecasts the trajectory's last piece "
-                    f"better than the time pieces' choice ({rival['refined features']:.3g} vs {rival['chosen']:.3g}) "
-                    f"but not better than the known model alone ({rival['known model']:.3g}): the data do not "
-                    "support a correction. Collect more experiments or a longer one, or check the known model",
-                    TorchMisspecWarning,
-                )
-        elif not cv.significant:
-            held = "experiments" if scored is trajectories else "pieces of the experiment's time"
+    return result, cv, rival, None
+
+
+def _warn_unsupported(cv: CrossValidation, rival: dict | None, scored: Trajectories, trajectories) -> None:
+    """Warn when the data do not support a correction: the kept rival (the refined feature kernel) does not beat
+    the known model on the last piece, or (no rival kept) no candidate predicts the held-out data ``scored`` (the
+    ``trajectories`` or their time pieces) significantly better than the known model."""
+    if rival is not None and rival["refined features"] < rival["chosen"]:
+        # what the kept model was tested on: the last piece, against the known model alone too
+        if not rival["refined features"] < rival["known model"]:
             warn(
-                f"fit_correction: no corrected model predicts held-out {held} significantly better than the "
-                f"known model alone (best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a "
-                f"correction, {cv.folds} folds; required: a gain of {cv.critical:.3g} standard errors over the "
-                f"{len(cv.gains) or scored.num_experiments} {held}): the data do not support a correction. "
-                "Collect more experiments, sample the states more densely or with less noise, or check the known model",
+                f"fit_correction: the feature kernel refined through the ODE forecasts the trajectory's last piece "
+                f"better than the time pieces' choice ({rival['refined features']:.3g} vs {rival['chosen']:.3g}) "
+                f"but not better than the known model alone ({rival['known model']:.3g}): the data do not "
+                "support a correction. Collect more experiments or a longer one, or check the known model",
                 TorchMisspecWarning,
             )
-        if result is None:
-            warn(
-                f"fit_correction: every candidate failed cross-validation (a fit or a held-out prediction failed: "
-                f"{', '.join(cv.candidates)}); chose among them by evidence instead",
-                TorchMisspecWarning,
-            )
-    if cv is None:
-        _give_advice(advice, None)
-    if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
-        auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
-        pool = candidates if user_candidates else [auto if gp is None else gp]
-        result = _by_evidence(pool, chooser)
-        if chooser is not samples:  # the chosen kernel (an auto model's choice), fitted on every sample
-            chosen = getattr(result, "model_selection_", None)
-            result = result.clone(kernel=result.kernel_spec).fit(samples)
-            result.model_selection_ = chosen
+    elif not cv.significant:
+        held = "experiments" if scored is trajectories else "pieces of the experiment's time"
+        warn(
+            f"fit_correction: no corrected model predicts held-out {held} significantly better than the "
+            f"known model alone (best held-out error {min(cv.scores):.3g} vs {cv.baseline:.3g} without a "
+            f"correction, {cv.folds} folds; required: a gain of {cv.critical:.3g} standard errors over the "
+            f"{len(cv.gains) or scored.num_experiments} {held}): the data do not support a correction. "
+            "Collect more experiments, sample the states more densely or with less noise, or check the known model",
+            TorchMisspecWarning,
+        )
+
+
+def _evidence_choice(pool: list, chooser: CorrectionSamples, samples: CorrectionSamples) -> CorrectionGP:
+    """The candidate of ``pool`` with the highest evidence on ``chooser`` (:func:`_by_evidence`), refitted on every
+    sample when ``chooser`` is a subsample (the chosen kernel: an auto model's choice)."""
+    result = _by_evidence(pool, chooser)
+    if chooser is not samples:
+        chosen = getattr(result, "model_selection_", None)
+        result = result.clone(kernel=result.kernel_spec).fit(samples)
+        result.model_selection_ = chosen
+    return result
+
+
+def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_f: bool, progress):
+    """``(model, samples)``: the chosen model refined through the ODE (``refine``; by default a feature kernel on
+    an autonomous system), then with uncertain parameters theta's posterior under it (F conditioned on
+    r - H theta_bar, the samples linearised there) and, with ``refine_f``, F refined at theta's posterior mean."""
+    trajectories, samples = data.trajectories, data.samples
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
-        refine = result.kernel_spec.terms and result.kernel_spec.feature_space and system.autonomous
+        refine = result.kernel_spec.terms and result.kernel_spec.feature_space and data.system.autonomous
     if refine:  # a new model: the record of the evidence's choice carried over
         selection = getattr(result, "model_selection_", None)
-        result = fit_trajectories(result, system, trajectories, progress=progress)
+        result = fit_trajectories(result, data.system, trajectories, progress=progress)
         if selection is not None:
             result.model_selection_ = selection
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
         delta = posterior.mean - posterior.prior_mean
-        result, samples = fit_parameters(result, samples, system0, trajectories, delta, noise)
+        result, samples = fit_parameters(result, samples, data.declared, trajectories, delta, data.noise)
         result.parameters_ = result.parameters_.absorbing(posterior)
         result.parameters_.warn_if_unidentified("fit_correction")
         if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
             found = result.parameters_
-            result = fit_trajectories(result, system0.at(found.mean), trajectories, progress=progress)
+            result = fit_trajectories(result, data.declared.at(found.mean), trajectories, progress=progress)
             result.parameters_ = found
-    result.cross_validation_ = cv
-    result.one_trajectory_rival_ = rival  # None unless one_trajectory.refined_rival ran
-    result.samples_ = samples
-    result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
-    return result
+    return result, samples

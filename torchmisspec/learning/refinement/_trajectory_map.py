@@ -4,24 +4,26 @@ state offsets through the ODE, and relevance through the ODE for the feature ker
 * :func:`_maximise_posterior`: L-BFGS (the package's one loop, :func:`~torchmisspec._optim.maximise`) on the log
   posterior of the pseudo-targets and the initial-state offsets given the observed states;
 * :func:`_fit_relevance`: for a feature kernel, alternates Levenberg-Marquardt steps on the active coefficients and
-  the offsets (Jacobians by central differences through one batched solve) with relevance updates of the weights,
-  until the active terms and weights settle; the result is written back as pseudo-targets
-  (:func:`_pseudo_targets`), so the model stays a :class:`~torchmisspec.CorrectionGP`.
+  the offsets (:mod:`._levenberg_marquardt`; Jacobians by central differences through one batched solve) with a
+  Laplace step and relevance updates of the weights (:func:`_relevance_rounds`), until the active terms and weights
+  settle; the result is written back as pseudo-targets (:func:`_as_correction_gp`, :func:`_pseudo_targets`), so the
+  model stays a :class:`~torchmisspec.CorrectionGP`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
 from ..._errors import FittingError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
-from ..._ode import EVALS_PER_STEP, trial_budget
 from ..._optim import OptimResult, maximise
 from ..._validation import progress_bar
 from ...data import Trajectories
 from ._fit_fallbacks import _shrink_until_integrable, _spanning_inputs
 from ._jacobian import _coefficient_columns, _joint_columns
+from ._levenberg_marquardt import _levenberg_marquardt
 from ._term_price import forward_selection, term_price
 
 
@@ -113,6 +115,113 @@ RELEVANCE_ROUNDS = 10
 _LATER_ITERATIONS = 10
 
 
+@dataclass(frozen=True)
+class _TermScale:
+    """What MacKay's update compares a term's weight with: each term's mean square feature ``phi2`` ``(p, 1)`` at the
+    training inputs, the targets' second moment, and whether the outputs share one weight per term."""
+
+    phi2: torch.Tensor
+    second: float
+    shared: bool
+
+
+@dataclass(frozen=True)
+class _TermFields:
+    """The corrected right-hand sides of the feature coefficients (and of G's uncertain parameters, when they are
+    learned: theta = ``mean + scale v``, ``v`` updated in place by the rounds), for the solves of every step."""
+
+    system: object
+    features: object  # x (n, d_in) -> (n, p)
+    p: int
+    mean: torch.Tensor | None  # theta's prior mean and scale; None (and v None) when theta is not learned
+    scale: torch.Tensor | None
+    v: torch.Tensor | None
+
+    @classmethod
+    def of(cls, gp, system, p: int, single: bool, parameters: bool, theta_start) -> _TermFields:
+        """The fields of ``gp``'s feature kernel; with ``parameters``, theta starts at its prior mean or at
+        ``theta_start`` (its joint fit needs single shooting, ``single``)."""
+        kd = dict(dtype=gp.dtype, device=gp.device)
+        k = len(system.parameters) if parameters else 0
+        if k and not single:
+            raise FittingError("the joint fit of G's uncertain parameters through the ODE needs single shooting")
+        features = gp.covar_module.base_kernel.features
+        if not k:
+            return cls(system, features, p, None, None, None)
+        mean, scale = system.parameters.mean.to(**kd), system.parameters.scale.to(**kd)
+        v = torch.zeros(k, **kd)  # theta = m + s v, starting at the prior mean ...
+        if theta_start is not None:  # ... or where asked (the known model's own fit)
+            v = ((theta_start.to(**kd) - mean) / scale).clone()
+        return cls(system, features, p, mean, scale, v)
+
+    @property
+    def k(self) -> int:
+        """The number of G's parameters learned (0 without them)."""
+        return 0 if self.v is None else self.v.numel()
+
+    def known_at(self, vv):
+        """G at theta = m + s vv (the system as declared when not learning theta)."""
+        return self.system if vv is None else self.system.at(self.mean + self.scale * vv)
+
+    def field(self, b, vv=None):
+        """The right-hand side with F's coefficients ``b`` ``(p, d_out)`` and G at ``vv`` (default: the current v)."""
+        known = self.known_at(self.v if vv is None else vv)
+        system, features = self.system, self.features
+
+        def field(y, t=None, u=None):
+            x = system.select_inputs(y, u)
+            return known.known_rhs(y, t, u) + system.embed(features(x) @ b)
+
+        return field
+
+    def fields(self, bs, vs=None):
+        """One right-hand side for a stack of models: ``bs`` ``(m, p, d_out)``, copy c's coefficients driving rows
+        c K ... c K + K - 1; ``vs`` ``(k,)`` one theta for every copy (one call of G; default the current v), or
+        ``(m, k)`` copy c's theta (one call of G per distinct theta, over the rows of the copies that share it)."""
+        vs = self.v if vs is None else vs
+        system, features, p = self.system, self.features, self.p
+        if vs is None or vs.dim() == 1:
+            known = self.known_at(vs).known_rhs
+        else:
+            known = system.copies_rhs(self.mean + self.scale * vs)
+
+        def field(y, t=None, u=None):
+            f = features(system.select_inputs(y, u)).reshape(bs.shape[0], -1, p)  # (m, K, p)
+            mixed = torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
+            return known(y, t, u) + system.embed(mixed)
+
+        return field
+
+
+@dataclass(frozen=True)
+class _ThetaLaplace:
+    """A round's pieces of theta's posterior (made once, after the last round): v, theta's Laplace covariance with
+    F's coefficients marginalised and held fixed (in units of its prior sd), the Jacobian's columns of the
+    coefficients and parameters (``J_p``) and of the offsets (``J_o``), and the coefficients, weights and offsets
+    they were taken at."""
+
+    v: torch.Tensor
+    cov: torch.Tensor
+    fixed: torch.Tensor
+    J_p: torch.Tensor
+    J_o: torch.Tensor
+    beta: torch.Tensor
+    W: torch.Tensor
+    off: torch.Tensor
+
+
+@dataclass(frozen=True)
+class _Rounds:
+    """Where the rounds ended: the weights ``W`` and coefficients ``beta`` ``(p, d_out)``, theta's last Laplace
+    pieces (``None`` without parameters or when no Laplace step succeeded), and the optimiser's counts."""
+
+    W: torch.Tensor
+    beta: torch.Tensor
+    laplace: _ThetaLaplace | None
+    iterations: int
+    evaluations: int
+
+
 def _fit_relevance(
     gp,
     system,
@@ -147,15 +256,41 @@ def _fit_relevance(
     coefficients, the offsets marginalised; the result's ``parameters_laplace_`` is ``(mean (k,), covariance (k, k),
     covariance with F held fixed (k, k))``; ``theta_start`` ``(k,)``: where theta starts (default its prior mean).
     """
-    from ...gp._features import PRUNE
+    W, beta, terms = _starting_terms(gp, start, only)
+    single = hasattr(residuals, "many") and offsets is not None
+    fields = _TermFields.of(gp, system, W.shape[0], single, parameters, theta_start)
+    if s2 is None:
+        s2 = _balanced_noise(residuals, fields.field(beta), trajectories)
+    sd = s2.sqrt()
+    rounds = RELEVANCE_ROUNDS if rounds is None else rounds
+    found = _relevance_rounds(
+        W, beta, terms, fields, residuals, offsets, s2, n_obs, max_iter=max_iter, rounds=rounds, progress=progress
+    )
+    record = None  # the misfit where the rounds ended and the sparse proposal: only for fit_trajectories' rival
+    if propose or only is not None:
+        proposes = propose and not fields.k
+        record = _relevance_record(residuals, fields, found.beta, found.W, offsets, sd, n_obs, gp, proposes)
+    refined = _as_correction_gp(gp, found.W, found.beta)
+    refined.n_iterations_, refined.n_evaluations_ = found.iterations, found.evaluations
+    refined.n_rhs_evaluations_ = residuals.nfe
+    refined.state_noise_ = s2
+    refined.relevance_record_ = record
+    if offsets is not None:
+        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd[: trajectories.state_dim]
+    if fields.k:  # theta's posterior from the last round's Laplace step, F's coefficients marginalised and held fixed
+        laplace = found.laplace
+        refined.parameters_laplace_ = None if laplace is None else _theta_posterior(laplace, fields, residuals, sd)
+    return refined
 
-    d = trajectories.state_dim
+
+def _starting_terms(gp, start, only) -> tuple[torch.Tensor, torch.Tensor, _TermScale]:
+    """``(W, beta, scale)``: the prior variances and coefficients ``(p, d_out)`` the rounds start from (``gp``'s fit,
+    every term active; or F = 0 with equal shares of ``start``; only the terms ``only`` where given) and what the
+    weights are compared with."""
     base = gp.covar_module.base_kernel
-    X = gp.train_inputs_
-    Phi = base.features(X)  # (N, p): the monomials or a user library
+    Phi = base.features(gp.train_inputs_)  # (N, p): the monomials or a user library
     p = Phi.shape[1]
     d_out = gp.output_dim
-    kd = dict(dtype=gp.dtype, device=gp.device)
     scale = gp.covar_module.outputscale.detach().reshape(-1, 1)  # (B, 1)
     W = (base.weights.detach().reshape(-1, p) * scale).T.expand(p, d_out).clone()  # (p, d_out) prior variances
     shared = W.shape[1] > 1 and not gp.per_output
@@ -168,54 +303,21 @@ def _fit_relevance(
     # estimator's bias is not the trajectories'); a removed term starts with an equal share of the samples' size
     W = torch.where(W > 0, W, (second / (p * phi2)).expand_as(W))
     if start is not None:
-        W = (start.to(**kd).reshape(1, -1) / (p * phi2)).expand(p, d_out).clone()
+        W = (start.to(dtype=gp.dtype, device=gp.device).reshape(1, -1) / (p * phi2)).expand(p, d_out).clone()
         beta = torch.zeros_like(W)
-    if (
-        only is not None
-    ):  # the terms of a proposal (torchmisspec.learning.refinement._term_price): the others removed from the start
+    if only is not None:  # the terms of a proposal (torchmisspec.learning.refinement._term_price): the others removed
         W = torch.where(only, W, torch.zeros_like(W))
         beta = torch.where(only, beta, torch.zeros_like(beta))
+    return W, beta, _TermScale(phi2, second, shared)
 
-    k = len(system.parameters) if parameters else 0
-    if k and not (hasattr(residuals, "many") and offsets is not None):
-        raise FittingError("the joint fit of G's uncertain parameters through the ODE needs single shooting")
-    m_theta = None if not k else system.parameters.mean.to(**kd)
-    s_theta = None if not k else system.parameters.scale.to(**kd)
-    v = None if not k else torch.zeros(k, **kd)  # theta = m + s v, starting at the prior mean ...
-    if k and theta_start is not None:  # ... or where asked (the known model's own fit)
-        v = ((theta_start.to(**kd) - m_theta) / s_theta).clone()
 
-    def known_at(vv):  # G at theta = m + s vv (the system as declared when not learning theta)
-        return system if vv is None else system.at(m_theta + s_theta * vv)
-
-    def make_field(b, vv=None):  # vv: G's parameters (default: the current v; None without them)
-        known = known_at(v if vv is None else vv)
-
-        def field(y, t=None, u=None):
-            x = system.select_inputs(y, u)
-            return known.known_rhs(y, t, u) + system.embed(base.features(x) @ b)
-
-        return field
-
-    def make_fields(bs, vs=None):  # bs (m, p, d_out): copy c's coefficients drive rows c K ... c K + K - 1
-        # vs: (k,) one theta for every copy (one call of G; default the current v), or (m, k) copy c's theta (one
-        # call of G per distinct theta, over the rows of the copies that share it)
-        vs = v if vs is None else vs
-        known = known_at(vs).known_rhs if vs is None or vs.dim() == 1 else system.copies_rhs(m_theta + s_theta * vs)
-
-        def field(y, t=None, u=None):
-            f = base.features(system.select_inputs(y, u)).reshape(bs.shape[0], -1, p)  # (m, K, p)
-            mixed = torch.einsum("mkp,mpo->mko", f, bs).reshape(y.shape[0], -1)
-            return known(y, t, u) + system.embed(mixed)
-
-        return field
-
-    if s2 is None:
-        s2 = _balanced_noise(residuals, make_field(beta), trajectories)
+def _relevance_rounds(W, beta, terms, fields, residuals, offsets, s2, n_obs, *, max_iter, rounds, progress) -> _Rounds:
+    """Round after round, the MAP of the active coefficients (:func:`_map_coefficients`), their Laplace posterior
+    (:func:`_laplace_step`) and MacKay's update of the weights (:func:`_mackay_update`), until the active terms and
+    weights settle, no term is left or a Laplace step fails."""
     sd = s2.sqrt()
     iterations = evaluations = 0
     laplace = None
-    rounds = RELEVANCE_ROUNDS if rounds is None else rounds
     bar = progress_bar(progress, rounds, "fit_trajectories: term weights through the ODE", "round")
     for round_ in range(rounds):
         bar.update()
@@ -223,89 +325,113 @@ def _fit_relevance(
         if not bool(active.any()):
             beta = torch.zeros_like(W)
             break
-        root = W[active].sqrt()
-        u = (beta[active] / root).clone().requires_grad_(True)  # coefficients in units of their prior std
-
-        def field_and_prior(uv, active=active, root=root):
-            b = torch.zeros((p, d_out), **kd).index_put((active.nonzero(as_tuple=True)), uv * root)
-            return make_field(b), 0.5 * uv.pow(2).sum()
-
         rounds_iter = max_iter if round_ == 0 else min(max_iter, _LATER_ITERATIONS)
-        if hasattr(residuals, "many") and offsets is not None:  # single shooting: Levenberg-Marquardt
-            its, evals = _levenberg_marquardt(
-                u,
-                offsets,
-                active,
-                root,
-                beta,
-                make_field,
-                make_fields,
-                residuals,
-                sd,
-                max_iter=rounds_iter,
-                theta=None if not k else (v, make_field, make_fields),
-            )
-        else:
-            result = _maximise_posterior(
-                [u], offsets, field_and_prior, residuals, s2, n_obs, max_iter=rounds_iter, progress=False,
-                shooting="relevance",
-            )  # fmt: skip
-            its, evals = result.iterations, result.evaluations
+        b_act, its, evals = _map_coefficients(W, beta, active, fields, residuals, offsets, s2, n_obs, rounds_iter)
         iterations += its
         evaluations += evals
-        b_act = (u.detach() * root).clone()
-        beta = torch.zeros((p, d_out), **kd)
+        beta = torch.zeros(W.shape, dtype=W.dtype, device=W.device)
         beta[active] = b_act
-        # Laplace: Gauss-Newton Hessian of the scaled misfit in (coefficients, initial-state offsets)
-        off = None if offsets is None else offsets.detach()
         with torch.no_grad():
-            q = int(active.sum())
-            if off is not None:  # single shooting: the coefficients', G's parameters' and offsets' columns at once
-                J_b = _joint_columns(residuals, make_fields, beta, active, v if k else None, off, sd)
-                J_b, Jo = J_b[:, : q + k], J_b[:, q + k :]
-            else:  # multiple shooting (no parameters, no offsets)
-                J_b = _coefficient_columns(residuals, make_field, beta, active, off, sd, make_fields)
-            # G's parameters' prior N(0, 1) in units of their prior sd
-            H = J_b.T @ J_b + torch.diag(torch.cat([1.0 / W[active], torch.ones(k, **kd)]))
-            if off is not None:  # the offsets' block: column j moves component j of every initial state
-                Kx, dd = off.shape
-                Hbo = J_b.T @ Jo
-                Hoo = Jo.T @ Jo + torch.eye(Kx * dd, **kd)  # the offsets' prior N(0, 1) in units of sd
-                H = H - Hbo @ torch.linalg.solve(Hoo, Hbo.T)  # marginal over the offsets (Schur complement)
-            try:
-                inverse = torch.linalg.inv(H)
-                Sigma = inverse.diagonal()[:q]
-                if k:  # this round's pieces of theta's posterior (made once, after the last round)
-                    laplace = (v.clone(), inverse[q:, q:], torch.linalg.inv(H[q:, q:]), J_b, Jo, beta.clone(), W, off)
-            except torch.linalg.LinAlgError:
+            step = _laplace_step(W, beta, active, fields, residuals, offsets, sd)
+            if step is None:
                 break
-            new = torch.zeros_like(W)
-            gam = (1.0 - Sigma / W[active]).clamp(1e-12, 1.0)
-            num = torch.zeros_like(W)
-            num[active] = b_act.pow(2)
-            den = torch.zeros_like(W)
-            den[active] = gam
-            if shared:  # one weight per term shared by the outputs
-                num = num.sum(1, keepdim=True).expand_as(W)
-                den = den.sum(1, keepdim=True).expand_as(W)
-            new[active] = num[active] / den[active].clamp_min(1e-12)
-            new[new * phi2 < PRUNE * second] = 0.0
-            both = (new > 0) & active
-            change = float((new[both].log() - W[both].log()).abs().max()) if bool(both.any()) else 0.0
-            settled = bool(((new > 0) == active).all()) and change < 1e-2
+            Sigma, theta = step
+            laplace = laplace if theta is None else theta
+            new, settled = _mackay_update(W, active, b_act, Sigma, terms)
             beta = beta * (new > 0)
             W = new
         if settled:
             break
     bar.close()
-    record = None  # the misfit where the rounds ended and the sparse proposal: only for fit_trajectories' rival
-    if propose or only is not None:
-        record = _relevance_record(
-            residuals, make_field, make_fields, beta, W, offsets, sd, n_obs, gp, propose and not k
-        )
-    # back to a CorrectionGP: the new weights, and pseudo-targets whose posterior mean is exactly phi(x)^T beta (at
-    # inputs enough to span the active terms: more terms than samples could not reproduce beta)
-    X, targets, noise = _spanning_inputs(X, gp.train_targets_, gp.train_noise_, base.features, W)
+    return _Rounds(W, beta, laplace, iterations, evaluations)
+
+
+def _map_coefficients(W, beta, active, fields, residuals, offsets, s2, n_obs, max_iter) -> tuple:
+    """``(active coefficients, iterations, evaluations)``: one round's MAP under the weights ``W``, in units of the
+    coefficients' prior sd: Levenberg-Marquardt with single shooting (the offsets, and G's parameters, with them,
+    updated in place), L-BFGS on the log posterior with multiple shooting."""
+    root = W[active].sqrt()
+    u = (beta[active] / root).clone().requires_grad_(True)  # coefficients in units of their prior std
+    if hasattr(residuals, "many") and offsets is not None:  # single shooting: Levenberg-Marquardt
+        theta = None if not fields.k else (fields.v, fields.field, fields.fields)
+        its, evals = _levenberg_marquardt(
+            u, offsets, active, root, beta, fields.field, fields.fields, residuals, s2.sqrt(), max_iter=max_iter,
+            theta=theta,
+        )  # fmt: skip
+    else:
+
+        def field_and_prior(uv):
+            b = torch.zeros(W.shape, dtype=W.dtype, device=W.device).index_put(active.nonzero(as_tuple=True), uv * root)
+            return fields.field(b), 0.5 * uv.pow(2).sum()
+
+        result = _maximise_posterior(
+            [u], offsets, field_and_prior, residuals, s2, n_obs, max_iter=max_iter, progress=False,
+            shooting="relevance",
+        )  # fmt: skip
+        its, evals = result.iterations, result.evaluations
+    return (u.detach() * root).clone(), its, evals
+
+
+def _laplace_step(W, beta, active, fields, residuals, offsets, sd) -> tuple | None:
+    """``(Sigma, theta's pieces or None)``: the Laplace posterior variances ``(q,)`` of the active coefficients from
+    the Gauss-Newton Hessian of the scaled misfit in (coefficients, G's parameters, initial-state offsets), the
+    offsets marginalised (Schur complement); ``None`` when the Hessian cannot be inverted."""
+    k, kd = fields.k, dict(dtype=W.dtype, device=W.device)
+    off = None if offsets is None else offsets.detach()
+    q = int(active.sum())
+    J_o = None
+    if off is not None:  # single shooting: the coefficients', G's parameters' and offsets' columns at once
+        J_p = _joint_columns(residuals, fields.fields, beta, active, fields.v, off, sd)
+        J_p, J_o = J_p[:, : q + k], J_p[:, q + k :]
+    else:  # multiple shooting (no parameters, no offsets)
+        J_p = _coefficient_columns(residuals, fields.field, beta, active, off, sd, fields.fields)
+    # G's parameters' prior N(0, 1) in units of their prior sd
+    H = J_p.T @ J_p + torch.diag(torch.cat([1.0 / W[active], torch.ones(k, **kd)]))
+    if off is not None:  # the offsets' block: column j moves component j of every initial state
+        Kx, dd = off.shape
+        Hbo = J_p.T @ J_o
+        Hoo = J_o.T @ J_o + torch.eye(Kx * dd, **kd)  # the offsets' prior N(0, 1) in units of sd
+        H = H - Hbo @ torch.linalg.solve(Hoo, Hbo.T)  # marginal over the offsets (Schur complement)
+    try:
+        inverse = torch.linalg.inv(H)
+        theta = None
+        if k:
+            fixed = torch.linalg.inv(H[q:, q:])
+            theta = _ThetaLaplace(fields.v.clone(), inverse[q:, q:], fixed, J_p, J_o, beta.clone(), W, off)
+    except torch.linalg.LinAlgError:
+        return None
+    return inverse.diagonal()[:q], theta
+
+
+def _mackay_update(W, active, b_act, Sigma, terms: _TermScale) -> tuple[torch.Tensor, bool]:
+    """``(new weights, settled)``: MacKay's rule ``w_j = sum_o beta_oj^2 / sum_o gamma_oj`` (one weight per term
+    summed over the outputs when they share it), terms below :data:`~torchmisspec.gp._features.PRUNE` of the
+    targets' second moment removed; settled when the active set holds and no weight moved by 1 % or more."""
+    from ...gp._features import PRUNE
+
+    new = torch.zeros_like(W)
+    gam = (1.0 - Sigma / W[active]).clamp(1e-12, 1.0)
+    num = torch.zeros_like(W)
+    num[active] = b_act.pow(2)
+    den = torch.zeros_like(W)
+    den[active] = gam
+    if terms.shared:  # one weight per term shared by the outputs
+        num = num.sum(1, keepdim=True).expand_as(W)
+        den = den.sum(1, keepdim=True).expand_as(W)
+    new[active] = num[active] / den[active].clamp_min(1e-12)
+    new[new * terms.phi2 < PRUNE * terms.second] = 0.0
+    both = (new > 0) & active
+    change = float((new[both].log() - W[both].log()).abs().max()) if bool(both.any()) else 0.0
+    return new, bool(((new > 0) == active).all()) and change < 1e-2
+
+
+def _as_correction_gp(gp, W: torch.Tensor, beta: torch.Tensor):
+    """Back to a :class:`~torchmisspec.CorrectionGP`: the new weights ``W``, and pseudo-targets whose posterior mean
+    is exactly ``phi(x)^T beta`` (at inputs enough to span the active terms: more terms than samples could not
+    reproduce beta)."""
+    base = gp.covar_module.base_kernel
+    scale = gp.covar_module.outputscale.detach().reshape(-1, 1)  # (B, 1)
+    X, targets, noise = _spanning_inputs(gp.train_inputs_, gp.train_targets_, gp.train_noise_, base.features, W)
     Phi = base.features(X)
     tmp = gp.condition(X, targets, noise=noise)
     with torch.no_grad():
@@ -321,32 +447,27 @@ def _fit_relevance(
         base.inclusion.copy_(torch.where(kept, one, torch.where(was_kept, zero, base.inclusion)))
         base.spread.copy_(torch.where(kept | was_kept, zero, base.spread))
         Yhat = _pseudo_targets(tmp, Phi, W, beta)
-    refined = tmp.condition(X, Yhat, noise=noise)
-    refined.n_iterations_, refined.n_evaluations_ = iterations, evaluations
-    refined.n_rhs_evaluations_ = residuals.nfe
-    refined.state_noise_ = s2
-    refined.relevance_record_ = record
-    if offsets is not None:
-        refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * sd[:d]
-    if k:  # theta's posterior from the last round's Laplace step, with F's coefficients marginalised and held fixed
-        refined.parameters_laplace_ = None
-        if laplace is not None:
-            v_at, cov, fixed, J_p, J_o, b_at, W_at, off_at = laplace
-            r = residuals(make_field(b_at, v_at), off_at, sd) / sd
-            cov = _robust(cov, J_p, J_o, r, residuals, W_at)
-            scaled = (s_theta[:, None] * c * s_theta[None, :] for c in (cov, fixed))
-            refined.parameters_laplace_ = (m_theta + s_theta * v_at, *scaled)
-    return refined
+    return tmp.condition(X, Yhat, noise=noise)
 
 
-def _relevance_record(residuals, make_field, make_fields, beta, W, offsets, sd, n_obs, gp, propose: bool) -> dict:
+def _theta_posterior(laplace: _ThetaLaplace, fields: _TermFields, residuals, sd) -> tuple:
+    """``parameters_laplace_``: theta's mean ``(k,)``, its covariance with F's coefficients marginalised (or the
+    cluster-robust one, :func:`_robust`) and with F held fixed ``(k, k)``, in theta's own units."""
+    r = residuals(fields.field(laplace.beta, laplace.v), laplace.off, sd) / sd
+    cov = _robust(laplace.cov, laplace.J_p, laplace.J_o, r, residuals, laplace.W)
+    s = fields.scale
+    scaled = (s[:, None] * c * s[None, :] for c in (cov, laplace.fixed))
+    return (fields.mean + s * laplace.v, *scaled)
+
+
+def _relevance_record(residuals, fields: _TermFields, beta, W, offsets, sd, n_obs, gp, propose: bool) -> dict:
     """Where the rounds ended: the scaled misfit, the number of kept terms and, with ``propose`` (one weight per
     coefficient), the sparse set :func:`~torchmisspec.learning.refinement._term_price.forward_selection` proposes there
     (``None`` otherwise, or when a solve fails)."""
     off = None if offsets is None else offsets.detach()
     with torch.no_grad():
         try:
-            r = (residuals(make_field(beta), off, sd) / sd).reshape(-1)
+            r = (residuals(fields.field(beta), off, sd) / sd).reshape(-1)
         except IntegrationError:
             return {"misfit": math.inf, "terms": int((W > 0).sum()), "active": W > 0, "proposal": None}
         record = {"misfit": float(r.pow(2).sum()), "terms": int((W > 0).sum()), "active": W > 0, "proposal": None}
@@ -355,9 +476,9 @@ def _relevance_record(residuals, make_field, make_fields, beta, W, offsets, sd, 
         try:
             every = torch.ones_like(W, dtype=torch.bool)
             if off is None:
-                J, J_f = _coefficient_columns(residuals, make_field, beta, every, off, sd, make_fields), None
+                J, J_f = _coefficient_columns(residuals, fields.field, beta, every, off, sd, fields.fields), None
             else:
-                J = _joint_columns(residuals, make_fields, beta, every, None, off, sd)
+                J = _joint_columns(residuals, fields.fields, beta, every, None, off, sd)
                 J, J_f = J[:, : every.numel()], J[:, every.numel() :]
             f = None if off is None else off.reshape(-1)
             price = term_price(gp, n_obs)
@@ -390,96 +511,6 @@ def _robust(cov: torch.Tensor, J_p: torch.Tensor, J_o: torch.Tensor, r: torch.Te
         shrink = (1 / robust.diagonal().sqrt()).clamp_max(1.0)  # never wider than the prior (sd 1 in these units)
         return shrink[:, None] * robust * shrink[None, :]
     return cov
-
-
-def _levenberg_marquardt(
-    u, offsets, active, root, beta, make_field, make_fields, residuals, sd, *, max_iter: int, theta=None
-):
-    """Minimise ``1/2 ||r(u, o) / s||^2 + 1/2 ||u||^2`` (the MAP of the coefficients ``u``, in units of their prior
-    standard deviations, and the initial-state offsets ``o``, in units of the state noise) by Levenberg-Marquardt
-    steps: the Jacobian by central differences, every perturbed model in one batched solve. The problem has a few
-    dozen parameters and is nearly linear in them, so a handful of steps replaces L-BFGS's dozens of evaluations,
-    each of which differentiated through the solver. ``theta``: ``(v, field, fields)`` to learn G's uncertain
-    parameters too, v ``(k,)`` in units of their prior standard deviations (``+ 1/2 ||v||^2``), ``field(b, v)`` and
-    ``fields(bs, vs)`` taking them. ``u``, ``offsets`` (and v) are updated in place; returns ``(iterations, objective
-    evaluations)``."""
-    q = u.numel()
-    K, d = offsets.shape
-    kd = dict(dtype=u.dtype, device=u.device)
-    k = 0 if theta is None else theta[0].numel()
-
-    def coefficients(uv):
-        b = torch.zeros_like(beta)
-        b[active] = uv * root
-        return b
-
-    def fields(vv):  # (field, fields) with G at vv
-        if theta is None:
-            return make_field, make_fields
-        return (lambda b: theta[1](b, vv)), (lambda bs: theta[2](bs, vv))
-
-    failed = []
-
-    def objective(uv, vv, ov, max_steps=None):  # a solve that fails is an infinite misfit: a rejected step
-        try:
-            r = residuals(fields(vv)[0](coefficients(uv)), ov, sd, max_steps) / sd
-        except IntegrationError as exc:
-            failed[:] = [exc]
-            return math.inf, None
-        prior = uv.pow(2).sum() + (0 if vv is None else vv.pow(2).sum())
-        return 0.5 * float(r.pow(2).sum() + prior), r.reshape(-1)
-
-    with torch.no_grad():
-        uv, ov = u.detach().clone(), offsets.detach().clone()
-        vv = None if theta is None else theta[0].detach().clone()
-        value, r = objective(uv, vv, ov)
-        if r is None:  # the start cannot be integrated: a smaller correction (at last G alone) that can
-            _shrink_until_integrable(
-                [uv, ov] + ([] if vv is None else [vv]),
-                lambda: None if objective(uv, vv, ov)[1] is not None else failed[0],
-                failed[0],
-            )
-            value, r = objective(uv, vv, ov)
-        lam, evaluations, iterations = 1e-3, 1, 0
-        steps = residuals.last / EVALS_PER_STEP  # the current point's solve: the trial steps' budget
-        while iterations < max_iter:
-            iterations += 1
-            b = coefficients(uv)
-            field, fields_ = fields(vv)
-            J = _joint_columns(residuals, make_fields, b, active, vv, ov, sd)
-            J[:, :q] *= root
-            prior = torch.cat([uv] + ([] if vv is None else [vv]) + [torch.zeros(K * d, **kd)])
-            grad = J.T @ r + prior
-            H = J.T @ J
-            H[range(q + k), range(q + k)] += 1.0
-            accepted = False
-            for _ in range(8):
-                A = H + lam * torch.diag(H.diagonal().clamp_min(1e-12))
-                try:
-                    step = -torch.linalg.solve(A, grad)
-                except torch.linalg.LinAlgError:
-                    lam *= 10.0
-                    continue
-                new_u, new_o = uv + step[:q], ov + step[q + k :].reshape(K, d)
-                new_v = None if vv is None else vv + step[q : q + k]
-                new_value, new_r = objective(new_u, new_v, new_o, trial_budget(steps))
-                evaluations += 1
-                if new_value < value:
-                    accepted = True
-                    break
-                lam *= 10.0
-            if not accepted:
-                break
-            gain = value - new_value
-            uv, vv, ov, value, r = new_u, new_v, new_o, new_value, new_r
-            lam, steps = max(lam * 0.3, 1e-9), residuals.last / EVALS_PER_STEP
-            if gain <= 1e-8 * max(value, 1.0):
-                break
-        u.data.copy_(uv)
-        offsets.data.copy_(ov)
-        if theta is not None:
-            theta[0].copy_(vv)
-    return iterations, evaluations
 
 
 def _pseudo_targets(gp, Phi: torch.Tensor, W: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:

@@ -199,16 +199,7 @@ def fit_trajectories(
         :meth:`CorrectedODE.calibrate <torchmisspec.CorrectedODE.calibrate>` refines each fold the same way).
     """
     _check(gp, system, trajectories)
-    if not isinstance(shooting, str) or shooting not in SHOOTING:
-        raise InputError(f"shooting: expected one of {list(SHOOTING)}, got {shooting!r}")
-    max_iter = check_positive_int(max_iter, "max_iter")
-    relevance = check_flag(relevance, "relevance", none=True)
-    relevance_kernel = gp.kernel_spec.terms and gp.kernel_spec.feature_space  # term weights learned in feature space
-    relevance = relevance_kernel if relevance is None else relevance
-    if relevance and not relevance_kernel:
-        raise InputError(
-            f"relevance: expected a feature kernel (its term weights are re-estimated), got kernel {gp.kernel!r}"
-        )
+    max_iter, relevance = _checked_options(gp, shooting, max_iter, relevance)
     options = dict(shooting=shooting, max_iter=max_iter, rtol=rtol, atol=atol, max_steps=max_steps, progress=progress)
     if state_noise is not None:  # refused here, before it is recorded (a bad value raised inside _recorded)
         _state_noise(state_noise, trajectories, dict(dtype=torch.float64, device=trajectories.device))
@@ -219,7 +210,6 @@ def fit_trajectories(
     if scaled is not None:  # refined in the data's own units, returned in the user's (torchmisspec.learning._units)
         return scaled
     trajectories = trajectories.to(dtype=gp.dtype, device=gp.device)
-    d = trajectories.state_dim
     if min(trajectories.lengths) < 2:
         raise InputError(
             f"trajectories: expected at least 2 times per experiment to shoot between, got T = "
@@ -244,8 +234,34 @@ def fit_trajectories(
         options = dict(max_iter=max_iter, progress=progress)
         refined = _fit_relevance(gp, system, trajectories, residuals, n_obs, offsets, s2, propose=True, **options)
         refined = _sparser(refined, gp, system, trajectories, residuals, n_obs, offsets, options)
-        refined.refinement_ = recipe
-        return refined
+    else:
+        refined = _refined_targets(
+            gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter, progress, shooting
+        )
+    refined.refinement_ = recipe
+    return refined
+
+
+def _checked_options(gp, shooting, max_iter, relevance) -> tuple[int, bool]:
+    """``(max_iter, relevance)``: relevance by default for a feature kernel (term weights learned in feature space),
+    after refusing an unknown ``shooting``, a bad ``max_iter`` and relevance for another kernel."""
+    if not isinstance(shooting, str) or shooting not in SHOOTING:
+        raise InputError(f"shooting: expected one of {list(SHOOTING)}, got {shooting!r}")
+    max_iter = check_positive_int(max_iter, "max_iter")
+    relevance = check_flag(relevance, "relevance", none=True)
+    relevance_kernel = gp.kernel_spec.terms and gp.kernel_spec.feature_space  # term weights learned in feature space
+    relevance = relevance_kernel if relevance is None else relevance
+    if relevance and not relevance_kernel:
+        raise InputError(
+            f"relevance: expected a feature kernel (its term weights are re-estimated), got kernel {gp.kernel!r}"
+        )
+    return max_iter, relevance
+
+
+def _refined_targets(gp, system, trajectories, residuals, n_obs, offsets, s2, max_iter, progress, shooting):
+    """The MAP of the pseudo-targets (and initial-state offsets) given the observed states, by L-BFGS
+    (:func:`_maximise_posterior`), as a new :class:`CorrectionGP` with ``gp``'s hyperparameters and its records
+    (iterations, evaluations, right-hand-side evaluations, state noise, initial states)."""
     posterior = gp.posterior()  # its factor of C = K + diag(known noise + floor) is fixed; the targets are not
     X = gp.train_inputs_
     Y0 = gp.train_targets_.detach()
@@ -267,8 +283,8 @@ def fit_trajectories(
     refined.n_rhs_evaluations_ = residuals.nfe
     refined.state_noise_ = s2
     if offsets is not None:
+        d = trajectories.state_dim
         refined.initial_states_ = trajectories.initial_conditions + offsets.detach() * s2[:d].sqrt()
-    refined.refinement_ = recipe
     return refined
 
 

@@ -4,6 +4,7 @@ the state-noise level it finds in the data (:func:`estimate_state_noise`)."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -123,6 +124,23 @@ def gp_derivative(states, times, *, max_iter: int = 50) -> GPDerivative:
 GRID_BATCH_ENTRIES = 2**24
 
 
+@dataclass(frozen=True)
+class _Standardised:
+    """The states the GP in time is fitted to: the times ``t (K, T)`` in float64, each trajectory's mean ``level
+    (K, 1, d)`` subtracted and each component divided by its ``scale (d,)`` (``z (d, K, T)``, unit variance,
+    unobserved entries 0); the observed entries per component ``m (d, K, T)`` and their pairs ``pair (d, K, T, T)``
+    (``None`` when all are observed), the samples with an observed component ``rows (K, T)``, and the states' dtype."""
+
+    t: torch.Tensor
+    z: torch.Tensor
+    level: torch.Tensor
+    scale: torch.Tensor
+    m: torch.Tensor | None
+    pair: torch.Tensor | None
+    rows: torch.Tensor
+    dtype: torch.dtype
+
+
 def _gp_time(
     states: torch.Tensor,
     times: torch.Tensor,
@@ -139,7 +157,41 @@ def _gp_time(
     K, T, d = states.shape
     if mask is not None and mask.dim() == 2:
         mask = mask.unsqueeze(-1).expand(K, T, d)
-    counts = torch.full((K, d), T, device=states.device) if mask is None else mask.sum(1)  # (K, d)
+    _check_counts(mask, K, T, d, states.device)
+    data = _standardised(states, times, mask)
+    dt_min, span = _time_range(data)
+    start = _grid_start(data, dt_min, span)
+    log_params = start.clone().requires_grad_(True)
+    lo = torch.tensor([math.log(dt_min / 4), -12.0, -30.0], dtype=torch.float64, device=states.device)
+    hi = torch.tensor([math.log(20 * span), 8.0, 2.0], dtype=torch.float64, device=states.device)
+
+    def evaluate() -> tuple[torch.Tensor, torch.Tensor]:
+        value = -_gp_neg_mll(data.t, data.z, torch.maximum(torch.minimum(log_params, hi), lo), data.pair).sum()
+        # a failed factorization is -inf: no step is taken towards it (and no gradient is formed through it)
+        return value, (value if bool(torch.isfinite(value)) else 0.0 * log_params.sum())
+
+    maximise(
+        [log_params],
+        evaluate,
+        max_iter=max_iter,
+        normaliser=float(data.rows.sum()),
+        tolerance_grad=1e-6,
+        tolerance_change=1e-9,
+        history_size=10,
+        desc="GP in time",
+    )
+    with torch.no_grad():
+        p = torch.maximum(torch.minimum(log_params, hi), lo)
+        if not bool(torch.isfinite(_gp_neg_mll(data.t, data.z, p, data.pair)).all()):
+            p = start  # the optimiser wandered into a singular corner: keep the grid's best point
+        result, fitted = _time_posterior(data, p, values)
+    _finite_derivative(result.mean)
+    return (result, fitted) if values else result
+
+
+def _check_counts(mask: torch.Tensor | None, K: int, T: int, d: int, device) -> None:
+    """Refuse fewer than :data:`GP_MIN_SAMPLES` observed samples in an experiment (or a component of one)."""
+    counts = torch.full((K, d), T, device=device) if mask is None else mask.sum(1)  # (K, d)
     if int(counts.min()) < GP_MIN_SAMPLES:
         k, j = (int(i) for i in (counts == counts.min()).nonzero()[0])
         where = "" if mask is None else f" (experiment {k}" + (f", component {j})" if int(counts[k].min()) < T else ")")
@@ -147,12 +199,18 @@ def _gp_time(
             f"derivative='gp': expected at least {GP_MIN_SAMPLES} samples per trajectory, got T={int(counts.min())}"
             + where
         )
+
+
+def _standardised(states: torch.Tensor, times: torch.Tensor, mask: torch.Tensor | None) -> _Standardised:
+    """The states centred per trajectory and scaled per component (:class:`_Standardised`), after refusing a
+    component constant in every experiment (the GP in time has nothing to fit)."""
+    K, T, d = states.shape
     dtype, device = states.dtype, states.device
     t = times.to(torch.float64)
     if mask is None:
         y = states.to(torch.float64)
         w = torch.ones(K, T, 1, dtype=torch.float64, device=device)
-        pair = None
+        m = pair = None
         rows = torch.ones(K, T, dtype=torch.bool, device=device)
     else:
         y = torch.where(mask, states, torch.zeros((), dtype=dtype, device=device)).to(torch.float64)
@@ -160,7 +218,6 @@ def _gp_time(
         m = mask.permute(2, 0, 1)  # (d, K, T)
         pair = m.unsqueeze(-1) & m.unsqueeze(-2)  # (d, K, T, T)
         rows = mask.any(-1)  # (K, T): samples with an observed component
-    n = rows.sum()
     level = (w * y).sum(dim=1, keepdim=True) / w.sum(dim=1, keepdim=True)  # (K, 1, d): each trajectory's mean
     centred = (y - level) * w  # unobserved entries: 0
     scale = (centred.pow(2).sum(dim=(0, 1)) / w.sum(dim=(0, 1)).expand(d)).sqrt()  # (d,)
@@ -171,16 +228,31 @@ def _gp_time(
             "constant in every experiment; use derivative='central' for them or drop them"
         )
     z = (centred / scale).permute(2, 0, 1).contiguous()  # (d, K, T), unit variance
-    big = torch.tensor(math.inf, dtype=torch.float64, device=device)
+    return _Standardised(t, z, level, scale, m, pair, rows, dtype)
+
+
+def _time_range(data: _Standardised) -> tuple[float, float]:
+    """``(the shortest step between observed samples, the mean time span of the experiments)``: the bounds of the
+    lengthscale's search."""
+    t, rows = data.t, data.rows
+    big = torch.tensor(math.inf, dtype=torch.float64, device=t.device)
     first = torch.where(rows, t, big).amin(-1)
     last = torch.where(rows, t, -big).amax(-1)
     span = float((last - first).mean())
-    dt_min = min(float(t[k][rows[k]].diff().min()) for k in range(K) if int(rows[k].sum()) >= 2)
-    # Start: the best of a grid of lengthscales x noise levels (per component, all in one batch).
+    dt_min = min(float(t[k][rows[k]].diff().min()) for k in range(t.shape[0]) if int(rows[k].sum()) >= 2)
+    return dt_min, span
+
+
+def _grid_start(data: _Standardised, dt_min: float, span: float) -> torch.Tensor:
+    """``(d, 3)``: where L-BFGS starts, the best of a grid of lengthscales x noise levels per component (all in one
+    batch, in batches of about :data:`GRID_BATCH_ENTRIES` matrix entries)."""
+    t, z, pair = data.t, data.z, data.pair
+    d, K, T = z.shape
+    device = t.device
     ells = torch.logspace(math.log10(dt_min), math.log10(2 * span), 10, dtype=torch.float64, device=device)
     noises = torch.tensor([1e-8, 1e-5, 1e-3, 1e-1], dtype=torch.float64, device=device)
     grid = torch.cartesian_prod(ells.log(), noises.log())  # (G, 2)
-    with torch.no_grad():  # the G grid points x d components in batches of about GRID_BATCH_ENTRIES matrix entries
+    with torch.no_grad():  # the G grid points x d components
         G = grid.shape[0]
         p = torch.cat([grid[:, :1], torch.zeros_like(grid[:, :1]), grid[:, 1:]], -1).repeat_interleave(d, 0)
         step = max(1, GRID_BATCH_ENTRIES // (d * K * T * T))
@@ -195,59 +267,41 @@ def _gp_time(
                 for g0 in range(0, G, step)
             ]
         ).view(G, d)  # inf where a factorization failed
-        start = p.view(G, d, 3)[values_.argmin(0), torch.arange(d, device=device)]  # (d, 3)
-    log_params = start.clone().requires_grad_(True)
-    lo = torch.tensor([math.log(dt_min / 4), -12.0, -30.0], dtype=torch.float64, device=device)
-    hi = torch.tensor([math.log(20 * span), 8.0, 2.0], dtype=torch.float64, device=device)
+        return p.view(G, d, 3)[values_.argmin(0), torch.arange(d, device=device)]  # (d, 3)
 
-    def evaluate() -> tuple[torch.Tensor, torch.Tensor]:
-        value = -_gp_neg_mll(t, z, torch.maximum(torch.minimum(log_params, hi), lo), pair).sum()
-        # a failed factorization is -inf: no step is taken towards it (and no gradient is formed through it)
-        return value, (value if bool(torch.isfinite(value)) else 0.0 * log_params.sum())
 
-    maximise(
-        [log_params],
-        evaluate,
-        max_iter=max_iter,
-        normaliser=float(n),
-        tolerance_grad=1e-6,
-        tolerance_change=1e-9,
-        history_size=10,
-        desc="GP in time",
+def _time_posterior(data: _Standardised, p: torch.Tensor, values: bool):
+    """``(GPDerivative, posterior mean of the states (K, T, d) or None)``: the posterior of dy/dt (and, with
+    ``values``, of the states) at every time given the observed entries, at the log-parameters ``p (d, 3)``, in the
+    states' units and dtype."""
+    t, z, pair, scale, dtype = data.t, data.z, data.pair, data.scale, data.dtype
+    Kn, dK, ell2, os = _rbf_parts(t, p, pair)
+    L = cholesky(Kn, what="GP in time: K + noise I")
+    a = torch.cholesky_solve(z.unsqueeze(-1), L)  # (d, K, T, 1)
+    if pair is not None:  # the posterior at every time, from the observed entries only (unobserved: a = 0)
+        diff = (t.unsqueeze(-1) - t.unsqueeze(-2)).unsqueeze(0)
+        k = os * torch.exp(-0.5 * diff**2 / ell2)
+        col = data.m.unsqueeze(-2)  # (d, K, 1, T)
+        zero = torch.zeros((), dtype=k.dtype, device=k.device)
+        dK = torch.where(col, -diff / ell2 * k, zero)
+        k = torch.where(col, k, zero)
+    mean = (dK @ a).squeeze(-1)  # (d, K, T)
+    V = torch.linalg.solve_triangular(L, dK.transpose(-1, -2), upper=False)  # L^-1 dk_i in column i
+    var = (os.squeeze(-1) / ell2.squeeze(-1) - V.pow(2).sum(-2)).clamp_min(0.0)
+    s2 = scale.view(-1, 1, 1) ** 2
+    result = GPDerivative(
+        mean=(mean * scale.view(-1, 1, 1)).permute(1, 2, 0).to(dtype),
+        variance=(var * s2).permute(1, 2, 0).to(dtype),
+        lengthscale=torch.exp(p[:, 0]).to(dtype),
+        outputscale=(torch.exp(p[:, 1]) * scale**2).to(dtype),
+        noise=((_GP_NOISE_FLOOR + torch.exp(p[:, 2])) * scale**2).to(dtype),
     )
-    with torch.no_grad():
-        p = torch.maximum(torch.minimum(log_params, hi), lo)
-        if not bool(torch.isfinite(_gp_neg_mll(t, z, p, pair)).all()):
-            p = start  # the optimiser wandered into a singular corner: keep the grid's best point
-        Kn, dK, ell2, os = _rbf_parts(t, p, pair)
-        L = cholesky(Kn, what="GP in time: K + noise I")
-        a = torch.cholesky_solve(z.unsqueeze(-1), L)  # (d, K, T, 1)
-        if pair is not None:  # the posterior at every time, from the observed entries only (unobserved: a = 0)
-            diff = (t.unsqueeze(-1) - t.unsqueeze(-2)).unsqueeze(0)
-            k = os * torch.exp(-0.5 * diff**2 / ell2)
-            col = m.unsqueeze(-2)  # (d, K, 1, T)
-            zero = torch.zeros((), dtype=k.dtype, device=k.device)
-            dK = torch.where(col, -diff / ell2 * k, zero)
-            k = torch.where(col, k, zero)
-        mean = (dK @ a).squeeze(-1)  # (d, K, T)
-        V = torch.linalg.solve_triangular(L, dK.transpose(-1, -2), upper=False)  # L^-1 dk_i in column i
-        var = (os.squeeze(-1) / ell2.squeeze(-1) - V.pow(2).sum(-2)).clamp_min(0.0)
-        s2 = scale.view(-1, 1, 1) ** 2
-        result = GPDerivative(
-            mean=(mean * scale.view(-1, 1, 1)).permute(1, 2, 0).to(dtype),
-            variance=(var * s2).permute(1, 2, 0).to(dtype),
-            lengthscale=torch.exp(p[:, 0]).to(dtype),
-            outputscale=(torch.exp(p[:, 1]) * scale**2).to(dtype),
-            noise=((_GP_NOISE_FLOOR + torch.exp(p[:, 2])) * scale**2).to(dtype),
-        )
-        fitted = None
-        if values:
-            if pair is None:
-                diff = (t.unsqueeze(-1) - t.unsqueeze(-2)).unsqueeze(0)
-                k = os * torch.exp(-0.5 * diff**2 / ell2)
-            fitted = ((k @ a).squeeze(-1).permute(1, 2, 0) * scale + level).to(dtype)  # (K, T, d)
-    _finite_derivative(result.mean)
-    return (result, fitted) if values else result
+    if not values:
+        return result, None
+    if pair is None:
+        diff = (t.unsqueeze(-1) - t.unsqueeze(-2)).unsqueeze(0)
+        k = os * torch.exp(-0.5 * diff**2 / ell2)
+    return result, ((k @ a).squeeze(-1).permute(1, 2, 0) * scale + data.level).to(dtype)  # (K, T, d)
 
 
 def estimate_state_noise(trajectories: Trajectories) -> torch.Tensor | None:

@@ -294,94 +294,27 @@ def correction_samples(
             estimator, or non-finite samples (e.g. a state sitting on a singularity of G or F).
         ShapeError: the trajectories' state dimension differs from the system's.
     """
-    _check_trajectories_and_system(trajectories, system)
-    if not isinstance(derivative, str) or derivative not in DERIVATIVE_ESTIMATORS:
-        raise InputError(f"derivative: expected one of {list(DERIVATIVE_ESTIMATORS)}, got {derivative!r}")
-    noise = check_real(noise_std, "noise_std", minimum=0.0)
-    if generator is not None and not isinstance(generator, torch.Generator):
-        raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
-
+    noise = _checked_options(trajectories, system, derivative, noise_std, generator)
     short = [k for k, n in enumerate(trajectories.lengths) if n < MIN_DERIVATIVE_TIMES]
     if short and len(short) < trajectories.num_experiments and derivative != "oracle":  # too short to give samples
         options = dict(derivative=derivative, noise_std=noise_std, generator=generator, order=order, window=window)
         return _without_short(trajectories, system, short, degree=degree, **options)
-    variance = None
-    if derivative == "oracle":
-        if not system.has_correction:
-            raise InputError(
-                f"derivative='oracle': oracle derivatives need a system with a true correction F, and system "
-                f"'{system.name}' has none; use 'auto', 'central', 'smooth' or 'gp' for real data"
-            )
-        flat_states = trajectories.filled().flat_states()
-        check_finite(flat_states, "trajectories.states")
-        with torch.no_grad():  # data, not a graph: a G that is an nn.Module with parameters must not leak into them
-            if system.autonomous:
-                dydt = system.true_rhs(flat_states)
-            else:
-                flat_t = trajectories.flat_times().to(flat_states)
-                dydt = system.true_rhs(flat_states, flat_t, trajectories.flat_controls())
-    elif derivative == "auto":
-        name, options, errors = choose_derivative(trajectories, system)
-        ratio = errors[(name, tuple(sorted(options.items())))]
-        if ratio > ESTIMATOR_ERROR_THRESHOLD:  # NaN: not ranked (choose_derivative said why)
-            warn(
-                f"{ESTIMATOR_ADVICE} ({name} {options}) has an error on the known "
-                f"model of {ratio:.3g} times the size of the correction samples (threshold "
-                f"{ESTIMATOR_ERROR_THRESHOLD}): the learned correction would mostly fit estimator error. Fixes: "
-                "sample the states more densely in time, try another estimator (estimator_error tells which is "
-                "best), or fit the correction through the ODE with tms.fit_trajectories",
-                TorchMisspecWarning,
-            )
-        dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
-    elif derivative == "central":
-        name, options = "central", {"order": order}
-        dydt, _, flat_states = _estimate_flat(name, trajectories, options)
-    elif derivative == "smooth":
-        name, options = "smooth", {"window": window, "degree": degree}
-        dydt, _, flat_states = _estimate_flat(name, trajectories, options)
-    else:
-        name, options = "gp", {}
-        dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
-    used = " ".join([name, *(f"{k}={v}" for k, v in sorted(options.items()))]) if derivative != "oracle" else "oracle"
-
+    dydt, variance, flat_states, used = _derivatives(trajectories, system, derivative, order, window, degree)
     lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
     experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
     g = known_flat(system, trajectories, flat_states)
     u = trajectories.flat_controls()
-    if trajectories.has_missing:
-        keep = _sample_rows(trajectories, system)
-        if not bool(keep.any()):
-            raise InputError(
-                f"trajectories: expected some time at which every output component {list(system.correction_outputs)} "
-                "of the correction is observed (a sample needs them all), got none"
-            )
-        dydt, flat_states, experiment, g = dydt[keep], flat_states[keep], experiment[keep], g[keep]
-        variance = None if variance is None else variance[keep]
-        u = None if u is None else u[keep]
-    residuals = basis = t = None
-    linear = True
-    if system.parameters is not None:  # every component (theta's information), and G's basis in theta
-        residuals = dydt - g
-        t = None if system.autonomous else trajectories.flat_times().to(flat_states)
-        if trajectories.has_missing and t is not None:
-            t = t[keep]
-        basis, linear = parameter_basis(
-            lambda theta: system.at(theta).known_rhs(flat_states, t, u),
-            system.theta.to(flat_states),
-            system.parameters.scale.to(flat_states),
+    keep = _complete_rows(trajectories, system)
+    if keep is not None:
+        dydt, flat_states, experiment, g, variance, u = (
+            None if a is None else a[keep] for a in (dydt, flat_states, experiment, g, variance, u)
         )
-        basis = basis.detach()
+    residuals, basis, t, linear = _theta_parts(system, trajectories, flat_states, dydt, g, u, keep)
     targets = system.select_outputs(dydt - g)
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     sample_noise = None if variance is None else system.select_outputs(variance)
     if noise > 0:
-        eps = torch.randn(targets.shape, generator=generator, dtype=targets.dtype, device=targets.device)
-        targets = targets + noise * eps
-        check_finite(targets, f"correction samples with noise_std={noise_std!r} added")
-        if sample_noise is not None:
-            if not math.isfinite(noise * noise):  # its variance is added to the samples' own (noise**2 overflowed)
-                raise InputError(f"noise_std: expected a standard deviation whose square is finite, got {noise_std!r}")
-            sample_noise = sample_noise + noise * noise
+        targets, sample_noise = _with_noise(targets, sample_noise, noise, noise_std, generator)
     return CorrectionSamples(
         inputs=system.select_inputs(flat_states, u),
         targets=targets,
@@ -395,3 +328,113 @@ def correction_samples(
         parameters_linear=linear,
         derivative=used,
     )
+
+
+def _checked_options(trajectories, system, derivative, noise_std, generator) -> float:
+    """``noise_std`` as a float, after refusing bad trajectories or system, an unknown ``derivative``, a bad
+    ``noise_std`` and a ``generator`` that is not one."""
+    _check_trajectories_and_system(trajectories, system)
+    if not isinstance(derivative, str) or derivative not in DERIVATIVE_ESTIMATORS:
+        raise InputError(f"derivative: expected one of {list(DERIVATIVE_ESTIMATORS)}, got {derivative!r}")
+    noise = check_real(noise_std, "noise_std", minimum=0.0)
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise InputError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+    return noise
+
+
+def _derivatives(trajectories: Trajectories, system: MisspecifiedSystem, derivative: str, order, window, degree):
+    """``(dy/dt (N, d), its variance (N, d) or None, the states (N, d) filled by the estimator, the estimator's
+    name and options)`` for :func:`correction_samples`' ``derivative``."""
+    if derivative == "oracle":
+        dydt, flat_states = _oracle(trajectories, system)
+        return dydt, None, flat_states, "oracle"
+    if derivative == "auto":
+        name, options = _auto_estimator(trajectories, system)
+    elif derivative == "central":
+        name, options = "central", {"order": order}
+    elif derivative == "smooth":
+        name, options = "smooth", {"window": window, "degree": degree}
+    else:
+        name, options = "gp", {}
+    dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
+    if derivative in ("central", "smooth"):  # explicit stencils and local fits: no sample noise (auto: its choice's)
+        variance = None
+    return dydt, variance, flat_states, " ".join([name, *(f"{k}={v}" for k, v in sorted(options.items()))])
+
+
+def _oracle(trajectories: Trajectories, system: MisspecifiedSystem):
+    """``(dy/dt, states)``: the exact ``G(y) + F(y)`` at the states (missing entries filled), for a system with a true
+    correction."""
+    if not system.has_correction:
+        raise InputError(
+            f"derivative='oracle': oracle derivatives need a system with a true correction F, and system "
+            f"'{system.name}' has none; use 'auto', 'central', 'smooth' or 'gp' for real data"
+        )
+    flat_states = trajectories.filled().flat_states()
+    check_finite(flat_states, "trajectories.states")
+    with torch.no_grad():  # data, not a graph: a G that is an nn.Module with parameters must not leak into them
+        if system.autonomous:
+            return system.true_rhs(flat_states), flat_states
+        flat_t = trajectories.flat_times().to(flat_states)
+        return system.true_rhs(flat_states, flat_t, trajectories.flat_controls()), flat_states
+
+
+def _auto_estimator(trajectories: Trajectories, system: MisspecifiedSystem) -> tuple[str, dict]:
+    """``(name, options)``: the estimator :func:`choose_derivative` picks, with the warning (:data:`ESTIMATOR_ADVICE`)
+    when its self-checked error exceeds :data:`ESTIMATOR_ERROR_THRESHOLD` of the samples' size."""
+    name, options, errors = choose_derivative(trajectories, system)
+    ratio = errors[(name, tuple(sorted(options.items())))]
+    if ratio > ESTIMATOR_ERROR_THRESHOLD:  # NaN: not ranked (choose_derivative said why)
+        warn(
+            f"{ESTIMATOR_ADVICE} ({name} {options}) has an error on the known "
+            f"model of {ratio:.3g} times the size of the correction samples (threshold "
+            f"{ESTIMATOR_ERROR_THRESHOLD}): the learned correction would mostly fit estimator error. Fixes: "
+            "sample the states more densely in time, try another estimator (estimator_error tells which is "
+            "best), or fit the correction through the ODE with tms.fit_trajectories",
+            TorchMisspecWarning,
+        )
+    return name, options
+
+
+def _complete_rows(trajectories: Trajectories, system: MisspecifiedSystem) -> torch.Tensor | None:
+    """``(N,)`` the times at which every output component of the correction was observed (``None`` without missing
+    entries: every time), after refusing data with no such time."""
+    if not trajectories.has_missing:
+        return None
+    keep = _sample_rows(trajectories, system)
+    if not bool(keep.any()):
+        raise InputError(
+            f"trajectories: expected some time at which every output component {list(system.correction_outputs)} "
+            "of the correction is observed (a sample needs them all), got none"
+        )
+    return keep
+
+
+def _theta_parts(system, trajectories, flat_states, dydt, g, u, keep):
+    """``(residuals, basis, times, linear)``: with uncertain parameters, the residuals dy/dt - G(y) of every component
+    (theta's information), G's basis in theta at the samples (and whether G is linear in theta) and the samples'
+    times (non-autonomous systems); ``(None, None, None, True)`` without."""
+    if system.parameters is None:
+        return None, None, None, True
+    t = None if system.autonomous else trajectories.flat_times().to(flat_states)
+    if keep is not None and t is not None:
+        t = t[keep]
+    basis, linear = parameter_basis(
+        lambda theta: system.at(theta).known_rhs(flat_states, t, u),
+        system.theta.to(flat_states),
+        system.parameters.scale.to(flat_states),
+    )
+    return dydt - g, basis.detach(), t, linear
+
+
+def _with_noise(targets, sample_noise, noise: float, noise_std, generator):
+    """``(targets, their noise)`` with i.i.d. Gaussian noise of standard deviation ``noise`` added to the targets and
+    its variance to the samples' own noise (where they have one)."""
+    eps = torch.randn(targets.shape, generator=generator, dtype=targets.dtype, device=targets.device)
+    targets = targets + noise * eps
+    check_finite(targets, f"correction samples with noise_std={noise_std!r} added")
+    if sample_noise is not None:
+        if not math.isfinite(noise * noise):  # its variance is added to the samples' own (noise**2 overflowed)
+            raise InputError(f"noise_std: expected a standard deviation whose square is finite, got {noise_std!r}")
+        sample_noise = sample_noise + noise * noise
+    return targets, sample_noise

@@ -54,7 +54,13 @@ from ..._errors import InputError, NumericalWarning, warn
 from ..._linalg import cholesky
 from ...parameters import LARGER_CORRECTION, ParameterPosterior, Priors
 
-__all__ = ["parameter_posterior", "posterior_given", "condition_with_parameters", "GAUSS_NEWTON_STEPS"]
+__all__ = [
+    "parameter_posterior",
+    "posterior_given",
+    "condition_with_parameters",
+    "GAUSS_NEWTON_STEPS",
+    "PARAMETER_PASSES",
+]
 
 #: most Gauss-Newton steps of a nonlinear G's posterior per hyperparameter pass (each: one closed-form posterior)
 GAUSS_NEWTON_STEPS = 20
@@ -185,6 +191,30 @@ def _sd_larger_correction(gp, Hc: torch.Tensor, info_others: torch.Tensor, S: to
         info = info + Hc[:, o, :].T @ torch.cholesky_solve(Hc[:, o, :], L)
     A = torch.diag(1 / S) + info
     return torch.cholesky_inverse(torch.linalg.cholesky(0.5 * (A + A.T))).diagonal().clamp_min(0).sqrt()
+
+
+#: passes of the fit of G's uncertain parameters before the model is chosen: each fits the GP's hyperparameters on
+#: the samples at the current estimate of theta and updates theta's posterior (its mean moves the targets)
+PARAMETER_PASSES = 3
+
+
+def _parameter_passes(samples, system, template):
+    """``(theta's posterior, the correction samples)`` after :data:`PARAMETER_PASSES` alternations of the
+    hyperparameters of the GP ``template`` (by marginal likelihood on the samples at the current theta) and theta's
+    closed-form posterior given them (:func:`~torchmisspec.fit_correction` chooses F at its mean); for a G nonlinear
+    in theta, each pass's posterior is Gauss-Newton's to convergence (the samples linearised at each step's mean, the
+    module's notes), and the samples come back linearised at the last mean. The posterior's
+    ``sd_larger_correction`` is the largest over the passes: the first fits F to the residuals at the prior mean,
+    where F carries all that is missing, and a later pass may shrink F once theta takes that up (the trade-off it
+    exists to report)."""
+    outputs, posterior, seen = system.correction_outputs, None, None
+    for _ in range(PARAMETER_PASSES):
+        delta = None if posterior is None else posterior.mean - system.theta
+        moved = samples if delta is None else samples.shifted(delta, outputs)
+        model = template.clone().fit(moved.inputs, moved.targets, noise=moved.noise)
+        posterior, samples = posterior_given(model, samples, system, delta)
+        posterior = seen = posterior.absorbing(seen)
+    return posterior, samples
 
 
 def _noise(gp, Hc: torch.Tensor) -> torch.Tensor:
