@@ -374,7 +374,8 @@ def test_a_campaign_refuses_uncertain_parameters_without_their_estimate_with_the
 
 def test_sd_with_a_larger_correction_matches_brute_force(problem):
     """``sd_larger_correction`` (issue 42, item 3): theta's posterior sd with F's prior variance LARGER_CORRECTION
-    times the fitted one, against the hand-written Gaussian conditioning with that K; near the prior's where F can
+    times the fitted one or what 2 prior sd of a parameter make to G, whichever is larger, against the hand-written
+    Gaussian conditioning with that K; near the prior's where F can
     stand in for the parameter (a basis that is a smooth function of F's input alone), well inside it where the
     basis also moves a component F does not act on."""
     from torchmisspec.parameters import LARGER_CORRECTION
@@ -384,8 +385,10 @@ def test_sd_with_a_larger_correction_matches_brute_force(problem):
     post = parameter_posterior(gp, residuals, basis, [1], priors)
     other = {0: float((residuals[:, 0] ** 2).sum()) / (X.shape[0] - 2)}
     K = gp.covar_module(X, X).to_dense().detach()
-    C = LARGER_CORRECTION * K + gp.noise_variance * torch.eye(X.shape[0], dtype=D)
     H1, H0 = basis[:, 1, :], basis[:, 0, :]
+    size = K.diagonal().mean()
+    a = max(LARGER_CORRECTION * size, 4 * float((priors.scale**2 * H1.pow(2).mean(0)).max()))
+    C = a * K / size + gp.noise_variance * torch.eye(X.shape[0], dtype=D)
     info = H1.T @ torch.linalg.solve(C, H1) + H0.T @ H0 / other[0]
     want = torch.linalg.inv(torch.diag(priors.scale**-2) + info).diagonal().sqrt()
     torch.testing.assert_close(post.sd_larger_correction, want, rtol=1e-6, atol=1e-12)

@@ -43,7 +43,8 @@ IDENTIFIED_RATIO = 0.5
 #: parameters whose posterior correlation exceeds this in absolute value are reported as only jointly determined
 CORRELATION_LIMIT = 0.95
 #: how much larger (in variance) a correction is allowed to be in the check of whether F can stand in for a
-#: parameter: the data must still determine theta_k when F's prior variance is this many times the fitted one
+#: parameter: the data must still determine theta_k when F's prior variance is this many times the fitted one (and
+#: at least what a change of 2 prior standard deviations in a parameter makes to G)
 LARGER_CORRECTION = 100.0
 #: relative tolerance of the numerical check that G is linear in its uncertain parameters
 LINEARITY_TOLERANCE = 1e-6
@@ -155,7 +156,8 @@ class ParameterPosterior:
         linear: whether G is linear in theta (else the posterior is the Laplace approximation at the MAP, and
             :attr:`log_evidence` the linearised model's).
         sd_larger_correction: per parameter, the posterior standard deviation the same samples would give with F's
-            prior variance :data:`LARGER_CORRECTION` times the fitted one ``(k,)``: near the prior's where F could
+            prior variance :data:`LARGER_CORRECTION` times the fitted one, and at least what a change of 2 prior
+            standard deviations in a parameter makes to G ``(k,)``: near the prior's where F could
             stand in for the parameter had it been allowed to be larger (its fitted size, not the data, then decides
             the parameter); ``None`` where the fit did not compute it.
     """
@@ -189,13 +191,16 @@ class ParameterPosterior:
 
     @property
     def absorbable(self) -> tuple[bool, ...]:
-        """Per parameter: whether F could stand in for it: with F allowed :data:`LARGER_CORRECTION` times its fitted
-        variance, the data would leave it undetermined (:attr:`sd_larger_correction` above :data:`IDENTIFIED_RATIO`
-        of the prior's)."""
+        """Per parameter: whether F could stand in for it: with F allowed to be larger, the data would leave it
+        undetermined (:attr:`sd_larger_correction` above :data:`IDENTIFIED_RATIO` of the prior's), and F is the
+        reason (at least twice :attr:`sd_without_correction`: a parameter the samples inform weakly with or without
+        F is not one F absorbs)."""
         if self.sd_larger_correction is None:
             return (False,) * len(self.names)
-        limit = IDENTIFIED_RATIO * self.prior_scale.to(self.sd_larger_correction)
-        return tuple(bool(v) for v in (self.sd_larger_correction > limit))
+        larger = self.sd_larger_correction
+        wide = larger > IDENTIFIED_RATIO * self.prior_scale.to(larger)
+        by_f = larger >= 2 * self.sd_without_correction.to(larger)
+        return tuple(bool(v) for v in (wide & by_f))
 
     @property
     def identified(self) -> tuple[bool, ...]:

@@ -175,9 +175,11 @@ def condition_with_parameters(gp, samples, system, delta=None):
 
 
 def _sd_larger_correction(gp, Hc: torch.Tensor, info_others: torch.Tensor, S: torch.Tensor) -> torch.Tensor | None:
-    """theta's posterior standard deviations ``(k,)`` with F's prior variance :data:`LARGER_CORRECTION` times the
-    fitted one (C = a K + diag(noise) on each corrected output): where a larger F could stand in for a parameter, the
-    data leave it near its prior. ``None`` where the dense training covariance is out of reach (many samples)."""
+    """theta's posterior standard deviations ``(k,)`` with F allowed to be larger on each corrected output: its
+    prior variance :data:`LARGER_CORRECTION` times the fitted one, and at least what a change of 2 prior standard
+    deviations in any parameter makes to G there (C = a K / mean diag K + diag(noise)). Where such an F could stand in
+    for a parameter, the data leave it near its prior. ``None`` where the dense training covariance is out of reach
+    (many samples)."""
     try:
         K, diag = gp._kernel_parts(gp.train_inputs_, gp.train_noise_)
     except InputError:
@@ -185,9 +187,11 @@ def _sd_larger_correction(gp, Hc: torch.Tensor, info_others: torch.Tensor, S: to
     K, diag, info = K.detach().to(Hc), diag.detach().to(Hc), info_others.clone()
     n = Hc.shape[0]
     for o in range(Hc.shape[1]):
-        C = LARGER_CORRECTION * K[min(o, K.shape[0] - 1)]
-        C = C + torch.diag(diag[min(o, diag.shape[0] - 1)].expand(n))
-        L = cholesky(C)
+        Ko = K[min(o, K.shape[0] - 1)]
+        size = Ko.diagonal().mean().clamp_min(1e-300)
+        effect = 4 * (S * Hc[:, o, :].pow(2).mean(0)).max()  # (2 prior sd x g_k)^2, the largest parameter's
+        C = torch.maximum(LARGER_CORRECTION * size, effect) * Ko / size
+        L = cholesky(C + torch.diag(diag[min(o, diag.shape[0] - 1)].expand(n)))
         info = info + Hc[:, o, :].T @ torch.cholesky_solve(Hc[:, o, :], L)
     A = torch.diag(1 / S) + info
     return torch.cholesky_inverse(torch.linalg.cholesky(0.5 * (A + A.T))).diagonal().clamp_min(0).sqrt()
