@@ -111,6 +111,19 @@ def test_parameters_study_smoke(tmp_path):
 
 
 @pytest.mark.slow
+def test_absorbed_study_smoke(tmp_path):
+    """Issue 42, item 3: the half-life F can stand in for is warned about and not reported identified (the known
+    model alone is returned there, and its narrow posterior sits far from the truth); the yield and the feed, which
+    F cannot absorb, are identified."""
+    out = tmp_path / "a.json"
+    stdout = _script("study_absorbed.py", "--smoke", "--json", str(out))
+    (run,) = json.loads(out.read_text())["runs"]
+    assert run["warned_h"] and run["identified"] == [False, True, True]
+    assert run["rmse"] < run["rmse_known"]
+    assert "h warned not determined" in stdout
+
+
+@pytest.mark.slow
 def test_input_design_study_smoke(tmp_path):
     out = tmp_path / "i.json"
     stdout = _script("study_input_design.py", "--smoke", "--json", str(out))
