@@ -172,7 +172,6 @@ MAX_PARAMETERS = 14
 #: functions still over MAX_FUNCTION_LINES, each capped at its size (a cap may only go down; being split)
 LONG_FUNCTIONS: dict[str, int] = {
     "design/_campaign.py:load": 81,
-    "design/_greedy.py:_lazy": 109,
     "design/_greedy.py:greedy": 82,
     "design/_common.py:__init__": 90,
 }

@@ -206,6 +206,112 @@ def sample_size(n: int, budget: int, epsilon: float) -> int:
     return min(n, math.ceil(n / budget * math.log(1.0 / epsilon)))
 
 
+class _LazyGreedy:
+    """Lazy (or stochastic) greedy's state: stale upper bounds, the growing factor L_S and the optional screening."""
+
+    def __init__(self, prob: _Problem, batch_size: int, screen: bool, max_rank: int, sample, generator) -> None:
+        self.prob, self.batch_size, self.sample, self.generator = prob, batch_size, sample, generator
+        self.kern, self.P, self.T, self.K, self.half = prob.kern, prob.points, prob.T, prob.budget, 0.5 * prob.d_out
+        P, K, T, N = self.P, self.K, self.T, prob.n
+        self.d_in, self.noise, self.dev = P.shape[-1], self.kern.noise, P.device
+        self.Kcc = self.kern.block_diagonal(P)  # (N, T, T), kept: every exact evaluation needs its candidate's block
+        ld0, _ = logdet_identity_plus(self.Kcc.clone(), self.noise, "I + K_cc / noise_variance")
+        self.ub = self.half * ld0  # (N,) upper bound on every candidate's current gain (exact for S = {})
+        # level of ub in the current step: 0 stale (an earlier step's bound), 1 fresh feature bound, 2 fresh exact
+        self.level = torch.full((N,), 2, dtype=torch.int8, device=self.dev)
+        self.L = P.new_zeros(K * T, K * T)  # Cholesky factor of K_SS + sigma^2 I, grown block by block
+        self.PS = P.new_empty(K * T, self.d_in)  # proxy points of S
+        low = LowRank(prob, max_rank) if screen and K > 1 else None
+        self.info = {} if low is None else {"rank": low.rank, "screening": low.useful}
+        self.low = low if low is not None and low.useful else None
+        if sample is not None:
+            self.info["sample_size"] = sample
+        self.evaluations, self.n_bounds = N, 0
+        self.neg_inf = torch.tensor(-math.inf, dtype=P.dtype, device=self.dev)
+
+    def evaluate(self, idx: torch.Tensor, m: int, Lm: torch.Tensor):
+        """Exact gains of candidates ``idx (b,)`` given the m selected proxy points (factor Lm): gains, V, chol."""
+        T, d_in = self.T, self.d_in
+        Sig = self.Kcc[idx]
+        V = None
+        if m > 0:
+            b = idx.shape[0]
+            KSc = self.kern(self.PS[:m], self.P[idx].reshape(b * T, d_in))  # (m, b T)
+            V = torch.linalg.solve_triangular(Lm, KSc, upper=False).reshape(m, b, T).permute(1, 0, 2)
+            Sig = Sig - V.transpose(1, 2) @ V
+        ld, C = logdet_identity_plus(Sig, self.noise, "I + Sigma_{c|S} / noise_variance")
+        return self.half * ld, V, C
+
+    def draw(self, avail: torch.Tensor) -> torch.Tensor:
+        """Stochastic greedy: only a random subset of ``sample`` of the available candidates competes this step."""
+        if self.sample is None or self.sample >= int(avail.sum()):
+            return avail
+        gen = self.generator
+        ids = avail.nonzero().squeeze(1)
+        # drawn on the generator's own device (a CPU or a GPU generator), the same draws for the same seed there
+        drawn = ids[torch.randperm(ids.shape[0], generator=gen, device=gen.device)[: self.sample].to(self.dev)]
+        avail = torch.zeros_like(avail)
+        avail[drawn] = True
+        return avail
+
+    def tighten(self, open_: torch.Tensor, b_bound: int, m: int) -> None:
+        """Replace the top stale bounds by the (tighter, still rigorous) feature bounds of the screening."""
+        sel = open_ & (self.level == 0)
+        idx = torch.topk(torch.where(sel, self.ub, self.neg_inf), min(b_bound, int(sel.sum()))).indices
+        self.ub[idx] = torch.minimum(self.ub[idx], self.low.bounds(idx, m))
+        self.level[idx] = 1
+        self.n_bounds += idx.shape[0]
+
+    def search(self, avail: torch.Tensor, m: int, Lm: torch.Tensor, use_low: bool) -> tuple[int, list[tuple]]:
+        """One pick: re-evaluate the bounds that could still win (doubling batches) until the best exact gain wins."""
+        prob, ub, level = self.prob, self.ub, self.level
+        batches: list[tuple] = []  # (idx, V, C) of this step's exact evaluations; only the pick's rows are kept
+        b_exact, b_bound = self.batch_size, max(64, self.batch_size)
+        while True:
+            done = avail & (level == 2)
+            best = float(ub[done].max()) if bool(done.any()) else -math.inf
+            thr = prob.threshold(best) if best > -math.inf else -math.inf
+            open_ = avail & (level < 2) & (ub >= thr)
+            if not bool(open_.any()):
+                break
+            vals = torch.where(open_, ub, self.neg_inf)
+            top = int(torch.argmax(vals))
+            if use_low and int(level[top]) == 0:  # tighten the stale bounds at the top first
+                self.tighten(open_, b_bound, m)
+                b_bound *= 2
+                continue
+            cap = max(1, CHUNK_BYTES // (8 * max(m, 1) * self.T))
+            idx = torch.topk(vals, min(b_exact, int(open_.sum()), cap)).indices
+            g, V, C = self.evaluate(idx, m, Lm)
+            self.evaluations += idx.shape[0]
+            ub[idx] = g
+            level[idx] = 2
+            batches.append((idx, V, C))
+            b_exact *= 2  # many bounds above the best: widen the next batch
+        return _first_at_least(ub, done, thr), batches
+
+    def factor_row(self, n: int, batches: list[tuple], m: int, Lm: torch.Tensor):
+        """The pick's v = L_S^-1 K_Sn and chol(I + Sigma_{n|S} / sigma^2), from its latest exact evaluation."""
+        for idx, Vb, Cb in reversed(batches):  # a few batches per step
+            hit = (idx == n).nonzero()
+            if hit.numel():
+                j = int(hit[0, 0])
+                return (None if Vb is None else Vb[j]), Cb[j]
+        # step 0: the initial pass kept only the gains
+        _, Vb, Cb = self.evaluate(torch.tensor([n], device=self.dev), m, Lm)
+        return (None if Vb is None else Vb[0]), Cb[0]
+
+    def grow(self, n: int, m: int, v, C) -> None:
+        """Grow L_S by the block row [v_n^T, chol(Sigma_{n|S} + sigma^2 I)] (a Schur-complement update)."""
+        T = self.T
+        if v is not None:
+            self.L[m : m + T, :m] = v.T
+        self.L[m : m + T, m : m + T] = math.sqrt(self.noise) * C
+        self.PS[m : m + T] = self.P[n]
+        if self.low is not None:
+            self.low.add(n)
+
+
 def _lazy(
     prob: _Problem,
     batch_size: int,
@@ -215,111 +321,35 @@ def _lazy(
     sample: int | None = None,
     generator: torch.Generator | None = None,
 ) -> tuple[list[int], list[float], int, dict]:
-    kern, P, T, K, half = prob.kern, prob.points, prob.T, prob.budget, 0.5 * prob.d_out
-    d_in, noise, N = P.shape[-1], kern.noise, prob.n
-    dev = P.device
-    Kcc = kern.block_diagonal(P)  # (N, T, T), kept: every exact evaluation needs its candidate's block
-    ld0, _ = logdet_identity_plus(Kcc.clone(), noise, "I + K_cc / noise_variance")
-    ub = half * ld0  # (N,) upper bound on every candidate's current gain (exact for S = {})
-    # level of ub in the current step: 0 stale (an earlier step's bound), 1 fresh feature bound, 2 fresh exact
-    level = torch.full((N,), 2, dtype=torch.int8, device=dev)
-    L = P.new_zeros(K * T, K * T)  # Cholesky factor of K_SS + sigma^2 I, grown block by block
-    PS = P.new_empty(K * T, d_in)  # proxy points of S
-    low = LowRank(prob, max_rank) if screen and K > 1 else None
-    info = {} if low is None else {"rank": low.rank, "screening": low.useful}
-    if low is not None and not low.useful:
-        low = None
+    """Lazy greedy (Algorithm 2), or stochastic greedy with ``sample`` candidates drawn per pick."""
+    eng = _LazyGreedy(prob, batch_size, screen, max_rank, sample, generator)
+    K, T, low = prob.budget, prob.T, eng.low
     feas = _Feasible(prob)
-    evaluations, n_bounds = N, 0
-    neg_inf = torch.tensor(-math.inf, dtype=P.dtype, device=dev)
     picks, gains = [], []
-    bar = progress_bar(progress, K, f"{'stochastic' if sample else 'lazy'} greedy (N={N})", "pick")
-    if sample is not None:
-        info["sample_size"] = sample
-
-    def evaluate(idx: torch.Tensor, m: int, Lm: torch.Tensor):
-        """Exact gains of candidates ``idx (b,)`` given the m selected proxy points (factor Lm): gains, V, chol."""
-        Sig = Kcc[idx]
-        V = None
-        if m > 0:
-            b = idx.shape[0]
-            KSc = kern(PS[:m], P[idx].reshape(b * T, d_in))  # (m, b T)
-            V = torch.linalg.solve_triangular(Lm, KSc, upper=False).reshape(m, b, T).permute(1, 0, 2)
-            Sig = Sig - V.transpose(1, 2) @ V
-        ld, C = logdet_identity_plus(Sig, noise, "I + Sigma_{c|S} / noise_variance")
-        return half * ld, V, C
-
+    bar = progress_bar(progress, K, f"{'stochastic' if sample else 'lazy'} greedy (N={prob.n})", "pick")
     for k in range(K):
         m = k * T
-        batches: list[tuple] = []  # (idx, V, C) of this step's exact evaluations; only the pick's rows are kept
-        avail = feas.mask()
-        if sample is not None and sample < int(avail.sum()):  # stochastic greedy: the best of a random subset
-            ids = avail.nonzero().squeeze(1)
-            # drawn on the generator's own device (a CPU or a GPU generator), the same draws for the same seed there
-            drawn = ids[torch.randperm(ids.shape[0], generator=generator, device=generator.device)[:sample].to(dev)]
-            avail = torch.zeros_like(avail)
-            avail[drawn] = True
+        avail = eng.draw(feas.mask())
         if k > 0:
-            level.zero_()
-        b_exact = batch_size
-        b_bound = max(64, batch_size)
+            eng.level.zero_()
         # a feature bound costs ~ r^2 T, an exact gain ~ m^2 T: screen only once the exact gains cost more
         use_low = low is not None and m * m > 2 * low.rank * low.rank and low.slack(m) <= 1e-2 * abs(gains[-1])
-        Lm = L[:m, :m].contiguous()
-        while True:
-            done = avail & (level == 2)
-            best = float(ub[done].max()) if bool(done.any()) else -math.inf
-            thr = prob.threshold(best) if best > -math.inf else -math.inf
-            open_ = avail & (level < 2) & (ub >= thr)
-            if not bool(open_.any()):
-                break
-            vals = torch.where(open_, ub, neg_inf)
-            top = int(torch.argmax(vals))
-            if use_low and int(level[top]) == 0:  # tighten the stale bounds at the top first
-                sel = open_ & (level == 0)
-                idx = torch.topk(torch.where(sel, ub, neg_inf), min(b_bound, int(sel.sum()))).indices
-                ub[idx] = torch.minimum(ub[idx], low.bounds(idx, m))
-                level[idx] = 1
-                n_bounds += idx.shape[0]
-                b_bound *= 2
-                continue
-            cap = max(1, CHUNK_BYTES // (8 * max(m, 1) * T))
-            idx = torch.topk(vals, min(b_exact, int(open_.sum()), cap)).indices
-            g, V, C = evaluate(idx, m, Lm)
-            evaluations += idx.shape[0]
-            ub[idx] = g
-            level[idx] = 2
-            batches.append((idx, V, C))
-            b_exact *= 2  # many bounds above the best: widen the next batch
-        n = _first_at_least(ub, done, thr)
-        v = C = None
-        for idx, Vb, Cb in reversed(batches):  # the pick's latest exact evaluation (a few batches per step)
-            hit = (idx == n).nonzero()
-            if hit.numel():
-                j = int(hit[0, 0])
-                v, C = (None if Vb is None else Vb[j]), Cb[j]
-                break
-        else:  # step 0: the initial pass kept only the gains
-            _, Vb, Cb = evaluate(torch.tensor([n], device=dev), m, Lm)
-            v, C = (None if Vb is None else Vb[0]), Cb[0]
+        Lm = eng.L[:m, :m].contiguous()
+        n, batches = eng.search(avail, m, Lm, use_low)
+        v, C = eng.factor_row(n, batches, m, Lm)
         picks.append(n)
-        gains.append(float(ub[n]))
+        gains.append(float(eng.ub[n]))
         feas.add(n)
-        if k + 1 < K:  # grow L_S by the block row [v_n^T, chol(Sigma_{n|S} + sigma^2 I)]
-            if v is not None:
-                L[m : m + T, :m] = v.T
-            L[m : m + T, m : m + T] = math.sqrt(noise) * C
-            PS[m : m + T] = P[n]
-            if low is not None:
-                low.add(n)
+        if k + 1 < K:
+            eng.grow(n, m, v, C)
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(gain=f"{gains[-1]:.4g}", evals=evaluations)
+            bar.set_postfix(gain=f"{gains[-1]:.4g}", evals=eng.evaluations)
     if bar is not None:
         bar.close()
     if low is not None:
-        info.update(residual=low.e_max, bounds=n_bounds)
-    return picks, gains, evaluations, info
+        eng.info.update(residual=low.e_max, bounds=eng.n_bounds)
+    return picks, gains, eng.evaluations, eng.info
 
 
 # ------------------------------------------------------------------------------------- plain (vectorised) greedy
