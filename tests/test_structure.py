@@ -171,9 +171,7 @@ MAX_FUNCTION_LINES = 80
 MAX_PARAMETERS = 14
 #: functions still over MAX_FUNCTION_LINES, each capped at its size (a cap may only go down; being split)
 LONG_FUNCTIONS: dict[str, int] = {
-    "design/_campaign.py:load": 81,
     "design/_greedy.py:greedy": 82,
-    "design/_common.py:__init__": 90,
 }
 #: public calls still over MAX_PARAMETERS, each capped at its count (a cap may only go down; being regrouped)
 MANY_PARAMETERS: dict[str, int] = {
