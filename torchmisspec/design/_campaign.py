@@ -37,6 +37,7 @@ from . import _campaign_data as plain
 from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
 from ._greedy import greedy
+from ._options import DomainCriterion, Proxy
 from ._proxy import PROXIES
 from ._readings import campaign_criterion
 
@@ -262,11 +263,6 @@ class Campaign:
             mask[[int((remaining == p).nonzero()[0, 0]) for p in picks]] = False
             pool = remaining[mask]
             proxy = self.config["proxy"] or ("corrected" if self.gp.is_fitted else "known")
-            domain = (
-                {"domain": self.config["domain"], "domain_size": self.config["domain_size"]}
-                if self.config["criterion"] == "domain"
-                else {}
-            )  # with the information criterion the domain only scores the error over D in tell
             plan = greedy(
                 self.candidates[pool],
                 k - n_pilot,
@@ -274,10 +270,9 @@ class Campaign:
                 times=self.times,
                 gp=self.gp,
                 criterion=self._criterion(),
-                proxy=proxy,
+                proxy=Proxy(proxy),
                 controls=None if self.controls is None else self.controls[pool.tolist()],
                 executor=self.executor,
-                **domain,
             )
             picks += pool[plan.indices.cpu()].tolist()
             gains += plan.gains.tolist()
@@ -286,8 +281,13 @@ class Campaign:
         return picks, gains, info
 
     def _criterion(self):
-        """The configured criterion, or the readings' one when the data carry a readout (:func:`campaign_criterion`)."""
-        return campaign_criterion(self.config["criterion"], self.data, self.gp, self.system)
+        """The configured criterion (the domain's with its box and quadrature), or the readings' one when the data
+        carry a readout (:func:`campaign_criterion`). With the information criterion the domain only scores the
+        error over D in :meth:`tell`."""
+        cfg = self.config
+        if cfg["criterion"] == "domain":
+            return DomainCriterion(cfg["domain"], cfg["domain_size"])
+        return campaign_criterion(cfg["criterion"], self.data, self.gp, self.system)
 
     # --------------------------------------------------------------------------------------------- tell
     def _match(self, y0: torch.Tensor, pending: list[int], profile=None) -> int:

@@ -44,7 +44,7 @@ import time
 import torch
 
 from .._errors import InputError
-from .._validation import check_flag, check_positive_int, check_real, progress_bar
+from .._validation import check_flag, progress_bar
 from ..gp import CorrectionGP
 from ..parallel import adaptive_threads, check_executor
 from ..systems import MisspecifiedSystem
@@ -60,6 +60,7 @@ from ._common import (
     logdet_identity_plus,
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
+from ._options import DomainCriterion, Engine, Partition, Proxy
 from ._proxy import choose_proxy, proxy_paths
 from ._readings import ReadoutCriterion, readout_design
 from ._screening import CHUNK_BYTES, LowRank
@@ -67,7 +68,6 @@ from ._screening import CHUNK_BYTES, LowRank
 __all__ = ["greedy"]
 
 METHODS = ("lazy", "plain", "naive", "stochastic")
-EPSILON = 0.01  # method="stochastic": the default epsilon of the (1 - 1/e - epsilon) guarantee
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank) ...
 SCREEN_MIN_RANK = 64  # ... but never fewer features than this: at 10^5 candidates 256 MiB allow only 16, too few
@@ -109,11 +109,6 @@ class _Problem:
         self.domain = None
         if criterion == "domain":
             self.domain = DomainModel(self.kern, self.system, domain, domain_size)
-        elif domain is not None or domain_size is not None:
-            raise InputError(
-                "domain / domain_size: expected criterion='domain' with them (only it uses them), got "
-                "criterion='information'"
-            )
         self.candidates = check_candidates(candidates, self.system)
         n = self.candidates.shape[0]
         controls = self.system.check_controls(controls, n)  # one profile per candidate (a system with inputs)
@@ -441,22 +436,13 @@ def greedy(
     times=None,
     gp: CorrectionGP,
     method: str = "lazy",
-    partition=None,
-    capacities=None,
-    proxies=None,
-    progress: bool = False,
-    batch_size: int = 16,
-    tie_tol: float = 1e-9,
-    screen: bool | str = "auto",
-    max_rank: int | None = None,
+    criterion: str | DomainCriterion | ReadoutCriterion = "information",
+    partition: Partition | None = None,
+    proxy: Proxy | None = None,
     condition: bool | None = None,
-    proxy: str | None = None,
-    criterion: str = "information",
-    domain=None,
-    domain_size: int | None = None,
     controls=None,
-    epsilon: float = EPSILON,
-    generator: torch.Generator | None = None,
+    engine: Engine | None = None,
+    progress: bool = False,
     executor=None,
 ) -> DesignResult:
     """Choose ``budget`` initial conditions among ``candidates`` maximising the proxy information gain.
@@ -468,9 +454,9 @@ def greedy(
     the *proxy* criterion:
 
     * cardinality budget: ``f(greedy) >= (1 - 1/e) f(optimum)`` (Nemhauser, Wolsey, Fisher 1978);
-    * partition-matroid budget (at most ``capacities[r]`` picks in region r): plain greedy guarantees only
-      ``f(greedy) >= 1/2 f(optimum)`` (Fisher, Nemhauser, Wolsey 1978); the (1 - 1/e) algorithms for matroids
-      (continuous greedy, Calinescu et al. 2007) are not implemented.
+    * partition-matroid budget (:class:`Partition`: at most ``capacities[r]`` picks in region r): plain greedy
+      guarantees only ``f(greedy) >= 1/2 f(optimum)`` (Fisher, Nemhauser, Wolsey 1978); the (1 - 1/e) algorithms
+      for matroids (continuous greedy, Calinescu et al. 2007) are not implemented.
 
     * stochastic greedy (``method="stochastic"``, Mirzasoleiman et al. 2015, "Lazier than lazy greedy"), cardinality
       budget only: each pick is the best of ``ceil((N / K) ln(1 / epsilon))`` candidates drawn at random (lazy
@@ -488,58 +474,41 @@ def greedy(
         budget: number of experiments K to choose, 1 <= K <= N (and <= what the capacities allow).
         system: the misspecified system (known model G, correction inputs and outputs; d_out = system.output_dim).
         times: ``(T,)`` strictly increasing observation times; the first is the time of the initial condition.
-            May be omitted when ``proxies`` is given.
+            May be omitted when ``Proxy(paths=...)`` is given.
         gp: :class:`CorrectionGP` with a shared kernel whose hyperparameters are set (given, or fitted on earlier
             data); its kernel is evaluated on the proxy points restricted to ``system.correction_inputs``.
         method: ``"lazy"`` (Algorithm 2, the default), ``"plain"`` (Algorithm 1, vectorised over candidates) or
             ``"naive"`` (Algorithm 1 with fresh log-determinants, the reference): all three pick the same set; or
-            ``"stochastic"`` (the best of a random draw per pick, see above; ``epsilon`` and ``generator``).
-        partition: optional ``(N,)`` integer region label per candidate; with ``capacities`` a partition matroid.
-        capacities: most picks per region: a mapping label -> count, or a sequence indexed by label.
-        proxies: optional ``(N, T, d)`` trajectories to use instead of :func:`proxy_trajectories` (e.g. the
-            agnostic design passes the constant trajectories).
-        progress: show tqdm progress bars over the proxies' chunks (many candidates) and the picks.
-        batch_size: lazy greedy's first batch of re-evaluations per pick (doubling while needed; same picks for
-            any value).
-        tie_tol: relative tolerance under which two gains tie; ties go to the lowest candidate index.
-        screen: lazy greedy only: tighten the stale bounds with a low-rank feature model of the kernel (rigorous
-            bounds, same picks, much faster for smooth kernels and many candidates); ``"auto"`` screens from 1000
-            candidates on. The features' rank and residual are reported in ``result.diagnostics``.
-        max_rank: most features for the screening (default: what fits in 256 MiB, at least 64 and at most 1024;
-            the features take ``8 N T r`` bytes for the rank r used, e.g. 0.7 GB for N = 10^5, T = 20, r = 46).
+            ``"stochastic"`` (the best of a random draw per pick, see above; :class:`Engine`'s ``epsilon`` and
+            ``generator``).
+        criterion: ``"information"`` (the paper's: information about F anywhere, monotone submodular, the
+            guarantees above); a :class:`DomainCriterion` (or ``"domain"``, its defaults): the mean posterior
+            variance of F over a box D that the samples remove, which aims the design at D but is not submodular
+            (no (1 - 1/e) guarantee; ``method="lazy"`` then evaluates every remaining gain, the same picks as
+            ``"plain"``); or a :class:`~torchmisspec.design.ReadoutCriterion`: experiments that read only
+            combinations H y of the states (a :class:`~torchmisspec.Readout`), scored by the information about F
+            of their noisy readings, linearised through the ODE along the proxy paths (monotone submodular: the
+            guarantees above hold; see :mod:`torchmisspec.design._readings`). It computes its own proxies (on a
+            finer grid), takes conditioning, both proxy dynamics and partitions, and refuses ``Proxy(paths=...)``,
+            ``controls`` and ``method="stochastic"``; ``"lazy"`` and ``"plain"`` run its vectorised engine,
+            ``"naive"`` the reference.
+        partition: a :class:`Partition` (a region label per candidate and the most picks per region), or ``None``
+            for a cardinality budget.
+        proxy: a :class:`Proxy`: the trajectories the samples are predicted along, ``"known"`` (G alone) or
+            ``"corrected"`` dynamics, or given paths (e.g. the agnostic design's constant ones). Default: corrected
+            for a fitted GP, known otherwise. ``result.diagnostics["proxy"]`` says which.
         condition: condition every gain on the GP's training samples (with their noise, per sample where known):
             the marginal gain of a candidate is then its information given the data already collected plus the
             picks so far, and candidates whose trajectories revisit measured states gain little. Default: when the
             GP is fitted (an unfitted prior holds no data: nothing changes). ``result.diagnostics["conditioned"]``
             is the number of samples conditioned on.
-        proxy: the trajectories the samples are predicted along: ``"known"`` (G alone, the paper's proxy) or
-            ``"corrected"`` (G + the GP's posterior mean, :class:`~torchmisspec.CorrectedODE`, closer to the truth
-            once data are in). Default: ``"corrected"`` for a fitted GP, ``"known"`` otherwise; ignored when
-            ``proxies`` are given. ``result.diagnostics["proxy"]`` says which.
-        criterion: ``"information"`` (the paper's: information about F anywhere, monotone submodular, the
-            guarantees above) or ``"domain"``: the mean posterior variance of F over the domain D that the samples
-            remove (:func:`variance_reduction`; gains in units of F squared, not nats). It aims the design at D but
-            is not submodular in general, so it has no (1 - 1/e) guarantee and lazy bounds do not apply:
-            ``method="lazy"`` then evaluates every remaining gain (the same picks as ``"plain"``). Conditioning,
-            both proxies and partition budgets work with both. See :mod:`torchmisspec.design._domain`.
-            Or a :class:`~torchmisspec.design.ReadoutCriterion`: experiments that read only combinations H y of
-            the states (a :class:`~torchmisspec.Readout`), scored by the information about F of their noisy
-            readings, linearised through the ODE along the proxy paths (monotone submodular: the guarantees above
-            hold; see :mod:`torchmisspec.design._readings`). It computes its own proxies (on a finer grid), takes
-            conditioning, both proxies and partitions, and refuses ``proxies``, ``domain``, ``controls`` and
-            ``method="stochastic"``; ``"lazy"`` and ``"plain"`` run its vectorised engine, ``"naive"`` the reference.
-        domain: ``criterion="domain"`` only: the box D, one ``(lo, hi)`` per correction input (default
-            ``system.domain``).
-        domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all,
-            at least 2 per axis).
         controls: for a system with inputs u(t), each candidate's input profile (a
             :class:`~torchmisspec.signals.Controls` of N profiles): a candidate experiment is an initial state and a
             profile (repeat a state with several profiles to choose among profiles); the proxies run under them and
             the samples' inputs include u where F depends on it. ``criterion="information"`` only.
-        epsilon: ``method="stochastic"`` only: the guarantee's epsilon in (0, 1), which sets the draw per pick
-            (``result.diagnostics["sample_size"]``); smaller is closer to lazy greedy and slower.
-        generator: ``method="stochastic"`` only: the random draws (default: a generator seeded with 0, so a design
-            is reproducible).
+        engine: an :class:`Engine`: lazy greedy's batches and low-rank screening, the tie tolerance, stochastic
+            greedy's ``epsilon`` and ``generator`` (default ``Engine()``).
+        progress: show tqdm progress bars over the proxies' chunks (many candidates) and the picks.
         executor: a ``concurrent.futures.Executor`` that solves the proxy trajectories (chunks of ``PROXY_CHUNK``
             candidates, :mod:`torchmisspec.parallel`), or ``None`` (here): the same design either way.
 
@@ -551,61 +520,90 @@ def greedy(
 
     Raises:
         BudgetError: budget < 1, > N, or more than the capacities allow.
-        InputError / ShapeError: bad candidates, times, proxies, partition, or a GP without hyperparameters.
+        InputError / ShapeError: bad candidates, times, proxy paths, partition, or a GP without hyperparameters.
     """
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
-    batch_size = check_positive_int(batch_size, "batch_size")
-    if screen not in ("auto", True, False):
-        raise InputError(f"screen: expected 'auto', True or False, got {screen!r}")
-    if max_rank is not None:
-        max_rank = check_positive_int(max_rank, "max_rank")
-    epsilon = check_real(epsilon, "epsilon", positive=True)
-    if method != "stochastic" and (epsilon != EPSILON or generator is not None):
-        raise InputError(f"epsilon / generator: expected method='stochastic' with them, got method={method!r}")
-    if method == "stochastic":
-        epsilon = check_real(epsilon, "epsilon", positive=True)
-        if not epsilon < 1:
-            raise InputError(f"epsilon: expected a number in (0, 1), got {epsilon!r}")
-        if generator is not None and not isinstance(generator, torch.Generator):
-            raise InputError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
-        if partition is not None or criterion != "information":
-            raise InputError(
-                "method='stochastic': expected a cardinality budget and criterion='information' (its guarantee "
-                f"holds there), got {'a partition' if partition is not None else f'criterion={criterion!r}'}; "
-                "use method='lazy'"
-            )
+    criterion, domain = _checked_criterion(criterion)
+    partition, proxy, engine = _checked_options(partition, proxy, engine)
+    _check_stochastic(method, engine, partition, criterion)
+    regions, capacities = (None, None) if partition is None else (partition.regions, partition.capacities)
     if isinstance(criterion, ReadoutCriterion):
         options = dict(
             candidates=candidates, budget=budget, system=system, times=times, gp=gp, method=method,
-            partition=partition, capacities=capacities, proxies=proxies, tie_tol=tie_tol, condition=condition,
-            proxy=proxy, domain=domain, domain_size=domain_size, controls=controls, executor=executor,
-            progress=progress,
+            partition=regions, capacities=capacities, proxies=proxy.paths, tie_tol=engine.tie_tol,
+            condition=condition, proxy=proxy.dynamics, domain=None, domain_size=None, controls=controls,
+            executor=executor, progress=progress,
         )  # fmt: skip
         return readout_design(criterion, options, _Feasible)
     prob = _Problem(
-        candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
-        condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
-        controls=controls, executor=check_executor(executor), progress=check_flag(progress, "progress"),
+        candidates, budget, system, times, gp, regions, capacities, proxy.paths, engine.tie_tol,
+        condition=condition, proxy=proxy.dynamics, criterion=criterion, domain=domain.domain,
+        domain_size=domain.size, controls=controls, executor=check_executor(executor),
+        progress=check_flag(progress, "progress"),
     )  # fmt: skip
-    if screen == "auto":
-        screen = prob.n >= SCREEN_MIN_CANDIDATES
-    if max_rank is None:
-        max_rank = int(min(1024, max(SCREEN_MIN_RANK, SCREEN_MEMORY // (8 * prob.n * prob.T))))
     start = time.perf_counter()
     with torch.no_grad():
-        if prob.domain is not None:
-            picks, gains, evals, info = domain_greedy(prob, method, progress, _Feasible)
-        elif method == "lazy":
-            picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank))
-        elif method == "stochastic":
-            gen = torch.Generator().manual_seed(0) if generator is None else generator
-            draw = sample_size(prob.n, prob.budget, epsilon)
-            picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank), draw, gen)
-            info["epsilon"] = epsilon
-        elif method == "plain":
-            picks, gains, evals, info = _plain(prob, progress)
-        else:
-            picks, gains, evals, info = _naive(prob, progress)
+        picks, gains, evals, info = _run(prob, method, engine, progress)
     info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy, "criterion": prob.criterion}
     return prob.result(picks, gains, method, evals, time.perf_counter() - start, info)
+
+
+def _checked_criterion(criterion) -> tuple[str | ReadoutCriterion, DomainCriterion]:
+    """The criterion as the engines take it (``"domain"`` for a :class:`DomainCriterion`) and the domain's options."""
+    if isinstance(criterion, DomainCriterion):
+        return "domain", criterion
+    if isinstance(criterion, ReadoutCriterion) or criterion in CRITERIA:
+        return criterion, DomainCriterion()
+    raise InputError(
+        f"criterion: expected one of {CRITERIA}, a design.DomainCriterion or a design.ReadoutCriterion, got "
+        f"{criterion!r}"
+    )
+
+
+def _checked_options(partition, proxy, engine) -> tuple[Partition | None, Proxy, Engine]:
+    """The option objects, their defaults filled in; a keyword given something else is refused by name."""
+    for name, value, kind in (("partition", partition, Partition), ("proxy", proxy, Proxy), ("engine", engine, Engine)):
+        if value is not None and not isinstance(value, kind):
+            raise InputError(
+                f"{name}: expected a design.{kind.__name__} or None, got {type(value).__name__}; pass "
+                f"{name}=design.{kind.__name__}(...)"
+            )
+    return partition, proxy or Proxy(), engine or Engine()
+
+
+def _check_stochastic(method: str, engine: Engine, partition, criterion) -> None:
+    """Stochastic greedy's options only with it, and it only where its guarantee holds (a cardinality budget)."""
+    if method != "stochastic" and engine.stochastic_only:
+        raise InputError(
+            f"Engine.epsilon / Engine.generator: expected method='stochastic' with them, got method={method!r}"
+        )
+    if method == "stochastic" and (partition is not None or criterion != "information"):
+        raise InputError(
+            "method='stochastic': expected a cardinality budget and criterion='information' (its guarantee "
+            f"holds there), got {'a partition' if partition is not None else f'criterion={criterion!r}'}; "
+            "use method='lazy'"
+        )
+
+
+def _run(prob: _Problem, method: str, engine: Engine, progress: bool) -> tuple[list[int], list[float], int, dict]:
+    """The engine ``method`` on the validated problem: picks, gains, evaluations, diagnostics."""
+    if prob.domain is not None:
+        return domain_greedy(prob, method, progress, _Feasible)
+    screen = prob.n >= SCREEN_MIN_CANDIDATES if engine.screen == "auto" else engine.screen
+    max_rank = engine.max_rank
+    if max_rank is None:
+        max_rank = int(min(1024, max(SCREEN_MIN_RANK, SCREEN_MEMORY // (8 * prob.n * prob.T))))
+    batch_size = int(engine.batch_size)
+    if method == "lazy":
+        return _lazy(prob, batch_size, progress, bool(screen), int(max_rank))
+    if method == "stochastic":
+        gen = torch.Generator().manual_seed(0) if engine.generator is None else engine.generator
+        epsilon = float(engine.epsilon)
+        draw = sample_size(prob.n, prob.budget, epsilon)
+        picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank), draw, gen)
+        info["epsilon"] = epsilon
+        return picks, gains, evals, info
+    if method == "plain":
+        return _plain(prob, progress)
+    return _naive(prob, progress)
