@@ -137,8 +137,8 @@ def test_conditioning_moves_the_picks_away_from_measured_states(fitted):
 def test_lazy_plain_naive_agree(fitted, conditioned, proxy):
     system, cand, gp = fitted
     part = (torch.arange(cand.shape[0]) % 3).tolist()
-    kw = dict(system=system, times=TIMES, gp=gp, criterion="domain", condition=conditioned, proxy=proxy)
-    for extra in ({}, dict(partition=part, capacities=[1, 2, 3])):
+    kw = dict(system=system, times=TIMES, gp=gp, criterion="domain", condition=conditioned, proxy=design.Proxy(proxy))
+    for extra in ({}, dict(partition=design.Partition(part, [1, 2, 3]))):
         plans = [design.greedy(cand, 6, method=m, **kw, **extra) for m in ("lazy", "plain", "naive")]
         assert plans[0].indices.tolist() == plans[1].indices.tolist() == plans[2].indices.tolist()
         torch.testing.assert_close(plans[0].gains, plans[2].gains, rtol=1e-8, atol=1e-15)
