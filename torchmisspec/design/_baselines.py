@@ -22,8 +22,8 @@ from ._common import (
     check_times,
     logdet_identity_plus,
 )
-from ._greedy import _checked_options, _Problem, greedy
-from ._options import Partition, Proxy
+from ._greedy import _Problem, greedy
+from ._options import Partition, Proxy, checked_options
 
 __all__ = ["random", "agnostic", "marginal_gains"]
 
@@ -121,7 +121,7 @@ def random(
         check_finite(cand, "candidates")
     n = cand.shape[0]
     budget = check_budget(budget, n)
-    partition = _checked_options(partition, None, None)[0]
+    partition = checked_options(partition, None, None)[0]
     regions, capacities = (None, None) if partition is None else (partition.regions, partition.capacities)
     part = check_partition(regions, capacities, n, budget, "cpu")
     if proxies is not None:  # checked even when the gains are not computed: a wrong shape is a mistake either way

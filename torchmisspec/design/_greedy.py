@@ -60,7 +60,7 @@ from ._common import (
     logdet_identity_plus,
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
-from ._options import DomainCriterion, Engine, Partition, Proxy
+from ._options import DomainCriterion, Engine, Partition, Proxy, check_stochastic, checked_criterion, checked_options
 from ._proxy import choose_proxy, proxy_paths
 from ._readings import ReadoutCriterion, readout_design
 from ._screening import CHUNK_BYTES, LowRank
@@ -524,9 +524,9 @@ def greedy(
     """
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
-    criterion, domain = _checked_criterion(criterion)
-    partition, proxy, engine = _checked_options(partition, proxy, engine)
-    _check_stochastic(method, engine, partition, criterion)
+    criterion, domain = checked_criterion(criterion)
+    partition, proxy, engine = checked_options(partition, proxy, engine)
+    check_stochastic(method, engine, partition, criterion)
     regions, capacities = (None, None) if partition is None else (partition.regions, partition.capacities)
     if isinstance(criterion, ReadoutCriterion):
         options = dict(
@@ -547,43 +547,6 @@ def greedy(
         picks, gains, evals, info = _run(prob, method, engine, progress)
     info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy, "criterion": prob.criterion}
     return prob.result(picks, gains, method, evals, time.perf_counter() - start, info)
-
-
-def _checked_criterion(criterion) -> tuple[str | ReadoutCriterion, DomainCriterion]:
-    """The criterion as the engines take it (``"domain"`` for a :class:`DomainCriterion`) and the domain's options."""
-    if isinstance(criterion, DomainCriterion):
-        return "domain", criterion
-    if isinstance(criterion, ReadoutCriterion) or criterion in CRITERIA:
-        return criterion, DomainCriterion()
-    raise InputError(
-        f"criterion: expected one of {CRITERIA}, a design.DomainCriterion or a design.ReadoutCriterion, got "
-        f"{criterion!r}"
-    )
-
-
-def _checked_options(partition, proxy, engine) -> tuple[Partition | None, Proxy, Engine]:
-    """The option objects, their defaults filled in; a keyword given something else is refused by name."""
-    for name, value, kind in (("partition", partition, Partition), ("proxy", proxy, Proxy), ("engine", engine, Engine)):
-        if value is not None and not isinstance(value, kind):
-            raise InputError(
-                f"{name}: expected a design.{kind.__name__} or None, got {type(value).__name__}; pass "
-                f"{name}=design.{kind.__name__}(...)"
-            )
-    return partition, proxy or Proxy(), engine or Engine()
-
-
-def _check_stochastic(method: str, engine: Engine, partition, criterion) -> None:
-    """Stochastic greedy's options only with it, and it only where its guarantee holds (a cardinality budget)."""
-    if method != "stochastic" and engine.stochastic_only:
-        raise InputError(
-            f"Engine.epsilon / Engine.generator: expected method='stochastic' with them, got method={method!r}"
-        )
-    if method == "stochastic" and (partition is not None or criterion != "information"):
-        raise InputError(
-            "method='stochastic': expected a cardinality budget and criterion='information' (its guarantee "
-            f"holds there), got {'a partition' if partition is not None else f'criterion={criterion!r}'}; "
-            "use method='lazy'"
-        )
 
 
 def _run(prob: _Problem, method: str, engine: Engine, progress: bool) -> tuple[list[int], list[float], int, dict]:

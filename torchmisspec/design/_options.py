@@ -21,7 +21,9 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_positive_int, check_real
+from ._domain import CRITERIA
 from ._proxy import PROXIES
+from ._readings import ReadoutCriterion
 
 __all__ = ["DomainCriterion", "Engine", "Partition", "Proxy"]
 
@@ -152,3 +154,40 @@ class Engine:
     def stochastic_only(self) -> bool:
         """Whether a stochastic-greedy option (``epsilon``, ``generator``) differs from its default."""
         return self.epsilon != EPSILON or self.generator is not None
+
+
+def checked_criterion(criterion) -> tuple[str | ReadoutCriterion, DomainCriterion]:
+    """The criterion as the engines take it (``"domain"`` for a :class:`DomainCriterion`) and the domain's options."""
+    if isinstance(criterion, DomainCriterion):
+        return "domain", criterion
+    if isinstance(criterion, ReadoutCriterion) or criterion in CRITERIA:
+        return criterion, DomainCriterion()
+    raise InputError(
+        f"criterion: expected one of {CRITERIA}, a design.DomainCriterion or a design.ReadoutCriterion, got "
+        f"{criterion!r}"
+    )
+
+
+def checked_options(partition, proxy, engine) -> tuple[Partition | None, Proxy, Engine]:
+    """The option objects, their defaults filled in; a keyword given something else is refused by name."""
+    for name, value, kind in (("partition", partition, Partition), ("proxy", proxy, Proxy), ("engine", engine, Engine)):
+        if value is not None and not isinstance(value, kind):
+            raise InputError(
+                f"{name}: expected a design.{kind.__name__} or None, got {type(value).__name__}; pass "
+                f"{name}=design.{kind.__name__}(...)"
+            )
+    return partition, proxy or Proxy(), engine or Engine()
+
+
+def check_stochastic(method: str, engine: Engine, partition, criterion) -> None:
+    """Stochastic greedy's options only with it, and it only where its guarantee holds (a cardinality budget)."""
+    if method != "stochastic" and engine.stochastic_only:
+        raise InputError(
+            f"Engine.epsilon / Engine.generator: expected method='stochastic' with them, got method={method!r}"
+        )
+    if method == "stochastic" and (partition is not None or criterion != "information"):
+        raise InputError(
+            "method='stochastic': expected a cardinality budget and criterion='information' (its guarantee "
+            f"holds there), got {'a partition' if partition is not None else f'criterion={criterion!r}'}; "
+            "use method='lazy'"
+        )
