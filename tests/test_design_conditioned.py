@@ -177,7 +177,7 @@ def test_corrected_proxies_follow_the_corrected_model(corners):
 def test_bad_proxy_names_and_an_unfitted_correction():
     system = tms.systems.paper_linear()
     cand = grid(system.domain, 3)
-    with pytest.raises(tms.InputError, match=r"proxy: expected one of \('known', 'corrected'\), got 'true'"):
+    with pytest.raises(tms.InputError, match=r"Proxy.dynamics: expected one of \('known', 'corrected'\).*got 'true'"):
         design.greedy(
             cand,
             1,
