@@ -76,8 +76,7 @@ def test_design_command_stochastic_is_the_library_call_with_the_seed(tmp_path, c
         grid(((-1, 1), (-1, 1)), 7), 4, system=tms.systems.paper_linear(),
         times=torch.linspace(0, 6, 11, dtype=torch.float64),
         gp=tms.CorrectionGP(lengthscale=1.0, outputscale=4e-5, noise_variance=1e-4), method="stochastic",
-        generator=torch.Generator().manual_seed(3),
-    )  # fmt: skip
+        engine=tms.design.Engine(generator=torch.Generator().manual_seed(3)), )  # fmt: skip
     assert json.loads(out.read_text())["indices"] == expected.indices.tolist()
 
 

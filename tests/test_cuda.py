@@ -117,7 +117,15 @@ def test_the_whole_loop_on_the_device(lab, tmp_path):
         on_cpu = design.greedy(candidates.cpu(), 3, system=system, times=times.cpu(), gp=same, method=method, **draws())
         assert plan.information_gain == pytest.approx(on_cpu.information_gain, rel=1e-6)
     gpu_draws = torch.Generator(DEVICE).manual_seed(0)  # a generator on the device draws there
-    plan = design.greedy(candidates, 3, system=system, times=times, gp=gp, method="stochastic", generator=gpu_draws)
+    plan = design.greedy(
+        candidates,
+        3,
+        system=system,
+        times=times,
+        gp=gp,
+        method="stochastic",
+        engine=design.Engine(generator=gpu_draws),
+    )
     assert len(set(plan.indices.tolist())) == 3
 
     campaign = design.Campaign(system, candidates, times, gp)

@@ -172,18 +172,46 @@ def test_screened_lazy_greedy_identical_to_plain_greedy():
     cand = torch.rand(300, 2, generator=torch.Generator().manual_seed(5), dtype=DT) * 2 - 1
     times = torch.linspace(0, 6, 20, dtype=DT)
     plain = design.greedy(cand, 14, system=system, times=times, gp=gp, method="plain")
-    screened = design.greedy(cand, 14, system=system, times=times, gp=gp, screen=True)
-    unscreened = design.greedy(cand, 14, system=system, times=times, gp=gp, screen=False)
+    screened = design.greedy(
+        cand,
+        14,
+        system=system,
+        times=times,
+        gp=gp,
+        engine=design.Engine(screen=True),
+    )
+    unscreened = design.greedy(
+        cand,
+        14,
+        system=system,
+        times=times,
+        gp=gp,
+        engine=design.Engine(screen=False),
+    )
     assert screened.diagnostics["screening"] and screened.diagnostics["bounds"] > 0
     assert screened.indices.tolist() == plain.indices.tolist() == unscreened.indices.tolist()
     torch.testing.assert_close(screened.gains, plain.gains, atol=1e-9, rtol=1e-9)
     for bs in (1, 64):
         assert (
-            design.greedy(cand, 14, system=system, times=times, gp=gp, batch_size=bs, screen=True).indices.tolist()
+            design.greedy(
+                cand,
+                14,
+                system=system,
+                times=times,
+                gp=gp,
+                engine=design.Engine(batch_size=bs, screen=True),
+            ).indices.tolist()
             == plain.indices.tolist()
         )
     # too few features for useful bounds: screening switches itself off, same picks
-    weak = design.greedy(cand, 14, system=system, times=times, gp=gp, screen=True, max_rank=8)
+    weak = design.greedy(
+        cand,
+        14,
+        system=system,
+        times=times,
+        gp=gp,
+        engine=design.Engine(screen=True, max_rank=8),
+    )
     assert not weak.diagnostics["screening"] and weak.indices.tolist() == plain.indices.tolist()
 
 
@@ -245,7 +273,7 @@ def test_partition_matroid_capacities_and_half_guarantee():
     caps = {5: 1, 7: 0, 9: 3}
     prox = simulate(system, cand, TIMES, known_only=True).states
     res = {
-        m: design.greedy(cand, 4, system=system, times=TIMES, gp=gp, partition=labels, capacities=caps, method=m)
+        m: design.greedy(cand, 4, system=system, times=TIMES, gp=gp, partition=design.Partition(labels, caps), method=m)
         for m in ("lazy", "plain", "naive")
     }
     picks = res["lazy"].indices.tolist()
@@ -260,7 +288,14 @@ def test_partition_matroid_capacities_and_half_guarantee():
     best = max(set_gain(prox, s, outputscale) for s in feasible)
     assert set_gain(prox, picks, outputscale) >= 0.5 * best
     # sequence capacities indexed by label, and a binding capacity changes the design
-    seq = design.greedy(cand, 3, system=system, times=TIMES, gp=gp, partition=labels % 2, capacities=[0, 3])
+    seq = design.greedy(
+        cand,
+        3,
+        system=system,
+        times=TIMES,
+        gp=gp,
+        partition=design.Partition(labels % 2, [0, 3]),
+    )
     assert set(seq.indices.tolist()) <= {i for i in range(12) if int(labels[i]) % 2 == 1}
 
 
@@ -324,7 +359,10 @@ def test_random_design():
     assert greedy.information_gain > c.information_gain
     labels = torch.arange(169) % 3
     d = design.random(
-        cand, 5, generator=torch.Generator().manual_seed(1), partition=labels, capacities={0: 0, 1: 2, 2: 3}
+        cand,
+        5,
+        generator=torch.Generator().manual_seed(1),
+        partition=design.Partition(labels, {0: 0, 1: 2, 2: 3}),
     )
     counts = torch.bincount(labels[d.indices], minlength=3).tolist()
     assert counts == [0, 2, 3]
@@ -334,7 +372,7 @@ def test_agnostic_design_uses_constant_proxies():
     system, gp, cand = paper_linear(), make_gp(1e-2), grid13()
     res = design.agnostic(cand, 6, system=system, times=TIMES, gp=gp)
     const = cand.unsqueeze(1).expand(-1, TIMES.shape[0], -1)
-    ref = design.greedy(cand, 6, system=system, gp=gp, proxies=const, method="naive")
+    ref = design.greedy(cand, 6, system=system, gp=gp, proxy=design.Proxy(paths=const), method="naive")
     assert res.indices.tolist() == ref.indices.tolist() and res.method == "agnostic-lazy"
     T = TIMES.shape[0]
     assert float(res.gains[0]) == pytest.approx(math.log1p(T * 1e-2 / NOISE), rel=1e-10)  # d_out / 2 = 1
@@ -378,13 +416,13 @@ def test_bad_inputs_raise():
         design.greedy(cand, 0, **kw)
     labels = torch.tensor([0] * 5 + [1] * 5)
     with pytest.raises(BudgetError, match="at most 3 experiments.*got budget = 4"):
-        design.greedy(cand, 4, partition=labels, capacities={0: 1, 1: 2}, **kw)
+        design.greedy(cand, 4, partition=design.Partition(labels, {0: 1, 1: 2}), **kw)
     with pytest.raises(InputError, match=r"missing \[1\]"):
-        design.greedy(cand, 2, partition=labels, capacities={0: 2}, **kw)
+        design.greedy(cand, 2, partition=design.Partition(labels, {0: 2}), **kw)
     with pytest.raises(InputError, match="non-negative"):
-        design.greedy(cand, 2, partition=labels, capacities={0: 2, 1: -1}, **kw)
+        design.greedy(cand, 2, partition=design.Partition(labels, {0: 2, 1: -1}), **kw)
     with pytest.raises(ShapeError, match=r"partition.*\(10,\)"):
-        design.greedy(cand, 2, partition=labels[:4], capacities={0: 2, 1: 2}, **kw)
+        design.greedy(cand, 2, partition=design.Partition(labels[:4], {0: 2, 1: 2}), **kw)
     with pytest.raises(ShapeError, match=r"expected shape \(N, 2\).*got \(10, 3\)"):
         design.greedy(torch.zeros(10, 3, dtype=DT), 2, **kw)
     with pytest.raises(ShapeError, match="candidates"):
@@ -410,7 +448,13 @@ def test_bad_inputs_raise():
     with pytest.raises(InputError, match="method"):
         design.greedy(cand, 2, method="fast", **kw)
     with pytest.raises(ShapeError, match="proxies"):
-        design.greedy(cand, 2, system=system, gp=gp, proxies=torch.zeros(10, 4, 3, dtype=DT))
+        design.greedy(
+            cand,
+            2,
+            system=system,
+            gp=gp,
+            proxy=design.Proxy(paths=torch.zeros(10, 4, 3, dtype=DT)),
+        )
     with pytest.raises(InputError, match="times"):
         design.greedy(cand, 2, system=system, gp=gp)
     with pytest.raises(InputError, match="no true correction"):
@@ -460,8 +504,8 @@ def test_stochastic_greedy_meets_its_expected_guarantee():
     got = []
     for seed in range(60):
         res = design.greedy(
-            cand, 3, system=system, times=TIMES, gp=make_gp(outputscale), method="stochastic", epsilon=eps,
-            generator=torch.Generator().manual_seed(seed),
+            cand, 3, system=system, times=TIMES, gp=make_gp(outputscale), method="stochastic",
+            engine=design.Engine(epsilon=eps, generator=torch.Generator().manual_seed(seed)),
         )  # fmt: skip
         assert res.diagnostics["sample_size"] == 3
         exact = set_gain(prox, res.indices.tolist(), outputscale)
@@ -478,7 +522,15 @@ def test_stochastic_greedy_with_a_draw_of_every_candidate_is_lazy_greedy():
     system, cand = paper_linear(), grid13()
     gp = make_gp(1e-2)
     lazy = design.greedy(cand, 6, system=system, times=TIMES, gp=gp)
-    full = design.greedy(cand, 6, system=system, times=TIMES, gp=gp, method="stochastic", epsilon=1e-12)
+    full = design.greedy(
+        cand,
+        6,
+        system=system,
+        times=TIMES,
+        gp=gp,
+        method="stochastic",
+        engine=design.Engine(epsilon=1e-12),
+    )
     assert full.diagnostics["sample_size"] == cand.shape[0]
     assert full.indices.tolist() == lazy.indices.tolist()
 
@@ -493,7 +545,7 @@ def test_stochastic_greedy_is_reproducible_and_close_to_lazy_greedy():
     lazy = design.greedy(cand, 20, system=system, times=TIMES, gp=gp)
     runs = [
         design.greedy(cand, 20, system=system, times=TIMES, gp=gp, method="stochastic",
-                      generator=torch.Generator().manual_seed(s))
+                      engine=design.Engine(generator=torch.Generator().manual_seed(s)), )
         for s in (0, 0, 1)
     ]  # fmt: skip
     assert runs[0].indices.tolist() == runs[1].indices.tolist()
@@ -507,12 +559,41 @@ def test_stochastic_greedy_refuses_what_its_guarantee_does_not_cover():
     system, cand, gp = paper_linear(), grid13(), make_gp()
     common = dict(system=system, times=TIMES, gp=gp)
     with pytest.raises(InputError, match="expected a cardinality budget"):
-        design.greedy(cand, 2, **common, method="stochastic", partition=[0] * 169, capacities=[2])
+        design.greedy(
+            cand,
+            2,
+            **common,
+            method="stochastic",
+            partition=design.Partition([0] * 169, [2]),
+        )
     with pytest.raises(InputError, match=r"epsilon: expected a number in \(0, 1\), got 1.0"):
-        design.greedy(cand, 2, **common, method="stochastic", epsilon=1.0)
+        design.greedy(
+            cand,
+            2,
+            **common,
+            method="stochastic",
+            engine=design.Engine(epsilon=1.0),
+        )
     with pytest.raises(InputError, match="epsilon: expected a positive finite number, got 'x'"):
-        design.greedy(cand, 2, **common, method="stochastic", epsilon="x")
+        design.greedy(
+            cand,
+            2,
+            **common,
+            method="stochastic",
+            engine=design.Engine(epsilon="x"),
+        )
     with pytest.raises(InputError, match="expected method='stochastic' with them, got method='lazy'"):
-        design.greedy(cand, 2, **common, generator=torch.Generator())
+        design.greedy(
+            cand,
+            2,
+            **common,
+            engine=design.Engine(generator=torch.Generator()),
+        )
     with pytest.raises(InputError, match="generator: expected a torch.Generator, got int"):
-        design.greedy(cand, 2, **common, method="stochastic", generator=0)
+        design.greedy(
+            cand,
+            2,
+            **common,
+            method="stochastic",
+            engine=design.Engine(generator=0),
+        )

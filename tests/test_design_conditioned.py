@@ -85,7 +85,15 @@ def test_known_per_sample_noise_is_conditioned_on(corners):
 
 def test_conditioning_on_the_corners_removes_them_from_the_top_picks(corners):
     system, cand, corner_idx, fitted = corners
-    unconditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted, condition=False, proxy="known")
+    unconditioned = design.greedy(
+        cand,
+        4,
+        system=system,
+        times=TIMES,
+        gp=fitted,
+        condition=False,
+        proxy=design.Proxy("known"),
+    )
     assert sorted(unconditioned.indices.tolist()) == corner_idx  # what the prior picks (the report)
     conditioned = design.greedy(cand, 4, system=system, times=TIMES, gp=fitted)
     # the measured corners fall behind (the centre first); with noise variance 2.5 x the prior's, repeating a
@@ -106,7 +114,14 @@ def test_lazy_plain_and_naive_agree_when_conditioned(corners):
     }
     assert picks["lazy"].indices.tolist() == picks["plain"].indices.tolist() == picks["naive"].indices.tolist()
     torch.testing.assert_close(picks["lazy"].gains, picks["naive"].gains, rtol=1e-7, atol=1e-10)
-    screened = design.greedy(cand, 6, system=system, times=TIMES, gp=fitted, screen=True)
+    screened = design.greedy(
+        cand,
+        6,
+        system=system,
+        times=TIMES,
+        gp=fitted,
+        engine=design.Engine(screen=True),
+    )
     plain = design.greedy(cand, 6, system=system, times=TIMES, gp=fitted, method="plain")
     assert screened.indices.tolist() == plain.indices.tolist()
 
@@ -132,7 +147,14 @@ def test_corrected_proxies_follow_the_corrected_model(corners):
     torch.testing.assert_close(plan.proxies, expected, rtol=10 * rtol, atol=10 * atol)
     accurate = tms.CorrectedODE(system, fitted).predict(plan.points, TIMES)
     torch.testing.assert_close(plan.proxies, accurate, rtol=0, atol=1e-5)
-    known = design.greedy(cand, 3, system=system, times=TIMES, gp=fitted, proxy="known")
+    known = design.greedy(
+        cand,
+        3,
+        system=system,
+        times=TIMES,
+        gp=fitted,
+        proxy=design.Proxy("known"),
+    )
     assert known.diagnostics["proxy"] == "known"
     torch.testing.assert_close(known.proxies, design.proxy_trajectories(system, known.points, TIMES))
     # closer to the truth than G alone, over all candidates, once data cover D (13 experiments across the grid,
@@ -155,10 +177,24 @@ def test_corrected_proxies_follow_the_corrected_model(corners):
 def test_bad_proxy_names_and_an_unfitted_correction():
     system = tms.systems.paper_linear()
     cand = grid(system.domain, 3)
-    with pytest.raises(tms.InputError, match=r"proxy: expected one of \('known', 'corrected'\), got 'true'"):
-        design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), proxy="true")
+    with pytest.raises(tms.InputError, match=r"Proxy.dynamics: expected one of \('known', 'corrected'\).*got 'true'"):
+        design.greedy(
+            cand,
+            1,
+            system=system,
+            times=TIMES,
+            gp=tms.CorrectionGP(**LINEAR_PRIOR),
+            proxy=design.Proxy("true"),
+        )
     with pytest.raises(tms.InputError, match="proxy='corrected': an unfitted gp"):
-        design.greedy(cand, 1, system=system, times=TIMES, gp=tms.CorrectionGP(**LINEAR_PRIOR), proxy="corrected")
+        design.greedy(
+            cand,
+            1,
+            system=system,
+            times=TIMES,
+            gp=tms.CorrectionGP(**LINEAR_PRIOR),
+            proxy=design.Proxy("corrected"),
+        )
 
 
 def test_low_rank_data_term_is_within_its_certified_error():

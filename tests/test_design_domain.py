@@ -96,7 +96,7 @@ def fitted():
 def test_greedy_gains_are_brute_force_increments(fitted, conditioned):
     system, cand, gp = fitted
     plan = design.greedy(
-        cand, 4, system=system, times=TIMES, gp=gp, criterion="domain", domain_size=5, condition=conditioned
+        cand, 4, system=system, times=TIMES, gp=gp, criterion=design.DomainCriterion(size=5), condition=conditioned
     )
     assert plan.diagnostics["criterion"] == "domain"
     assert plan.diagnostics["conditioned"] == (33 if conditioned else 0)
@@ -115,9 +115,17 @@ def test_greedy_gains_are_brute_force_increments(fitted, conditioned):
 
 def test_conditioning_moves_the_picks_away_from_measured_states(fitted):
     system, cand, gp = fitted
-    cond = design.greedy(cand, 3, system=system, times=TIMES, gp=gp, criterion="domain", proxy="known")
+    cond = design.greedy(
+        cand,
+        3,
+        system=system,
+        times=TIMES,
+        gp=gp,
+        criterion="domain",
+        proxy=design.Proxy("known"),
+    )
     prior = design.greedy(
-        cand, 3, system=system, times=TIMES, gp=gp, criterion="domain", proxy="known", condition=False
+        cand, 3, system=system, times=TIMES, gp=gp, criterion="domain", proxy=design.Proxy("known"), condition=False
     )
     # the data sit at y1 = -1; the conditioned picks lie further right on average than the prior's
     assert float(cond.points[:, 0].mean()) > float(prior.points[:, 0].mean())
@@ -129,8 +137,8 @@ def test_conditioning_moves_the_picks_away_from_measured_states(fitted):
 def test_lazy_plain_naive_agree(fitted, conditioned, proxy):
     system, cand, gp = fitted
     part = (torch.arange(cand.shape[0]) % 3).tolist()
-    kw = dict(system=system, times=TIMES, gp=gp, criterion="domain", condition=conditioned, proxy=proxy)
-    for extra in ({}, dict(partition=part, capacities=[1, 2, 3])):
+    kw = dict(system=system, times=TIMES, gp=gp, criterion="domain", condition=conditioned, proxy=design.Proxy(proxy))
+    for extra in ({}, dict(partition=design.Partition(part, [1, 2, 3]))):
         plans = [design.greedy(cand, 6, method=m, **kw, **extra) for m in ("lazy", "plain", "naive")]
         assert plans[0].indices.tolist() == plans[1].indices.tolist() == plans[2].indices.tolist()
         torch.testing.assert_close(plans[0].gains, plans[2].gains, rtol=1e-8, atol=1e-15)
@@ -157,13 +165,19 @@ def test_bad_input(fitted):
     with pytest.raises(tms.InputError, match="criterion: expected one of"):
         design.greedy(cand, 2, criterion="variance", **kw)
     with pytest.raises(tms.InputError, match="domain.*expected"):
-        design.greedy(cand, 2, criterion="domain", domain=((-1, 1),), **kw)
-    with pytest.raises(tms.InputError, match="expected criterion='domain' with them"):
-        design.greedy(cand, 2, domain=((-1, 1), (-1, 1)), **kw)
+        design.greedy(cand, 2, criterion=design.DomainCriterion(domain=((-1, 1),)), **kw)
     with pytest.raises(tms.InputError, match="domain_size"):
-        design.greedy(cand, 2, criterion="domain", domain_size=1, **kw)
+        design.greedy(cand, 2, criterion=design.DomainCriterion(size=1), **kw)
     bare = tms.MisspecifiedSystem(known=system.known, state_dim=2, name="no-domain")
     with pytest.raises(tms.InputError, match="has none"):
-        design.greedy(cand, 2, system=bare, times=TIMES, gp=gp, criterion="domain", proxy="known")
+        design.greedy(
+            cand,
+            2,
+            system=bare,
+            times=TIMES,
+            gp=gp,
+            criterion="domain",
+            proxy=design.Proxy("known"),
+        )
     with pytest.raises(tms.ShapeError, match="columns"):
         design.variance_reduction(torch.zeros(3, 3, dtype=DT), gp, system=system)

@@ -196,7 +196,7 @@ def test_bad_readouts_and_options_are_refused_clearly():
     with pytest.raises(InputError, match="at least two observation times"):
         design.greedy(cands, 2, system=lv(), times=TIMES[:1], gp=CorrectionGP(**PRIOR), criterion=crit)
     with pytest.raises(InputError, match="expected none of \\['proxies'\\]"):
-        design.greedy(cands, 2, criterion=crit, proxies=torch.zeros(4, len(TIMES), 2, dtype=DT), **kw)
+        design.greedy(cands, 2, criterion=crit, proxy=design.Proxy(paths=torch.zeros(4, len(TIMES), 2, dtype=DT)), **kw)
     with pytest.raises(InputError, match="method='stochastic'"):
         design.greedy(cands, 2, criterion=crit, method="stochastic", **kw)
     with pytest.raises(InputError, match="criterion: expected one of"):
@@ -241,7 +241,7 @@ def test_conditioned_design_on_a_fit_through_the_ode(fitted):
     crit = design.ReadoutCriterion(total())
     kw = dict(system=lv(), times=torch.linspace(0, 6, 13, dtype=DT), gp=fitted, criterion=crit)
     cond = design.greedy(cands, 3, **kw)
-    prior = design.greedy(cands, 3, condition=False, proxy="known", **kw)
+    prior = design.greedy(cands, 3, condition=False, proxy=design.Proxy("known"), **kw)
     assert cond.diagnostics["noise_source"] == "fitted" and cond.diagnostics["proxy"] == "corrected"
     assert cond.diagnostics["conditioned"] > 0
     assert cond.information_gain < prior.information_gain  # what the data told already is not counted again

@@ -63,7 +63,14 @@ def test_times_are_spread_where_the_path_moves_and_conditioned_on_data():
     assert float(prior.times[0].median()) < 2.0  # the path moves fastest at the start
     x = torch.linspace(1.5, 3.5, 20, dtype=DT).unsqueeze(-1)  # data already cover concentrations 1.5-3.5
     fitted = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3).fit(x, torch.zeros_like(x))
-    after = design.sampling_times(y0, t, 4, system=pk(), gp=fitted, proxy="known")
+    after = design.sampling_times(
+        y0,
+        t,
+        4,
+        system=pk(),
+        gp=fitted,
+        proxy=design.Proxy("known"),
+    )
     paths = tms.simulate(pk(), y0, t, known_only=True).states[0, :, 0]
     assert float(paths[after.indices[0]].max()) < 1.5  # none where the data already are
 

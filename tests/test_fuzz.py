@@ -377,7 +377,12 @@ def _marginal_gains(indices=(0, 2), candidates=CANDIDATES):
 
 def _partitioned(partition=[0, 1] * 8, capacities=(2, 2), budget=3):
     return tms.design.greedy(
-        CANDIDATES, budget, system=SYSTEM, times=TIMES, gp=PRIOR, partition=partition, capacities=capacities
+        CANDIDATES,
+        budget,
+        system=SYSTEM,
+        times=TIMES,
+        gp=PRIOR,
+        partition=tms.design.Partition(partition, capacities),
     )
 
 

@@ -54,7 +54,7 @@ def test_partitions_of_the_wrong_kind_are_refused(fitted, method, partition, cap
     system, gp, candidates, times = fitted
     kwargs = dict(system=system, times=times) | ({} if method == "random" else dict(gp=gp))
     with pytest.raises(tms.InputError) as info:
-        getattr(design, method)(candidates, 2, partition=partition, capacities=capacities, **kwargs)
+        getattr(design, method)(candidates, 2, partition=design.Partition(partition, capacities), **kwargs)
     assert said in str(info.value)
 
 
@@ -64,10 +64,10 @@ def test_a_capacity_beyond_the_candidates_limits_nothing(fitted, method):
     kwargs = dict(system=system, times=times, gp=gp)
     if method == "random":
         kwargs["generator"] = torch.Generator().manual_seed(0)
-    huge = getattr(design, method)(candidates, 3, partition=[0, 1] * 3, capacities=[10**30, 1], **kwargs)
+    huge = getattr(design, method)(candidates, 3, partition=design.Partition([0, 1] * 3, [10**30, 1]), **kwargs)
     if method == "random":
         kwargs["generator"] = torch.Generator().manual_seed(0)
-    plain = getattr(design, method)(candidates, 3, partition=[0, 1] * 3, capacities=[6, 1], **kwargs)
+    plain = getattr(design, method)(candidates, 3, partition=design.Partition([0, 1] * 3, [6, 1]), **kwargs)
     assert torch.equal(huge.indices, plain.indices)
 
 

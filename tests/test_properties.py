@@ -710,7 +710,13 @@ def test_metrics_design_and_cross_validation_arguments_are_checked():
         tms.cross_validate(CHEMO, CTRAJ, CSAMPLES, 3)
     with pytest.raises(tms.InputError, match=r"epsilon: expected a positive finite number"):
         tms.design.greedy(
-            CANDS, 2, system=CHEMO, times=CTIMES, gp=PRIOR, controls=CAND_CONTROLS, epsilon=torch.tensor([1, 2])
+            CANDS,
+            2,
+            system=CHEMO,
+            times=CTIMES,
+            gp=PRIOR,
+            controls=CAND_CONTROLS,
+            engine=tms.design.Engine(epsilon=torch.tensor([1, 2])),
         )
 
 

@@ -27,7 +27,8 @@ def _design_worker(
     before = peak_rss_mb()
 
     def run():
-        draws = {"generator": torch.Generator().manual_seed(seed)} if method == "stochastic" else {}
+        stochastic = method == "stochastic"
+        draws = {"engine": design.Engine(generator=torch.Generator().manual_seed(seed))} if stochastic else {}
         return design.greedy(candidates, K, system=system, times=times, gp=gp, method=method, **draws)
 
     plan, seconds, all_seconds = timed(run, repeats)

@@ -85,7 +85,8 @@ def _design(device, cfg, method: str) -> dict:
     design.greedy(candidates[:50], 3, system=system, times=times, gp=gp)  # warm-up
 
     def run():
-        draws = {"generator": torch.Generator(device).manual_seed(0)} if method == "stochastic" else {}
+        stochastic = method == "stochastic"
+        draws = {"engine": design.Engine(generator=torch.Generator(device).manual_seed(0))} if stochastic else {}
         return design.greedy(candidates, cfg["K"], system=system, times=times, gp=gp, method=method, **draws)
 
     plan, seconds = _clock(device, run)

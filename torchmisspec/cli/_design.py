@@ -109,7 +109,7 @@ def _design(args: argparse.Namespace) -> int:
     if observed is not None and tuple(observed.state_names) != tuple(f"y{j}" for j in range(system.state_dim)):
         known = list(observed.state_names)  # the data's names: the candidates are read by them
     candidates, names, labels = read_states(args.candidates, "--candidates", args, system, known)
-    partition, capacities = _capacities(args, candidates.shape[0])
+    partition, capacities = _capacities(args, candidates.shape[0])  # (region labels, most picks per region)
     controls = None
     if args.controls is not None:
         if labels is None:
@@ -126,9 +126,10 @@ def _design(args: argparse.Namespace) -> int:
         raise InputError(
             f"--criterion {args.criterion}: expected a greedy --method (lazy, plain or naive), got {args.method}"
         )
-    common = dict(
-        system=system, times=times, gp=gp, progress=not args.quiet, partition=partition, capacities=capacities
-    )
+    from ..design import Partition
+
+    partition = None if partition is None else Partition(partition, capacities)
+    common = dict(system=system, times=times, gp=gp, progress=not args.quiet, partition=partition)
     plan = _plan(args, candidates, controls, common, torch.Generator().manual_seed(args.seed))
     when = None if args.samples_per_experiment is None else _measurement_times(args, plan, controls, common)
     units = "mean variance of F over D removed" if args.criterion == "domain" else "nats (real-Gaussian convention)"
@@ -197,14 +198,14 @@ def _plan(args: argparse.Namespace, candidates, controls, common: dict, generato
         return design.random(candidates, args.budget, generator=generator, controls=controls, **common)
     if args.method == "agnostic":
         return design.agnostic(candidates, args.budget, controls=controls, **common)
-    draws = {"generator": generator} if args.method == "stochastic" else {}
+    draws = {"engine": design.Engine(generator=generator)} if args.method == "stochastic" else {}
     return design.greedy(
         candidates,
         args.budget,
         method=args.method,
         **draws,
         criterion=args.criterion,
-        proxy=args.proxy,
+        proxy=design.Proxy(args.proxy),
         controls=controls,
         **common,
     )
@@ -222,7 +223,7 @@ def _measurement_times(args: argparse.Namespace, plan, controls, common: dict) -
         system=common["system"],
         gp=common["gp"],
         criterion=args.criterion,
-        proxy=args.proxy,
+        proxy=design.Proxy(args.proxy),
         progress=not args.quiet,
         controls=None if controls is None else controls[plan.indices.tolist()],
     )

@@ -14,13 +14,16 @@ Public functions:
 
 * :func:`proxy_trajectories` - known-model trajectories of all candidates (closed form for linear G).
 * :func:`information_gain` - f of a set of sample points.
-* :func:`variance_reduction` - the domain criterion (``greedy(..., criterion="domain")``): the mean posterior variance
-  of F over the domain D that a set of samples removes.
+* :func:`variance_reduction` - the domain criterion (``greedy(..., criterion=DomainCriterion(...))``): the mean
+  posterior variance of F over the domain D that a set of samples removes.
 * :class:`ReadoutCriterion` - the criterion for experiments that read only combinations H y of the states (a
   :class:`~torchmisspec.Readout`): the information of the readings about F, linearised through the ODE
   (``greedy(..., criterion=ReadoutCriterion(readout))``; :func:`readout_sensitivity`,
   :func:`readout_information_gain`; the maths in :mod:`torchmisspec.design._readings`).
-* :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities.
+* :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities; its options
+  grouped in small frozen objects: :class:`Partition` (at most so many picks per region), :class:`Proxy` (the
+  trajectories the samples are predicted along), :class:`DomainCriterion` (aim at a box D of F's inputs) and
+  :class:`Engine` (batches, screening, ties, the stochastic draw).
 * :func:`refine` - a design's initial states moved by gradients of the criterion, beyond the candidate list.
 * :func:`sampling_times` - which times to measure in given experiments under a per-experiment sample budget.
 * :class:`Campaign` - the sequential loop: ``ask`` for experiments designed given the data so far, ``tell`` the
@@ -38,6 +41,7 @@ from ._common import DesignResult
 from ._domain import CRITERIA, variance_reduction
 from ._gain import ProxyCheck, information_gain, proxy_check, proxy_gap_bound, true_information_gain
 from ._greedy import greedy
+from ._options import DomainCriterion, Engine, Partition, Proxy
 from ._proxy import proxy_trajectories
 from ._readings import ReadoutCriterion, ReadoutSensitivity, readout_information_gain, readout_sensitivity
 from ._refine import Refinement, refine
@@ -47,6 +51,10 @@ __all__ = [
     "CRITERIA",
     "Campaign",
     "DesignResult",
+    "DomainCriterion",
+    "Engine",
+    "Partition",
+    "Proxy",
     "ProxyCheck",
     "ReadoutCriterion",
     "ReadoutSensitivity",

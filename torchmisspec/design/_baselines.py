@@ -23,6 +23,7 @@ from ._common import (
     logdet_identity_plus,
 )
 from ._greedy import _Problem, greedy
+from ._options import Partition, Proxy, checked_options
 
 __all__ = ["random", "agnostic", "marginal_gains"]
 
@@ -84,8 +85,7 @@ def random(
     system: MisspecifiedSystem | None = None,
     times=None,
     gp: CorrectionGP | None = None,
-    partition=None,
-    capacities=None,
+    partition: Partition | None = None,
     proxies=None,
     progress: bool = False,
     controls=None,
@@ -106,9 +106,8 @@ def random(
         system: as for :func:`greedy`; only needed for the gains (likewise ``times``, ``gp``, ``proxies``).
         times: as for :func:`greedy`.
         gp: as for :func:`greedy`.
-        partition: as for :func:`greedy`.
-        capacities: as for :func:`greedy`.
-        proxies: as for :func:`greedy`.
+        partition: a :class:`Partition`, as for :func:`greedy`.
+        proxies: ``(N, T, d)`` given proxy paths (as ``greedy``'s ``Proxy(paths=...)``), for the gains.
         progress: accepted for a signature uniform with :func:`greedy`; a random draw has nothing to show.
         controls: as for :func:`greedy` (a candidate is an initial state and a profile); for the gains.
     """
@@ -122,7 +121,9 @@ def random(
         check_finite(cand, "candidates")
     n = cand.shape[0]
     budget = check_budget(budget, n)
-    part = check_partition(partition, capacities, n, budget, "cpu")
+    partition = checked_options(partition, None, None)[0]
+    regions, capacities = (None, None) if partition is None else (partition.regions, partition.capacities)
+    part = check_partition(regions, capacities, n, budget, "cpu")
     if proxies is not None:  # checked even when the gains are not computed: a wrong shape is a mistake either way
         if system is not None:
             proxies = check_proxies(proxies, n, system, None, dtype=cand.dtype, device=cand.device)
@@ -161,8 +162,7 @@ def agnostic(
     times,
     gp: CorrectionGP,
     method: str = "lazy",
-    partition=None,
-    capacities=None,
+    partition: Partition | None = None,
     progress: bool = False,
     **kwargs,
 ) -> DesignResult:
@@ -186,8 +186,7 @@ def agnostic(
         gp=gp,
         method=method,
         partition=partition,
-        capacities=capacities,
-        proxies=proxies,
+        proxy=Proxy(paths=proxies),
         progress=progress,
         **kwargs,
     )

@@ -37,6 +37,7 @@ from . import _campaign_data as plain
 from ._common import check_candidates, check_system, check_times
 from ._domain import CRITERIA
 from ._greedy import greedy
+from ._options import DomainCriterion, Proxy
 from ._proxy import PROXIES
 from ._readings import campaign_criterion
 
@@ -262,11 +263,6 @@ class Campaign:
             mask[[int((remaining == p).nonzero()[0, 0]) for p in picks]] = False
             pool = remaining[mask]
             proxy = self.config["proxy"] or ("corrected" if self.gp.is_fitted else "known")
-            domain = (
-                {"domain": self.config["domain"], "domain_size": self.config["domain_size"]}
-                if self.config["criterion"] == "domain"
-                else {}
-            )  # with the information criterion the domain only scores the error over D in tell
             plan = greedy(
                 self.candidates[pool],
                 k - n_pilot,
@@ -274,10 +270,9 @@ class Campaign:
                 times=self.times,
                 gp=self.gp,
                 criterion=self._criterion(),
-                proxy=proxy,
+                proxy=Proxy(proxy),
                 controls=None if self.controls is None else self.controls[pool.tolist()],
                 executor=self.executor,
-                **domain,
             )
             picks += pool[plan.indices.cpu()].tolist()
             gains += plan.gains.tolist()
@@ -286,8 +281,13 @@ class Campaign:
         return picks, gains, info
 
     def _criterion(self):
-        """The configured criterion, or the readings' one when the data carry a readout (:func:`campaign_criterion`)."""
-        return campaign_criterion(self.config["criterion"], self.data, self.gp, self.system)
+        """The configured criterion (the domain's with its box and quadrature), or the readings' one when the data
+        carry a readout (:func:`campaign_criterion`). With the information criterion the domain only scores the
+        error over D in :meth:`tell`."""
+        cfg = self.config
+        if cfg["criterion"] == "domain":
+            return DomainCriterion(cfg["domain"], cfg["domain_size"])
+        return campaign_criterion(cfg["criterion"], self.data, self.gp, self.system)
 
     # --------------------------------------------------------------------------------------------- tell
     def _match(self, y0: torch.Tensor, pending: list[int], profile=None) -> int:
@@ -524,19 +524,7 @@ class Campaign:
         def field(key, kind):
             return _persistence._field(blob, key, kind, path, "Campaign")
 
-        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-            raise InputError(
-                f"{path}: expected a torchmisspec Campaign file (format {FORMAT!r}), got "
-                + (f"format {blob.get('format')!r}" if isinstance(blob, dict) else type(blob).__name__)
-            )
-        if blob.get("version") != VERSION:
-            raise InputError(f"{path}: expected Campaign file version {VERSION}, got {blob.get('version')!r}")
-        saved = field("system", dict)
-        if saved.get("name") != system.name or saved.get("state_dim") != system.state_dim:
-            raise InputError(
-                f"system: expected the system the campaign was run with, '{saved.get('name')}' (state_dim "
-                f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
-            )
+        plain.check_header(blob, path, system, field, FORMAT, VERSION)
         prior = _persistence.from_config(CorrectionGP, field("prior", dict), f"{path} (field 'prior')")
         if blob.get("prior_model") is not None:  # a campaign started from a fitted GP
             prior = _persistence.from_blob(CorrectionGP, blob["prior_model"], f"{path} (field 'prior_model')")
@@ -557,26 +545,8 @@ class Campaign:
         except (KeyError, TypeError) as exc:
             raise InputError(f"{path}: field 'config' is damaged ({type(exc).__name__}: {exc})") from exc
         n, d_in = camp.candidates.shape[0], system.input_dim
-        inputs, targets, noise = field("inputs", list), field("targets", list), field("noise", list)
-        if not (len(inputs) == len(targets) == len(noise)):
-            raise InputError(
-                f"{path}: expected as many input, target and noise blocks, got {len(inputs)}, "
-                f"{len(targets)}, {len(noise)}"
-            )
-        for x, y, e in zip(inputs, targets, noise, strict=True):
-            ok = isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor) and x.dim() == 2 and y.dim() == 2
-            ok = ok and x.shape == (y.shape[0], d_in) and y.shape[1] == system.output_dim
-            ok = ok and (e is None or (isinstance(e, torch.Tensor) and e.shape == y.shape))
-            if not ok or not bool(torch.isfinite(x).all() and torch.isfinite(y).all()):
-                raise InputError(f"{path}: the saved samples are damaged (shapes or values)")
-        lists = {key: field(key, list) for key in ("asked", "pending", "measured")}
-        for key, values in lists.items():
-            low = -1 if key == "measured" else 0
-            if not all(isinstance(i, int) and low <= i < n for i in values):
-                raise InputError(f"{path}: field {key!r} expected candidate indices in [0, {n}), it is damaged")
-        history = field("history", list)
-        if not all(isinstance(h, dict) and h.get("event") in ("ask", "tell") for h in history):
-            raise InputError(f"{path}: field 'history' is damaged")
+        inputs, targets, noise = plain.checked_samples(field, path, d_in, system.output_dim)
+        lists, history = plain.checked_records(field, path, n)
         dd = {"dtype": camp.candidates.dtype, "device": camp.candidates.device}
         camp._inputs = [x.to(**dd) for x in inputs]
         camp._targets = [y.to(**dd) for y in targets]

@@ -153,3 +153,49 @@ def _noise_from(blob, where: str):
     if not (isinstance(unit, torch.Tensor) and unit.numel() >= 1 and bool((unit > 0).all())):
         raise InputError(f"{where}: expected a positive count unit, got {unit!r:.80}")
     return model(float(unit) if unit.numel() == 1 else unit)
+
+
+def check_header(blob, path, system, field, FORMAT: str, VERSION: int) -> None:  # noqa: N803 (the file's constants)
+    """A campaign file of this format and version, saved for a system of this name and dimension."""
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        raise InputError(
+            f"{path}: expected a torchmisspec Campaign file (format {FORMAT!r}), got "
+            + (f"format {blob.get('format')!r}" if isinstance(blob, dict) else type(blob).__name__)
+        )
+    if blob.get("version") != VERSION:
+        raise InputError(f"{path}: expected Campaign file version {VERSION}, got {blob.get('version')!r}")
+    saved = field("system", dict)
+    if saved.get("name") != system.name or saved.get("state_dim") != system.state_dim:
+        raise InputError(
+            f"system: expected the system the campaign was run with, '{saved.get('name')}' (state_dim "
+            f"{saved.get('state_dim')}), got '{system.name}' (state_dim {system.state_dim})"
+        )
+
+
+def checked_samples(field, path, d_in: int, d_out: int) -> tuple[list, list, list]:
+    """The saved correction samples (inputs, targets, known noise per block), checked for shapes and finite values."""
+    inputs, targets, noise = field("inputs", list), field("targets", list), field("noise", list)
+    if not (len(inputs) == len(targets) == len(noise)):
+        raise InputError(
+            f"{path}: expected as many input, target and noise blocks, got {len(inputs)}, {len(targets)}, {len(noise)}"
+        )
+    for x, y, e in zip(inputs, targets, noise, strict=True):
+        ok = isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor) and x.dim() == 2 and y.dim() == 2
+        ok = ok and x.shape == (y.shape[0], d_in) and y.shape[1] == d_out
+        ok = ok and (e is None or (isinstance(e, torch.Tensor) and e.shape == y.shape))
+        if not ok or not bool(torch.isfinite(x).all() and torch.isfinite(y).all()):
+            raise InputError(f"{path}: the saved samples are damaged (shapes or values)")
+    return inputs, targets, noise
+
+
+def checked_records(field, path, n: int) -> tuple[dict, list]:
+    """The saved candidate lists (asked, pending, measured: indices among the n candidates) and the history."""
+    lists = {key: field(key, list) for key in ("asked", "pending", "measured")}
+    for key, values in lists.items():
+        low = -1 if key == "measured" else 0
+        if not all(isinstance(i, int) and low <= i < n for i in values):
+            raise InputError(f"{path}: field {key!r} expected candidate indices in [0, {n}), it is damaged")
+    history = field("history", list)
+    if not all(isinstance(h, dict) and h.get("event") in ("ask", "tell") for h in history):
+        raise InputError(f"{path}: field 'history' is damaged")
+    return lists, history

@@ -127,6 +127,73 @@ def future_noise(gp: CorrectionGP) -> torch.Tensor | None:
     return floor + known.detach().median(dim=0).values
 
 
+def _checked_gp(gp, input_dim: int | None, system: MisspecifiedSystem | None) -> tuple[torch.Tensor | None, float]:
+    """A GP a design can use (hyperparameters set, inputs matching the system): its noise per output and overall."""
+    if not isinstance(gp, CorrectionGP):
+        raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
+    if system is not None:  # a model of the system's correction inputs, by name
+        check_input_names(gp, system.input_names(), f"system '{system.name}'")
+    if not gp.is_fitted and gp.per_output:
+        raise InputError(
+            "gp: an unfitted CorrectionGP with per_output=True has no per-output hyperparameters yet; design "
+            "before any data with a shared kernel (per_output=False) and given hyperparameters, or fit it first"
+        )
+    if not gp.is_fitted and gp.kernel_spec.terms:
+        raise InputError(
+            "gp: the feature kernel's weights are learned from data; fit the GP on earlier samples before "
+            "designing with it (or design with an RBF, Matern or polynomial prior)"
+        )
+    if not gp.is_fitted:
+        needed = ["noise_variance", "outputscale"] + (["lengthscale"] if gp.kernel_spec.has_lengthscale else [])
+        missing = [name for name in needed if gp.fixed.get(name) is None]
+        if missing:
+            args = ", ".join(f"{m}=..." for m in missing)
+            raise InputError(
+                f"gp: expected the kernel hyperparameters a design needs before any data, got {', '.join(missing)} "
+                f"not set (None) on this unfitted CorrectionGP; pass "
+                f"CorrectionGP({args}) or fit the GP on earlier data first"
+            )
+    scales = future_noise(gp)
+    noise = float(gp.noise_variance) if scales is None else float(scales.max())
+    if scales is not None and not bool(torch.isfinite(scales).all() and (scales > 0).all()):
+        raise InputError(f"gp: expected positive finite noise variances, got {scales.tolist()}")
+    if not math.isfinite(noise) or noise <= 0:
+        raise InputError(f"gp: expected a positive finite noise_variance, got {noise!r}")
+    if gp.is_fitted and input_dim is not None and gp.input_dim != input_dim:
+        raise ShapeError(
+            f"gp: expected a GP with {input_dim} inputs (the system's correction inputs), got one "
+            f"fitted on {gp.input_dim}"
+        )
+    return scales, noise
+
+
+def _checked_condition(condition: bool | None, gp: CorrectionGP) -> bool:
+    """Whether to condition on the GP's data: by default when it has data, and never without."""
+    if condition is None:
+        condition = gp.is_fitted
+    if condition and not gp.is_fitted:
+        raise InputError(
+            "condition: expected a fitted gp to condition on its data, got an unfitted one; fit it first or pass False"
+        )
+    return condition
+
+
+def _data_layout(gp: CorrectionGP, fac, scales, condition: bool) -> tuple[torch.Tensor | None, bool, bool]:
+    """The data factor (dense Cholesky or None), whether the data term lives in feature space, and whether all
+    outputs share one kernel, noise and data (the shared layout)."""
+    in_features = isinstance(fac, FeatureFactorization)  # the data's term in feature space (no N x N factor)
+    if in_features:
+        shared_data = fac.cov.shape[0] == 1 or all(torch.equal(fac.cov[0], c) for c in fac.cov[1:])
+        chol = None
+    else:  # the data's factor: (1, N, N) when every output has the same C = K + noise, else (d_out, N, N)
+        chol = None if fac is None else fac.chol.detach()
+        shared_data = chol is None or chol.shape[0] == 1 or all(torch.equal(chol[0], c) for c in chol[1:])
+    shared = not gp.per_output and shared_data and (scales is None or bool((scales == scales[0]).all()))
+    if in_features and condition and not shared:  # per-output data terms: the dense factor (modest N only)
+        chol, in_features = fac.chol.detach(), False
+    return chol, in_features, shared
+
+
 class GPKernel:
     """The correction GP's prior kernel k (outputscale included) and noise variance, ready for batched use.
 
@@ -158,62 +225,13 @@ class GPKernel:
         exact_data: bool = False,
         system: MisspecifiedSystem | None = None,
     ) -> None:
-        if not isinstance(gp, CorrectionGP):
-            raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
-        if system is not None:  # a model of the system's correction inputs, by name
-            check_input_names(gp, system.input_names(), f"system '{system.name}'")
-        if not gp.is_fitted and gp.per_output:
-            raise InputError(
-                "gp: an unfitted CorrectionGP with per_output=True has no per-output hyperparameters yet; design "
-                "before any data with a shared kernel (per_output=False) and given hyperparameters, or fit it first"
-            )
-        if not gp.is_fitted and gp.kernel_spec.terms:
-            raise InputError(
-                "gp: the feature kernel's weights are learned from data; fit the GP on earlier samples before "
-                "designing with it (or design with an RBF, Matern or polynomial prior)"
-            )
-        if not gp.is_fitted:
-            needed = ["noise_variance", "outputscale"] + (["lengthscale"] if gp.kernel_spec.has_lengthscale else [])
-            missing = [name for name in needed if gp.fixed.get(name) is None]
-            if missing:
-                args = ", ".join(f"{m}=..." for m in missing)
-                raise InputError(
-                    f"gp: expected the kernel hyperparameters a design needs before any data, got {', '.join(missing)} "
-                    f"not set (None) on this unfitted CorrectionGP; pass "
-                    f"CorrectionGP({args}) or fit the GP on earlier data first"
-                )
-        scales = future_noise(gp)
-        noise = float(gp.noise_variance) if scales is None else float(scales.max())
-        if scales is not None and not bool(torch.isfinite(scales).all() and (scales > 0).all()):
-            raise InputError(f"gp: expected positive finite noise variances, got {scales.tolist()}")
-        if not math.isfinite(noise) or noise <= 0:
-            raise InputError(f"gp: expected a positive finite noise_variance, got {noise!r}")
-        if gp.is_fitted and input_dim is not None and gp.input_dim != input_dim:
-            raise ShapeError(
-                f"gp: expected a GP with {input_dim} inputs (the system's correction inputs), got one "
-                f"fitted on {gp.input_dim}"
-            )
-        if condition is None:
-            condition = gp.is_fitted
-        if condition and not gp.is_fitted:
-            raise InputError(
-                "condition: expected a fitted gp to condition on its data, got an unfitted one; fit it first or "
-                "pass False"
-            )
+        scales, noise = _checked_gp(gp, input_dim, system)
+        condition = _checked_condition(condition, gp)
         self.gp = gp
         self.dtype = gp.dtype
         self.device = gp.device
         fac = gp.posterior().factor if gp.is_fitted else None
-        in_features = isinstance(fac, FeatureFactorization)  # the data's term in feature space (no N x N factor)
-        if in_features:
-            shared_data = fac.cov.shape[0] == 1 or all(torch.equal(fac.cov[0], c) for c in fac.cov[1:])
-            chol = None
-        else:  # the data's factor: (1, N, N) when every output has the same C = K + noise, else (d_out, N, N)
-            chol = None if fac is None else fac.chol.detach()
-            shared_data = chol is None or chol.shape[0] == 1 or all(torch.equal(chol[0], c) for c in chol[1:])
-        shared = not gp.per_output and shared_data and (scales is None or bool((scales == scales[0]).all()))
-        if in_features and condition and not shared:  # per-output data terms: the dense factor (modest N only)
-            chol, in_features = fac.chol.detach(), False
+        chol, in_features, shared = _data_layout(gp, fac, scales, condition)
         #: whether points are expanded to one block per output (:meth:`expand`); False: the shared layout
         self.expanded = not shared
         self.blocks = 1 if shared else gp.output_dim

@@ -44,7 +44,7 @@ import time
 import torch
 
 from .._errors import InputError
-from .._validation import check_flag, check_positive_int, check_real, progress_bar
+from .._validation import check_flag, progress_bar
 from ..gp import CorrectionGP
 from ..parallel import adaptive_threads, check_executor
 from ..systems import MisspecifiedSystem
@@ -60,6 +60,7 @@ from ._common import (
     logdet_identity_plus,
 )
 from ._domain import CRITERIA, DomainModel, domain_greedy
+from ._options import DomainCriterion, Engine, Partition, Proxy, check_stochastic, checked_criterion, checked_options
 from ._proxy import choose_proxy, proxy_paths
 from ._readings import ReadoutCriterion, readout_design
 from ._screening import CHUNK_BYTES, LowRank
@@ -67,7 +68,6 @@ from ._screening import CHUNK_BYTES, LowRank
 __all__ = ["greedy"]
 
 METHODS = ("lazy", "plain", "naive", "stochastic")
-EPSILON = 0.01  # method="stochastic": the default epsilon of the (1 - 1/e - epsilon) guarantee
 SCREEN_MIN_CANDIDATES = 1000  # screen="auto" uses the low-rank bounds from this many candidates on
 SCREEN_MEMORY = 256 * 2**20  # bytes for the features of all proxy points (sets the default max_rank) ...
 SCREEN_MIN_RANK = 64  # ... but never fewer features than this: at 10^5 candidates 256 MiB allow only 16, too few
@@ -109,11 +109,6 @@ class _Problem:
         self.domain = None
         if criterion == "domain":
             self.domain = DomainModel(self.kern, self.system, domain, domain_size)
-        elif domain is not None or domain_size is not None:
-            raise InputError(
-                "domain / domain_size: expected criterion='domain' with them (only it uses them), got "
-                "criterion='information'"
-            )
         self.candidates = check_candidates(candidates, self.system)
         n = self.candidates.shape[0]
         controls = self.system.check_controls(controls, n)  # one profile per candidate (a system with inputs)
@@ -206,6 +201,112 @@ def sample_size(n: int, budget: int, epsilon: float) -> int:
     return min(n, math.ceil(n / budget * math.log(1.0 / epsilon)))
 
 
+class _LazyGreedy:
+    """Lazy (or stochastic) greedy's state: stale upper bounds, the growing factor L_S and the optional screening."""
+
+    def __init__(self, prob: _Problem, batch_size: int, screen: bool, max_rank: int, sample, generator) -> None:
+        self.prob, self.batch_size, self.sample, self.generator = prob, batch_size, sample, generator
+        self.kern, self.P, self.T, self.K, self.half = prob.kern, prob.points, prob.T, prob.budget, 0.5 * prob.d_out
+        P, K, T, N = self.P, self.K, self.T, prob.n
+        self.d_in, self.noise, self.dev = P.shape[-1], self.kern.noise, P.device
+        self.Kcc = self.kern.block_diagonal(P)  # (N, T, T), kept: every exact evaluation needs its candidate's block
+        ld0, _ = logdet_identity_plus(self.Kcc.clone(), self.noise, "I + K_cc / noise_variance")
+        self.ub = self.half * ld0  # (N,) upper bound on every candidate's current gain (exact for S = {})
+        # level of ub in the current step: 0 stale (an earlier step's bound), 1 fresh feature bound, 2 fresh exact
+        self.level = torch.full((N,), 2, dtype=torch.int8, device=self.dev)
+        self.L = P.new_zeros(K * T, K * T)  # Cholesky factor of K_SS + sigma^2 I, grown block by block
+        self.PS = P.new_empty(K * T, self.d_in)  # proxy points of S
+        low = LowRank(prob, max_rank) if screen and K > 1 else None
+        self.info = {} if low is None else {"rank": low.rank, "screening": low.useful}
+        self.low = low if low is not None and low.useful else None
+        if sample is not None:
+            self.info["sample_size"] = sample
+        self.evaluations, self.n_bounds = N, 0
+        self.neg_inf = torch.tensor(-math.inf, dtype=P.dtype, device=self.dev)
+
+    def evaluate(self, idx: torch.Tensor, m: int, Lm: torch.Tensor):
+        """Exact gains of candidates ``idx (b,)`` given the m selected proxy points (factor Lm): gains, V, chol."""
+        T, d_in = self.T, self.d_in
+        Sig = self.Kcc[idx]
+        V = None
+        if m > 0:
+            b = idx.shape[0]
+            KSc = self.kern(self.PS[:m], self.P[idx].reshape(b * T, d_in))  # (m, b T)
+            V = torch.linalg.solve_triangular(Lm, KSc, upper=False).reshape(m, b, T).permute(1, 0, 2)
+            Sig = Sig - V.transpose(1, 2) @ V
+        ld, C = logdet_identity_plus(Sig, self.noise, "I + Sigma_{c|S} / noise_variance")
+        return self.half * ld, V, C
+
+    def draw(self, avail: torch.Tensor) -> torch.Tensor:
+        """Stochastic greedy: only a random subset of ``sample`` of the available candidates competes this step."""
+        if self.sample is None or self.sample >= int(avail.sum()):
+            return avail
+        gen = self.generator
+        ids = avail.nonzero().squeeze(1)
+        # drawn on the generator's own device (a CPU or a GPU generator), the same draws for the same seed there
+        drawn = ids[torch.randperm(ids.shape[0], generator=gen, device=gen.device)[: self.sample].to(self.dev)]
+        avail = torch.zeros_like(avail)
+        avail[drawn] = True
+        return avail
+
+    def tighten(self, open_: torch.Tensor, b_bound: int, m: int) -> None:
+        """Replace the top stale bounds by the (tighter, still rigorous) feature bounds of the screening."""
+        sel = open_ & (self.level == 0)
+        idx = torch.topk(torch.where(sel, self.ub, self.neg_inf), min(b_bound, int(sel.sum()))).indices
+        self.ub[idx] = torch.minimum(self.ub[idx], self.low.bounds(idx, m))
+        self.level[idx] = 1
+        self.n_bounds += idx.shape[0]
+
+    def search(self, avail: torch.Tensor, m: int, Lm: torch.Tensor, use_low: bool) -> tuple[int, list[tuple]]:
+        """One pick: re-evaluate the bounds that could still win (doubling batches) until the best exact gain wins."""
+        prob, ub, level = self.prob, self.ub, self.level
+        batches: list[tuple] = []  # (idx, V, C) of this step's exact evaluations; only the pick's rows are kept
+        b_exact, b_bound = self.batch_size, max(64, self.batch_size)
+        while True:
+            done = avail & (level == 2)
+            best = float(ub[done].max()) if bool(done.any()) else -math.inf
+            thr = prob.threshold(best) if best > -math.inf else -math.inf
+            open_ = avail & (level < 2) & (ub >= thr)
+            if not bool(open_.any()):
+                break
+            vals = torch.where(open_, ub, self.neg_inf)
+            top = int(torch.argmax(vals))
+            if use_low and int(level[top]) == 0:  # tighten the stale bounds at the top first
+                self.tighten(open_, b_bound, m)
+                b_bound *= 2
+                continue
+            cap = max(1, CHUNK_BYTES // (8 * max(m, 1) * self.T))
+            idx = torch.topk(vals, min(b_exact, int(open_.sum()), cap)).indices
+            g, V, C = self.evaluate(idx, m, Lm)
+            self.evaluations += idx.shape[0]
+            ub[idx] = g
+            level[idx] = 2
+            batches.append((idx, V, C))
+            b_exact *= 2  # many bounds above the best: widen the next batch
+        return _first_at_least(ub, done, thr), batches
+
+    def factor_row(self, n: int, batches: list[tuple], m: int, Lm: torch.Tensor):
+        """The pick's v = L_S^-1 K_Sn and chol(I + Sigma_{n|S} / sigma^2), from its latest exact evaluation."""
+        for idx, Vb, Cb in reversed(batches):  # a few batches per step
+            hit = (idx == n).nonzero()
+            if hit.numel():
+                j = int(hit[0, 0])
+                return (None if Vb is None else Vb[j]), Cb[j]
+        # step 0: the initial pass kept only the gains
+        _, Vb, Cb = self.evaluate(torch.tensor([n], device=self.dev), m, Lm)
+        return (None if Vb is None else Vb[0]), Cb[0]
+
+    def grow(self, n: int, m: int, v, C) -> None:
+        """Grow L_S by the block row [v_n^T, chol(Sigma_{n|S} + sigma^2 I)] (a Schur-complement update)."""
+        T = self.T
+        if v is not None:
+            self.L[m : m + T, :m] = v.T
+        self.L[m : m + T, m : m + T] = math.sqrt(self.noise) * C
+        self.PS[m : m + T] = self.P[n]
+        if self.low is not None:
+            self.low.add(n)
+
+
 def _lazy(
     prob: _Problem,
     batch_size: int,
@@ -215,111 +316,35 @@ def _lazy(
     sample: int | None = None,
     generator: torch.Generator | None = None,
 ) -> tuple[list[int], list[float], int, dict]:
-    kern, P, T, K, half = prob.kern, prob.points, prob.T, prob.budget, 0.5 * prob.d_out
-    d_in, noise, N = P.shape[-1], kern.noise, prob.n
-    dev = P.device
-    Kcc = kern.block_diagonal(P)  # (N, T, T), kept: every exact evaluation needs its candidate's block
-    ld0, _ = logdet_identity_plus(Kcc.clone(), noise, "I + K_cc / noise_variance")
-    ub = half * ld0  # (N,) upper bound on every candidate's current gain (exact for S = {})
-    # level of ub in the current step: 0 stale (an earlier step's bound), 1 fresh feature bound, 2 fresh exact
-    level = torch.full((N,), 2, dtype=torch.int8, device=dev)
-    L = P.new_zeros(K * T, K * T)  # Cholesky factor of K_SS + sigma^2 I, grown block by block
-    PS = P.new_empty(K * T, d_in)  # proxy points of S
-    low = LowRank(prob, max_rank) if screen and K > 1 else None
-    info = {} if low is None else {"rank": low.rank, "screening": low.useful}
-    if low is not None and not low.useful:
-        low = None
+    """Lazy greedy (Algorithm 2), or stochastic greedy with ``sample`` candidates drawn per pick."""
+    eng = _LazyGreedy(prob, batch_size, screen, max_rank, sample, generator)
+    K, T, low = prob.budget, prob.T, eng.low
     feas = _Feasible(prob)
-    evaluations, n_bounds = N, 0
-    neg_inf = torch.tensor(-math.inf, dtype=P.dtype, device=dev)
     picks, gains = [], []
-    bar = progress_bar(progress, K, f"{'stochastic' if sample else 'lazy'} greedy (N={N})", "pick")
-    if sample is not None:
-        info["sample_size"] = sample
-
-    def evaluate(idx: torch.Tensor, m: int, Lm: torch.Tensor):
-        """Exact gains of candidates ``idx (b,)`` given the m selected proxy points (factor Lm): gains, V, chol."""
-        Sig = Kcc[idx]
-        V = None
-        if m > 0:
-            b = idx.shape[0]
-            KSc = kern(PS[:m], P[idx].reshape(b * T, d_in))  # (m, b T)
-            V = torch.linalg.solve_triangular(Lm, KSc, upper=False).reshape(m, b, T).permute(1, 0, 2)
-            Sig = Sig - V.transpose(1, 2) @ V
-        ld, C = logdet_identity_plus(Sig, noise, "I + Sigma_{c|S} / noise_variance")
-        return half * ld, V, C
-
+    bar = progress_bar(progress, K, f"{'stochastic' if sample else 'lazy'} greedy (N={prob.n})", "pick")
     for k in range(K):
         m = k * T
-        batches: list[tuple] = []  # (idx, V, C) of this step's exact evaluations; only the pick's rows are kept
-        avail = feas.mask()
-        if sample is not None and sample < int(avail.sum()):  # stochastic greedy: the best of a random subset
-            ids = avail.nonzero().squeeze(1)
-            # drawn on the generator's own device (a CPU or a GPU generator), the same draws for the same seed there
-            drawn = ids[torch.randperm(ids.shape[0], generator=generator, device=generator.device)[:sample].to(dev)]
-            avail = torch.zeros_like(avail)
-            avail[drawn] = True
+        avail = eng.draw(feas.mask())
         if k > 0:
-            level.zero_()
-        b_exact = batch_size
-        b_bound = max(64, batch_size)
+            eng.level.zero_()
         # a feature bound costs ~ r^2 T, an exact gain ~ m^2 T: screen only once the exact gains cost more
         use_low = low is not None and m * m > 2 * low.rank * low.rank and low.slack(m) <= 1e-2 * abs(gains[-1])
-        Lm = L[:m, :m].contiguous()
-        while True:
-            done = avail & (level == 2)
-            best = float(ub[done].max()) if bool(done.any()) else -math.inf
-            thr = prob.threshold(best) if best > -math.inf else -math.inf
-            open_ = avail & (level < 2) & (ub >= thr)
-            if not bool(open_.any()):
-                break
-            vals = torch.where(open_, ub, neg_inf)
-            top = int(torch.argmax(vals))
-            if use_low and int(level[top]) == 0:  # tighten the stale bounds at the top first
-                sel = open_ & (level == 0)
-                idx = torch.topk(torch.where(sel, ub, neg_inf), min(b_bound, int(sel.sum()))).indices
-                ub[idx] = torch.minimum(ub[idx], low.bounds(idx, m))
-                level[idx] = 1
-                n_bounds += idx.shape[0]
-                b_bound *= 2
-                continue
-            cap = max(1, CHUNK_BYTES // (8 * max(m, 1) * T))
-            idx = torch.topk(vals, min(b_exact, int(open_.sum()), cap)).indices
-            g, V, C = evaluate(idx, m, Lm)
-            evaluations += idx.shape[0]
-            ub[idx] = g
-            level[idx] = 2
-            batches.append((idx, V, C))
-            b_exact *= 2  # many bounds above the best: widen the next batch
-        n = _first_at_least(ub, done, thr)
-        v = C = None
-        for idx, Vb, Cb in reversed(batches):  # the pick's latest exact evaluation (a few batches per step)
-            hit = (idx == n).nonzero()
-            if hit.numel():
-                j = int(hit[0, 0])
-                v, C = (None if Vb is None else Vb[j]), Cb[j]
-                break
-        else:  # step 0: the initial pass kept only the gains
-            _, Vb, Cb = evaluate(torch.tensor([n], device=dev), m, Lm)
-            v, C = (None if Vb is None else Vb[0]), Cb[0]
+        Lm = eng.L[:m, :m].contiguous()
+        n, batches = eng.search(avail, m, Lm, use_low)
+        v, C = eng.factor_row(n, batches, m, Lm)
         picks.append(n)
-        gains.append(float(ub[n]))
+        gains.append(float(eng.ub[n]))
         feas.add(n)
-        if k + 1 < K:  # grow L_S by the block row [v_n^T, chol(Sigma_{n|S} + sigma^2 I)]
-            if v is not None:
-                L[m : m + T, :m] = v.T
-            L[m : m + T, m : m + T] = math.sqrt(noise) * C
-            PS[m : m + T] = P[n]
-            if low is not None:
-                low.add(n)
+        if k + 1 < K:
+            eng.grow(n, m, v, C)
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(gain=f"{gains[-1]:.4g}", evals=evaluations)
+            bar.set_postfix(gain=f"{gains[-1]:.4g}", evals=eng.evaluations)
     if bar is not None:
         bar.close()
     if low is not None:
-        info.update(residual=low.e_max, bounds=n_bounds)
-    return picks, gains, evaluations, info
+        eng.info.update(residual=low.e_max, bounds=eng.n_bounds)
+    return picks, gains, eng.evaluations, eng.info
 
 
 # ------------------------------------------------------------------------------------- plain (vectorised) greedy
@@ -411,22 +436,13 @@ def greedy(
     times=None,
     gp: CorrectionGP,
     method: str = "lazy",
-    partition=None,
-    capacities=None,
-    proxies=None,
-    progress: bool = False,
-    batch_size: int = 16,
-    tie_tol: float = 1e-9,
-    screen: bool | str = "auto",
-    max_rank: int | None = None,
+    criterion: str | DomainCriterion | ReadoutCriterion = "information",
+    partition: Partition | None = None,
+    proxy: Proxy | None = None,
     condition: bool | None = None,
-    proxy: str | None = None,
-    criterion: str = "information",
-    domain=None,
-    domain_size: int | None = None,
     controls=None,
-    epsilon: float = EPSILON,
-    generator: torch.Generator | None = None,
+    engine: Engine | None = None,
+    progress: bool = False,
     executor=None,
 ) -> DesignResult:
     """Choose ``budget`` initial conditions among ``candidates`` maximising the proxy information gain.
@@ -438,9 +454,9 @@ def greedy(
     the *proxy* criterion:
 
     * cardinality budget: ``f(greedy) >= (1 - 1/e) f(optimum)`` (Nemhauser, Wolsey, Fisher 1978);
-    * partition-matroid budget (at most ``capacities[r]`` picks in region r): plain greedy guarantees only
-      ``f(greedy) >= 1/2 f(optimum)`` (Fisher, Nemhauser, Wolsey 1978); the (1 - 1/e) algorithms for matroids
-      (continuous greedy, Calinescu et al. 2007) are not implemented.
+    * partition-matroid budget (:class:`Partition`: at most ``capacities[r]`` picks in region r): plain greedy
+      guarantees only ``f(greedy) >= 1/2 f(optimum)`` (Fisher, Nemhauser, Wolsey 1978); the (1 - 1/e) algorithms
+      for matroids (continuous greedy, Calinescu et al. 2007) are not implemented.
 
     * stochastic greedy (``method="stochastic"``, Mirzasoleiman et al. 2015, "Lazier than lazy greedy"), cardinality
       budget only: each pick is the best of ``ceil((N / K) ln(1 / epsilon))`` candidates drawn at random (lazy
@@ -458,58 +474,41 @@ def greedy(
         budget: number of experiments K to choose, 1 <= K <= N (and <= what the capacities allow).
         system: the misspecified system (known model G, correction inputs and outputs; d_out = system.output_dim).
         times: ``(T,)`` strictly increasing observation times; the first is the time of the initial condition.
-            May be omitted when ``proxies`` is given.
+            May be omitted when ``Proxy(paths=...)`` is given.
         gp: :class:`CorrectionGP` with a shared kernel whose hyperparameters are set (given, or fitted on earlier
             data); its kernel is evaluated on the proxy points restricted to ``system.correction_inputs``.
         method: ``"lazy"`` (Algorithm 2, the default), ``"plain"`` (Algorithm 1, vectorised over candidates) or
             ``"naive"`` (Algorithm 1 with fresh log-determinants, the reference): all three pick the same set; or
-            ``"stochastic"`` (the best of a random draw per pick, see above; ``epsilon`` and ``generator``).
-        partition: optional ``(N,)`` integer region label per candidate; with ``capacities`` a partition matroid.
-        capacities: most picks per region: a mapping label -> count, or a sequence indexed by label.
-        proxies: optional ``(N, T, d)`` trajectories to use instead of :func:`proxy_trajectories` (e.g. the
-            agnostic design passes the constant trajectories).
-        progress: show tqdm progress bars over the proxies' chunks (many candidates) and the picks.
-        batch_size: lazy greedy's first batch of re-evaluations per pick (doubling while needed; same picks for
-            any value).
-        tie_tol: relative tolerance under which two gains tie; ties go to the lowest candidate index.
-        screen: lazy greedy only: tighten the stale bounds with a low-rank feature model of the kernel (rigorous
-            bounds, same picks, much faster for smooth kernels and many candidates); ``"auto"`` screens from 1000
-            candidates on. The features' rank and residual are reported in ``result.diagnostics``.
-        max_rank: most features for the screening (default: what fits in 256 MiB, at least 64 and at most 1024;
-            the features take ``8 N T r`` bytes for the rank r used, e.g. 0.7 GB for N = 10^5, T = 20, r = 46).
+            ``"stochastic"`` (the best of a random draw per pick, see above; :class:`Engine`'s ``epsilon`` and
+            ``generator``).
+        criterion: ``"information"`` (the paper's: information about F anywhere, monotone submodular, the
+            guarantees above); a :class:`DomainCriterion` (or ``"domain"``, its defaults): the mean posterior
+            variance of F over a box D that the samples remove, which aims the design at D but is not submodular
+            (no (1 - 1/e) guarantee; ``method="lazy"`` then evaluates every remaining gain, the same picks as
+            ``"plain"``); or a :class:`~torchmisspec.design.ReadoutCriterion`: experiments that read only
+            combinations H y of the states (a :class:`~torchmisspec.Readout`), scored by the information about F
+            of their noisy readings, linearised through the ODE along the proxy paths (monotone submodular: the
+            guarantees above hold; see :mod:`torchmisspec.design._readings`). It computes its own proxies (on a
+            finer grid), takes conditioning, both proxy dynamics and partitions, and refuses ``Proxy(paths=...)``,
+            ``controls`` and ``method="stochastic"``; ``"lazy"`` and ``"plain"`` run its vectorised engine,
+            ``"naive"`` the reference.
+        partition: a :class:`Partition` (a region label per candidate and the most picks per region), or ``None``
+            for a cardinality budget.
+        proxy: a :class:`Proxy`: the trajectories the samples are predicted along, ``"known"`` (G alone) or
+            ``"corrected"`` dynamics, or given paths (e.g. the agnostic design's constant ones). Default: corrected
+            for a fitted GP, known otherwise. ``result.diagnostics["proxy"]`` says which.
         condition: condition every gain on the GP's training samples (with their noise, per sample where known):
             the marginal gain of a candidate is then its information given the data already collected plus the
             picks so far, and candidates whose trajectories revisit measured states gain little. Default: when the
             GP is fitted (an unfitted prior holds no data: nothing changes). ``result.diagnostics["conditioned"]``
             is the number of samples conditioned on.
-        proxy: the trajectories the samples are predicted along: ``"known"`` (G alone, the paper's proxy) or
-            ``"corrected"`` (G + the GP's posterior mean, :class:`~torchmisspec.CorrectedODE`, closer to the truth
-            once data are in). Default: ``"corrected"`` for a fitted GP, ``"known"`` otherwise; ignored when
-            ``proxies`` are given. ``result.diagnostics["proxy"]`` says which.
-        criterion: ``"information"`` (the paper's: information about F anywhere, monotone submodular, the
-            guarantees above) or ``"domain"``: the mean posterior variance of F over the domain D that the samples
-            remove (:func:`variance_reduction`; gains in units of F squared, not nats). It aims the design at D but
-            is not submodular in general, so it has no (1 - 1/e) guarantee and lazy bounds do not apply:
-            ``method="lazy"`` then evaluates every remaining gain (the same picks as ``"plain"``). Conditioning,
-            both proxies and partition budgets work with both. See :mod:`torchmisspec.design._domain`.
-            Or a :class:`~torchmisspec.design.ReadoutCriterion`: experiments that read only combinations H y of
-            the states (a :class:`~torchmisspec.Readout`), scored by the information about F of their noisy
-            readings, linearised through the ODE along the proxy paths (monotone submodular: the guarantees above
-            hold; see :mod:`torchmisspec.design._readings`). It computes its own proxies (on a finer grid), takes
-            conditioning, both proxies and partitions, and refuses ``proxies``, ``domain``, ``controls`` and
-            ``method="stochastic"``; ``"lazy"`` and ``"plain"`` run its vectorised engine, ``"naive"`` the reference.
-        domain: ``criterion="domain"`` only: the box D, one ``(lo, hi)`` per correction input (default
-            ``system.domain``).
-        domain_size: ``criterion="domain"`` only: quadrature nodes per axis (default: at most 1024 nodes in all,
-            at least 2 per axis).
         controls: for a system with inputs u(t), each candidate's input profile (a
             :class:`~torchmisspec.signals.Controls` of N profiles): a candidate experiment is an initial state and a
             profile (repeat a state with several profiles to choose among profiles); the proxies run under them and
             the samples' inputs include u where F depends on it. ``criterion="information"`` only.
-        epsilon: ``method="stochastic"`` only: the guarantee's epsilon in (0, 1), which sets the draw per pick
-            (``result.diagnostics["sample_size"]``); smaller is closer to lazy greedy and slower.
-        generator: ``method="stochastic"`` only: the random draws (default: a generator seeded with 0, so a design
-            is reproducible).
+        engine: an :class:`Engine`: lazy greedy's batches and low-rank screening, the tie tolerance, stochastic
+            greedy's ``epsilon`` and ``generator`` (default ``Engine()``).
+        progress: show tqdm progress bars over the proxies' chunks (many candidates) and the picks.
         executor: a ``concurrent.futures.Executor`` that solves the proxy trajectories (chunks of ``PROXY_CHUNK``
             candidates, :mod:`torchmisspec.parallel`), or ``None`` (here): the same design either way.
 
@@ -521,61 +520,53 @@ def greedy(
 
     Raises:
         BudgetError: budget < 1, > N, or more than the capacities allow.
-        InputError / ShapeError: bad candidates, times, proxies, partition, or a GP without hyperparameters.
+        InputError / ShapeError: bad candidates, times, proxy paths, partition, or a GP without hyperparameters.
     """
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
-    batch_size = check_positive_int(batch_size, "batch_size")
-    if screen not in ("auto", True, False):
-        raise InputError(f"screen: expected 'auto', True or False, got {screen!r}")
-    if max_rank is not None:
-        max_rank = check_positive_int(max_rank, "max_rank")
-    epsilon = check_real(epsilon, "epsilon", positive=True)
-    if method != "stochastic" and (epsilon != EPSILON or generator is not None):
-        raise InputError(f"epsilon / generator: expected method='stochastic' with them, got method={method!r}")
-    if method == "stochastic":
-        epsilon = check_real(epsilon, "epsilon", positive=True)
-        if not epsilon < 1:
-            raise InputError(f"epsilon: expected a number in (0, 1), got {epsilon!r}")
-        if generator is not None and not isinstance(generator, torch.Generator):
-            raise InputError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
-        if partition is not None or criterion != "information":
-            raise InputError(
-                "method='stochastic': expected a cardinality budget and criterion='information' (its guarantee "
-                f"holds there), got {'a partition' if partition is not None else f'criterion={criterion!r}'}; "
-                "use method='lazy'"
-            )
+    criterion, domain = checked_criterion(criterion)
+    partition, proxy, engine = checked_options(partition, proxy, engine)
+    check_stochastic(method, engine, partition, criterion)
+    regions, capacities = (None, None) if partition is None else (partition.regions, partition.capacities)
     if isinstance(criterion, ReadoutCriterion):
         options = dict(
             candidates=candidates, budget=budget, system=system, times=times, gp=gp, method=method,
-            partition=partition, capacities=capacities, proxies=proxies, tie_tol=tie_tol, condition=condition,
-            proxy=proxy, domain=domain, domain_size=domain_size, controls=controls, executor=executor,
-            progress=progress,
+            partition=regions, capacities=capacities, proxies=proxy.paths, tie_tol=engine.tie_tol,
+            condition=condition, proxy=proxy.dynamics, domain=None, domain_size=None, controls=controls,
+            executor=executor, progress=progress,
         )  # fmt: skip
         return readout_design(criterion, options, _Feasible)
     prob = _Problem(
-        candidates, budget, system, times, gp, partition, capacities, proxies, tie_tol,
-        condition=condition, proxy=proxy, criterion=criterion, domain=domain, domain_size=domain_size,
-        controls=controls, executor=check_executor(executor), progress=check_flag(progress, "progress"),
+        candidates, budget, system, times, gp, regions, capacities, proxy.paths, engine.tie_tol,
+        condition=condition, proxy=proxy.dynamics, criterion=criterion, domain=domain.domain,
+        domain_size=domain.size, controls=controls, executor=check_executor(executor),
+        progress=check_flag(progress, "progress"),
     )  # fmt: skip
-    if screen == "auto":
-        screen = prob.n >= SCREEN_MIN_CANDIDATES
-    if max_rank is None:
-        max_rank = int(min(1024, max(SCREEN_MIN_RANK, SCREEN_MEMORY // (8 * prob.n * prob.T))))
     start = time.perf_counter()
     with torch.no_grad():
-        if prob.domain is not None:
-            picks, gains, evals, info = domain_greedy(prob, method, progress, _Feasible)
-        elif method == "lazy":
-            picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank))
-        elif method == "stochastic":
-            gen = torch.Generator().manual_seed(0) if generator is None else generator
-            draw = sample_size(prob.n, prob.budget, epsilon)
-            picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank), draw, gen)
-            info["epsilon"] = epsilon
-        elif method == "plain":
-            picks, gains, evals, info = _plain(prob, progress)
-        else:
-            picks, gains, evals, info = _naive(prob, progress)
+        picks, gains, evals, info = _run(prob, method, engine, progress)
     info = {**info, "conditioned": prob.kern.num_conditioned, "proxy": prob.proxy, "criterion": prob.criterion}
     return prob.result(picks, gains, method, evals, time.perf_counter() - start, info)
+
+
+def _run(prob: _Problem, method: str, engine: Engine, progress: bool) -> tuple[list[int], list[float], int, dict]:
+    """The engine ``method`` on the validated problem: picks, gains, evaluations, diagnostics."""
+    if prob.domain is not None:
+        return domain_greedy(prob, method, progress, _Feasible)
+    screen = prob.n >= SCREEN_MIN_CANDIDATES if engine.screen == "auto" else engine.screen
+    max_rank = engine.max_rank
+    if max_rank is None:
+        max_rank = int(min(1024, max(SCREEN_MIN_RANK, SCREEN_MEMORY // (8 * prob.n * prob.T))))
+    batch_size = int(engine.batch_size)
+    if method == "lazy":
+        return _lazy(prob, batch_size, progress, bool(screen), int(max_rank))
+    if method == "stochastic":
+        gen = torch.Generator().manual_seed(0) if engine.generator is None else engine.generator
+        epsilon = float(engine.epsilon)
+        draw = sample_size(prob.n, prob.budget, epsilon)
+        picks, gains, evals, info = _lazy(prob, batch_size, progress, bool(screen), int(max_rank), draw, gen)
+        info["epsilon"] = epsilon
+        return picks, gains, evals, info
+    if method == "plain":
+        return _plain(prob, progress)
+    return _naive(prob, progress)

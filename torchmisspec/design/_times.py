@@ -21,6 +21,7 @@ from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 from ._common import DesignResult, check_candidates, check_system, check_times
 from ._greedy import greedy
+from ._options import DomainCriterion, Partition, Proxy
 from ._proxy import choose_proxy, proxy_paths
 
 __all__ = ["SamplingTimes", "sampling_times"]
@@ -57,8 +58,8 @@ def sampling_times(
     system: MisspecifiedSystem,
     gp: CorrectionGP,
     controls=None,
-    criterion: str = "information",
-    proxy: str | None = None,
+    criterion: str | DomainCriterion = "information",
+    proxy: Proxy | None = None,
     progress: bool = False,
     **options,
 ) -> SamplingTimes:
@@ -73,10 +74,12 @@ def sampling_times(
             data, see :func:`~torchmisspec.design.greedy`'s ``condition``).
         controls: for a system with inputs, the K experiments' input profiles (the proxies run under them; where F
             depends on an input, each sample's inputs are the profile's values at its time).
-        criterion: ``"information"`` or ``"domain"``, as for :func:`~torchmisspec.design.greedy`.
-        proxy: ``"known"`` or ``"corrected"`` (default: corrected for a fitted GP), as for ``greedy``.
+        criterion: ``"information"`` or a :class:`~torchmisspec.design.DomainCriterion` (``"domain"``), as for
+            :func:`~torchmisspec.design.greedy`.
+        proxy: a :class:`~torchmisspec.design.Proxy` with ``"known"`` or ``"corrected"`` dynamics (default: corrected
+            for a fitted GP), as for ``greedy``; its paths are the ones computed here.
         progress: a progress bar over the picks.
-        **options: further keywords of :func:`~torchmisspec.design.greedy` (``method``, ``condition``, ``domain``,
+        **options: further keywords of :func:`~torchmisspec.design.greedy` (``method``, ``condition``, ``engine``,
             ...).
 
     Returns:
@@ -86,7 +89,7 @@ def sampling_times(
     system = check_system(system, controls, with_controls=True)
     if not isinstance(gp, CorrectionGP):
         raise InputError(f"gp: expected a CorrectionGP, got {type(gp).__name__}")
-    for key in ("partition", "capacities", "proxies", "times", "candidates"):
+    for key in ("partition", "proxy", "times", "candidates"):
         if key in options:
             raise InputError(
                 f"{key}: expected none (sampling_times sets it: one region of candidate times per experiment), got one"
@@ -101,7 +104,12 @@ def sampling_times(
             f"per_experiment: expected at most the {T} candidate times, got {per_experiment}; pass more candidate times"
         )
     controls = system.check_controls(controls, K)
-    paths = proxy_paths(choose_proxy(proxy, gp), system, gp, y0, grid, controls)
+    if proxy is not None and (not isinstance(proxy, Proxy) or proxy.paths is not None):
+        raise InputError(
+            f"proxy: expected a design.Proxy with dynamics 'known' or 'corrected' (sampling_times solves the paths), "
+            f"got {proxy!r:.80}"
+        )
+    paths = proxy_paths(choose_proxy(None if proxy is None else proxy.dynamics, gp), system, gp, y0, grid, controls)
     width = system.state_dim
     if system.uses_controls:  # F's inputs include u: each sample carries the inputs at its own time
         paths = torch.cat([paths, controls.at(grid.expand(K, -1)).to(paths)], dim=-1)
@@ -122,9 +130,8 @@ def sampling_times(
         K * per_experiment,
         system=view,
         gp=gp,
-        partition=region,
-        capacities=[per_experiment] * K,
-        proxies=samples,
+        partition=Partition(region, [per_experiment] * K),
+        proxy=Proxy(paths=samples),
         criterion=criterion,
         progress=progress,
         **options,

@@ -303,7 +303,7 @@ def gravity_study(
     proxies = _design.proxy_trajectories(system, flat, times).reshape(states.shape) if redraw_candidates else None
     plans = []  # one dict name -> DesignResult per candidate set
     for i in range(len(seeds)):
-        aided = dict(proxies=proxies[i]) if proxies is not None else dict(times=times)
+        aided = dict(proxy=_design.Proxy(paths=proxies[i])) if proxies is not None else dict(times=times)
         plans.append(
             {
                 "misspecified-aided": _design.greedy(candidates[i], ks[-1], system=system, gp=prior, **aided),
