@@ -524,8 +524,10 @@ def test_a_saved_model_predicts_as_the_original(tmp_path_factory, kind):
     back = tms.CorrectionGP.load(model.save(tmp_path_factory.mktemp("gp") / "gp.pt"))
     x = torch.rand(7, model.input_dim, generator=torch.Generator().manual_seed(0), dtype=model.dtype)
     a, b = model.predict(x), back.predict(x)
-    same(b.mean, a.mean, rtol=1e-12, atol=1e-15)
-    same(b.variance, a.variance, rtol=1e-10, atol=1e-15)
+    # relative to their size: with a noise variance near 1e-13 the refactorized solve differs from the original's in
+    # about the 12th digit when torch runs 2 threads (1.4e-14 on means of 0.0075); with 1 thread it is bit-identical
+    same(b.mean, a.mean, rtol=1e-9, atol=1e-9 * float(a.mean.abs().max()), what=f"{kind} mean")
+    same(b.variance, a.variance, rtol=1e-10, atol=1e-10 * float(a.variance.abs().max()), what=f"{kind} variance")
     assert back.dtype == model.dtype and getattr(back, "input_names_", None) == getattr(model, "input_names_", None)
 
 
