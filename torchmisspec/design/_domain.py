@@ -160,7 +160,8 @@ def domain_greedy(prob, method: str, progress: bool, feasible) -> tuple[list[int
     if method != "naive" and need > MEMORY:
         raise InputError(
             f"criterion='domain': the engine needs {need / 2**30:.1f} GiB for {N} candidates x {T} times x {r} "
-            f"domain features (at most {MEMORY / 2**30:.0f} GiB); pass a smaller domain_size or fewer candidates"
+            f"domain features (at most {MEMORY / 2**30:.0f} GiB); pass fewer quadrature nodes "
+            "(design.DomainCriterion(size=...) for greedy, domain_size= here) or fewer candidates"
         )
     psi = model.whitened(P)  # (N, T, r)
     base = float(model.mean_variance(model.A))
