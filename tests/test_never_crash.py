@@ -100,7 +100,7 @@ def test_the_refined_feature_model_is_the_fitted_one_with_fewer_samples_than_ter
     gp = tms.CorrectionGP(kernel="features", degree=3, per_output=True).fit(samples)
     # the relevance rounds' own model (its sparse rival, torchmisspec.learning.refinement._term_price, has fewer terms
     # than samples)
-    monkeypatch.setattr(tms.trajectory_fit, "_sparser", lambda refined, *args: refined)
+    monkeypatch.setattr(tms.learning.refinement.trajectory_fit, "_sparser", lambda refined, *args: refined)
     refined = tms.fit_trajectories(gp, system, data, max_iter=10)
 
     def misfit(model, y0):
