@@ -310,7 +310,9 @@ def test_the_loop_on_data_with_missing_cells(sir):
     known = tms.simulate(system, y0, grid, known_only=True).states
     assert tms.trajectory_rmse(model.predict(y0, grid), true) < 0.5 * tms.trajectory_rmse(known, true)
     g = torch.Generator().manual_seed(0)
-    cal = model.calibrate(traj, gp.samples_, state_noise="2%", num_samples=16, generator=g, progress=False)
+    cal = model.calibrate(
+        traj, gp.samples_, state_noise="2%", folds=3, num_samples=16, generator=g, progress=False
+    )  # 3 folds: still every experiment held out once
     observed_after_first = sum(int(torch.isfinite(y[1:]).sum()) for y in traj.states)
     assert cal.num_points == observed_after_first and math.isfinite(cal.scale)
     with warnings.catch_warnings():

@@ -25,26 +25,34 @@ def test_map_tasks_keeps_the_order_with_any_executor():
         process_pool(0)
 
 
+STUDY_CFG = {**study_sampling_times.SMOKE, "realizations": 2}
+
+
+def _quiet(*args, **kwargs) -> None:
+    pass
+
+
+@pytest.fixture(scope="module")
+def serial_study():
+    """The sampling-times study's smoke run, serial: the reference both executors' runs are compared to (run once
+    for the module, not once per executor)."""
+    return study_sampling_times.study(STUDY_CFG, log=_quiet)
+
+
 @pytest.mark.slow
-def test_a_study_in_a_process_pool_gives_the_serial_numbers():
-    cfg = {**study_sampling_times.SMOKE, "realizations": 2}
-    quiet = lambda *a, **k: None  # noqa: E731
-    serial = study_sampling_times.study(cfg, log=quiet)
+def test_a_study_in_a_process_pool_gives_the_serial_numbers(serial_study):
     with process_pool(2) as pool:
-        pooled = study_sampling_times.study(cfg, log=quiet, executor=pool)
-    assert pooled["runs"] == serial["runs"]
+        pooled = study_sampling_times.study(STUDY_CFG, log=_quiet, executor=pool)
+    assert pooled["runs"] == serial_study["runs"]
 
 
 @pytest.mark.slow
-def test_a_study_on_a_local_dask_cluster_gives_the_serial_numbers():
+def test_a_study_on_a_local_dask_cluster_gives_the_serial_numbers(serial_study):
     distributed = pytest.importorskip("distributed")
-    cfg = {**study_sampling_times.SMOKE, "realizations": 2}
-    quiet = lambda *a, **k: None  # noqa: E731
-    serial = study_sampling_times.study(cfg, log=quiet)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         with distributed.Client(cluster) as client:
-            pooled = study_sampling_times.study(cfg, log=quiet, executor=client.get_executor())
-    assert pooled["runs"] == serial["runs"]
+            pooled = study_sampling_times.study(STUDY_CFG, log=_quiet, executor=client.get_executor())
+    assert pooled["runs"] == serial_study["runs"]
 
 
 def _calibration_case():

@@ -190,7 +190,7 @@ def test_fit_through_the_readout_predicts_both_states():
 
 
 def test_cli_reads_the_readout_column(tmp_path, capsys):
-    data = lab_data(torch.Generator().manual_seed(4), K=6)
+    data = lab_data(torch.Generator().manual_seed(4), K=4)
     (tmp_path / "binding.py").write_text(BINDING_SYSTEM)
     lines = ["run,minutes,free,radioactivity"]
     for k, (t, y) in enumerate(data.experiments()):

@@ -57,7 +57,7 @@ METHODS = ("fixed", "laplace", "calibrated", "features", "features calibrated")
 #: Issue 41's goal for the 90 % band over each half of the prediction horizon.
 HALF_GOAL = (0.80, 0.97)
 FULL = {"realizations": 10, "n_test": 200, "num_samples": 64, "output_times": 31, "oracle_realizations": 30}
-SMOKE = {"realizations": 2, "n_test": 10, "num_samples": 16, "output_times": 7, "oracle_realizations": 2}
+SMOKE = {"realizations": 1, "n_test": 4, "num_samples": 16, "output_times": 7, "oracle_realizations": 1}
 #: The well-specified reference: paper_linear's G and observation model, but a true F drawn from the very GP prior
 #: the model uses (RBF, these hyperparameters, held fixed in the fit), so its posterior bands are exact on average.
 ORACLE_KS = (5, 10, 40)
