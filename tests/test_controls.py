@@ -204,12 +204,10 @@ def feed_tank():
     return namespace["feed_tank"]()
 
 
-def test_a_lab_csv_with_an_input_column_through_the_cli(tmp_path, capsys):
-    """A lab's table as it comes: named columns, ragged irregular times, noise, the input set between
-    measurements; fit and calibrate on the command line with the defaults, the input named by --input-columns."""
-    from torchmisspec.cli import main
-
-    _, traj = lab(7, K=8, T=30, noise=2e-3)
+def _lab_csv(tmp_path, K: int):
+    """A lab's table as it comes (``K`` flasks): named columns, ragged irregular times, noise, the input set between
+    measurements; with the system file beside it. Returns the command line's common options."""
+    _, traj = lab(7, K=K, T=30, noise=2e-3)
     gen = torch.Generator().manual_seed(8)
     rows = ["flask,day,level,feed"]
     for k, ((t, y), (knots, _)) in enumerate(zip(traj.experiments(), traj.controls.profiles(), strict=True)):
@@ -230,7 +228,15 @@ def test_a_lab_csv_with_an_input_column_through_the_cli(tmp_path, capsys):
     data.write_text("\n".join(rows) + "\n")
     (tmp_path / "tank.py").write_text(SYSTEM_FILE)
     system = f"{tmp_path / 'tank.py'}:feed_tank"
-    common = ["--data", str(data), "--system", system, "--experiment-column", "flask", "--time-column", "day"]
+    return ["--data", str(data), "--system", system, "--experiment-column", "flask", "--time-column", "day"], system
+
+
+def test_a_lab_csv_with_an_input_column_through_the_cli(tmp_path, capsys):
+    """A lab's table as it comes, fitted and calibrated on the command line with the defaults, the input named by
+    --input-columns."""
+    from torchmisspec.cli import main
+
+    common, system = _lab_csv(tmp_path, K=8)
     model = tmp_path / "model.pt"
     assert main(["fit", *common, "--input-columns", "feed", "--out", str(model), "--quiet"]) == 0
     assert model.is_file()
@@ -263,6 +269,18 @@ def test_a_lab_csv_with_an_input_column_through_the_cli(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "the system also takes 1 input(s) ['feed']: name their columns" in err[0]
     assert "--input-columns" in err[0]
+
+
+def test_the_command_line_prints_the_terms_of_a_correction_on_an_input(tmp_path, capsys):
+    """Five flasks: the cross-validation keeps the feature kernel, whose terms the command line prints in the data's
+    names, the input's included (it raised IndexError, "internal error", looking the input up among the states)."""
+    from torchmisspec.cli import main
+
+    common, _ = _lab_csv(tmp_path, K=5)
+    assert main(["fit", *common, "--input-columns", "feed", "--out", str(tmp_path / "m.pt")]) == 0
+    out = capsys.readouterr().out
+    line = next(line for line in out.splitlines() if line.startswith("correction of dlevel/dt:"))
+    assert "internal error" not in out and ("feed" in line or "level" in line or "no term kept" in line), line
 
 
 @pytest.mark.parametrize("shooting", ["single", "multiple"])

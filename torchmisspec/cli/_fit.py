@@ -91,7 +91,7 @@ def _fit(args: argparse.Namespace) -> int:
     _print_choice(gp, system)
     _print_learned(gp, observed)
     if gp.weights is not None:  # a feature kernel: its terms, in the data's names
-        _print_terms(gp, system, list(observed.state_names))
+        _print_terms(gp, system, observed)
     if not args.no_calibrate:
         if observed.num_experiments < 2:
             print(
@@ -155,10 +155,13 @@ def _print_learned(gp, observed) -> None:
         print("uncertain parameters of G, posterior mean +- sd:\n  " + gp.parameters_.summary().replace("\n", "\n  "))
 
 
-def _print_terms(gp, system, names: list[str]) -> None:
-    """A feature kernel's terms of each correction output, in the data's names: those kept, and the removed ones
-    whose chance of being present is at least :data:`POSSIBLE_TERM` (they widen the bands)."""
-    terms = list(gp.terms([names[i] for i in system.correction_inputs], all_terms=True))
+def _print_terms(gp, system, observed) -> None:
+    """A feature kernel's terms of each correction output, in the data's names (states, then the inputs'
+    columns): those kept, and the removed ones whose chance of being present is at least :data:`POSSIBLE_TERM` (they
+    widen the bands)."""
+    names = list(observed.state_names)
+    every = names + ([] if observed.controls is None else list(observed.controls.names))
+    terms = list(gp.terms([every[i] for i in system.correction_inputs], all_terms=True))
     for o, j in enumerate(system.correction_outputs):
         kept = [str(t) for t in terms if t.output == o and t.weight > 0]
         line = f"correction of d{names[j]}/dt: " + (" ".join(kept) if kept else "0 (no term kept)")
