@@ -454,8 +454,12 @@ def readout_information_gain(
     Args:
         indices: the chosen candidates (or a :class:`DesignResult`); empty: 0.
         candidates: ``(N, d)``.
-        system, times, gp, condition, proxy: as for :func:`~torchmisspec.design.greedy`.
+        system: the system, as for :func:`~torchmisspec.design.greedy`.
+        times: the observation times, as for ``greedy``.
+        gp: the correction GP, as for ``greedy``.
         criterion: the :class:`ReadoutCriterion` (readout, noise, quadrature).
+        condition: whether the gains are conditioned on the GP's data, as for ``greedy``.
+        proxy: the proxies' dynamics (``"known"`` or ``"corrected"``), as for ``greedy``.
     """
     if isinstance(indices, DesignResult):
         indices = indices.indices
