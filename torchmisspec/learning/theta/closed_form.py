@@ -52,6 +52,7 @@ import torch
 
 from ..._errors import InputError, NumericalWarning, warn
 from ..._linalg import cholesky
+from ...gp._features import check_dense
 from ...parameters import LARGER_CORRECTION, ParameterPosterior, Priors
 
 __all__ = [
@@ -69,7 +70,15 @@ CONVERGED = 0.01
 
 
 def parameter_posterior(
-    gp, residuals: torch.Tensor, basis: torch.Tensor, outputs, priors: Priors, delta=None, *, linear: bool = True
+    gp,
+    residuals: torch.Tensor,
+    basis: torch.Tensor,
+    outputs,
+    priors: Priors,
+    delta=None,
+    *,
+    linear: bool = True,
+    larger: bool = True,
 ):
     """The posterior of theta given the residual samples, F integrated out (the module's notes).
 
@@ -84,6 +93,8 @@ def parameter_posterior(
             act on (estimated from the residuals r - H delta there).
         linear: whether G is linear in theta (else ``residuals`` and ``basis`` are a linearisation's, and the
             posterior is the Laplace approximation when taken at the MAP), recorded in the result.
+        larger: also compute ``sd_larger_correction`` (one dense N x N solve per corrected output; skipped, ``None``,
+            on Gauss-Newton's intermediate steps).
     """
     dtype, device = residuals.dtype, residuals.device
     k = len(priors)
@@ -129,7 +140,7 @@ def parameter_posterior(
         log_evidence=float(evidence),
         basis_targets=Hc.detach().clone(),
         linear=linear,
-        sd_larger_correction=_sd_larger_correction(gp, Hc, info_others, S),
+        sd_larger_correction=_sd_larger_correction(gp, Hc, info_others, S) if larger else None,
     )
 
 
@@ -142,9 +153,9 @@ def posterior_given(gp, samples, system, delta=None):
     outputs, linear = system.correction_outputs, samples.parameters_linear
     posterior = None
     for step in range(1 if linear else GAUSS_NEWTON_STEPS):
-        before = posterior
-        posterior = parameter_posterior(
-            gp, samples.residuals, samples.basis, outputs, system.parameters, delta, linear=linear
+        before, used = posterior, samples
+        posterior = parameter_posterior(  # the check with a larger F (a dense solve) once, at the last step
+            gp, samples.residuals, samples.basis, outputs, system.parameters, delta, linear=linear, larger=linear
         )
         if linear:
             break
@@ -160,6 +171,8 @@ def posterior_given(gp, samples, system, delta=None):
                 "priors, or a parametrisation in which G is closer to linear, help",
                 NumericalWarning,
             )
+    if not linear:  # the last step's posterior again, with the check of a larger F it skipped
+        posterior = parameter_posterior(gp, used.residuals, used.basis, outputs, system.parameters, delta, linear=False)
     return posterior, samples
 
 
@@ -181,6 +194,7 @@ def _sd_larger_correction(gp, Hc: torch.Tensor, info_others: torch.Tensor, S: to
     for a parameter, the data leave it near its prior. ``None`` where the dense training covariance is out of reach
     (many samples)."""
     try:
+        check_dense(Hc.shape[0])  # a model fitted in feature space on many samples: no N x N matrix
         K, diag = gp._kernel_parts(gp.train_inputs_, gp.train_noise_)
     except InputError:
         return None
