@@ -284,9 +284,10 @@ class ParameterPosterior:
         problems = self.problems()
         if problems:
             warn(
-                f"{where}: uncertain parameters not determined by the data ({'; '.join(problems)}). Their posterior "
-                "stays wide and the bands include it; to tell them apart, measure where G's dependence on them differs "
-                "from what F may depend on (other states, inputs or times), or tighten their priors",
+                f"{where}: uncertain parameters not determined by the data ({'; '.join(problems)}). The bands include "
+                "their posterior widths, so where a width is set by F's fitted size (said above) the bands do not show "
+                "the trade-off; to tell them apart, measure where G's dependence on them differs from what F may "
+                "depend on (other states, inputs or times), or tighten their priors",
                 TorchMisspecWarning,
             )
 
