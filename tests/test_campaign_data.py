@@ -5,6 +5,7 @@ recognition of experiments held already."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import pytest
@@ -88,8 +89,8 @@ def test_a_new_tell_refits_by_fit_correction_on_every_experiment_each_sample_onc
     torch.testing.assert_close(X, direct.train_inputs_)
     assert after.kernel == direct.kernel and after.cross_validation_.best == direct.cross_validation_.best
     again = design.Campaign.load(camp.save(tmp_path / "camp.pt"), system)
-    assert again.data.num_experiments == 8 and again.fit_options["derivative"] == "central"
-    assert isinstance(again.fit_options["noise"], Additive)
+    assert again.data.num_experiments == 8 and again.pipeline.samples.derivative == "central"
+    assert isinstance(again.pipeline.noise, Additive) and again.pipeline.choice == camp.pipeline.choice
     torch.testing.assert_close(again.data.states, camp.data.states)
     assert again.tell(new) is again.gp and again.history[-1]["already_held"] == 2
 
@@ -97,7 +98,8 @@ def test_a_new_tell_refits_by_fit_correction_on_every_experiment_each_sample_onc
 def test_a_fit_whose_options_are_code_cannot_be_saved_in_a_campaign(fitted, tmp_path):
     system, _, gp = fitted
     camp = design.Campaign(system, design.candidates.grid(system.domain, 5), TIMES, gp)
-    camp.fit_options = {**camp.fit_options, "generator": torch.Generator()}
+    samples = dataclasses.replace(camp.pipeline.samples, generator=torch.Generator())
+    camp.pipeline = dataclasses.replace(camp.pipeline, samples=samples)
     with pytest.raises(tms.InputError, match="option generator=.*not a plain value and cannot be saved"):
         camp.save(tmp_path / "camp.pt")
     assert not (tmp_path / "camp.pt").exists()

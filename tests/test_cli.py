@@ -882,7 +882,7 @@ def test_fit_options_are_checked_before_the_fit_naming_the_option(
     def never(*args, **kwargs):
         raise AssertionError("the fit ran although an option is wrong")
 
-    monkeypatch.setattr("torchmisspec.learning.fit.fit_correction", never)
+    monkeypatch.setattr("torchmisspec.learning.Pipeline.fit", never)
     assert main(_fit(named_lab, *extra, "--out", str(tmp_path / "m.pt"), system=system)) == 2
     assert message in _one_error_line(capsys, "fit")
 

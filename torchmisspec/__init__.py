@@ -34,7 +34,8 @@ from ._errors import (
 )
 from .data import Readout, Trajectories, simulate
 from .gp import CorrectionGP, GPPosterior, Posterior
-from .learning.fit import cross_validate, fit_correction
+from .learning.fit import cross_validate
+from .learning.pipeline import Pipeline, fit_correction
 from .learning.refinement.trajectory_fit import fit_trajectories
 from .learning.samples.observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
 from .metrics import correction_error, integrated_error, integrated_norm, trajectory_rmse
@@ -81,6 +82,7 @@ __all__ = [
     "design",
     "finite_difference",
     "fit_correction",
+    "Pipeline",
     "fit_trajectories",
     "integrated_error",
     "integrated_norm",

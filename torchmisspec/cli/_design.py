@@ -52,9 +52,9 @@ def _gp(args: argparse.Namespace, system, observed=None):
 
             samples = correction_samples(observed, system, derivative=args.derivative)
             return CorrectionGP(kernel=args.kernel, **given).condition(samples), f"the given prior and {args.data}"
-        from ..learning.fit import fit_correction
+        from ..learning import Pipeline, Samples
 
-        gp = fit_correction(observed, system, derivative=args.derivative, progress=not args.quiet)
+        gp = Pipeline(samples=Samples(derivative=args.derivative)).fit(observed, system, progress=not args.quiet)
         return gp, f"a model fitted on {args.data}"
     if given:
         return CorrectionGP(kernel=args.kernel, **given), "the given prior"

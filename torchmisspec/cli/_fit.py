@@ -68,7 +68,7 @@ def _calibrate(model, observed, args: argparse.Namespace):
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from ..learning.fit import fit_correction
+    from ..learning import Pipeline, Refinement, Samples
     from ..prediction.dynamics import CorrectedODE
     from ..systems import load_system
 
@@ -78,10 +78,9 @@ def _fit(args: argparse.Namespace) -> int:
     system = load_system(args.system)
     _state_noise(args.state_noise, system)
     observed = read_observations(args, system)
-    refine = True if args.refine else None
-    gp = fit_correction(
-        observed, system, derivative=args.derivative, refine=refine, progress=not args.quiet, noise=args.noise
-    )
+    refinement = Refinement(through_ode=True if args.refine else None)
+    pipeline = Pipeline(samples=Samples(derivative=args.derivative), refinement=refinement, noise=args.noise)
+    gp = pipeline.fit(observed, system, progress=not args.quiet)
     times = f"{min(observed.lengths)}-{max(observed.lengths)}" if observed.is_ragged else str(observed.num_times)
     print(
         f"fitted the correction of '{system.name}' on {len(gp.samples_)} samples ({observed.num_experiments} "

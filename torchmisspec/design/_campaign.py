@@ -4,10 +4,10 @@ A :class:`Campaign` holds the candidate initial conditions, the observation time
 so far. ``ask(k)`` designs the next batch greedily *given the data* (gains conditioned on every sample collected,
 proxies by default the corrected model's once there are data; data read through a :class:`~torchmisspec.Readout`:
 designed by :class:`~torchmisspec.design.ReadoutCriterion`); ``tell(trajectories)`` adds the measured experiments
-and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that function on every experiment with the
-same options (one way to learn, the same choice of model; an experiment held already is not added again); otherwise
-the samples are added and the GP refitted (hyperparameters by marginal likelihood once the data hold ``refit_after``
-samples, the prior's fixed values before). ``history`` records every
+and refits: started from :func:`~torchmisspec.fit_correction`'s result, by that fit's
+:class:`~torchmisspec.Pipeline` on every experiment (one way to learn, the same choice of model; an experiment held
+already is not added again); otherwise the samples are added and the GP refitted (hyperparameters by marginal
+likelihood once the data hold ``refit_after`` samples, the prior's fixed values before). ``history`` records every
 round; ``save`` / ``load`` write and read the whole campaign (tensors and plain values only, never code).
 
 For a system with inputs u(t), a candidate experiment is an initial state *and* an input profile: the campaign takes
@@ -28,7 +28,7 @@ from .._validation import check_domain, check_path, check_positive_int, check_re
 from ..data import Trajectories
 from ..data._join import known_experiments
 from ..gp import CorrectionGP, _persistence
-from ..learning.fit import fit_correction
+from ..learning.pipeline import Pipeline
 from ..learning.samples.observations import correction_samples
 from ..metrics import correction_error
 from ..parallel import check_executor
@@ -61,8 +61,9 @@ class Campaign:
         gp: a :class:`~torchmisspec.CorrectionGP`, not modified: a prior whose hyperparameters are set (e.g.
             :meth:`CorrectionGP.prior <torchmisspec.CorrectionGP.prior>`) to start without data, or a fitted GP to
             start from the samples it was fitted on: the first ``ask`` is then conditioned on them. A result of
-            :func:`~torchmisspec.fit_correction` also brings its trajectories (``data``) and its options
-            (``fit_options``): ``tell`` then refits with ``fit_correction`` on every experiment (see :meth:`tell`).
+            :func:`~torchmisspec.fit_correction` also brings its trajectories (``data``) and its
+            :class:`~torchmisspec.Pipeline` (``pipeline``): ``tell`` then refits with that pipeline on every
+            experiment (see :meth:`tell`).
             Any model the package fits works (per-output kernels, feature kernels, per-sample noise).
         criterion: ``"information"`` (the paper's) or ``"domain"`` (variance of F over D), see
             :func:`~torchmisspec.design.greedy`.
@@ -85,7 +86,8 @@ class Campaign:
     Attributes:
         gp: the current model: the prior before any data, then the GP fitted on every sample.
         data: every measured experiment (a :class:`~torchmisspec.Trajectories`) for a campaign started from
-            :func:`~torchmisspec.fit_correction`'s result, else ``None``; ``fit_options`` that fit's keywords.
+            :func:`~torchmisspec.fit_correction`'s result, else ``None``; ``pipeline`` that fit's
+            :class:`~torchmisspec.Pipeline`.
         history: one dictionary per ``ask`` and per ``tell`` (plain values: picks, gains, hyperparameters, the error of
             the correction over the domain when the system carries its true F, notes).
     """
@@ -163,14 +165,14 @@ class Campaign:
         self._inputs: list[torch.Tensor] = []
         self._targets: list[torch.Tensor] = []
         self._noise: list[torch.Tensor | None] = []
-        #: the measured trajectories and fit_correction's options, for a campaign started from its fit (else None)
-        self.data, self.fit_options = None, None
+        #: the measured trajectories and the Pipeline they were learned by (a campaign started from a fit; else None)
+        self.data, self.pipeline = None, None
         if gp.is_fitted:  # what is known already: the first design is conditioned on the samples gp was fitted on
             self._hold(gp)
-            data, options = getattr(gp, "trajectories_", None), getattr(gp, "fit_options_", None)
-            if isinstance(data, Trajectories) and isinstance(options, dict):  # fit_correction's: its data and rule
+            data, pipeline = getattr(gp, "trajectories_", None), getattr(gp, "pipeline_", None)
+            if isinstance(data, Trajectories) and isinstance(pipeline, Pipeline):  # fit_correction's: its data and rule
                 self.data = data.to(dtype=gp.dtype, device=gp.device)
-                self.fit_options = dict(options)
+                self.pipeline = pipeline
 
     def _hold(self, gp: CorrectionGP) -> None:
         """Hold ``gp`` and the samples it was fitted on (each once)."""
@@ -349,12 +351,12 @@ class Campaign:
         and not added again; with nothing new, the model is unchanged.
 
         How the model is refitted: a campaign started from :func:`~torchmisspec.fit_correction`'s result holds its
-        trajectories and refits on them and the new ones with the same call (the same options, candidates and
-        choice rule: held-out experiments, do no harm); otherwise the samples of
-        :func:`~torchmisspec.correction_samples` (the campaign's ``derivative`` and ``noise_std``) are added and the
-        GP refitted by marginal likelihood (``refit_after``); the campaign's ``derivative`` and ``noise_std`` apply to
-        this second way only (the first uses the fit's own options). Nothing changes if anything fails (bad input, a
-        failed fit).
+        trajectories and refits on them and the new ones with the same :class:`~torchmisspec.Pipeline`
+        (``gp.pipeline_``: the same stages, candidates and choice rule: held-out experiments, do no harm);
+        otherwise the samples of :func:`~torchmisspec.correction_samples` (the campaign's ``derivative`` and
+        ``noise_std``) are added and the GP refitted by marginal likelihood (``refit_after``); the campaign's
+        ``derivative`` and ``noise_std`` apply to this second way only (the first uses the fit's own options). Nothing
+        changes if anything fails (bad input, a failed fit).
         """
         traj = self._checked(trajectories)
         start = time.perf_counter()
@@ -371,7 +373,7 @@ class Campaign:
         try:
             if self.data is not None:
                 data = Trajectories.concatenate([self.data, traj])
-                gp, note = fit_correction(data, self.system, **self.fit_options), "refitted by fit_correction"
+                gp, note = self.pipeline.fit(data, self.system, progress=False), "refitted by fit_correction"
             else:
                 data, (gp, note) = None, self._refit_samples(traj)
         except BaseException:
@@ -504,7 +506,7 @@ class Campaign:
             "history": self.history,
             "generator": self.generator.get_state(),
             "data": None if self.data is None else plain.data_blob(self.data),
-            "fit_options": None if self.fit_options is None else plain.options_blob(self.fit_options),
+            "fit_options": None if self.pipeline is None else plain.options_blob(self.pipeline.keywords()),
         }
         tmp = path.with_name(path.name + ".tmp")
         with writing(path):
@@ -559,8 +561,8 @@ class Campaign:
         except RuntimeError as exc:
             raise InputError(f"{path}: field 'generator' is damaged ({exc})") from exc
         camp.data = plain.data_from(blob.get("data"), path, **dd)
-        camp.fit_options = plain.options_from(blob.get("fit_options"), path)
-        if (camp.data is None) != (camp.fit_options is None):
+        camp.pipeline = plain.pipeline_from(blob.get("fit_options"), path)
+        if (camp.data is None) != (camp.pipeline is None):
             raise InputError(f"{path}: expected both 'data' and 'fit_options' or neither; the file is damaged")
         model = blob.get("model")
         if model is not None:

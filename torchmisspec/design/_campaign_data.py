@@ -129,6 +129,21 @@ def options_from(blob, path) -> dict | None:
     return out
 
 
+def pipeline_from(blob, path):
+    """The :class:`~torchmisspec.Pipeline` :func:`options_blob` wrote as its keywords (``None`` for a campaign
+    without one; a file of an earlier version also holds ``progress``, which is not the pipeline's)."""
+    from ..learning.pipeline import Pipeline
+
+    options = options_from(blob, path)
+    if options is None:
+        return None
+    options.pop("progress", None)
+    try:
+        return Pipeline.from_keywords(**options)
+    except InputError as exc:
+        raise InputError(f"{path}: field 'fit_options' is damaged ({exc})") from exc
+
+
 def _noise_blob(noise) -> dict | None:
     if noise is None or isinstance(noise, str):
         return noise

@@ -10,15 +10,28 @@ Its stages, each a subpackage (the order the data pass through them):
    derivative estimates), partly measured states and their initial states, :func:`fit_trajectories`.
 4. :mod:`~torchmisspec.learning.theta`: G's uncertain parameters, learned with F.
 
-:mod:`~torchmisspec.learning.fit` composes them (:func:`fit_correction`); the bands' calibration on held-out
-experiments is a stage of the prediction (:mod:`torchmisspec.prediction.calibration`).
+:class:`Pipeline` (:mod:`~torchmisspec.learning.pipeline`) holds one object per stage with its options
+(:class:`Samples`, :class:`Candidates`, :class:`HeldOut` or :class:`Evidence`, :class:`Refinement`) and runs them
+(:mod:`~torchmisspec.learning.fit` composes the stages); :func:`fit_correction` builds one from keywords. Every entry
+point learns through it: ``fit_correction``, a campaign's ``tell``, the command line and the studies. The bands'
+calibration on held-out experiments is a stage of the prediction (:mod:`torchmisspec.prediction.calibration`).
 """
 
-from .fit import cross_validate, fit_correction
+from .choice.stage import Candidates, Evidence, HeldOut
+from .fit import cross_validate
+from .pipeline import Pipeline, fit_correction
+from .refinement.stage import Refinement
 from .refinement.trajectory_fit import fit_trajectories
 from .samples.observations import CorrectionSamples, correction_samples, finite_difference, smoothed_derivative
+from .samples.stage import Samples
 
 __all__ = [
+    "Candidates",
+    "Evidence",
+    "HeldOut",
+    "Pipeline",
+    "Refinement",
+    "Samples",
     "CorrectionSamples",
     "correction_samples",
     "cross_validate",

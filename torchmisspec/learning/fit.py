@@ -1,4 +1,5 @@
-"""From observed trajectories to a fitted correction in one call: :func:`fit_correction`.
+"""The stages of the learning pipeline composed: what :class:`~torchmisspec.Pipeline` runs (its ``fit``, and
+:func:`~torchmisspec.fit_correction`).
 
 The steps a user would otherwise chain by hand: correction samples from the states (:func:`~torchmisspec.
 correction_samples`, ``derivative="auto"`` by default), a :class:`~torchmisspec.CorrectionGP` on them chosen by
@@ -20,14 +21,11 @@ from dataclasses import dataclass
 import torch
 
 from .._errors import FittingError, InputError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
-from .._validation import check_flag
 from ..data import Trajectories
 from ..gp import CorrectionGP
 from ..gp._exact import median_distance
 from ..gp._features import FEATURE_DEGREE
 from ..gp._selection import fit_and_score
-from ..noise import as_noise_model
-from ..parallel import adaptive_threads
 from ..systems import MisspecifiedSystem
 from ._units import fit_in_units
 from .choice._do_no_harm import _do_no_harm
@@ -64,7 +62,6 @@ __all__ = [
     "cross_validate",
     "cross_validate_lengthscale",
     "default_candidates",
-    "fit_correction",
     "known_model_template",
     "lengthscale_candidates",
 ]
@@ -248,119 +245,6 @@ def _recorded(result: CorrectionGP, system: MisspecifiedSystem, trajectories: Tr
         result.noise_scale_ = result.noise_scale_ * math.sqrt(getattr(result, "dispersion_", 1.0))
     except (IntegrationError, LinearAlgebraError):
         result.noise_scale_ = None
-    return result
-
-
-@adaptive_threads()
-def fit_correction(
-    trajectories: Trajectories,
-    system: MisspecifiedSystem,
-    *,
-    gp: CorrectionGP | None = None,
-    candidates=None,
-    select: str = "cv",
-    derivative: str = "auto",
-    folds: int = 5,
-    refine: bool | None = None,
-    progress: bool = True,
-    noise="auto",
-    **estimator,
-) -> CorrectionGP:
-    """Learn the correction from observed states: samples, a model chosen among candidates, optionally refined.
-
-    The package's one entry point for choosing a model. Its steps:
-
-    1. ``samples = correction_samples(trajectories, system, derivative=derivative, **estimator)`` (its warning
-       when the derivative estimator is unreliable applies);
-    2. a model is fitted on the samples and chosen among candidates by the rule ``select`` names:
-
-       * ``"cv"`` (default): by :func:`cross_validate`, the error of the corrected model's predictions of held-out
-         experiments (robust to the derivative estimator's correlated errors, see the module's notes). Candidates:
-         with neither ``gp`` nor ``candidates`` given, :func:`default_candidates` (RBF kernels over a grid of
-         lengthscales and a feature kernel with automatic relevance, a sparse polynomial correction); with a ``gp``
-         template of an RBF or Matern kernel with a free lengthscale, that kernel at each of
-         :func:`lengthscale_candidates`; any other template, that model alone (scored, for the warning below);
-         ``candidates``, the given unfitted templates. Each candidate's other hyperparameters by marginal
-         likelihood. With one experiment, the pieces of its trajectory (:func:`time_pieces`, cut in time) are held
-         out in turn (each forecast from its first state); when it is too short for two pieces, ``"evidence"`` is
-         used. With one experiment and the default candidates, a chosen model other than the feature kernel is
-         then tested against the feature kernel refined through the ODE on the pieces before the last (its
-         derivative-samples fit alone is what the pieces scored): whichever forecasts the last piece better is
-         kept (:mod:`torchmisspec.learning.choice._one_trajectory`; ``result.one_trajectory_rival_`` records both
-         misfits);
-       * ``"evidence"``: by the marginal likelihood of the samples alone (:attr:`CorrectionGP.evidence_score`, no
-         solve): with neither ``gp`` nor ``candidates``, ``CorrectionGP(kernel="auto")`` (RBF, Matern, feature
-         kernels and the library check, see :mod:`torchmisspec.gp`); a ``gp`` template is fitted as it is; among
-         ``candidates`` the highest score wins. Cheaper, and right when the samples' errors are independent (exact
-         or GP-in-time derivatives of dense data); a fixed lengthscale is a template's:
-         ``gp=CorrectionGP(lengthscale=0.5)``.
-    3. with ``refine=True``, :func:`~torchmisspec.fit_trajectories` refines it through the ODE; by default
-       (``refine=None``) exactly when the chosen model is a feature kernel, whose term weights are then re-learned
-       from the trajectories (the derivative estimator's bias shows up in the samples as spurious terms, which
-       the trajectories do not support), for autonomous systems (with inputs or time the fit through the ODE runs
-       each experiment under its own profile, but is not yet validated by a study: ask for it with ``refine=True``);
-       with uncertain parameters, ``refine=True`` refines F at theta's posterior mean after theta's own fit through
-       the ODE (by default it does not).
-
-    **Partly measured states** (a component some experiment does not measure, :attr:`Trajectories.measured
-    <torchmisspec.Trajectories.measured>`): the correction is learned through the ODE
-    (:func:`torchmisspec.learning.choice._partial_choice.fit_partly_measured`: the unmeasured starting values and a
-    first model of F fitted to the measured values, the data completed with its paths, then the steps above on the
-    completed data); ``result.identifiability_`` says how the measurements see each output of F (an output none sees is
-    refused), and ``result.initial_states_`` holds the estimated ``(K, d)`` initial states. Neither is saved with the
-    model. With uncertain parameters of G, they are learned with the first model through the ODE (their Laplace
-    posterior, F's terms and the initial states marginalised) and F is chosen at their posterior mean.
-
-    **Units**: every step runs on the states divided by a power of ten near each component's size (and readings by
-    their own), so that states in the thousands or in thousandths are fitted as states near 1 (data near 1 are left
-    as they are); the model is returned in the user's units (:mod:`torchmisspec.learning._units`).
-    ``cross_validation_``'s scores are in the scaled units, where the candidates were compared.
-
-    **Do no harm**: with ``"cv"`` and the default candidates, the known model alone (F = 0) with its uncertain
-    parameters fitted is returned (``result.known_model_`` is ``True``, with a warning) when no candidate predicts
-    the held-out experiments (or pieces) better than it. With partly measured states, the known model's parameters
-    and the initial states the data do not give are fitted through the ODE to the measured values (the classical
-    answer, :func:`torchmisspec.learning.refinement._known_fit.fit_known_model`), the correction's own fit starts there,
-    and the correction is kept only when, fitted on the first two thirds of each experiment's times, it forecasts the
-    last third better than the known model fitted on the same times (with several experiments, significantly so over
-    them: :mod:`torchmisspec.learning.choice._partial_choice`).
-
-    With ``"cv"``, a :class:`~torchmisspec.TorchMisspecWarning` is issued when no candidate predicts the held-out
-    experiments significantly better than the known model alone (:attr:`CrossValidation.significant`): the data do
-    not support a correction (too few experiments, or a correction smaller than the measurement noise can reveal).
-
-    Cost: one marginal-likelihood fit per candidate (the folds only re-condition it) and, with ``"cv"``, one batched
-    solve of the held-out experiments per candidate; about 13 candidates by default. Above
-    :data:`SELECTION_SAMPLES` samples the candidates are fitted and scored on a subsample (each experiment's
-    samples thinned evenly, :meth:`CorrectionSamples.thinned`; the held-out experiments are still predicted over all
-    their times) and the chosen one is refitted on every sample (an RBF kernel above ``LARGE_N`` samples then in a
-    feature space, see :class:`CorrectionGP`): the choice costs what it costs at that size, whatever N. ``progress``
-    (default on) shows bars over the candidates and the refinement's rounds; ``progress=False`` is silent.
-
-    **Noise**: ``noise`` (:mod:`torchmisspec.noise`: ``"auto"``, ``"additive"``, ``"relative"``, ``"counts"``, or a
-    :class:`~torchmisspec.noise.NoiseModel`) says in which space the measurement errors are alike; the held-out
-    predictions are scored and G's uncertain parameters fitted through the ODE with its residuals (logs for
-    ``"relative"``). ``"auto"`` takes relative errors for positive states spanning a factor of 5 or more, and says
-    so. ``result.noise_`` records the model used, ``result.noise_scale_`` (:func:`noise_scale`) the scale of the
-    fitted model's residuals in its space (for bands of new measurements); ``result.derivative_`` the estimator of
-    dy/dt used (``"auto"``'s choice, e.g. ``"central order=4"``).
-
-    Returns:
-        the fitted :class:`CorrectionGP` (or the refined one); ``result.cross_validation_`` holds the
-        :class:`CrossValidation` (``None`` without it), ``result.samples_`` the correction samples,
-        ``result.trajectories_`` the data and ``result.fit_options_`` the keywords of this call (``noise`` as the
-        model chosen): a :class:`~torchmisspec.design.Campaign` started from the result holds those data and refits
-        with those options. None of these is saved with the model.
-    """
-    _check_trajectories_and_system(trajectories, system)
-    refine = check_flag(refine, "refine", none=True)
-    check_flag(progress, "progress")
-    noise = as_noise_model(noise, trajectories, announce="fit_correction")
-    options = dict(select=select, derivative=derivative, folds=folds, refine=refine, progress=progress, noise=noise)
-    result = _fit(trajectories, system, gp=gp, candidates=candidates, **options, **estimator)
-    result = _recorded(result, system, trajectories, noise)  # once, in the user's units, on the user's data
-    result.trajectories_ = trajectories  # what a Campaign started from this fit holds, and refits with these options
-    result.fit_options_ = dict(gp=gp, candidates=candidates, **{**options, "progress": False}, **estimator)
     return result
 
 

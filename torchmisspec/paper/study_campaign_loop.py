@@ -164,7 +164,7 @@ def _without_data(gp: tms.CorrectionGP) -> tms.CorrectionGP:
     import copy
 
     out = copy.deepcopy(gp)
-    out.trajectories_ = out.fit_options_ = None
+    out.trajectories_ = out.pipeline_ = None
     return out
 
 

@@ -1,0 +1,60 @@
+"""The samples stage as an object: how dy/dt is estimated from the observed states (:class:`Samples`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..._errors import InputError
+from ..._validation import check_positive_int
+from .observations import CorrectionSamples, correction_samples
+
+__all__ = ["Samples"]
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Stage 1 of :class:`~torchmisspec.Pipeline`: samples of F = dy/dt - G(y) at the observed states.
+
+    Args:
+        derivative: the estimator of dy/dt (:func:`~torchmisspec.correction_samples`): ``"auto"`` (default: a
+            self-check on the data chooses), ``"central"``, ``"smooth"``, ``"gp"``, ``"forward"``, ``"oracle"``.
+        noise_std: standard deviation of noise added to the samples' targets (a simulation's device; 0: none).
+        order, window, degree: the central stencil's order, the smoother's window and polynomial degree.
+        generator: the random generator of ``noise_std``'s noise (``None``: torch's global one).
+
+    Calling it gives the samples: ``Samples(derivative="gp")(trajectories, system)``.
+    """
+
+    derivative: str = "auto"
+    noise_std: float = 0.0
+    order: int = 2
+    window: int = 7
+    degree: int = 2
+    generator: torch.Generator | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.derivative, str):
+            raise InputError(
+                f"derivative: expected the name of an estimator of dy/dt (e.g. 'auto', 'central', 'gp'), got "
+                f"{self.derivative!r:.60} ({type(self.derivative).__name__})"
+            )
+        if isinstance(self.noise_std, bool) or not isinstance(self.noise_std, (int, float)) or self.noise_std < 0:
+            raise InputError(f"noise_std: expected a standard deviation >= 0, got {self.noise_std!r:.60}")
+        for name in ("order", "window", "degree"):
+            check_positive_int(getattr(self, name), name)
+        if self.generator is not None and not isinstance(self.generator, torch.Generator):
+            raise InputError(f"generator: expected a torch.Generator or None, got {type(self.generator).__name__}")
+
+    def __call__(self, trajectories, system) -> CorrectionSamples:
+        """The correction samples of ``trajectories`` under ``system`` (:func:`~torchmisspec.correction_samples`)."""
+        return correction_samples(trajectories, system, derivative=self.derivative, **self.estimator)
+
+    @property
+    def estimator(self) -> dict:
+        """The estimator's options that differ from :func:`~torchmisspec.correction_samples`' defaults, as its
+        keywords (``derivative`` apart)."""
+        defaults = Samples()
+        names = ("noise_std", "order", "window", "degree", "generator")
+        return {n: getattr(self, n) for n in names if getattr(self, n) != getattr(defaults, n)}
