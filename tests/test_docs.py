@@ -244,7 +244,13 @@ PAGES = {
 }
 
 
-@pytest.mark.parametrize("page", sorted(PAGES))
+#: Pages that fit through the ODE several times (a minute or more on 2 cores): run in the slow tier (make test-slow).
+SLOW_PAGES = {"tutorials/chemostat.md", "tutorials/partial-measurements.md"}
+
+
+@pytest.mark.parametrize(
+    "page", [pytest.param(p, marks=pytest.mark.slow) if p in SLOW_PAGES else p for p in sorted(PAGES)]
+)
 def test_page_runs_and_its_claims_hold(page, tmp_path, monkeypatch, one_thread):
     monkeypatch.chdir(tmp_path)  # a page that writes files writes them here
     namespace = run_page(DOCS / page)

@@ -291,6 +291,7 @@ def test_shooting_residuals_compare_observed_entries_only(sir):
         assert bool(torch.isfinite(r).all()) and int((r[~residuals.seen] != 0).sum()) == 0
 
 
+@pytest.mark.slow
 def test_the_loop_on_data_with_missing_cells(sir):
     """fit_correction -> CorrectedODE.posterior -> calibrate on ~5 % missing cells (a first state missing too),
     with state_noise='2%'."""
