@@ -221,3 +221,24 @@ def test_the_refinement_through_the_ode_scales_with_the_states():
         assert refined.refinement_["state_noise"] == pytest.approx((0.01 * c) ** 2)
         out[c] = refined.predict_mean(states[0]) / c
     assert relative(out[1e-3], out[1.0]) <= TOLERANCE
+
+
+@pytest.mark.parametrize("scales", [[1e3, 1e3], [1e3, 1.0]])
+def test_the_cross_validations_lengthscales_are_in_the_users_units(scales, reference):
+    """The candidates are compared in the data's units; their record names lengthscales in the user's (a CLI user
+    read 'chose rbf lengthscale=0.04322' beside a model of lengthscale 4.322): the chosen RBF's lengthscale and the
+    label agree with the model saved, and the scores stay the ones compared."""
+    gp, _ = fit_and_predict(scales)
+    cv, cv1 = gp.cross_validation_, reference[0].cross_validation_
+    assert cv.scores == pytest.approx(cv1.scores, rel=1e-9) and cv.index == cv1.index
+    if scales[0] == scales[1]:  # one input scale: the lengthscales times it, the labels with them
+        for e, e1 in zip(cv.lengthscales, cv1.lengthscales, strict=True):
+            assert (e is None and e1 is None) or e == pytest.approx(e1 * scales[0], rel=1e-12)
+        if gp.kernel == "rbf":
+            assert float(gp.lengthscale) == pytest.approx(cv.best_lengthscale, rel=1e-12)
+            assert cv.best == f"rbf lengthscale={cv.best_lengthscale:.4g}"
+    else:  # inputs of different scales: the lengthscales stay in the data's units, and the labels say so
+        assert cv.lengthscales == cv1.lengthscales
+        assert all(
+            c.endswith("(in the data's units)") for c, e in zip(cv.candidates, cv.lengthscales, strict=True) if e
+        )

@@ -148,8 +148,8 @@ class Units:
     def records(self, source, target, system) -> None:
         """Copy the records of ``source``'s fit (``name_`` attributes) onto ``target``, those with units rewritten in
         the user's: samples, initial states, state-noise variances, the basis targets of theta's posterior. The
-        cross-validation's scores and the candidates' log marginal likelihoods stay in the data's units (where they
-        were compared)."""
+        cross-validation's lengthscales are given in the user's units too (its labels with them); its scores and the
+        candidates' log marginal likelihoods stay in the data's units (where they were compared)."""
         s_out = self.outputs(system)
         for name, value in vars(source).items():
             if not name.endswith("_") or name.startswith("_") or name == "log_marginal_likelihood_":
@@ -160,6 +160,8 @@ class Units:
                 value = value * self.state.to(value)
             elif value is not None and name == "state_noise_":
                 value = value * self.observed[: value.shape[-1]].to(value).pow(2)
+            elif value is not None and name == "cross_validation_":
+                value = value.in_units(common_scale(self.inputs(system)))
             elif value is not None and name == "parameters_" and hasattr(value, "basis_targets"):
                 targets = value.basis_targets * s_out.to(value.basis_targets).reshape(1, -1, 1)
                 value = dataclasses.replace(value, basis_targets=targets)

@@ -21,6 +21,7 @@ most about ``SELECTION_SAMPLES`` samples (:data:`torchmisspec.learning.fit.SELEC
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import warnings
 from collections.abc import Iterable
@@ -76,6 +77,24 @@ class CrossValidation:
     gains: tuple[float, ...] = ()
     index: int = 0
     samples: int = 0
+
+    def in_units(self, scale: float | None) -> CrossValidation:
+        """The record with its lengthscales (and the labels that name them) multiplied by ``scale``, the inputs'
+        one scale (:mod:`torchmisspec.learning._units`: the candidates were compared in the data's units); with
+        ``None`` (inputs of different scales) the labels say that their lengthscales are in the data's units. The
+        scores stay where they were compared."""
+        if all(ell is None for ell in self.lengthscales):
+            return self
+        if scale is None:
+            relabel = [c if ell is None else f"{c} (in the data's units)" for c, ell in zip(self.candidates,
+                       self.lengthscales, strict=True)]  # fmt: skip
+            return dataclasses.replace(self, candidates=tuple(relabel), best=relabel[self.index])
+        ells = tuple(None if ell is None else ell * scale for ell in self.lengthscales)
+        labels = tuple(
+            c if ell is None else c.replace(f"lengthscale={old:.4g}", f"lengthscale={ell:.4g}")
+            for c, ell, old in zip(self.candidates, ells, self.lengthscales, strict=True)
+        )
+        return dataclasses.replace(self, candidates=labels, lengthscales=ells, best=labels[self.index])
 
     @property
     def best_lengthscale(self) -> float | None:
