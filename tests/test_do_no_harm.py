@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import torchmisspec as tms
+from torchmisspec.learning.choice.cross_validation import _held_out_errors
 from torchmisspec.learning.fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template, time_pieces
 
 DT = torch.float64
@@ -30,6 +31,12 @@ def _growth(n=6, T=9, noise=0.02, seed=0):
     return tms.Trajectories(times, noisy, state_names=["x"])
 
 
+def logistic_at_truth():
+    """The same G without uncertain parameters: the known model's score is the cross-validation's baseline."""
+    theta = torch.tensor([R_TRUE, K_TRUE], dtype=DT)
+    return tms.MisspecifiedSystem(lambda y: logistic(y, theta), 1, name="logistic at the truth", state_names=["x"])
+
+
 def _system():
     return tms.MisspecifiedSystem(
         logistic, 1, name="logistic", state_names=["x"], parameters={"r": (0.3, 0.2), "K": (14.0, 6.0)}
@@ -49,6 +56,11 @@ def test_the_known_model_is_returned_when_it_is_right_with_its_parameters_fitted
     pred = model.predict(y0, times)
     known = tms.simulate(_system().at(gp.parameters_.mean), y0, times).states
     torch.testing.assert_close(pred, known, rtol=1e-6, atol=1e-8)
+    # the record says what the known model scored with its own parameters, independently recomputed here
+    cv = gp.cross_validation_
+    own = _held_out_errors(_system().at(gp.parameters_.mean), data, noise=gp.noise_).sum()
+    assert cv.known_fitted == pytest.approx(float(own), rel=1e-9) and cv.known_fitted <= cv.baseline
+    assert tms.fit_correction(data, logistic_at_truth(), progress=False).cross_validation_.known_fitted is None
 
 
 def test_the_known_model_template_is_zero_to_its_precision():

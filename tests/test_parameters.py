@@ -354,6 +354,10 @@ def test_a_lab_csv_of_a_system_with_an_uncertain_parameter_through_the_cli(tmp_p
     mean, sd = float(line.split()[2]), float(line.split()[4])
     # recovered to a tenth of the prior's sd (whether its own sd covers the error is the study's measure)
     assert abs(mean - 0.3) < 0.02 and sd < 0.05 and "NOT identified" not in line
+    choice = next(s for s in out.splitlines() if s.startswith("cross-validation"))  # both known-model scores
+    assert (
+        "at the parameters fitted with the correction" in choice and "with its own parameters fitted (F = 0)" in choice
+    )
     assert tms.CorrectionGP.load(model).parameters_.names == ("c",)
     pred = tmp_path / "pred.csv"
     predict = ["predict", "--model", model, "--system", system, "--initial", str(tmp_path / "initial.csv")]

@@ -124,9 +124,12 @@ def _print_choice(gp, system) -> None:
             chose = f"best candidate {cv.best}, not kept"
         else:
             chose = f"chose {cv.best}"
+        at = "" if cv.known_fitted is None else " at the parameters fitted with the correction"
+        own = "" if cv.known_fitted is None else f"; {cv.known_fitted:.4g} with its own parameters fitted (F = 0)"
         print(
-            f"cross-validation ({cv.folds} folds){where}: {chose}; held-out error {min(cv.scores):.4g} against "
-            f"{cv.baseline:.4g} for the known model alone ({'significant' if cv.significant else 'NOT significant'})"
+            f"cross-validation ({cv.folds} folds){where}: {chose}; held-out error {min(cv.scores):.4g}; the known "
+            f"model alone: {cv.baseline:.4g}{at} (the gain over it {'' if cv.significant else 'NOT '}significant)"
+            f"{own}"
         )
     rival = getattr(gp, "one_trajectory_rival_", None)
     if rival is not None:  # one trajectory: the refined feature kernel against that choice, on the last piece

@@ -14,6 +14,7 @@ Why the model is chosen by cross-validation on trajectories, and how:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -369,7 +370,10 @@ def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, 
     result = models[cv.index] if math.isfinite(min(cv.scores)) else None
     if result is not None and chooser is not samples:  # the chosen template, fitted on every sample
         result = copy.deepcopy(candidates[cv.index]).fit(samples)
-    known = None if given else _do_no_harm(cv, data.raw, data.declared, data.trajectories, scored, data.noise)
+    known, own = (None, None) if given else _do_no_harm(cv, data.raw, data.declared, data.trajectories, scored,
+                                                          data.noise)  # fmt: skip
+    if own is not None:  # the known model with its own parameters fitted, beside the baseline at the choice's
+        cv = dataclasses.replace(cv, known_fitted=own)
     _give_advice(advice, cv)
     if known is not None:
         known.cross_validation_, known.samples_ = cv, data.raw

@@ -32,17 +32,19 @@ def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectorie
 
 
 def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
-    """The known model (:func:`_known_model`, scored on the cross-validation's data ``scored``) when no candidate
-    predicts the held-out experiments better than it (``None`` otherwise), with a warning saying so."""
+    """``(model, own)``: the known model (:func:`_known_model`, scored on the cross-validation's data ``scored``)
+    when no candidate predicts the held-out experiments better than it (``None`` otherwise), with a warning saying
+    so; ``own`` its score with its own parameters fitted (``None`` without uncertain parameters, or when it cannot be
+    fitted)."""
     try:
-        model, score = _known_model(raw, system, trajectories, scored, noise)
+        model, own = _known_model(raw, system, trajectories, scored, noise)
     except (FittingError, LinearAlgebraError, IntegrationError):
-        return None
+        return None, None
     # the known model alone: at the parameters of the choice (the baseline) or at its own, whichever predicts better
-    score = cv.baseline if score is None else min(score, cv.baseline)
+    score = cv.baseline if own is None else min(own, cv.baseline)
     best = min(cv.scores)
     if best < score:
-        return None
+        return None, own
     fitted = "with its parameters fitted, " if system.parameters is not None else ""
     warn(
         f"fit_correction: no correction predicts the held-out experiments better than the known model alone "
@@ -51,4 +53,4 @@ def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
         TorchMisspecWarning,
     )
     model.known_model_ = True
-    return model
+    return model, own

@@ -66,6 +66,9 @@ class CrossValidation:
         index: the position of the chosen candidate.
         samples: the number of correction samples the candidates were fitted on (:func:`fit_correction` scores
             them on at most about :data:`SELECTION_SAMPLES`).
+        known_fitted: with uncertain parameters of G, the known model's score with its *own* parameters fitted
+            (F = 0, on every experiment: the classical answer, do no harm's rival); ``baseline`` is the known model
+            at the parameters fitted with the correction. ``None`` otherwise.
     """
 
     candidates: tuple[str, ...]
@@ -77,6 +80,7 @@ class CrossValidation:
     gains: tuple[float, ...] = ()
     index: int = 0
     samples: int = 0
+    known_fitted: float | None = None
 
     def in_units(self, scale: float | None) -> CrossValidation:
         """The record with its lengthscales (and the labels that name them) multiplied by ``scale``, the inputs'
