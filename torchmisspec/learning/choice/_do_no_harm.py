@@ -31,11 +31,11 @@ def _known_model(raw: CorrectionSamples, system: MisspecifiedSystem, trajectorie
     return model, score
 
 
-def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
+def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise, *, announce: bool = True):
     """``(model, own)``: the known model (:func:`_known_model`, scored on the cross-validation's data ``scored``)
     when no candidate predicts the held-out experiments better than it (``None`` otherwise), with a warning saying
-    so; ``own`` its score with its own parameters fitted (``None`` without uncertain parameters, or when it cannot be
-    fitted)."""
+    so (``announce``; else the caller gives it, :func:`announce_known`); ``own`` its score with its own parameters
+    fitted (``None`` without uncertain parameters, or when it cannot be fitted)."""
     try:
         model, own = _known_model(raw, system, trajectories, scored, noise)
     except (FittingError, LinearAlgebraError, IntegrationError):
@@ -45,6 +45,14 @@ def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
     best = min(cv.scores)
     if best < score:
         return None, own
+    if announce:
+        announce_known(best, score, system)
+    model.known_model_ = True
+    return model, own
+
+
+def announce_known(best: float, score: float, system: MisspecifiedSystem) -> None:
+    """The warning of a known model returned: the best candidate's held-out error ``best`` against its ``score``."""
     fitted = "with its parameters fitted, " if system.parameters is not None else ""
     warn(
         f"fit_correction: no correction predicts the held-out experiments better than the known model alone "
@@ -52,5 +60,3 @@ def _do_no_harm(cv: CrossValidation, raw, system, trajectories, scored, noise):
         "result.known_model_ is True). Collect more experiments, or check the known model",
         TorchMisspecWarning,
     )
-    model.known_model_ = True
-    return model, own
