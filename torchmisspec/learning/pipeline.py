@@ -127,7 +127,7 @@ class Pipeline:
         )
 
     def keywords(self) -> dict:
-        """The pipeline as :func:`fit_correction`'s keywords (the inverse of :meth:`from_keywords`)."""
+        """The pipeline as :func:`fit_correction`'s keywords (the inverse of ``Pipeline.from_keywords``)."""
         models = self.candidates.models
         return dict(
             gp=self.candidates.gp,

@@ -21,7 +21,9 @@ class Samples:
         derivative: the estimator of dy/dt (:func:`~torchmisspec.correction_samples`): ``"auto"`` (default: a
             self-check on the data chooses), ``"central"``, ``"smooth"``, ``"gp"``, ``"forward"``, ``"oracle"``.
         noise_std: standard deviation of noise added to the samples' targets (a simulation's device; 0: none).
-        order, window, degree: the central stencil's order, the smoother's window and polynomial degree.
+        order: the central stencil's order.
+        window: the smoother's window (observations).
+        degree: the smoother's polynomial degree.
         generator: the random generator of ``noise_std``'s noise (``None``: torch's global one).
 
     Calling it gives the samples: ``Samples(derivative="gp")(trajectories, system)``.
