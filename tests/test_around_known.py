@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import torchmisspec as tms
-from torchmisspec.learning.refinement._known_fit import fit_known_model
 from torchmisspec.paper import study_absorbed as study
+from torchmisspec.paper.oracle import fitted_through_ode
 
 DT = torch.float64
 
@@ -38,8 +38,7 @@ def test_the_correction_learned_around_the_known_models_parameters_is_kept(chemo
     assert not gp.known_model_ and not any("returning the known model" in m for m in messages)
     assert cv.known_fitted is not None and min(cv.scores) < cv.known_fitted and cv.significant
     # it predicts new inputs better than the classical answer (G's parameters fitted through the ODE, F = 0)
-    free = torch.ones(data.num_experiments, 2, dtype=torch.bool)
-    classical = declared.at(fit_known_model(declared, data, free, gp.noise_).theta)
+    classical = fitted_through_ode(declared, data, gp.noise_)
     y0, u = study.experiments(10, torch.Generator().manual_seed(5))
     t = torch.linspace(0, 24, 49, dtype=DT)
     true = tms.simulate(truth, y0, t, controls=u).states

@@ -146,3 +146,19 @@ def test_the_derivative_estimator_used_is_recorded():
         gp = tms.fit_correction(data, _system(), progress=False)
     assert auto.derivative.split()[0] in ("central", "gp", "smooth") and gp.derivative_ == auto.derivative
     assert auto.subset(torch.tensor([0, 1])).derivative == auto.derivative
+
+
+def test_a_recentred_system_gives_the_residuals_at_theta_and_keeps_its_priors():
+    """The second look's samples: G's parameters still uncertain, G evaluated and linearised at another theta."""
+    data, system = _growth(), _system()
+    theta = torch.tensor([0.5, 11.0], dtype=DT)
+    moved = system.recentred(theta)
+    assert moved.parameters is system.parameters and torch.equal(moved.theta, theta)
+    samples = tms.correction_samples(data, moved, derivative="central")
+    plain = tms.correction_samples(data, system.at(theta), derivative="central")
+    torch.testing.assert_close(samples.targets, plain.targets)
+    assert samples.basis is not None and plain.basis is None
+    with pytest.raises(tms.InputError, match=r"recentred\(theta\): expected a system with uncertain parameters"):
+        system.at(theta).recentred(theta)
+    with pytest.raises(tms.ShapeError, match=r"theta: expected shape \(2,\)"):
+        system.recentred(torch.zeros(3, dtype=DT))

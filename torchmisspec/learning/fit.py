@@ -36,7 +36,6 @@ from .choice._time_pieces import time_pieces
 from .choice.cross_validation import (
     SIGNIFICANCE,
     CrossValidation,
-    _check_candidates,
     _check_cv_inputs,
     cross_validate,
     predicted_residuals,
@@ -57,7 +56,6 @@ __all__ = [
     "FEATURE_DEGREE",
     "KNOWN_MODEL_OUTPUTSCALE",
     "LENGTHSCALE_GRID",
-    "SELECTION",
     "SIGNIFICANCE",
     "CrossValidation",
     "cross_validate",
@@ -81,8 +79,6 @@ SELECTION_SAMPLES = 1000
 #: 0.21-0.55 in the absorbed-parameter study's realizations that the second look turned (docs/studies/absorbed.md),
 #: 0.64-0.92 on the real-data suite's data sets whose known model wins (orange, chickweight, hare_lynx).
 SECOND_LOOK = 0.6
-#: The rules :func:`fit_correction` chooses a model by (its ``select``).
-SELECTION = ("cv", "evidence")
 
 
 def lengthscale_candidates(samples: CorrectionSamples, template: CorrectionGP | None = None) -> list[float]:
@@ -269,7 +265,7 @@ def _fit(
         options = dict(gp=gp, candidates=candidates, select=select, derivative=derivative, folds=folds, refine=refine)
         return fit_partly_measured(trajectories, system, _fit, progress=progress, noise=noise, **options, **estimator)
     user_candidates = candidates is not None
-    candidates = _checked_choice(gp, candidates, select)
+    candidates = None if candidates is None else list(candidates)  # checked by the Pipeline's Candidates
     samples, advice = _samples_and_advice(trajectories, system, derivative, estimator)
     raw, posterior, declared, refine_f = samples, None, system, False
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
@@ -323,20 +319,6 @@ class _ChoiceData:
     scored: Trajectories | None
     noise: object
     estimator: dict
-
-
-def _checked_choice(gp, candidates, select):
-    """``candidates`` checked (:func:`_check_candidates`; ``None`` stays ``None``), after refusing a ``gp`` that is
-    not a template, both a ``gp`` and ``candidates``, and an unknown rule ``select``."""
-    if gp is not None and not isinstance(gp, CorrectionGP):
-        raise InputError(f"gp: expected a CorrectionGP template or None, got {type(gp).__name__}")
-    if candidates is not None and gp is not None:
-        raise InputError("candidates: expected either a gp template or a list of candidates, got both")
-    if not (isinstance(select, str) and select in SELECTION):
-        raise InputError(
-            f"select: expected 'cv' (held-out experiments) or 'evidence' (marginal likelihood), got {select!r}"
-        )
-    return None if candidates is None else _check_candidates(candidates)
 
 
 def _samples_and_advice(trajectories, system, derivative, estimator: dict):
@@ -453,8 +435,7 @@ def _samples_around(data: _ChoiceData, theta: torch.Tensor) -> CorrectionSamples
     run there: at a prior mean far from the data it can choose another estimator), linearised at ``theta`` and
     expressed from the prior mean as every sample of a G with uncertain parameters is (``shifted`` moves them)."""
     declared = data.declared
-    centred = copy.copy(declared)  # G's parameters still uncertain, centred at theta: residuals and basis there
-    centred.theta, centred._vectorised = theta.to(declared.theta), dict(declared._vectorised)
+    centred = declared.recentred(theta)  # G's parameters still uncertain: residuals and basis at theta
     with warnings.catch_warnings():  # the estimator's advice was given on the declared model's samples
         warnings.simplefilter("ignore", TorchMisspecWarning)
         samples = correction_samples(data.trajectories, centred, **data.estimator)

@@ -36,6 +36,7 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec.benchmarks.reporting import ROOT, run_study
+from torchmisspec.paper.oracle import fitted_through_ode
 
 from ._ratios import describe, paired_ratio
 
@@ -112,17 +113,6 @@ def oracle_system() -> tms.MisspecifiedSystem:
     return tms.MisspecifiedSystem(rhs, 2, parameters={**PRIORS, "a": (0.0, 0.05)}, **kw)
 
 
-def fitted_through_ode(sys_, data) -> tms.MisspecifiedSystem:
-    """``sys_`` at its parameters fitted through the ODE to ``data`` (least squares on the logs of the states, the
-    initial states free; F = 0): the classical answer for the declared system, the parametric oracle for
-    :func:`oracle_system`."""
-    from torchmisspec.learning.refinement._known_fit import fit_known_model
-    from torchmisspec.noise import as_noise_model
-
-    free = torch.ones(data.num_experiments, 2, dtype=torch.bool)
-    return sys_.at(fit_known_model(sys_, data, free, as_noise_model("relative", data)).theta)
-
-
 def _fit(data, sys_):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -154,7 +144,8 @@ def run_one(task: tuple[int, dict]) -> dict:
     out["warned_h"] = any("h: " in w and "not determined" in w for w in seen)
     out["known_model"] = bool(gp.known_model_)  # do no harm returned G alone (F = 0)
     model = tms.CorrectedODE(declared, gp)
-    classical, oracle = fitted_through_ode(declared, data), fitted_through_ode(oracle_system(), data)
+    classical = fitted_through_ode(declared, data, "relative")
+    oracle = fitted_through_ode(oracle_system(), data, "relative")
     for label, span in (("rmse", (0.0, 24.0)), ("rmse_beyond", (24.0, HORIZON))):
         tt = torch.linspace(0.0, span[1], 4 * int(span[1] / 2) + 1, dtype=DT)
         keep = tt >= span[0]

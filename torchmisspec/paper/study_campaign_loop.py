@@ -43,6 +43,7 @@ import torch
 
 import torchmisspec as tms
 from torchmisspec.benchmarks.reporting import ROOT, run_study
+from torchmisspec.paper.oracle import fitted_through_ode
 from torchmisspec.parallel import map_tasks
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_campaign_loop.json"
@@ -174,13 +175,8 @@ def oracle_system(truth: str) -> tms.MisspecifiedSystem:
 def oracle_rmse(truth: str, data: tms.Trajectories, y0, times, true) -> float:
     """The trajectory RMSE on the test states of the truth's form fitted through the ODE to ``data`` (least squares
     on the states, the initial states free): the parametric oracle, the best a fit of these data can do."""
-    from torchmisspec.learning.refinement._known_fit import fit_known_model
-    from torchmisspec.noise import Additive
-
-    system = oracle_system(truth)
-    free = torch.ones(data.num_experiments, 2, dtype=torch.bool)
-    found = fit_known_model(system, data, free, Additive())
-    return float(tms.trajectory_rmse(tms.simulate(system.at(found.theta), y0, times).states, true))
+    fitted = fitted_through_ode(oracle_system(truth), data, "additive")
+    return float(tms.trajectory_rmse(tms.simulate(fitted, y0, times).states, true))
 
 
 def _chosen(gp: tms.CorrectionGP) -> str:

@@ -340,18 +340,29 @@ class MisspecifiedSystem:
 
     def at(self, theta) -> MisspecifiedSystem:
         """This system with its uncertain parameters fixed at ``theta`` ``(k,)`` (a system without uncertain ones)."""
+        return self._with_theta(theta, None, "at(theta): expected a system with uncertain parameters to fix")
+
+    def recentred(self, theta) -> MisspecifiedSystem:
+        """This system with its uncertain parameters still uncertain (the same priors) but G evaluated, and
+        linearised in them, at ``theta`` ``(k,)`` instead of the prior mean: its correction samples are the
+        residuals there (:func:`~torchmisspec.correction_samples`)."""
+        expected = "recentred(theta): expected a system with uncertain parameters"
+        if self.parameters is None:  # none declared, or fixed by at()
+            raise InputError(f"system '{self.name}': {expected}, got one without")
+        return self._with_theta(theta, self.parameters, expected)
+
+    def _with_theta(self, theta, parameters, expected: str) -> MisspecifiedSystem:
+        """A copy with ``theta`` (checked) and ``parameters``; ``expected`` the caller's words for a system without."""
         if self.theta is None:
-            raise InputError(
-                f"system '{self.name}': at(theta): expected a system with uncertain parameters to fix, got one without"
-            )
+            raise InputError(f"system '{self.name}': {expected}, got one without")
         theta = check_finite(as_tensor(theta, "theta", dtype=torch.float64), "theta").detach()
         if theta.shape != self.theta.shape:
             raise ShapeError(
                 f"theta: expected shape {tuple(self.theta.shape)} (one value per parameter), got {tuple(theta.shape)}"
             )
-        fixed = copy.copy(self)
-        fixed.theta, fixed.parameters, fixed._vectorised = theta, None, dict(self._vectorised)
-        return fixed
+        out = copy.copy(self)
+        out.theta, out.parameters, out._vectorised = theta, parameters, dict(self._vectorised)
+        return out
 
     def copies_rhs(self, thetas: torch.Tensor):
         """``rhs(y, t, u)``: G for a batch of ``V`` copies of this system, copy c's rows (the c-th of ``V`` equal
