@@ -238,3 +238,35 @@ def test_the_rivals_gains_per_experiment():
     known = torch.tensor([4.0, 0.0, 2.0, math.inf, 1.0], dtype=torch.float64)
     rival = torch.tensor([1.0, 3.0, math.inf, 5.0, 0.0], dtype=torch.float64)
     assert _gains(known, rival) == [math.log(4.0), -math.inf, math.inf, math.inf]  # nothing held out: skipped
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_better_in_every_experiment_is_scipys_variance_ratio_test_in_each(seed):
+    """The rival is kept over few experiments when, in every experiment with held-out values, the ratio of the two
+    models' sums of squares passes the one-sided F(n, n) test at the 2.5 % level (scipy's f.sf)."""
+    from scipy.stats import f
+
+    from torchmisspec.learning.choice._partial_choice import better_in_every_experiment
+
+    g = torch.Generator().manual_seed(seed)
+    counts = torch.randint(2, 9, (3,), generator=g)
+    rival = torch.rand(3, generator=g, dtype=torch.float64)
+    known = rival * torch.exp(4.0 * torch.rand(3, generator=g, dtype=torch.float64))
+    p = [float(f.sf(k / r, n, n)) for k, r, n in zip(known.tolist(), rival.tolist(), counts.tolist(), strict=True)]
+    assert better_in_every_experiment(known, rival, counts) == all(q < 0.025 for q in p)
+
+
+def test_better_in_every_experiment_at_its_edges():
+    from torchmisspec.learning.choice._partial_choice import better_in_every_experiment
+
+    two = torch.tensor([2, 2])
+    # F(2, 2): P(X > x) = 1 / (1 + x), so a ratio above 39 is significant at 2.5 %
+    assert better_in_every_experiment(torch.tensor([40.0, 80.0]), torch.tensor([1.0, 1.0]), two)
+    assert not better_in_every_experiment(torch.tensor([38.0, 80.0]), torch.tensor([1.0, 1.0]), two)
+    # worse, or not integrable, in one experiment: refused; the known model not integrable: the rival better there
+    assert not better_in_every_experiment(torch.tensor([80.0, 1.0]), torch.tensor([1.0, 2.0]), two)
+    assert not better_in_every_experiment(torch.tensor([80.0, 80.0]), torch.tensor([1.0, math.inf]), two)
+    assert better_in_every_experiment(torch.tensor([math.inf, 80.0]), torch.tensor([1.0, 1.0]), two)
+    # an experiment with nothing held out is skipped; with none at all there is no evidence
+    assert better_in_every_experiment(torch.tensor([40.0, 0.0]), torch.tensor([1.0, 1.0]), torch.tensor([2, 0]))
+    assert not better_in_every_experiment(torch.tensor([0.0, 0.0]), torch.tensor([1.0, 1.0]), torch.tensor([0, 0]))

@@ -335,6 +335,14 @@ def time_split(trajectories: Trajectories) -> tuple[Trajectories, torch.Tensor] 
     return early, keep
 
 
+def held_out(trajectories: Trajectories, keep: torch.Tensor) -> torch.Tensor:
+    """``(K, T, d + m)`` where the held-out values are: measured, and past each experiment's first ``keep``
+    times (:func:`time_split`)."""
+    values, seen = _observed(trajectories)
+    late = torch.arange(values.shape[1], device=values.device).view(1, -1) >= keep.to(values.device).view(-1, 1)
+    return seen & late.unsqueeze(-1)
+
+
 def forecast_score(system, field, trajectories: Trajectories, initial_states, keep, noise, scale) -> torch.Tensor:
     """``(K,)`` the misfit of a model's forecast of each experiment's held-out later times (those past its first
     ``keep``): the path of ``field(y, t, u)`` (``system``'s solver conventions) from ``initial_states (K, d)`` over
@@ -352,9 +360,7 @@ def forecast_score(system, field, trajectories: Trajectories, initial_states, ke
         )  # fmt: skip
     except IntegrationError:
         return torch.full((K,), math.inf, dtype=torch.float64)
-    values, seen = _observed(trajectories)
-    late = torch.arange(values.shape[1], device=values.device).view(1, -1) >= keep.to(values.device).view(-1, 1)
-    held = seen & late.unsqueeze(-1)
+    values, held = _observed(trajectories)[0], held_out(trajectories, keep)
     pred = trajectories.observe(pred)
     r = (noise.transform(pred) - noise.transform(values)) / scale.to(values)
     per = torch.where(held, r, torch.zeros((), dtype=r.dtype, device=r.device)).pow(2).sum((1, 2))
@@ -377,9 +383,7 @@ def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, nois
     forecast these data, so that a correction may; ``Q / n`` is how much wider than predicted its forecast errors
     were (1 when its bands are right). ``(nan, nan)`` with nothing held out; ``(0, inf)`` when the forecast cannot be
     integrated."""
-    values, seen = _observed(trajectories)
-    late = torch.arange(values.shape[1], device=values.device).view(1, -1) >= keep.to(values.device).view(-1, 1)
-    held = seen & late.unsqueeze(-1)
+    values, held = _observed(trajectories)[0], held_out(trajectories, keep)
     n_held = int(held.sum())
     if n_held == 0:
         return math.nan, math.nan
