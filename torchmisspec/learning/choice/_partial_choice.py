@@ -41,8 +41,8 @@ from ...systems import MisspecifiedSystem
 from ..refinement._first_model import FirstModel
 from ..refinement._known_fit import (
     CHECK_LEVEL,
-    fit_known_model,
     f_survival,
+    fit_known_model,
     forecast_check,
     forecast_score,
     held_out,
