@@ -256,3 +256,153 @@ def test_a_campaign_whose_data_carry_a_readout_designs_through_it(fitted):
     info = campaign.history[-1]["design"]
     assert info["criterion"] == "readout" and info["readout"] == "total = x + p"
     assert info["noise_source"] == "fitted"
+
+
+# ------------------------------------------------------------------------------------------- over the domain
+def _brute_domain_reduction(sens, chosen, box, size, noise):
+    """The mean over D of var(F) removed by the readings of ``chosen``: the exact Gaussian posterior of F at the
+    quadrature nodes (no features), trapezoid weights normalised to one."""
+    from torchmisspec.metrics import box_grid
+
+    A = torch.block_diag(*[sens.A[c, :, 0, :] / noise for c in chosen])
+    X = torch.cat([sens.nodes[c] for c in chosen])
+    Q, w = box_grid(box, size, dtype=DT)
+    w = w / w.sum()
+    S = torch.eye(A.shape[0], dtype=DT) + A @ rbf(X, X, 0.5, 1.0) @ A.T
+    M = rbf(Q, X, 0.5, 1.0) @ A.T
+    return float((w * (M @ torch.linalg.solve(S, M.T)).diagonal()).sum())
+
+
+@pytest.mark.parametrize("method", ["plain", "naive"])
+def test_the_readings_variance_over_the_domain_matches_the_exact_gaussian_posterior(method):
+    """Inside a box that holds every path, the pivot features are exact to 1e-8 of the prior variance: the gains of
+    ``ReadoutCriterion(domain=...)`` sum to the exact reduction of F's mean variance over D, and each gain is the
+    increment of that reduction along the picks."""
+    cands = candidates(10, seed=5)
+    box, size = [(-3.0, 8.0)], 200
+    crit = design.ReadoutCriterion(total(), noise_std=0.05, domain=design.DomainCriterion(domain=box, size=size))
+    plan = design.greedy(cands, 3, method=method, system=lv(), times=TIMES, gp=CorrectionGP(**PRIOR), criterion=crit)
+    sens = design.readout_sensitivity(lv(), cands, TIMES, total(), substeps=crit.substeps)
+    picks = plan.indices.tolist()
+    along = [_brute_domain_reduction(sens, picks[: k + 1], box, size, 0.05) for k in range(3)]
+    assert plan.gains.tolist() == pytest.approx([along[0], along[1] - along[0], along[2] - along[1]], rel=1e-6)
+    assert plan.diagnostics["criterion"] == "readout over the domain"
+    # the first pick is the candidate whose readings alone remove the most
+    alone = [_brute_domain_reduction(sens, [c], box, size, 0.05) for c in range(10)]
+    assert picks[0] == max(range(10), key=alone.__getitem__)
+
+
+def test_readings_of_a_path_outside_the_domain_are_worth_less_there():
+    """The domain aims the readings: with D = the low prey values a path stays in, a candidate whose prey stays there
+    gains more than over D = the high values it never reaches."""
+    cands = candidates(8, seed=2)
+    kw = dict(system=lv(), times=TIMES, gp=CorrectionGP(**PRIOR))
+    sens = design.readout_sensitivity(lv(), cands, TIMES, total())
+    low = int(sens.nodes[..., 0].max(dim=1).values.argmin())
+    top = float(sens.nodes[low, :, 0].max())
+    gains = {}
+    for name, box in (("near", [(0.0, top)]), ("far", [(top + 3.0, top + 6.0)])):
+        crit = design.ReadoutCriterion(total(), noise_std=0.05, domain=design.DomainCriterion(domain=box))
+        plan = design.greedy(cands[low : low + 1], 1, criterion=crit, **kw)
+        gains[name] = float(plan.gains[0])
+    assert gains["near"] > 100 * gains["far"] > 0
+
+
+def test_a_readout_criterions_domain_must_be_a_domain_criterion():
+    with pytest.raises(InputError, match="domain: expected None .* or a design.DomainCriterion"):
+        design.ReadoutCriterion(total(), domain=[(0.0, 1.0)])
+
+
+# ------------------------------------------------------------------------------ with G's uncertain parameters
+def _lv_theta(y, a):
+    x, p = y[..., 0], y[..., 1]
+    return torch.stack([x - a * x * p, -0.8 * p + 0.5 * x * p], dim=-1)
+
+
+def lv_theta(scale: float = 0.1) -> tms.MisspecifiedSystem:
+    return tms.MisspecifiedSystem(
+        _lv_theta, 2, correction_inputs=[0], correction_outputs=[0], state_names=NAMES, name="lv-theta",
+        parameters={"a": (0.6, scale)},
+    )  # fmt: skip
+
+
+def _theta_sensitivity(system, cands, h=1e-5):
+    """The readings' derivative in theta by central differences of two solves (readings after t_0): ``(N, R)``."""
+    theta = system.theta.clone()
+    z = []
+    for step in (h, -h):
+        paths = tms.simulate(system.at(theta + step), cands, TIMES).states  # (N, T, d)
+        z.append(paths[:, 1:] @ total().matrix.T.to(paths))
+    return ((z[0] - z[1]) / (2 * h)).reshape(cands.shape[0], -1)
+
+
+def _brute_with_theta(system, cands, chosen, noise, scale, substeps):
+    sens = design.readout_sensitivity(system.at(system.theta), cands, TIMES, total(), substeps=substeps)
+    A = torch.block_diag(*[sens.A[c, :, 0, :] for c in chosen]) / noise
+    X = torch.cat([sens.nodes[c] for c in chosen])
+    B = _theta_sensitivity(system, cands)[chosen].reshape(-1, 1) / noise
+    eye = torch.eye(A.shape[0], dtype=DT)
+    both = eye + A @ rbf(X, X, 0.5, 1.0) @ A.T + scale**2 * B @ B.T
+    return 0.5 * float(torch.logdet(both) - torch.logdet(eye + scale**2 * B @ B.T)), A, X, B
+
+
+def test_the_information_with_theta_integrated_out_matches_a_brute_force_from_perturbed_solves():
+    """Readings of a system with an uncertain parameter: (1/2) logdet(I + A K A^T + B S B^T) - (1/2) logdet(I + B S
+    B^T) with B the readings' derivative in theta from two perturbed solves (not the package's variational
+    equation), S the prior's variance; and the plug-in information (theta fixed) is larger."""
+    cands, chosen, noise = candidates(5, seed=7), [0, 2, 3], 0.05
+    crit = design.ReadoutCriterion(total(), noise_std=noise, substeps=16)  # the trapezoid rule's error: 1e-5
+    kw = dict(times=TIMES, gp=CorrectionGP(**PRIOR), criterion=crit)
+    brute, *_ = _brute_with_theta(lv_theta(), cands, chosen, noise, 0.1, 16)
+    got = design.readout_information_gain(chosen, cands, system=lv_theta(), **kw)
+    assert got == pytest.approx(brute, rel=1e-4)
+    plug_in = design.readout_information_gain(chosen, cands, system=lv_theta().at(torch.tensor([0.6])), **kw)
+    assert plug_in > got
+    # as theta's spread vanishes, the criterion becomes the plug-in one
+    tiny = design.readout_information_gain(chosen, cands, system=lv_theta(scale=1e-6), **kw)
+    assert tiny == pytest.approx(plug_in, rel=1e-6)
+
+
+def test_greedy_engines_agree_with_theta_integrated_out():
+    cands = candidates(10, seed=4)
+    crit = design.ReadoutCriterion(total(), noise_std=0.05)
+    kw = dict(system=lv_theta(0.2), times=TIMES, gp=CorrectionGP(**PRIOR), criterion=crit)
+    plain = design.greedy(cands, 3, method="plain", **kw)
+    naive = design.greedy(cands, 3, method="naive", **kw)
+    assert plain.indices.tolist() == naive.indices.tolist()
+    assert torch.allclose(plain.gains, naive.gains, rtol=1e-8)
+    assert plain.information_gain == pytest.approx(design.readout_information_gain(plain, cands, **kw), rel=1e-8)
+    assert plain.diagnostics["parameters"] == "integrated out (prior)"
+
+
+def test_the_variance_over_the_domain_with_theta_integrated_out_matches_the_exact_posterior():
+    """F's mean variance over D removed by the readings when theta is unknown: the exact Gaussian posterior of F at
+    the quadrature nodes given readings z = A f + B eta + noise, eta ~ N(0, S), B from perturbed solves."""
+    from torchmisspec.metrics import box_grid
+
+    cands, noise, scale = candidates(6, seed=9), 0.05, 0.2
+    box, size = [(-3.0, 8.0)], 200
+    over = design.DomainCriterion(domain=box, size=size)
+    crit = design.ReadoutCriterion(total(), noise_std=noise, substeps=16, domain=over)
+    plan = design.greedy(cands, 2, system=lv_theta(scale), times=TIMES, gp=CorrectionGP(**PRIOR), criterion=crit)
+    _, A, X, B = _brute_with_theta(lv_theta(scale), cands, plan.indices.tolist(), noise, scale, 16)
+    Q, w = box_grid(box, size, dtype=DT)
+    S = torch.eye(A.shape[0], dtype=DT) + A @ rbf(X, X, 0.5, 1.0) @ A.T + scale**2 * B @ B.T
+    M = rbf(Q, X, 0.5, 1.0) @ A.T
+    brute = float((w / w.sum() * (M @ torch.linalg.solve(S, M.T)).diagonal()).sum())
+    assert float(plan.gains.sum()) == pytest.approx(brute, rel=1e-4)
+
+
+@pytest.mark.slow
+def test_a_campaign_on_readings_with_an_uncertain_parameter_integrates_it_out():
+    """A campaign whose data read the total and whose G has an uncertain parameter designs through the readings
+    with theta integrated out about the fit's posterior (issue 42: Campaign with readouts and parameters)."""
+    y0 = torch.tensor([[0.5, 0.5], [2.0, 1.0], [1.0, 2.5], [2.5, 2.0]], dtype=DT)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tms.TorchMisspecWarning)
+        gp = tms.fit_correction(_readout_data(y0), lv_theta(), progress=False)
+    assert gp.parameters_ is not None
+    campaign = design.Campaign(lv_theta(), candidates(12, seed=5), torch.linspace(0, 6, 13, dtype=DT), gp)
+    assert campaign.ask(2).shape == (2, 2)
+    info = campaign.history[-1]["design"]
+    assert info["criterion"] == "readout" and info["parameters"] == "integrated out (fitted)"

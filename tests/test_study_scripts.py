@@ -154,8 +154,8 @@ def test_design_readout_study_smoke(tmp_path):
     result = json.loads(out.read_text())
     assert result["smoke"] and set(result["runs"]) == {"2"}
     for run in result["runs"]["2"]:
-        assert len(run["designed_points"]) == len(run["random_points"]) == 2
-        assert all(0 < run[arm] < float("inf") for arm in ("designed", "random"))
+        assert [len(run[f"{arm}_points"]) for arm in ("domain", "information", "random")] == [2, 2, 2]
+        assert all(0 < run[arm] < float("inf") for arm in ("domain", "information", "random"))
     assert "better / tied / worse" in stdout
 
 

@@ -39,7 +39,7 @@ from ._domain import CRITERIA
 from ._greedy import greedy
 from ._options import DomainCriterion, Proxy
 from ._proxy import PROXIES
-from ._readings import campaign_criterion
+from ._readings import ReadoutCriterion, campaign_criterion
 
 __all__ = ["Campaign"]
 
@@ -186,11 +186,11 @@ class Campaign:
     def num_samples(self) -> int:
         return sum(x.shape[0] for x in self._inputs)
 
-    @property
-    def designed_on(self) -> MisspecifiedSystem:
-        """The system the designs run on: with uncertain parameters, G at their current posterior mean (the design
-        scores what the experiments tell about F with theta there: a plug-in, theta's spread is not in the gains)."""
-        if self.system.parameters is None:
+    def designed_on(self, criterion) -> MisspecifiedSystem:
+        """The system the design ``criterion`` runs on. With uncertain parameters: for the readings' criterion the
+        system itself (theta integrated out about the fit's posterior, :mod:`._readings_theta`); for the criteria of
+        correction samples G at theta's posterior mean (a plug-in: theta's spread is not in their gains)."""
+        if self.system.parameters is None or isinstance(criterion, ReadoutCriterion):
             return self.system
         return self.system.at(self.gp.parameters_.mean)
 
@@ -265,13 +265,14 @@ class Campaign:
             mask[[int((remaining == p).nonzero()[0, 0]) for p in picks]] = False
             pool = remaining[mask]
             proxy = self.config["proxy"] or ("corrected" if self.gp.is_fitted else "known")
+            criterion = self._criterion()
             plan = greedy(
                 self.candidates[pool],
                 k - n_pilot,
-                system=self.designed_on,
+                system=self.designed_on(criterion),
                 times=self.times,
                 gp=self.gp,
-                criterion=self._criterion(),
+                criterion=criterion,
                 proxy=Proxy(proxy),
                 controls=None if self.controls is None else self.controls[pool.tolist()],
                 executor=self.executor,
@@ -287,9 +288,10 @@ class Campaign:
         carry a readout (:func:`campaign_criterion`). With the information criterion the domain only scores the
         error over D in :meth:`tell`."""
         cfg = self.config
-        if cfg["criterion"] == "domain":
-            return DomainCriterion(cfg["domain"], cfg["domain_size"])
-        return campaign_criterion(cfg["criterion"], self.data, self.gp, self.system)
+        criterion = cfg["criterion"]
+        if criterion == "domain":
+            criterion = DomainCriterion(cfg["domain"], cfg["domain_size"])
+        return campaign_criterion(criterion, self.data, self.gp, self.system)
 
     # --------------------------------------------------------------------------------------------- tell
     def _match(self, y0: torch.Tensor, pending: list[int], profile=None) -> int:

@@ -32,6 +32,8 @@ The cost per pick is O(N T^2 r) with rank-T updates of B (r: the number of pivot
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -45,6 +47,27 @@ CRITERIA = ("information", "domain")  # the paper's criterion, or the variance o
 DOMAIN_NODES = 1024  # default most quadrature nodes
 PIVOT_TOL = 1e-8  # pivot nodes until F at them fixes F at every node to this fraction of the prior variance
 MEMORY = 2 * 2**30  # bytes the engine may hold (B and B W for every candidate)
+
+
+@dataclass(frozen=True)
+class DomainCriterion:
+    """The criterion that aims the design at a box D of F's inputs: the mean posterior variance of F over D that
+    the samples remove (:func:`~torchmisspec.design.variance_reduction`; gains in units of F squared, not nats).
+
+    Not submodular in general: no (1 - 1/e) guarantee, and lazy greedy evaluates every remaining gain. The string
+    ``criterion="domain"`` is this criterion with its defaults. See :mod:`torchmisspec.design._domain`.
+
+    Attributes:
+        domain: the box D, one ``(lo, hi)`` per correction input (default ``system.domain``).
+        size: quadrature nodes per axis (default: at most 1024 nodes in all, at least 2 per axis).
+    """
+
+    domain: Any = None
+    size: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.size is not None:
+            check_positive_int(self.size, "DomainCriterion.size")
 
 
 class DomainModel:
@@ -113,10 +136,40 @@ class DomainModel:
 
     def mean_variance(self, A: torch.Tensor) -> torch.Tensor:
         """``tr(W A^-1)`` (batched over leading dimensions of ``A``): the mean variance of one output over D."""
-        L = cholesky(A, what="I + Psi^T Psi")
-        X = torch.linalg.solve_triangular(L, self.W.expand(*A.shape[:-2], -1, -1), upper=False)
-        Y = torch.linalg.solve_triangular(L, X.transpose(-1, -2), upper=False)
-        return Y.diagonal(dim1=-2, dim2=-1).sum(-1)
+        return _trace_solve(A, self.W)
+
+    def terms(self, points: torch.Tensor, d_out: int) -> DomainTerms:
+        """The engine's terms for noisy correction samples at ``points (N, T, d_in)``, every output alike."""
+        return DomainTerms(psi=self.whitened(points), A=self.A, W=self.W, multiplier=d_out)
+
+
+def _trace_solve(A: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """``tr(W A^-1)``, batched over the leading dimensions of ``A``."""
+    L = cholesky(A, what="I + Psi^T Psi")
+    X = torch.linalg.solve_triangular(L, W.expand(*A.shape[:-2], -1, -1), upper=False)
+    Y = torch.linalg.solve_triangular(L, X.transpose(-1, -2), upper=False)
+    return Y.diagonal(dim1=-2, dim2=-1).sum(-1)
+
+
+@dataclass(frozen=True)
+class DomainTerms:
+    """What the domain engine needs: V(S) = multiplier * [tr(W A^-1) - tr(W (A + sum_{c in S} Psi_c^T Psi_c)^-1)].
+
+    Attributes:
+        psi: ``(N, T, r)`` each candidate's observations, whitened, in the features' space.
+        A: ``(r, r)`` the features' precision before the picks (the prior's identity and the data).
+        W: ``(r, r)`` the quadrature of the features over D.
+        multiplier: outputs sharing these terms (d_out for correction samples of every output alike; 1 where the
+            features stack the outputs, as for readings).
+    """
+
+    psi: torch.Tensor
+    A: torch.Tensor
+    W: torch.Tensor
+    multiplier: int
+
+    def mean_variance(self, A: torch.Tensor) -> torch.Tensor:
+        return _trace_solve(A, self.W)
 
 
 def variance_reduction(
@@ -151,11 +204,15 @@ def variance_reduction(
     return system.output_dim * float(base - after)
 
 
-def domain_greedy(prob, method: str, progress: bool, feasible) -> tuple[list[int], list[float], int, dict]:
-    """Greedy maximisation of V. ``prob``: the validated problem (its ``domain`` model); ``feasible``: picks left."""
+def domain_greedy(prob, method: str, progress: bool, feasible, terms: DomainTerms | None = None):
+    """Greedy maximisation of V: ``(picks, gains, evaluations, diagnostics)``. ``prob``: the validated problem (its
+    ``domain`` model and candidates' points, unless ``terms`` are given); ``feasible``: picks left."""
     model: DomainModel = prob.domain
-    P, T, K, N, d_out = prob.points, prob.T, prob.budget, prob.n, prob.d_out
-    r = model.rank
+    if terms is None:
+        terms = model.terms(prob.points, prob.d_out)
+    psi, d_out = terms.psi, terms.multiplier
+    N, T, r = psi.shape
+    K = prob.budget
     need = 2 * 8 * N * T * r
     if method != "naive" and need > MEMORY:
         raise InputError(
@@ -163,8 +220,7 @@ def domain_greedy(prob, method: str, progress: bool, feasible) -> tuple[list[int
             f"domain features (at most {MEMORY / 2**30:.0f} GiB); pass fewer quadrature nodes "
             "(design.DomainCriterion(size=...) for greedy, domain_size= here) or fewer candidates"
         )
-    psi = model.whitened(P)  # (N, T, r)
-    base = float(model.mean_variance(model.A))
+    base = float(terms.mean_variance(terms.A))
     scale = max(d_out * base, 1e-300)  # ties are judged relative to the prior's mean variance over D
 
     def first_best(g: torch.Tensor, ok: torch.Tensor) -> int:
@@ -175,31 +231,32 @@ def domain_greedy(prob, method: str, progress: bool, feasible) -> tuple[list[int
     picks, gains, evaluations = [], [], 0
     feas = feasible(prob)
     bar = progress_bar(progress, K, f"domain greedy (N={N})", "pick")
-    eye = torch.eye(T, dtype=P.dtype, device=P.device)
+    dd = {"dtype": psi.dtype, "device": psi.device}
+    eye = torch.eye(T, **dd)
     if method == "naive":
-        A = model.A.clone()
+        A = terms.A.clone()
         current = base
         for _ in range(K):
             ok = feas.mask()
             idx = torch.nonzero(ok).flatten()
-            values = torch.full((N,), -math.inf, dtype=P.dtype, device=P.device)
+            values = torch.full((N,), -math.inf, **dd)
             for s in range(0, idx.numel(), 256):
                 c = idx[s : s + 256]
-                values[c] = d_out * (current - model.mean_variance(A + psi[c].transpose(1, 2) @ psi[c]))
+                values[c] = d_out * (current - terms.mean_variance(A + psi[c].transpose(1, 2) @ psi[c]))
             evaluations += idx.numel()
             n = first_best(values, ok)
             picks.append(n)
             gains.append(float(values[n]))
             A = A + psi[n].T @ psi[n]
-            current = float(model.mean_variance(A))
+            current = float(terms.mean_variance(A))
             feas.add(n)
             if bar is not None:
                 bar.update(1)
     else:  # exact vectorised greedy with rank-T (Woodbury) updates of B_c = Psi_c A^-1 and Y_c = B_c W
-        LA = cholesky(model.A, what="I + Psi_data^T Psi_data")
+        LA = cholesky(terms.A, what="I + Psi_data^T Psi_data")
         Ainv = torch.cholesky_inverse(LA)
         B = psi @ Ainv  # (N, T, r)
-        Y = B @ model.W  # (N, T, r)
+        Y = B @ terms.W  # (N, T, r)
         H = B @ psi.transpose(1, 2)  # (N, T, T): Psi_c A^-1 Psi_c^T
         for k in range(K):
             ok = feas.mask()

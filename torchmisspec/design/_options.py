@@ -21,7 +21,7 @@ import torch
 
 from .._errors import InputError
 from .._validation import check_positive_int, check_real
-from ._domain import CRITERIA
+from ._domain import CRITERIA, DomainCriterion
 from ._proxy import PROXIES
 from ._readings import ReadoutCriterion
 
@@ -83,27 +83,6 @@ class Proxy:
                 f"Proxy: expected either dynamics to solve or given paths, got both (dynamics={self.dynamics!r}); "
                 "drop dynamics when passing paths"
             )
-
-
-@dataclass(frozen=True)
-class DomainCriterion:
-    """The criterion that aims the design at a box D of F's inputs: the mean posterior variance of F over D that
-    the samples remove (:func:`~torchmisspec.design.variance_reduction`; gains in units of F squared, not nats).
-
-    Not submodular in general: no (1 - 1/e) guarantee, and lazy greedy evaluates every remaining gain. The string
-    ``criterion="domain"`` is this criterion with its defaults. See :mod:`torchmisspec.design._domain`.
-
-    Attributes:
-        domain: the box D, one ``(lo, hi)`` per correction input (default ``system.domain``).
-        size: quadrature nodes per axis (default: at most 1024 nodes in all, at least 2 per axis).
-    """
-
-    domain: Any = None
-    size: int | None = None
-
-    def __post_init__(self) -> None:
-        if self.size is not None:
-            check_positive_int(self.size, "DomainCriterion.size")
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,10 @@ from ..data import Readout
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 from ._common import DesignResult, GPKernel, check_candidates, check_system, check_times
+from ._domain import DomainCriterion, DomainModel, domain_greedy
 from ._proxy import PROXY_TOLERANCES, choose_proxy, proxy_paths
+from ._readings_domain import readings_terms
+from ._readings_theta import theta_uncertainty
 
 __all__ = [
     "ReadoutCriterion",
@@ -97,11 +100,15 @@ class ReadoutCriterion:
             fitted GP's estimate (``gp.state_noise_``) where it has one, else :data:`DEFAULT_NOISE_FRACTION` of each
             reading's RMS along the proxies.
         substeps: quadrature steps per observation interval (the integral of F's effect between readings).
+        domain: ``None`` (default): score the readings' information about F anywhere; a
+            :class:`~torchmisspec.design.DomainCriterion`: score the mean posterior variance of F over its box D that
+            the readings remove (:mod:`torchmisspec.design._readings_domain`; not submodular).
     """
 
     readout: Readout
     noise_std: float | tuple | None = None
     substeps: int = 4
+    domain: DomainCriterion | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.readout, Readout):
@@ -110,6 +117,12 @@ class ReadoutCriterion:
                 f"{type(self.readout).__name__}; build one with Readout(matrix, names) or Readout.parse(...)"
             )
         check_positive_int(self.substeps, "substeps")
+        if self.domain is not None and not isinstance(self.domain, DomainCriterion):
+            raise InputError(
+                f"domain: expected None (the readings' information about F anywhere) or a design.DomainCriterion "
+                f"(the variance of F over a box D), got {type(self.domain).__name__}; pass "
+                "domain=design.DomainCriterion(domain=((lo, hi), ...))"
+            )
         if self.noise_std is not None:
             s = as_tensor(self.noise_std, "noise_std", dtype=torch.float64).reshape(-1)
             m = self.readout.num_readings
@@ -199,9 +212,17 @@ def _transitions(field, paths: torch.Tensor, grid: torch.Tensor) -> torch.Tensor
 
 
 def _sensitivity(
-    system: MisspecifiedSystem, H: torch.Tensor, field, paths: torch.Tensor, grid: torch.Tensor, substeps: int
-) -> torch.Tensor:
-    """``A (N, m (T - 1), d_out, S)`` from the paths on the grid (see the module docstring)."""
+    system: MisspecifiedSystem,
+    H: torch.Tensor,
+    field,
+    paths: torch.Tensor,
+    grid: torch.Tensor,
+    substeps: int,
+    forcing: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``A (N, m (T - 1), d_out, S)`` from the paths on the grid (see the module docstring), and with ``forcing``
+    ``(N, S, d, p)`` (G's derivative in its uncertain parameters along the paths) the readings' sensitivity to them
+    ``(N, m (T - 1), p)`` (:mod:`._readings_theta`), else ``None``."""  # fmt: skip
     N, S, d = paths.shape
     Psi = _transitions(field, paths, grid)
     h = grid[1:] - grid[:-1]
@@ -209,7 +230,7 @@ def _sensitivity(
     # B[:, :, i, :] = Phi(s_j, s_i) for the current j (zero for i > j), advanced one step at a time
     B = paths.new_zeros(N, d, S, d)
     B[:, :, 0, :] = torch.eye(d, dtype=paths.dtype, device=paths.device)
-    rows = []
+    rows, theta_rows = [], []
     for j in range(1, S):
         B = torch.einsum("nab,nbic->naic", Psi[:, j - 1], B)
         B[:, :, j, :] = torch.eye(d, dtype=paths.dtype, device=paths.device)
@@ -218,7 +239,9 @@ def _sensitivity(
             w[:j] += 0.5 * h[:j]
             w[1 : j + 1] += 0.5 * h[:j]
             rows.append(torch.einsum("ra,naic,co,i->nroi", H, B, E, w))
-    return torch.cat(rows, dim=1)
+            if forcing is not None:
+                theta_rows.append(torch.einsum("ra,naic,nicp,i->nrp", H, B, forcing, w))
+    return torch.cat(rows, dim=1), (torch.cat(theta_rows, dim=1) if forcing is not None else None)
 
 
 def readout_sensitivity(
@@ -256,7 +279,7 @@ def readout_sensitivity(
         raise InputError("proxy='corrected': expected a fitted gp whose posterior mean drives the path, got none")
     grid = _grid(t, substeps)
     paths = proxy_paths(proxy, system, gp, y0, grid)
-    A = _sensitivity(system, H.to(y0), _proxy_field(system, gp, proxy), paths, grid, substeps)
+    A, _ = _sensitivity(system, H.to(y0), _proxy_field(system, gp, proxy), paths, grid, substeps)
     return ReadoutSensitivity(A=A, nodes=system.select_inputs(paths), paths=paths, grid=grid)
 
 
@@ -267,10 +290,29 @@ def _check_system(system) -> MisspecifiedSystem:
 
 # -------------------------------------------------------------------------------------------- the covariance
 class _ReadingsCovariance:
-    """Covariances of the whitened readings of candidates, Sigma_ab = sum_o A_a^(o) k_o(X_a, X_b) A_b^(o)T."""
+    """Covariances of the whitened readings of candidates, Sigma_ab = sum_o A_a^(o) k_o(X_a, X_b) A_b^(o)T, plus
+    ``Bt_a Bt_b^T`` with G's uncertain parameters (``Bt (N, R, p)``: the readings' sensitivity to theta times the
+    factor of its covariance, :mod:`._readings_theta`)."""
 
-    def __init__(self, kern: GPKernel, A: torch.Tensor, nodes: torch.Tensor, d_out: int) -> None:
-        self.kern, self.A, self.nodes, self.d_out = kern, A, nodes, d_out
+    def __init__(self, kern: GPKernel, A: torch.Tensor, nodes: torch.Tensor, d_out: int, Bt=None) -> None:
+        self.kern, self.A, self.nodes, self.d_out, self.Bt = kern, A, nodes, d_out, Bt
+
+    def theta_logdet(self, idx: list[int]) -> float:
+        """``logdet(I + B_S Sigma_theta B_S^T)`` for the candidates ``idx`` (0 without uncertain parameters)."""
+        if self.Bt is None or not idx:
+            return 0.0
+        Bt = self.Bt[torch.tensor(idx, dtype=torch.long, device=self.Bt.device)].reshape(-1, self.Bt.shape[-1])
+        eye = torch.eye(Bt.shape[-1], dtype=Bt.dtype, device=Bt.device)
+        return float(torch.logdet(eye + Bt.T @ Bt))
+
+    def theta_gains(self, idx: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+        """``(b,)`` logdet(I + M + M_c) - logdet(I + M) for candidates ``idx``, ``M (p, p)`` the picks' sum of
+        ``M_c = Bt_c^T Bt_c`` (zeros without uncertain parameters)."""
+        if self.Bt is None:
+            return torch.zeros(idx.shape[0], dtype=self.A.dtype, device=self.A.device)
+        Bt = self.Bt[idx]
+        eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+        return torch.logdet(eye + M + Bt.transpose(1, 2) @ Bt) - torch.logdet(eye + M)
 
     def _k(self, xa: torch.Tensor, xb: torch.Tensor) -> torch.Tensor:
         """``(d_out, ..., Sa, Sb)``: output o's (conditioned) covariance of F between the nodes ``xa`` and ``xb``. In
@@ -288,13 +330,15 @@ class _ReadingsCovariance:
         """``(b, R, R)``: Sigma_cc of candidates ``idx``."""
         A = self.A[idx]
         K = self._k(self.nodes[idx], self.nodes[idx])  # (d_out, b, S, S)
-        return torch.einsum("croi,ocij,csoj->crs", A, K, A)
+        out = torch.einsum("croi,ocij,csoj->crs", A, K, A)
+        return out if self.Bt is None else out + self.Bt[idx] @ self.Bt[idx].transpose(1, 2)
 
     def cross(self, n: int, idx: torch.Tensor) -> torch.Tensor:
         """``(R, b, R)``: Sigma_{n c} for candidates ``idx``."""
         b, S, d_in = idx.shape[0], self.nodes.shape[1], self.nodes.shape[2]
         K = self._k(self.nodes[n], self.nodes[idx].reshape(b * S, d_in)).reshape(self.d_out, S, b, S)
-        return torch.einsum("roi,oicj,csoj->rcs", self.A[n], K, self.A[idx])
+        out = torch.einsum("roi,oicj,csoj->rcs", self.A[n], K, self.A[idx])
+        return out if self.Bt is None else out + torch.einsum("rp,csp->rcs", self.Bt[n], self.Bt[idx])
 
     def joint(self, idx: list[int]) -> torch.Tensor:
         """The covariance of the stacked readings of ``idx`` (the reference: one dense matrix)."""
@@ -303,7 +347,18 @@ class _ReadingsCovariance:
         A = self.A[i]  # (k, R, d_out, S)
         K = self._k(self.nodes[i].reshape(-1, d_in), self.nodes[i].reshape(-1, d_in))  # (d_out, k S, k S)
         K = K.reshape(self.d_out, len(idx), S, len(idx), S)
-        return torch.einsum("aroi,oaibj,bsoj->arbs", A, K, A).reshape(len(idx) * A.shape[1], -1)
+        out = torch.einsum("aroi,oaibj,bsoj->arbs", A, K, A).reshape(len(idx) * A.shape[1], -1)
+        if self.Bt is None:
+            return out
+        Bt = self.Bt[i].reshape(-1, self.Bt.shape[-1])
+        return out + Bt @ Bt.T
+
+    def information(self, idx: list[int]) -> float:
+        """The readings' information about F of the candidates ``idx`` (theta integrated out)."""
+        if not idx:
+            return 0.0
+        ld, _ = logdet_identity_plus(self.joint(idx), 1.0, "I + Sigma_S (readings)")
+        return 0.5 * (float(ld) - self.theta_logdet(idx))
 
 
 def _noise(criterion: ReadoutCriterion, gp: CorrectionGP, H: torch.Tensor, paths: torch.Tensor) -> tuple:
@@ -343,15 +398,24 @@ class _ReadoutProblem:
         self.proxy = choose_proxy(proxy, gp)
         self.substeps = criterion.substeps
         grid = _grid(self.times, self.substeps)
-        paths = proxy_paths(self.proxy, self.system, gp, self.candidates.to(**kd), grid, None, executor, progress)
+        self.theta = theta_uncertainty(self.system, gp)  # G's uncertain parameters, integrated out
+        dynamics = self.system if self.theta is None else self.theta.centred
+        paths = proxy_paths(self.proxy, dynamics, gp, self.candidates.to(**kd), grid, None, executor, progress)
         H = self.readout.matrix.to(**kd)
         self.noise_std, self.noise_source = _noise(criterion, gp, H, paths)
-        A = _sensitivity(self.system, H, _proxy_field(self.system, gp, self.proxy), paths, grid, self.substeps)
+        forcing = None if self.theta is None else self.theta.forcing(paths)
+        field = _proxy_field(dynamics, gp, self.proxy)
+        A, B = _sensitivity(dynamics, H, field, paths, grid, self.substeps, forcing)
         T1 = self.times.numel() - 1
-        A = A / self.noise_std.repeat(T1).reshape(1, -1, 1, 1)  # whitened: unit noise
-        self.cov = _ReadingsCovariance(self.kern, A, self.system.select_inputs(paths), self.system.output_dim)
+        whiten = self.noise_std.repeat(T1).reshape(1, -1, 1)
+        A = A / whiten.unsqueeze(-1)  # whitened: unit noise
+        Bt = None if B is None else self.theta.whitened_factor(B / whiten)
+        self.cov = _ReadingsCovariance(self.kern, A, self.system.select_inputs(paths), self.system.output_dim, Bt)
         self.proxies = paths[:, :: self.substeps]
         self.R = A.shape[1]
+        self.domain = None
+        if criterion.domain is not None:
+            self.domain = DomainModel(self.kern, self.system, criterion.domain.domain, criterion.domain.size)
 
     @property
     def n(self) -> int:
@@ -370,16 +434,20 @@ def _plain(prob: _ReadoutProblem, feasible) -> tuple[list[int], list[float], int
     U: list[torch.Tensor] = []  # rows (R, N, R) of the partial Cholesky factor of the picks' readings
     feas = feasible(prob)
     picks, gains, evaluations = [], [], 0
+    p = 0 if cov.Bt is None else cov.Bt.shape[-1]
+    M = torch.zeros(p, p, dtype=cov.A.dtype, device=cov.A.device)  # the picks' sum of Bt_c^T Bt_c
     for k in range(prob.budget):
         idx = torch.nonzero(feas.mask()).flatten()
         ld, C = logdet_identity_plus(Sig[idx], 1.0, "I + Sigma_{c|S} (readings)")
         evaluations += idx.shape[0]
-        g = 0.5 * ld
+        g = 0.5 * (ld - cov.theta_gains(idx, M))  # theta integrated out (:mod:`._readings_theta`)
         j = int(torch.nonzero(g >= prob.threshold(float(g.max())))[0, 0])
         n = int(idx[j])
         picks.append(n)
         gains.append(float(g[j]))
         feas.add(n)
+        if p:
+            M = M + cov.Bt[n].T @ cov.Bt[n]
         if k + 1 < prob.budget:
             cross = cov.cross(n, everyone)  # (R, N, R)
             for W in U:
@@ -396,9 +464,7 @@ def _naive(prob: _ReadoutProblem, feasible) -> tuple[list[int], list[float], int
     picks, gains, evaluations, current = [], [], 0, 0.0
     for _ in range(prob.budget):
         idx = torch.nonzero(feas.mask()).flatten().tolist()
-        total = torch.stack(
-            [0.5 * logdet_identity_plus(prob.cov.joint(picks + [c]), 1.0, "I + Sigma_S (readings)")[0] for c in idx]
-        )
+        total = torch.tensor([prob.cov.information(picks + [c]) for c in idx], dtype=prob.cov.A.dtype)
         evaluations += len(idx)
         j = int(torch.nonzero(total >= prob.threshold(float(total.max())))[0, 0])
         picks.append(idx[j])
@@ -411,8 +477,13 @@ def _naive(prob: _ReadoutProblem, feasible) -> tuple[list[int], list[float], int
 def readout_greedy(prob: _ReadoutProblem, method: str, feasible) -> DesignResult:
     """The greedy design for the readings' criterion (``greedy(..., criterion=ReadoutCriterion(...))``)."""
     start = time.perf_counter()
+    extra = {}
     with torch.no_grad():
-        picks, gains, evaluations = (_naive if method == "naive" else _plain)(prob, feasible)
+        if prob.domain is not None:
+            terms = readings_terms(prob.domain, prob.cov.A, prob.cov.nodes, prob.cov.Bt)
+            picks, gains, evaluations, extra = domain_greedy(prob, method, False, feasible, terms)
+        else:
+            picks, gains, evaluations = (_naive if method == "naive" else _plain)(prob, feasible)
     dev = prob.candidates.device
     idx = torch.tensor(picks, dtype=torch.long, device=dev)
     info = {
@@ -423,7 +494,12 @@ def readout_greedy(prob: _ReadoutProblem, method: str, feasible) -> DesignResult
         "substeps": prob.substeps,
         "conditioned": prob.kern.num_conditioned,
         "proxy": prob.proxy,
+        **extra,
     }
+    if prob.domain is not None:
+        info["criterion"] = "readout over the domain"
+    if prob.theta is not None:
+        info["parameters"] = f"integrated out ({prob.theta.source})"
     return DesignResult(
         indices=idx,
         gains=torch.tensor(gains, dtype=prob.kern.dtype, device=dev),
@@ -471,8 +547,7 @@ def readout_information_gain(
     idx = list(check_indices(indices, cand.shape[0], "indices"))
     prob = _ReadoutProblem(criterion, cand, 1, system, times, gp, proxy, condition, None, None, 0.0)
     with torch.no_grad():
-        ld, _ = logdet_identity_plus(prob.cov.joint(idx), 1.0, "I + Sigma_S (readings)")
-    return 0.5 * float(ld)
+        return prob.cov.information(idx)
 
 
 def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> DesignResult:
@@ -494,8 +569,9 @@ def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> Desi
     if refused:
         raise InputError(
             f"criterion=ReadoutCriterion(...): expected none of {refused}, got them; the readings' criterion "
-            "computes its own proxies on a finer grid, scores information about F anywhere, is built for systems "
-            "without inputs, and runs the plain or naive engine (method='lazy' runs the plain one)"
+            "computes its own proxies on a finer grid, takes its box D as "
+            "ReadoutCriterion(domain=DomainCriterion(...)), is built for systems without inputs, and runs the plain "
+            "or naive engine (method='lazy' runs the plain one)"
         )
     if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
         raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
@@ -508,13 +584,14 @@ def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> Desi
 
 def campaign_criterion(criterion: str, data, gp: CorrectionGP, system: MisspecifiedSystem):
     """A campaign's criterion: ``criterion``, or, when its data carry a readout (experiments that read combinations
-    H y of the states) and the criterion is the information, the readings' information through the ODE
-    (:class:`ReadoutCriterion`): such experiments give no derivative samples, so the paper's criterion would score
-    what is not measured. The readings' noise is the fit's estimate (``gp.state_noise_``), else the one the data
-    show (``estimate_observed_noise``), else the default."""
+    H y of the states), the readings' criterion through the ODE (:class:`ReadoutCriterion`: their information about
+    F, or with a :class:`DomainCriterion` the variance of F over D they remove): such experiments give no derivative
+    samples, so the paper's criteria would score what is not measured. The readings' noise is the fit's estimate
+    (``gp.state_noise_``), else the one the data show (``estimate_observed_noise``), else the default."""
     readout = None if data is None else data.readout
-    if readout is None or criterion != "information":
+    if readout is None:
         return criterion
+    over = criterion if isinstance(criterion, DomainCriterion) else None
     noise = None
     var = getattr(gp, "state_noise_", None)
     d, m = system.state_dim, readout.num_readings
@@ -524,4 +601,4 @@ def campaign_criterion(criterion: str, data, gp: CorrectionGP, system: Misspecif
         std = estimate_observed_noise(data)
         if std is not None and std.numel() == d + m and bool((std[d:] > 0).all()):
             noise = tuple(float(v) for v in std[d:])
-    return ReadoutCriterion(readout, noise_std=noise)
+    return ReadoutCriterion(readout, noise_std=noise, domain=over)
