@@ -19,7 +19,12 @@ Public functions:
 * :class:`ReadoutCriterion` - the criterion for experiments that read only combinations H y of the states (a
   :class:`~torchmisspec.Readout`): the information of the readings about F, linearised through the ODE
   (``greedy(..., criterion=ReadoutCriterion(readout))``; :func:`readout_sensitivity`,
-  :func:`readout_information_gain`; the maths in :mod:`torchmisspec.design._readings`).
+  :func:`readout_information_gain`; the maths in :mod:`torchmisspec.design._readings`). Aimed at a box D of F's
+  inputs with ``ReadoutCriterion(readout, domain=DomainCriterion(...))`` (:mod:`torchmisspec.design._readings_domain`).
+  Where G has uncertain parameters, they are integrated out: the readings' information about F alone, theta's
+  uncertainty (the fit's posterior, else the prior) acting as noise shared by the experiments
+  (:mod:`torchmisspec.design._readings_theta`, which says why not the information about theta and F jointly). The
+  criteria of correction samples evaluate G at theta's estimate (a plug-in).
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities; its options
   grouped in small frozen objects: :class:`Partition` (at most so many picks per region), :class:`Proxy` (the
   trajectories the samples are predicted along), :class:`DomainCriterion` (aim at a box D of F's inputs) and
