@@ -24,7 +24,8 @@ Public functions:
   Where G has uncertain parameters, they are integrated out: the readings' information about F alone, theta's
   uncertainty (the fit's posterior, else the prior) acting as noise shared by the experiments
   (:mod:`torchmisspec.design._readings_theta`, which says why not the information about theta and F jointly). The
-  criteria of correction samples evaluate G at theta's estimate (a plug-in).
+  criteria of correction samples evaluate G at theta's estimate (a plug-in). Systems with inputs: pass each
+  candidate's input profile as ``controls``.
 * :func:`greedy` - greedy / lazy greedy (identical picks) with optional partition-matroid capacities; its options
   grouped in small frozen objects: :class:`Partition` (at most so many picks per region), :class:`Proxy` (the
   trajectories the samples are predicted along), :class:`DomainCriterion` (aim at a box D of F's inputs) and

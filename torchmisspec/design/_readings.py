@@ -175,9 +175,9 @@ def _grid(times: torch.Tensor, substeps: int) -> torch.Tensor:
 
 
 def _proxy_field(system: MisspecifiedSystem, gp: CorrectionGP | None, proxy: str):
-    """V(y), the field the proxy paths follow (differentiable in y)."""
+    """V(y, t=None, u=None), the field the proxy paths follow (differentiable in y)."""
     if proxy == "known":
-        return lambda y: system.known_rhs(y)
+        return system.known_rhs
     from ..prediction.dynamics import CorrectedODE
 
     return CorrectedODE(system, gp).field
@@ -192,23 +192,32 @@ def _jacobian(field, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return v.detach(), torch.stack(rows, dim=1)
 
 
-def _transitions(field, paths: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+def _transitions(field, paths: torch.Tensor, grid: torch.Tensor, system: MisspecifiedSystem, controls=None):
     """One-step transition matrices Psi_k = Phi(s_{k+1}, s_k) ``(N, n, d, d)`` along ``paths (N, n + 1, d)``: every
-    step of every candidate integrated together in the step's own time tau in [0, 1] (the field scaled by h_k)."""
+    step of every candidate integrated together, an autonomous system's in the step's own time tau in [0, 1] (the
+    field scaled by h_k), any other's from s_k to s_{k+1} with candidate c's inputs ``controls[c]`` (its jumps
+    never stepped across)."""
     N, S, d = paths.shape
-    h = (grid[1:] - grid[:-1]).repeat(N).unsqueeze(1)  # (N n, 1)
     start = paths[:, :-1].reshape(-1, d)
     eye = torch.eye(d, dtype=paths.dtype, device=paths.device).reshape(1, d * d).expand(start.shape[0], -1)
 
-    def rhs(z: torch.Tensor) -> torch.Tensor:
-        v, J = _jacobian(field, z[:, :d])
+    def augmented(z: torch.Tensor, t=None, u=None) -> torch.Tensor:
+        v, J = _jacobian(lambda y: field(y, t, u), z[:, :d])
         Psi = z[:, d:].reshape(-1, d, d)
-        return h * torch.cat([v, (J @ Psi).reshape(-1, d * d)], dim=1)
+        return torch.cat([v, (J @ Psi).reshape(-1, d * d)], dim=1)
 
-    tau = torch.tensor([0.0, 1.0], dtype=paths.dtype, device=paths.device)
     rtol, atol = PROXY_TOLERANCES
+    settings = dict(rtol=rtol, atol=atol, what="readout sensitivity")
     with torch.no_grad():
-        out, _ = solve(rhs, torch.cat([start, eye], dim=1), tau, rtol=rtol, atol=atol, what="readout sensitivity")
+        if system.autonomous:
+            h = (grid[1:] - grid[:-1]).repeat(N).unsqueeze(1)  # (N n, 1)
+            tau = torch.tensor([0.0, 1.0], dtype=paths.dtype, device=paths.device)
+            out, _ = solve(lambda z: h * augmented(z), torch.cat([start, eye], dim=1), tau, **settings)
+        else:
+            rows = torch.arange(N).repeat_interleave(S - 1).tolist()  # row c n + k: candidate c's step k
+            spans = torch.stack([grid[:-1], grid[1:]], dim=-1).repeat(N, 1)
+            rhs, timed, jumps = system.solver_field(augmented, None if controls is None else controls[rows])
+            out, _ = solve(rhs, torch.cat([start, eye], dim=1), spans, timed=timed, jumps=jumps, **settings)
     return out[:, -1, d:].reshape(N, S - 1, d, d)
 
 
@@ -220,12 +229,14 @@ def _sensitivity(
     grid: torch.Tensor,
     substeps: int,
     forcing: torch.Tensor | None = None,
+    controls=None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``A (N, m (T - 1), d_out, S)`` from the paths on the grid (see the module docstring), and with ``forcing``
     ``(N, S, d, p)`` (G's derivative in its uncertain parameters along the paths) the readings' sensitivity to them
-    ``(N, m (T - 1), p)`` (:mod:`._readings_theta`), else ``None``."""  # fmt: skip
+    ``(N, m (T - 1), p)`` (:mod:`._readings_theta`), else ``None``; ``controls``: one input profile per candidate
+    for a system with inputs."""
     N, S, d = paths.shape
-    Psi = _transitions(field, paths, grid)
+    Psi = _transitions(field, paths, grid, system, controls)
     h = grid[1:] - grid[:-1]
     E = system.embed(torch.eye(system.output_dim, dtype=paths.dtype, device=paths.device)).T  # (d, d_out)
     # B[:, :, i, :] = Phi(s_j, s_i) for the current j (zero for i > j), advanced one step at a time
@@ -285,7 +296,8 @@ def readout_sensitivity(
 
 
 def _check_system(system) -> MisspecifiedSystem:
-    """An autonomous system without inputs (readings of systems with inputs are not built yet)."""
+    """An autonomous system without inputs (for :func:`readout_sensitivity`; ``greedy`` and
+    :func:`readout_information_gain` take systems with inputs and their controls)."""
     return check_system(system)
 
 
@@ -306,18 +318,20 @@ class _ReadoutProblem:
     """Everything the readout engines need: sensitivities (whitened), the kernel, budget and partition."""
 
     def __init__(self, criterion, candidates, budget, system, times, gp, proxy, condition, partition, capacities,
-                 tie_tol, executor=None, progress=False) -> None:  # fmt: skip
+                 tie_tol, executor=None, progress=False, controls=None) -> None:  # fmt: skip
         from ._common import check_budget, check_partition
 
         if not isinstance(criterion, ReadoutCriterion):
             raise InputError(f"criterion: expected a ReadoutCriterion, got {type(criterion).__name__}")
         self.tie_tol = float(tie_tol)
-        self.system = _check_system(system)
+        self.system = check_system(system, controls, with_controls=True)
         self.readout = criterion.checked(self.system)
         self.kern = GPKernel(gp, input_dim=self.system.input_dim, condition=condition, system=self.system)
         kd = {"dtype": self.kern.dtype, "device": self.kern.device}
         self.candidates = check_candidates(candidates, self.system)
         n = self.candidates.shape[0]
+        controls = self.system.check_controls(controls, n)
+        controls = None if controls is None else controls.to(**kd)
         self.budget = check_budget(budget, n)
         self.partition = check_partition(partition, capacities, n, self.budget, self.kern.device)
         if times is None:
@@ -328,17 +342,20 @@ class _ReadoutProblem:
         grid = _grid(self.times, self.substeps)
         self.theta = theta_uncertainty(self.system, gp)  # G's uncertain parameters, integrated out
         dynamics = self.system if self.theta is None else self.theta.centred
-        paths = proxy_paths(self.proxy, dynamics, gp, self.candidates.to(**kd), grid, None, executor, progress)
+        paths = proxy_paths(self.proxy, dynamics, gp, self.candidates.to(**kd), grid, controls, executor, progress)
         H = self.readout.matrix.to(**kd)
         self.noise_std, self.noise_source = _noise(criterion, gp, H, paths)
-        forcing = None if self.theta is None else self.theta.forcing(paths)
+        t = None if self.system.autonomous else grid.expand(n, -1)
+        u = None if controls is None else controls.at(t)
+        forcing = None if self.theta is None else self.theta.forcing(paths, t, u)
         field = _proxy_field(dynamics, gp, self.proxy)
-        A, B = _sensitivity(dynamics, H, field, paths, grid, self.substeps, forcing)
+        A, B = _sensitivity(dynamics, H, field, paths, grid, self.substeps, forcing, controls)
         T1 = self.times.numel() - 1
         whiten = self.noise_std.repeat(T1).reshape(1, -1, 1)
         A = A / whiten.unsqueeze(-1)  # whitened: unit noise
         Bt = None if B is None else self.theta.whitened_factor(B / whiten)
-        self.cov = ReadingsCovariance(self.kern, A, self.system.select_inputs(paths), self.system.output_dim, Bt)
+        nodes = self.system.select_inputs(paths, u)
+        self.cov = ReadingsCovariance(self.kern, A, nodes, self.system.output_dim, Bt)
         self.proxies = paths[:, :: self.substeps]
         self.R = A.shape[1]
         self.domain = None
@@ -451,6 +468,7 @@ def readout_information_gain(
     criterion: ReadoutCriterion,
     condition: bool | None = None,
     proxy: str | None = None,
+    controls=None,
 ) -> float:
     """The information (nats) about F of the readings of the experiments ``candidates[indices]``, one dense
     log-determinant ``(1 / 2) logdet(I + A K A^T)`` of their stacked whitened readings (see the module docstring).
@@ -464,16 +482,17 @@ def readout_information_gain(
         criterion: the :class:`ReadoutCriterion` (readout, noise, quadrature).
         condition: whether the gains are conditioned on the GP's data, as for ``greedy``.
         proxy: the proxies' dynamics (``"known"`` or ``"corrected"``), as for ``greedy``.
+        controls: for a system with inputs, one profile per candidate, as for ``greedy``.
     """
     if isinstance(indices, DesignResult):
         indices = indices.indices
     if isinstance(indices, torch.Tensor):
         indices = indices.reshape(-1).tolist()
-    cand = check_candidates(candidates, _check_system(system))
+    cand = check_candidates(candidates, check_system(system, controls, with_controls=True))
     if len(indices) == 0:
         return 0.0
     idx = list(check_indices(indices, cand.shape[0], "indices"))
-    prob = _ReadoutProblem(criterion, cand, 1, system, times, gp, proxy, condition, None, None, 0.0)
+    prob = _ReadoutProblem(criterion, cand, 1, system, times, gp, proxy, condition, None, None, 0.0, controls=controls)
     with torch.no_grad():
         return prob.cov.information(idx)
 
@@ -483,14 +502,11 @@ def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> Desi
     (:mod:`torchmisspec.design._readings`); ``options``: greedy's keywords (those it does not take refused by name);
     ``feasible``: greedy's feasibility tracker (the picks left, a partition's capacities)."""
     o = options
-    proxies, domain, domain_size, controls, method = (
-        o[k] for k in ("proxies", "domain", "domain_size", "controls", "method")
-    )
+    proxies, domain, domain_size, method = (o[k] for k in ("proxies", "domain", "domain_size", "method"))
     tie_tol = o["tie_tol"]
     given = {
         "proxies": proxies is not None,
         "domain": domain is not None or domain_size is not None,
-        "controls": controls is not None,
         "method='stochastic'": method == "stochastic",
     }
     refused = [name for name, on in given.items() if on]
@@ -498,14 +514,14 @@ def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> Desi
         raise InputError(
             f"criterion=ReadoutCriterion(...): expected none of {refused}, got them; the readings' criterion "
             "computes its own proxies on a finer grid, takes its box D as "
-            "ReadoutCriterion(domain=DomainCriterion(...)), is built for systems without inputs, and runs the plain "
-            "or naive engine (method='lazy' runs the plain one)"
+            "ReadoutCriterion(domain=DomainCriterion(...)), and runs the plain or naive engine (method='lazy' runs "
+            "the plain one)"
         )
     if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
         raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
     prob = _ReadoutProblem(
         criterion, o["candidates"], o["budget"], o["system"], o["times"], o["gp"], o["proxy"], o["condition"],
-        o["partition"], o["capacities"], tie_tol, o["executor"], o["progress"],
+        o["partition"], o["capacities"], tie_tol, o["executor"], o["progress"], o["controls"],
     )  # fmt: skip
     return readout_greedy(prob, method, feasible)
 

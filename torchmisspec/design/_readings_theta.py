@@ -60,9 +60,9 @@ class ThetaUncertainty:
         """The system with theta fixed at the centre (the proxies' dynamics)."""
         return self.system.at(self.theta)
 
-    def forcing(self, paths: torch.Tensor) -> torch.Tensor:
-        """``G_theta (N, S, d, p)`` along ``paths (N, S, d)``: central differences, steps of :data:`STEP` standard
-        deviations."""
+    def forcing(self, paths: torch.Tensor, t=None, u=None) -> torch.Tensor:
+        """``G_theta (N, S, d, p)`` along ``paths (N, S, d)`` (at times ``t (N, S)`` with inputs ``u (N, S, m)`` for a
+        system that has them): central differences, steps of :data:`STEP` standard deviations."""
         sd = self.L.pow(2).sum(-1).sqrt()
         columns = []
         for k in range(self.theta.numel()):
@@ -70,7 +70,7 @@ class ThetaUncertainty:
             up, down = self.theta.clone(), self.theta.clone()
             up[k] += h
             down[k] -= h
-            diff = self.system.at(up).known_rhs(paths) - self.system.at(down).known_rhs(paths)
+            diff = self.system.at(up).known_rhs(paths, t, u) - self.system.at(down).known_rhs(paths, t, u)
             columns.append(diff / (2 * h))
         return torch.stack(columns, dim=-1)
 
