@@ -267,6 +267,8 @@ def _fit(
     user_candidates = candidates is not None
     candidates = None if candidates is None else list(candidates)  # checked by the Pipeline's Candidates
     samples, advice = _samples_and_advice(trajectories, system, derivative, estimator)
+    taken = refine is None and bool(advice)  # the estimator's advice taken where a correction is kept:
+    refine = True if taken else refine  # F refined through the ODE, and the advice not given
     raw, posterior, declared, refine_f = samples, None, system, False
     if system.parameters is not None:  # theta integrated out with F (parameters.py): the choice below at its mean
         refine_f, refine, outputs = bool(refine), False, system.correction_outputs  # F's refinement after theta
@@ -281,7 +283,7 @@ def _fit(
     cv = rival = result = None
     if scored is not None:
         given = user_candidates or gp is not None
-        result, cv, rival, known = _by_cross_validation(data, gp, candidates, given, folds, progress, advice)
+        result, cv, rival, known = _by_cross_validation(data, gp, candidates, given, folds, progress, advice, taken)
         if known is not None and posterior is not None:  # F learned around the known model's own parameters
             result, cv, data, known = _second_look(data, known, cv, candidates, gp, progress)
         if known is not None:
@@ -289,7 +291,7 @@ def _fit(
                 known.parameters_ = known.parameters_.absorbing(posterior)
                 known.parameters_.warn_if_unidentified("fit_correction")
             return known
-    if cv is None:
+    if cv is None and not taken:
         _give_advice(advice, None)
     if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
         auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
@@ -344,11 +346,13 @@ def _cv_candidates(gp, candidates, chooser: CorrectionSamples) -> list:
     return [gp]
 
 
-def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, progress, advice):
+def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, progress, advice, taken=False):
     """``(model or None, cv, the one-trajectory rival's record or None, the known model or None)``: the candidates
     scored on held-out data (:func:`cross_validate`), the chosen one fitted on every sample; the known model alone
     where no candidate beats it (do no harm, unless candidates or a template were ``given``), or the refined feature
-    kernel where it forecasts one trajectory's last piece better; the warnings of an unsupported correction."""
+    kernel where it forecasts one trajectory's last piece better; the warnings of an unsupported correction. The
+    estimator's held ``advice`` is given where the known model is returned, or where it was not ``taken`` (a kept
+    correction is refined through the ODE when it was: the advice's fix)."""
     scored, chooser, samples = data.scored, data.chooser, data.samples
     candidates = _cv_candidates(gp, candidates, chooser)
     if scored is not data.trajectories:  # the pieces of one experiment, each its own fold
@@ -364,7 +368,7 @@ def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, 
                                                           data.noise, announce=not quiet)  # fmt: skip
     if own is not None:  # the known model with its own parameters fitted, beside the baseline at the choice's
         cv = dataclasses.replace(cv, known_fitted=own)
-    _give_advice(advice, cv)
+    _give_advice(advice if known is not None or not taken else [], cv)  # taken: F is refined through the ODE
     if known is not None:
         known.cross_validation_, known.samples_ = cv, data.raw
         known.input_names_ = data.declared.input_names(data.trajectories)

@@ -15,9 +15,12 @@ class Refinement:
     (:func:`~torchmisspec.fit_trajectories`: no derivative estimates).
 
     Args:
-        through_ode: ``True``: always; ``False``: never; ``None`` (default): when the feature kernel (a sparse
-            polynomial correction) is chosen on an autonomous system, where its terms' weights are what the
-            derivative estimates bias most. Partly measured data are always learned through the ODE.
+        through_ode: ``True``: always; ``False``: never; ``None`` (default): when the derivative estimator's
+            self-check says its error is a large share of the correction samples (above
+            ``ESTIMATOR_ERROR_THRESHOLD``, where the package used to warn that the correction would mostly fit
+            estimator error and advise fitting through the ODE: the advice is now taken), and when the feature
+            kernel (a sparse polynomial correction) is chosen on an autonomous system, where its terms' weights are
+            what the derivative estimates bias most. Partly measured data are always learned through the ODE.
     """
 
     through_ode: bool | None = None
