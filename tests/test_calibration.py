@@ -243,3 +243,21 @@ def test_a_corrupt_refinement_record_is_refused_by_name(data, tmp_path):
     torch.save(blob, tmp_path / "bad.pt")
     with pytest.raises(tms.InputError, match="'refinement' to be the settings of fit_trajectories"):
         tms.CorrectionGP.load(tmp_path / "bad.pt")
+
+
+def test_where_the_noise_alone_covers_the_held_out_data_the_bands_are_left_as_the_model_gives_them():
+    """Even the narrowest scale covering: with measurement noise that covers the held-out data by itself (the model's
+    spread at scale 0), the scale says nothing and stays 1 (R's Indometh: narrowed to the floor, the forecast bands
+    were 16 times narrower than the model's); without noise, or where the noise alone does not cover, the floor is
+    kept. Both warn."""
+    from torchmisspec.prediction.calibration import _at_the_floor
+
+    def coverage(c):  # noise alone: 0.95 of the points; the model's spread adds to it
+        return min(1.0, 0.95 + 0.05 * c)
+
+    with pytest.warns(tms.TorchMisspecWarning, match="the measurement noise alone covers 0.9"):
+        assert _at_the_floor(coverage, 0.9, True, 0.0625, 0.953, 1.0) == (1.0, 1.0)
+    with pytest.warns(tms.TorchMisspecWarning, match="even the narrowest scale tried"):
+        assert _at_the_floor(coverage, 0.9, False, 0.0625, 0.953, 1.0) == (0.0625, 0.953)
+    with pytest.warns(tms.TorchMisspecWarning, match="even the narrowest scale tried"):
+        assert _at_the_floor(lambda c: 0.5 + c, 0.9, True, 0.0625, 0.9, 1.0) == (0.0625, 0.9)
