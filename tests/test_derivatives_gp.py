@@ -258,3 +258,29 @@ def test_fit_correction_gives_the_estimators_advice_only_where_held_out_data_do_
     assert gp.known_model_ and len(advice) == 1
     line = _one_line(advice[0])
     assert "--derivative names one" in line and "--refine" in line and "tms." not in line
+
+
+def test_a_refinement_the_estimators_advice_asked_for_that_fails_keeps_the_correction(monkeypatch):
+    """Sparse times: the self-check's advice is taken (the kept correction refined through the ODE). Where that
+    refinement cannot be fitted, the correction learned from the derivative samples is kept, with a warning and the
+    advice; a refinement the user asked for (refine=True) still raises."""
+    import torchmisspec.learning.fit as fit_module
+    from torchmisspec.learning.samples.observations import ESTIMATOR_ADVICE
+
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        raise tms.IntegrationError("the refinement's solve stopped")
+
+    monkeypatch.setattr(fit_module, "fit_trajectories", failing)
+    data = pendulum_data(K=10, T=11)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = tms.fit_correction(data, pendulum(), progress=False)
+    said = [str(w.message) for w in caught]
+    assert calls and gp.is_fitted and not getattr(gp, "known_model_", False)
+    assert any("refining the correction through the ODE (the derivative estimator's advice) failed" in m for m in said)
+    assert any(m.startswith(ESTIMATOR_ADVICE) for m in said)
+    with pytest.raises(tms.IntegrationError):
+        tms.fit_correction(data, pendulum(), progress=False, refine=True)

@@ -270,3 +270,6 @@ def test_better_in_every_experiment_at_its_edges():
     # an experiment with nothing held out is skipped; with none at all there is no evidence
     assert better_in_every_experiment(torch.tensor([40.0, 0.0]), torch.tensor([1.0, 1.0]), torch.tensor([2, 0]))
     assert not better_in_every_experiment(torch.tensor([0.0, 0.0]), torch.tensor([1.0, 1.0]), torch.tensor([0, 0]))
+    # the known model perfect where values are held out: the rival is not better there
+    assert not better_in_every_experiment(torch.tensor([40.0, 0.0]), torch.tensor([1.0, 1.0]), two)
+    assert not better_in_every_experiment(torch.tensor([40.0, 0.0]), torch.tensor([1.0, 0.0]), two)

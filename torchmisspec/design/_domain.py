@@ -283,7 +283,7 @@ def domain_greedy(prob, method: str, progress: bool, feasible, terms: DomainTerm
     info = {
         "engine": "naive" if method == "naive" else "exact (not submodular: no lazy bounds)",
         "domain_nodes": model.nodes.shape[0],
-        "domain_rank": r,
+        "domain_rank": model.rank,
         "mean_variance": d_out * base,  # the mean variance over D before the picks (data included)
     }
     return picks, gains, evaluations, info

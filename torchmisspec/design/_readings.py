@@ -471,7 +471,9 @@ def readout_information_gain(
     controls=None,
 ) -> float:
     """The information (nats) about F of the readings of the experiments ``candidates[indices]``, one dense
-    log-determinant ``(1 / 2) logdet(I + A K A^T)`` of their stacked whitened readings (see the module docstring).
+    log-determinant ``(1 / 2) logdet(I + A K A^T)`` of their stacked whitened readings (see the module docstring);
+    where G has uncertain parameters, with them integrated out, ``(1 / 2) logdet(I + A K A^T + B S B^T) -
+    (1 / 2) logdet(I + B S B^T)`` (:mod:`torchmisspec.design._readings_theta`).
 
     Args:
         indices: the chosen candidates (or a :class:`DesignResult`); empty: 0.

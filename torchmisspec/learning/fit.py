@@ -287,6 +287,8 @@ def _fit(
         if known is not None and posterior is not None:  # F learned around the known model's own parameters
             result, cv, data, known = _second_look(data, known, cv, candidates, gp, progress)
         if known is not None:
+            if taken:  # held while a correction could still be kept and refined
+                _give_advice(advice, cv)
             if posterior is not None:  # what a larger F could stand in for stays on record, F = 0 returned
                 known.parameters_ = known.parameters_.absorbing(posterior)
                 known.parameters_.warn_if_unidentified("fit_correction")
@@ -296,7 +298,7 @@ def _fit(
     if result is None:  # select="evidence", one experiment, or every candidate failed its cross-validation
         auto = CorrectionGP(kernel="auto", device=samples.inputs.device)
         result = _evidence_choice(candidates if user_candidates else [auto if gp is None else gp], chooser, samples)
-    result, samples = _refined(result, data, posterior, refine, refine_f, progress)
+    result, samples = _refined(result, data, posterior, refine, refine_f, progress, advice if taken else None)
     result.cross_validation_ = cv
     result.one_trajectory_rival_ = rival  # None unless one_trajectory.refined_rival ran
     result.samples_ = samples
@@ -351,8 +353,8 @@ def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, 
     scored on held-out data (:func:`cross_validate`), the chosen one fitted on every sample; the known model alone
     where no candidate beats it (do no harm, unless candidates or a template were ``given``), or the refined feature
     kernel where it forecasts one trajectory's last piece better; the warnings of an unsupported correction. The
-    estimator's held ``advice`` is given where the known model is returned, or where it was not ``taken`` (a kept
-    correction is refined through the ODE when it was: the advice's fix)."""
+    estimator's held ``advice`` is given here unless it was ``taken`` (then the caller gives it where the known model
+    is finally returned; a kept correction is refined through the ODE: the advice's fix)."""
     scored, chooser, samples = data.scored, data.chooser, data.samples
     candidates = _cv_candidates(gp, candidates, chooser)
     if scored is not data.trajectories:  # the pieces of one experiment, each its own fold
@@ -368,7 +370,7 @@ def _by_cross_validation(data: _ChoiceData, gp, candidates, given: bool, folds, 
                                                           data.noise, announce=not quiet)  # fmt: skip
     if own is not None:  # the known model with its own parameters fitted, beside the baseline at the choice's
         cv = dataclasses.replace(cv, known_fitted=own)
-    _give_advice(advice if known is not None or not taken else [], cv)  # taken: F is refined through the ODE
+    _give_advice([] if taken else advice, cv)  # taken: held until the choice is final (the second look may keep F)
     if known is not None:
         known.cross_validation_, known.samples_ = cv, data.raw
         known.input_names_ = data.declared.input_names(data.trajectories)
@@ -484,16 +486,36 @@ def _evidence_choice(pool: list, chooser: CorrectionSamples, samples: Correction
     return result
 
 
-def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_f: bool, progress):
+def _through_ode(result: CorrectionGP, system, trajectories, progress, advice) -> CorrectionGP:
+    """``result`` refined through the ODE (:func:`fit_trajectories`). Where the refinement takes the estimator's
+    ``advice`` (a list, possibly empty) rather than the user's ``refine=True`` (``None``), a refinement that cannot be
+    fitted or integrated keeps ``result`` as learned from the derivative samples, says so, and gives the advice."""
+    if advice is None:
+        return fit_trajectories(result, system, trajectories, progress=progress)
+    try:
+        return fit_trajectories(result, system, trajectories, progress=progress)
+    except (FittingError, IntegrationError, LinearAlgebraError) as error:
+        warn(
+            f"fit_correction: refining the correction through the ODE (the derivative estimator's advice) failed "
+            f"({str(error)[:200]}); the correction is kept as learned from the derivative samples",
+            TorchMisspecWarning,
+        )
+        _give_advice(advice, None)
+        return result
+
+
+def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_f: bool, progress, advice=None):
     """``(model, samples)``: the chosen model refined through the ODE (``refine``; by default a feature kernel on
     an autonomous system), then with uncertain parameters theta's posterior under it (F conditioned on
-    r - H theta_bar, the samples linearised there) and, with ``refine_f``, F refined at theta's posterior mean."""
+    r - H theta_bar, the samples linearised there) and, with ``refine_f``, F refined at theta's posterior mean.
+    ``advice``: the estimator's held warnings where the refinement takes their advice (not asked for by the user):
+    a refinement that fails then keeps the model unrefined and gives them (:func:`_through_ode`)."""
     trajectories, samples = data.trajectories, data.samples
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
         refine = result.kernel_spec.terms and result.kernel_spec.feature_space and data.system.autonomous
     if refine:  # a new model: the record of the evidence's choice carried over
         selection = getattr(result, "model_selection_", None)
-        result = fit_trajectories(result, data.system, trajectories, progress=progress)
+        result = _through_ode(result, data.system, trajectories, progress, advice)
         if selection is not None:
             result.model_selection_ = selection
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
@@ -505,6 +527,6 @@ def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_
         result.parameters_.warn_if_unidentified("fit_correction")
         if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
             found = result.parameters_
-            result = fit_trajectories(result, data.declared.at(found.mean), trajectories, progress=progress)
+            result = _through_ode(result, data.declared.at(found.mean), trajectories, progress, advice)
             result.parameters_ = found
     return result, samples

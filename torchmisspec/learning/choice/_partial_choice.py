@@ -133,7 +133,7 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
     # several experiments: better on the whole and significantly so over them (a paired test of the log ratios, as
     # cross-validation's), or a correction that forecasts some later times better but predicts a new experiment
     # worse is kept (theophylline's subject 8: 1.75 times the classical error); one: the check above failed already
-    counts = held_out(trajectories, keep).sum((1, 2)).cpu()
+    counts = held_out(trajectories, keep).any(-1).sum(1).cpu()  # held-out times (not values: see below)
     if score_trial < score_known and (
         trajectories.num_experiments == 1
         or significant_gain(_gains(per_known, per_trial))
@@ -152,10 +152,15 @@ def fit_partly_measured(trajectories: Trajectories, system: MisspecifiedSystem, 
 
 def better_in_every_experiment(known: torch.Tensor, rival: torch.Tensor, counts: torch.Tensor) -> bool:
     """Whether the rival forecasts the held-out values of *every* experiment that has some significantly better:
-    in each, the ratio of the two models' sums of squares ``known / rival`` over its ``counts`` held-out values
-    exceeds the :data:`~torchmisspec.learning.choice.cross_validation.SIGNIFICANCE` quantile of F(n, n) (the
-    variance-ratio test). Requiring every one is an intersection-union test, of level 1 - SIGNIFICANCE without a
-    correction for the number of experiments.
+    in each, the ratio of the two models' sums of squares ``known / rival`` exceeds the
+    :data:`~torchmisspec.learning.choice.cross_validation.SIGNIFICANCE` quantile of F(n, n), n its ``counts`` of
+    held-out *times* (the variance-ratio test). Requiring every one is an intersection-union test, of level
+    1 - SIGNIFICANCE without a correction for the number of experiments.
+
+    Its limits, stated: the two sums are taken on the same held-out values, and a wrong model's forecast errors are
+    correlated along the path, so the test's n overstates the independent errors (counting times rather than
+    values, components read at one time count once, is the conservative half of that); and offered beside the
+    paired test over the experiments, the two together can keep a correction at up to twice the level of either.
 
     It speaks where the paired test over the experiments cannot: with 2 or 3 experiments Student's t has 1 or 2
     degrees of freedom (a critical value of 12.7 or 4.3 standard errors), and a correction that forecast both of two
@@ -164,9 +169,9 @@ def better_in_every_experiment(known: torch.Tensor, rival: torch.Tensor, counts:
     (theophylline's subject 8: a correction better on most subjects' later times predicted it 1.75 times worse)."""
     tested = 0
     for k, r, n in zip(known.tolist(), rival.tolist(), counts.tolist(), strict=True):
-        if n == 0 or k <= 0:
+        if n == 0:  # nothing held out in this experiment
             continue
-        if not (math.isfinite(r) and r < k):
+        if not (math.isfinite(r) and r < k):  # worse, as good (both perfect included), or not integrable
             return False
         if r > 0 and f_survival(k / r, n, n) >= 1.0 - SIGNIFICANCE:
             return False
