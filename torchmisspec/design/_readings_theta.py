@@ -24,6 +24,10 @@ nuisance, and a parameter that F could absorb is exactly one whose readings the 
 experiment whose readings mostly pin theta is worth little for F, and one that separates F from theta's effect is
 worth more. It reduces to the plug-in criterion as Sigma_theta -> 0.
 
+An approximation, stated: after a fit, theta and F are correlated in their joint posterior (F can stand in for part of
+theta's effect); the criterion takes theta's marginal posterior and F's GP conditioned on its own samples, each as the
+fit reports them, not that coupling.
+
 I_F is not submodular in general (the experiments' readings are coupled through theta, not only through F), so the
 greedy picks carry no (1 - 1/e) guarantee. Over a box D (``ReadoutCriterion(domain=...)``), theta enters as extra
 features of F's feature model with no weight in the quadrature: the variance of F over D with theta integrated out
