@@ -256,9 +256,11 @@ def test_r_indometh_as_a_labs_csv_through_the_cli_and_leaving_one_subject_out(tm
     model = tmp_path / "indo.pt"
     code = cli.main(["fit", "--data", str(data_file), "--time-column", "hours", "--experiment-column", "subject",
                      "--system", system_arg, "--out", str(model), "--quiet"])  # fmt: skip
-    err = capsys.readouterr().err
+    said = capsys.readouterr()
+    err = said.err
     assert code == 0, err
     assert "the measurement noise alone covers" in err and "k: " in err  # bands as given; k not determined
+    assert "then refined through the ODE" in said.out  # 11 sparse times: the estimator's advice taken
     (tmp_path / "start.csv").write_text("conc\n2.0\n")
     out = tmp_path / "pred.csv"
     code = cli.main(["predict", "--model", str(model), "--system", system_arg, "--initial", str(tmp_path / "start.csv"),

@@ -131,6 +131,11 @@ def _print_choice(gp, system) -> None:
             f"model alone: {cv.baseline:.4g}{at} (the gain over it {'' if cv.significant else 'NOT '}significant)"
             f"{own}"
         )
+    if getattr(gp, "refinement_", None) is not None and getattr(gp, "identifiability_", None) is None:
+        print(
+            "then refined through the ODE: F fitted to the measured trajectories themselves, not to derivative "
+            "estimates (where those are rough, as on sparse times, or for a chosen feature kernel; --refine always)"
+        )
     rival = getattr(gp, "one_trajectory_rival_", None)
     if rival is not None:  # one trajectory: the refined feature kernel against that choice, on the last piece
         kept = rival["refined features"] < rival["chosen"]
