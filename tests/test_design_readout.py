@@ -483,3 +483,13 @@ def test_a_campaign_with_inputs_readings_and_an_uncertain_parameter():
     assert states.shape == (2, 2) and profiles.num_experiments == 2
     info = campaign.history[-1]["design"]
     assert info["criterion"] == "readout" and info["parameters"] == "integrated out (fitted)"
+
+
+@pytest.mark.slow
+def test_a_campaign_on_readings_aimed_at_a_domain_says_what_is_not_built(fitted):
+    """A fit through the ODE keeps its GP per output (one output here): the domain criterion is not built for it,
+    and the campaign says so, naming the criterion that works, instead of the shared-kernel advice."""
+    campaign = design.Campaign(lv(), candidates(10, seed=5), torch.linspace(0, 6, 13, dtype=DT), fitted,
+                               criterion="domain", domain=[(0.3, 3.0)])  # fmt: skip
+    with pytest.raises(InputError, match="not built for a GP kept per output.*criterion='information'"):
+        campaign.ask(2)

@@ -75,6 +75,12 @@ class DomainModel:
 
     def __init__(self, kern: GPKernel, system, domain=None, domain_size: int | None = None) -> None:
         d_in = system.input_dim
+        if kern.expanded and kern.gp.output_dim == 1:
+            raise InputError(
+                "gp: criterion='domain' is not built for a GP kept per output, as a fit through the ODE (partly "
+                "measured states, readings) returns one, even with one output; use criterion='information' (for "
+                "readings: design.ReadoutCriterion(readout) without domain=)"
+            )
         if kern.expanded:
             raise InputError(
                 "gp: criterion='domain' weighs the variance of F over D in F's units and needs one kernel and one "
