@@ -127,13 +127,13 @@ def test_a_campaign_with_uncertain_parameters_designs_at_their_estimate_and_refi
         warnings.simplefilter("ignore", tms.TorchMisspecWarning)
         gp = tms.fit_correction(data, system, progress=False)
         camp = design.Campaign(system, design.candidates.grid([(-2, 2), (-2, 2)], 9), t, gp)
-        assert torch.equal(camp.designed_on("information").theta, gp.parameters_.mean)
+        assert torch.equal(camp.designed_on.theta, gp.parameters_.mean)
         asked = camp.ask(2)
         after = camp.tell(tms.simulate(truth, asked, t))
     assert camp.data.num_experiments == 7 and after.parameters_ is not None
     assert abs(float(after.parameters_.mean[0]) - 0.3) < 3 * float(after.parameters_.stddev[0]) + 0.01
     assert float(after.parameters_.stddev[0]) <= float(gp.parameters_.stddev[0]) * 1.05
-    assert torch.equal(camp.designed_on("information").theta, after.parameters_.mean)
+    assert torch.equal(camp.designed_on.theta, after.parameters_.mean)
     with pytest.raises(tms.InputError, match="holds no estimate of them; start the campaign from fit_correction"):
         design.Campaign(system, design.candidates.grid([(-2, 2), (-2, 2)], 5), t, tms.CorrectionGP(lengthscale=1.0))
 

@@ -186,7 +186,12 @@ class Campaign:
     def num_samples(self) -> int:
         return sum(x.shape[0] for x in self._inputs)
 
-    def designed_on(self, criterion) -> MisspecifiedSystem:
+    @property
+    def designed_on(self) -> MisspecifiedSystem:
+        """The system the next design runs on (:meth:`_designed_on` for the campaign's criterion)."""
+        return self._designed_on(self._criterion())
+
+    def _designed_on(self, criterion) -> MisspecifiedSystem:
         """The system the design ``criterion`` runs on. With uncertain parameters: for the readings' criterion the
         system itself (theta integrated out about the fit's posterior, :mod:`._readings_theta`); for the criteria of
         correction samples G at theta's posterior mean (a plug-in: theta's spread is not in their gains)."""
@@ -269,7 +274,7 @@ class Campaign:
             plan = greedy(
                 self.candidates[pool],
                 k - n_pilot,
-                system=self.designed_on(criterion),
+                system=self._designed_on(criterion),
                 times=self.times,
                 gp=self.gp,
                 criterion=criterion,
