@@ -363,16 +363,21 @@ def test_the_information_with_theta_integrated_out_matches_a_brute_force_from_pe
     assert tiny == pytest.approx(plug_in, rel=1e-6)
 
 
-def test_greedy_engines_agree_with_theta_integrated_out():
-    cands = candidates(10, seed=4)
-    crit = design.ReadoutCriterion(total(), noise_std=0.05)
-    kw = dict(system=lv_theta(0.2), times=TIMES, gp=CorrectionGP(**PRIOR), criterion=crit)
+def _engines_agree_with_theta_integrated_out(cands, kw) -> None:
+    """The plain and naive engines pick alike, their gains agree and sum to the picks' joint information."""
     plain = design.greedy(cands, 3, method="plain", **kw)
     naive = design.greedy(cands, 3, method="naive", **kw)
     assert plain.indices.tolist() == naive.indices.tolist()
     assert torch.allclose(plain.gains, naive.gains, rtol=1e-8)
     assert plain.information_gain == pytest.approx(design.readout_information_gain(plain, cands, **kw), rel=1e-8)
     assert plain.diagnostics["parameters"] == "integrated out (prior)"
+
+
+def test_greedy_engines_agree_with_theta_integrated_out():
+    cands = candidates(10, seed=4)
+    crit = design.ReadoutCriterion(total(), noise_std=0.05)
+    kw = dict(system=lv_theta(0.2), times=TIMES, gp=CorrectionGP(**PRIOR), criterion=crit)
+    _engines_agree_with_theta_integrated_out(cands, kw)
 
 
 def test_the_variance_over_the_domain_with_theta_integrated_out_matches_the_exact_posterior():
@@ -453,12 +458,7 @@ def test_a_design_with_inputs_and_an_uncertain_parameter_through_readings():
     system = lv_fed(parameters={"a": (0.6, 0.1)})
     kw = dict(system=system, times=TIMES, gp=CorrectionGP(**PRIOR), controls=controls,
               criterion=design.ReadoutCriterion(total(), noise_std=0.05))  # fmt: skip
-    plain = design.greedy(cands, 3, method="plain", **kw)
-    naive = design.greedy(cands, 3, method="naive", **kw)
-    assert plain.indices.tolist() == naive.indices.tolist()
-    assert torch.allclose(plain.gains, naive.gains, rtol=1e-8)
-    assert plain.information_gain == pytest.approx(design.readout_information_gain(plain, cands, **kw), rel=1e-8)
-    assert plain.diagnostics["parameters"] == "integrated out (prior)"
+    _engines_agree_with_theta_integrated_out(cands, kw)
 
 
 @pytest.mark.slow

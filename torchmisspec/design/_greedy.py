@@ -532,7 +532,7 @@ def greedy(
         options = dict(
             candidates=candidates, budget=budget, system=system, times=times, gp=gp, method=method,
             partition=regions, capacities=capacities, proxies=proxy.paths, tie_tol=engine.tie_tol,
-            condition=condition, proxy=proxy.dynamics, domain=None, domain_size=None, controls=controls,
+            condition=condition, proxy=proxy.dynamics, controls=controls,
             executor=executor, progress=progress,
         )  # fmt: skip
         return readout_design(criterion, options, _Feasible)

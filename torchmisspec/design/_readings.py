@@ -213,11 +213,15 @@ def _transitions(field, paths: torch.Tensor, grid: torch.Tensor, system: Misspec
             h = (grid[1:] - grid[:-1]).repeat(N).unsqueeze(1)  # (N n, 1)
             tau = torch.tensor([0.0, 1.0], dtype=paths.dtype, device=paths.device)
             out, _ = solve(lambda z: h * augmented(z), torch.cat([start, eye], dim=1), tau, **settings)
-        else:
-            rows = torch.arange(N).repeat_interleave(S - 1).tolist()  # row c n + k: candidate c's step k
+        else:  # row c (S - 1) + k: candidate c's step k, its inputs looked up in candidate c's profile
             spans = torch.stack([grid[:-1], grid[1:]], dim=-1).repeat(N, 1)
-            rhs, timed, jumps = system.solver_field(augmented, None if controls is None else controls[rows])
-            out, _ = solve(rhs, torch.cat([start, eye], dim=1), spans, timed=timed, jumps=jumps, **settings)
+
+            def rhs(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+                u = None if controls is None else controls.at(t.reshape(N, S - 1)).reshape(N * (S - 1), -1)
+                return augmented(z, t, u)
+
+            jumps = None if controls is None else controls.jumps
+            out, _ = solve(rhs, torch.cat([start, eye], dim=1), spans, timed=True, jumps=jumps, **settings)
     return out[:, -1, d:].reshape(N, S - 1, d, d)
 
 
@@ -504,20 +508,18 @@ def readout_design(criterion: ReadoutCriterion, options: dict, feasible) -> Desi
     (:mod:`torchmisspec.design._readings`); ``options``: greedy's keywords (those it does not take refused by name);
     ``feasible``: greedy's feasibility tracker (the picks left, a partition's capacities)."""
     o = options
-    proxies, domain, domain_size, method = (o[k] for k in ("proxies", "domain", "domain_size", "method"))
+    proxies, method = o["proxies"], o["method"]
     tie_tol = o["tie_tol"]
     given = {
         "proxies": proxies is not None,
-        "domain": domain is not None or domain_size is not None,
         "method='stochastic'": method == "stochastic",
     }
     refused = [name for name, on in given.items() if on]
     if refused:
         raise InputError(
             f"criterion=ReadoutCriterion(...): expected none of {refused}, got them; the readings' criterion "
-            "computes its own proxies on a finer grid, takes its box D as "
-            "ReadoutCriterion(domain=DomainCriterion(...)), and runs the plain or naive engine (method='lazy' runs "
-            "the plain one)"
+            "computes its own proxies on a finer grid and runs the plain or naive engine (method='lazy' runs the "
+            "plain one)"
         )
     if isinstance(tie_tol, bool) or not isinstance(tie_tol, (int, float)) or not 0 <= tie_tol < 1e-3:
         raise InputError(f"tie_tol: expected a number in [0, 1e-3), got {tie_tol!r}")
