@@ -195,13 +195,20 @@ def _gains(known: torch.Tensor, rival: torch.Tensor) -> list[float]:
     return out
 
 
+def given_initial_states(trajectories: Trajectories) -> torch.Tensor:
+    """``(K, d)`` which initial states the data give (the first rows, or the first readings where a readout pins
+    them); the others are estimated with a fit."""
+    given = torch.isfinite(trajectories.initial_conditions)
+    if trajectories.readout is not None:
+        given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
+    return given
+
+
 def _known_fit_or_none(system: MisspecifiedSystem, trajectories: Trajectories, noise, start=None, theta=None):
     """The known model's fit (:func:`~torchmisspec.learning.refinement._known_fit.fit_known_model`) from the initial
     states ``start`` (default :func:`initial_guess`) and the parameters ``theta`` (default their prior mean), the
     initial states the first rows do not give free; ``None`` when G cannot be integrated from there."""
-    given = torch.isfinite(trajectories.initial_conditions)
-    if trajectories.readout is not None:
-        given = given | _from_readings(trajectories, trajectories.initial_conditions)[1]
+    given = given_initial_states(trajectories)
     start = initial_guess(trajectories, system) if start is None else start
     try:
         return fit_known_model(system, trajectories.with_initial_states(start), ~given, noise, theta_start=theta)

@@ -175,12 +175,7 @@ def fit_known_model(
     if not bool(torch.isfinite(r).all()):
         raise FittingError("the known model's paths from the start of its fit are not finite where measured")
 
-    def weights(r):  # 1 / s_j^2 for each residual: each component's mean square at the current point
-        ms = torch.zeros(values.shape[-1], **kd).index_add_(0, comp, r.pow(2))
-        count = torch.zeros(values.shape[-1], **kd).index_add_(0, comp, torch.ones_like(r))
-        ms = ms / count.clamp_min(1)
-        floor = 1e-12 * float(ms.max()) + torch.finfo(r.dtype).tiny
-        return 1 / ms.clamp_min(floor)[comp]
+    weights = component_weights(comp, values.shape[-1])
 
     def jacobian(z, r):
         zs = z.expand(k + len(cols), p).clone()
@@ -204,6 +199,20 @@ def fit_known_model(
     z, r, w = _damped_steps(z, r, residuals, jacobian, weights, active, penalty, solved)
     described = (unknowns, torch.cat([s_theta if k else z.new_zeros(0), size[cols].repeat(K)]))
     return _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, comp, values.shape[-1], described)
+
+
+def component_weights(comp: torch.Tensor, num_components: int):
+    """``weights(r) -> 1 / s_j^2`` for each residual ``r`` of component ``comp``: each component's mean square at
+    the current point (its noise variance estimated with the fit, as maximum likelihood with unknown variances)."""
+
+    def weights(r):
+        ms = torch.zeros(num_components, dtype=r.dtype, device=r.device).index_add_(0, comp, r.pow(2))
+        count = torch.zeros(num_components, dtype=r.dtype, device=r.device).index_add_(0, comp, torch.ones_like(r))
+        ms = ms / count.clamp_min(1)
+        floor = 1e-12 * float(ms.max()) + torch.finfo(r.dtype).tiny
+        return 1 / ms.clamp_min(floor)[comp]
+
+    return weights
 
 
 def _damped_steps(z, r, residuals, jacobian, weights, active, penalty, solved):

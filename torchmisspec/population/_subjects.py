@@ -1,0 +1,155 @@
+"""Each experiment's own parameters as known inputs: the system and the data the rest of the package fits F with.
+
+Once every experiment's varying parameters theta_i are estimated, G(y; theta_i) is a known model with a constant
+input per experiment. :func:`subject_system` writes it so: the varying parameters become controls appended to the
+system's own (a constant profile each, :func:`with_subject_inputs`), the shared ones are fixed, and F keeps its
+inputs (the states and the system's controls, never the appended parameters: F is what the mechanism lacks in every
+subject). The whole package then applies unchanged: :func:`~torchmisspec.fit_correction` learns the shared F through
+the ODE with each experiment's own G, and predictions and bands run with the subject's parameters as its inputs.
+
+G is called row by row with each row's parameters (``torch.func.vmap`` of the user's ``G(y, theta)``, one call for
+the whole batch); a G that vmap cannot trace is called once per distinct theta instead.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from .._errors import InputError
+from ..signals import Controls
+from ..systems import MisspecifiedSystem
+
+__all__ = ["subject_system", "with_subject_inputs", "parameter_names"]
+
+
+def parameter_names(system: MisspecifiedSystem, varying: list[int]) -> list[str]:
+    """The appended controls' names: the parameters' (``theta_`` before one that a state or control already has)."""
+    taken = set(system.state_names or ()) | set(system.control_names)
+    names = [system.parameters.names[i] for i in varying]
+    return [f"theta_{n}" if n in taken else n for n in names]
+
+
+def _per_row(known, autonomous: bool):
+    """``call(t, y (B, d), u (B, m), theta (B, k))``: the user's G with each row's own theta. Fastest first: G called
+    once with theta as ``(k, B)`` columns (a G written with ``theta[0] * y[..., 0]`` broadcasts them over the rows),
+    kept only where it agrees with the row-by-row answer at the first call; else ``torch.func.vmap`` of G; else one
+    call per distinct theta (a G with Python control flow on a value)."""
+
+    def single(t, y, u, th):
+        return known(y, th) if autonomous else known(t, y, u, th)
+
+    batched = torch.func.vmap(single, in_dims=(0, 0, 0, 0))
+    state = {"way": None}
+
+    def grouped(t, y, u, theta):
+        out = torch.empty_like(y)
+        unique, inverse = torch.unique(theta.detach(), dim=0, return_inverse=True)
+        for g in range(unique.shape[0]):
+            rows = (inverse == g).nonzero().flatten()
+            out[rows] = single(t[rows], y[rows], u[rows], unique[g])  # G's own convention: one theta (k,)
+        return out
+
+    def direct(t, y, u, theta):
+        return single(t, y, u, theta.T)
+
+    def vmapped(t, y, u, theta):
+        return batched(t, y, u, theta)
+
+    def call(t, y, u, theta):
+        if state["way"] is None:
+            if y.shape[0] < 2:
+                return grouped(t, y, u, theta)
+            state["way"] = _first_that_agrees((direct, vmapped), grouped(t, y, u, theta), (t, y, u, theta), grouped)
+        return state["way"](t, y, u, theta)
+
+    return call
+
+
+def _first_that_agrees(ways, reference: torch.Tensor, args, fallback):
+    """The first of ``ways`` whose answer on ``args`` is ``reference`` (``fallback`` when none is)."""
+    for way in ways:
+        try:
+            out = way(*args)
+        except Exception:  # noqa: BLE001 - a way G does not support: the next
+            continue
+        if isinstance(out, torch.Tensor) and out.shape == reference.shape and torch.allclose(out, reference):
+            return way
+    return fallback
+
+
+def subject_system(system: MisspecifiedSystem, varying: list[int], theta: torch.Tensor) -> MisspecifiedSystem:
+    """``system`` with the parameters at positions ``varying`` read from appended controls (one per parameter) and
+    the others fixed at ``theta (k,)``: a system without uncertain parameters whose G takes each experiment's own."""
+    m, d = system.num_controls, system.state_dim
+    theta = theta.detach().to(torch.float64)
+    rows = _per_row(system.known, system.autonomous)
+    vary = torch.tensor(varying)
+
+    def known(t, y, u):
+        lead = y.shape[:-1]
+        th = theta.to(y).expand(*lead, -1).clone()
+        th[..., vary] = u[..., m:].to(y)
+        n = y[..., 0].numel()
+        tt = torch.as_tensor(t, dtype=y.dtype, device=y.device).expand(lead).reshape(n)
+        out = rows(tt, y.reshape(n, d), u[..., :m].reshape(n, m), th.reshape(n, th.shape[-1]))
+        return out.reshape(y.shape)
+
+    return MisspecifiedSystem(
+        known,
+        d,
+        correction=system.correction,
+        correction_inputs=system.correction_inputs,
+        correction_outputs=system.correction_outputs,
+        domain=system.domain,
+        name=f"{system.name} (each experiment's own {', '.join(system.parameters.names[i] for i in varying)})",
+        state_names=system.state_names,
+        num_controls=m + len(varying),
+        control_names=list(system.control_names) + parameter_names(system, varying),
+        time_dependent=True,
+    )
+
+
+def with_subject_inputs(trajectories, thetas: torch.Tensor, names: list[str]):
+    """``trajectories`` with every experiment's varying parameters ``thetas (K, k_v)`` appended to its controls as
+    constant profiles (named ``names``), the system's own controls kept."""
+    K = trajectories.num_experiments
+    if thetas.shape[0] != K:
+        raise InputError(f"thetas: expected one row per experiment ({K}), got {thetas.shape[0]}")
+    starts = torch.stack([t[0] for t, _ in trajectories.experiments()])
+    return _replace_controls(trajectories, subject_controls(trajectories.controls, thetas, names, starts))
+
+
+def subject_controls(controls: Controls | None, thetas: torch.Tensor, names: list[str], starts=None):
+    """The controls of ``thetas.shape[0]`` experiments: ``controls``' profiles (repeated to that many rows when it
+    holds fewer, in blocks) with ``thetas`` appended as constants; without controls, one knot at each row's first
+    time ``starts`` (default 0)."""
+    n = thetas.shape[0]
+    thetas = thetas.detach().to(torch.float64)
+    if controls is None:
+        knots = torch.zeros(n, 1, dtype=torch.float64) if starts is None else starts.reshape(n, 1).to(thetas)
+        return Controls(knots, thetas[:, None, :], names=names)
+    if controls.is_function:
+        raise InputError(
+            "controls: a population fit needs sampled input profiles (Controls(knots, values)), got one built from a "
+            "function; sample it at the experiments' times"
+        )
+    reps = n // controls.num_experiments
+    knots, values = controls.knots.repeat(reps, 1), controls.values.repeat(reps, 1, 1)
+    const = thetas[:, None, :].to(values).expand(-1, values.shape[1], -1)
+    lengths = controls.lengths.repeat(reps).tolist()
+    profiles = torch.cat([values, const], -1)
+    return Controls(
+        [knots[i, :s] for i, s in enumerate(lengths)],
+        [profiles[i, :s] for i, s in enumerate(lengths)],
+        kind=controls.kind,
+        names=list(controls.names) + list(names),
+    )
+
+
+def _replace_controls(trajectories, controls: Controls):
+    if not trajectories.is_ragged:
+        return dataclasses.replace(trajectories, controls=controls)
+    listed = dict(times=list(trajectories.times), states=list(trajectories.states))
+    return dataclasses.replace(trajectories, controls=controls, readings=trajectories._listed_readings(), **listed)

@@ -1,0 +1,147 @@
+"""The population and the shared correction F, learned together.
+
+:func:`fit_population` alternates two fits, each the package's own:
+
+1. the population for a fixed F (:func:`~torchmisspec.population.nlme.fit_nlme`: every experiment's parameters by
+   their conditional mode given the population, the population's typical values, covariate effects and spreads by
+   EM). With F = 0 this is the classical answer (the known model's nonlinear mixed-effects fit), kept as
+   ``result.classical``;
+2. F for fixed experiment parameters: each experiment's own parameters become known constant inputs of G
+   (:mod:`~torchmisspec.population._subjects`) and :func:`~torchmisspec.fit_correction` learns F from every
+   experiment with the pipeline given (the package's one way to learn: model choice, the fit through the ODE where
+   states are not measured, and do no harm: F = 0 when no correction forecasts held-out data better).
+
+F is shared: it takes the states (and the system's own controls), never an experiment's parameters; what differs
+between experiments is in their parameters, what the mechanism lacks in every one of them is in F. The rounds stop
+after :data:`ROUNDS`, or as soon as do no harm returns F = 0 (the classical answer stands).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+
+from ..data import Trajectories
+from ..learning.pipeline import Pipeline
+from ..noise import as_noise_model
+from ..prediction.dynamics import CorrectedODE
+from ..systems import MisspecifiedSystem
+from ._subjects import parameter_names, subject_system, with_subject_inputs
+from .model import Population
+from .nlme import NLMEFit, fit_nlme
+
+__all__ = ["PopulationFit", "fit_population", "ROUNDS"]
+
+#: rounds of (population, F): the second re-learns F at the parameters the first round's F gave
+ROUNDS = 2
+
+
+@dataclass(frozen=True)
+class PopulationFit:
+    """A population fitted with its correction (:func:`fit_population`).
+
+    Attributes:
+        system: the known model as declared; ``population`` its declaration; ``noise`` the noise model used.
+        classical: the population fitted with F = 0 (:class:`~torchmisspec.population.nlme.NLMEFit`): the classical
+            answer.
+        nlme: the population fitted with the correction ``gp`` (the classical one when F = 0 was kept).
+        gp: the correction, a fitted :class:`~torchmisspec.CorrectionGP` over the states of the system whose
+            varying parameters are inputs (``subject_system``); ``gp.known_model_`` when F = 0 was kept.
+    """
+
+    system: MisspecifiedSystem
+    population: Population
+    noise: object
+    classical: NLMEFit
+    nlme: NLMEFit
+    gp: object
+    subject_system: MisspecifiedSystem
+
+    @property
+    def known_model(self) -> bool:
+        """Whether F = 0 was kept (the classical answer stands)."""
+        return bool(getattr(self.gp, "known_model_", False))
+
+    @property
+    def thetas(self) -> torch.Tensor:
+        """``(K, k)`` every experiment's parameters, in the order of ``system.parameters``."""
+        return self.nlme.thetas
+
+    @property
+    def corrected(self) -> CorrectedODE:
+        """G with each experiment's parameters as inputs, plus F's posterior mean."""
+        return CorrectedODE(self.subject_system, self.gp)
+
+    def summary(self) -> str:
+        """The population's values in a few lines: each varying parameter's typical value, its spread and standard
+        errors, with the classical answer's beside them."""
+        names = self.population.varying
+        lines = [f"{'parameter':<12}{'typical':>12}{'(SE)':>10}{'spread':>10}{'(SE)':>10}{'classical':>12}"]
+        vals, se = self.nlme.values, self.nlme.standard_errors
+        dists = self.nlme.layout.distributions
+        for j, n in enumerate(names):
+            typical = float(dists[j].from_eta(vals.mean[j]))
+            classical = float(dists[j].from_eta(self.classical.values.mean[j]))
+            lines.append(
+                f"{n:<12}{typical:>12.4g}{float(se[0][j]):>10.2g}{float(vals.spread[j]):>10.3g}"
+                f"{float(se[1][j]):>10.2g}{classical:>12.4g}"
+            )
+        kind = "F = 0 kept (the classical answer)" if self.known_model else "a correction F learned"
+        lines.append(f"spread: {', '.join(d.name for d in dists)} (omega in eta's units); {kind}")
+        return "\n".join(lines)
+
+
+def fit_population(
+    trajectories: Trajectories,
+    system: MisspecifiedSystem,
+    population: Population,
+    *,
+    covariates=None,
+    pipeline: Pipeline | None = None,
+    noise="auto",
+    progress: bool = True,
+) -> PopulationFit:
+    """Fit a population of experiments that differ in some of G's parameters, and the correction F they share.
+
+    Args:
+        trajectories: K experiments (subjects, trees, batches), at least 2.
+        system: the known model with uncertain ``parameters``; those named by ``population`` vary between
+            experiments, the others are shared.
+        population: :class:`~torchmisspec.population.Population`: which parameters vary, their distribution, and
+            the covariates that shift them.
+        covariates: ``{name: (K,) values}`` for the covariates ``population`` names.
+        pipeline: how F is learned (:class:`~torchmisspec.Pipeline`; default its defaults).
+        noise: the noise model (:mod:`torchmisspec.noise`; default ``"auto"``).
+        progress: show progress bars (EM rounds, F's fit).
+
+    Returns:
+        :class:`PopulationFit` (the module's notes).
+    """
+    pipeline = Pipeline() if pipeline is None else pipeline
+    if pipeline.noise != "auto":  # the pipeline's own noise model is the fit's
+        noise = pipeline.noise
+    noise = as_noise_model(noise, trajectories, announce="fit_population")
+    pipeline = dataclasses.replace(pipeline, noise=noise)
+    options = dict(covariates=covariates, progress=progress)
+    classical = fit_nlme(system, trajectories, population, noise, **options)
+    nlme, gp, sub = classical, None, None
+    for _ in range(ROUNDS):
+        sub, data = _subject_data(system, nlme, trajectories)
+        gp = pipeline.fit(data, sub, progress=progress)
+        if getattr(gp, "known_model_", False):
+            break
+        nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=CorrectedODE(sub, gp))
+    return PopulationFit(system, population, noise, classical, nlme, gp, sub)
+
+
+def _subject_data(system: MisspecifiedSystem, nlme: NLMEFit, trajectories: Trajectories):
+    """The system with the varying parameters as inputs (the shared ones fixed at the fit's values) and the data with
+    every experiment's own as its constant inputs."""
+    layout = nlme.layout
+    theta = nlme.thetas[0].clone()
+    sub = subject_system(system, layout.vary, theta)
+    names = parameter_names(system, layout.vary)
+    data = with_subject_inputs(trajectories, nlme.thetas[:, layout.vary], names)
+    return sub, data.with_initial_states(nlme.modes.initial_states)

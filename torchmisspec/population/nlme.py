@@ -1,0 +1,224 @@
+"""The population's fit for a fixed correction: expectation-maximisation with Laplace conditionals.
+
+Alternates (Laplace EM, the first-order conditional estimation of Lindstrom & Bates 1990 inside EM):
+
+* **E**: every experiment's conditional mode eta_i and Laplace covariance C_i given the population and F
+  (:func:`~torchmisspec.population._modes.conditional_modes`, warm-started);
+* **M**: for each varying parameter j, beta_j (the typical value mu_j and the covariates' effects) by least squares
+  of the modes on the centred covariates, and omega_j^2 = mean_i[(eta_ij - typical_ij)^2 + C_i,jj]: the exact EM
+  update of a linear Gaussian random effect, with the modes and the Laplace covariances as the conditional moments.
+
+until the population's values move by less than :data:`TOLERANCE` (mu in units of omega, omega relatively) or
+:data:`MAX_ROUNDS`. With F = 0 this is the classical answer of pharmacometrics, the nonlinear mixed-effects model of
+the known model alone (NONMEM's FOCE, nlmixr2's ``focei``, in spirit). It starts from the known model fitted to every
+experiment with one set of parameters.
+
+**Standard errors** of the population's values come from the Fisher information of the linearised marginal model:
+experiment i's mode estimates its eta_i with a data-only variance tau_i^2 (1 / C_i = 1 / tau_i^2 + 1 / omega^2), so
+that the modes' marginal variance is omega^2 + tau_i^2; then Cov(beta) = (X^T W X)^-1, W = diag(1 / (omega^2 +
+tau_i^2)), and Var(omega^2) = 2 / sum_i W_i^2, SE(omega) = SE(omega^2) / (2 omega).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import TorchMisspecWarning, warn
+from .._validation import progress_bar
+from ..learning.choice._partial_choice import _known_fit_or_none, given_initial_states
+from ..learning.refinement.partial import initial_guess
+from ..noise import NoiseModel
+from ._modes import Layout, Modes, conditional_modes
+from ._subjects import parameter_names, subject_system
+from .model import Population, PopulationValues, covariate_matrix
+
+__all__ = ["NLMEFit", "fit_nlme", "MAX_ROUNDS", "TOLERANCE"]
+
+#: most EM rounds
+MAX_ROUNDS = 60
+#: EM stops when mu moves by less than this many omegas and omega by less than this fraction
+TOLERANCE = 2e-3
+#: omega's floor, as a fraction of its starting value (a spread the data do not support collapses towards 0)
+SPREAD_FLOOR = 1e-3
+
+
+@dataclass(frozen=True)
+class NLMEFit:
+    """The population fitted for one correction (``correction``: ``None`` for F = 0, the classical answer).
+
+    Attributes:
+        values: the population's values (:class:`~torchmisspec.population.model.PopulationValues`).
+        modes: every experiment's conditional modes (:class:`~torchmisspec.population._modes.Modes`).
+        standard_errors: ``(mean (k_v,), spread (k_v,), effects (k_v, c))`` (the module's notes).
+        covariates: ``(K, c)`` the experiments' covariates.
+        rounds: the EM rounds run; ``converged``: whether they met :data:`TOLERANCE`.
+    """
+
+    layout: Layout
+    values: PopulationValues
+    modes: Modes
+    standard_errors: tuple
+    covariates: torch.Tensor
+    free: torch.Tensor
+    correction: object
+    rounds: int
+    converged: bool
+
+    @property
+    def thetas(self) -> torch.Tensor:
+        """``(K, k)`` every experiment's parameters (G's order)."""
+        return self.layout.theta(self.modes.eta, self.modes.shared)
+
+
+def make_layout(system, population: Population) -> Layout:
+    """The :class:`Layout` of ``system`` under ``population``."""
+    vary, shared = population.indices(system)
+    dists = [population.distribution[system.parameters.names[i]] for i in vary]
+    inner = subject_system(system, vary + shared, system.theta)
+    names = parameter_names(system, vary + shared)
+    return Layout(vary, shared, dists, inner, system.num_controls, names)
+
+
+def starting_values(system, layout: Layout, population, X, trajectories, noise):
+    """``(values, shared, y0)``: the population at the known model fitted with one set of parameters (its typical
+    values those parameters, its spread from the priors), the shared parameters there, and the initial states."""
+    known = _known_fit_or_none(system, trajectories, noise)
+    priors = system.parameters
+    theta = priors.mean if known is None else known.theta
+    y0 = initial_guess(trajectories, system) if known is None else known.initial_states
+    dists = layout.distributions
+    mean = torch.stack([d.to_eta(theta[i]) for d, i in zip(dists, layout.vary, strict=True)])
+    spread = torch.tensor(
+        [d.spread_of(float(priors.mean[i]), float(priors.scale[i])) for d, i in zip(dists, layout.vary, strict=True)],
+        dtype=torch.float64,
+    )
+    acts = torch.zeros(len(layout.vary), X.shape[-1], dtype=torch.bool)
+    names = population.covariate_names
+    for j, i in enumerate(layout.vary):
+        for c in population.covariates.get(priors.names[i], ()):
+            acts[j, names.index(c)] = True
+    values = PopulationValues(mean, spread, torch.zeros(acts.shape, dtype=torch.float64), X.mean(0), acts)
+    return values, theta[layout.shared], y0
+
+
+def m_step(values: PopulationValues, modes: Modes, X: torch.Tensor, floor: torch.Tensor) -> PopulationValues:
+    """The M step (the module's notes)."""
+    K, kv = modes.eta.shape
+    Xc = X - values.centre
+    mean, effects, spread = values.mean.clone(), values.effects.clone(), values.spread.clone()
+    var = modes.covariance.diagonal(dim1=-2, dim2=-1)  # (K, kv)
+    for j in range(kv):
+        acts = values.acts[j]
+        D = torch.cat([torch.ones(K, 1, dtype=X.dtype), Xc[:, acts]], -1)
+        coef = torch.linalg.lstsq(D, modes.eta[:, j : j + 1]).solution.squeeze(-1)
+        mean[j], effects[j, acts] = coef[0], coef[1:]
+        resid = modes.eta[:, j] - D @ coef
+        spread[j] = torch.sqrt((resid.pow(2) + var[:, j]).mean()).clamp_min(float(floor[j]))
+    return PopulationValues(mean, spread, effects, values.centre, values.acts)
+
+
+def standard_errors(values: PopulationValues, modes: Modes, X: torch.Tensor) -> tuple:
+    """``(mean (k_v,), spread (k_v,), effects (k_v, c))`` standard errors (the module's notes)."""
+    K, kv = modes.eta.shape
+    Xc = X - values.centre
+    var = modes.covariance.diagonal(dim1=-2, dim2=-1)
+    se_mean, se_spread = torch.empty(kv, dtype=X.dtype), torch.empty(kv, dtype=X.dtype)
+    se_effects = torch.zeros_like(values.effects)
+    for j in range(kv):
+        w2 = values.spread[j] ** 2
+        tau2 = torch.where(var[:, j] < w2 * (1 - 1e-9), var[:, j] * w2 / (w2 - var[:, j]), torch.full_like(w2, math.inf))
+        W = 1 / (w2 + tau2)
+        D = torch.cat([torch.ones(K, 1, dtype=X.dtype), Xc[:, values.acts[j]]], -1)
+        try:
+            cov = torch.linalg.inv(D.T @ (W[:, None] * D))
+            se_mean[j], se_effects[j, values.acts[j]] = cov.diagonal()[0].sqrt(), cov.diagonal()[1:].sqrt()
+        except torch.linalg.LinAlgError:
+            se_mean[j] = math.inf
+        info = 0.5 * float(W.pow(2).sum())
+        se_spread[j] = (1 / math.sqrt(info) if info > 0 else math.inf) / (2 * float(values.spread[j]))
+    return se_mean, se_spread, se_effects
+
+
+def fit_nlme(
+    system,
+    trajectories,
+    population: Population,
+    noise: NoiseModel,
+    *,
+    covariates=None,
+    correction=None,
+    start: NLMEFit | None = None,
+    progress: bool = False,
+) -> NLMEFit:
+    """The population's fit for the correction ``correction`` (``None``: F = 0), EM from ``start`` (default: the
+    known model fitted with one set of parameters; :func:`starting_values`). Raises :class:`FittingError` when the
+    model cannot be integrated from the start."""
+    layout = make_layout(system, population) if start is None else start.layout
+    K = trajectories.num_experiments
+    X = covariate_matrix(population, covariates, K) if start is None else start.covariates
+    free = ~given_initial_states(trajectories)
+    priors = system.parameters
+    prior = (priors.mean[layout.shared], priors.scale[layout.shared])
+    if start is None:
+        values, shared, y0 = starting_values(system, layout, population, X, trajectories, noise)
+        floor = values.spread * SPREAD_FLOOR
+        modes = None
+        data = trajectories.with_initial_states(torch.where(free, y0, trajectories.initial_conditions))
+    else:
+        values, modes, floor = start.values, start.modes, start.values.spread.new_full((len(layout.vary),), 1e-6)
+        data = trajectories.with_initial_states(modes.initial_states)
+        shared = modes.shared
+    if modes is None:  # the first E step starts from every experiment's typical value
+        modes = _typical_modes(values, X, shared, data)
+    converged, rounds = False, 0
+    with progress_bar(progress, MAX_ROUNDS, "population (EM)", unit="round") as bar:
+        values, modes, rounds, converged = _em(layout, correction, data, free, noise, values, modes, X, prior, floor, bar)
+    if not converged:
+        _warn_unconverged(rounds)
+    se = standard_errors(values, modes, X)
+    return NLMEFit(layout, values, modes, se, X, free, correction, rounds, converged)
+
+
+def _em(layout, correction, data, free, noise, values, modes, X, prior, floor, bar):
+    """EM rounds until the population's values settle: ``(values, modes, rounds, converged)``."""
+    for rounds in range(1, MAX_ROUNDS + 1):
+        modes = conditional_modes(layout, correction, data, free, noise, values.typical(X), values.spread, prior, modes)
+        new = m_step(values, modes, X, floor)
+        moved = max(
+            float(((new.mean - values.mean) / new.spread).abs().max()),
+            float((new.spread / values.spread).log().abs().max()),
+            _effects_moved(new, values, X),
+        )
+        values = new
+        bar.update(1)
+        if moved < TOLERANCE:
+            return values, modes, rounds, True
+    return values, modes, MAX_ROUNDS, False
+
+
+def _effects_moved(new: PopulationValues, old: PopulationValues, X: torch.Tensor) -> float:
+    """How far the covariates' effects moved: over the covariates' spread, in units of omega (0 without any)."""
+    if not X.shape[-1]:
+        return 0.0
+    spread = (X - X.mean(0)).abs().max(0).values
+    return float(((new.effects - old.effects) * spread / new.spread[:, None]).abs().max())
+
+
+def _typical_modes(values: PopulationValues, X, shared, data) -> Modes:
+    typical = values.typical(X)
+    K, kv = typical.shape
+    eye = torch.eye(kv, dtype=typical.dtype).expand(K, kv, kv)
+    return Modes(typical, eye, shared, data.initial_conditions, torch.empty(0), torch.empty(0), 0)
+
+
+def _warn_unconverged(rounds: int) -> None:
+    warn(
+        f"population fit: the EM rounds did not settle in {rounds} rounds (the population's values still moved by "
+        f"more than {TOLERANCE} of a spread); the last values are returned. A spread the data hardly determine "
+        "converges slowly: consider fewer varying parameters",
+        TorchMisspecWarning,
+    )
+

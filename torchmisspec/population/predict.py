@@ -1,0 +1,132 @@
+"""A new subject's trajectory: from the population alone, or updated by its first measurements.
+
+The subject's varying parameters are drawn from
+
+* the population (no measurement yet): eta ~ N(typical(covariates), diag(omega^2)): bands that hold the spread
+  between subjects;
+* their posterior given the subject's first measurements (empirical Bayes): the conditional mode under the
+  population prior and F, with its Laplace covariance (:mod:`~torchmisspec.population._modes`, the shared parameters
+  held at the population's values): the bands narrow as the subject's own data come in.
+
+Each parameter draw is integrated with :data:`F_DRAWS` posterior draws of F (:meth:`CorrectedODE.posterior
+<torchmisspec.CorrectedODE.posterior>`), so the bands hold both; without a correction (F = 0 kept) the draws are of
+the parameters alone. The result is a :class:`~torchmisspec.TrajectoryPosterior` of one path: its ``interval`` is
+the band of the subject's states, ``measured(...)`` that of its new measurements.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import InputError
+from .._validation import check_positive_int
+from ..data import Trajectories
+from ..prediction._bands import TrajectoryPosterior
+from ._modes import conditional_modes
+from ._subjects import parameter_names, subject_controls
+from .model import covariate_matrix
+
+__all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "F_DRAWS"]
+
+#: posterior draws of F per draw of the subject's parameters
+F_DRAWS = 4
+#: the shared parameters' scale in a subject's own fit, relative to their value: held at the population's
+HELD = 1e-9
+
+
+@dataclass(frozen=True)
+class SubjectPrediction:
+    """A new subject's prediction (:func:`predict_subject`).
+
+    Attributes:
+        posterior: the subject's paths (:class:`~torchmisspec.TrajectoryPosterior`, one initial condition).
+        theta: ``(k,)`` the subject's parameters at the centre of their distribution (G's order).
+        eta_covariance: ``(k_v, k_v)`` the varying parameters' covariance in eta's units.
+        updated: whether the subject's own measurements updated the population's distribution.
+    """
+
+    posterior: TrajectoryPosterior
+    theta: torch.Tensor
+    eta_covariance: torch.Tensor
+    updated: bool
+
+
+def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
+    """``(eta (k_v,), covariance (k_v, k_v), y0 (d,))``: a new subject's conditional mode given its measurements
+    ``first`` (one experiment) under the fitted population and F."""
+    if not isinstance(first, Trajectories) or first.num_experiments != 1:
+        got = type(first).__name__ if not isinstance(first, Trajectories) else f"{first.num_experiments} experiments"
+        raise InputError(f"first: expected the new subject's measurements as Trajectories of one experiment, got {got}")
+    from ..learning.choice._partial_choice import given_initial_states
+    from ..learning.refinement.partial import initial_guess
+
+    nlme = fit.nlme
+    shared = nlme.modes.shared
+    prior = (shared, shared.abs().clamp_min(1e-300) * HELD)
+    correction = None if fit.known_model else fit.corrected
+    free = ~given_initial_states(first)
+    data = first.with_initial_states(initial_guess(first, fit.system))
+    typical, spread = nlme.values.typical(X), nlme.values.spread
+    modes = conditional_modes(nlme.layout, correction, data, free, fit.noise, typical, spread, prior)
+    return modes.eta[0], modes.covariance[0], modes.initial_states[0]
+
+
+def predict_subject(
+    fit, y0, times, *, covariates=None, first: Trajectories | None = None, controls=None, num_samples: int = 64,
+    generator: torch.Generator | None = None,
+) -> SubjectPrediction:  # fmt: skip
+    """A new subject's trajectory from ``y0 (d,)`` over ``times (T,)`` under the population ``fit``
+    (:class:`~torchmisspec.population.fit.PopulationFit`), its ``covariates`` (``{name: value}``), updated by its
+    measurements ``first`` where given (the module's notes); ``y0=None`` takes ``first``'s fitted initial state.
+    ``controls``: the subject's own input profile for a system with controls. ``num_samples`` parameter draws."""
+    num_samples = check_positive_int(num_samples, "num_samples")
+    X = covariate_matrix(fit.population, covariates, 1)
+    nlme, layout = fit.nlme, fit.nlme.layout
+    if first is not None:
+        eta, cov, start = subject_parameters(fit, first, X)
+    else:
+        eta, cov, start = nlme.values.typical(X)[0], torch.diag(nlme.values.spread**2), None
+    if y0 is None:
+        if start is None:
+            raise InputError("y0: expected the subject's initial state (d,), got None without first measurements")
+        y0 = start
+    y0 = torch.as_tensor(y0, dtype=torch.float64).reshape(-1)
+    times = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
+    L = torch.linalg.cholesky(cov + 1e-12 * torch.eye(cov.shape[0], dtype=cov.dtype))
+    draws = eta + torch.randn(num_samples, eta.shape[0], dtype=eta.dtype, generator=generator) @ L.T
+    thetas = layout.theta(torch.cat([eta[None], draws]), nlme.modes.shared)[:, layout.vary]
+    names = parameter_names(fit.system, layout.vary)
+    ctrl = subject_controls(controls, thetas, names, times[:1].expand(thetas.shape[0]))
+    model = fit.corrected
+    paths = model.predict(y0.expand(thetas.shape[0], -1), times, controls=ctrl)  # (1 + S, T, d)
+    samples = paths[1:, None]
+    if not fit.known_model:
+        post = model.posterior(
+            y0.expand(num_samples, -1), times, num_samples=F_DRAWS, controls=ctrl[1:], generator=_on(generator)
+        )
+        samples = post.samples.reshape(-1, 1, *post.samples.shape[2:])
+    T = times.shape[0]
+    posterior = TrajectoryPosterior(
+        times=times[None],
+        samples=samples,
+        mean_path=paths[:1],
+        support=torch.zeros(1, T, dtype=paths.dtype),
+        extrapolating=torch.zeros(1, dtype=torch.bool),
+        threshold=1.0,
+        state_names=fit.system.state_names,
+    )
+    theta = layout.theta(eta, nlme.modes.shared)
+    return SubjectPrediction(posterior, theta, cov, first is not None)
+
+
+def _on(generator):
+    """A generator for F's draws, seeded from ``generator`` (``None``: none)."""
+    if generator is None:
+        return None
+    g = torch.Generator(device=generator.device)
+    g.manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
+    return g
+
+
