@@ -46,7 +46,8 @@ class Population:
         names = self.varying
         if isinstance(names, str) or not isinstance(names, Sequence) or not names:
             raise InputError(
-                f"varying: expected a non-empty list of parameter names, got {names!r:.80}; e.g. Population(['ka', 'V'])"
+                f"varying: expected a non-empty list of parameter names, got {names!r:.80}; e.g. "
+                "Population(['ka', 'V'])"
             )
         if not all(isinstance(n, str) for n in names) or len(set(names)) != len(names):
             raise InputError(f"varying: expected distinct parameter names, got {list(names)!r:.120}")
@@ -119,9 +120,13 @@ def covariate_matrix(population: Population, covariates, num_experiments: int) -
     for n in names:
         v = torch.as_tensor(covariates[n], dtype=torch.float64).reshape(-1)
         if v.shape[0] != num_experiments:
-            raise ShapeError(f"covariates[{n!r}]: expected {num_experiments} values (one per experiment), got {v.shape[0]}")
+            raise ShapeError(
+                f"covariates[{n!r}]: expected {num_experiments} values (one per experiment), got {v.shape[0]}"
+            )
         if not bool(torch.isfinite(v).all()):
-            raise InputError(f"covariates[{n!r}]: expected finite values, got NaN or inf; fill in the missing covariate")
+            raise InputError(
+                f"covariates[{n!r}]: expected finite values, got NaN or inf; fill in the missing covariate"
+            )
         cols.append(v)
     return torch.stack(cols, -1)
 

@@ -129,7 +129,8 @@ def standard_errors(values: PopulationValues, modes: Modes, X: torch.Tensor) -> 
     se_effects = torch.zeros_like(values.effects)
     for j in range(kv):
         w2 = values.spread[j] ** 2
-        tau2 = torch.where(var[:, j] < w2 * (1 - 1e-9), var[:, j] * w2 / (w2 - var[:, j]), torch.full_like(w2, math.inf))
+        informed = var[:, j] < w2 * (1 - 1e-9)  # the data-only variance: 1 / C = 1 / tau^2 + 1 / omega^2
+        tau2 = torch.where(informed, var[:, j] * w2 / (w2 - var[:, j]), torch.full_like(w2, math.inf))
         W = 1 / (w2 + tau2)
         D = torch.cat([torch.ones(K, 1, dtype=X.dtype), Xc[:, values.acts[j]]], -1)
         try:
@@ -173,17 +174,19 @@ def fit_nlme(
         shared = modes.shared
     if modes is None:  # the first E step starts from every experiment's typical value
         modes = _typical_modes(values, X, shared, data)
-    converged, rounds = False, 0
+    problem = (layout, correction, data, free, noise)
     with progress_bar(progress, MAX_ROUNDS, "population (EM)", unit="round") as bar:
-        values, modes, rounds, converged = _em(layout, correction, data, free, noise, values, modes, X, prior, floor, bar)
+        values, modes, rounds, converged = _em(problem, values, modes, X, prior, floor, bar)
     if not converged:
         _warn_unconverged(rounds)
     se = standard_errors(values, modes, X)
     return NLMEFit(layout, values, modes, se, X, free, correction, rounds, converged)
 
 
-def _em(layout, correction, data, free, noise, values, modes, X, prior, floor, bar):
-    """EM rounds until the population's values settle: ``(values, modes, rounds, converged)``."""
+def _em(problem, values, modes, X, prior, floor, bar):
+    """EM rounds until the population's values settle: ``(values, modes, rounds, converged)``; ``problem`` is
+    ``(layout, correction, data, free, noise)``."""
+    layout, correction, data, free, noise = problem
     for rounds in range(1, MAX_ROUNDS + 1):
         modes = conditional_modes(layout, correction, data, free, noise, values.typical(X), values.spread, prior, modes)
         new = m_step(values, modes, X, floor)
@@ -221,4 +224,3 @@ def _warn_unconverged(rounds: int) -> None:
         "converges slowly: consider fewer varying parameters",
         TorchMisspecWarning,
     )
-

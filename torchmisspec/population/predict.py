@@ -128,5 +128,3 @@ def _on(generator):
     g = torch.Generator(device=generator.device)
     g.manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
     return g
-
-
