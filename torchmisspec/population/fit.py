@@ -61,8 +61,13 @@ class PopulationFit:
 
     @property
     def known_model(self) -> bool:
-        """Whether F = 0 was kept (the classical answer stands)."""
-        return bool(getattr(self.gp, "known_model_", False))
+        """Whether F = 0 (the classical answer: no correction, or do no harm kept F = 0)."""
+        return self.gp is None or bool(getattr(self.gp, "known_model_", False))
+
+    def as_classical(self) -> PopulationFit:
+        """The classical answer as a fit of its own: the population fitted with F = 0, no correction (what
+        :func:`~torchmisspec.population.predict.predict_subject` predicts with G alone)."""
+        return dataclasses.replace(self, nlme=self.classical, gp=None)
 
     @property
     def thetas(self) -> torch.Tensor:
@@ -70,9 +75,9 @@ class PopulationFit:
         return self.nlme.thetas
 
     @property
-    def corrected(self) -> CorrectedODE:
-        """G with each experiment's parameters as inputs, plus F's posterior mean."""
-        return CorrectedODE(self.subject_system, self.gp)
+    def corrected(self) -> CorrectedODE | None:
+        """G with each experiment's parameters as inputs, plus F's posterior mean (``None`` without a correction)."""
+        return None if self.gp is None else CorrectedODE(self.subject_system, self.gp)
 
     def summary(self) -> str:
         """The population's values in a few lines: each varying parameter's typical value, its spread and standard

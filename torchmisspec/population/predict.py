@@ -99,11 +99,10 @@ def predict_subject(
     thetas = layout.theta(torch.cat([eta[None], draws]), nlme.modes.shared)[:, layout.vary]
     names = parameter_names(fit.system, layout.vary)
     ctrl = subject_controls(controls, thetas, names, times[:1].expand(thetas.shape[0]))
-    model = fit.corrected
-    paths = model.predict(y0.expand(thetas.shape[0], -1), times, controls=ctrl)  # (1 + S, T, d)
+    paths = _paths(fit, y0.expand(thetas.shape[0], -1), times, ctrl)  # (1 + S, T, d)
     samples = paths[1:, None]
     if not fit.known_model:
-        post = model.posterior(
+        post = fit.corrected.posterior(
             y0.expand(num_samples, -1), times, num_samples=F_DRAWS, controls=ctrl[1:], generator=_on(generator)
         )
         samples = post.samples.reshape(-1, 1, *post.samples.shape[2:])
@@ -119,6 +118,17 @@ def predict_subject(
     )
     theta = layout.theta(eta, nlme.modes.shared)
     return SubjectPrediction(posterior, theta, cov, first is not None)
+
+
+def _paths(fit, y0, times, controls) -> torch.Tensor:
+    """``(B, T, d)``: the paths of G (+ F's mean where there is a correction) from ``y0 (B, d)``, each row under its
+    own ``controls``."""
+    if fit.gp is not None:
+        return fit.corrected.predict(y0, times, controls=controls)
+    from ..data import simulate
+
+    sim = simulate(fit.subject_system, y0, times, known_only=True, controls=controls, rtol=1e-7, atol=1e-9)
+    return sim.states
 
 
 def _on(generator):
