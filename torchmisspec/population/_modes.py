@@ -163,13 +163,16 @@ class _Problem:
         return torch.cat([like.new_ones(self.ks + self.K * self.kv), like.new_zeros(tail)])
 
 
-def conditional_modes(layout, correction, trajectories, free, noise, typical, spread, prior, start=None) -> Modes:
+def conditional_modes(
+    layout, correction, trajectories, free, noise, typical, spread, prior, start=None, scale=None
+) -> Modes:
     """The experiments' conditional modes (the module's notes) under the population's ``typical (K, k_v)`` eta and
     ``spread (k_v,)`` omega, the shared parameters' prior ``(mean, scale)`` and the correction ``correction`` (a
     :class:`~torchmisspec.CorrectedODE` of the varying-parameter system, or ``None`` for F = 0), from ``start`` (a
     previous :class:`Modes`, whose eta and shared values are kept; default: every experiment at its typical value,
-    the shared parameters at their prior mean). Raises :class:`FittingError` when G cannot be integrated from the
-    start."""
+    the shared parameters at their prior mean). ``scale`` ``(d + m,)``: each component's noise scale, held fixed
+    (a new subject's few measurements cannot estimate it); default: estimated with the fit. Raises
+    :class:`FittingError` when G cannot be integrated from the start."""
     y_start = trajectories.initial_conditions if start is None else start.initial_states
     problem = _Problem(layout, correction, trajectories, free, noise, typical, spread, prior, y_start)
     z = torch.zeros(problem.p, dtype=y_start.dtype, device=y_start.device)
@@ -184,6 +187,9 @@ def conditional_modes(layout, correction, trajectories, free, noise, typical, sp
     if not bool(torch.isfinite(r).all()):
         raise FittingError("the population's model paths from the start of its fit are not finite where measured")
     weights, active = component_weights(problem.comp, problem.num_components), problem.active()
+    if scale is not None:  # held: the weights of the population's fit
+        fixed = 1 / scale.to(z).nan_to_num(nan=1.0).pow(2)[problem.comp]
+        weights = lambda r: fixed  # noqa: E731
     solved = {"steps": problem.predict.steps}
     penalty = problem.penalty(z)
     z, r, w = _damped_steps(z, r, problem.residuals, problem.jacobian, weights, active, penalty, solved)

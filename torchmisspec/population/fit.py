@@ -6,14 +6,18 @@
    their conditional mode given the population, the population's typical values, covariate effects and spreads by
    EM). With F = 0 this is the classical answer (the known model's nonlinear mixed-effects fit), kept as
    ``result.classical``;
-2. F for fixed experiment parameters: each experiment's own parameters become known constant inputs of G
-   (:mod:`~torchmisspec.population._subjects`) and :func:`~torchmisspec.fit_correction` learns F from every
-   experiment with the pipeline given (the package's one way to learn: model choice, the fit through the ODE where
+2. F for the experiments' parameters: each experiment's own parameters become known constant inputs of G
+   (:mod:`~torchmisspec.population._subjects`), all shiftable together by one uncertain shift per varying parameter
+   (a correction and a typical value can stand in for each other, and the population fitted with F = 0 put into
+   its typical values what F should hold), and :func:`~torchmisspec.fit_correction` learns F and the shifts from
+   every experiment with the pipeline given (the package's one way to learn: model choice, the fit through the ODE where
    states are not measured, and do no harm: F = 0 when no correction forecasts held-out data better).
 
 F is shared: it takes the states (and the system's own controls), never an experiment's parameters; what differs
 between experiments is in their parameters, what the mechanism lacks in every one of them is in F. The rounds stop
-after :data:`ROUNDS`, or as soon as do no harm returns F = 0 (the classical answer stands).
+after :data:`ROUNDS`, or as soon as do no harm returns F = 0: in the first round the classical answer stands, in a
+later one the previous round's F and the population fitted with it. The population is refitted with F from its
+typical values and modes moved by the shifts.
 """
 
 from __future__ import annotations
@@ -131,22 +135,39 @@ def fit_population(
     pipeline = dataclasses.replace(pipeline, noise=noise)
     options = dict(covariates=covariates, progress=progress)
     classical = fit_nlme(system, trajectories, population, noise, **options)
-    nlme, gp, sub = classical, None, None
+    nlme, gp = classical, None
     for _ in range(ROUNDS):
-        sub, data = _subject_data(system, nlme, trajectories)
-        gp = pipeline.fit(data, sub, progress=progress)
-        if getattr(gp, "known_model_", False):
+        shifting, data = _subject_data(system, nlme, trajectories)
+        learned = pipeline.fit(data, shifting, progress=progress)
+        if getattr(learned, "known_model_", False):  # F = 0 in the first round; later, the last F and its fit stand
+            gp = learned if gp is None else gp
             break
-        nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=CorrectedODE(sub, gp))
-    return PopulationFit(system, population, noise, classical, nlme, gp, sub)
+        gp = learned
+        nlme = _shifted(nlme, gp.parameters_.mean)
+        correction = CorrectedODE(_plain(system, nlme), gp)
+        nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction)
+    return PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme))
+
+
+def _plain(system: MisspecifiedSystem, nlme: NLMEFit) -> MisspecifiedSystem:
+    """The system with the varying parameters as inputs, the shared ones fixed at the fit's values."""
+    return subject_system(system, nlme.layout.vary, nlme.thetas[0])
+
+
+def _shifted(nlme: NLMEFit, delta: torch.Tensor) -> NLMEFit:
+    """``nlme`` with every experiment's eta and the typical values moved by ``delta`` (F's fit's shifts)."""
+    delta = delta.to(nlme.values.mean)
+    values = dataclasses.replace(nlme.values, mean=nlme.values.mean + delta)
+    modes = dataclasses.replace(nlme.modes, eta=nlme.modes.eta + delta)
+    return dataclasses.replace(nlme, values=values, modes=modes)
 
 
 def _subject_data(system: MisspecifiedSystem, nlme: NLMEFit, trajectories: Trajectories):
-    """The system with the varying parameters as inputs (the shared ones fixed at the fit's values) and the data with
-    every experiment's own as its constant inputs."""
+    """The system F is learned with (the varying parameters as inputs, shiftable together by one uncertain shift
+    each of prior scale omega, :func:`~torchmisspec.population._subjects.subject_system`; the shared parameters
+    fixed at the fit's values) and the data with every experiment's own parameters as its constant inputs."""
     layout = nlme.layout
-    theta = nlme.thetas[0].clone()
-    sub = subject_system(system, layout.vary, theta)
+    shifting = subject_system(system, layout.vary, nlme.thetas[0], shift=(layout.distributions, nlme.values.spread))
     names = parameter_names(system, layout.vary)
     data = with_subject_inputs(trajectories, nlme.thetas[:, layout.vary], names)
-    return sub, data.with_initial_states(nlme.modes.initial_states)
+    return shifting, data.with_initial_states(nlme.modes.initial_states)

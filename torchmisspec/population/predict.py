@@ -69,7 +69,8 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
     free = ~given_initial_states(first)
     data = first.with_initial_states(initial_guess(first, fit.system))
     typical, spread = nlme.values.typical(X), nlme.values.spread
-    modes = conditional_modes(nlme.layout, correction, data, free, fit.noise, typical, spread, prior)
+    scale = nlme.modes.scale  # the population's noise: a subject's first few measurements cannot estimate it
+    modes = conditional_modes(nlme.layout, correction, data, free, fit.noise, typical, spread, prior, scale=scale)
     return modes.eta[0], modes.covariance[0], modes.initial_states[0]
 
 

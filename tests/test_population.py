@@ -1,0 +1,236 @@
+"""Populations (issue 43): per-experiment parameters with a population distribution, against closed forms.
+
+The reference model is linear in its parameter: dy/dt = theta, y(t) = y0 + theta t, measured with additive noise.
+Given the population N(mu, omega^2) and the noise variance s^2, experiment i's posterior is conjugate Gaussian:
+mode (sum_t t (y_it - y0) / s^2 + mu / omega^2) / (sum_t t^2 / s^2 + 1 / omega^2), variance the inverse of that
+denominator. The EM update and the standard errors have closed forms too (module notes of
+:mod:`torchmisspec.population.nlme`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.noise import Additive
+from torchmisspec.population import LogNormal, Normal, Population
+from torchmisspec.population._modes import Modes
+from torchmisspec.population._subjects import _per_row, subject_system, with_subject_inputs
+from torchmisspec.population.fit import PopulationFit
+from torchmisspec.population.model import PopulationValues, covariate_matrix
+from torchmisspec.population.nlme import fit_nlme, m_step, make_layout, standard_errors
+from torchmisspec.population.predict import predict_subject
+
+DT = torch.float64
+
+
+def slope(y, theta):
+    return theta[0] * torch.ones_like(y)
+
+
+def linear_system(prior=(1.0, 0.5)):
+    return tms.MisspecifiedSystem(slope, 1, parameters={"c": prior}, state_names=["y"])
+
+
+def linear_data(thetas, times, g, noise=0.1, y0=2.0):
+    states = y0 + thetas[:, None, None] * times[None, :, None]
+    states = states + noise * torch.randn(states.shape, generator=g, dtype=DT)
+    states[:, 0] = y0  # the first row gives the initial state
+    return tms.Trajectories(times, states, state_names=["y"])
+
+
+def two_parameter(y, theta):
+    return torch.stack([-theta[0] * y[..., 0], theta[0] * y[..., 0] / theta[1] - 0.1 * y[..., 1]], -1)
+
+
+def branching(y, theta):  # Python control flow on a value: no broadcast or vmap
+    rate = theta[0] if float(theta[0]) > 0 else -theta[0]
+    return torch.stack([-rate * y[..., 0], rate * y[..., 0] / theta[1] - 0.1 * y[..., 1]], -1)
+
+
+@pytest.mark.parametrize("known", [two_parameter, branching])
+def test_each_row_gets_its_own_parameters(known):
+    system = tms.MisspecifiedSystem(known, 2, parameters={"ka": (1.0, 0.5), "V": (0.5, 0.2)})
+    g = torch.Generator().manual_seed(0)
+    thetas = 0.5 + torch.rand(7, 2, generator=g, dtype=DT)
+    y = torch.rand(7, 2, generator=g, dtype=DT)
+    call = _per_row(known, autonomous=True)
+    out = call(torch.zeros(7, dtype=DT), y, y.new_zeros(7, 0), thetas)
+    ref = torch.stack([system.at(thetas[i]).known_rhs(y[i : i + 1])[0] for i in range(7)])
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_subject_system_simulates_each_experiment_with_its_parameters():
+    system = tms.MisspecifiedSystem(two_parameter, 2, parameters={"ka": (1.0, 0.5), "V": (0.5, 0.2)})
+    thetas = torch.tensor([[0.8, 0.4], [1.5, 0.6], [1.1, 0.5]], dtype=DT)
+    y0 = torch.tensor([[4.0, 0.0], [3.0, 0.0], [5.0, 0.1]], dtype=DT)
+    times = torch.linspace(0, 5, 6, dtype=DT)
+    sub = subject_system(system, [0, 1], system.theta)
+    base = tms.Trajectories(times, y0[:, None].expand(3, 6, 2).clone())
+    ctrl = with_subject_inputs(base, thetas, ["ka", "V"]).controls
+    together = tms.simulate(sub, y0, times, controls=ctrl).states
+    for i in range(3):
+        alone = tms.simulate(system.at(thetas[i]), y0[i : i + 1], times).states[0]
+        torch.testing.assert_close(together[i], alone, rtol=1e-8, atol=1e-10)
+
+
+def _linear_fit(K=8, mu=1.0, omega=0.3, seed=0, dist=None):
+    g = torch.Generator().manual_seed(seed)
+    thetas = mu + omega * torch.randn(K, generator=g, dtype=DT)
+    times = torch.linspace(0, 1, 6, dtype=DT)
+    data = linear_data(thetas, times, g)
+    population = Population(["c"], distribution=dist or Normal())
+    return fit_nlme(linear_system(), data, population, Additive()), data, thetas
+
+
+def test_conditional_modes_are_the_conjugate_posterior():
+    fit, data, _ = _linear_fit()
+    s2 = float(fit.modes.scale[0]) ** 2
+    mu, w2 = float(fit.values.mean[0]), float(fit.values.spread[0]) ** 2
+    t = data.times[1:]
+    y = data.states[:, 1:, 0] - 2.0
+    precision = float((t * t).sum()) / s2 + 1 / w2
+    mode = ((y * t).sum(1) / s2 + mu / w2) / precision
+    torch.testing.assert_close(fit.modes.eta[:, 0], mode, rtol=2e-3, atol=1e-6)
+    torch.testing.assert_close(
+        fit.modes.covariance[:, 0, 0], torch.full((8,), 1 / precision, dtype=DT), rtol=2e-3, atol=0
+    )
+
+
+def test_em_settles_at_its_own_update():
+    fit, _, _ = _linear_fit()
+    assert fit.converged
+    again = m_step(fit.values, fit.modes, fit.covariates, fit.values.spread * 1e-3)
+    assert abs(float(again.mean[0] - fit.values.mean[0])) < 5e-3 * float(fit.values.spread[0])
+    assert abs(math.log(float(again.spread[0] / fit.values.spread[0]))) < 5e-3
+
+
+def _modes(eta, var):
+    K, kv = eta.shape
+    cov = torch.diag_embed(var)
+    return Modes(eta, cov, torch.zeros(0, dtype=DT), torch.zeros(K, 1, dtype=DT), torch.ones(1), torch.zeros(1), 0)
+
+
+def test_m_step_is_the_linear_gaussian_update():
+    g = torch.Generator().manual_seed(1)
+    eta, var = torch.randn(10, 2, generator=g, dtype=DT), torch.rand(10, 2, generator=g, dtype=DT) * 0.1
+    X = torch.randn(10, 1, generator=g, dtype=DT)
+    acts = torch.tensor([[True], [False]])
+    values = PopulationValues(
+        torch.zeros(2, dtype=DT), torch.ones(2, dtype=DT), torch.zeros(2, 1, dtype=DT), X.mean(0), acts
+    )
+    new = m_step(values, _modes(eta, var), X, torch.full((2,), 1e-6, dtype=DT))
+    D = torch.cat([torch.ones(10, 1, dtype=DT), X - X.mean(0)], -1)
+    coef = torch.linalg.lstsq(D, eta[:, :1]).solution[:, 0]
+    torch.testing.assert_close(new.mean[0], coef[0])
+    torch.testing.assert_close(new.effects[0, 0], coef[1])
+    torch.testing.assert_close(new.spread[0], ((eta[:, 0] - D @ coef).pow(2) + var[:, 0]).mean().sqrt())
+    torch.testing.assert_close(new.mean[1], eta[:, 1].mean())
+    assert float(new.effects[1, 0]) == 0.0
+    torch.testing.assert_close(new.spread[1], ((eta[:, 1] - eta[:, 1].mean()).pow(2) + var[:, 1]).mean().sqrt())
+
+
+def test_standard_errors_of_exactly_known_experiments():
+    """tau = 0: SE(mu) = omega / sqrt(K), SE(omega) = omega / sqrt(2 K) (the sample mean and the ML spread)."""
+    K, omega = 16, 0.4
+    eta = torch.randn(K, 1, generator=torch.Generator().manual_seed(2), dtype=DT)
+    values = PopulationValues(eta.mean(0), torch.tensor([omega], dtype=DT), torch.zeros(1, 0, dtype=DT),
+                              torch.zeros(0, dtype=DT), torch.zeros(1, 0, dtype=torch.bool))  # fmt: skip
+    se_mean, se_spread, _ = standard_errors(
+        values, _modes(eta, torch.zeros(K, 1, dtype=DT)), torch.zeros(K, 0, dtype=DT)
+    )
+    assert float(se_mean[0]) == pytest.approx(omega / math.sqrt(K), rel=1e-9)
+    assert float(se_spread[0]) == pytest.approx(omega / math.sqrt(2 * K), rel=1e-9)
+
+
+def test_population_recovered_within_its_standard_errors():
+    fit, _, thetas = _linear_fit(K=60, mu=1.0, omega=0.3, seed=3)
+    mean_se, spread_se, _ = fit.standard_errors
+    assert abs(float(fit.values.mean[0]) - 1.0) < 3 * float(mean_se[0])
+    assert abs(float(fit.values.spread[0]) - 0.3) < 3 * float(spread_se[0])
+    assert float(mean_se[0]) == pytest.approx(0.3 / math.sqrt(60), rel=0.3)
+
+
+def test_lognormal_population_of_a_positive_parameter():
+    fit, _, thetas = _linear_fit(K=40, mu=1.0, omega=0.2, seed=4, dist=LogNormal())
+    assert float(fit.values.mean[0].exp()) == pytest.approx(1.0, abs=3 * float(fit.standard_errors[0][0]) + 0.05)
+    assert bool((fit.thetas[:, 0] > 0).all())
+
+
+def test_covariate_effect_is_recovered():
+    g = torch.Generator().manual_seed(5)
+    K = 40
+    weight = 60 + 20 * torch.rand(K, generator=g, dtype=DT)
+    thetas = 1.0 + 0.02 * (weight - 70) + 0.1 * torch.randn(K, generator=g, dtype=DT)
+    data = linear_data(thetas, torch.linspace(0, 1, 6, dtype=DT), g)
+    population = Population(["c"], distribution=Normal(), covariates={"c": ["weight"]})
+    fit = fit_nlme(linear_system(), data, population, Additive(), covariates={"weight": weight})
+    effect, se = float(fit.values.effects[0, 0]), float(fit.standard_errors[2][0, 0])
+    assert abs(effect - 0.02) < 3 * se
+    assert float(fit.values.spread[0]) < 0.2  # the covariate explains the rest of the spread
+
+
+def _classical(fit, system, population):
+    sub = subject_system(system, fit.layout.vary, system.theta)
+    return PopulationFit(system, population, Additive(), fit, fit, None, sub)
+
+
+def test_new_subject_from_the_population_and_from_its_measurements():
+    system, population = linear_system(), Population(["c"], distribution=Normal())
+    fit, data, _ = _linear_fit(K=30, seed=6)
+    pop = _classical(fit, system, population)
+    times = torch.linspace(0, 1, 6, dtype=DT)
+    g = torch.Generator().manual_seed(7)
+    alone = predict_subject(pop, torch.tensor([2.0], dtype=DT), times, num_samples=4000, generator=g)
+    mu, omega = float(fit.values.mean[0]), float(fit.values.spread[0])
+    lo, hi = alone.posterior.interval(0.9)
+    z = 1.6448536269514722
+    torch.testing.assert_close(hi[0, :, 0], 2.0 + times * (mu + z * omega), rtol=0.03, atol=1e-9)
+    torch.testing.assert_close(lo[0, :, 0], 2.0 + times * (mu - z * omega), rtol=0.03, atol=1e-9)
+    first = tms.Trajectories(times[:3], torch.tensor([[[2.0], [2.5], [3.0]]], dtype=DT), state_names=["y"])
+    updated = predict_subject(pop, None, times, first=first, num_samples=8, generator=g)
+    s2, t = float(fit.modes.scale[0]) ** 2, times[1:3]
+    precision = float((t * t).sum()) / s2 + 1 / omega**2
+    mode = (float((t * torch.tensor([0.5, 1.0], dtype=DT)).sum()) / s2 + mu / omega**2) / precision
+    assert float(updated.theta[0]) == pytest.approx(mode, rel=5e-3)
+    assert float(updated.eta_covariance[0, 0]) == pytest.approx(1 / precision, rel=5e-3)
+
+
+@pytest.mark.parametrize(
+    ("build", "match"),
+    [
+        (lambda: Population([]), "non-empty list"),
+        (lambda: Population("ka"), "non-empty list"),
+        (lambda: Population(["ka", "ka"]), "distinct"),
+        (lambda: Population(["ka"], distribution="lognormal"), "Normal"),
+        (lambda: Population(["ka"], covariates={"V": ["weight"]}), "keys among the varying"),
+    ],
+)
+def test_bad_declarations_are_refused(build, match):
+    with pytest.raises(tms.InputError, match=match):
+        build()
+
+
+def test_declaration_checked_against_the_system():
+    with pytest.raises(tms.InputError, match="expected names among"):
+        Population(["k"]).indices(linear_system())
+    with pytest.raises(tms.InputError, match="positive prior value"):
+        Population(["c"]).indices(linear_system(prior=(-1.0, 0.5)))
+    population = Population(["c"], covariates={"c": ["weight"]})
+    with pytest.raises(tms.InputError, match="expected values of"):
+        covariate_matrix(population, {}, 3)
+    with pytest.raises(tms.ShapeError, match="expected 3 values"):
+        covariate_matrix(population, {"weight": [1.0, 2.0]}, 3)
+    with pytest.raises(tms.InputError, match="finite"):
+        covariate_matrix(population, {"weight": [1.0, math.nan, 2.0]}, 3)
+
+
+def test_layout_orders_varying_then_shared():
+    system = tms.MisspecifiedSystem(two_parameter, 2, parameters={"ka": (1.0, 0.5), "V": (0.5, 0.2)})
+    layout = make_layout(system, Population(["V"]))
+    assert layout.vary == [1] and layout.shared == [0] and layout.names == ["V", "ka"]
+    theta = layout.theta(torch.log(torch.tensor([[0.4]], dtype=DT)), torch.tensor([1.3], dtype=DT))
+    torch.testing.assert_close(theta, torch.tensor([[1.3, 0.4]], dtype=DT))

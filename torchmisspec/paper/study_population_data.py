@@ -1,0 +1,177 @@
+"""Study of issue 43 on real data: a new subject predicted from its first 2 measurements (theophylline).
+
+R's ``datasets::Theoph`` (Boeckmann, Sheiner & Beal 1994): 12 subjects given an oral dose of theophylline
+(mg/kg), the plasma concentration measured 11 times over 25 h, the dose in the gut at t = 0 and never measured after.
+The model is the one-compartment model with first-order absorption a scientist writes, ka, ke and V uncertain
+(:func:`torchmisspec.datasets.load`), relative errors. Each subject in turn is left out; the others are fitted, and
+the subject is predicted from its first 2 measurements (the dose and its concentration at t = 0, and the
+concentration at its second time, 0.25-0.6 h): its remaining 9 concentrations are scored by the RMSE of their logs.
+
+Methods, on the same folds:
+
+* **the package**: :func:`~torchmisspec.population.fit.fit_population` with ka, ke and V log-normal between
+  subjects (defaults otherwise), then :func:`~torchmisspec.population.predict.predict_subject` with the first 2
+  measurements (empirical Bayes);
+* **the classical answer**: the same population model with F = 0 (the nonlinear mixed-effects model of the known
+  model, ``result.classical``), predicted the same way;
+* **one set of parameters**: the package's defaults before populations (``fit_correction`` on the other subjects,
+  one ka, ke, V for all), predicted from the subject's first row;
+* **the subject alone**: the known model fitted to the subject's own first 2 measurements, its priors as the only
+  other information.
+
+Also recorded: the 90 % band of new measurements of the package's prediction and whether it holds the held-out
+values, and the wall time of each population fit (12 subjects in the last row: all of them, the speed goal).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import torch
+
+import torchmisspec as tms
+from torchmisspec import datasets
+from torchmisspec.benchmarks.reporting import ROOT, run_study
+from torchmisspec.learning.refinement._known_fit import fit_known_model
+from torchmisspec.noise import as_noise_model
+from torchmisspec.population import Population
+from torchmisspec.population.fit import fit_population
+from torchmisspec.population.predict import predict_subject
+
+from ._ratios import describe, paired_ratio
+
+DEFAULT_JSON = ROOT / "benchmarks" / "study_population_data.json"
+DOC_PAGE = ROOT / "docs" / "studies" / "population-real-data.md"
+MARK_START = "<!-- study:population-data:start -->"
+MARK_END = "<!-- study:population-data:end -->"
+DT = torch.float64
+FULL = {"subjects": list(range(12)), "num_samples": 64}
+SMOKE = {"subjects": [0], "num_samples": 8}
+FIRST = 2
+GOALS = {"vs_classical": 1.0, "seconds": 30.0}
+
+
+def _log_rmse(pred: torch.Tensor, values: torch.Tensor) -> float:
+    seen = torch.isfinite(values)
+    if not bool(torch.isfinite(pred[seen]).all()):
+        return math.nan
+    return float((pred[seen].clamp_min(1e-6).log() - values[seen].log()).pow(2).mean().sqrt())
+
+
+def run_one(task: tuple[int, dict]) -> dict:
+    k, cfg = task
+    torch.set_num_threads(1)
+    warnings.simplefilter("ignore")
+    data = datasets.load("theoph")
+    trajs, system = data.trajectories, data.system
+    train = trajs[[i for i in range(trajs.num_experiments) if i != k]]
+    t, y = trajs.experiments()[k]
+    first = tms.Trajectories(t[:FIRST], y[:FIRST][None], state_names=trajs.state_names)
+    held = y[FIRST:, 1]
+    t0 = time.perf_counter()
+    fit = fit_population(train, system, Population(["ka", "ke", "V"]), noise=data.noise, progress=False)
+    out = {"subject": k + 1, "fit_seconds": time.perf_counter() - t0, "known_model": fit.known_model}
+    g = torch.Generator().manual_seed(k)
+    for name, model in (("package", fit), ("classical", fit.as_classical())):
+        pred = predict_subject(model, None, t, first=first, num_samples=cfg["num_samples"], generator=g)
+        out[name] = _log_rmse(pred.posterior.mean_path[0, FIRST:, 1], held)
+        if name == "package":
+            band = pred.posterior.measured(fit.noise, fit.nlme.modes.scale, generator=g).interval(0.9)
+            inside = (held >= band[0][0, FIRST:, 1]) & (held <= band[1][0, FIRST:, 1])
+            out["covered"], out["scored"] = int(inside.sum()), int(held.numel())
+    gp = tms.fit_correction(train, system, noise=data.noise, progress=False)
+    pooled = tms.CorrectedODE(system.at(gp.parameters_.mean), gp).predict(y[0][None].nan_to_num(0.0), t)[0]
+    out["one_set"] = _log_rmse(pooled[FIRST:, 1], held)
+    noise = as_noise_model(data.noise, first)
+    alone = fit_known_model(system, first, torch.zeros(1, 2, dtype=torch.bool), noise)
+    path = tms.simulate(system.at(alone.theta), y[0][None], t, rtol=1e-7, atol=1e-9).states[0]
+    out["alone"] = _log_rmse(path[FIRST:, 1], held)
+    return out
+
+
+def _all_subjects_seconds() -> float:
+    data = datasets.load("theoph")
+    t0 = time.perf_counter()
+    fit_population(data.trajectories, data.system, Population(["ka", "ke", "V"]), noise=data.noise, progress=False)
+    return time.perf_counter() - t0
+
+
+def study(cfg: dict, log=print, executor=None) -> dict:
+    from torchmisspec.parallel import map_tasks
+
+    runs = map_tasks(run_one, [(k, cfg) for k in cfg["subjects"]], executor=executor)
+    for r in runs:
+        log(
+            f"subject {r['subject']}: package {r['package']:.3f}, classical {r['classical']:.3f}, one set "
+            f"{r['one_set']:.3f}, alone {r['alone']:.3f}; {r['fit_seconds']:.1f} s"
+        )
+    torch.set_num_threads(1)
+    seconds = _all_subjects_seconds()
+    log(f"all 12 subjects, 3 varying parameters: {seconds:.1f} s")
+    return {"config": cfg, "runs": runs, "all_subjects_seconds": seconds, "goals": GOALS}
+
+
+def table(result: dict) -> str:
+    runs, n = result["runs"], len(result["runs"])
+    pkg = [r["package"] for r in runs]
+    covered = sum(r["covered"] for r in runs) / max(sum(r["scored"] for r in runs), 1)
+    rows = [
+        "| measure | value | goal |",
+        "|---|---|---|",
+        f"| package / classical log-RMSE (geometric mean over {n} subjects) | "
+        f"{describe(paired_ratio(pkg, [r['classical'] for r in runs]))} | <= {GOALS['vs_classical']} |",
+        f"| package / one set of parameters | {describe(paired_ratio(pkg, [r['one_set'] for r in runs]))} | |",
+        f"| package / the subject alone | {describe(paired_ratio(pkg, [r['alone'] for r in runs]))} | |",
+        f"| held-out measurements in the package's 90 % band | {covered:.2f} | |",
+        f"| a correction kept (F not 0) | {sum(not r['known_model'] for r in runs)} of {n} | |",
+        f"| one population fit, 12 subjects x 11 times, 3 varying parameters (s) | "
+        f"{result['all_subjects_seconds']:.1f} | <= {GOALS['seconds']:.0f} |",
+    ]
+    return "\n".join(rows) + "\n"
+
+
+def per_subject(result: dict) -> str:
+    lines = ["| subject | package | classical | one set | alone | in band | fit s |", "|---" * 7 + "|"]
+    for r in result["runs"]:
+        lines.append(
+            f"| {r['subject']} | {r['package']:.3f} | {r['classical']:.3f} | {r['one_set']:.3f} | {r['alone']:.3f} | "
+            f"{r['covered']} of {r['scored']} | {r['fit_seconds']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def render_block(result: dict, wall: float) -> str:
+    info = result["machine"]
+    return f"""{MARK_START}
+## A new subject from its first 2 measurements: theophylline (`scripts/study_population_data.py`)
+
+Written by `python scripts/study_population_data.py --markdown` ({wall / 60:.1f} min, {info["cpu"]},
+{info["logical_cpus"]} logical CPUs): each of R's Theoph subjects left out in turn; see
+[docs/studies/population-real-data.md](docs/studies/population-real-data.md).
+
+{table(result)}{MARK_END}
+"""
+
+
+def render_page(result: dict, wall: float) -> str:
+    info = result["machine"]
+    return f"""# Study: a new subject from its first 2 measurements (theophylline)
+
+This page is written by `python scripts/study_population_data.py --markdown`; every number on it comes from that run
+(raw numbers: `benchmarks/study_population_data.json`). Machine: {info["cpu"]}, {info["logical_cpus"]} logical CPUs,
+torch {info["torch"]}, commit {info["git_commit"]}; wall time {wall / 60:.1f} min. The log-RMSE of each subject's 9
+held-out concentrations:
+
+{__doc__.strip()}
+
+{table(result)}
+{per_subject(result)}"""
+
+
+def run(args) -> int:
+    """The study's command line run (:func:`~torchmisspec.benchmarks.reporting.run_study`)."""
+    import sys
+
+    return run_study(args, sys.modules[__name__])
