@@ -101,27 +101,29 @@ def subjects(n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     return thetas, doses
 
 
-def measure(thetas, doses, g: torch.Generator, *, noise: bool = True) -> tms.Trajectories:
-    """Each subject's concentrations at :data:`TIMES` (the gut only at t = 0, as the dose)."""
+def measure(thetas, doses, g: torch.Generator, *, noise: bool = True, times=None) -> tms.Trajectories:
+    """Each subject's states at ``times`` (default :data:`TIMES`; the first is the dose's, both states given there)."""
     truth = system(truth=True)
     names = ["ka", "V"]
     sub = subject_system(truth, [0, 1], truth.theta)
     n = thetas.shape[0]
-    times = torch.tensor(TIMES, dtype=DT)
+    times = torch.tensor(TIMES if times is None else times, dtype=DT)
+    T = times.shape[0]
     y0 = torch.stack([doses, torch.zeros_like(doses)], -1)
-    base = tms.Trajectories(times, y0[:, None].expand(n, len(TIMES), 2).clone(), state_names=["gut", "conc"])
+    base = tms.Trajectories(times, y0[:, None].expand(n, T, 2).clone(), state_names=["gut", "conc"])
     ctrl = with_subject_inputs(base, thetas, names).controls
     states = tms.simulate(sub, y0, times, controls=ctrl).states.clone()
     if noise:
-        states[:, 1:] *= torch.exp(NOISE * torch.randn(n, len(TIMES) - 1, 2, generator=g, dtype=DT))
+        states[:, 1:] *= torch.exp(NOISE * torch.randn(n, T - 1, 2, generator=g, dtype=DT))
     if not FULLY:
         states[:, 1:, 0] = math.nan
     return tms.Trajectories(times, states, state_names=["gut", "conc"])
 
 
 def f_error(gp, domain) -> float:
-    """F's integrated error over the concentrations ``domain``."""
-    return tms.integrated_error(lambda x: gp.predict_mean(x), saturable, domain)
+    """F's integrated error over the concentrations ``domain`` (``gp`` ``None``: F = 0)."""
+    estimate = (lambda x: torch.zeros_like(x)) if gp is None else gp.predict_mean
+    return tms.integrated_error(estimate, saturable, domain)
 
 
 def _log_rmse(pred: torch.Tensor, truth: torch.Tensor) -> float:
@@ -146,7 +148,7 @@ def run_one(task: tuple[int, dict]) -> dict:
     out["f_error_known_parameters"] = f_error(oracle, domain)
     pooled = tms.fit_correction(data, sys_, noise="relative", progress=False)
     out["f_error_ignoring_spread"] = f_error(pooled, domain)
-    out["f_error_zero"] = tms.integrated_error(lambda x: torch.zeros_like(x), saturable, domain)
+    out["f_error_zero"] = f_error(None, domain)
     out.update(_population_values(fit))
     out.update(_new_subject(fit, g))
     return out

@@ -112,7 +112,7 @@ def subject_system(
 
     parameters = None
     if shift is not None:
-        parameters = {f"{n}_shift": (0.0, float(sd)) for n, sd in zip(names, shift[1].tolist(), strict=True)}
+        parameters = {f"{n} (typical shift)": (0.0, float(sd)) for n, sd in zip(names, shift[1].tolist(), strict=True)}
         known_rhs = known
 
         def known(t, y, u, delta):  # noqa: F811 - the signature G(t, y, u, theta) a system with parameters calls

@@ -10,28 +10,36 @@
    (:mod:`~torchmisspec.population._subjects`), all shiftable together by one uncertain shift per varying parameter
    (a correction and a typical value can stand in for each other, and the population fitted with F = 0 put into
    its typical values what F should hold), and :func:`~torchmisspec.fit_correction` learns F and the shifts from
-   every experiment with the pipeline given (the package's one way to learn: model choice, the fit through the ODE where
-   states are not measured, and do no harm: F = 0 when no correction forecasts held-out data better).
+   every experiment with the pipeline given (the package's one way to learn: model choice, the fit through the ODE
+   where states are not measured, and do no harm: F = 0 when no correction forecasts held-out data better).
 
 F is shared: it takes the states (and the system's own controls), never an experiment's parameters; what differs
 between experiments is in their parameters, what the mechanism lacks in every one of them is in F. The rounds stop
 after :data:`ROUNDS`, or as soon as do no harm returns F = 0: in the first round the classical answer stands, in a
 later one the previous round's F and the population fitted with it. The population is refitted with F from its
 typical values and modes moved by the shifts.
+
+**Do no harm** (:mod:`~torchmisspec.population._held_out`): a kept F must also forecast later times better at the
+population level, both models refitted on the earlier times; otherwise the classical answer is returned, with a
+warning.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import warnings
 from dataclasses import dataclass
 
 import torch
 
+from .._errors import TorchMisspecWarning, warn
 from ..data import Trajectories
 from ..learning.pipeline import Pipeline
 from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
+from ._held_out import FAILURES, early_times, forecasts_better
 from ._subjects import parameter_names, subject_system, with_subject_inputs
 from .model import Population
 from .nlme import NLMEFit, fit_nlme
@@ -135,10 +143,29 @@ def fit_population(
     pipeline = dataclasses.replace(pipeline, noise=noise)
     options = dict(covariates=covariates, progress=progress)
     classical = fit_nlme(system, trajectories, population, noise, **options)
+    nlme, gp = _learn(system, trajectories, population, noise, pipeline, classical, progress)
+    fitted = PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme))
+    if fitted.known_model:
+        return fitted
+    kept, with_f, without = _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical)
+    if kept:
+        return fitted
+    warn(
+        f"fit_population: the population fitted with a correction on the first two thirds of each experiment's times "
+        f"does not forecast the last third significantly better over the experiments than the one fitted without "
+        f"(held-out misfit {with_f:.3g} vs {without:.3g}); returning the classical answer, the population with "
+        "F = 0 (do no harm; result.known_model is True). Collect more experiments or longer ones",
+        TorchMisspecWarning,
+    )
+    return fitted.as_classical()
+
+
+def _learn(system, trajectories, population, noise, pipeline, classical, progress):
+    """The rounds of (F, population) from the classical fit (the module's notes): ``(nlme, gp)``."""
     nlme, gp = classical, None
     for _ in range(ROUNDS):
         shifting, data = _subject_data(system, nlme, trajectories)
-        learned = pipeline.fit(data, shifting, progress=progress)
+        learned = _relayed(pipeline.fit, data, shifting, progress=progress)
         if getattr(learned, "known_model_", False):  # F = 0 in the first round; later, the last F and its fit stand
             gp = learned if gp is None else gp
             break
@@ -146,7 +173,42 @@ def fit_population(
         nlme = _shifted(nlme, gp.parameters_.mean)
         correction = CorrectedODE(_plain(system, nlme), gp)
         nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction)
-    return PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme))
+    return nlme, gp
+
+
+def _relayed(fit, *args, **kwargs):
+    """``fit(*args, **kwargs)`` with its warnings said as F's step of the population fit (they name the system whose
+    inputs are every experiment's parameters, and the typical values' shifts)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TorchMisspecWarning)
+        out = fit(*args, **kwargs)
+    for w in caught:
+        if issubclass(w.category, TorchMisspecWarning):
+            warn(f"fit_population, F's step (each experiment's parameters as its inputs): {w.message}", w.category)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return out
+
+
+def _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical):
+    """``(kept, misfit with F, without)``: both population models refitted on the earlier times and compared on
+    the later ones (:mod:`~torchmisspec.population._held_out`); kept when there is nothing to hold out."""
+    split = early_times(trajectories)
+    if split is None:
+        return True, math.nan, math.nan
+    early, keep = split
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        try:
+            base = fit_nlme(system, early, population, noise, covariates=covariates)
+        except FAILURES:
+            return True, math.nan, math.nan  # the classical model cannot be fitted on the earlier times
+        try:
+            nlme, gp = _learn(system, early, population, noise, pipeline, base, False)
+            rival = PopulationFit(system, population, noise, base, nlme, gp, _plain(system, nlme))
+        except FAILURES:
+            rival = None
+    return forecasts_better(rival, base, trajectories, keep, noise)
 
 
 def _plain(system: MisspecifiedSystem, nlme: NLMEFit) -> MisspecifiedSystem:

@@ -1,0 +1,175 @@
+"""Study of issue 43 (item 3): the next subject's sampling times, designed, against a standard schedule.
+
+The population of :mod:`torchmisspec.paper.study_population` (a drug model written for these studies, ka and V
+log-normal with a 30 % spread, saturable elimination missing): in each realization the package fits 12 subjects
+(:func:`~torchmisspec.population.fit.fit_population`, defaults), then the 13th subject's 4 sampling times are chosen
+among every 30 min up to 10 h by three rules:
+
+* **designed**: :func:`~torchmisspec.population.design.design_subject` for the subject's own parameters (expected
+  Bayesian D-optimality over the fitted population);
+* **standard**: the first 4 times of the standard schedule (0.5, 1, 1.5 and 2 h);
+* **random**: 4 times drawn at random (a new draw per realization).
+
+Each rule is scored on the same 20 new subjects drawn from the true population (dose 4.5 mg/kg): each subject's
+measurements at the rule's times (5 % noise, as the data) give its parameters by empirical Bayes under the fitted
+population (:func:`~torchmisspec.population.predict.subject_parameters`); the error is the RMS over ka and V of the
+estimate's error in units of the true spread, and the subject's predicted concentration over 10 h against its true
+path (log-RMSE). Per realization the ratio of the arms' mean errors; the table gives their geometric mean and spread.
+F is not refitted with a new subject's 4 samples here: the design's target is the subject.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import torch
+
+from torchmisspec.benchmarks.reporting import ROOT, run_study
+from torchmisspec.population import Population
+from torchmisspec.population.design import design_subject
+from torchmisspec.population.fit import fit_population
+from torchmisspec.population.predict import predict_subject, subject_parameters
+
+from . import study_population as pop
+from ._ratios import describe, paired_ratio
+
+DEFAULT_JSON = ROOT / "benchmarks" / "study_population_design.json"
+DOC_PAGE = ROOT / "docs" / "studies" / "population-design.md"
+MARK_START = "<!-- study:population-design:start -->"
+MARK_END = "<!-- study:population-design:end -->"
+DT = torch.float64
+SEED = 43_500
+BUDGET = 4
+DOSE = 4.5
+FULL = {"realizations": 10, "subjects": 12, "new_subjects": 20}
+SMOKE = {"realizations": 1, "subjects": 6, "new_subjects": 3}
+GOALS = {"ratio": 0.8}
+ARMS = ("designed", "standard", "random")
+
+
+def _arms(fit, g: torch.Generator) -> dict:
+    grid = torch.tensor(pop.TIMES, dtype=DT)
+    y0 = torch.tensor([DOSE, 0.0], dtype=DT)
+    designed = design_subject(fit, grid, BUDGET, initial_states=y0, generator=g).times
+    standard = grid[1 : 1 + BUDGET]
+    random = torch.sort(grid[1:][torch.randperm(grid.numel() - 1, generator=g)[:BUDGET]]).values
+    return {"designed": designed, "standard": standard, "random": random}
+
+
+def _score(fit, times: torch.Tensor, thetas: torch.Tensor, g: torch.Generator) -> tuple[float, float]:
+    """Mean parameter error (in true spreads) and mean log-RMSE of the predicted path over the new subjects."""
+    grid = torch.tensor(pop.TIMES, dtype=DT)
+    sample_times = torch.cat([grid[:1], times]).tolist()
+    doses = torch.full((thetas.shape[0],), DOSE, dtype=DT)
+    data = pop.measure(thetas, doses, g, times=sample_times)
+    truth = pop.measure(thetas, doses, g, noise=False).states[:, 1:, 1]
+    omega = torch.tensor([pop.TRUE[k][1] for k in pop.PRIORS], dtype=DT)
+    X = torch.zeros(1, 0, dtype=DT)
+    errors, paths = [], []
+    for i in range(thetas.shape[0]):
+        first = data[i]
+        eta, _, _ = subject_parameters(fit, first, X)
+        errors.append(float(((eta - thetas[i].log()) / omega).pow(2).mean().sqrt()))
+        pred = predict_subject(fit, None, grid, first=first, num_samples=1, generator=g).posterior.mean_path
+        paths.append(float((pred[0, 1:, 1].clamp_min(1e-9).log() - truth[i].log()).pow(2).mean().sqrt()))
+    return sum(errors) / len(errors), sum(paths) / len(paths)
+
+
+def run_one(task: tuple[int, dict]) -> dict:
+    seed, cfg = task
+    torch.set_num_threads(1)
+    warnings.simplefilter("ignore")
+    g = torch.Generator().manual_seed(seed)
+    thetas, doses = pop.subjects(cfg["subjects"], g)
+    t0 = time.perf_counter()
+    fit = fit_population(pop.measure(thetas, doses, g), pop.system(), Population(["ka", "V"]), progress=False)
+    out = {"seed": seed, "fit_seconds": time.perf_counter() - t0, "known_model": fit.known_model}
+    arms = _arms(fit, g)
+    new, _ = pop.subjects(cfg["new_subjects"], g)
+    state = g.get_state()
+    for name, times in arms.items():
+        g.set_state(state)  # the same measurement noise for every arm
+        out[f"{name}_times"] = times.tolist()
+        out[f"{name}_parameters"], out[f"{name}_path"] = _score(fit, times, new, g)
+    return out
+
+
+def study(cfg: dict, log=print, executor=None) -> dict:
+    from torchmisspec.parallel import map_tasks
+
+    seeds = [SEED + r for r in range(cfg["realizations"])]
+    runs = map_tasks(run_one, [(s, cfg) for s in seeds], executor=executor)
+    for r, one in enumerate(runs):
+        arms = "; ".join(
+            f"{a} {one[a + '_parameters']:.3f} / {one[a + '_path']:.3f} at {[round(t, 2) for t in one[a + '_times']]}"
+            for a in ARMS
+        )
+        log(f"{r}: {arms}")
+    return {"config": cfg, "runs": runs, "goals": GOALS}
+
+
+def _ratio(runs, arm: str, other: str, what: str) -> str:
+    return describe(paired_ratio([r[f"{arm}_{what}"] for r in runs], [r[f"{other}_{what}"] for r in runs]))
+
+
+def table(result: dict) -> str:
+    runs = result["runs"]
+    goal = f"<= {GOALS['ratio']}"
+    lines = [
+        "| measure | value | goal |",
+        "|---|---|---|",
+        f"| subject's parameters: designed / standard first 4 | {_ratio(runs, 'designed', 'standard', 'parameters')} "
+        f"| {goal} |",
+        f"| subject's parameters: designed / random 4 | {_ratio(runs, 'designed', 'random', 'parameters')} | {goal} |",
+        f"| subject's path (log-RMSE): designed / standard | {_ratio(runs, 'designed', 'standard', 'path')} | |",
+        f"| subject's path (log-RMSE): designed / random | {_ratio(runs, 'designed', 'random', 'path')} | |",
+        f"| a correction kept | {sum(not r['known_model'] for r in runs)} of {len(runs)} | |",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def per_realization(result: dict) -> str:
+    lines = ["| seed | designed times (h) | parameters: designed / standard / random | path: designed / standard / "
+             "random |", "|---|---|---|---|"]  # fmt: skip
+    for r in result["runs"]:
+        times = ", ".join(f"{t:g}" for t in r["designed_times"])
+        par = " / ".join(f"{r[a + '_parameters']:.3f}" for a in ARMS)
+        path = " / ".join(f"{r[a + '_path']:.3f}" for a in ARMS)
+        lines.append(f"| {r['seed']} | {times} | {par} | {path} |")
+    return "\n".join(lines) + "\n"
+
+
+def render_block(result: dict, wall: float) -> str:
+    info = result["machine"]
+    return f"""{MARK_START}
+## The next subject's sampling times (`scripts/study_population_design.py`)
+
+Written by `python scripts/study_population_design.py --markdown` ({wall / 60:.1f} min, {info["cpu"]},
+{info["logical_cpus"]} logical CPUs): 4 sampling times for a new subject, designed against the standard schedule's
+first 4 and 4 random ones, {result["config"]["realizations"]} realizations x {result["config"]["new_subjects"]} new
+subjects; see [docs/studies/population-design.md](docs/studies/population-design.md).
+
+{table(result)}{MARK_END}
+"""
+
+
+def render_page(result: dict, wall: float) -> str:
+    info = result["machine"]
+    return f"""# Study: the next subject's sampling times
+
+This page is written by `python scripts/study_population_design.py --markdown`; every number on it comes from that
+run (raw numbers: `benchmarks/study_population_design.json`). Machine: {info["cpu"]}, {info["logical_cpus"]} logical
+CPUs, torch {info["torch"]}, commit {info["git_commit"]}; wall time {wall / 60:.1f} min.
+
+{__doc__.strip()}
+
+{table(result)}
+{per_realization(result)}"""
+
+
+def run(args) -> int:
+    """The study's command line run (:func:`~torchmisspec.benchmarks.reporting.run_study`)."""
+    import sys
+
+    return run_study(args, sys.modules[__name__])

@@ -1,0 +1,157 @@
+"""The next subject's experiment: its sampling times under a budget, and its dose (initial state), chosen by the
+information they bring.
+
+Targets (what the design is for), as objects:
+
+* :class:`SubjectParameters` (default): the subject's own varying parameters. Bayesian D-optimality averaged over the
+  population (ED-optimality, as PopED and PFIM compute it for a new subject): the expected
+  ``log det(Omega^-1 + sum_t J_t^T W J_t)`` over draws of the subject from the population, J_t the sensitivity of
+  what is measured at time t (the noise model's space) to the subject's eta, W the inverse noise variances of the
+  population's fit. Times are added greedily (the log-determinant of a growing information matrix is submodular in
+  the times for a fixed draw);
+* :class:`Correction`: the information the subject's samples bring about F, conditioned on the population's data
+  (:func:`~torchmisspec.design.sampling_times` on the subject's path at its typical parameters).
+
+Each candidate initial state (a dose level) is designed in turn and the best kept; the design's score and every
+candidate's are returned with the times.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import InputError
+from .._validation import check_positive_int
+from ..data import Trajectories
+from ._modes import _paths
+from ._subjects import parameter_names, subject_controls
+from .model import covariate_matrix
+
+__all__ = ["Correction", "SubjectDesign", "SubjectParameters", "design_subject"]
+
+#: eta's finite-difference step for the sensitivities
+STEP = 1e-5
+
+
+class SubjectParameters:
+    """Design for the subject's own varying parameters (the module's notes); ``draws`` population draws."""
+
+    def __init__(self, draws: int = 16) -> None:
+        self.draws = check_positive_int(draws, "draws")
+
+    def __repr__(self) -> str:
+        return f"SubjectParameters(draws={self.draws})"
+
+
+class Correction:
+    """Design for F: the information about F of the subject's samples (the module's notes)."""
+
+    def __repr__(self) -> str:
+        return "Correction()"
+
+
+@dataclass(frozen=True)
+class SubjectDesign:
+    """A new subject's design (:func:`design_subject`): its sampling ``times`` (increasing), its ``initial_state``
+    (the chosen candidate), the design's ``score`` (nats) and every candidate initial state's ``scores``."""
+
+    times: torch.Tensor
+    initial_state: torch.Tensor
+    score: float
+    scores: torch.Tensor
+
+
+def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+    """``(S, T, o, k_v)``: d(transformed outputs at ``times``)/d(eta) for S draws ``eta (S, k_v)`` from ``y0 (d,)``
+    by forward differences, one batched solve."""
+    nlme, layout = fit.nlme, fit.nlme.layout
+    S, kv = eta.shape
+    d = y0.shape[-1]
+    states = torch.zeros(S, times.shape[0], d, dtype=torch.float64)  # only the layout counts
+    states[:, 0] = y0
+    dummy = Trajectories(times, states, state_names=fit.system.state_names)
+    steps = torch.cat([torch.zeros(1, kv, dtype=eta.dtype), STEP * torch.eye(kv, dtype=eta.dtype)])  # (1 + kv, kv)
+    etas = eta[None] + steps[:, None]  # (1 + kv, S, kv)
+    theta = layout.theta(etas, nlme.modes.shared)
+    correction = None if fit.known_model else fit.corrected
+    pred = _paths(layout, correction, dummy)(theta, y0.expand(1 + kv, S, d))  # (1 + kv, S, T, o)
+    z = fit.noise.transform(pred)
+    return ((z[1:] - z[:1]) / STEP).permute(1, 2, 3, 0)
+
+
+def _greedy_parameters(J: torch.Tensor, weights: torch.Tensor, prior: torch.Tensor, budget: int, allowed):
+    """Greedy times for the expected log-determinant (the module's notes): ``(indices, score)``."""
+    S, T, o, kv = J.shape
+    per_time = torch.einsum("stoa,o,stob->stab", J, weights, J)  # (S, T, kv, kv)
+    M = prior.expand(S, kv, kv).clone()
+    chosen: list[int] = []
+    for _ in range(budget):
+        trial = M[:, None] + per_time  # (S, T, kv, kv)
+        value = torch.linalg.slogdet(trial).logabsdet.mean(0)
+        value[~allowed] = -math.inf
+        if chosen:
+            value[torch.tensor(chosen)] = -math.inf
+        best = int(value.argmax())
+        chosen.append(best)
+        M = trial[:, best]
+    score = float(torch.linalg.slogdet(M).logabsdet.mean() - torch.linalg.slogdet(prior).logabsdet)
+    return sorted(chosen), 0.5 * score
+
+
+def design_subject(
+    fit, times, budget: int, *, initial_states, covariates=None, target=None, generator: torch.Generator | None = None
+) -> SubjectDesign:
+    """Choose a new subject's ``budget`` sampling times among the candidate ``times (T,)`` (the first is the time of
+    its initial state, never a sample) and its initial state among ``initial_states (C, d)`` (dose levels), under the
+    population ``fit`` (:class:`~torchmisspec.population.fit.PopulationFit`), for the ``target`` (default
+    :class:`SubjectParameters`); ``covariates`` the subject's (``{name: value}``)."""
+    target = SubjectParameters() if target is None else target
+    if not isinstance(target, (SubjectParameters, Correction)):
+        raise InputError(f"target: expected SubjectParameters() or Correction(), got {target!r:.80}")
+    grid = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
+    budget = check_positive_int(budget, "budget")
+    if budget > grid.numel() - 1:
+        raise InputError(
+            f"budget: expected at most the {grid.numel() - 1} candidate times after the first (the initial state's), "
+            f"got {budget}; pass more candidate times"
+        )
+    starts = torch.as_tensor(initial_states, dtype=torch.float64)
+    starts = starts[None] if starts.dim() == 1 else starts
+    X = covariate_matrix(fit.population, covariates, 1)
+    designs = [_one(fit, grid, budget, y0, X, target, generator) for y0 in starts]
+    scores = torch.tensor([s for _, s in designs], dtype=torch.float64)
+    best = int(scores.argmax())
+    return SubjectDesign(grid[designs[best][0]], starts[best], float(scores[best]), scores)
+
+
+def _one(fit, grid, budget, y0, X, target, generator):
+    """``(indices, score)`` of the best times from ``y0`` for ``target``."""
+    nlme = fit.nlme
+    typical, spread = nlme.values.typical(X)[0], nlme.values.spread
+    if isinstance(target, Correction):
+        return _for_correction(fit, grid, budget, y0, typical)
+    eta = typical + spread * torch.randn(target.draws, spread.shape[0], dtype=spread.dtype, generator=generator)
+    J = _sensitivities(fit, y0, grid, eta)
+    scale = nlme.modes.scale
+    weights = torch.where(torch.isfinite(scale), 1 / scale.pow(2), torch.zeros_like(scale))
+    allowed = torch.arange(grid.numel()) > 0
+    return _greedy_parameters(J, weights, torch.diag(1 / spread.pow(2)), budget, allowed)
+
+
+def _for_correction(fit, grid, budget, y0, typical):
+    """The times that teach most about F along the subject's path at its typical parameters."""
+    from ..design import sampling_times
+
+    if fit.known_model:
+        raise InputError(
+            "target: Correction() designs for F, but the population's fit kept F = 0 (no correction to learn more "
+            "about); design for SubjectParameters() instead"
+        )
+    layout = fit.nlme.layout
+    theta = layout.theta(typical[None], fit.nlme.modes.shared)[:, layout.vary]
+    controls = subject_controls(None, theta, parameter_names(fit.system, layout.vary), grid[:1])
+    chosen = sampling_times(y0[None], grid, budget, system=fit.subject_system, gp=fit.gp, controls=controls)
+    return chosen.indices[0].tolist(), float(chosen.design.information_gain)
