@@ -2,8 +2,9 @@
 
 ``fit`` (learn the correction from a table of observed trajectories, calibrate its bands, save the model),
 ``calibrate`` (recalibrate a saved model's bands), ``predict`` (trajectories from new initial conditions with bands,
-as a CSV and a figure), ``design`` (the next experiments) and ``demo`` (paper 5.1 end to end). Every command reads
-lab tables with the same column options and takes the user's system as ``module:function`` or ``file.py:function``.
+as a CSV and a figure), ``design`` (the next experiments), ``population`` (experiments that differ in some of G's
+parameters: subjects, and the next subject's design) and ``demo`` (paper 5.1 end to end). Every command reads lab
+tables with the same column options and takes the user's system as ``module:function`` or ``file.py:function``.
 Every error is one line on stderr naming the fix, with exit status 2; no traceback reaches the user (set
 ``TORCHMISSPEC_TRACEBACK=1`` to see one when reporting a bug).
 """
@@ -21,6 +22,7 @@ from .._errors import InputError
 from ._common import seed
 from ._design import add_design
 from ._fit import add_calibrate, add_fit
+from ._population import add_population
 from ._predict import add_predict
 
 __all__ = ["build_parser", "main"]
@@ -108,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibrate(sub)
     add_predict(sub)
     add_design(sub)
+    add_population(sub)
     _add_demo(sub)
     return parser
 

@@ -10,11 +10,12 @@ any column names. Missing entries (an empty cell, or NaN in arrays) are kept as 
 The code is split by concept into private modules: the :class:`Trajectories` container in ``_trajectories``, the
 checks of what it is given in ``_input``, the file formats of :meth:`Trajectories.save` / :meth:`Trajectories.load`
 in ``_tables`` (text tables) and ``_npz`` (archives), the :class:`Readout` in ``_readout``, and :func:`simulate` in
-``_simulate``.
+``_simulate``; the per-experiment covariates of a table in ``_covariates``.
 """
 
+from ._covariates import experiment_labels, read_covariates
 from ._readout import Readout
 from ._simulate import simulate, simulate_known_each
 from ._trajectories import Trajectories
 
-__all__ = ["Readout", "Trajectories", "simulate", "simulate_known_each"]
+__all__ = ["Readout", "Trajectories", "experiment_labels", "read_covariates", "simulate", "simulate_known_each"]

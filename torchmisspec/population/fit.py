@@ -105,9 +105,24 @@ class PopulationFit:
                 f"{n:<12}{typical:>12.4g}{float(se[0][j]):>10.2g}{float(vals.spread[j]):>10.3g}"
                 f"{float(se[1][j]):>10.2g}{classical:>12.4g}"
             )
+        names_c = self.population.covariate_names
+        for j, n in enumerate(names):
+            for c, name in enumerate(names_c):
+                if bool(vals.acts[j, c]):
+                    lines.append(
+                        f"  {n} ~ {name}: {float(vals.effects[j, c]):+.4g} per unit (SE {float(se[2][j, c]):.2g}) in "
+                        f"eta, around {name} = {float(vals.centre[c]):.4g}"
+                    )
         kind = "F = 0 kept (the classical answer)" if self.known_model else "a correction F learned"
-        lines.append(f"spread: {', '.join(d.name for d in dists)} (omega in eta's units); {kind}")
+        lines.append(
+            f"typical and spread in eta = {', '.join(f'{d.name}: ' + _eta(d) for d in dists)}; SE of the typical "
+            f"value in eta; {kind}"
+        )
         return "\n".join(lines)
+
+
+def _eta(distribution) -> str:
+    return "log(theta)" if distribution.name == "lognormal" else "theta"
 
 
 def fit_population(
@@ -146,6 +161,12 @@ def fit_population(
     nlme, gp = _learn(system, trajectories, population, noise, pipeline, classical, progress)
     fitted = PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme))
     if fitted.known_model:
+        warn(
+            "fit_population: no correction F predicts held-out experiments better than the population without it "
+            "(each experiment with its own parameters); returning the classical answer, the population with F = 0 "
+            "(do no harm; result.known_model is True)",
+            TorchMisspecWarning,
+        )
         return fitted
     kept, with_f, without = _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical)
     if kept:
@@ -177,17 +198,12 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
 
 
 def _relayed(fit, *args, **kwargs):
-    """``fit(*args, **kwargs)`` with its warnings said as F's step of the population fit (they name the system whose
-    inputs are every experiment's parameters, and the typical values' shifts)."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", TorchMisspecWarning)
-        out = fit(*args, **kwargs)
-    for w in caught:
-        if issubclass(w.category, TorchMisspecWarning):
-            warn(f"fit_population, F's step (each experiment's parameters as its inputs): {w.message}", w.category)
-        else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return out
+    """``fit(*args, **kwargs)`` with the package's warnings held: they name the system whose inputs are every
+    experiment's parameters and the typical values' shifts, not the user's; the population fit says what it decided
+    (:func:`fit_population`)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TorchMisspecWarning)
+        return fit(*args, **kwargs)
 
 
 def _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical):
