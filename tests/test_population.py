@@ -234,3 +234,69 @@ def test_layout_orders_varying_then_shared():
     assert layout.vary == [1] and layout.shared == [0] and layout.names == ["V", "ka"]
     theta = layout.theta(torch.log(torch.tensor([[0.4]], dtype=DT)), torch.tensor([1.3], dtype=DT))
     torch.testing.assert_close(theta, torch.tensor([[1.3, 0.4]], dtype=DT))
+
+
+# ---- the next subject's design -------------------------------------------------------------------------------------
+def test_design_first_pick_is_the_brute_force_best_time():
+    """dy/dt = c: the sensitivity of y(t) to c is t, so one sample's information is log(1 + t^2 omega^2 / s^2) / 2:
+    the last time wins, and the score is that number."""
+    from torchmisspec.population.design import SubjectParameters, design_subject
+
+    system, population = linear_system(), Population(["c"], distribution=Normal())
+    fit, _, _ = _linear_fit(K=20, seed=8)
+    pop = _classical(fit, system, population)
+    grid = torch.tensor([0.0, 0.2, 0.5, 0.9, 0.7], dtype=DT).sort().values
+    design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
+    s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.values.spread[0]) ** 2
+    assert design.times.tolist() == [0.9]
+    assert design.score == pytest.approx(0.5 * math.log1p(0.81 * w2 / s2), rel=1e-5)
+
+
+def test_design_greedy_matches_brute_force_on_a_tiny_problem():
+    """Two varying parameters (a rate and a volume): the greedy pair's expected log-determinant is within
+    (1 - 1/e) of the best pair's, found by trying them all, and equal to it here."""
+    import itertools
+
+    from torchmisspec.population.design import _greedy_parameters
+
+    g = torch.Generator().manual_seed(9)
+    J = torch.randn(4, 6, 1, 2, generator=g, dtype=DT)
+    weights, prior = torch.tensor([4.0], dtype=DT), torch.eye(2, dtype=DT)
+    allowed = torch.ones(6, dtype=torch.bool)
+    chosen, score = _greedy_parameters(J, weights, prior, 2, allowed)
+
+    def value(pair):
+        M = prior + sum(torch.einsum("soa,o,sob->sab", J[:, t], weights, J[:, t]) for t in pair)
+        return 0.5 * float(torch.linalg.slogdet(M).logabsdet.mean())
+
+    best = max(itertools.combinations(range(6), 2), key=value)
+    assert score == pytest.approx(value(chosen), rel=1e-10)
+    assert score >= (1 - 1 / math.e) * value(best)
+
+
+def test_design_refuses_a_budget_beyond_the_candidates():
+    from torchmisspec.population.design import design_subject
+
+    fit, _, _ = _linear_fit(K=6, seed=10)
+    pop = _classical(fit, linear_system(), Population(["c"], distribution=Normal()))
+    with pytest.raises(tms.InputError, match="at most the 2 candidate times"):
+        design_subject(pop, [0.0, 0.5, 1.0], 3, initial_states=[2.0])
+
+
+# ---- covariates read from a lab's table ------------------------------------------------------------------------------
+def test_covariates_read_one_value_per_experiment_in_the_loaders_order(tmp_path):
+    from torchmisspec.data import experiment_labels, read_covariates
+
+    path = tmp_path / "lab.csv"
+    path.write_text("subject,time,y,weight\n10,0,1,70\n2,0,1,55\n2,1,2,55\n10,1,2,\n")
+    assert experiment_labels(path, "subject") == ["2", "10"]
+    values = read_covariates(path, ["weight"], experiment_column="subject")
+    torch.testing.assert_close(values["weight"], torch.tensor([55.0, 70.0], dtype=DT))
+    path.write_text("subject,time,y,weight\n1,0,1,70\n1,1,2,71\n")
+    with pytest.raises(tms.InputError, match="one value of covariate 'weight' per experiment"):
+        read_covariates(path, ["weight"], experiment_column="subject")
+    with pytest.raises(tms.InputError, match="expected covariate column"):
+        read_covariates(path, ["age"], experiment_column="subject")
+    path.write_text("subject,time,y,weight\n1,0,1,heavy\n")
+    with pytest.raises(tms.InputError, match="finite number"):
+        read_covariates(path, ["weight"], experiment_column="subject")

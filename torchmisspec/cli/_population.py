@@ -61,6 +61,7 @@ def _population(args: argparse.Namespace) -> int:
     population = Population(varying, distribution=DISTRIBUTIONS[args.distribution](), covariates=covariates)
     system = load_system(args.system)
     population.indices(system)  # the names checked before the work
+    request = _design_request(args, system, population)
     observed = read_observations(args, system)
     columns = list(population.covariate_names)
     values = read_covariates(args.data, columns, experiment_column=args.experiment_column or None) if columns else None
@@ -76,34 +77,42 @@ def _population(args: argparse.Namespace) -> int:
     rows = [[label, *(f"{float(v):.6g}" for v in theta)] for label, theta in zip(labels, fit.thetas, strict=True)]
     write_csv(out, [args.experiment_column or "experiment", *names], rows)
     print(f"every experiment's parameters written to {out}")
-    if args.next_times:
-        _design(args, fit, values)
+    if request is not None:
+        _design(args, fit, request)
     return 0
 
 
-def _design(args: argparse.Namespace, fit, covariates) -> None:
+def _design_request(args: argparse.Namespace, system, population):
+    """``(times, initial states, covariates)`` of the next subject's design, checked before the work (``None``
+    without ``--next-times``)."""
     import torch
 
-    from ..population.design import design_subject
-
+    if not args.next_times:
+        return None
     if args.budget is None:
         raise InputError("--budget: expected the number of samples of the next subject with --next-times, got none")
     given = dict(_pair(item) for item in args.next_covariate or [])
-    wanted = list(fit.population.covariate_names)
+    wanted = list(population.covariate_names)
     if sorted(given) != sorted(wanted):
         raise InputError(
             f"--next-covariate: expected the next subject's {wanted} as NAME=VALUE (one each), got {sorted(given)}"
         )
-    times = _numbers(args.next_times, "--next-times")
-    d = fit.system.state_dim
+    d = system.state_dim
     starts = [_numbers(s, "--next-initial") for s in (args.next_initial or [])]
     if not starts or any(len(s) != d for s in starts):
         raise InputError(
             f"--next-initial: expected the next subject's initial state, {d} comma separated numbers in the system's "
-            f"state order {list(fit.system.state_names or [])} (repeat it for several candidates), got {starts or None}"
+            f"state order {list(system.state_names or [])} (repeat it for several candidates), got {starts or None}"
         )
-    starts = torch.tensor(starts, dtype=torch.float64)
-    design = design_subject(fit, torch.tensor(times), args.budget, initial_states=starts, covariates=given or None)
+    times = torch.tensor(_numbers(args.next_times, "--next-times"), dtype=torch.float64)
+    return times, torch.tensor(starts, dtype=torch.float64), given or None
+
+
+def _design(args: argparse.Namespace, fit, request) -> None:
+    from ..population.design import design_subject
+
+    times, starts, covariates = request
+    design = design_subject(fit, times, args.budget, initial_states=starts, covariates=covariates)
     state = ", ".join(f"{v:g}" for v in design.initial_state.tolist())
     print(
         f"next subject: sample at {', '.join(f'{t:g}' for t in design.times.tolist())} from the initial state "
