@@ -89,7 +89,8 @@ def _paths(layout: Layout, correction, trajectories):
         controls = subject_controls(trajectories.controls, rows, layout.names, times[:, 0].repeat(V))
         rtol, atol = FITTING_TOLERANCES
         solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="the population fit")
-        pred, nfe = _solve_rhs(inner, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), controls, **solver)
+        with torch.no_grad():  # the fit differences its solves: no graph to F's hyperparameters
+            pred, nfe = _solve_rhs(inner, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), controls, **solver)
         predict.steps = nfe / EVALS_PER_STEP
         return trajectories.observe(pred.reshape(V, K, *pred.shape[1:]))
 

@@ -79,44 +79,22 @@ def _first_that_agrees(ways, reference: torch.Tensor, args, fallback):
     return fallback
 
 
-def subject_system(
-    system: MisspecifiedSystem, varying: list[int], theta: torch.Tensor, shift=None
-) -> MisspecifiedSystem:
+def subject_system(system: MisspecifiedSystem, varying: list[int], theta: torch.Tensor) -> MisspecifiedSystem:
     """``system`` with the parameters at positions ``varying`` read from appended controls (one per parameter) and
-    the others fixed at ``theta (k,)``: a system whose G takes each experiment's own. With ``shift`` =
-    ``(distributions, scales)`` (one per varying parameter), the system has one uncertain parameter per varying one,
-    a shift delta of every experiment's value in the population's coordinate, ``eta_i + delta`` (prior N(0,
-    scale^2)): what F's fit can move the population's typical values by (a correction and a typical value can stand in
-    for each other, and the population fitted with F = 0 put into the typical values what F should hold)."""
+    the others fixed at ``theta (k,)``: a system without uncertain parameters whose G takes each experiment's own."""
     m, d = system.num_controls, system.state_dim
     theta = theta.detach().to(torch.float64)
     rows = _per_row(system.known, system.autonomous)
     vary = torch.tensor(varying)
     names = [system.parameters.names[i] for i in varying]
 
-    def assemble(y, u, delta=None):
-        th = theta.to(y).expand(*y.shape[:-1], -1).clone()
-        own = u[..., m:].to(y)
-        if delta is not None:
-            own = torch.stack(
-                [dist.from_eta(dist.to_eta(own[..., j]) + delta[j]) for j, dist in enumerate(shift[0])], -1
-            )
-        th[..., vary] = own
+    def known(t, y, u):
         n = y[..., 0].numel()
-        return th.reshape(n, th.shape[-1]), n
-
-    def known(t, y, u, *delta):
-        th, n = assemble(y, u, delta[0] if delta else None)
+        th = theta.to(y).expand(*y.shape[:-1], -1).clone()
+        th[..., vary] = u[..., m:].to(y)
         tt = torch.as_tensor(t, dtype=y.dtype, device=y.device).expand(y.shape[:-1]).reshape(n)
-        return rows(tt, y.reshape(n, d), u[..., :m].reshape(n, m), th).reshape(y.shape)
-
-    parameters = None
-    if shift is not None:
-        parameters = {f"{n} (typical shift)": (0.0, float(sd)) for n, sd in zip(names, shift[1].tolist(), strict=True)}
-        known_rhs = known
-
-        def known(t, y, u, delta):  # noqa: F811 - the signature G(t, y, u, theta) a system with parameters calls
-            return known_rhs(t, y, u, delta)
+        out = rows(tt, y.reshape(n, d), u[..., :m].reshape(n, m), th.reshape(n, th.shape[-1]))
+        return out.reshape(y.shape)
 
     return MisspecifiedSystem(
         known,
@@ -130,7 +108,6 @@ def subject_system(
         num_controls=m + len(varying),
         control_names=list(system.control_names) + parameter_names(system, varying),
         time_dependent=True,
-        parameters=parameters,
     )
 
 
