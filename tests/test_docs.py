@@ -231,6 +231,28 @@ def check_partial_measurements(ns: dict) -> None:
     assert float(tms.trajectory_rmse(ns["ligand_predicted"], ns["ligand_reference"])) < 0.1 * known
 
 
+def check_populations(ns: dict) -> None:
+    fit = ns["fit"]
+    values, (_, se_spread, se_effects) = fit.nlme.values, fit.nlme.standard_errors
+    # "kept F = 0"; "the weight effect ... holds the truth's 0.01 within two standard errors, and so does the spread"
+    assert fit.known_model
+    assert abs(float(values.effects[0, 0]) - 0.01) < 2 * float(se_effects[0, 0])
+    assert abs(float(values.spread[0]) - 0.3) < 2 * float(se_spread[0])
+    # "about 0.018 per kg (standard error 0.007)"; "about 0.27"; "the typical k, about 0.49 / h, is twice the truth's"
+    assert abs(float(values.effects[0, 0]) - 0.018) < 0.002 and abs(float(se_effects[0, 0]) - 0.007) < 0.001
+    assert abs(float(values.spread[0]) - 0.27) < 0.01 and abs(float(values.mean[0].exp()) - 0.49) < 0.01
+    # "the residuals' scale ... is about 25 % in log concentration where the measurements carry 3 % noise"
+    assert abs(float(fit.nlme.modes.scale[0]) - 0.25) < 0.01
+    # "both bands hold the patient's samples"; "its variance in log k from about 0.074 to 0.067"
+    for p in (ns["alone"], ns["updated"]):
+        lo, hi = p.posterior.measured(fit.noise, fit.nlme.modes.scale).interval(0.9)
+        assert float(((ns["samples"] >= lo[0]) & (ns["samples"] <= hi[0])).float().mean()) >= 0.9
+    assert abs(float(ns["alone"].eta_covariance[0, 0]) - 0.074) < 0.002
+    assert abs(float(ns["updated"].eta_covariance[0, 0]) - 0.067) < 0.002
+    # "The design samples late"
+    assert float(ns["design"].times.min()) >= 8.0
+
+
 PAGES = {
     "index.md": check_index,
     "overview.md": check_overview,
@@ -239,13 +261,14 @@ PAGES = {
     "tutorials/own-system.md": check_own_system,
     "tutorials/chemostat.md": check_chemostat,
     "tutorials/partial-measurements.md": check_partial_measurements,
+    "tutorials/populations.md": check_populations,
     "tutorials/sequential.md": check_sequential,
     "tutorials/kernels.md": check_kernels,
 }
 
 
 #: Pages that fit through the ODE several times (a minute or more on 2 cores): run in the slow tier (make test-slow).
-SLOW_PAGES = {"tutorials/chemostat.md", "tutorials/partial-measurements.md"}
+SLOW_PAGES = {"tutorials/chemostat.md", "tutorials/partial-measurements.md", "tutorials/populations.md"}
 
 
 @pytest.mark.parametrize(

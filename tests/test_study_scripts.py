@@ -194,3 +194,15 @@ def test_campaign_loop_study_smoke(tmp_path):
         assert "loop_error" not in run and run["loop_samples"] == run["loop_distinct"] == run["direct_samples"]
         assert run["former_samples"] > run["former_distinct"]  # the README's extra tell, added again
     assert "refit by `fit_correction` on the campaign's data (now)" in stdout
+
+
+@pytest.mark.slow
+def test_population_study_smokes(tmp_path):
+    """The three population studies of issue 43 in their smoke modes (one realization, one fold)."""
+    for script, key in (("study_population.py", "runs"), ("study_population_design.py", "runs"),
+                        ("study_population_data.py", "runs")):  # fmt: skip
+        out = tmp_path / f"{script}.json"
+        stdout = _script(script, "--smoke", "--json", str(out))
+        result = json.loads(out.read_text())
+        assert result["smoke"] and len(result[key]) == 1, script
+        assert "| measure | value | goal |" in stdout

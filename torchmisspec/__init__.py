@@ -18,7 +18,7 @@ Typical use::
 from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
 from importlib.metadata import version as _version
 
-from . import design, metrics, noise, parallel, parameters, signals, systems
+from . import design, metrics, noise, parallel, parameters, population, signals, systems
 from ._errors import (
     BudgetError,
     FittingError,
@@ -90,6 +90,7 @@ __all__ = [
     "noise",
     "parallel",
     "parameters",
+    "population",
     "signals",
     "simulate",
     "smoothed_derivative",
