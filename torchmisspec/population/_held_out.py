@@ -49,7 +49,7 @@ def forecasts_better(fit_early, classical_early, trajectories, keep, noise) -> t
     known = _scores(classical_early, None, trajectories, keep, noise, scale)
     if fit_early is None or fit_early.known_model:
         return False, math.inf, float(known.sum())
-    rival = _scores(fit_early.nlme, fit_early.corrected, trajectories, keep, noise, scale)
+    rival = _scores(fit_early.nlme, fit_early.mean_correction, trajectories, keep, noise, scale)
     counts = held_out(trajectories, keep).any(-1).sum(1).cpu()
     better = float(rival.sum()) < float(known.sum()) and (
         significant_gain(_gains(known, rival)) or better_in_every_experiment(known, rival, counts)

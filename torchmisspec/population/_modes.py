@@ -28,7 +28,7 @@ from ..learning.refinement.trajectory_fit import _solve_rhs
 from ..learning.samples._gp_in_time import observed_rms
 from ._subjects import subject_controls
 
-__all__ = ["Layout", "Modes", "conditional_modes"]
+__all__ = ["Layout", "Modes", "conditional_modes", "mean_correction"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,21 @@ class Modes:
     num_residuals: int
 
 
+def mean_correction(system, gp):
+    """``F(y, u) -> (..., d)``: the posterior mean of ``gp`` placed on the states of ``system`` (the system whose
+    controls are its own and the varying parameters), from one posterior cache: what every step of a fit's solves
+    evaluates (``CorrectedODE.correction`` checks its cache at every call: 3 ms a call, 358 of a fit's 557 s)."""
+    posterior = gp.posterior()
+
+    def correction(y, u):
+        x = system.select_inputs(y, u)
+        shape = x.shape[:-1]
+        mu = posterior.mean(x.reshape(-1, x.shape[-1]).to(gp.dtype), check=False)
+        return system.embed(mu.reshape(*shape, -1).to(y))
+
+    return correction
+
+
 def _paths(layout: Layout, correction, trajectories):
     """``predict(theta (V, K, k), y0 (V, K, d), max_steps) -> (V, K, T, d + m)``: every copy's paths under
     ``G(y; theta_i) + F``, read as the data are, in one solve."""
@@ -80,7 +95,7 @@ def _paths(layout: Layout, correction, trajectories):
 
     def rhs(y, t, u):
         g = inner.known_rhs(y, t, u)
-        return g if correction is None else g + correction.correction(y, u[..., : m + kv])
+        return g if correction is None else g + correction(y, u[..., : m + kv])
 
     def predict(theta, y0, max_steps=MAX_STEPS):
         V = theta.shape[0]
@@ -168,8 +183,8 @@ def conditional_modes(
     layout, correction, trajectories, free, noise, typical, spread, prior, start=None, scale=None
 ) -> Modes:
     """The experiments' conditional modes (the module's notes) under the population's ``typical (K, k_v)`` eta and
-    ``spread (k_v,)`` omega, the shared parameters' prior ``(mean, scale)`` and the correction ``correction`` (a
-    :class:`~torchmisspec.CorrectedODE` of the varying-parameter system, or ``None`` for F = 0), from ``start`` (a
+    ``spread (k_v,)`` omega, the shared parameters' prior ``(mean, scale)`` and the correction ``correction`` (F's
+    mean ``(y, u) -> (..., d)``, :func:`mean_correction`, or ``None`` for F = 0), from ``start`` (a
     previous :class:`Modes`, whose eta and shared values are kept; default: every experiment at its typical value,
     the shared parameters at their prior mean). ``scale`` ``(d + m,)``: each component's noise scale, held fixed
     (a new subject's few measurements cannot estimate it); default: estimated with the fit. Raises

@@ -5,9 +5,10 @@ Targets (what the design is for), as objects:
 
 * :class:`SubjectParameters` (default): the subject's own varying parameters. Bayesian D-optimality averaged over the
   population (ED-optimality, as PopED and PFIM compute it for a new subject): the expected
-  ``log det(Omega^-1 + sum_t J_t^T W J_t)`` over draws of the subject from the population, J_t the sensitivity of
-  what is measured at time t (the noise model's space) to the subject's eta, W the inverse noise variances of the
-  population's fit. Times are added greedily (the log-determinant of a growing information matrix is submodular in
+  ``log det(Omega^-1 + sum_t J_t^T W_t J_t)`` over draws of the subject from the population, J_t the sensitivity of
+  what is measured at time t (the noise model's space) to the subject's eta, W_t the inverse of the population fit's
+  residual variance near time t (:func:`misfit_scale`: the measurement noise and the model's own misfit there).
+  Times are added greedily (the log-determinant of a growing information matrix is submodular in
   the times for a fixed draw);
 * :class:`Correction`: the information the subject's samples bring about F, conditioned on the population's data
   (:func:`~torchmisspec.design.sampling_times` on the subject's path at its typical parameters).
@@ -76,16 +77,47 @@ def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor
     steps = torch.cat([torch.zeros(1, kv, dtype=eta.dtype), STEP * torch.eye(kv, dtype=eta.dtype)])  # (1 + kv, kv)
     etas = eta[None] + steps[:, None]  # (1 + kv, S, kv)
     theta = layout.theta(etas, nlme.modes.shared)
-    correction = None if fit.known_model else fit.corrected
+    correction = fit.mean_correction
     pred = _paths(layout, correction, dummy)(theta, y0.expand(1 + kv, S, d))  # (1 + kv, S, T, o)
     z = fit.noise.transform(pred)
     return ((z[1:] - z[:1]) / STEP).permute(1, 2, 3, 0)
 
 
+def misfit_scale(fit, grid: torch.Tensor) -> torch.Tensor:
+    """``(T, o)`` the population fit's residual root mean square at each candidate time (the noise model's space):
+    the residuals of every experiment at its data times, pooled at the nearest candidate time; a candidate time
+    without data takes the nearest one's. What a sample there is worth is its measurement noise and the model's own
+    misfit there: a model that misses a term misses it most at some times (a drug's late, low concentrations under
+    a missing saturable elimination), and the design should not trust those most. Without the data (``fit.data``
+    ``None``), the fit's one scale per component at every time."""
+    scale = fit.nlme.modes.scale
+    if fit.data is None:
+        return scale.expand(grid.numel(), -1)
+    data, nlme = fit.data, fit.nlme
+    pred = _paths(nlme.layout, fit.mean_correction, data)(nlme.thetas[None], nlme.modes.initial_states[None])[0]
+    values, mask = data.observed_values()
+    seen = torch.isfinite(values) & mask.unsqueeze(-1)
+    r2 = torch.where(seen, fit.noise.transform(pred) - fit.noise.transform(values), 0.0).pow(2)
+    times = data.padded()[0].expand(values.shape[:2])
+    nearest = (times.unsqueeze(-1) - grid).abs().argmin(-1).reshape(-1)  # (K T,)
+    o = values.shape[-1]
+    total = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, r2.reshape(-1, o))
+    count = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, seen.reshape(-1, o).to(r2))
+    out = torch.full_like(total, math.nan)
+    for j in range(o):
+        have = (count[:, j] > 0).nonzero().flatten()
+        if have.numel():
+            near = have[(grid[:, None] - grid[have]).abs().argmin(-1)]
+            out[:, j] = (total[near, j] / count[near, j]).sqrt()
+    return torch.where(torch.isfinite(scale).expand_as(out), out.clamp_min(1e-12), math.nan)
+
+
 def _greedy_parameters(J: torch.Tensor, weights: torch.Tensor, prior: torch.Tensor, budget: int, allowed):
-    """Greedy times for the expected log-determinant (the module's notes): ``(indices, score)``."""
+    """Greedy times for the expected log-determinant (the module's notes), ``weights`` ``(o,)`` or ``(T, o)``:
+    ``(indices, score)``."""
     S, T, o, kv = J.shape
-    per_time = torch.einsum("stoa,o,stob->stab", J, weights, J)  # (S, T, kv, kv)
+    weights = weights.expand(T, o)
+    per_time = torch.einsum("stoa,to,stob->stab", J, weights, J)  # (S, T, kv, kv)
     M = prior.expand(S, kv, kv).clone()
     chosen: list[int] = []
     for _ in range(budget):
@@ -135,7 +167,7 @@ def _one(fit, grid, budget, y0, X, target, generator):
         return _for_correction(fit, grid, budget, y0, typical)
     eta = typical + spread * torch.randn(target.draws, spread.shape[0], dtype=spread.dtype, generator=generator)
     J = _sensitivities(fit, y0, grid, eta)
-    scale = nlme.modes.scale
+    scale = misfit_scale(fit, grid)
     weights = torch.where(torch.isfinite(scale), 1 / scale.pow(2), torch.zeros_like(scale))
     allowed = torch.arange(grid.numel()) > 0
     return _greedy_parameters(J, weights, torch.diag(1 / spread.pow(2)), budget, allowed)

@@ -43,6 +43,7 @@ from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
 from ._held_out import FAILURES, early_times, forecasts_better
+from ._modes import mean_correction
 from ._subjects import parameter_names, subject_system, with_subject_inputs
 from .model import Population
 from .nlme import NLMEFit, fit_nlme
@@ -73,6 +74,8 @@ class PopulationFit:
     nlme: NLMEFit
     gp: object
     subject_system: MisspecifiedSystem
+    #: the data fitted
+    data: Trajectories | None = None
 
     @property
     def known_model(self) -> bool:
@@ -88,6 +91,11 @@ class PopulationFit:
     def thetas(self) -> torch.Tensor:
         """``(K, k)`` every experiment's parameters, in the order of ``system.parameters``."""
         return self.nlme.thetas
+
+    @property
+    def mean_correction(self):
+        """F's posterior mean ``(y, u) -> (..., d)`` on the subject system (``None`` without a correction)."""
+        return None if self.known_model else mean_correction(self.subject_system, self.gp)
 
     @property
     def corrected(self) -> CorrectedODE | None:
@@ -162,7 +170,7 @@ def fit_population(
     options = dict(covariates=covariates, progress=progress)
     classical = fit_nlme(system, trajectories, population, noise, **options)
     nlme, gp = _learn(system, trajectories, population, noise, pipeline, classical, progress)
-    fitted = PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme))
+    fitted = PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme), trajectories)
     if fitted.known_model:
         warn(
             "fit_population: no correction F predicts held-out experiments better than the population without it "
@@ -194,7 +202,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
             gp = learned if gp is None else gp
             break
         gp = learned
-        correction = CorrectedODE(_plain(system, nlme), gp)
+        correction = mean_correction(_plain(system, nlme), gp)
         nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction)
     return nlme, gp
 

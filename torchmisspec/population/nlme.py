@@ -8,7 +8,8 @@ Alternates (Laplace EM, the first-order conditional estimation of Lindstrom & Ba
   of the modes on the centred covariates, and omega_j^2 = mean_i[(eta_ij - typical_ij)^2 + C_i,jj]: the exact EM
   update of a linear Gaussian random effect, with the modes and the Laplace covariances as the conditional moments.
 
-until the population's values move by less than :data:`TOLERANCE` (mu in units of omega, omega relatively) or
+until the population's values move by less than :data:`TOLERANCE` (mu and omega in units of omega, or of
+:data:`NEGLIGIBLE` times the priors' spread where omega is smaller) or
 :data:`MAX_ROUNDS`. With F = 0 this is the classical answer of pharmacometrics, the nonlinear mixed-effects model of
 the known model alone (NONMEM's FOCE, nlmixr2's ``focei``, in spirit). It starts from the known model fitted to every
 experiment with one set of parameters.
@@ -41,6 +42,8 @@ __all__ = ["NLMEFit", "fit_nlme", "MAX_ROUNDS", "TOLERANCE"]
 MAX_ROUNDS = 60
 #: EM stops when mu moves by less than this many omegas and omega by less than this fraction
 TOLERANCE = 2e-3
+#: a spread below this fraction of the priors' (:func:`starting_spread`) is as good as 0 for EM's stopping rule
+NEGLIGIBLE = 0.05
 #: omega's floor, as a fraction of its starting value (a spread the data do not support collapses towards 0)
 SPREAD_FLOOR = 1e-3
 
@@ -91,10 +94,7 @@ def starting_values(system, layout: Layout, population, X, trajectories, noise):
     y0 = initial_guess(trajectories, system) if known is None else known.initial_states
     dists = layout.distributions
     mean = torch.stack([d.to_eta(theta[i]) for d, i in zip(dists, layout.vary, strict=True)])
-    spread = torch.tensor(
-        [d.spread_of(float(priors.mean[i]), float(priors.scale[i])) for d, i in zip(dists, layout.vary, strict=True)],
-        dtype=torch.float64,
-    )
+    spread = starting_spread(system, layout)
     acts = torch.zeros(len(layout.vary), X.shape[-1], dtype=torch.bool)
     names = population.covariate_names
     for j, i in enumerate(layout.vary):
@@ -102,6 +102,15 @@ def starting_values(system, layout: Layout, population, X, trajectories, noise):
             acts[j, names.index(c)] = True
     values = PopulationValues(mean, spread, torch.zeros(acts.shape, dtype=torch.float64), X.mean(0), acts)
     return values, theta[layout.shared], y0
+
+
+def starting_spread(system, layout: Layout) -> torch.Tensor:
+    """``(k_v,)`` the spread the priors of the varying parameters imply in eta's units (where EM starts)."""
+    priors, dists = system.parameters, layout.distributions
+    pairs = zip(dists, layout.vary, strict=True)
+    return torch.tensor(
+        [d.spread_of(float(priors.mean[i]), float(priors.scale[i])) for d, i in pairs], dtype=torch.float64
+    )
 
 
 def m_step(values: PopulationValues, modes: Modes, X: torch.Tensor, floor: torch.Tensor) -> PopulationValues:
@@ -174,7 +183,8 @@ def fit_nlme(
         shared = modes.shared
     if modes is None:  # the first E step starts from every experiment's typical value
         modes = _typical_modes(values, X, shared, data)
-    problem = (layout, correction, data, free, noise)
+    reference = starting_spread(system, layout)
+    problem = (layout, correction, data, free, noise, NEGLIGIBLE * reference)
     with progress_bar(progress, MAX_ROUNDS, "population (EM)", unit="round") as bar:
         values, modes, rounds, converged = _em(problem, values, modes, X, prior, floor, bar)
     if not converged:
@@ -185,14 +195,16 @@ def fit_nlme(
 
 def _em(problem, values, modes, X, prior, floor, bar):
     """EM rounds until the population's values settle: ``(values, modes, rounds, converged)``; ``problem`` is
-    ``(layout, correction, data, free, noise)``."""
-    layout, correction, data, free, noise = problem
+    ``(layout, correction, data, free, noise, negligible)``: a spread below ``negligible`` is as good as 0 (EM
+    approaches a spread of 0 by a constant factor per round, and would not settle in relative terms)."""
+    layout, correction, data, free, noise, negligible = problem
     for rounds in range(1, MAX_ROUNDS + 1):
         modes = conditional_modes(layout, correction, data, free, noise, values.typical(X), values.spread, prior, modes)
         new = m_step(values, modes, X, floor)
+        unit = torch.maximum(new.spread, negligible)
         moved = max(
-            float(((new.mean - values.mean) / new.spread).abs().max()),
-            float((new.spread / values.spread).log().abs().max()),
+            float(((new.mean - values.mean) / unit).abs().max()),
+            float(((new.spread - values.spread) / unit).abs().max()),
             _effects_moved(new, values, X),
         )
         values = new

@@ -65,7 +65,7 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
     nlme = fit.nlme
     shared = nlme.modes.shared
     prior = (shared, shared.abs().clamp_min(1e-300) * HELD)
-    correction = None if fit.known_model else fit.corrected
+    correction = fit.mean_correction
     free = ~given_initial_states(first)
     data = first.with_initial_states(initial_guess(first, fit.system))
     typical, spread = nlme.values.typical(X), nlme.values.spread
