@@ -300,3 +300,24 @@ def test_covariates_read_one_value_per_experiment_in_the_loaders_order(tmp_path)
     path.write_text("subject,time,y,weight\n1,0,1,heavy\n")
     with pytest.raises(tms.InputError, match="finite number"):
         read_covariates(path, ["weight"], experiment_column="subject")
+
+
+def test_design_for_the_correction_is_refused_without_one():
+    from torchmisspec.population.design import Correction, design_subject
+
+    fit, _, _ = _linear_fit(K=6, seed=11)
+    pop = _classical(fit, linear_system(), Population(["c"], distribution=Normal()))
+    with pytest.raises(tms.InputError, match="kept F = 0"):
+        design_subject(pop, [0.0, 0.5, 1.0], 1, initial_states=[2.0], target=Correction())
+    with pytest.raises(tms.InputError, match="SubjectParameters"):
+        design_subject(pop, [0.0, 0.5, 1.0], 1, initial_states=[2.0], target="parameters")
+
+
+def test_fit_population_refuses_one_experiment_and_a_bad_declaration():
+    from torchmisspec.population import fit_population
+
+    _, data, _ = _linear_fit(K=3, seed=12)
+    with pytest.raises(tms.InputError, match="at least 2 experiments"):
+        fit_population(data[[0]], linear_system(), Population(["c"]), progress=False)
+    with pytest.raises(tms.InputError, match="Population"):
+        fit_population(data, linear_system(), ["c"], progress=False)

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._errors import TorchMisspecWarning, warn
+from .._errors import InputError, TorchMisspecWarning, warn
 from ..data import Trajectories
 from ..learning.pipeline import Pipeline
 from ..noise import as_noise_model
@@ -162,6 +162,14 @@ def fit_population(
     Returns:
         :class:`PopulationFit` (the module's notes).
     """
+    if not isinstance(trajectories, Trajectories) or trajectories.num_experiments < 2:
+        got = type(trajectories).__name__ if not isinstance(trajectories, Trajectories) else "one experiment"
+        raise InputError(
+            f"trajectories: expected Trajectories of at least 2 experiments (a population's spread needs several), "
+            f"got {got}; fit one experiment with fit_correction"
+        )
+    if not isinstance(population, Population):
+        raise InputError(f"population: expected a torchmisspec.population.Population, got {type(population).__name__}")
     pipeline = Pipeline() if pipeline is None else pipeline
     if pipeline.noise != "auto":  # the pipeline's own noise model is the fit's
         noise = pipeline.noise
