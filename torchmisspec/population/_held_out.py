@@ -21,7 +21,7 @@ import torch
 from .._errors import FittingError, IntegrationError, LinearAlgebraError
 from ..learning.choice._partial_choice import _gains, better_in_every_experiment
 from ..learning.choice.cross_validation import significant_gain
-from ..learning.refinement._known_fit import held_out, time_split
+from ..learning.refinement._known_fit import held_out
 from ._modes import _paths
 
 __all__ = ["forecasts_better"]
@@ -55,11 +55,6 @@ def forecasts_better(fit_early, classical_early, trajectories, keep, noise) -> t
         significant_gain(_gains(known, rival)) or better_in_every_experiment(known, rival, counts)
     )
     return better, float(rival.sum()), float(known.sum())
-
-
-def early_times(trajectories):
-    """``(the first two thirds of each experiment's times, keep)``, or ``None`` with nothing to hold out."""
-    return time_split(trajectories)
 
 
 #: what a failed fit on the earlier times raises

@@ -23,7 +23,14 @@ import torch
 
 from .._errors import FittingError, IntegrationError
 from .._ode import EVALS_PER_STEP, FITTING_TOLERANCES
-from ..learning.refinement._known_fit import MAX_STEPS, STEP, _damped_steps, _observed, component_weights
+from ..learning.refinement._known_fit import (
+    MAX_STEPS,
+    STEP,
+    _damped_steps,
+    _observed,
+    component_scale,
+    component_weights,
+)
 from ..learning.refinement.trajectory_fit import _solve_rhs
 from ..learning.samples._gp_in_time import observed_rms
 from ._subjects import subject_controls
@@ -227,9 +234,7 @@ def _laplace(problem: _Problem, z, r, w, active, penalty) -> Modes:
         pass  # the prior's covariance: nothing learned about the spread from this fit
     theta, y0 = problem.unpack(z[None])
     eta = problem.typical + problem.spread * z[ks : ks + K * kv].reshape(K, kv)
-    ms = torch.zeros(problem.num_components, dtype=r.dtype).index_add_(0, problem.comp, r.pow(2))
-    count = torch.zeros(problem.num_components, dtype=r.dtype).index_add_(0, problem.comp, torch.ones_like(r))
-    scale = torch.where(count > 0, (ms / count.clamp_min(1)).sqrt(), torch.full_like(ms, math.nan))
+    scale = component_scale(r, problem.comp, problem.num_components)
     s = problem.spread
     return Modes(
         eta=eta,

@@ -39,10 +39,11 @@ import torch
 from .._errors import InputError, TorchMisspecWarning, warn
 from ..data import Trajectories
 from ..learning.pipeline import Pipeline
+from ..learning.refinement._known_fit import time_split
 from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
-from ._held_out import FAILURES, early_times, forecasts_better
+from ._held_out import FAILURES, forecasts_better
 from ._modes import mean_correction
 from ._subjects import parameter_names, subject_system, with_subject_inputs
 from .model import Population
@@ -126,7 +127,7 @@ class PopulationFit:
                     )
         kind = "F = 0 kept (the classical answer)" if self.known_model else "a correction F learned"
         lines.append(
-            f"typical and spread in eta = {', '.join(f'{d.name}: ' + _eta(d) for d in dists)}; SE of the typical "
+            f"typical and spread in eta = {', '.join(dict.fromkeys(f'{d.name}: ' + _eta(d) for d in dists))}; SE of the typical "
             f"value in eta; {kind}"
         )
         return "\n".join(lines)
@@ -205,7 +206,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
     nlme, gp = classical, None
     for _ in range(ROUNDS):
         sub, data = _subject_data(system, nlme, trajectories)
-        learned = _relayed(pipeline.fit, data, sub, progress=progress)
+        learned = _without_warnings(pipeline.fit, data, sub, progress=progress)
         if getattr(learned, "known_model_", False):  # F = 0 in the first round; later, the last F and its fit stand
             gp = learned if gp is None else gp
             break
@@ -215,7 +216,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
     return nlme, gp
 
 
-def _relayed(fit, *args, **kwargs):
+def _without_warnings(fit, *args, **kwargs):
     """``fit(*args, **kwargs)`` with the package's warnings held: they name the system whose inputs are every
     experiment's parameters, not the user's; the population fit says what it decided
     (:func:`fit_population`)."""
@@ -227,7 +228,7 @@ def _relayed(fit, *args, **kwargs):
 def _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical):
     """``(kept, misfit with F, without)``: both population models refitted on the earlier times and compared on
     the later ones (:mod:`~torchmisspec.population._held_out`); kept when there is nothing to hold out."""
-    split = early_times(trajectories)
+    split = time_split(trajectories)
     if split is None:
         return True, math.nan, math.nan
     early, keep = split

@@ -215,6 +215,13 @@ def component_weights(comp: torch.Tensor, num_components: int):
     return weights
 
 
+def component_scale(r: torch.Tensor, comp: torch.Tensor, num_components: int) -> torch.Tensor:
+    """``(num_components,)`` each component's root mean square residual (NaN where it has none)."""
+    ms = torch.zeros(num_components, dtype=r.dtype, device=r.device).index_add_(0, comp, r.pow(2))
+    count = torch.zeros(num_components, dtype=r.dtype, device=r.device).index_add_(0, comp, torch.ones_like(r))
+    return torch.where(count > 0, (ms / count.clamp_min(1)).sqrt(), torch.full_like(ms, math.nan))
+
+
 def _damped_steps(z, r, residuals, jacobian, weights, active, penalty, solved):
     """Levenberg-Marquardt from ``z`` (residuals ``r``) on ``sum w r^2 + sum penalty z^2``, ``w = weights(r)``
     refreshed after each accepted step: ``(z, r, w)`` at the end. A trial step that cannot be integrated within its
@@ -279,9 +286,7 @@ def _result(z, r, w, k, m_theta, s_theta, unpack, jacobian, active, penalty, com
         if full is not None:
             cov = full[:k, :k] * scale
             fixed = torch.cholesky_inverse(torch.linalg.cholesky(A[:k, :k])) * scale
-    ms = torch.zeros(e, dtype=r.dtype, device=r.device).index_add_(0, comp, r.pow(2))
-    count = torch.zeros(e, dtype=r.dtype, device=r.device).index_add_(0, comp, torch.ones_like(r))
-    scale = torch.where(count > 0, (ms / count.clamp_min(1)).sqrt(), torch.full_like(ms, math.nan))
+    scale = component_scale(r, comp, e)
     theta = None if thetas is None else thetas[0]
     unknowns, units = described if described is not None else ((), None)
     return KnownFit(
