@@ -126,10 +126,8 @@ class PopulationFit:
                         f"eta, around {name} = {float(vals.centre[c]):.4g}"
                     )
         kind = "F = 0 kept (the classical answer)" if self.known_model else "a correction F learned"
-        lines.append(
-            f"typical and spread in eta = {', '.join(dict.fromkeys(f'{d.name}: ' + _eta(d) for d in dists))}; SE of the typical "
-            f"value in eta; {kind}"
-        )
+        coordinates = ", ".join(dict.fromkeys(f"{d.name}: {_eta(d)}" for d in dists))
+        lines.append(f"typical and spread in eta = {coordinates}; SE of the typical value in eta; {kind}")
         return "\n".join(lines)
 
 
