@@ -321,3 +321,36 @@ def test_fit_population_refuses_one_experiment_and_a_bad_declaration():
         fit_population(data[[0]], linear_system(), Population(["c"]), progress=False)
     with pytest.raises(tms.InputError, match="Population"):
         fit_population(data, linear_system(), ["c"], progress=False)
+
+
+def test_the_integrated_system_gives_each_experiment_its_own_parameters_and_the_population_as_prior():
+    from torchmisspec.population._integrated import experiment_parameters, integrated_system, with_experiment_index
+
+    system = tms.MisspecifiedSystem(two_parameter, 2, parameters={"ka": (1.0, 0.5), "V": (0.5, 0.2)})
+    thetas = torch.tensor([[0.8, 0.4], [1.5, 0.6], [1.1, 0.5], [0.9, 0.45]], dtype=DT)
+    y0 = torch.tensor([[4.0, 0.0], [3.0, 0.0], [5.0, 0.0], [4.5, 0.0]], dtype=DT)
+    times = torch.linspace(0, 5, 8, dtype=DT)
+    base = tms.Trajectories(times, y0[:, None].expand(4, 8, 2).clone())
+    ctrl = with_subject_inputs(base, thetas, ["ka", "V"]).controls
+    states = tms.simulate(subject_system(system, [0, 1], system.theta), y0, times, controls=ctrl).states
+    data = tms.Trajectories(times, states, state_names=["gut", "conc"])
+    fit = fit_nlme(system, data, Population(["ka", "V"]), Additive())
+    joint = integrated_system(system, fit)
+    typical = fit.values.typical(fit.covariates)
+    torch.testing.assert_close(joint.parameters.mean.reshape(4, 2), typical)  # each prior: the population's
+    assert torch.allclose(joint.parameters.scale.reshape(4, 2), fit.values.spread.clamp_min(1e-3).expand(4, 2))
+    eta = torch.log(thetas).reshape(-1)  # log-normal: eta = log(theta)
+    indexed = with_experiment_index(data, system)
+    y = torch.rand(4, 2, generator=torch.Generator().manual_seed(1), dtype=DT)
+    u = indexed.controls.values[:, 0]  # (K, 1): each experiment's index
+    got = joint.at(eta).known_rhs(y, torch.zeros(4, dtype=DT), u)
+    want = torch.stack([system.at(thetas[i]).known_rhs(y[i : i + 1])[0] for i in range(4)])
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+    class Posterior:  # what experiment_parameters reads from a fit on the integrated system
+        mean = eta
+
+    class Fitted:
+        parameters_ = Posterior()
+
+    torch.testing.assert_close(experiment_parameters(Fitted(), fit), thetas)

@@ -1,36 +1,39 @@
 """The population and the shared correction F, learned together.
 
-:func:`fit_population` alternates two fits, each the package's own:
+:func:`fit_population` runs the package's own fits in turn:
 
-1. the population for a fixed F (:func:`~torchmisspec.population.nlme.fit_nlme`: every experiment's parameters by
+1. the population for F = 0 (:func:`~torchmisspec.population.nlme.fit_nlme`: every experiment's parameters by
    their conditional mode given the population, the population's typical values, covariate effects and spreads by
-   EM). With F = 0 this is the classical answer (the known model's nonlinear mixed-effects fit), kept as
-   ``result.classical``;
-2. F for the experiments' parameters: each experiment's own parameters become known constant inputs of G
+   EM): the classical answer (the known model's nonlinear mixed-effects fit), kept as ``result.classical``;
+2. every experiment's parameters learned *with* F (:mod:`~torchmisspec.population._integrated`): the population as
+   one system whose uncertain parameters are every experiment's, their prior the classical population, F integrated
+   out of the derivative samples (the package's theta-and-F fit, its model chosen by evidence: this step only moves
+   the parameters, it keeps nothing);
+3. F for those parameters: each experiment's own parameters become known constant inputs of G
    (:mod:`~torchmisspec.population._subjects`) and :func:`~torchmisspec.fit_correction` learns F from every
-   experiment with the pipeline given (the package's one way to learn: model choice, the fit through the ODE
-   where states are not measured, and do no harm: F = 0 when no correction forecasts held-out data better).
+   experiment with the pipeline given (model choice, the fit through the ODE where states are not measured, its do
+   no harm);
+4. the population for that F (EM again), and F again for the parameters it gives (:data:`ROUNDS` rounds of 3-4).
 
 F is shared: it takes the states (and the system's own controls), never an experiment's parameters; what differs
-between experiments is in their parameters, what the mechanism lacks in every one of them is in F. The rounds stop
-after :data:`ROUNDS`, or as soon as do no harm returns F = 0: in the first round the classical answer stands, in a
-later one the previous round's F and the population fitted with it.
+between experiments is in their parameters, what the mechanism lacks in every one of them is in F.
 
-A correction and a typical value can stand in for each other: the population fitted with F = 0 puts into its typical
-values some of what F should hold, and the rounds move them back (coordinate ascent). Learning the typical values'
-shifts with F in F's step (one uncertain parameter each) was tried and dropped: on sparse data the derivative samples
-moved a shift by 5 prior standard deviations, F was then refused, and on one realization of the population study an
-F far off the truth (integrated error 92 against 3.5 for F = 0) was kept.
+Why step 2: a correction and a typical value can stand in for each other. The population fitted with F = 0 puts into
+its parameters what they can hold of the missing term (on the population study, ``scripts/study_population.py``, the
+typical volume 3-5 standard errors off the truth where F = 0 was kept), and F learned at those parameters saw only
+the remainder: F was kept in 1 of 10 realizations. Learned with F, the parameters give up what F explains. Learning
+only the typical values' shifts with F was tried and dropped: on sparse data the derivative samples moved a shift by
+5 prior standard deviations, and on one realization an F far off the truth (integrated error 92 against 3.5 for
+F = 0) was kept.
 
-**Do no harm** (:mod:`~torchmisspec.population._held_out`): a kept F must also forecast later times better at the
-population level, both models refitted on the earlier times; otherwise the classical answer is returned, with a
-warning.
+**Do no harm** (:mod:`~torchmisspec.population._held_out`): F is kept only where, conditioned without them, it fits
+held-out experiments (each with its own parameters fitted through the ODE) significantly better than the classical
+answer does; otherwise the classical answer is returned, with a warning.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 from dataclasses import dataclass
 
@@ -38,12 +41,13 @@ import torch
 
 from .._errors import InputError, TorchMisspecWarning, warn
 from ..data import Trajectories
+from ..learning.choice.stage import Evidence
 from ..learning.pipeline import Pipeline
-from ..learning.refinement._known_fit import time_split
 from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
-from ._held_out import FAILURES, forecasts_better
+from ._held_out import fits_unseen_experiments_better
+from ._integrated import integrated_modes, integrated_system, with_experiment_index
 from ._modes import mean_correction
 from ._subjects import parameter_names, subject_system, with_subject_inputs
 from .model import Population
@@ -186,14 +190,14 @@ def fit_population(
             TorchMisspecWarning,
         )
         return fitted
-    kept, with_f, without = _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical)
+    kept, with_f, without = fits_unseen_experiments_better(fitted, classical, trajectories)
     if kept:
         return fitted
     warn(
-        f"fit_population: the population fitted with a correction on the first two thirds of each experiment's times "
-        f"does not forecast the last third significantly better over the experiments than the one fitted without "
-        f"(held-out misfit {with_f:.3g} vs {without:.3g}); returning the classical answer, the population with "
-        "F = 0 (do no harm; result.known_model is True). Collect more experiments or longer ones",
+        f"fit_population: with the correction conditioned without them, held-out experiments (each with its own "
+        f"parameters fitted) are not fitted significantly better than by the population without it (misfit "
+        f"{with_f:.3g} vs {without:.3g}); returning the classical answer, the population with F = 0 (do no harm; "
+        "result.known_model is True). Collect more experiments",
         TorchMisspecWarning,
     )
     return fitted.as_classical()
@@ -201,7 +205,7 @@ def fit_population(
 
 def _learn(system, trajectories, population, noise, pipeline, classical, progress):
     """The rounds of (F, population) from the classical fit (the module's notes): ``(nlme, gp)``."""
-    nlme, gp = classical, None
+    nlme, gp = _integrated_start(system, trajectories, pipeline, classical, progress), None
     for _ in range(ROUNDS):
         sub, data = _subject_data(system, nlme, trajectories)
         learned = _without_warnings(pipeline.fit, data, sub, progress=progress)
@@ -214,6 +218,24 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
     return nlme, gp
 
 
+def _integrated_start(system, trajectories, pipeline, classical, progress):
+    """The classical fit with every experiment's parameters moved to where they are learned with F
+    (:mod:`~torchmisspec.population._integrated`); the classical fit itself where that keeps F = 0."""
+    evidence = dataclasses.replace(pipeline, choice=Evidence())
+    joint = _without_warnings(
+        evidence.fit, _indexed(system, classical, trajectories), integrated_system(system, classical), progress=progress
+    )
+    if getattr(joint, "known_model_", False) or getattr(joint, "parameters_", None) is None:
+        return classical
+    return dataclasses.replace(classical, modes=integrated_modes(joint, classical))
+
+
+def _indexed(system, nlme, trajectories):
+    """The data of :func:`~torchmisspec.population._integrated.integrated_system`: every experiment's index as a
+    control, its initial states the fit's."""
+    return with_experiment_index(trajectories.with_initial_states(nlme.modes.initial_states), system)
+
+
 def _without_warnings(fit, *args, **kwargs):
     """``fit(*args, **kwargs)`` with the package's warnings held: they name the system whose inputs are every
     experiment's parameters, not the user's; the population fit says what it decided
@@ -221,27 +243,6 @@ def _without_warnings(fit, *args, **kwargs):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", TorchMisspecWarning)
         return fit(*args, **kwargs)
-
-
-def _held_out_check(system, trajectories, population, noise, pipeline, covariates, classical):
-    """``(kept, misfit with F, without)``: both population models refitted on the earlier times and compared on
-    the later ones (:mod:`~torchmisspec.population._held_out`); kept when there is nothing to hold out."""
-    split = time_split(trajectories)
-    if split is None:
-        return True, math.nan, math.nan
-    early, keep = split
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", TorchMisspecWarning)
-        try:
-            base = fit_nlme(system, early, population, noise, covariates=covariates)
-        except FAILURES:
-            return True, math.nan, math.nan  # the classical model cannot be fitted on the earlier times
-        try:
-            nlme, gp = _learn(system, early, population, noise, pipeline, base, False)
-            rival = PopulationFit(system, population, noise, base, nlme, gp, _plain(system, nlme))
-        except FAILURES:
-            rival = None
-    return forecasts_better(rival, base, trajectories, keep, noise)
 
 
 def _plain(system: MisspecifiedSystem, nlme: NLMEFit) -> MisspecifiedSystem:
