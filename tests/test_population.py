@@ -354,3 +354,33 @@ def test_the_integrated_system_gives_each_experiment_its_own_parameters_and_the_
         parameters_ = Posterior()
 
     torch.testing.assert_close(experiment_parameters(Fitted(), fit), thetas)
+
+
+def _sloped_population(missing: bool, K=8, seed=0):
+    """dy/dt = c_i (+ F(y) = -0.8 y where ``missing``): every experiment its own c ~ N(1, 0.3^2), 13 times."""
+    g = torch.Generator().manual_seed(seed)
+    truth = tms.MisspecifiedSystem(
+        slope, 1, parameters={"c": (1.0, 0.5)}, state_names=["y"], correction=(lambda y: -0.8 * y) if missing else None
+    )
+    thetas = 1.0 + 0.3 * torch.randn(K, 1, generator=g, dtype=DT)
+    times = torch.linspace(0, 3, 13, dtype=DT)
+    y0 = 0.5 + 2 * torch.rand(K, 1, generator=g, dtype=DT)
+    base = tms.Trajectories(times, y0[:, None].expand(K, 13, 1).clone(), state_names=["y"])
+    controls = with_subject_inputs(base, thetas, ["c"]).controls
+    states = tms.simulate(subject_system(truth, [0], truth.theta), y0, times, controls=controls).states.clone()
+    states[:, 1:] += 0.02 * torch.randn(K, 12, 1, generator=g, dtype=DT)
+    return tms.Trajectories(times, states, state_names=["y"])
+
+
+def test_a_missing_term_every_experiment_shares_is_learned_and_none_is_refused():
+    from torchmisspec.population import fit_population
+
+    population = Population(["c"], distribution=Normal())
+    fit = fit_population(_sloped_population(True), linear_system(), population, noise="additive", progress=False)
+    assert not fit.known_model
+    x = torch.tensor([[0.5], [3.0]], dtype=DT)  # F = -0.8 y up to a constant, which the typical c takes
+    f = fit.gp.predict_mean(x).flatten()
+    assert -1.2 < float(f[1] - f[0]) / 2.5 < -0.5
+    with pytest.warns(tms.TorchMisspecWarning, match="not fitted significantly better"):
+        none = fit_population(_sloped_population(False), linear_system(), population, noise="additive", progress=False)
+    assert none.known_model and none.nlme is none.classical
