@@ -8,7 +8,8 @@
 2. every experiment's parameters learned *with* F (:mod:`~torchmisspec.population._integrated`): the population as
    one system whose uncertain parameters are every experiment's, their prior the classical population, F integrated
    out of the derivative samples (the package's theta-and-F fit, its model chosen by evidence: this step only moves
-   the parameters, it keeps nothing);
+   the parameters, it keeps nothing). Where some states are not measured this step is skipped (there it runs
+   through the ODE, minutes on theophylline) and F is learned at the classical fit's parameters;
 3. F for those parameters: each experiment's own parameters become known constant inputs of G
    (:mod:`~torchmisspec.population._subjects`) and :func:`~torchmisspec.fit_correction` learns F from every
    experiment with the pipeline given (model choice, the fit through the ODE where states are not measured, its do
