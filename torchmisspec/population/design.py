@@ -88,7 +88,8 @@ def misfit_scale(fit, grid: torch.Tensor) -> torch.Tensor:
     the residuals of every experiment at its data times, pooled at the nearest candidate time; a candidate time
     without data takes the nearest one's. What a sample there is worth is its measurement noise and the model's own
     misfit there: a model that misses a term misses it most at some times (a drug's late, low concentrations under
-    a missing saturable elimination), and the design should not trust those most. Without the data (``fit.data``
+    a missing saturable elimination), and the design should not trust those most. A first row given as the initial
+    state is left out (its residual is 0 by construction, not a sample's worth). Without the data (``fit.data``
     ``None``), the fit's one scale per component at every time."""
     scale = fit.nlme.modes.scale
     if fit.data is None:
@@ -97,6 +98,8 @@ def misfit_scale(fit, grid: torch.Tensor) -> torch.Tensor:
     pred = _paths(nlme.layout, fit.mean_correction, data)(nlme.thetas[None], nlme.modes.initial_states[None])[0]
     values, mask = data.observed_values()
     seen = torch.isfinite(values) & mask.unsqueeze(-1)
+    d = nlme.free.shape[-1]
+    seen[:, 0, :d] &= nlme.free.to(seen.device)  # a given initial state is the path's start, not a fitted sample
     r2 = torch.where(seen, fit.noise.transform(pred) - fit.noise.transform(values), 0.0).pow(2)
     times = data.padded()[0].expand(values.shape[:2])
     nearest = (times.unsqueeze(-1) - grid).abs().argmin(-1).reshape(-1)  # (K T,)

@@ -11,7 +11,10 @@ The subject's varying parameters are drawn from
 Each parameter draw is integrated with :data:`F_DRAWS` posterior draws of F (:meth:`CorrectedODE.posterior
 <torchmisspec.CorrectedODE.posterior>`), so the bands hold both; without a correction (F = 0 kept) the draws are of
 the parameters alone. The result is a :class:`~torchmisspec.TrajectoryPosterior` of one path: its ``interval`` is
-the band of the subject's states, ``measured(...)`` that of its new measurements.
+the band of the subject's states, ``measured(...)`` that of its new measurements. F's draws are the GP's own
+(``scale=1.0`` of :meth:`CorrectedODE.posterior <torchmisspec.CorrectedODE.posterior>`): the calibration on held-out
+experiments that :func:`~torchmisspec.fit_correction`'s models take is not defined for a population's F yet; the
+parameters' spread is most of the band, and the studies measure its coverage by leaving subjects out.
 """
 
 from __future__ import annotations
@@ -104,8 +107,13 @@ def predict_subject(
     samples = paths[1:, None]
     if not fit.known_model:
         post = fit.corrected.posterior(
-            y0.expand(num_samples, -1), times, num_samples=F_DRAWS, controls=ctrl[1:], generator=_on(generator)
-        )
+            y0.expand(num_samples, -1),
+            times,
+            num_samples=F_DRAWS,
+            controls=ctrl[1:],
+            generator=_on(generator),
+            scale=1.0,
+        )  # F's own band: the held-out calibration of fit_correction does not apply to a population's F
         samples = post.samples.reshape(-1, 1, *post.samples.shape[2:])
     T = times.shape[0]
     posterior = TrajectoryPosterior(
