@@ -9,7 +9,8 @@
    one system whose uncertain parameters are every experiment's, their prior the classical population, F integrated
    out of the derivative samples (the package's theta-and-F fit, its model chosen by evidence: this step only moves
    the parameters, it keeps nothing). Where some states are not measured this step is skipped (there it runs
-   through the ODE, minutes on theophylline) and F is learned at the classical fit's parameters;
+   through the ODE, minutes on theophylline), and above :data:`MAX_INTEGRATED` parameters in all; F is then
+   learned at the classical fit's parameters;
 3. F for those parameters: each experiment's own parameters become known constant inputs of G
    (:mod:`~torchmisspec.population._subjects`) and :func:`~torchmisspec.fit_correction` learns F from every
    experiment with the pipeline given (model choice, the fit through the ODE where states are not measured, its do
@@ -58,6 +59,9 @@ __all__ = ["PopulationFit", "fit_population", "ROUNDS"]
 
 #: rounds of (population, F): the second re-learns F at the parameters the first round's F gave
 ROUNDS = 2
+#: the most parameters (experiments x varying parameters) learned with F in the integrated start: its fit checks G's
+#: linearity in every pair of them, and R's ChickWeight (49 chicks x 2) did not finish in 15 minutes
+MAX_INTEGRATED = 40
 
 
 @dataclass(frozen=True)
@@ -223,8 +227,8 @@ def _integrated_start(system, trajectories, pipeline, classical, progress):
     """The classical fit with every experiment's parameters moved to where they are learned with F
     (:mod:`~torchmisspec.population._integrated`); the classical fit itself where that keeps F = 0, and where some
     states are not measured (the theta-and-F fit then runs through the ODE: 3-6 minutes on theophylline's 12
-    subjects, against 30 s for the whole population fit)."""
-    if trajectories.is_partial:
+    subjects, against 30 s for the whole population fit), and above :data:`MAX_INTEGRATED` parameters in all."""
+    if trajectories.is_partial or classical.modes.eta.numel() > MAX_INTEGRATED:
         return classical
     evidence = dataclasses.replace(pipeline, choice=Evidence())
     joint = _without_warnings(
