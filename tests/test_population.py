@@ -324,7 +324,7 @@ def test_fit_population_refuses_one_experiment_and_a_bad_declaration():
 
 
 def test_the_integrated_system_gives_each_experiment_its_own_parameters_and_the_population_as_prior():
-    from torchmisspec.population._integrated import experiment_parameters, integrated_system, with_experiment_index
+    from torchmisspec.population._integrated import integrated_modes, integrated_system, with_experiment_index
 
     system = tms.MisspecifiedSystem(two_parameter, 2, parameters={"ka": (1.0, 0.5), "V": (0.5, 0.2)})
     thetas = torch.tensor([[0.8, 0.4], [1.5, 0.6], [1.1, 0.5], [0.9, 0.45]], dtype=DT)
@@ -347,13 +347,14 @@ def test_the_integrated_system_gives_each_experiment_its_own_parameters_and_the_
     want = torch.stack([system.at(thetas[i]).known_rhs(y[i : i + 1])[0] for i in range(4)])
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
-    class Posterior:  # what experiment_parameters reads from a fit on the integrated system
+    class Posterior:  # what integrated_modes reads from a fit on the integrated system
         mean = eta
 
     class Fitted:
         parameters_ = Posterior()
 
-    torch.testing.assert_close(experiment_parameters(Fitted(), fit), thetas)
+    modes = integrated_modes(Fitted(), fit)
+    torch.testing.assert_close(fit.layout.theta(modes.eta, modes.shared), thetas)
 
 
 def _sloped_population(missing: bool, K=8, seed=0):

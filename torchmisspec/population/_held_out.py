@@ -30,14 +30,12 @@ from .._errors import FittingError, IntegrationError, LinearAlgebraError
 from ..learning.choice._partial_choice import _gains, better_in_every_experiment
 from ..learning.choice.cross_validation import significant_gain
 from ..learning.refinement._known_fit import held_out
-from ._modes import _paths, conditional_modes, mean_correction
+from ._modes import _paths, conditional_modes, held_prior, mean_correction
 
 __all__ = ["fits_unseen_experiments_better", "FOLDS"]
 
 #: the folds experiments are held out in (at most; one per experiment when there are fewer)
 FOLDS = 5
-#: the shared parameters' scale in a held-out experiment's fit, relative to their value: held at the population's
-HELD = 1e-9
 #: what a failed fit raises
 FAILURES = (FittingError, IntegrationError, LinearAlgebraError)
 
@@ -76,7 +74,7 @@ def _held_out_scores(fit, trajectories, scale) -> torch.Tensor:
     folds = min(FOLDS, K)
     out = torch.full((K,), math.inf, dtype=torch.float64)
     shared = nlme.modes.shared
-    prior = (shared, shared.abs().clamp_min(1e-300) * HELD)
+    prior = held_prior(shared)
     typical = nlme.values.typical(nlme.covariates)
     for f in range(folds):
         held = torch.tensor([k for k in range(K) if k % folds == f])

@@ -12,7 +12,7 @@ and an appended constant control, the experiment's index, that picks experiment 
 (and the system's own controls) as before, never the index. :func:`~torchmisspec.fit_correction` then integrates
 F out of the derivative samples to find every eta's Laplace posterior (Gauss-Newton: G is nonlinear in eta), chooses
 F there, and applies its do no harm (the known model with every eta fitted through the ODE as the rival).
-:func:`experiment_parameters` reads every experiment's parameters from that posterior's mean.
+:func:`integrated_modes` moves every experiment's eta to that posterior's mean.
 
 On the population study (``scripts/study_population.py``) the classical fit's volumes were 0.23-0.29 off in log;
 integrated with F, 0.02-0.03 where a correction was kept (three realizations, probed while building this).
@@ -26,9 +26,9 @@ import torch
 
 from ..data import Trajectories
 from ..systems import MisspecifiedSystem
-from ._subjects import _replace_controls, subject_controls
+from ._subjects import _replace_controls, subject_controls, with_appended_controls
 
-__all__ = ["integrated_system", "with_experiment_index", "experiment_parameters"]
+__all__ = ["integrated_system", "with_experiment_index", "integrated_modes"]
 
 #: the appended control that holds each experiment's index
 INDEX = "experiment index"
@@ -61,20 +61,8 @@ def integrated_system(system: MisspecifiedSystem, nlme) -> MisspecifiedSystem:
         inputs = torch.cat([u[..., :m].to(y), theta[..., layout.vary], theta[..., layout.shared]], -1)
         return inner.known(t, y, inputs)
 
-    return MisspecifiedSystem(
-        known,
-        system.state_dim,
-        correction=system.correction,
-        correction_inputs=system.correction_inputs,
-        correction_outputs=system.correction_outputs,
-        domain=system.domain,
-        name=f"{system.name} (every experiment's {', '.join(names)} integrated)",
-        state_names=system.state_names,
-        num_controls=m + 1,
-        control_names=list(system.control_names) + [_index_name(system)],
-        time_dependent=True,
-        parameters=parameters,
-    )
+    name = f"{system.name} (every experiment's {', '.join(names)} integrated)"
+    return with_appended_controls(system, known, [_index_name(system)], name, parameters)
 
 
 def with_experiment_index(trajectories: Trajectories, system: MisspecifiedSystem) -> Trajectories:
@@ -85,14 +73,6 @@ def with_experiment_index(trajectories: Trajectories, system: MisspecifiedSystem
     return _replace_controls(
         trajectories, subject_controls(trajectories.controls, index, [_index_name(system)], starts)
     )
-
-
-def experiment_parameters(gp, nlme) -> torch.Tensor:
-    """``(K, k)`` every experiment's parameters (G's order) at the posterior mean of ``gp``'s fit on
-    :func:`integrated_system`, the shared ones the fit's."""
-    K, p = nlme.covariates.shape[0], len(nlme.layout.vary)
-    eta = gp.parameters_.mean.detach().to(torch.float64).reshape(K, p)
-    return nlme.layout.theta(eta, nlme.modes.shared.detach())
 
 
 def integrated_modes(gp, nlme):

@@ -35,7 +35,10 @@ from ..learning.refinement.trajectory_fit import _solve_rhs
 from ..learning.samples._gp_in_time import observed_rms
 from ._subjects import subject_controls
 
-__all__ = ["Layout", "Modes", "conditional_modes", "mean_correction"]
+__all__ = ["Layout", "Modes", "conditional_modes", "mean_correction", "held_prior"]
+
+#: the shared parameters' prior scale, relative to their value, where they are held at a fit's values
+HELD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -75,6 +78,12 @@ class Modes:
     scale: torch.Tensor
     z: torch.Tensor
     num_residuals: int
+
+
+def held_prior(shared: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The shared parameters' prior ``(mean, scale)`` that holds them at ``shared`` in :func:`conditional_modes` (a
+    new subject's fit, a held-out experiment's): a fit of one or a few experiments cannot estimate them."""
+    return shared, shared.abs().clamp_min(1e-300) * HELD
 
 
 def mean_correction(system, gp):

@@ -21,7 +21,7 @@ from .._errors import InputError
 from ..signals import Controls
 from ..systems import MisspecifiedSystem
 
-__all__ = ["subject_system", "with_subject_inputs", "parameter_names"]
+__all__ = ["subject_system", "with_subject_inputs", "parameter_names", "with_appended_controls"]
 
 
 def parameter_names(system: MisspecifiedSystem, varying: list[int]) -> list[str]:
@@ -96,18 +96,26 @@ def subject_system(system: MisspecifiedSystem, varying: list[int], theta: torch.
         out = rows(tt, y.reshape(n, d), u[..., :m].reshape(n, m), th.reshape(n, th.shape[-1]))
         return out.reshape(y.shape)
 
+    name = f"{system.name} (each experiment's own {', '.join(names)})"
+    return with_appended_controls(system, known, parameter_names(system, varying), name)
+
+
+def with_appended_controls(system: MisspecifiedSystem, known, names: list[str], name: str, parameters=None):
+    """A system of ``system``'s states and F, its G ``known(t, y, u[, theta])`` taking ``system``'s controls followed by
+    the controls ``names`` (F never sees those), with the uncertain ``parameters`` given (default none)."""
     return MisspecifiedSystem(
         known,
-        d,
+        system.state_dim,
         correction=system.correction,
         correction_inputs=system.correction_inputs,
         correction_outputs=system.correction_outputs,
         domain=system.domain,
-        name=f"{system.name} (each experiment's own {', '.join(names)})",
+        name=name,
         state_names=system.state_names,
-        num_controls=m + len(varying),
-        control_names=list(system.control_names) + parameter_names(system, varying),
+        num_controls=system.num_controls + len(names),
+        control_names=list(system.control_names) + list(names),
         time_dependent=True,
+        parameters=parameters,
     )
 
 

@@ -27,7 +27,7 @@ from .._errors import InputError
 from .._validation import check_positive_int
 from ..data import Trajectories
 from ..prediction._bands import TrajectoryPosterior
-from ._modes import conditional_modes
+from ._modes import conditional_modes, held_prior
 from ._subjects import parameter_names, subject_controls
 from .model import covariate_matrix
 
@@ -35,8 +35,6 @@ __all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "F_DRAW
 
 #: posterior draws of F per draw of the subject's parameters
 F_DRAWS = 4
-#: the shared parameters' scale in a subject's own fit, relative to their value: held at the population's
-HELD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -67,7 +65,7 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
 
     nlme = fit.nlme
     shared = nlme.modes.shared
-    prior = (shared, shared.abs().clamp_min(1e-300) * HELD)
+    prior = held_prior(shared)
     correction = fit.mean_correction
     free = ~given_initial_states(first)
     data = first.with_initial_states(initial_guess(first, fit.system))
