@@ -191,7 +191,7 @@ def fit_population(
         warn(
             "fit_population: no correction F predicts held-out experiments better than the population without it "
             "(each experiment with its own parameters); returning the classical answer, the population with F = 0 "
-            "(do no harm; result.known_model is True)",
+            "(do no harm: known_model is True on the fit, and its summary says F = 0 kept)",
             TorchMisspecWarning,
         )
         return fitted
@@ -201,8 +201,8 @@ def fit_population(
     warn(
         f"fit_population: with the correction conditioned without them, held-out experiments (each with its own "
         f"parameters fitted) are not fitted significantly better than by the population without it (misfit "
-        f"{with_f:.3g} vs {without:.3g}); returning the classical answer, the population with F = 0 (do no harm; "
-        "result.known_model is True). Collect more experiments",
+        f"{with_f:.3g} vs {without:.3g}); returning the classical answer, the population with F = 0 (do no harm: "
+        "known_model is True on the fit, and its summary says F = 0 kept). Collect more experiments",
         TorchMisspecWarning,
     )
     return fitted.as_classical()
