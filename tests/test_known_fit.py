@@ -273,3 +273,17 @@ def test_better_in_every_experiment_at_its_edges():
     # the known model perfect where values are held out: the rival is not better there
     assert not better_in_every_experiment(torch.tensor([40.0, 0.0]), torch.tensor([1.0, 1.0]), two)
     assert not better_in_every_experiment(torch.tensor([40.0, 0.0]), torch.tensor([1.0, 0.0]), two)
+
+
+def test_relative_noise_fits_a_state_measured_far_below_its_start():
+    """A measured down to 1e-11 of its start (a = 2.5 over 10 time units), exact data compared in logarithms: the
+    fit solves to the smallest value measured, lands on the truth and finds no noise (before, the absolute tolerance
+    set by A's start made its late logarithms solver error: a 0.7 % off, A's noise scale 3 in logarithms)."""
+    rate = torch.tensor([2.5, 0.3], dtype=DT)
+    truth = tms.MisspecifiedSystem(lambda y: chain(y, rate.to(y)), 2, name="truth")
+    times = torch.linspace(0.0, 10.0, 21, dtype=DT)
+    clean = tms.simulate(truth, torch.tensor([[4.5, 0.1]], dtype=DT), times).states
+    assert float(clean[0, -1, 0]) < 1e-10 * 4.5
+    fit = fit_known_model(_system(), tms.Trajectories(times, clean), torch.tensor([[False, False]]), Relative())
+    assert fit.theta.tolist() == pytest.approx(rate.tolist(), rel=1e-4)
+    assert float(fit.scale.max()) < 1e-3

@@ -172,3 +172,15 @@ def test_the_fit_records_travel_with_the_saved_model(tmp_path, noise):
     torch.save(blob, tmp_path / "bad.pt")
     with pytest.raises(tms.InputError, match="bad.pt: expected 'fit_record' with 'noise' one of"):
         tms.CorrectionGP.load(tmp_path / "bad.pt")
+
+
+def test_relative_noise_resolves_each_states_smallest_measured_value():
+    """The smallest positive measured value per state (a state never measured, or measured only at or below 0: NaN);
+    errors of one size need no floor."""
+    states = torch.tensor([[[4.0, 0.0], [1e-3, math.nan], [2e-7, 0.5]], [[3.0, 0.0], [0.2, 0.1], [math.nan, 0.7]]])
+    data = tms.Trajectories(torch.tensor([0.0, 1.0, 2.0]), states.double())
+    assert Relative().resolution(data).tolist() == pytest.approx([2e-7, 0.1])
+    unmeasured = states.double().clone()
+    unmeasured[:, :, 1] = math.nan
+    assert math.isnan(float(Relative().resolution(tms.Trajectories(torch.tensor([0.0, 1.0, 2.0]), unmeasured))[1]))
+    assert Additive().resolution(data) is None

@@ -135,3 +135,24 @@ def test_a_row_that_leaves_the_box_stops_there_and_the_others_are_solved_as_alon
     states, _ = solve(field, y0, times, box=box)
     assert bool((states[0, 1:] > 2).all()) and float(states[0, -1]) < 2.5  # stopped just outside, not e^6
     torch.testing.assert_close(states[1:, :, 0], torch.exp(growth[1:] * times), rtol=1e-6, atol=1e-9)
+
+
+def test_a_floor_resolves_a_state_that_falls_far_below_its_start():
+    """A depot emptied at rate 2 is measured down to 1e-9 of its dose: compared in logarithms (relative noise), the
+    solve must resolve it there. At the fitting tolerances alone its logarithm is off by more than 0.1 (a 5 % noise
+    is 0.05); with its smallest measured value as ``floor``, to 1e-3."""
+    from torchmisspec._ode import FITTING_TOLERANCES, solve
+
+    times = torch.linspace(0.0, 10.0, 21, dtype=torch.float64)
+    y0 = torch.tensor([[4.5, 0.0]], dtype=torch.float64)
+    exact = (4.5 * torch.exp(-2.0 * times)).log()
+
+    def depot(y):
+        return torch.stack([-2.0 * y[..., 0], 2.0 * y[..., 0] - 0.1 * y[..., 1]], -1)
+
+    rtol, atol = FITTING_TOLERANCES
+    loose, _ = solve(depot, y0, times, rtol=rtol, atol=atol)
+    floor = torch.tensor([float(exact[-1].exp()), float("nan")], dtype=torch.float64)
+    tight, _ = solve(depot, y0, times, rtol=rtol, atol=atol, floor=floor)
+    assert float((loose[0, :, 0].clamp_min(1e-300).log() - exact).abs().max()) > 0.1
+    assert float((tight[0, :, 0].log() - exact).abs().max()) < 1e-3

@@ -238,40 +238,61 @@ def test_layout_orders_varying_then_shared():
 
 # ---- the next subject's design -------------------------------------------------------------------------------------
 def test_design_first_pick_is_the_brute_force_best_time():
-    """dy/dt = c: the sensitivity of y(t) to c is t, so one sample's information is log(1 + t^2 omega^2 / s^2) / 2:
-    the last time wins, and the score is that number."""
-    from torchmisspec.population.design import SubjectParameters, design_subject
+    """dy/dt = c: the sensitivity of y(t) to c is t, so one sample's information is log(1 + t^2 omega^2 / s^2) / 2
+    (D-optimality), and the posterior variance it leaves, in units of the spread, 1 / (1 + t^2 omega^2 / s^2) (the
+    expected error): the last time wins under both, and the scores are those numbers."""
+    from torchmisspec.population.design import Determinant, SubjectParameters, design_subject
 
     system, population = linear_system(), Population(["c"], distribution=Normal())
     fit, _, _ = _linear_fit(K=20, seed=8)
     pop = _classical(fit, system, population)
     grid = torch.tensor([0.0, 0.2, 0.5, 0.9, 0.7], dtype=DT).sort().values
-    design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
     s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.values.spread[0]) ** 2
+    design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
+    assert design.times.tolist() == [0.9]
+    assert design.score == pytest.approx(1 - 1 / (1 + 0.81 * w2 / s2), rel=1e-5)
+    target = SubjectParameters(draws=3, criterion=Determinant())
+    design = design_subject(pop, grid, 1, initial_states=[2.0], target=target)
     assert design.times.tolist() == [0.9]
     assert design.score == pytest.approx(0.5 * math.log1p(0.81 * w2 / s2), rel=1e-5)
+    with pytest.raises(tms.InputError, match="ExpectedError"):
+        SubjectParameters(criterion="D")
 
 
 def test_design_greedy_matches_brute_force_on_a_tiny_problem():
-    """Two varying parameters (a rate and a volume): the greedy pair's expected log-determinant is within
-    (1 - 1/e) of the best pair's, found by trying them all, and equal to it here."""
+    """Two varying parameters (a rate and a volume), the information in units of the spread (prior the identity):
+    the greedy pair's expected log-determinant is within (1 - 1/e) of the best pair's, found by trying them all, and
+    equal to it here; under the expected error, its first pick is the best single time, and its score that of the
+    pair it returns (the fraction of the prior's variance removed)."""
     import itertools
 
-    from torchmisspec.population.design import _greedy_parameters
+    from torchmisspec.population.design import Determinant, ExpectedError, _greedy_parameters
 
     g = torch.Generator().manual_seed(9)
     J = torch.randn(4, 6, 1, 2, generator=g, dtype=DT)
-    weights, prior = torch.tensor([4.0], dtype=DT), torch.eye(2, dtype=DT)
+    weights = torch.tensor([4.0], dtype=DT)
     allowed = torch.ones(6, dtype=torch.bool)
-    chosen, score = _greedy_parameters(J, weights, prior, 2, allowed)
+
+    def info(times):
+        return torch.eye(2, dtype=DT) + sum(torch.einsum("soa,o,sob->sab", J[:, t], weights, J[:, t]) for t in times)
+
+    chosen, score = _greedy_parameters(J, weights, Determinant(), 2, allowed)
 
     def value(pair):
-        M = prior + sum(torch.einsum("soa,o,sob->sab", J[:, t], weights, J[:, t]) for t in pair)
-        return 0.5 * float(torch.linalg.slogdet(M).logabsdet.mean())
+        return 0.5 * float(torch.linalg.slogdet(info(pair)).logabsdet.mean())
 
     best = max(itertools.combinations(range(6), 2), key=value)
     assert score == pytest.approx(value(chosen), rel=1e-10)
     assert score >= (1 - 1 / math.e) * value(best)
+
+    def removed(times):
+        return 1 - float(torch.linalg.inv(info(times)).diagonal(dim1=-2, dim2=-1).sum(-1).mean()) / 2
+
+    chosen, score = _greedy_parameters(J, weights, ExpectedError(), 2, allowed)
+    assert score == pytest.approx(removed(chosen), rel=1e-10)
+    first, _ = _greedy_parameters(J, weights, ExpectedError(), 1, allowed)
+    assert first == [max(range(6), key=lambda t: removed([t]))]
+    assert score <= max(removed(pair) for pair in itertools.combinations(range(6), 2)) + 1e-12
 
 
 def test_design_refuses_a_budget_beyond_the_candidates():

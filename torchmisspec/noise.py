@@ -27,6 +27,8 @@ which in a one-line message.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ._errors import InputError, TorchMisspecWarning, warn
@@ -75,6 +77,12 @@ class NoiseModel:
     def check(self, observed: torch.Tensor, what: str) -> None:
         """Refuse measurements this model cannot hold (the default: any finite value)."""
 
+    def resolution(self, trajectories: Trajectories) -> torch.Tensor | None:
+        """``(d,)`` the smallest magnitude of each state that a solve must resolve for this model's residuals on
+        ``trajectories`` (NaN for a state without one; ``None``, the default: the solver's own scales suffice, as
+        for errors of one size at every magnitude). Passed as :func:`~torchmisspec._ode.solve`'s ``floor``."""
+        return None
+
     def in_units(self, scale: torch.Tensor) -> NoiseModel:
         """The same model for states divided by ``scale`` ``(d,)`` (a fit in the data's units,
         :mod:`torchmisspec.learning._units`): itself, unless its residuals depend on the unit."""
@@ -116,6 +124,14 @@ class Relative(NoiseModel):
 
     def inverse(self, z):
         return torch.exp(z)
+
+    def resolution(self, trajectories):
+        """Each state's smallest positive measured value: a logarithm is compared there, so the solve must resolve it
+        to a few digits (states read only through a readout: none)."""
+        _, states, mask = trajectories.padded()
+        seen = torch.isfinite(states) & mask.unsqueeze(-1) & (states > 0)
+        low = torch.where(seen, states, torch.full_like(states, math.inf)).flatten(0, -2).amin(0)
+        return torch.where(torch.isfinite(low), low, torch.full_like(low, math.nan))
 
     def check(self, observed, what):
         seen = observed[~torch.isnan(observed)]

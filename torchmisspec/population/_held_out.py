@@ -45,7 +45,8 @@ def _scores(layout, thetas, initial_states, correction, trajectories, noise, sca
     ``thetas (K, k)`` and ``initial_states (K, d)``; ``inf`` where it cannot be integrated."""
     K = trajectories.num_experiments
     try:
-        pred = _paths(layout, correction, trajectories)(thetas[None], initial_states[None])[0]
+        floor = noise.resolution(trajectories)
+        pred = _paths(layout, correction, trajectories, floor)(thetas[None], initial_states[None])[0]
     except IntegrationError:
         return torch.full((K,), math.inf, dtype=torch.float64)
     values, _ = trajectories.observed_values()

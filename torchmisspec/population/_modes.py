@@ -101,9 +101,10 @@ def mean_correction(system, gp):
     return correction
 
 
-def _paths(layout: Layout, correction, trajectories):
+def _paths(layout: Layout, correction, trajectories, floor=None):
     """``predict(theta (V, K, k), y0 (V, K, d), max_steps) -> (V, K, T, d + m)``: every copy's paths under
-    ``G(y; theta_i) + F``, read as the data are, in one solve."""
+    ``G(y; theta_i) + F``, read as the data are, in one solve (``floor``: the noise model's
+    :meth:`~torchmisspec.noise.NoiseModel.resolution`, the solve's)."""
     times, _, _ = trajectories.padded()
     K = trajectories.num_experiments
     times = times if times.dim() == 2 else times.expand(K, -1)
@@ -119,7 +120,7 @@ def _paths(layout: Layout, correction, trajectories):
         rows = theta.reshape(V * K, -1)[:, order]
         controls = subject_controls(trajectories.controls, rows, layout.names, times[:, 0].repeat(V))
         rtol, atol = FITTING_TOLERANCES
-        solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="the population fit")
+        solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="the population fit", floor=floor)
         with torch.no_grad():  # the fit differences its solves: no graph to F's hyperparameters
             pred, nfe = _solve_rhs(inner, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), controls, **solver)
         predict.steps = nfe / EVALS_PER_STEP
@@ -146,7 +147,7 @@ class _Problem:
         self.cols = free.any(0).nonzero().flatten().tolist()
         size = observed_rms(torch.where(torch.isfinite(y_start), y_start, torch.zeros_like(y_start)))
         self.size = torch.where(size > 0, size, torch.ones_like(size))
-        self.predict = _paths(layout, correction, trajectories)
+        self.predict = _paths(layout, correction, trajectories, noise.resolution(trajectories))
         self.K, self.d = y_start.shape
         self.ks, self.kv = len(layout.shared), len(layout.vary)
         self.p = self.ks + self.K * (self.kv + len(self.cols))
@@ -203,7 +204,8 @@ def conditional_modes(
     mean ``(y, u) -> (..., d)``, :func:`mean_correction`, or ``None`` for F = 0), from ``start`` (a
     previous :class:`Modes`, whose eta and shared values are kept; default: every experiment at its typical value,
     the shared parameters at their prior mean). ``scale`` ``(d + m,)``: each component's noise scale, held fixed
-    (a new subject's few measurements cannot estimate it); default: estimated with the fit. Raises
+    (a new subject's few measurements cannot estimate it), or ``(K, T, d + m)`` one per measurement (laid out as
+    the data, :func:`~torchmisspec.population._misfit.misfit_scale`); default: estimated with the fit. Raises
     :class:`FittingError` when G cannot be integrated from the start."""
     y_start = trajectories.initial_conditions if start is None else start.initial_states
     problem = _Problem(layout, correction, trajectories, free, noise, typical, spread, prior, y_start)
@@ -219,8 +221,9 @@ def conditional_modes(
     if not bool(torch.isfinite(r).all()):
         raise FittingError("the population's model paths from the start of its fit are not finite where measured")
     weights, active = component_weights(problem.comp, problem.num_components), problem.active()
-    if scale is not None:  # held: the weights of the population's fit
-        fixed = 1 / scale.to(z).nan_to_num(nan=1.0).pow(2)[problem.comp]
+    if scale is not None:  # held: the weights of the population's fit (one per component, or per measurement)
+        held = scale.to(z).nan_to_num(nan=1.0).pow(2)
+        fixed = 1 / (held[problem.comp] if held.dim() == 1 else held[problem.seen])
         weights = lambda r: fixed  # noqa: E731
     solved = {"steps": problem.predict.steps}
     penalty = problem.penalty(z)

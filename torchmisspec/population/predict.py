@@ -27,6 +27,7 @@ from .._errors import InputError
 from .._validation import check_positive_int
 from ..data import Trajectories
 from ..prediction._bands import TrajectoryPosterior
+from ._misfit import misfit_scale
 from ._modes import conditional_modes, held_prior
 from ._subjects import parameter_names, subject_controls
 from .model import covariate_matrix
@@ -70,7 +71,10 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
     free = ~given_initial_states(first)
     data = first.with_initial_states(initial_guess(first, fit.system))
     typical, spread = nlme.values.typical(X), nlme.values.spread
-    scale = nlme.modes.scale  # the population's noise: a subject's first few measurements cannot estimate it
+    # the population's residual scale at the subject's times (the design's weights): a subject's first few
+    # measurements cannot estimate it, and a time where the population's model is off is trusted less
+    times = first.padded()[0].reshape(-1)
+    scale = misfit_scale(fit, times)[None]
     modes = conditional_modes(nlme.layout, correction, data, free, fit.noise, typical, spread, prior, scale=scale)
     return modes.eta[0], modes.covariance[0], modes.initial_states[0]
 

@@ -196,10 +196,13 @@ def predicted_residuals(system: MisspecifiedSystem, trajectories: Trajectories, 
     if times.dim() == 1:
         times = times.expand(states.shape[0], -1)
     controls = trajectories.controls
+    floor = None if noise is None else noise.resolution(trajectories)
     if field is None:
         known, timed, jumps = system.solver_field(system.known_rhs, controls)
         try:
-            pred = solve(known, first, times, rtol=rtol, atol=atol, what="the known model", timed=timed, jumps=jumps)[0]
+            pred = solve(
+                known, first, times, rtol=rtol, atol=atol, what="the known model", timed=timed, jumps=jumps, floor=floor
+            )[0]
         except IntegrationError:  # the known model alone diverges from some of these states (what F may fix)
             return None
     else:
@@ -218,6 +221,7 @@ def predicted_residuals(system: MisspecifiedSystem, trajectories: Trajectories, 
             jumps=jumps,
             box=box,
             partial=True,
+            floor=floor,
         )
         left = ((pred < box[0]) | (pred > box[1])).any(-1, keepdim=True).cummax(1).values  # from where it left
         pred = torch.where(left, torch.full_like(pred, math.inf), pred)

@@ -86,10 +86,11 @@ class KnownFit:
     num_residuals: int = 0
 
 
-def _predictor(system, trajectories: Trajectories, cost: dict | None = None):
+def _predictor(system, trajectories: Trajectories, cost: dict | None = None, floor=None):
     """``predict(thetas (V, k) or None, y0 (V, K, d), max_steps) -> (V, K, T, d + m)``: the paths of G at each of V
     parameter values from each copy's initial states, read as the data are (:meth:`Trajectories.observe`), in one
-    solve of at most ``max_steps`` steps; ``cost["steps"]`` (where given) is set to the solver steps it took."""
+    solve of at most ``max_steps`` steps; ``cost["steps"]`` (where given) is set to the solver steps it took;
+    ``floor`` the noise model's :meth:`~torchmisspec.noise.NoiseModel.resolution`, the solve's."""
     times, _, _ = trajectories.padded()
     K = trajectories.num_experiments
     times = times if times.dim() == 2 else times.expand(K, -1)
@@ -101,7 +102,7 @@ def _predictor(system, trajectories: Trajectories, cost: dict | None = None):
 
         repeated = None if controls is None else controls.repeat(V)
         rtol, atol = FITTING_TOLERANCES
-        solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="the known model's fit")
+        solver = dict(rtol=rtol, atol=atol, max_steps=max_steps, what="the known model's fit", floor=floor)
         pred, nfe = _solve_rhs(system, rhs, y0.reshape(V * K, -1), times.repeat(V, 1), repeated, **solver)
         if cost is not None:
             cost["steps"] = nfe / EVALS_PER_STEP
@@ -142,7 +143,7 @@ def fit_known_model(
     size = observed_rms(torch.where(torch.isfinite(y_start), y_start, torch.zeros_like(y_start)))
     size = torch.where(size > 0, size, torch.ones_like(size))
     solved = {"steps": 0.0}
-    predict = _predictor(system, trajectories, solved)
+    predict = _predictor(system, trajectories, solved, noise.resolution(trajectories))
     K, d = y_start.shape
 
     def unpack(z):  # (V, p) -> thetas (V, k) or None, y0 (V, K, d)
@@ -370,7 +371,7 @@ def forecast_score(system, field, trajectories: Trajectories, initial_states, ke
     try:
         pred, _ = _solve_rhs(
             system, field, initial_states, times, trajectories.controls, rtol=rtol, atol=atol,
-            max_steps=MAX_STEPS, what="the held-out forecast",
+            max_steps=MAX_STEPS, what="the held-out forecast", floor=noise.resolution(trajectories),
         )  # fmt: skip
     except IntegrationError:
         return torch.full((K,), math.inf, dtype=torch.float64)
@@ -410,7 +411,9 @@ def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, nois
         else:
             y0[1 + i, what[1], what[2]] += STEP * fit.units[i]
     try:
-        pred = noise.transform(_predictor(system, trajectories)(thetas, y0))[:, held]  # (1 + p, n_held)
+        pred = noise.transform(_predictor(system, trajectories, floor=noise.resolution(trajectories))(thetas, y0))[
+            :, held
+        ]  # (1 + p, n_held)
     except IntegrationError:
         return 0.0, math.inf
     r = pred[0] - noise.transform(values)[held]

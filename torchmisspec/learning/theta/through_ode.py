@@ -49,9 +49,10 @@ CONVERGED = 0.05
 _MAX_STEPS = 4000
 
 
-def _predict(system, gp, posterior, trajectories, thetas: torch.Tensor, draws=None) -> torch.Tensor:
+def _predict(system, gp, posterior, trajectories, thetas: torch.Tensor, draws=None, floor=None) -> torch.Tensor:
     """Every experiment from its first observed state under each of ``thetas`` ``(V, k)``: ``(V, K, T, d)``; with
-    ``draws`` (posterior draws of F, ``x (V, K, d_in) -> (V, K, d_out)``) variant v under draw v instead of F's mean."""
+    ``draws`` (posterior draws of F, ``x (V, K, d_in) -> (V, K, d_out)``) variant v under draw v instead of F's mean;
+    ``floor`` the noise model's :meth:`~torchmisspec.noise.NoiseModel.resolution`, the solve's."""
     times, states, _ = trajectories.padded()
     K = states.shape[0]
     V = thetas.shape[0]
@@ -78,6 +79,7 @@ def _predict(system, gp, posterior, trajectories, thetas: torch.Tensor, draws=No
         atol=atol,
         max_steps=_MAX_STEPS,
         what="the parameters' fit through the ODE",
+        floor=floor,
         timed=timed,
         jumps=jumps,
     )
@@ -115,6 +117,7 @@ def refine_through_ode(
     (default: the differences). Returns the refined :class:`~torchmisspec.parameters.ParameterPosterior`, or
     ``posterior`` unchanged (with a warning) when the trajectories cannot be integrated near it."""
     transform = (lambda y: y) if noise is None else noise.transform
+    floor = None if noise is None else noise.resolution(trajectories)
     _, states, mask = trajectories.padded()
     observed = mask.unsqueeze(-1) & ~torch.isnan(states)  # (K, T, d)
     observed[:, 0] = False  # the first state is where each solve starts
@@ -125,7 +128,7 @@ def refine_through_ode(
     step = (0.05 * posterior.stddev).clamp_min(1e-6 * posterior.prior_scale)
 
     def predict(thetas, draws=None):  # (V, n): the observed entries under each theta
-        return transform(_predict(system, gp, posterior, trajectories, thetas, draws)[:, observed])
+        return transform(_predict(system, gp, posterior, trajectories, thetas, draws, floor)[:, observed])
 
     def penalty(theta):
         return float(((theta - prior_mean) ** 2 / prior_var).sum())

@@ -1,0 +1,52 @@
+"""The population fit's residual scale over time: what a measurement at a time is worth.
+
+A model that misses a term misses it most at some times (a drug's late, low concentrations under a missing saturable
+elimination): the population's residuals there are the measurement noise and the model's own misfit. The design of a
+new subject (:mod:`~torchmisspec.population.design`) and the fit of its parameters to its first measurements
+(:func:`~torchmisspec.population.predict.subject_parameters`) weight a sample at time t by the inverse square of this
+scale near t, so that the design's information is the information the subject's fit draws, and neither trusts the
+times where the population's model is known to be off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ._modes import _paths
+
+__all__ = ["misfit_scale"]
+
+
+def misfit_scale(fit, grid: torch.Tensor) -> torch.Tensor:
+    """``(T, o)`` the population fit's residual root mean square at each candidate time (the noise model's space):
+    the residuals of every experiment at its data times, pooled at the nearest candidate time; a candidate time
+    without data takes the nearest one's. What a sample there is worth is its measurement noise and the model's own
+    misfit there: a model that misses a term misses it most at some times (a drug's late, low concentrations under
+    a missing saturable elimination), and the design should not trust those most. A first row given as the initial
+    state is left out (its residual is 0 by construction, not a sample's worth). Without the data (``fit.data``
+    ``None``), the fit's one scale per component at every time."""
+    scale = fit.nlme.modes.scale
+    if fit.data is None:
+        return scale.expand(grid.numel(), -1)
+    data, nlme = fit.data, fit.nlme
+    floor = fit.noise.resolution(data)
+    pred = _paths(nlme.layout, fit.mean_correction, data, floor)(nlme.thetas[None], nlme.modes.initial_states[None])[0]
+    values, mask = data.observed_values()
+    seen = torch.isfinite(values) & mask.unsqueeze(-1)
+    d = nlme.free.shape[-1]
+    seen[:, 0, :d] &= nlme.free.to(seen.device)  # a given initial state is the path's start, not a fitted sample
+    r2 = torch.where(seen, fit.noise.transform(pred) - fit.noise.transform(values), 0.0).pow(2)
+    times = data.padded()[0].expand(values.shape[:2])
+    nearest = (times.unsqueeze(-1) - grid).abs().argmin(-1).reshape(-1)  # (K T,)
+    o = values.shape[-1]
+    total = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, r2.reshape(-1, o))
+    count = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, seen.reshape(-1, o).to(r2))
+    out = torch.full_like(total, math.nan)
+    for j in range(o):
+        have = (count[:, j] > 0).nonzero().flatten()
+        if have.numel():
+            near = have[(grid[:, None] - grid[have]).abs().argmin(-1)]
+            out[:, j] = (total[near, j] / count[near, j]).sqrt()
+    return torch.where(torch.isfinite(scale).expand_as(out), out.clamp_min(1e-12), math.nan)
