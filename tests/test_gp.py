@@ -310,3 +310,32 @@ def test_a_prediction_does_not_depend_on_the_rest_of_the_batch(kind, generator):
     torch.testing.assert_close(gp.predict_mean(far)[:2], gp.predict_mean(x), rtol=1e-12, atol=1e-12)
     if kind != "features+rbf":  # far from the data a stationary posterior is the prior: mean 0
         assert float(batched.mean[2:].abs().max()) < 1e-12
+
+
+@pytest.mark.parametrize("failing", [1, 4])
+def test_a_trial_that_cannot_be_factorized_stops_the_fit_at_the_last_that_could(failing, generator, monkeypatch):
+    """A line-search trial whose K + noise overflows (a derivative-sample fit of issue 43's population study): the
+    fit keeps the last hyperparameters it could factorize, as after a failed line search, instead of raising; only a
+    start that cannot be factorized is an error."""
+    from torchmisspec._errors import LinearAlgebraError
+    from torchmisspec.gp import _mll
+
+    X, Y = _data(generator)
+    calls = [0]
+    real = _mll.factorize
+
+    def factorize(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == failing:
+            raise LinearAlgebraError("K + noise_variance * I: expected a finite matrix to factorize")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(_mll, "factorize", factorize)
+    if failing == 1:
+        with pytest.raises(tms.FittingError, match="fitting failed"):
+            tms.CorrectionGP().fit(X, Y)
+        return
+    gp = tms.CorrectionGP().fit(X, Y)
+    assert gp.n_iterations_ == -1 and gp.n_evaluations_ == failing - 1
+    assert all(math.isfinite(getattr(gp, k)) for k in ("lengthscale", "outputscale", "noise_variance"))
+    assert math.isfinite(gp.log_marginal_likelihood_)

@@ -19,7 +19,7 @@ import gpytorch
 import torch
 
 from .._errors import FittingError, LinearAlgebraError, NumericalWarning, warn
-from .._optim import maximise
+from .._optim import OptimResult, maximise
 from . import _mll
 from ._exact import IndependentOutputsGP, median_distance
 from ._relevance import fit_relevance, term_inclusion, term_price, unit_information_weights
@@ -201,6 +201,8 @@ def optimise(gp, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *
             return gp._kernel_parts(X, noise)
 
     box = lengthscale_box(gp, X)
+    last: list[torch.Tensor] = []  # the hyperparameters of the last trial that could be factorized
+    count = [0]
 
     def evaluate():
         if box is not None:  # a line-search trial far out in log space (l -> 0 makes K all NaN): project back
@@ -209,6 +211,8 @@ def optimise(gp, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *
         K, diag = matrices()
         with torch.no_grad():
             fac = _mll.factorize(K.detach(), diag.detach(), Yb, warn=False)
+            last[:] = [p.detach().clone() for p in params]
+            count[0] += 1
             if profile:
                 value, scale = _mll.profiled_mll(fac)
                 Q = _mll.gradient_weights(fac, scale)
@@ -218,14 +222,22 @@ def optimise(gp, X: torch.Tensor, Y: torch.Tensor, noise: torch.Tensor | None, *
         return value, _mll.gradient_surrogate(Q, K, diag)
 
     try:
-        result = maximise(
-            params,
-            evaluate,
-            max_iter=max_iter,
-            normaliser=float(n * d_out),
-            progress=progress,
-            desc=f"fit GP (N={n})",
-        )
+        try:
+            result = maximise(
+                params,
+                evaluate,
+                max_iter=max_iter,
+                normaliser=float(n * d_out),
+                progress=progress,
+                desc=f"fit GP (N={n})",
+            )
+        except LinearAlgebraError:
+            if not last:  # the start itself cannot be factorized
+                raise
+            with torch.no_grad():  # a line-search trial overflowed (K or its noise not finite): stop at the last one
+                for p, value in zip(params, last, strict=True):  # that could be factorized, as a failed line search
+                    p.copy_(value)
+            result = OptimResult(-1, count[0], math.nan)  # iterations unknown
         if profile:  # write the profiled output scale and the noise back into the GPyTorch modules
             with torch.no_grad():
                 K, diag = matrices()

@@ -14,9 +14,10 @@ Targets (what the design is for), as objects:
   :class:`Determinant` (D-optimality, ED as PopED names it). Times are added greedily (the log-determinant of a
   growing information matrix is submodular in the times for a fixed draw).
 
-  Why the expected error by default: the determinant rewards volume. On issue 43's design study, a depot measured
-  at late times pins its absorption rate to a hundredth of its spread, and the determinant kept buying that, while
-  the volume, known only from concentrations, stayed at half its spread: 2.9 times the standard schedule's error.
+  Why the expected error by default: the determinant rewards volume. On one realization of issue 43's design study
+  (seed 43509), its four times pinned the depot's absorption rate to a hundredth of its spread (a depot measured
+  late shows its rate best) and left the volume at half its spread; the standard schedule's first four times left
+  a fifth. The study's numbers are in ``docs/studies/population-design.md``.
 * :class:`Correction`: the information the subject's samples bring about F, conditioned on the population's data
   (:func:`~torchmisspec.design.sampling_times` on the subject's path at its typical parameters).
 

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._errors import InputError, TorchMisspecWarning, warn
+from .._errors import FittingError, InputError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
 from ..data import Trajectories
 from ..learning.choice.stage import Evidence
 from ..learning.pipeline import Pipeline
@@ -227,13 +227,21 @@ def _integrated_start(system, trajectories, pipeline, classical, progress):
     """The classical fit with every experiment's parameters moved to where they are learned with F
     (:mod:`~torchmisspec.population._integrated`); the classical fit itself where that keeps F = 0, and where some
     states are not measured (the theta-and-F fit then runs through the ODE: 3-6 minutes on theophylline's 12
-    subjects, against 30 s for the whole population fit), and above :data:`MAX_INTEGRATED` parameters in all."""
+    subjects, against 30 s for the whole population fit), and above :data:`MAX_INTEGRATED` parameters in all; the
+    classical fit too where that fit fails (it is a start: F's own fit and the EM rounds follow, and do no harm
+    judges the end)."""
     if trajectories.is_partial or classical.modes.eta.numel() > MAX_INTEGRATED:
         return classical
     evidence = dataclasses.replace(pipeline, choice=Evidence())
-    joint = _without_warnings(
-        evidence.fit, _indexed(system, classical, trajectories), integrated_system(system, classical), progress=progress
-    )
+    try:
+        joint = _without_warnings(
+            evidence.fit,
+            _indexed(system, classical, trajectories),
+            integrated_system(system, classical),
+            progress=progress,
+        )
+    except (FittingError, IntegrationError, LinearAlgebraError):  # a start, not the answer: F is learned after it
+        return classical
     if getattr(joint, "known_model_", False) or getattr(joint, "parameters_", None) is None:
         return classical
     return dataclasses.replace(classical, modes=integrated_modes(joint, classical))
