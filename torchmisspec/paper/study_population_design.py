@@ -5,14 +5,15 @@ log-normal with a 30 % spread, saturable elimination missing): in each realizati
 (:func:`~torchmisspec.population.fit.fit_population`, defaults), then the 13th subject's 4 sampling times are chosen
 among every 30 min up to 10 h by three rules:
 
-* **designed**: :func:`~torchmisspec.population.design.design_subject` for the subject's own parameters (expected
-  Bayesian D-optimality over the fitted population);
+* **designed**: :func:`~torchmisspec.population.design.design_subject` for the subject's own parameters, defaults
+  (the expected error of its parameters after the samples, averaged over the fitted population);
 * **standard**: the first 4 times of the standard schedule (0.5, 1, 1.5 and 2 h);
 * **random**: 4 times drawn at random (a new draw per realization).
 
 Each rule is scored on the same 20 new subjects drawn from the true population (dose 4.5 mg/kg): each subject's
 measurements at the rule's times (5 % noise, as the data) give its parameters by empirical Bayes under the fitted
-population (:func:`~torchmisspec.population.predict.subject_parameters`); the error is the RMS over ka and V of the
+population (:func:`~torchmisspec.population.predict.subject_parameters`, each sample weighed by the population's
+misfit scale at its time, as the design weighs it); the error is the RMS over ka and V of the
 estimate's error in units of the true spread, and the subject's predicted concentration over 10 h against its true
 path (log-RMSE). Per realization the ratio of the arms' mean errors; the table gives their geometric mean and spread.
 F is not refitted with a new subject's 4 samples here: the design's target is the subject.
