@@ -251,10 +251,12 @@ def test_design_first_pick_is_the_brute_force_best_time():
     design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
     assert design.times.tolist() == [0.9]
     assert design.score == pytest.approx(1 - 1 / (1 + 0.81 * w2 / s2), rel=1e-5)
+    assert design.description == f"expected to remove {design.score:.0%} of its parameters' variance in the population"
     target = SubjectParameters(draws=3, criterion=Determinant())
     design = design_subject(pop, grid, 1, initial_states=[2.0], target=target)
     assert design.times.tolist() == [0.9]
     assert design.score == pytest.approx(0.5 * math.log1p(0.81 * w2 / s2), rel=1e-5)
+    assert design.description == f"expected information about its parameters {design.score:.3g} nats"
     with pytest.raises(tms.InputError, match="ExpectedError"):
         SubjectParameters(criterion="D")
 

@@ -55,7 +55,8 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
     printed = capsys.readouterr().out
     assert code == 0
     assert "fitted a population of 12 experiments" in printed and "c ~ weight" in printed
-    assert "next subject: sample at 0.75, 1 from the initial state (2)" in printed
+    assert "next subject: sample at 0.75, 1 from the initial state (2); expected to remove " in printed
+    assert "of its parameters' variance in the population" in printed
     rows = list(csv.reader(out.open()))
     assert rows[0] == ["subject", "c"] and [r[0] for r in rows[1:]] == [str(k) for k in range(1, 13)]
     effect = float(printed.split("c ~ weight: ")[1].split()[0])

@@ -116,7 +116,7 @@ def _design(args: argparse.Namespace, fit, request) -> None:
     state = ", ".join(f"{v:g}" for v in design.initial_state.tolist())
     print(
         f"next subject: sample at {', '.join(f'{t:g}' for t in design.times.tolist())} from the initial state "
-        f"({state}); expected information about its parameters {design.score:.3g} nats"
+        f"({state}); {design.description}"
     )
 
 

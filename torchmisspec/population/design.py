@@ -57,6 +57,9 @@ class Determinant:
     def score(self, M: torch.Tensor) -> float:
         return 0.5 * float(self(M).mean())
 
+    def describe(self, score: float) -> str:
+        return f"expected information about its parameters {score:.3g} nats"
+
     def __repr__(self) -> str:
         return "Determinant()"
 
@@ -71,6 +74,9 @@ class ExpectedError:
 
     def score(self, M: torch.Tensor) -> float:
         return 1.0 + float(self(M).mean()) / M.shape[-1]
+
+    def describe(self, score: float) -> str:
+        return f"expected to remove {score:.0%} of its parameters' variance in the population"
 
     def __repr__(self) -> str:
         return "ExpectedError()"
@@ -87,12 +93,20 @@ class SubjectParameters:
             raise InputError(f"criterion: expected ExpectedError() or Determinant(), got {criterion!r:.80}")
         self.criterion = criterion
 
+    def describe(self, score: float) -> str:
+        """What ``score`` means, in words (the criterion's)."""
+        return self.criterion.describe(score)
+
     def __repr__(self) -> str:
         return f"SubjectParameters(draws={self.draws}, criterion={self.criterion!r})"
 
 
 class Correction:
     """Design for F: the information about F of the subject's samples (the module's notes)."""
+
+    def describe(self, score: float) -> str:
+        """What ``score`` means, in words."""
+        return f"expected information about F {score:.3g} nats"
 
     def __repr__(self) -> str:
         return "Correction()"
@@ -101,12 +115,15 @@ class Correction:
 @dataclass(frozen=True)
 class SubjectDesign:
     """A new subject's design (:func:`design_subject`): its sampling ``times`` (increasing), its ``initial_state``
-    (the chosen candidate), the design's ``score`` (nats) and every candidate initial state's ``scores``."""
+    (the chosen candidate), the design's ``score`` (the target's criterion: the fraction of the parameters'
+    variance removed, or nats), every candidate initial state's ``scores``, and ``description``: the score in
+    words."""
 
     times: torch.Tensor
     initial_state: torch.Tensor
     score: float
     scores: torch.Tensor
+    description: str = ""
 
 
 def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
@@ -172,7 +189,8 @@ def design_subject(
     designs = [_one(fit, grid, budget, y0, X, target, generator) for y0 in starts]
     scores = torch.tensor([s for _, s in designs], dtype=torch.float64)
     best = int(scores.argmax())
-    return SubjectDesign(grid[designs[best][0]], starts[best], float(scores[best]), scores)
+    score = float(scores[best])
+    return SubjectDesign(grid[designs[best][0]], starts[best], score, scores, target.describe(score))
 
 
 def _one(fit, grid, budget, y0, X, target, generator):
