@@ -102,9 +102,8 @@ class CorrectionGP(Readout):
     After :meth:`fit`: ``lengthscale``, ``outputscale`` and ``noise_variance`` hold the values in use (floats, or
     tensors ``(d_out,)`` when ``per_output``; with known per-sample noise, ``noise_variance`` is the floor added to
     it); ``train_noise_`` the known noise ``(N, d_out)`` or ``None``; ``log_marginal_likelihood_`` the exact log
-    marginal likelihood (nats, summed over outputs) at those values; ``n_iterations_`` and ``n_evaluations_`` the
-    L-BFGS iterations (-1 where a line-search trial could not be factorized and the fit stopped at the last trial
-    that could) and likelihood evaluations of the final optimisation pass; ``model`` the GPyTorch ``ExactGP``
+    marginal likelihood (nats, summed over outputs) at those values; ``n_iterations_`` (-1: stopped at a trial it
+    could not factorize) and ``n_evaluations_`` the final optimisation pass's; ``model`` the GPyTorch ``ExactGP``
     holding the hyperparameters and the training data. With ``kernel="auto"``, ``kernel`` is the kernel chosen and
     ``model_selection_`` a list of dictionaries (``kernel``, ``log_marginal_likelihood``, ``hyperparameters``
     (the number learned), ``score`` (:attr:`evidence_score`), ``seconds``, ``error`` of a candidate that failed,
