@@ -9,6 +9,7 @@ denominator. The EM update and the standard errors have closed forms too (module
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -408,3 +409,29 @@ def test_a_missing_term_every_experiment_shares_is_learned_and_none_is_refused()
     with pytest.warns(tms.TorchMisspecWarning, match="not fitted significantly better"):
         none = fit_population(_sloped_population(False), linear_system(), population, noise="additive", progress=False)
     assert none.known_model and none.nlme is none.classical
+
+
+def test_the_population_residuals_are_solved_once_for_every_design_and_new_subject(monkeypatch):
+    """The residual scale by time (the design's weights, a new subject's) comes from one solve of the population's
+    experiments, kept on the fit: a second design and a new subject's fit do not solve them again, and the scale is
+    the same."""
+    from torchmisspec.population import _misfit
+    from torchmisspec.population.design import design_subject, misfit_scale
+    from torchmisspec.population.predict import subject_parameters
+
+    fit, data, _ = _linear_fit(K=6, seed=11)
+    pop = dataclasses.replace(_classical(fit, linear_system(), Population(["c"], distribution=Normal())), data=data)
+    calls = [0]
+    real = _misfit._paths
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(_misfit, "_paths", counted)
+    grid = torch.tensor([0.0, 0.5, 1.0], dtype=DT)
+    first = misfit_scale(pop, grid)
+    design_subject(pop, grid, 1, initial_states=[2.0])
+    subject_parameters(pop, data[0], torch.zeros(1, 0, dtype=DT))
+    assert calls[0] == 1
+    torch.testing.assert_close(misfit_scale(pop, grid), first)

@@ -16,33 +16,43 @@ import torch
 
 from ._modes import _paths
 
-__all__ = ["misfit_scale"]
+__all__ = ["misfit_scale", "residuals_by_time"]
 
 
-def misfit_scale(fit, grid: torch.Tensor) -> torch.Tensor:
-    """``(T, o)`` the population fit's residual root mean square at each candidate time (the noise model's space):
-    the residuals of every experiment at its data times, pooled at the nearest candidate time; a candidate time
-    without data takes the nearest one's. What a sample there is worth is its measurement noise and the model's own
-    misfit there: a model that misses a term misses it most at some times (a drug's late, low concentrations under
-    a missing saturable elimination), and the design should not trust those most. A first row given as the initial
-    state is left out (its residual is 0 by construction, not a sample's worth). Without the data (``fit.data``
-    ``None``), the fit's one scale per component at every time."""
-    scale = fit.nlme.modes.scale
-    if fit.data is None:
-        return scale.expand(grid.numel(), -1)
+def residuals_by_time(fit) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(times (N,), squares (N, o), seen (N, o))``: every measurement's time, its squared residual under the
+    population ``fit`` (the noise model's space; 0 where not seen) and whether it was seen, over all experiments. A
+    first row given as the initial state is not seen (its residual is 0 by construction, not a sample's worth).
+    One solve of every experiment; :class:`~torchmisspec.population.fit.PopulationFit` keeps it
+    (``fit.residuals_by_time``)."""
     data, nlme = fit.data, fit.nlme
     floor = fit.noise.resolution(data)
     pred = _paths(nlme.layout, fit.mean_correction, data, floor)(nlme.thetas[None], nlme.modes.initial_states[None])[0]
     values, mask = data.observed_values()
     seen = torch.isfinite(values) & mask.unsqueeze(-1)
     d = nlme.free.shape[-1]
-    seen[:, 0, :d] &= nlme.free.to(seen.device)  # a given initial state is the path's start, not a fitted sample
+    seen[:, 0, :d] &= nlme.free.to(seen.device)
     r2 = torch.where(seen, fit.noise.transform(pred) - fit.noise.transform(values), 0.0).pow(2)
     times = data.padded()[0].expand(values.shape[:2])
-    nearest = (times.unsqueeze(-1) - grid).abs().argmin(-1).reshape(-1)  # (K T,)
     o = values.shape[-1]
-    total = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, r2.reshape(-1, o))
-    count = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, seen.reshape(-1, o).to(r2))
+    return times.reshape(-1), r2.reshape(-1, o), seen.reshape(-1, o)
+
+
+def misfit_scale(fit, grid: torch.Tensor) -> torch.Tensor:
+    """``(T, o)`` the population fit's residual root mean square at each candidate time (the noise model's space):
+    the residuals of every experiment at its data times (:func:`residuals_by_time`), pooled at the nearest candidate
+    time; a candidate time without data takes the nearest one's. What a sample there is worth is its measurement
+    noise and the model's own misfit there: a model that misses a term misses it most at some times (a drug's late,
+    low concentrations under a missing saturable elimination), and the design should not trust those most. Without
+    the data (``fit.data`` ``None``), the fit's one scale per component at every time."""
+    scale = fit.nlme.modes.scale
+    if fit.data is None:
+        return scale.expand(grid.numel(), -1)
+    times, r2, seen = fit.residuals_by_time
+    nearest = (times.unsqueeze(-1) - grid).abs().argmin(-1)  # (N,)
+    o = r2.shape[-1]
+    total = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, r2)
+    count = torch.zeros(grid.numel(), o, dtype=r2.dtype).index_add_(0, nearest, seen.to(r2))
     out = torch.full_like(total, math.nan)
     for j in range(o):
         have = (count[:, j] > 0).nonzero().flatten()

@@ -36,6 +36,7 @@ answer does; otherwise the classical answer is returned, with a warning.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 from dataclasses import dataclass
 
@@ -50,6 +51,7 @@ from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
 from ._held_out import fits_unseen_experiments_better
 from ._integrated import integrated_modes, integrated_system, with_experiment_index
+from ._misfit import residuals_by_time
 from ._modes import mean_correction
 from ._subjects import parameter_names, subject_system, with_subject_inputs
 from .model import Population
@@ -91,6 +93,13 @@ class PopulationFit:
     def known_model(self) -> bool:
         """Whether F = 0 (the classical answer: no correction, or do no harm kept F = 0)."""
         return self.gp is None or bool(getattr(self.gp, "known_model_", False))
+
+    @functools.cached_property
+    def residuals_by_time(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every measurement's time, squared residual and whether seen
+        (:func:`~torchmisspec.population._misfit.residuals_by_time`): solved once, read by every design and every
+        new subject's fit (:func:`~torchmisspec.population._misfit.misfit_scale`)."""
+        return residuals_by_time(self)
 
     def as_classical(self) -> PopulationFit:
         """The classical answer as a fit of its own: the population fitted with F = 0, no correction (what

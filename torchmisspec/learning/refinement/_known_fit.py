@@ -411,9 +411,8 @@ def forecast_check(system, fit: KnownFit, trajectories: Trajectories, keep, nois
         else:
             y0[1 + i, what[1], what[2]] += STEP * fit.units[i]
     try:
-        pred = noise.transform(_predictor(system, trajectories, floor=noise.resolution(trajectories))(thetas, y0))[
-            :, held
-        ]  # (1 + p, n_held)
+        predict = _predictor(system, trajectories, floor=noise.resolution(trajectories))
+        pred = noise.transform(predict(thetas, y0))[:, held]  # (1 + p, n_held)
     except IntegrationError:
         return 0.0, math.inf
     r = pred[0] - noise.transform(values)[held]
