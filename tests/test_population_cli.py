@@ -61,6 +61,9 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
     assert rows[0] == ["subject", "c"] and [r[0] for r in rows[1:]] == [str(k) for k in range(1, 13)]
     effect = float(printed.split("c ~ weight: ")[1].split()[0])
     assert effect == pytest.approx(0.02, abs=0.01)
+    lo, hi = (float(v) for v in printed.split("95% [")[1].split("]")[0].split(","))
+    assert lo < 0.02 < hi  # the effect's interval holds the truth
+    assert "95% interval" in printed
 
 
 @pytest.mark.parametrize(

@@ -149,15 +149,20 @@ def run_one(task: tuple[int, dict]) -> dict:
     pooled = tms.fit_correction(data, sys_, noise="relative", progress=False)
     out["f_error_ignoring_spread"] = f_error(pooled, domain)
     out["f_error_zero"] = f_error(None, domain)
-    out.update(_population_values(fit))
+    out.update(_population_values(fit, thetas))
     out.update(_new_subject(fit, g))
     return out
 
 
-def _population_values(fit) -> dict:
+def _population_values(fit, thetas: torch.Tensor) -> dict:
+    """The population's values against the truth: in standard errors, and whether their 95 % intervals hold it;
+    and the drawn subjects' own sample mean and spread of log theta (what 12 subjects can tell at best)."""
     vals, se = fit.nlme.values, fit.nlme.standard_errors
+    ci = fit.nlme.intervals(0.95)
     true_mean = torch.tensor([math.log(TRUE[k][0]) for k in PRIORS], dtype=DT)
     true_spread = torch.tensor([TRUE[k][1] for k in PRIORS], dtype=DT)
+    inside = [((ci.mean[:, 0] <= true_mean) & (true_mean <= ci.mean[:, 1])).tolist()]
+    inside.append(((ci.spread[:, 0] <= true_spread) & (true_spread <= ci.spread[:, 1])).tolist())
     return {
         "mean": vals.mean.tolist(),
         "mean_se": se[0].tolist(),
@@ -165,6 +170,11 @@ def _population_values(fit) -> dict:
         "spread_se": se[1].tolist(),
         "mean_z": ((vals.mean - true_mean) / se[0]).tolist(),
         "spread_z": ((vals.spread - true_spread) / se[1]).tolist(),
+        "mean_interval": ci.mean.tolist(),
+        "spread_interval": ci.spread.tolist(),
+        "in_interval": inside[0] + inside[1],
+        "sample_mean": thetas.log().mean(0).tolist(),
+        "sample_spread": thetas.log().std(0).tolist(),
     }
 
 
@@ -213,6 +223,7 @@ def table(result: dict) -> str:
         f"| F error / ignoring the spread | {vs_pooled} | <= {GOALS['vs_ignoring_spread']} |",
         f"| population values within 2 SE (4 per realization) | {sum(v <= 2 for v in z)} of {len(z)} "
         f"({sum(v <= 2 for v in z) / len(z):.0%}); all 4 in {all_in} of {n} | >= {GOALS['within_2se']:.0%} |",
+        _coverage(runs),
         f"| new subject from 2 measurements, log-RMSE / classical | {new} | <= 1 |",
         f"| a correction kept | {sum(not r['known_model'] for r in runs)} of {n} | |",
         f"| fit seconds (median) | {sorted(r['fit_seconds'] for r in runs)[n // 2]:.1f} | |",
@@ -220,18 +231,32 @@ def table(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _coverage(runs: list[dict]) -> str:
+    """The row of the 95 % intervals' coverage (runs without it, from before the intervals, give none)."""
+    held = [v for r in runs for v in r.get("in_interval", [])]
+    if not held:
+        return "| population values within their 95 % interval | (not measured in this run) | |"
+    whole = sum(all(r["in_interval"]) for r in runs)
+    return (
+        f"| population values within their 95 % interval (t; chi-square for a spread) | {sum(held)} of {len(held)} "
+        f"({sum(held) / len(held):.0%}); all 4 in {whole} of {len(runs)} | |"
+    )
+
+
 def per_realization(result: dict) -> str:
     lines = [
-        "| seed | F error | known params | ignoring spread | F = 0 | z (mu ka, mu V) | z (omega ka, omega V) | new "
-        "subject: package / classical / population only |",
-        "|---" * 8 + "|",
+        "| seed | F error | known params | ignoring spread | F = 0 | z (mu ka, mu V) | z (omega ka, omega V) | "
+        "omega ka, V: fit / the 12 drawn | new subject: package / classical / population only |",
+        "|---" * 9 + "|",
     ]
     for r in result["runs"]:
         zm = ", ".join(f"{v:+.2f}" for v in r["mean_z"])
         zs = ", ".join(f"{v:+.2f}" for v in r["spread_z"])
+        drawn = " / ".join(f"{a:.2f}, {b:.2f}" for a, b in [r["spread"], r.get("sample_spread", [math.nan] * 2)])
         lines.append(
             f"| {r['seed']} | {r['f_error']:.3g} | {r['f_error_known_parameters']:.3g} | "
-            f"{r['f_error_ignoring_spread']:.3g} | {r['f_error_zero']:.3g} | {zm} | {zs} | {r['new_package']:.3f} / "
+            f"{r['f_error_ignoring_spread']:.3g} | {r['f_error_zero']:.3g} | {zm} | {zs} | {drawn} | "
+            f"{r['new_package']:.3f} / "
             f"{r['new_classical']:.3f} / {r['new_package_population_only']:.3f} |"
         )
     return "\n".join(lines) + "\n"

@@ -122,30 +122,33 @@ class PopulationFit:
         return None if self.gp is None else CorrectedODE(self.subject_system, self.gp)
 
     def summary(self) -> str:
-        """The population's values in a few lines: each varying parameter's typical value, its spread and standard
-        errors, with the classical answer's beside them."""
+        """The population's values in a few lines: each varying parameter's typical value and spread with their
+        95 % intervals (:meth:`~torchmisspec.population.nlme.NLMEFit.intervals`), the classical answer's beside."""
         names = self.population.varying
-        lines = [f"{'parameter':<12}{'typical':>12}{'(SE)':>10}{'spread':>10}{'(SE)':>10}{'classical':>12}"]
-        vals, se = self.nlme.values, self.nlme.standard_errors
+        head = f"{'parameter':<12}{'typical':>11}{'95% interval':>22}{'spread':>9}{'95% interval':>18}{'classical':>11}"
+        lines = [head]
+        vals, se, ci = self.nlme.values, self.nlme.standard_errors, self.nlme.intervals(0.95)
         dists = self.nlme.layout.distributions
         for j, n in enumerate(names):
-            typical = float(dists[j].from_eta(vals.mean[j]))
-            classical = float(dists[j].from_eta(self.classical.values.mean[j]))
+            typical, classical = (float(dists[j].from_eta(v.mean[j])) for v in (vals, self.classical.values))
+            lo, hi = (float(dists[j].from_eta(v)) for v in ci.mean[j])
+            s_lo, s_hi = (float(v) for v in ci.spread[j])
             lines.append(
-                f"{n:<12}{typical:>12.4g}{float(se[0][j]):>10.2g}{float(vals.spread[j]):>10.3g}"
-                f"{float(se[1][j]):>10.2g}{classical:>12.4g}"
+                f"{n:<12}{typical:>11.4g}{f'[{lo:.4g}, {hi:.4g}]':>22}{float(vals.spread[j]):>9.3g}"
+                f"{f'[{s_lo:.3g}, {s_hi:.3g}]':>18}{classical:>11.4g}"
             )
         names_c = self.population.covariate_names
         for j, n in enumerate(names):
             for c, name in enumerate(names_c):
                 if bool(vals.acts[j, c]):
+                    lo, hi = (float(v) for v in ci.effects[j, c])
                     lines.append(
-                        f"  {n} ~ {name}: {float(vals.effects[j, c]):+.4g} per unit (SE {float(se[2][j, c]):.2g}) in "
-                        f"eta, around {name} = {float(vals.centre[c]):.4g}"
+                        f"  {n} ~ {name}: {float(vals.effects[j, c]):+.4g} per unit (SE {float(se[2][j, c]):.2g}, "
+                        f"95% [{lo:+.4g}, {hi:+.4g}]) in eta, around {name} = {float(vals.centre[c]):.4g}"
                     )
         kind = "F = 0 kept (the classical answer)" if self.known_model else "a correction F learned"
         coordinates = ", ".join(dict.fromkeys(f"{d.name}: {_eta(d)}" for d in dists))
-        lines.append(f"typical and spread in eta = {coordinates}; SE of the typical value in eta; {kind}")
+        lines.append(f"spread in eta = {coordinates}; {kind}")
         return "\n".join(lines)
 
 

@@ -1,0 +1,110 @@
+"""How well the population's values are known: their standard errors and confidence intervals.
+
+**Standard errors** come from the Fisher information of the linearised marginal model: experiment i's mode
+estimates its eta_i with a data-only variance tau_i^2 (1 / C_i = 1 / tau_i^2 + 1 / omega^2, C_i its Laplace
+variance), so that the modes' marginal variance is omega^2 + tau_i^2; then Cov(beta) = (X^T W X)^-1,
+W = diag(1 / (omega^2 + tau_i^2)), and Var(omega^2) = 2 / (sum_i W_i^2 (K - p) / K), p the parameter's fixed effects
+(REML's count, as the fit's spread; :mod:`~torchmisspec.population.nlme`), SE(omega) = SE(omega^2) / (2 omega).
+
+**Intervals** (:func:`intervals`) have the shapes of the exact ones where every experiment's eta is known:
+
+* a typical value or a covariate's effect: beta +- t SE, Student's t with K - p degrees of freedom (the one-sample t
+  interval where the experiments are known exactly);
+* a spread: omega^2 as a scaled chi-square with Satterthwaite's degrees of freedom nu = 2 omega^4 / Var(omega^2)
+  (K - p where the experiments are known exactly: the textbook interval of a normal sample's variance).
+
+Why not omega +- 2 SE: a spread's sampling distribution is skewed. At 12 subjects, a sample whose spread comes out
+at 70 % of the truth has a Wald interval that stops short of the truth, while the chi-square interval reaches it;
+issue 43's population study counts both (``docs/studies/population.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .._errors import InputError
+
+__all__ = ["Intervals", "intervals", "standard_errors"]
+
+
+@dataclass(frozen=True)
+class Intervals:
+    """Confidence intervals at ``level``, in eta's coordinates: ``mean (k_v, 2)`` the typical values', ``spread
+    (k_v, 2)`` the spreads', ``effects (k_v, c, 2)`` the covariates' effects' (NaN where an effect is not estimated);
+    the last axis is (lower, upper)."""
+
+    level: float
+    mean: torch.Tensor
+    spread: torch.Tensor
+    effects: torch.Tensor
+
+
+def _design(values, X: torch.Tensor, j: int) -> torch.Tensor:
+    """``(K, p)``: the intercept and the centred covariates acting on parameter ``j``."""
+    Xc = X - values.centre
+    return torch.cat([torch.ones(X.shape[0], 1, dtype=X.dtype), Xc[:, values.acts[j]]], -1)
+
+
+def _weights(values, modes, j: int) -> torch.Tensor:
+    """``(K,)`` W_i = 1 / (omega^2 + tau_i^2) of parameter ``j`` (the module's notes; 0 for an experiment its data do
+    not inform)."""
+    w2 = values.spread[j] ** 2
+    var = modes.covariance[:, j, j]
+    informed = var < w2 * (1 - 1e-9)
+    tau2 = torch.where(informed, var * w2 / (w2 - var), torch.full_like(var, math.inf))
+    return 1 / (w2 + tau2)
+
+
+def _spread_information(values, modes, j: int, K: int, p: int) -> float:
+    """The information about omega_j^2: sum_i W_i^2 / 2, times REML's (K - p) / K."""
+    return 0.5 * float(_weights(values, modes, j).pow(2).sum()) * max(K - p, 1) / K
+
+
+def standard_errors(values, modes, X: torch.Tensor) -> tuple:
+    """``(mean (k_v,), spread (k_v,), effects (k_v, c))`` standard errors (the module's notes)."""
+    K, kv = modes.eta.shape
+    se_mean, se_spread = torch.empty(kv, dtype=X.dtype), torch.empty(kv, dtype=X.dtype)
+    se_effects = torch.zeros_like(values.effects)
+    for j in range(kv):
+        D = _design(values, X, j)
+        W = _weights(values, modes, j)
+        try:
+            cov = torch.linalg.inv(D.T @ (W[:, None] * D))
+            se_mean[j], se_effects[j, values.acts[j]] = cov.diagonal()[0].sqrt(), cov.diagonal()[1:].sqrt()
+        except torch.linalg.LinAlgError:
+            se_mean[j] = math.inf
+        info = _spread_information(values, modes, j, K, D.shape[-1])
+        se_spread[j] = (1 / math.sqrt(info) if info > 0 else math.inf) / (2 * float(values.spread[j]))
+    return se_mean, se_spread, se_effects
+
+
+def intervals(values, modes, X: torch.Tensor, level: float = 0.95) -> Intervals:
+    """:class:`Intervals` of the population's ``values`` fitted with the experiments' ``modes`` and covariates
+    ``X (K, c)`` at ``level`` (the module's notes)."""
+    if isinstance(level, bool) or not isinstance(level, float | int) or not 0 < level < 1:
+        raise InputError(f"level: expected a confidence level strictly between 0 and 1 (0.95), got {level!r:.40}")
+    from scipy import stats
+
+    K, kv = modes.eta.shape
+    tail = (1 - float(level)) / 2
+    se_mean, _, se_effects = standard_errors(values, modes, X)
+    mean = torch.empty(kv, 2, dtype=X.dtype)
+    spread = torch.empty(kv, 2, dtype=X.dtype)
+    effects = torch.full((*values.effects.shape, 2), math.nan, dtype=X.dtype)
+    for j in range(kv):
+        p = 1 + int(values.acts[j].sum())
+        t = float(stats.t.ppf(1 - tail, max(K - p, 1)))
+        mean[j] = values.mean[j] + t * se_mean[j] * torch.tensor([-1.0, 1.0], dtype=X.dtype)
+        acts = values.acts[j]
+        effects[j, acts] = values.effects[j, acts, None] + t * se_effects[j, acts, None] * torch.tensor([-1.0, 1.0])
+        w2 = float(values.spread[j]) ** 2
+        nu = 2 * w2**2 * _spread_information(values, modes, j, K, p)  # Satterthwaite: 2 omega^4 / Var(omega^2)
+        if nu > 0:
+            chi = stats.chi2.ppf([1 - tail, tail], nu)
+            spread[j] = torch.tensor(nu * w2 / chi, dtype=X.dtype).sqrt()
+        else:
+            spread[j] = torch.tensor([0.0, math.inf], dtype=X.dtype)
+    return Intervals(float(level), mean, spread, effects)
