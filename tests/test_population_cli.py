@@ -74,9 +74,45 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
         (["--covariate", "c=age"], "expected covariate column(s) ['age']"),
         (["--next-times", "0,1"], "--budget: expected the number of samples"),
         (["--next-times", "0,1", "--budget", "1"], "--next-initial: expected the next subject's initial state"),
+        (["--first", "lab.csv"], "--first: expected --predict-times with it"),
+        (["--predict-times", "0,1"], "--next-initial: expected the next subject's initial state"),
+        (["--predict-times", "1,0.5", "--next-initial", "2"], "--predict-times: expected finite, strictly increasing"),
+        (["--predict-times", "0:1", "--next-initial", "2"], "--predict-times: expected 'start:stop:count'"),
+        (["--predict-times", "0,1", "--next-initial", "2", "--level", "90"], "--level: expected a band's coverage"),
     ],
 )
 def test_population_errors_are_one_line(lab, capsys, extra, message):
     assert _run(lab, *extra) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err and "Traceback" not in err
+
+
+def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
+    """Subject 3's own rows as the next subject's first measurements: its parameter is the one the population fit
+    gave subject 3, its band holds its samples and is narrower than the population alone's, written past the data's
+    last time."""
+    rows = list(csv.reader((lab / "lab.csv").open()))
+    own = [r for r in rows[1:] if r[1] == "3"]
+    with (lab / "first.csv").open("w", newline="") as fh:
+        csv.writer(fh).writerows([["time", "y", "weight"], *([r[2], r[0], r[3]] for r in own)])
+    weight = f"weight={own[0][3]}"
+    common = ["--covariate", "c=weight", "--out", str(lab / "s.csv"), "--predict-times", "0:2:11", "--next-covariate",
+              weight]  # fmt: skip
+    assert _run(lab, *common, "--first", str(lab / "first.csv"), "--predict-out", str(lab / "updated.csv")) == 0
+    printed = capsys.readouterr().out
+    assert "next subject from its first 6 measurements: c = " in printed and "past the data's last time 1" in printed
+    fitted = {r[0]: float(r[1]) for r in list(csv.reader((lab / "s.csv").open()))[1:]}
+    # within its posterior sd (0.05 noise at 5 times up to 1: about 0.03); the weights differ (the new subject's
+    # samples are weighed by the population's residual scale at their times)
+    assert float(printed.split("c = ")[1].split(";")[0]) == pytest.approx(fitted["3"], abs=0.03)
+    assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "alone.csv")) == 0
+    assert "next subject from the population alone" in capsys.readouterr().out
+    updated, alone = (
+        [list(map(float, r)) for r in list(csv.reader((lab / n).open()))[1:]] for n in ("updated.csv", "alone.csv")
+    )
+    assert list(csv.reader((lab / "updated.csv").open()))[0] == ["time", "y_mean", "y_lower", "y_upper"]
+    assert [r[0] for r in updated] == pytest.approx([0.2 * i for i in range(11)])
+    assert updated[-1][3] - updated[-1][2] < 0.8 * (alone[-1][3] - alone[-1][2])  # narrower at t = 2
+    for t, y in ((float(r[2]), float(r[0])) for r in own[1:]):
+        row = updated[round(t / 0.2)]
+        assert row[2] - 0.15 < y < row[3] + 0.15  # its samples (noise 0.05) near its band

@@ -4,7 +4,9 @@ Reads the lab's table as ``fit`` does (one experiment per subject: ``--experimen
 (:func:`~torchmisspec.population.fit.fit_population`: the parameters named by ``--vary`` differ between subjects,
 log-normal by default, shifted by the covariates of ``--covariate``), prints the population's values beside the
 classical answer's and writes every subject's parameters to a CSV. With ``--next-times`` and ``--budget``, it also
-designs the next subject's sampling times (and, with several ``--next-initial``, its starting state: a dose).
+designs the next subject's sampling times (and, with several ``--next-initial``, its starting state: a dose). With
+``--predict-times``, it predicts the next subject's path with its band: from its first measurements (``--first``, a
+table of that subject's rows), or from the population alone (its ``--next-initial``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import argparse
 
 from .._errors import InputError
 from ._common import add_data_options, add_system_option, check_output, read_observations, write_csv
+from ._tables import parse_times
 
 
 def _names(text: str, option: str) -> list[str]:
@@ -62,6 +65,7 @@ def _population(args: argparse.Namespace) -> int:
     system = load_system(args.system)
     population.indices(system)  # the names checked before the work
     request = _design_request(args, system, population)
+    prediction = _prediction_request(args, system, population)
     observed = read_observations(args, system)
     columns = list(population.covariate_names)
     values = read_covariates(args.data, columns, experiment_column=args.experiment_column or None) if columns else None
@@ -79,6 +83,8 @@ def _population(args: argparse.Namespace) -> int:
     print(f"every experiment's parameters written to {out}")
     if request is not None:
         _design(args, fit, request)
+    if prediction is not None:
+        _predict_next(args, fit, prediction, observed)
     return 0
 
 
@@ -91,21 +97,105 @@ def _design_request(args: argparse.Namespace, system, population):
         return None
     if args.budget is None:
         raise InputError("--budget: expected the number of samples of the next subject with --next-times, got none")
+    given = _next_covariates(args, population)
+    starts = _next_initial(args, system)
+    if not starts:
+        raise InputError(_initial_message(system, "(repeat it for several candidates)", starts))
+    times = torch.tensor(_numbers(args.next_times, "--next-times"), dtype=torch.float64)
+    return times, torch.tensor(starts, dtype=torch.float64), given
+
+
+def _next_covariates(args: argparse.Namespace, population) -> dict | None:
+    """The next subject's covariates of ``--next-covariate``, one for each the population names."""
     given = dict(_pair(item) for item in args.next_covariate or [])
     wanted = list(population.covariate_names)
     if sorted(given) != sorted(wanted):
         raise InputError(
             f"--next-covariate: expected the next subject's {wanted} as NAME=VALUE (one each), got {sorted(given)}"
         )
-    d = system.state_dim
+    return given or None
+
+
+def _next_initial(args: argparse.Namespace, system) -> list[list[float]]:
+    """The candidate initial states of ``--next-initial``, each of the system's size."""
     starts = [_numbers(s, "--next-initial") for s in (args.next_initial or [])]
-    if not starts or any(len(s) != d for s in starts):
-        raise InputError(
-            f"--next-initial: expected the next subject's initial state, {d} comma separated numbers in the system's "
-            f"state order {list(system.state_names or [])} (repeat it for several candidates), got {starts or None}"
+    if any(len(s) != system.state_dim for s in starts):
+        raise InputError(_initial_message(system, "(repeat it for several candidates)", starts))
+    return starts
+
+
+def _initial_message(system, repeat: str, starts) -> str:
+    return (
+        f"--next-initial: expected the next subject's initial state, {system.state_dim} comma separated numbers in "
+        f"the system's state order {list(system.state_names or [])} {repeat}, got {starts or None}"
+    )
+
+
+def _prediction_request(args: argparse.Namespace, system, population):
+    """``(times, first, y0, covariates)`` of the next subject's prediction, checked before the work (``None``
+    without ``--predict-times``): ``first`` its measurements (``--first``) or ``y0`` its initial state."""
+    import torch
+
+    if not args.predict_times:
+        if args.first:
+            raise InputError(
+                "--first: expected --predict-times with it (the times to predict the subject at), got none"
+            )
+        return None
+    if not 0 < args.level < 1:
+        raise InputError(f"--level: expected a band's coverage in (0, 1), got {args.level}")
+    times = parse_times(args.predict_times, "--predict-times")
+    if not bool(torch.isfinite(times).all()) or bool((times.diff() <= 0).any()):
+        raise InputError(f"--predict-times: expected finite, strictly increasing times, got {args.predict_times!r}")
+    check_output(args.predict_out, (".csv",), "--predict-out")
+    covariates = _next_covariates(args, population)
+    if args.first:
+        # its rows only: an experiment column there, if any, is not read
+        first = read_observations(
+            argparse.Namespace(**{**vars(args), "data": args.first, "experiment_column": ""}), system
         )
-    times = torch.tensor(_numbers(args.next_times, "--next-times"), dtype=torch.float64)
-    return times, torch.tensor(starts, dtype=torch.float64), given or None
+        return times, first, None, covariates
+    starts = _next_initial(args, system)
+    if len(starts) != 1:
+        raise InputError(_initial_message(system, "(one, or its first measurements with --first)", starts))
+    return times, None, torch.tensor(starts[0], dtype=torch.float64), covariates
+
+
+def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
+    """The next subject's path and band at ``--predict-times``, written to ``--predict-out``."""
+    import torch
+
+    from ..population.predict import predict_subject
+
+    times, first, y0, covariates = request
+    generator = torch.Generator().manual_seed(0)
+    pred = predict_subject(fit, y0, times, covariates=covariates, first=first, generator=generator)
+    post = pred.posterior
+    lower, upper = post.interval(args.level)
+    names = list(post.state_names or [f"y{i}" for i in range(post.samples.shape[-1])])
+    header = ["time", *(f"{n}_{part}" for n in names for part in ("mean", "lower", "upper"))]
+    rows = []
+    for i, t in enumerate(times.tolist()):
+        cells = [(post.mean_path[0, i, j], lower[0, i, j], upper[0, i, j]) for j in range(len(names))]
+        rows.append([f"{t:g}", *(f"{float(v):.6g}" for triple in cells for v in triple)])
+    out = check_output(args.predict_out, (".csv",), "--predict-out")
+    write_csv(out, header, rows)
+    varying = fit.nlme.layout.vary
+    values = ", ".join(f"{fit.system.parameters.names[i]} = {float(pred.theta[i]):.4g}" for i in varying)
+    source = f"its first {first.num_times} measurements" if first is not None else "the population alone"
+    print(
+        f"next subject from {source}: {values}; its path at {times.numel()} times with the central "
+        f"{args.level:.0%} band written to {out}{_beyond(times, observed, fit)}"
+    )
+
+
+def _beyond(times, observed, fit) -> str:
+    """A note where the prediction runs past the population's last measurement."""
+    last = float(observed.padded()[0].max())
+    if float(times.max()) <= last:
+        return ""
+    kind = "F = 0 kept: G alone there" if fit.known_model else "F there is extrapolated, its band wider"
+    return f" (past the data's last time {last:g}: {kind})"
 
 
 def _design(args: argparse.Namespace, fit, request) -> None:
@@ -162,5 +252,12 @@ def add_population(sub) -> None:
         metavar="NAME=VALUE",
         help="the next subject's covariate (repeat for each one --covariate names)",
     )
+    pop.add_argument("--predict-times", help="times to predict the next subject's path at, comma separated or "
+                     "start:stop:count")  # fmt: skip
+    pop.add_argument("--first", help="the next subject's first measurements, a table laid out as --data (its rows "
+                     "only); without it the prediction is from the population alone, from --next-initial")  # fmt: skip
+    pop.add_argument("--predict-out", default="next_subject.csv", help="the next subject's path and band, .csv "
+                     "(default: %(default)s)")  # fmt: skip
+    pop.add_argument("--level", type=float, default=0.9, help="the band's coverage (default: %(default)s)")
     pop.add_argument("--quiet", action="store_true", help="no progress bars")
     pop.set_defaults(func=_population)

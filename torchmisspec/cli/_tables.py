@@ -112,18 +112,19 @@ def read_table(path: str, what: str, option: str | None = None):
     return arr, header
 
 
-def parse_times(text: str):
-    """``start:stop:count`` (equally spaced), a comma list of times, or a file of times (one column)."""
+def parse_times(text: str, option: str = "--times"):
+    """``start:stop:count`` (equally spaced), a comma list of times, or a file of times (one column); ``option``
+    names the option in messages."""
     import torch
 
-    message = "--times: expected 'start:stop:count' with count >= 1, a comma list of numbers or a file of times, "
+    message = f"{option}: expected 'start:stop:count' with count >= 1, a comma list of numbers or a file of times, "
     message += f"got {text!r}"
     if Path(text).suffix in TABLE_SUFFIXES:
         if not Path(text).exists():
-            raise InputError(f"--times: expected an existing file of times, got {text!r}, which does not exist")
-        table, _ = read_table(text, "times", "--times")
+            raise InputError(f"{option}: expected an existing file of times, got {text!r}, which does not exist")
+        table, _ = read_table(text, "times", option)
         if table.ndim == 2 and table.shape[1] != 1:
-            raise InputError(f"--times: expected one column of times in {text!r}, got {table.shape[1]} columns")
+            raise InputError(f"{option}: expected one column of times in {text!r}, got {table.shape[1]} columns")
         return torch.as_tensor(table.reshape(-1), dtype=torch.float64)
     try:
         if ":" in text:
