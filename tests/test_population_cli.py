@@ -107,12 +107,16 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     assert float(printed.split("c = ")[1].split(";")[0]) == pytest.approx(fitted["3"], abs=0.03)
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "alone.csv")) == 0
     assert "next subject from the population alone" in capsys.readouterr().out
+    assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "noisy.csv"), "--measurements") == 0
+    assert "band of new measurements written" in capsys.readouterr().out
     updated, alone = (
         [list(map(float, r)) for r in list(csv.reader((lab / n).open()))[1:]] for n in ("updated.csv", "alone.csv")
     )
     assert list(csv.reader((lab / "updated.csv").open()))[0] == ["time", "y_mean", "y_lower", "y_upper"]
     assert [r[0] for r in updated] == pytest.approx([0.2 * i for i in range(11)])
     assert updated[-1][3] - updated[-1][2] < 0.8 * (alone[-1][3] - alone[-1][2])  # narrower at t = 2
+    noisy = [list(map(float, r)) for r in list(csv.reader((lab / "noisy.csv").open()))[1:]]
+    assert all(n[3] - n[2] > a[3] - a[2] for n, a in zip(noisy[1:], alone[1:], strict=True))  # the noise widens it
     for t, y in ((float(r[2]), float(r[0])) for r in own[1:]):
         row = updated[round(t / 0.2)]
         assert row[2] - 0.15 < y < row[3] + 0.15  # its samples (noise 0.05) near its band

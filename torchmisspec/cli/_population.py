@@ -171,6 +171,8 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
     generator = torch.Generator().manual_seed(0)
     pred = predict_subject(fit, y0, times, covariates=covariates, first=first, generator=generator)
     post = pred.posterior
+    if args.measurements:  # the band its new measurements fall in: the population's residual scale, its noise model
+        post = post.measured(fit.noise, fit.nlme.modes.scale, generator=torch.Generator().manual_seed(1))
     lower, upper = post.interval(args.level)
     names = list(post.state_names or [f"y{i}" for i in range(post.samples.shape[-1])])
     header = ["time", *(f"{n}_{part}" for n in names for part in ("mean", "lower", "upper"))]
@@ -185,7 +187,8 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
     source = f"its first {first.num_times} measurements" if first is not None else "the population alone"
     print(
         f"next subject from {source}: {values}; its path at {times.numel()} times with the central "
-        f"{args.level:.0%} band written to {out}{_beyond(times, observed, fit)}"
+        f"{args.level:.0%} band{' of new measurements' if args.measurements else ''} written to {out}"
+        f"{_beyond(times, observed, fit)}"
     )
 
 
@@ -259,5 +262,7 @@ def add_population(sub) -> None:
     pop.add_argument("--predict-out", default="next_subject.csv", help="the next subject's path and band, .csv "
                      "(default: %(default)s)")  # fmt: skip
     pop.add_argument("--level", type=float, default=0.9, help="the band's coverage (default: %(default)s)")
+    pop.add_argument("--measurements", action="store_true", help="the band of the next subject's new measurements "
+                     "(its states' band widened by the population's residual scale), not of its states")  # fmt: skip
     pop.add_argument("--quiet", action="store_true", help="no progress bars")
     pop.set_defaults(func=_population)
