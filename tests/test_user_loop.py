@@ -291,7 +291,9 @@ def test_r_indometh_as_a_labs_csv_through_the_cli_and_leaving_one_subject_out(tm
 @pytest.mark.slow
 def test_r_indometh_as_a_population_through_the_cli_and_leaving_one_subject_out(tmp_path, capsys):
     """The same lab's CSV as a population (issue 43): every subject its own elimination rate k, log-normal. The
-    command line fits it with defaults and writes every subject's k; leaving subjects 1 and 4 out in turn (the
+    command line fits it with defaults and writes every subject's k, and predicts a next subject (subject 1's first
+    2 rows as its first measurements) to 12 h with the band of its new measurements, saying that 12 h is past the
+    data; leaving subjects 1 and 4 out in turn (the
     population fitted on the other 5; each fit about a minute on 2 cores, so two of the six), the subject is
     predicted from its first 2 measurements and forecast to 12 h (the data end at 8): finite, positive, with a band,
     and never worse than the classical answer (the same population with F = 0) beyond 5 % on the geometric mean of
@@ -303,12 +305,22 @@ def test_r_indometh_as_a_population_through_the_cli_and_leaving_one_subject_out(
     (tmp_path / "indo.py").write_text(INDOMETH_SYSTEM)
     data_file = Path(__file__).parent / "data" / "indometh.csv"
     system_arg = f"{tmp_path / 'indo.py'}:one_compartment"
-    out = tmp_path / "subjects.csv"
+    out, nxt = tmp_path / "subjects.csv", tmp_path / "next.csv"
+    with data_file.open() as fh:
+        rows = [r for r in csv.DictReader(fh) if r["subject"] == "1"][:2]
+    (tmp_path / "first.csv").write_text("hours,conc\n" + "".join(f"{r['hours']},{r['conc']}\n" for r in rows))
     code = cli.main(["population", "--data", str(data_file), "--time-column", "hours", "--experiment-column",
-                     "subject", "--system", system_arg, "--vary", "k", "--out", str(out), "--quiet"])  # fmt: skip
+                     "subject", "--system", system_arg, "--vary", "k", "--out", str(out), "--quiet",
+                     "--predict-times", "0.25:12:48", "--first", str(tmp_path / "first.csv"), "--predict-out",
+                     str(nxt), "--measurements"])  # fmt: skip
     said = capsys.readouterr()
     assert code == 0, said.err
-    assert "fitted a population of 6 experiments" in said.out
+    assert "fitted a population of 6 experiments" in said.out and "95% interval" in said.out
+    assert "next subject from its first 2 measurements: k = " in said.out and "past the data's last time 8" in said.out
+    with nxt.open() as fh:
+        path = [{k: float(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+    assert len(path) == 48 and all(math.isfinite(v) and v >= 0 for row in path for v in row.values())
+    assert all(r["conc_lower"] < r["conc_mean"] < r["conc_upper"] for r in path[1:])
     with out.open() as fh:
         ks = [float(row["k"]) for row in csv.DictReader(fh)]
     assert len(ks) == 6 and all(0 < k < 10 for k in ks) and len(set(ks)) == 6
