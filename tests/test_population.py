@@ -358,6 +358,40 @@ def test_design_greedy_matches_brute_force_on_a_tiny_problem():
     assert score <= max(removed(pair) for pair in itertools.combinations(range(6), 2)) + 1e-12
 
 
+def test_design_with_f_error_is_the_brute_force_sandwich():
+    """F's draws moving what is measured: the expected error covariance is M^-1 + M^-1 B M^-1, B the covariance over
+    draws of sum_t J_t^T W_t dz_t (written out here draw by draw); the greedy first pick is the brute-force best
+    single time under it, its score that time's, and a time whose draws scatter widely loses to one with the same
+    sensitivity whose draws agree (without the draws, the first of the two would win the tie)."""
+    from torchmisspec.population.design import ExpectedError, _greedy_parameters
+
+    g = torch.Generator().manual_seed(11)
+    S, F, T = 3, 6, 5
+    J = torch.randn(S, T, 1, 2, generator=g, dtype=DT)
+    dz = 0.5 * torch.randn(S, F, T, 1, generator=g, dtype=DT)
+    weights = torch.tensor([4.0], dtype=DT)
+    allowed = torch.ones(T, dtype=torch.bool)
+
+    def error(t):
+        total = 0.0
+        for s in range(S):
+            Mi = torch.linalg.inv(torch.eye(2, dtype=DT) + 4.0 * torch.outer(J[s, t, 0], J[s, t, 0]))
+            pushes = [4.0 * J[s, t, 0] * dz[s, f, t, 0] for f in range(F)]
+            B = sum(torch.outer(v, v) for v in pushes) / F
+            total += float(torch.trace(Mi + Mi @ B @ Mi))
+        return total / S
+
+    first, score = _greedy_parameters(J, weights, ExpectedError(), 1, allowed, dz)
+    assert first == [min(range(T), key=error)]
+    assert score == pytest.approx(1 - error(first[0]) / 2, rel=1e-10)
+    J[:, 1] = J[:, 0]  # times 0 and 1 alike, but F's draws scatter at 0 and agree at 1
+    dz[:, :, 0], dz[:, :, 1] = 3.0 * torch.randn(S, F, 1, generator=g, dtype=DT), 0.0
+    only = torch.zeros(T, dtype=torch.bool)
+    only[:2] = True
+    assert _greedy_parameters(J, weights, ExpectedError(), 1, only)[0] == [0]
+    assert _greedy_parameters(J, weights, ExpectedError(), 1, only, dz)[0] == [1]
+
+
 def test_design_refuses_a_budget_beyond_the_candidates():
     from torchmisspec.population.design import design_subject
 
@@ -466,6 +500,16 @@ def test_a_missing_term_every_experiment_shares_is_learned_and_none_is_refused()
     x = torch.tensor([[0.5], [3.0]], dtype=DT)  # F = -0.8 y up to a constant, which the typical c takes
     f = fit.gp.predict_mean(x).flatten()
     assert -1.2 < float(f[1] - f[0]) / 2.5 < -0.5
+    # the next subject's design counts F's draws: none at its start, more the longer F acts, and a larger error
+    from torchmisspec.population.design import F_DRAWS, _correction_deviations, design_subject
+
+    grid, eta = torch.linspace(0, 3, 7, dtype=DT), fit.nlme.values.mean.expand(4, 1)
+    moved = _correction_deviations(fit, torch.tensor([1.0], dtype=DT), grid, eta, torch.Generator().manual_seed(0))
+    assert moved.shape == (4, F_DRAWS, 7, 1) and float(moved[:, :, 0].abs().max()) == 0.0
+    spread = moved.std(1).mean(0)[:, 0]
+    assert float(spread[-1]) > float(spread[1]) > 0
+    design = design_subject(fit, grid, 2, initial_states=[1.0], generator=torch.Generator().manual_seed(1))
+    assert 0 < design.score < 1 and design.times.numel() == 2
     with pytest.warns(tms.TorchMisspecWarning, match="not fitted significantly better"):
         none = fit_population(_sloped_population(False), linear_system(), population, noise="additive", progress=False)
     assert none.known_model and none.nlme is none.classical
