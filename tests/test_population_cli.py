@@ -120,3 +120,16 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     for t, y in ((float(r[2]), float(r[0])) for r in own[1:]):
         row = updated[round(t / 0.2)]
         assert row[2] - 0.15 < y < row[3] + 0.15  # its samples (noise 0.05) near its band
+
+
+def test_next_subject_prediction_of_a_system_with_inputs_is_refused_before_the_work(lab, capsys):
+    (lab / "driven.py").write_text(
+        SYSTEM.replace("def slope(y, theta):", "def driven(t, y, u, theta):")
+        + "\n\ndef with_input():\n    return tms.MisspecifiedSystem(driven, 1, state_names=['y'], num_controls=1, "
+        "control_names=['u'], time_dependent=True, parameters={'c': (1.0, 0.5)})\n"
+    )
+    code = main(["population", "--data", str(lab / "lab.csv"), "--system", f"{lab / 'driven.py'}:with_input",
+                 "--experiment-column", "subject", "--vary", "c", "--quiet", "--predict-times", "0,1",
+                 "--next-initial", "2"])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "--predict-times: expected a system without inputs" in err and "\n" not in err

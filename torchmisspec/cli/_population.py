@@ -144,6 +144,12 @@ def _prediction_request(args: argparse.Namespace, system, population):
         return None
     if not 0 < args.level < 1:
         raise InputError(f"--level: expected a band's coverage in (0, 1), got {args.level}")
+    if system.num_controls:
+        raise InputError(
+            f"--predict-times: expected a system without inputs (the next subject's input profile is not read from "
+            f"the command line), got one with {system.num_controls} {list(system.control_names)}; predict it with "
+            "torchmisspec.population.predict_subject(..., controls=...)"
+        )
     times = parse_times(args.predict_times, "--predict-times")
     if not bool(torch.isfinite(times).all()) or bool((times.diff() <= 0).any()):
         raise InputError(f"--predict-times: expected finite, strictly increasing times, got {args.predict_times!r}")
