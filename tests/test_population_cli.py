@@ -110,12 +110,14 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "noisy.csv"), "--measurements") == 0
     assert "band of new measurements written" in capsys.readouterr().out
     updated, alone = (
-        [list(map(float, r)) for r in list(csv.reader((lab / n).open()))[1:]] for n in ("updated.csv", "alone.csv")
+        [list(map(float, r[1:])) for r in list(csv.reader((lab / n).open()))[1:]] for n in ("updated.csv", "alone.csv")
     )
-    assert list(csv.reader((lab / "updated.csv").open()))[0] == ["time", "y_mean", "y_lower", "y_upper"]
+    table = list(csv.reader((lab / "updated.csv").open()))
+    assert table[0] == ["subject", "time", "y_mean", "y_lower", "y_upper"]  # as `predict` writes its table
+    assert {r[0] for r in table[1:]} == {"next"}
     assert [r[0] for r in updated] == pytest.approx([0.2 * i for i in range(11)])
     assert updated[-1][3] - updated[-1][2] < 0.8 * (alone[-1][3] - alone[-1][2])  # narrower at t = 2
-    noisy = [list(map(float, r)) for r in list(csv.reader((lab / "noisy.csv").open()))[1:]]
+    noisy = [list(map(float, r[1:])) for r in list(csv.reader((lab / "noisy.csv").open()))[1:]]
     assert all(n[3] - n[2] > a[3] - a[2] for n, a in zip(noisy[1:], alone[1:], strict=True))  # the noise widens it
     for t, y in ((float(r[2]), float(r[0])) for r in own[1:]):
         row = updated[round(t / 0.2)]

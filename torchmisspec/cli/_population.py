@@ -15,6 +15,7 @@ import argparse
 
 from .._errors import InputError
 from ._common import add_data_options, add_system_option, check_output, read_observations, write_csv
+from ._predict import _table
 from ._tables import parse_times
 
 
@@ -181,11 +182,7 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
         post = post.measured(fit.noise, fit.nlme.modes.scale, generator=torch.Generator().manual_seed(1))
     lower, upper = post.interval(args.level)
     names = list(post.state_names or [f"y{i}" for i in range(post.samples.shape[-1])])
-    header = ["time", *(f"{n}_{part}" for n in names for part in ("mean", "lower", "upper"))]
-    rows = []
-    for i, t in enumerate(times.tolist()):
-        cells = [(post.mean_path[0, i, j], lower[0, i, j], upper[0, i, j]) for j in range(len(names))]
-        rows.append([f"{t:g}", *(f"{float(v):.6g}" for triple in cells for v in triple)])
+    header, rows = _table(post, lower, upper, times.tolist(), names, ["next"], None, args)  # as `predict` writes
     out = check_output(args.predict_out, (".csv",), "--predict-out")
     write_csv(out, header, rows)
     varying = fit.nlme.layout.vary

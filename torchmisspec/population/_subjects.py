@@ -21,7 +21,7 @@ from .._errors import InputError
 from ..signals import Controls
 from ..systems import MisspecifiedSystem
 
-__all__ = ["subject_system", "with_subject_inputs", "parameter_names", "with_appended_controls"]
+__all__ = ["subject_system", "with_subject_inputs", "parameter_names", "with_appended_controls", "drawn_controls"]
 
 
 def parameter_names(system: MisspecifiedSystem, varying: list[int]) -> list[str]:
@@ -154,6 +154,15 @@ def subject_controls(controls: Controls | None, thetas: torch.Tensor, names: lis
         kind=controls.kind,
         names=list(controls.names) + list(names),
     )
+
+
+def drawn_controls(system, layout, eta: torch.Tensor, shared: torch.Tensor, start, controls=None) -> Controls:
+    """The controls of subjects drawn as ``eta (S, k_v)`` (``layout``'s varying parameters; the ``shared`` ones
+    fixed), each from the time ``start``: ``controls``' profiles (the system's own inputs, or ``None``) with the
+    varying parameters appended, as the subject system's G reads them."""
+    thetas = layout.theta(eta, shared)[:, layout.vary]
+    starts = torch.as_tensor(start, dtype=torch.float64).reshape(-1)[:1].expand(thetas.shape[0])
+    return subject_controls(controls, thetas, parameter_names(system, layout.vary), starts)
 
 
 def _replace_controls(trajectories, controls: Controls):

@@ -47,7 +47,7 @@ from .._validation import check_positive_int
 from ..data import Trajectories
 from ._misfit import misfit_scale
 from ._modes import _paths
-from ._subjects import parameter_names, subject_controls
+from ._subjects import drawn_controls
 from .model import covariate_matrix
 from .predict import _on
 
@@ -149,9 +149,7 @@ def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor
     nlme, layout = fit.nlme, fit.nlme.layout
     S, kv = eta.shape
     d = y0.shape[-1]
-    states = torch.zeros(S, times.shape[0], d, dtype=torch.float64)  # only the layout counts
-    states[:, 0] = y0
-    dummy = Trajectories(times, states, state_names=fit.system.state_names)
+    dummy = _outline(fit, times, y0, S)
     steps = torch.cat([torch.zeros(1, kv, dtype=eta.dtype), STEP * torch.eye(kv, dtype=eta.dtype)])  # (1 + kv, kv)
     etas = eta[None] + steps[:, None]  # (1 + kv, S, kv)
     theta = layout.theta(etas, nlme.modes.shared)
@@ -160,6 +158,14 @@ def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor
     pred = _paths(layout, correction, dummy, floor)(theta, y0.expand(1 + kv, S, d))  # (1 + kv, S, T, o)
     z = fit.noise.transform(pred)
     return ((z[1:] - z[:1]) / STEP).permute(1, 2, 3, 0)
+
+
+def _outline(fit, times: torch.Tensor, y0: torch.Tensor, S: int) -> Trajectories:
+    """``S`` experiments from ``y0 (d,)`` at ``times``, every state measured: only their layout counts (what is
+    read of a path, :meth:`~torchmisspec.Trajectories.observe`)."""
+    states = torch.zeros(S, times.shape[0], y0.shape[-1], dtype=torch.float64)
+    states[:, 0] = y0
+    return Trajectories(times, states, state_names=fit.system.state_names)
 
 
 def _greedy_parameters(J: torch.Tensor, weights: torch.Tensor, criterion, budget: int, allowed, deviations=None):
@@ -240,19 +246,15 @@ def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch
     subject's fit holds F at its mean, so these are errors its parameters absorb (the module's notes)."""
     if fit.known_model:
         return None
-    layout = fit.nlme.layout
     S, d = eta.shape[0], y0.shape[-1]
-    thetas = layout.theta(eta, fit.nlme.modes.shared)[:, layout.vary]
-    controls = subject_controls(None, thetas, parameter_names(fit.system, layout.vary), grid[:1].expand(S))
+    controls = drawn_controls(fit.system, fit.nlme.layout, eta, fit.nlme.modes.shared, grid[:1])
     with warnings.catch_warnings():  # the draws' own notes (support, calibration) are not the design's to say
         warnings.simplefilter("ignore", TorchMisspecWarning)
         post = fit.corrected.posterior(
             y0.expand(S, d), grid, num_samples=F_DRAWS, controls=controls, generator=_on(generator),
             scale=1.0,
         )  # fmt: skip
-    states = torch.zeros(S, grid.numel(), d, dtype=torch.float64)
-    dummy = Trajectories(grid, states, state_names=fit.system.state_names)  # only the layout counts
-    paths = dummy.observe(post.samples.to(torch.float64)).transpose(0, 1)  # (S, F, T, o)
+    paths = _outline(fit, grid, y0, S).observe(post.samples.to(torch.float64)).transpose(0, 1)  # (S, F, T, o)
     centre = paths.mean(1, keepdim=True)
     moved = (fit.noise.transform(centre + LINEAR * (paths - centre)) - fit.noise.transform(centre)) / LINEAR
     return torch.nan_to_num(moved, nan=0.0, posinf=0.0, neginf=0.0)
@@ -267,8 +269,6 @@ def _for_correction(fit, grid, budget, y0, typical):
             "target: Correction() designs for F, but the population's fit kept F = 0 (no correction to learn more "
             "about); design for SubjectParameters() instead"
         )
-    layout = fit.nlme.layout
-    theta = layout.theta(typical[None], fit.nlme.modes.shared)[:, layout.vary]
-    controls = subject_controls(None, theta, parameter_names(fit.system, layout.vary), grid[:1])
+    controls = drawn_controls(fit.system, fit.nlme.layout, typical[None], fit.nlme.modes.shared, grid[:1])
     chosen = sampling_times(y0[None], grid, budget, system=fit.subject_system, gp=fit.gp, controls=controls)
     return chosen.indices[0].tolist(), float(chosen.design.information_gain)

@@ -35,7 +35,7 @@ from ..noise import NoiseModel
 from ._modes import Layout, Modes, conditional_modes
 from ._subjects import parameter_names, subject_system
 from .model import Population, PopulationValues, covariate_matrix
-from .uncertainty import Intervals, intervals, standard_errors
+from .uncertainty import Intervals, fixed_effects, intervals, standard_errors
 
 __all__ = ["NLMEFit", "fit_nlme", "MAX_ROUNDS", "TOLERANCE"]
 
@@ -123,12 +123,11 @@ def starting_spread(system, layout: Layout) -> torch.Tensor:
 def m_step(values: PopulationValues, modes: Modes, X: torch.Tensor, floor: torch.Tensor) -> PopulationValues:
     """The M step (the module's notes)."""
     K, kv = modes.eta.shape
-    Xc = X - values.centre
     mean, effects, spread = values.mean.clone(), values.effects.clone(), values.spread.clone()
     var = modes.covariance.diagonal(dim1=-2, dim2=-1)  # (K, kv)
     for j in range(kv):
         acts = values.acts[j]
-        D = torch.cat([torch.ones(K, 1, dtype=X.dtype), Xc[:, acts]], -1)
+        D = fixed_effects(values, X, j)
         coef = torch.linalg.lstsq(D, modes.eta[:, j : j + 1]).solution.squeeze(-1)
         mean[j], effects[j, acts] = coef[0], coef[1:]
         resid = modes.eta[:, j] - D @ coef

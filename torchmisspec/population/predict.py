@@ -29,7 +29,7 @@ from ..data import Trajectories
 from ..prediction._bands import TrajectoryPosterior
 from ._misfit import misfit_scale
 from ._modes import conditional_modes, held_prior
-from ._subjects import parameter_names, subject_controls
+from ._subjects import drawn_controls
 from .model import covariate_matrix
 
 __all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "F_DRAWS"]
@@ -102,10 +102,8 @@ def predict_subject(
     times = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
     L = torch.linalg.cholesky(cov + 1e-12 * torch.eye(cov.shape[0], dtype=cov.dtype))
     draws = eta + torch.randn(num_samples, eta.shape[0], dtype=eta.dtype, generator=generator) @ L.T
-    thetas = layout.theta(torch.cat([eta[None], draws]), nlme.modes.shared)[:, layout.vary]
-    names = parameter_names(fit.system, layout.vary)
-    ctrl = subject_controls(controls, thetas, names, times[:1].expand(thetas.shape[0]))
-    paths = _paths(fit, y0.expand(thetas.shape[0], -1), times, ctrl)  # (1 + S, T, d)
+    ctrl = drawn_controls(fit.system, layout, torch.cat([eta[None], draws]), nlme.modes.shared, times[:1], controls)
+    paths = _paths(fit, y0.expand(num_samples + 1, -1), times, ctrl)  # (1 + S, T, d)
     samples = paths[1:, None]
     if not fit.known_model:
         post = fit.corrected.posterior(

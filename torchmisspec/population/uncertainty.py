@@ -27,7 +27,7 @@ import torch
 
 from .._errors import InputError
 
-__all__ = ["Intervals", "intervals", "standard_errors"]
+__all__ = ["Intervals", "fixed_effects", "intervals", "standard_errors"]
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class Intervals:
     effects: torch.Tensor
 
 
-def _design(values, X: torch.Tensor, j: int) -> torch.Tensor:
+def fixed_effects(values, X: torch.Tensor, j: int) -> torch.Tensor:
     """``(K, p)``: the intercept and the centred covariates acting on parameter ``j``."""
     Xc = X - values.centre
     return torch.cat([torch.ones(X.shape[0], 1, dtype=X.dtype), Xc[:, values.acts[j]]], -1)
@@ -69,7 +69,7 @@ def standard_errors(values, modes, X: torch.Tensor) -> tuple:
     se_mean, se_spread = torch.empty(kv, dtype=X.dtype), torch.empty(kv, dtype=X.dtype)
     se_effects = torch.zeros_like(values.effects)
     for j in range(kv):
-        D = _design(values, X, j)
+        D = fixed_effects(values, X, j)
         W = _weights(values, modes, j)
         try:
             cov = torch.linalg.inv(D.T @ (W[:, None] * D))
