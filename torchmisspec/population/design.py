@@ -243,7 +243,8 @@ def _one(fit, grid, budget, y0, X, target, generator):
 def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch.Tensor, generator):
     """``(S, F, T, o)``: how :data:`F_DRAWS` posterior draws of F move what is measured of each drawn subject
     ``eta (S, k_v)`` from F's mean, in the noise model's space to first order (``None`` without a correction). The
-    subject's fit holds F at its mean, so these are errors its parameters absorb (the module's notes)."""
+    subject's fit holds F at its mean, so these are errors its parameters absorb (the module's notes). A draw whose
+    path left the region (NaN there) counts as 0: it understates F's error for those rare draws."""
     if fit.known_model:
         return None
     S, d = eta.shape[0], y0.shape[-1]
