@@ -515,6 +515,59 @@ def test_a_missing_term_every_experiment_shares_is_learned_and_none_is_refused()
     assert none.known_model and none.nlme is none.classical
 
 
+def test_the_integrated_fit_s_f_is_a_candidate_where_f_s_own_fit_keeps_none(monkeypatch):
+    """Where F's own fit at fixed parameters keeps F = 0, the F of the fit that learns every experiment's parameters
+    with it is still offered, and do no harm keeps it on data with a shared missing term."""
+    from types import SimpleNamespace
+
+    from torchmisspec.population import fit as fit_module
+
+    real, seen = fit_module._without_warnings, []
+
+    def own_fit_keeps_none(fit, data, system, **kwargs):
+        seen.append(system.parameters is not None)
+        if system.parameters is not None:  # the integrated system: every experiment's parameters uncertain
+            return real(fit, data, system, **kwargs)
+        return SimpleNamespace(known_model_=True)
+
+    monkeypatch.setattr(fit_module, "_without_warnings", own_fit_keeps_none)
+    population = Population(["c"], distribution=Normal())
+    fit = fit_module.fit_population(
+        _sloped_population(True), linear_system(), population, noise="additive", progress=False
+    )
+    assert seen == [True, False]
+    assert not fit.known_model and fit.gp.parameters_ is not None  # the integrated fit's F, its etas recorded
+    x = torch.tensor([[0.5], [3.0]], dtype=DT)
+    f = fit.gp.predict_mean(x).flatten()
+    assert -1.2 < float(f[1] - f[0]) / 2.5 < -0.5
+
+
+def test_the_candidate_kept_is_the_one_that_fits_held_out_experiments_best(monkeypatch):
+    """Of several candidates the lowest held-out misfit is chosen, and the rule against F = 0 judges that one."""
+    from types import SimpleNamespace
+
+    from torchmisspec.population import _held_out
+
+    K = 6
+    classical = SimpleNamespace(
+        modes=SimpleNamespace(scale=torch.ones(1, dtype=DT), initial_states=None), layout=None, thetas=None
+    )
+    known = torch.full((K,), 10.0, dtype=DT)
+    rivals = {
+        "worse": known * 1.2,
+        "better": known * 0.5,
+        "close": known * torch.tensor([0.9, 1.1, 0.95, 1.05, 1.0, 0.98], dtype=DT),
+    }
+    monkeypatch.setattr(_held_out, "_scores", lambda *args: known)
+    monkeypatch.setattr(_held_out, "_held_out_scores", lambda fit, *args: rivals[fit.name])
+    fits = [SimpleNamespace(name=n, noise=Additive()) for n in rivals]
+    data = linear_data(torch.ones(K, dtype=DT), torch.linspace(0, 1, 4, dtype=DT), torch.Generator())
+    best, kept, with_f, without = _held_out.best_on_unseen_experiments(fits, classical, data)
+    assert best.name == "better" and kept and with_f == pytest.approx(30.0) and without == pytest.approx(60.0)
+    best, kept, _, _ = _held_out.best_on_unseen_experiments(fits[::2], classical, data)
+    assert best.name == "close" and not kept  # 0.3 % lower in all, mixed by experiment
+
+
 def test_the_population_residuals_are_solved_once_for_every_design_and_new_subject(monkeypatch):
     """The residual scale by time (the design's weights, a new subject's) comes from one solve of the population's
     experiments, kept on the fit: a second design and a new subject's fit do not solve them again, and the scale is

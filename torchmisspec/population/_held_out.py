@@ -32,7 +32,7 @@ from ..learning.choice.cross_validation import significant_gain
 from ..learning.refinement._known_fit import held_out
 from ._modes import _paths, conditional_modes, held_prior, mean_correction
 
-__all__ = ["fits_unseen_experiments_better", "FOLDS"]
+__all__ = ["best_on_unseen_experiments", "FOLDS"]
 
 #: the folds experiments are held out in (at most; one per experiment when there are fewer)
 FOLDS = 5
@@ -95,17 +95,20 @@ def _held_out_scores(fit, trajectories, scale) -> torch.Tensor:
     return out
 
 
-def fits_unseen_experiments_better(fit, classical, trajectories) -> tuple[bool, float, float]:
-    """``(kept, misfit with F, misfit without)``: the module's rule for the population ``fit`` (a
-    :class:`~torchmisspec.population.fit.PopulationFit` with a correction) against ``classical`` (its
-    :class:`~torchmisspec.population.nlme.NLMEFit` with F = 0)."""
+def best_on_unseen_experiments(fits: list, classical, trajectories) -> tuple[object, bool, float, float]:
+    """``(fit, kept, misfit with F, misfit without)``: of the population ``fits`` (each a
+    :class:`~torchmisspec.population.fit.PopulationFit` with a correction), the one whose F, conditioned without
+    them, fits the held-out experiments best (the lowest total misfit; the first on a tie), and whether the module's
+    rule keeps it against ``classical`` (its :class:`~torchmisspec.population.nlme.NLMEFit` with F = 0)."""
     scale = classical.modes.scale.nan_to_num(nan=1.0).clamp_min(torch.finfo(torch.float64).tiny)
     known = _scores(
-        classical.layout, classical.thetas, classical.modes.initial_states, None, trajectories, fit.noise, scale
+        classical.layout, classical.thetas, classical.modes.initial_states, None, trajectories, fits[0].noise, scale
     )
-    rival = _held_out_scores(fit, trajectories, scale)
+    rivals = [_held_out_scores(fit, trajectories, scale) for fit in fits]
+    best = min(range(len(fits)), key=lambda i: float(rivals[i].sum()))
+    rival = rivals[best]
     counts = held_out(trajectories, torch.zeros(trajectories.num_experiments, dtype=torch.long)).any(-1).sum(1)
-    better = float(rival.sum()) < float(known.sum()) and (
+    kept = float(rival.sum()) < float(known.sum()) and (
         significant_gain(_gains(known, rival)) or better_in_every_experiment(known, rival, counts.cpu())
     )
-    return better, float(rival.sum()), float(known.sum())
+    return fits[best], kept, float(rival.sum()), float(known.sum())
