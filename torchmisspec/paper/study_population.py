@@ -231,12 +231,28 @@ def table(result: dict) -> str:
         f"| the bound: knowing every subject's parameters / ignoring the spread | {bound} | |",
         f"| population values within 2 SE (4 per realization) | {sum(v <= 2 for v in z)} of {len(z)} "
         f"({sum(v <= 2 for v in z) / len(z):.0%}); all 4 in {all_in} of {n} | >= {GOALS['within_2se']:.0%} |",
+        _drawn_within(runs, result["config"]["subjects"]),
         _coverage(runs),
         f"| new subject from 2 measurements, log-RMSE / classical | {new} | <= 1 |",
         f"| a correction kept | {sum(not r['known_model'] for r in runs)} of {n} | |",
         f"| fit seconds (median) | {sorted(r['fit_seconds'] for r in runs)[n // 2]:.1f} | |",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _drawn_within(runs: list[dict], K: int) -> str:
+    """The bound row of the 2-SE count: the same Wald test of the drawn subjects' own sample mean and spread of log
+    theta, as if every subject's parameters were known exactly (SE omega / sqrt(K), omega / sqrt(2 (K - 1)))."""
+    if not all("sample_mean" in r for r in runs):
+        return "| the bound: the drawn subjects known exactly, within 2 SE | (not measured in this run) | |"
+    true_mean = [math.log(TRUE[k][0]) for k in PRIORS]
+    true_spread = [TRUE[k][1] for k in PRIORS]
+    z = []
+    for r in runs:
+        for m, s, tm, ts in zip(r["sample_mean"], r["sample_spread"], true_mean, true_spread, strict=True):
+            z += [abs(m - tm) / (s / math.sqrt(K)), abs(s - ts) / (s / math.sqrt(2 * (K - 1)))]
+    held = sum(v <= 2 for v in z)
+    return f"| the bound: the drawn subjects known exactly, within 2 SE | {held} of {len(z)} ({held / len(z):.0%}) | |"
 
 
 def _coverage(runs: list[dict]) -> str:
