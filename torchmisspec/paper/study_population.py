@@ -21,8 +21,10 @@ Fits on the same data, F scored by its integrated error over the concentrations 
 
 * **the package**: :func:`~torchmisspec.population.fit.fit_population` with defaults, ka and V declared varying;
 * **knowing every subject's parameters**: :func:`~torchmisspec.fit_correction` with each subject's true ka and V as
-  its inputs (what a population fit could at best reach: the table's bound row is its error over the fit ignoring the
-  spread, the best ratio the goal of 0.5 could see with this F learner);
+  its inputs (the table's bound row is its error over the fit ignoring the spread). This is F's learner at fixed
+  parameters, one of the population fit's two routes to F; the other, every subject's parameters learned with F
+  (:mod:`~torchmisspec.population.fit`), does better on some realizations, where the first keeps F = 0 even at the
+  true parameters;
 * **ignoring the spread**: :func:`~torchmisspec.fit_correction` with one ka and one V for every subject (the
   package before populations).
 
@@ -30,7 +32,9 @@ The population's typical values and spreads are compared with the truth in units
 whether their 95 % intervals (:meth:`~torchmisspec.population.nlme.NLMEFit.intervals`: Student's t for a typical
 value, a chi-square for a spread) hold it. The table beside gives the spreads fitted and those of the 12 subjects
 actually drawn (their log parameters' sample standard deviation): 12 subjects can tell no more than their own
-spread, and a sample's spread is often far from the population's (0.17 where it is 0.3, on one seed). A new
+spread, and a sample's spread is often far from the population's (0.17 where it is 0.3, on one seed). The bound
+row of the 2-SE count applies the same test to the drawn subjects' own sample mean and spread, as if every subject's
+parameters were known exactly: what the count can reach with 12 subjects on these seeds. A new
 subject (a 13th, drawn from the same population) is predicted from its first 2 measurements (t = 0 and 0.25 h) by
 the package and by the classical answer (the same population model with F = 0), scored by the RMSE of the log
 concentration over its remaining 9 times against its true path, and from the population alone.
