@@ -69,8 +69,10 @@ def _fold_correction(fit, keep: torch.Tensor):
     return mean_correction(fit.subject_system, fold)
 
 
-def _held_out_scores(fit, trajectories, scale) -> torch.Tensor:
-    """``(K,)`` each experiment's misfit with F conditioned without its fold and its parameters fitted with it."""
+def _held_out_scores(fit, trajectories, scale, stop: float = math.inf) -> torch.Tensor:
+    """``(K,)`` each experiment's misfit with F conditioned without its fold and its parameters fitted with it; the
+    folds left once the total passes ``stop`` are not fitted (their experiments ``inf``: the rival that set
+    ``stop`` is better whatever they give)."""
     nlme, K = fit.nlme, trajectories.num_experiments
     folds = min(FOLDS, K)
     out = torch.full((K,), math.inf, dtype=torch.float64)
@@ -92,6 +94,8 @@ def _held_out_scores(fit, trajectories, scale) -> torch.Tensor:
             continue
         thetas = nlme.layout.theta(modes.eta, modes.shared)
         out[held] = _scores(nlme.layout, thetas, modes.initial_states, correction, data, fit.noise, scale)
+        if float(out[torch.isfinite(out)].sum()) > stop:
+            break
     return out
 
 
@@ -104,7 +108,11 @@ def best_on_unseen_experiments(fits: list, classical, trajectories) -> tuple[obj
     known = _scores(
         classical.layout, classical.thetas, classical.modes.initial_states, None, trajectories, fits[0].noise, scale
     )
-    rivals = [_held_out_scores(fit, trajectories, scale) for fit in fits]
+    rivals = []
+    for fit in fits:  # a fit whose folds so far already miss by more than the best total cannot be the best
+        rivals.append(
+            _held_out_scores(fit, trajectories, scale, min((float(r.sum()) for r in rivals), default=math.inf))
+        )
     best = min(range(len(fits)), key=lambda i: float(rivals[i].sum()))
     rival = rivals[best]
     counts = held_out(trajectories, torch.zeros(trajectories.num_experiments, dtype=torch.long)).any(-1).sum(1)
