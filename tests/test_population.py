@@ -221,6 +221,29 @@ def test_lognormal_population_of_a_positive_parameter():
     assert bool((fit.thetas[:, 0] > 0).all())
 
 
+def test_a_pooled_start_outside_the_support_falls_back_to_the_priors(monkeypatch):
+    """One set of parameters for every experiment can fit a log-normal parameter negative (R's BodyWeight without rat
+    09: k and A): EM then starts at the priors instead of a NaN log."""
+    from types import SimpleNamespace
+
+    from torchmisspec.population import nlme
+
+    g = torch.Generator().manual_seed(4)
+    data = linear_data(1.0 + 0.2 * torch.randn(10, generator=g, dtype=DT), torch.linspace(0, 1, 5, dtype=DT), g)
+    system, population = linear_system(prior=(1.5, 0.5)), Population(["c"], distribution=LogNormal())
+    layout = make_layout(system, population)
+    X = torch.zeros(10, 0, dtype=DT)
+    pooled = SimpleNamespace(theta=torch.tensor([-0.3], dtype=DT), initial_states=data.initial_conditions)
+    monkeypatch.setattr(nlme, "_known_fit_or_none", lambda *args: pooled)
+    values, _, _ = nlme.starting_values(system, layout, population, X, data, Additive())
+    assert float(values.mean[0]) == pytest.approx(math.log(1.5))
+    pooled.theta = torch.tensor([0.9], dtype=DT)  # inside the support: the pooled fit stands
+    values, _, _ = nlme.starting_values(system, layout, population, X, data, Additive())
+    assert float(values.mean[0]) == pytest.approx(math.log(0.9))
+    fit = fit_nlme(system, data, population, Additive(), progress=False)
+    assert bool(torch.isfinite(fit.values.mean).all()) and bool((fit.thetas > 0).all())
+
+
 def test_covariate_effect_is_recovered():
     g = torch.Generator().manual_seed(5)
     K = 40
@@ -258,6 +281,15 @@ def test_new_subject_from_the_population_and_from_its_measurements():
     mode = (float((t * torch.tensor([0.5, 1.0], dtype=DT)).sum()) / s2 + mu / omega**2) / precision
     assert float(updated.theta[0]) == pytest.approx(mode, rel=5e-3)
     assert float(updated.eta_covariance[0, 0]) == pytest.approx(1 / precision, rel=5e-3)
+    # the path runs from the first measurement's time: times that start later are the same path's, not a shifted one
+    late = tms.Trajectories(times[2:4], torch.tensor([[[3.0], [3.5]]], dtype=DT), state_names=["y"])
+    whole = predict_subject(pop, None, times[2:], first=late, num_samples=2, generator=g).posterior.mean_path[0]
+    later = predict_subject(pop, None, times[4:], first=late, num_samples=2, generator=g).posterior.mean_path[0]
+    torch.testing.assert_close(later, whole[2:])
+    c = float(predict_subject(pop, None, times[2:], first=late, num_samples=2, generator=g).theta[0])
+    torch.testing.assert_close(later[:, 0], float(whole[0, 0]) + c * (times[4:] - times[2]))
+    with pytest.raises(tms.InputError, match=r"times: expected times from the subject's first measurement at t = 0.4"):
+        predict_subject(pop, None, times, first=late, num_samples=2)
 
 
 @pytest.mark.parametrize(

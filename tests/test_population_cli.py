@@ -55,7 +55,7 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
     printed = capsys.readouterr().out
     assert code == 0
     assert "fitted a population of 12 experiments" in printed and "c ~ weight" in printed
-    assert "next subject: sample at 0.75, 1 from the initial state (2); expected to remove " in printed
+    assert "next subject: sample at 0.75, 1 from the initial state (2) at 0; expected to remove " in printed
     assert "of its parameters' variance in the population" in printed
     rows = list(csv.reader(out.open()))
     assert rows[0] == ["subject", "c"] and [r[0] for r in rows[1:]] == [str(k) for k in range(1, 13)]
@@ -122,6 +122,19 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     for t, y in ((float(r[2]), float(r[0])) for r in own[1:]):
         row = updated[round(t / 0.2)]
         assert row[2] - 0.15 < y < row[3] + 0.15  # its samples (noise 0.05) near its band
+
+
+def test_next_subject_times_before_its_first_measurement_are_refused_before_the_work(lab, capsys, monkeypatch):
+    """A path from the subject's first measurement cannot be drawn at earlier times: refused, not shifted."""
+    import torchmisspec.population.fit as fit_module
+
+    monkeypatch.setattr(fit_module, "fit_population", None)  # the fit is never reached
+    with (lab / "late.csv").open("w", newline="") as fh:
+        csv.writer(fh).writerows([["time", "y", "weight"], ["0.5", "2.4", "70"], ["0.75", "2.6", "70"]])
+    code = _run(lab, "--predict-times", "0:2:11", "--first", str(lab / "late.csv"))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err
+    assert "--predict-times: expected times from the subject's first measurement at t = 0.5 on" in err
 
 
 def test_next_subject_prediction_of_a_system_with_inputs_is_refused_before_the_work(lab, capsys):

@@ -161,6 +161,9 @@ def _prediction_request(args: argparse.Namespace, system, population):
         first = read_observations(
             argparse.Namespace(**{**vars(args), "data": args.first, "experiment_column": ""}), system
         )
+        from ..population.predict import times_from
+
+        times_from(times, float(first.padded()[0].reshape(-1)[0]), "--predict-times")  # refused before the fit
         return times, first, None, covariates
     starts = _next_initial(args, system)
     if len(starts) != 1:
@@ -212,7 +215,7 @@ def _design(args: argparse.Namespace, fit, request) -> None:
     state = ", ".join(f"{v:g}" for v in design.initial_state.tolist())
     print(
         f"next subject: sample at {', '.join(f'{t:g}' for t in design.times.tolist())} from the initial state "
-        f"({state}); {design.description}"
+        f"({state}) at {float(times[0]):g}; {design.description}"
     )
 
 
@@ -244,7 +247,11 @@ def add_population(sub) -> None:
     )
     pop.add_argument("--noise", default="auto", choices=["auto", *NOISE_MODELS], help="as for 'fit'")
     pop.add_argument("--out", default="subjects.csv", help="every experiment's parameters, .csv (default: %(default)s)")
-    pop.add_argument("--next-times", help="comma separated candidate sampling times of the next subject")
+    pop.add_argument(
+        "--next-times",
+        help="comma separated times of the next subject: the first is that of its initial state (--next-initial, "
+        "never sampled), the others the candidate sampling times",
+    )
     pop.add_argument("--budget", type=int, help="how many of them to sample")
     pop.add_argument(
         "--next-initial",
@@ -259,7 +266,7 @@ def add_population(sub) -> None:
         help="the next subject's covariate (repeat for each one --covariate names)",
     )
     pop.add_argument("--predict-times", help="times to predict the next subject's path at, comma separated or "
-                     "start:stop:count")  # fmt: skip
+                     "start:stop:count; with --first, from its first measurement's time on")  # fmt: skip
     pop.add_argument("--first", help="the next subject's first measurements, a table laid out as --data (its rows "
                      "only); without it the prediction is from the population alone, from --next-initial")  # fmt: skip
     pop.add_argument("--predict-out", default="next_subject.csv", help="the next subject's path and band, .csv "

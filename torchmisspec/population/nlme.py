@@ -94,13 +94,16 @@ def make_layout(system, population: Population) -> Layout:
 
 def starting_values(system, layout: Layout, population, X, trajectories, noise):
     """``(values, shared, y0)``: the population at the known model fitted with one set of parameters (its typical
-    values those parameters, its spread from the priors), the shared parameters there, and the initial states."""
+    values those parameters, its spread from the priors), the shared parameters there, and the initial states; at
+    the priors' values where that fit fails or lands outside a distribution's support (R's BodyWeight without rat
+    09: one set of parameters for all rats fitted k and A negative, whose log-normal start was NaN)."""
     known = _known_fit_or_none(system, trajectories, noise)
     priors = system.parameters
+    if known is not None and not bool(torch.isfinite(_etas(layout, known.theta)).all()):
+        known = None
     theta = priors.mean if known is None else known.theta
     y0 = initial_guess(trajectories, system) if known is None else known.initial_states
-    dists = layout.distributions
-    mean = torch.stack([d.to_eta(theta[i]) for d, i in zip(dists, layout.vary, strict=True)])
+    mean = _etas(layout, theta)
     spread = starting_spread(system, layout)
     acts = torch.zeros(len(layout.vary), X.shape[-1], dtype=torch.bool)
     names = population.covariate_names
@@ -109,6 +112,11 @@ def starting_values(system, layout: Layout, population, X, trajectories, noise):
             acts[j, names.index(c)] = True
     values = PopulationValues(mean, spread, torch.zeros(acts.shape, dtype=torch.float64), X.mean(0), acts)
     return values, theta[layout.shared], y0
+
+
+def _etas(layout: Layout, theta: torch.Tensor) -> torch.Tensor:
+    """``(k_v,)`` the varying parameters of ``theta (k,)`` in eta's coordinates (NaN outside a support)."""
+    return torch.stack([d.to_eta(theta[i]) for d, i in zip(layout.distributions, layout.vary, strict=True)])
 
 
 def starting_spread(system, layout: Layout) -> torch.Tensor:

@@ -32,7 +32,7 @@ from ._modes import conditional_modes, held_prior
 from ._subjects import drawn_controls
 from .model import covariate_matrix
 
-__all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "F_DRAWS"]
+__all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "times_from", "F_DRAWS"]
 
 #: posterior draws of F per draw of the subject's parameters
 F_DRAWS = 4
@@ -85,8 +85,10 @@ def predict_subject(
 ) -> SubjectPrediction:  # fmt: skip
     """A new subject's trajectory from ``y0 (d,)`` over ``times (T,)`` under the population ``fit``
     (:class:`~torchmisspec.population.fit.PopulationFit`), its ``covariates`` (``{name: value}``), updated by its
-    measurements ``first`` where given (the module's notes); ``y0=None`` takes ``first``'s fitted initial state.
-    ``controls``: the subject's own input profile for a system with controls. ``num_samples`` parameter draws."""
+    measurements ``first`` where given (the module's notes); ``y0=None`` takes ``first``'s fitted initial state,
+    at its first time: ``times`` then run from there on (the path is integrated from that time; a time before it is
+    refused). ``y0`` given is the state at ``times[0]``. ``controls``: the subject's own input profile for a system
+    with controls. ``num_samples`` parameter draws."""
     num_samples = check_positive_int(num_samples, "num_samples")
     X = covariate_matrix(fit.population, covariates, 1)
     nlme, layout = fit.nlme, fit.nlme.layout
@@ -94,12 +96,16 @@ def predict_subject(
         eta, cov, start = subject_parameters(fit, first, X)
     else:
         eta, cov, start = nlme.values.typical(X)[0], torch.diag(nlme.values.spread**2), None
+    from_first = y0 is None
     if y0 is None:
         if start is None:
             raise InputError("y0: expected the subject's initial state (d,), got None without first measurements")
         y0 = start
     y0 = torch.as_tensor(y0, dtype=torch.float64).reshape(-1)
     times = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
+    lead = 0
+    if from_first:  # the state fitted at the first measurement: the path starts there
+        times, lead = times_from(times, float(first.padded()[0].reshape(-1)[0]))
     L = torch.linalg.cholesky(cov + 1e-12 * torch.eye(cov.shape[0], dtype=cov.dtype))
     draws = eta + torch.randn(num_samples, eta.shape[0], dtype=eta.dtype, generator=generator) @ L.T
     ctrl = drawn_controls(fit.system, layout, torch.cat([eta[None], draws]), nlme.modes.shared, times[:1], controls)
@@ -115,6 +121,7 @@ def predict_subject(
             scale=1.0,
         )  # F's own band: the held-out calibration of fit_correction does not apply to a population's F
         samples = post.samples.reshape(-1, 1, *post.samples.shape[2:])
+    times, paths, samples = times[lead:], paths[:, lead:], samples[..., lead:, :]
     T = times.shape[0]
     posterior = TrajectoryPosterior(
         times=times[None],
@@ -127,6 +134,21 @@ def predict_subject(
     )
     theta = layout.theta(eta, nlme.modes.shared)
     return SubjectPrediction(posterior, theta, cov, first is not None)
+
+
+def times_from(times: torch.Tensor, origin: float, name: str = "times") -> tuple[torch.Tensor, int]:
+    """``(times to integrate over, how many lead them)``: ``times`` from the first measurement's time ``origin``
+    (prepended where they start later); a time before it is refused (the fitted state is the one at ``origin``)."""
+    tol = 1e-9 * max(1.0, abs(origin))
+    if float(times[0]) < origin - tol:
+        raise InputError(
+            f"{name}: expected times from the subject's first measurement at t = {origin:g} on (its fitted state is "
+            f"there, and the path runs forward from it), got {float(times[0]):g}; start the times at {origin:g}, or "
+            "pass the state at the earlier time as y0"
+        )
+    if float(times[0]) > origin + tol:
+        return torch.cat([times.new_tensor([origin]), times]), 1
+    return times, 0
 
 
 def _paths(fit, y0, times, controls) -> torch.Tensor:
