@@ -974,3 +974,21 @@ def test_predict_gives_the_band_of_new_measurements_from_the_saved_noise(lab, la
     assert main(_lab(lab, "predict", "--model", str(bare), *base[2:], "--measurements", "--out", str(measured))) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--measurements: expected a model file written by 'fit'" in err
+
+
+def test_a_warning_repeated_by_the_library_reaches_the_user_once(capsys):
+    """A population's fits can each give the same warning: the command prints each text once, on one line."""
+    import warnings
+    from functools import partial
+
+    from torchmisspec.cli import _warning_line
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = partial(_warning_line, "population", set())
+        for text in ("EM did not settle", "EM did not settle", "another"):
+            warnings.warn(text, UserWarning, stacklevel=1)
+    assert capsys.readouterr().err.splitlines() == [
+        "torchmisspec population: warning: EM did not settle",
+        "torchmisspec population: warning: another",
+    ]

@@ -624,3 +624,32 @@ def test_the_population_residuals_are_solved_once_for_every_design_and_new_subje
     subject_parameters(pop, data[0], torch.zeros(1, 0, dtype=DT))
     assert calls[0] == 1
     torch.testing.assert_close(misfit_scale(pop, grid), first)
+
+
+def test_a_subject_s_diverging_f_draws_are_named_in_its_terms():
+    """The solver's warning names the rows it integrates "initial conditions"; a new subject's rows are parameter
+    draws: one warning in those terms instead, counting the draws that left."""
+    import warnings
+    from types import SimpleNamespace
+
+    from torchmisspec.population.predict import F_DRAWS, _with_f_draws
+
+    S, T = 3, 5
+    samples = torch.zeros(F_DRAWS, S, T, 1, dtype=DT)
+    samples[1, 2, 3:] = math.nan  # one draw of F under the third parameter draw left the region
+
+    def posterior(y0, times, **kwargs):
+        tms_warn = tms.TorchMisspecWarning("CorrectedODE.posterior: 1 of 12 sampled paths left the region (...)")
+        warnings.warn(tms_warn, stacklevel=1)
+        return SimpleNamespace(samples=samples)
+
+    fit = SimpleNamespace(corrected=SimpleNamespace(posterior=posterior))
+    y0 = torch.zeros(S, 1, dtype=DT)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = _with_f_draws(fit, y0, torch.linspace(0, 1, T, dtype=DT), None, None)
+    messages = [str(w.message) for w in caught]
+    assert out.shape == (F_DRAWS * S, 1, T, 1) and int(out.isnan().any(-1).any(-1).sum()) == 1
+    assert len(messages) == 1 and messages[0].startswith(
+        "predict_subject: 1 of 12 draws of the subject's path (3 draws"
+    )

@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = partial(_warning_line, args.command)
+            warnings.showwarning = partial(_warning_line, args.command, set())
             return args.func(args)
     except KeyboardInterrupt:
         print(f"torchmisspec {args.command}: interrupted; nothing more was written", file=sys.stderr)
@@ -174,9 +174,13 @@ def _one_line(exc: BaseException | str) -> str:
     return text
 
 
-def _warning_line(command: str, message, category, filename, lineno, file=None, line=None) -> None:
-    """The library's warnings reach the user as one line each on stderr, without the source line."""
-    print(f"torchmisspec {command}: warning: {_one_line(message)}", file=sys.stderr)
+def _warning_line(command: str, seen: set, message, category, filename, lineno, file=None, line=None) -> None:
+    """The library's warnings reach the user as one line each on stderr, without the source line, each text once
+    (``seen``: the lines printed by this command; a population's fits can each give the same one)."""
+    text = f"torchmisspec {command}: warning: {_one_line(message)}"
+    if text not in seen:
+        seen.add(text)
+        print(text, file=sys.stderr)
 
 
 #: Python keywords in the library's advice and the command line's flags for them.

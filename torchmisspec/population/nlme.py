@@ -180,7 +180,7 @@ def fit_nlme(
     with progress_bar(progress, MAX_ROUNDS, "population (EM)", unit="round") as bar:
         values, modes, rounds, converged = _em(problem, values, modes, X, prior, floor, bar)
     if not converged:
-        _warn_unconverged(rounds)
+        _warn_unconverged(rounds, correction is None)
     se = standard_errors(values, modes, X)
     return NLMEFit(layout, values, modes, se, X, free, correction, rounds, converged)
 
@@ -221,10 +221,11 @@ def _typical_modes(values: PopulationValues, X, shared, data) -> Modes:
     return Modes(typical, eye, shared, data.initial_conditions, torch.empty(0), torch.empty(0), 0)
 
 
-def _warn_unconverged(rounds: int) -> None:
+def _warn_unconverged(rounds: int, classical: bool) -> None:
+    which = "with F = 0 (the classical answer)" if classical else "with the correction F"
     warn(
-        f"population fit: the EM rounds did not settle in {rounds} rounds (the population's values still moved by "
-        f"more than {TOLERANCE} of a spread); the last values are returned. A spread the data hardly determine "
-        "converges slowly: consider fewer varying parameters",
+        f"population fit {which}: the EM rounds did not settle in {rounds} rounds (the population's values still "
+        f"moved by more than {TOLERANCE} of a spread); the last values are returned. A spread the data hardly "
+        "determine converges slowly: consider fewer varying parameters",
         TorchMisspecWarning,
     )

@@ -19,11 +19,12 @@ parameters' spread is most of the band, and the studies measure its coverage by 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
 
-from .._errors import InputError
+from .._errors import InputError, TorchMisspecWarning, warn
 from .._validation import check_positive_int
 from ..data import Trajectories
 from ..prediction._bands import TrajectoryPosterior
@@ -112,15 +113,7 @@ def predict_subject(
     paths = _paths(fit, y0.expand(num_samples + 1, -1), times, ctrl)  # (1 + S, T, d)
     samples = paths[1:, None]
     if not fit.known_model:
-        post = fit.corrected.posterior(
-            y0.expand(num_samples, -1),
-            times,
-            num_samples=F_DRAWS,
-            controls=ctrl[1:],
-            generator=_on(generator),
-            scale=1.0,
-        )  # F's own band: the held-out calibration of fit_correction does not apply to a population's F
-        samples = post.samples.reshape(-1, 1, *post.samples.shape[2:])
+        samples = _with_f_draws(fit, y0.expand(num_samples, -1), times, ctrl[1:], generator)
     times, paths, samples = times[lead:], paths[:, lead:], samples[..., lead:, :]
     T = times.shape[0]
     posterior = TrajectoryPosterior(
@@ -149,6 +142,31 @@ def times_from(times: torch.Tensor, origin: float, name: str = "times") -> tuple
     if float(times[0]) > origin + tol:
         return torch.cat([times.new_tensor([origin]), times]), 1
     return times, 0
+
+
+def _with_f_draws(fit, y0: torch.Tensor, times: torch.Tensor, controls, generator) -> torch.Tensor:
+    """``(S F_DRAWS, 1, T, d)``: every parameter draw's path (row of ``y0 (S, d)`` and ``controls``) under
+    :data:`F_DRAWS` posterior draws of F; the draws that left the data's region are NaN from there, with one warning
+    in the subject's terms (the solver's names the rows of ``y0``, here parameter draws, "initial conditions")."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", "CorrectedODE.posterior: .* sampled paths left the region", TorchMisspecWarning
+        )
+        post = fit.corrected.posterior(
+            y0, times, num_samples=F_DRAWS, controls=controls, generator=_on(generator), scale=1.0
+        )  # F's own band: the held-out calibration of fit_correction does not apply to a population's F
+    samples = post.samples.reshape(-1, 1, *post.samples.shape[2:])
+    left = int((~torch.isfinite(samples).all(-1).all(-1)).sum())
+    if left:
+        warn(
+            f"predict_subject: {left} of {samples.shape[0]} draws of the subject's path ({y0.shape[0]} draws of its "
+            f"parameters, {F_DRAWS} draws of F each) left the region of the population's data and were stopped "
+            "there: under those draws of F the path diverges, and the band comes from the draws that remain. F is "
+            "extrapolated there: a shorter time span, or the subject's later measurements, keep the path nearer the "
+            "data",
+            TorchMisspecWarning,
+        )
+    return samples
 
 
 def _paths(fit, y0, times, controls) -> torch.Tensor:
