@@ -257,6 +257,26 @@ def test_covariate_effect_is_recovered():
     assert float(fit.values.spread[0]) < 0.2  # the covariate explains the rest of the spread
 
 
+def test_a_group_covariate_is_centred_at_its_reference_group():
+    """A 0/1 covariate (a diet against the reference diet) is centred at 0: the typical value is the reference
+    group's, not that of a group at the covariate's mean, which does not exist; other covariates at their mean."""
+    from torchmisspec.population.model import covariate_centre
+
+    X = torch.tensor([[0.0, 1.5], [1.0, 2.5], [1.0, 3.5]], dtype=DT)
+    torch.testing.assert_close(covariate_centre(X), torch.tensor([0.0, 2.5], dtype=DT))
+    g = torch.Generator().manual_seed(8)
+    K = 30
+    group = (torch.arange(K) % 3 == 0).to(DT)  # a third of them on the other diet
+    thetas = 1.0 + 0.5 * group + 0.05 * torch.randn(K, generator=g, dtype=DT)
+    data = linear_data(thetas, torch.linspace(0, 1, 6, dtype=DT), g)
+    population = Population(["c"], distribution=Normal(), covariates={"c": ["diet2"]})
+    fit = fit_nlme(linear_system(), data, population, Additive(), covariates={"diet2": group})
+    se = fit.standard_errors
+    assert float(fit.values.centre[0]) == 0.0
+    assert abs(float(fit.values.mean[0]) - float(thetas[group == 0].mean())) < 3 * float(se[0][0])
+    assert abs(float(fit.values.effects[0, 0]) - 0.5) < 3 * float(se[2][0, 0])
+
+
 def _classical(fit, system, population):
     sub = subject_system(system, fit.layout.vary, system.theta)
     return PopulationFit(system, population, Additive(), fit, fit, None, sub)

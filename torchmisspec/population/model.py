@@ -5,10 +5,13 @@ default, ``covariates={"V": ["weight"]}`` for a volume that grows with body weig
 the population's fitted values: for varying parameter j, in the coordinate eta where it is Gaussian
 (:mod:`~torchmisspec.population.distributions`),
 
-    eta_ij = mu_j + sum_c beta_jc (x_ic - mean_c) + omega_j z_ij,      z_ij ~ N(0, 1) independent,
+    eta_ij = mu_j + sum_c beta_jc (x_ic - centre_c) + omega_j z_ij,      z_ij ~ N(0, 1) independent,
 
-x_ic experiment i's covariate c (centred by the fitted experiments' mean, so mu_j is the typical value at the
-average covariates). The other uncertain parameters of G are shared by every experiment.
+x_ic experiment i's covariate c, centred (:func:`covariate_centre`): a covariate that takes only the values 0 and 1 (a
+group: a diet, a formulation, coded against a reference) at 0, the reference group; any other at the fitted
+experiments' mean. mu_j is then the typical value of the reference group at the average of the other covariates
+(centring a 0/1 covariate at its mean gave the typical value of a group that does not exist, R's BodyWeight's
+"diet2 = 0.25"). The other uncertain parameters of G are shared by every experiment.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch
 from .._errors import InputError, ShapeError
 from .distributions import Distribution, LogNormal
 
-__all__ = ["Population", "PopulationValues", "covariate_matrix"]
+__all__ = ["Population", "PopulationValues", "covariate_centre", "covariate_matrix"]
 
 
 @dataclass(frozen=True)
@@ -131,10 +134,18 @@ def covariate_matrix(population: Population, covariates, num_experiments: int) -
     return torch.stack(cols, -1)
 
 
+def covariate_centre(X: torch.Tensor) -> torch.Tensor:
+    """``(c,)`` where each covariate of ``X (K, c)`` is centred (the module's notes): 0 for a 0/1 covariate, else the
+    experiments' mean."""
+    binary = ((X == 0) | (X == 1)).all(0)
+    return torch.where(binary, torch.zeros_like(X[0]), X.mean(0)) if X.shape[0] else X.mean(0)
+
+
 @dataclass
 class PopulationValues:
     """The population's values (float64): ``mean (k,)`` mu, ``spread (k,)`` omega, ``effects (k, c)`` beta (zero
-    where a covariate does not act on a parameter), ``centre (c,)`` the covariates' mean, and ``acts (k, c)`` which
+    where a covariate does not act on a parameter), ``centre (c,)`` where the covariates are centred
+    (:func:`covariate_centre`), and ``acts (k, c)`` which
     effects are estimated."""
 
     mean: torch.Tensor

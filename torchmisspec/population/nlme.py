@@ -34,7 +34,7 @@ from ..learning.refinement.partial import initial_guess
 from ..noise import NoiseModel
 from ._modes import Layout, Modes, conditional_modes
 from ._subjects import parameter_names, subject_system
-from .model import Population, PopulationValues, covariate_matrix
+from .model import Population, PopulationValues, covariate_centre, covariate_matrix
 from .uncertainty import Intervals, fixed_effects, intervals, standard_errors
 
 __all__ = ["NLMEFit", "fit_nlme", "MAX_ROUNDS", "TOLERANCE"]
@@ -110,7 +110,7 @@ def starting_values(system, layout: Layout, population, X, trajectories, noise):
     for j, i in enumerate(layout.vary):
         for c in population.covariates.get(priors.names[i], ()):
             acts[j, names.index(c)] = True
-    values = PopulationValues(mean, spread, torch.zeros(acts.shape, dtype=torch.float64), X.mean(0), acts)
+    values = PopulationValues(mean, spread, torch.zeros(acts.shape, dtype=torch.float64), covariate_centre(X), acts)
     return values, theta[layout.shared], y0
 
 
