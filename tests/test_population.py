@@ -364,7 +364,7 @@ def test_design_first_pick_is_the_brute_force_best_time():
     design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
     assert design.times.tolist() == [0.9]
     assert design.score == pytest.approx(1 - 1 / (1 + 0.81 * w2 / s2), rel=1e-5)
-    assert design.description == f"expected to remove {design.score:.0%} of its parameters' variance in the population"
+    assert design.description.startswith(f"expected to remove {design.score:.0%} of the variance its parameters have")
     target = SubjectParameters(draws=3, criterion=Determinant())
     design = design_subject(pop, grid, 1, initial_states=[2.0], target=target)
     assert design.times.tolist() == [0.9]
@@ -589,6 +589,8 @@ def test_the_integrated_fit_s_f_is_a_candidate_where_f_s_own_fit_keeps_none(monk
     )
     assert seen == [True, False]
     assert not fit.known_model and fit.gp.parameters_ is not None  # the integrated fit's F, its etas recorded
+    with_f, without = fit.held_out  # what do no harm compared, in the summary
+    assert with_f < without and f"misfit {with_f:.3g} with F conditioned without them, {without:.3g}" in fit.summary()
     x = torch.tensor([[0.5], [3.0]], dtype=DT)
     f = fit.gp.predict_mean(x).flatten()
     assert -1.2 < float(f[1] - f[0]) / 2.5 < -0.5

@@ -56,7 +56,7 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
     assert code == 0
     assert "fitted a population of 12 experiments" in printed and "c ~ weight" in printed
     assert "next subject: sample at 0.75, 1 from the initial state (2) at 0; expected to remove " in printed
-    assert "of its parameters' variance in the population" in printed
+    assert "of the variance its parameters have before any sample (the population's spread)" in printed
     rows = list(csv.reader(out.open()))
     assert rows[0] == ["subject", "c"] and [r[0] for r in rows[1:]] == [str(k) for k in range(1, 13)]
     effect = float(printed.split("c ~ weight: ")[1].split()[0])

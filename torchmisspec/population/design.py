@@ -93,7 +93,10 @@ class ExpectedError:
         return 1.0 + float(self(E).mean()) / E.shape[-1]
 
     def describe(self, score: float) -> str:
-        return f"expected to remove {score:.0%} of its parameters' variance in the population"
+        return (
+            f"expected to remove {score:.0%} of the variance its parameters have before any sample (the population's "
+            "spread), averaged over subjects drawn from the population"
+        )
 
     def __repr__(self) -> str:
         return "ExpectedError()"

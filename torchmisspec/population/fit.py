@@ -96,6 +96,9 @@ class PopulationFit:
     subject_system: MisspecifiedSystem
     #: the data fitted
     data: Trajectories | None = None
+    #: ``(misfit with F, misfit with F = 0)`` of the held-out experiments that decided do no harm (``None`` where no
+    #: correction was a candidate)
+    held_out: tuple[float, float] | None = None
 
     @property
     def known_model(self) -> bool:
@@ -155,6 +158,11 @@ class PopulationFit:
                         f"95% [{lo:+.4g}, {hi:+.4g}]) in eta, around {name} = {float(vals.centre[c]):.4g}"
                     )
         kind = "F = 0 kept (the classical answer)" if self.known_model else "a correction F learned"
+        if self.held_out is not None:
+            kind += (
+                f" (held-out experiments' misfit {self.held_out[0]:.3g} with F conditioned without them, "
+                f"{self.held_out[1]:.3g} with F = 0)"
+            )
         coordinates = ", ".join(dict.fromkeys(f"{d.name}: {_eta(d)}" for d in dists))
         lines.append(f"spread in eta = {coordinates}; {kind}")
         return "\n".join(lines)
@@ -220,6 +228,7 @@ def fit_population(
             system, population, noise, classical, classical, None, _plain(system, classical), trajectories
         )
     fitted, kept, with_f, without = best_on_unseen_experiments(candidates, classical, trajectories)
+    fitted = dataclasses.replace(fitted, held_out=(with_f, without))
     if kept:
         return fitted
     warn(
