@@ -53,6 +53,22 @@ def test_the_times_chosen_are_at_least_half_the_best_and_respect_every_budget():
     assert math.isclose(result.design.information_gain, best, rel_tol=1e-9)
 
 
+def test_a_known_start_is_never_a_sample_and_the_rest_is_the_brute_force_best():
+    """``skip_first``: the initial state's time is not a candidate (a new subject's known start); the picks are the
+    best of the other times by brute force, their indices and times in the whole grid's terms."""
+    gp = tms.CorrectionGP(lengthscale=0.5, outputscale=0.1, noise_variance=1e-3)
+    y0 = torch.tensor([[0.2, 0.0]], dtype=DT)  # the start itself the most informative state: an unknown start picks it
+    t = torch.linspace(0, 8, 6, dtype=DT)
+    assert 0 in design.sampling_times(y0, t, 2, system=pk(), gp=gp).indices[0].tolist()
+    result = design.sampling_times(y0, t, 2, system=pk(), gp=gp, skip_first=True)
+    assert 0 not in result.indices[0].tolist() and torch.equal(result.times[0], t[result.indices[0]])
+    paths = tms.simulate(pk(), y0, t, known_only=True).states[0, :, :1]
+    best = max(rbf_gain(paths[list(a)], 0.1, 0.5, 1e-3) for a in itertools.combinations(range(1, 6), 2))
+    assert math.isclose(result.design.information_gain, best, rel_tol=1e-9)
+    with pytest.raises(tms.InputError, match="at most the 5 candidate times"):
+        design.sampling_times(y0, t, 6, system=pk(), gp=gp, skip_first=True)
+
+
 def test_times_are_spread_where_the_path_moves_and_conditioned_on_data():
     """A decaying dose: most of the picks fall early, where the central concentration changes; once data cover
     the early states (a fitted GP), the design moves to where they do not."""

@@ -562,6 +562,10 @@ def test_a_missing_term_every_experiment_shares_is_learned_and_none_is_refused()
     assert float(spread[-1]) > float(spread[1]) > 0
     design = design_subject(fit, grid, 2, initial_states=[1.0], generator=torch.Generator().manual_seed(1))
     assert 0 < design.score < 1 and design.times.numel() == 2
+    from torchmisspec.population.design import Correction
+
+    for_f = design_subject(fit, grid, 6, initial_states=[1.0], target=Correction())
+    assert for_f.times.tolist() == grid[1:].tolist()  # every time but the known start
     with pytest.warns(tms.TorchMisspecWarning, match="not fitted significantly better"):
         none = fit_population(_sloped_population(False), linear_system(), population, noise="additive", progress=False)
     assert none.known_model and none.nlme is none.classical

@@ -61,6 +61,7 @@ def sampling_times(
     criterion: str | DomainCriterion = "information",
     proxy: Proxy | None = None,
     progress: bool = False,
+    skip_first: bool = False,
     **options,
 ) -> SamplingTimes:
     """Choose at most ``per_experiment`` of the candidate ``times`` to measure in each experiment.
@@ -79,6 +80,8 @@ def sampling_times(
         proxy: a :class:`~torchmisspec.design.Proxy` with ``"known"`` or ``"corrected"`` dynamics (default: corrected
             for a fitted GP), as for ``greedy``; its paths are the ones computed here.
         progress: a progress bar over the picks.
+        skip_first: the first time is only the initial state's, never a sample (a new subject's design: its start is
+            known). Default: it is a candidate like the others.
         **options: further keywords of :func:`~torchmisspec.design.greedy` (``method``, ``condition``, ``engine``,
             ...).
 
@@ -99,9 +102,11 @@ def sampling_times(
     grid = check_times(times, **kd)
     K, T = y0.shape[0], grid.numel()
     per_experiment = check_positive_int(per_experiment, "per_experiment")
-    if per_experiment > T:
+    first = int(bool(skip_first))
+    if per_experiment > T - first:
         raise InputError(
-            f"per_experiment: expected at most the {T} candidate times, got {per_experiment}; pass more candidate times"
+            f"per_experiment: expected at most the {T - first} candidate times, got {per_experiment}; pass more "
+            "candidate times"
         )
     controls = system.check_controls(controls, K)
     if proxy is not None and (not isinstance(proxy, Proxy) or proxy.paths is not None):
@@ -114,8 +119,9 @@ def sampling_times(
     if system.uses_controls:  # F's inputs include u: each sample carries the inputs at its own time
         paths = torch.cat([paths, controls.at(grid.expand(K, -1)).to(paths)], dim=-1)
         width += system.num_controls
-    samples = paths.reshape(K * T, 1, width)  # candidate k T + i: time i of experiment k
-    region = torch.arange(K, device=samples.device).repeat_interleave(T)
+    Tc = T - first
+    samples = paths[:, first:].reshape(K * Tc, 1, width)  # candidate k Tc + i: time first + i of experiment k
+    region = torch.arange(K, device=samples.device).repeat_interleave(Tc)
     # the samples' view of the system: F's inputs (states, then inputs u) and outputs; G is in the proxies already
     view = MisspecifiedSystem(
         lambda y: torch.zeros_like(y),
@@ -137,5 +143,5 @@ def sampling_times(
         **options,
     )
     picked = design.indices.to(samples.device)
-    chosen = [torch.sort(picked[picked // T == k] % T).values for k in range(K)]
+    chosen = [torch.sort(picked[picked // Tc == k] % Tc).values + first for k in range(K)]
     return SamplingTimes(tuple(grid[c] for c in chosen), tuple(chosen), design)

@@ -274,5 +274,7 @@ def _for_correction(fit, grid, budget, y0, typical):
             "about); design for SubjectParameters() instead"
         )
     controls = drawn_controls(fit.system, fit.nlme.layout, typical[None], fit.nlme.modes.shared, grid[:1])
-    chosen = sampling_times(y0[None], grid, budget, system=fit.subject_system, gp=fit.gp, controls=controls)
+    chosen = sampling_times(
+        y0[None], grid, budget, system=fit.subject_system, gp=fit.gp, controls=controls, skip_first=True
+    )  # its start is known: never a sample
     return chosen.indices[0].tolist(), float(chosen.design.information_gain)
