@@ -163,7 +163,7 @@ def _prediction_request(args: argparse.Namespace, system, population):
         )
         from ..population.predict import times_from
 
-        times_from(times, float(first.padded()[0].reshape(-1)[0]), "--predict-times")  # refused before the fit
+        times_from(times, first, "--predict-times")  # refused before the fit
         return times, first, None, covariates
     starts = _next_initial(args, system)
     if len(starts) != 1:

@@ -106,7 +106,7 @@ def predict_subject(
     times = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
     lead = 0
     if from_first:  # the state fitted at the first measurement: the path starts there
-        times, lead = times_from(times, float(first.padded()[0].reshape(-1)[0]))
+        times, lead = times_from(times, first)
     L = torch.linalg.cholesky(cov + 1e-12 * torch.eye(cov.shape[0], dtype=cov.dtype))
     draws = eta + torch.randn(num_samples, eta.shape[0], dtype=eta.dtype, generator=generator) @ L.T
     ctrl = drawn_controls(fit.system, layout, torch.cat([eta[None], draws]), nlme.modes.shared, times[:1], controls)
@@ -129,9 +129,10 @@ def predict_subject(
     return SubjectPrediction(posterior, theta, cov, first is not None)
 
 
-def times_from(times: torch.Tensor, origin: float, name: str = "times") -> tuple[torch.Tensor, int]:
-    """``(times to integrate over, how many lead them)``: ``times`` from the first measurement's time ``origin``
-    (prepended where they start later); a time before it is refused (the fitted state is the one at ``origin``)."""
+def times_from(times: torch.Tensor, first: Trajectories, name: str = "times") -> tuple[torch.Tensor, int]:
+    """``(times to integrate over, how many lead them)``: ``times`` from the time of ``first``'s first measurement
+    (prepended where they start later); a time before it is refused (the fitted state is the one there)."""
+    origin = float(first.padded()[0].reshape(-1)[0])
     tol = 1e-9 * max(1.0, abs(origin))
     if float(times[0]) < origin - tol:
         raise InputError(
