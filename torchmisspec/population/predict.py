@@ -138,7 +138,8 @@ def times_from(times: torch.Tensor, first: Trajectories, name: str = "times") ->
         raise InputError(
             f"{name}: expected times from the subject's first measurement at t = {origin:g} on (its fitted state is "
             f"there, and the path runs forward from it), got {float(times[0]):g}; start the times at {origin:g}, or "
-            "pass the state at the earlier time as y0"
+            "give the state at the earlier time (y0; on the command line --next-initial) instead of the first "
+            "measurements"
         )
     if float(times[0]) > origin + tol:
         return torch.cat([times.new_tensor([origin]), times]), 1
