@@ -71,7 +71,7 @@ TIMES = [0.5 * i for i in range(21)]
 NOISE = 0.05
 #: whether the depot is measured (see the notes)
 FULLY = True
-FULL = {"realizations": 10, "subjects": 12}
+FULL = {"realizations": 20, "subjects": 12}
 SMOKE = {"realizations": 1, "subjects": 6}
 GOALS = {"vs_known_parameters": 1.3, "vs_ignoring_spread": 0.5, "within_2se": 0.9}
 
