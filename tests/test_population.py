@@ -89,9 +89,15 @@ def _linear_fit(K=8, mu=1.0, omega=0.3, seed=0, dist=None):
     return fit_nlme(linear_system(), data, population, Additive()), data, thetas
 
 
+def _mean_square_at_the_modes(fit, data) -> float:
+    """The residuals' mean square at the modes (what the fit weighs by) of the linear model."""
+    t, y = data.times[1:], data.states[:, 1:, 0] - 2.0
+    return float((fit.modes.eta[:, :1] * t - y).pow(2).mean())
+
+
 def test_conditional_modes_are_the_conjugate_posterior():
     fit, data, _ = _linear_fit()
-    s2 = float(fit.modes.scale[0]) ** 2
+    s2 = _mean_square_at_the_modes(fit, data)
     mu, w2 = float(fit.values.mean[0]), float(fit.values.spread[0]) ** 2
     t = data.times[1:]
     y = data.states[:, 1:, 0] - 2.0
@@ -101,6 +107,32 @@ def test_conditional_modes_are_the_conjugate_posterior():
     torch.testing.assert_close(
         fit.modes.covariance[:, 0, 0], torch.full((8,), 1 / precision, dtype=DT), rtol=2e-3, atol=0
     )
+
+
+def test_the_noise_scale_counts_the_freedom_the_fitted_parameters_took():
+    """The conjugate model's hat matrix: experiment i's trace is a / (a + 1 / omega^2), a = sum_t t^2 / s^2 (s^2
+    the mean square the fit weighs by), so the scale is the residual sum of squares over N - K a / (a + 1/omega^2)."""
+    fit, data, _ = _linear_fit()
+    s2, w2 = _mean_square_at_the_modes(fit, data), float(fit.values.spread[0]) ** 2
+    a = float(data.times[1:].pow(2).sum()) / s2
+    n = data.states[:, 1:].numel()
+    expected = s2 * n / (n - data.num_experiments * a / (a + 1 / w2))
+    assert float(fit.modes.scale[0]) ** 2 == pytest.approx(expected, rel=1e-3)
+
+
+def test_the_noise_scale_is_unbiased_where_the_mean_square_is_not():
+    """Over 40 populations of 8 experiments x 5 measurements (noise 0.1): the mean of the scale's square is the
+    noise variance within 3 standard errors; the mean square at the modes is not (the fitted parameters took about
+    one measurement in five)."""
+    scales, raw = [], []
+    for seed in range(40):
+        fit, data, _ = _linear_fit(seed=seed)
+        scales.append(float(fit.modes.scale[0]) ** 2)
+        raw.append(_mean_square_at_the_modes(fit, data))
+    scales, raw = torch.tensor(scales, dtype=DT), torch.tensor(raw, dtype=DT)
+    se = float(scales.std()) / math.sqrt(scales.numel())
+    assert abs(float(scales.mean()) - 0.01) < 3 * se, (float(scales.mean()), se)
+    assert float(raw.mean()) < 0.01 - 3 * float(raw.std()) / math.sqrt(raw.numel())
 
 
 def test_em_settles_at_its_own_update():

@@ -206,3 +206,7 @@ def test_population_study_smokes(tmp_path):
         result = json.loads(out.read_text())
         assert result["smoke"] and len(result[key]) == 1, script
         assert "| measure | value | goal |" in stdout
+        if script == "study_population_design.py":  # what any design can reach, the truth known
+            bound = result["truth_bound"]
+            assert bound["sets"] == 4845 and bound["best"] < bound["random"] < bound["standard"], bound
+            assert result["runs"][0]["truth_best_times"] == bound["times"]

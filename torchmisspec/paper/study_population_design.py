@@ -23,11 +23,22 @@ F replaced by the truth's saturable elimination in the subject's fit (the popula
 fitted). A probe of seed 43500 found the designed late samples worth 0.62x the standard's error with the true F and
 1.03x with the fitted one: the fitted F's error at the low concentrations of the late hours biases the volume fitted
 to them. These two columns measure that over the realizations.
+
+**What any design can reach here** (the truth known): every one of the 4,845 sets of 4 candidate times is scored by
+the linearized expected error of a new subject's parameters under the true model, F and population (both states,
+5 % noise, the prior the true spread: ``E = (I + sum_t J_t^T W J_t)^-1`` over :data:`TRUTH_DRAWS` subjects drawn
+from the population, the RMS over ka and V of its square root). The best set's error is compared with the standard
+schedule's first 4 and with the mean over every set (a random set's expectation, exactly); the best set is also an
+arm (**the truth's best**), scored like the others with the fitted model. Where the best set for the truth is
+within 0.8 of a rule's error, no design can reach the goal's ratio against that rule in this population, whatever
+its model; where the truth's best set does worse than the designed one under the fitted model, the fitted model's
+error, not the design's rule, is what stands between the two.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 import warnings
@@ -54,16 +65,59 @@ DOSE = 4.5
 FULL = {"realizations": 10, "subjects": 12, "new_subjects": 20}
 SMOKE = {"realizations": 1, "subjects": 6, "new_subjects": 3}
 GOALS = {"ratio": 0.8}
-ARMS = ("designed", "standard", "random")
+ARMS = ("designed", "standard", "random", "truth_best")
+#: subjects drawn from the true population for the linearized error of every set of times (the notes)
+TRUTH_DRAWS = 200
 
 
-def _arms(fit, g: torch.Generator) -> dict:
+def truth_errors(g: torch.Generator) -> tuple[list[tuple[int, ...]], torch.Tensor]:
+    """Every set of :data:`BUDGET` candidate times after the first (indices into :data:`~study_population.TIMES`)
+    and its linearized expected error under the truth (the notes): the RMS over the varying parameters of the
+    posterior standard deviation in units of the true spread, averaged over :data:`TRUTH_DRAWS` drawn subjects."""
+    thetas, _ = pop.subjects(TRUTH_DRAWS, g)
+    doses = torch.full((TRUTH_DRAWS,), DOSE, dtype=DT)
+    omega = torch.tensor([pop.TRUE[k][1] for k in pop.PRIORS], dtype=DT)
+    base = pop.measure(thetas, doses, g, noise=False).states[:, 1:].log()  # (S, T - 1, o): what the noise acts on
+    step = 1e-6
+    J = []
+    for k in range(thetas.shape[1]):  # d log(measured) / d eta_k, eta in units of the spread
+        moved = thetas.clone()
+        moved[:, k] *= math.exp(step * float(omega[k]))
+        J.append((pop.measure(moved, doses, g, noise=False).states[:, 1:].log() - base) / step)
+    J = torch.stack(J, -1)  # (S, T - 1, o, k)
+    per_time = torch.einsum("stoa,stob->stab", J, J) / pop.NOISE**2
+    eye = torch.eye(J.shape[-1], dtype=DT)
+    sets = list(itertools.combinations(range(1, len(pop.TIMES)), BUDGET))
+    index = torch.tensor(sets) - 1  # (N, BUDGET) into per_time's times
+    E = torch.linalg.inv(eye + per_time[:, index].sum(2))  # (S, N, k, k)
+    errors = E.diagonal(dim1=-2, dim2=-1).mean(-1).mean(0).sqrt()  # (N,)
+    return sets, errors
+
+
+def truth_bound() -> dict:
+    """The truth's best set of times and its linearized error against the standard schedule's and a random set's
+    (the notes); one draw of subjects, the same in every realization."""
+    sets, errors = truth_errors(torch.Generator().manual_seed(SEED))
+    best = int(errors.argmin())
+    standard = sets.index(tuple(range(1, 1 + BUDGET)))
+    grid = pop.TIMES
+    return {
+        "times": [grid[i] for i in sets[best]],
+        "best": float(errors[best]),
+        "standard": float(errors[standard]),
+        "random": float(errors.mean()),
+        "sets": len(sets),
+    }
+
+
+def _arms(fit, g: torch.Generator, truth_best: list[float]) -> dict:
     grid = torch.tensor(pop.TIMES, dtype=DT)
     y0 = torch.tensor([DOSE, 0.0], dtype=DT)
     designed = design_subject(fit, grid, BUDGET, initial_states=y0, generator=g).times
     standard = grid[1 : 1 + BUDGET]
     random = torch.sort(grid[1:][torch.randperm(grid.numel() - 1, generator=g)[:BUDGET]]).values
-    return {"designed": designed, "standard": standard, "random": random}
+    best = torch.tensor(truth_best, dtype=DT)
+    return {"designed": designed, "standard": standard, "random": random, "truth_best": best}
 
 
 class _ExactF(PopulationFit):
@@ -114,7 +168,7 @@ def run_one(task: tuple[int, dict]) -> dict:
     t0 = time.perf_counter()
     fit = fit_population(pop.measure(thetas, doses, g), pop.system(), Population(["ka", "V"]), progress=False)
     out = {"seed": seed, "fit_seconds": time.perf_counter() - t0, "known_model": fit.known_model}
-    arms = _arms(fit, g)
+    arms = _arms(fit, g, cfg["truth_best"])
     new, _ = pop.subjects(cfg["new_subjects"], g)
     state = g.get_state()
     for name, times in arms.items():
@@ -133,14 +187,17 @@ def study(cfg: dict, log=print, executor=None) -> dict:
     from torchmisspec.parallel import map_tasks
 
     seeds = [SEED + r for r in range(cfg["realizations"])]
-    runs = map_tasks(run_one, [(s, cfg) for s in seeds], executor=executor)
+    bound = truth_bound()
+    log(f"the truth's best {BUDGET} times {bound['times']}: linearized error {bound['best']:.4f}, the standard's "
+        f"{bound['standard']:.4f}, a random set's {bound['random']:.4f}")  # fmt: skip
+    runs = map_tasks(run_one, [(s, {**cfg, "truth_best": bound["times"]}) for s in seeds], executor=executor)
     for r, one in enumerate(runs):
         arms = "; ".join(
             f"{a} {one[a + '_parameters']:.3f} / {one[a + '_path']:.3f} at {[round(t, 2) for t in one[a + '_times']]}"
             for a in ARMS
         )
         log(f"{r}: {arms}")
-    return {"config": cfg, "runs": runs, "goals": GOALS}
+    return {"config": cfg, "runs": runs, "goals": GOALS, "truth_bound": bound}
 
 
 def _ratio(runs, arm: str, other: str, what: str) -> str:
@@ -159,7 +216,9 @@ def table(result: dict) -> str:
         f"| subject's path (log-RMSE): designed / standard | {_ratio(runs, 'designed', 'standard', 'path')} | |",
         f"| subject's path (log-RMSE): designed / random | {_ratio(runs, 'designed', 'random', 'path')} | |",
         f"| a correction kept | {sum(not r['known_model'] for r in runs)} of {len(runs)} | |",
+        _truth_arm_row(runs),
         _exact_row(runs),
+        _bound_rows(result.get("truth_bound")),
     ]
     return "\n".join(lines) + "\n"
 
@@ -176,13 +235,36 @@ def _exact_row(runs: list[dict]) -> str:
     )
 
 
+def _truth_arm_row(runs: list[dict]) -> str:
+    if "truth_best_parameters" not in runs[0]:
+        return "| subject's parameters: the truth's best times / designed | (not measured in this run) | |"
+    return (
+        f"| subject's parameters: the truth's best times / designed (both fitted with the fitted model) "
+        f"| {_ratio(runs, 'truth_best', 'designed', 'parameters')} | |"
+    )
+
+
+def _bound_rows(bound: dict | None) -> str:
+    """What any design can reach with the truth known (the notes)."""
+    if bound is None:
+        return "| the truth's best set (linearized) | (not measured in this run) | |"
+    times = ", ".join(f"{t:g}" for t in bound["times"])
+    return (
+        f"| the truth's best {BUDGET} times of {bound['sets']} sets ({times} h), linearized error under the truth: "
+        f"/ the standard first 4 | {bound['best'] / bound['standard']:.3f} | |\n"
+        f"| the same, / a random set's (the mean over every set) | {bound['best'] / bound['random']:.3f} | |"
+    )
+
+
 def per_realization(result: dict) -> str:
-    lines = ["| seed | designed times (h) | parameters: designed / standard / random | with the true F: designed / "
-             "standard | path: designed / standard / random |", "|---|---|---|---|---|"]  # fmt: skip
+    arms = [a for a in ARMS if a + "_parameters" in result["runs"][0]]
+    names = " / ".join(a.replace("_", "'s ").replace("truth's", "the truth's") for a in arms)
+    lines = [f"| seed | designed times (h) | parameters: {names} | with the true F: designed / standard "
+             f"| path: {names} |", "|---|---|---|---|---|"]  # fmt: skip
     for r in result["runs"]:
         times = ", ".join(f"{t:g}" for t in r["designed_times"])
-        par = " / ".join(f"{r[a + '_parameters']:.3f}" for a in ARMS)
-        path = " / ".join(f"{r[a + '_path']:.3f}" for a in ARMS)
+        par = " / ".join(f"{r[a + '_parameters']:.3f}" for a in arms)
+        path = " / ".join(f"{r[a + '_path']:.3f}" for a in arms)
         exact = "(F = 0)"
         if "designed_exact_f" in r:
             exact = " / ".join(f"{r[a + '_exact_f']:.3f}" for a in ("designed", "standard"))

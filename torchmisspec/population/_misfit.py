@@ -21,7 +21,8 @@ __all__ = ["misfit_scale", "residuals_by_time"]
 
 def residuals_by_time(fit) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(times (N,), squares (N, o), seen (N, o))``: every measurement's time, its squared residual under the
-    population ``fit`` (the noise model's space; 0 where not seen) and whether it was seen, over all experiments. A
+    population ``fit`` (the noise model's space; 0 where not seen; each component's raised by the freedom the
+    fitted parameters took, as the fit's scale is) and whether it was seen, over all experiments. A
     first row given as the initial state is not seen (its residual is 0 by construction, not a sample's worth).
     One solve of every experiment; :class:`~torchmisspec.population.fit.PopulationFit` keeps it
     (``fit.residuals_by_time``)."""
@@ -35,6 +36,11 @@ def residuals_by_time(fit) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     r2 = torch.where(seen, fit.noise.transform(pred) - fit.noise.transform(values), 0.0).pow(2)
     times = data.padded()[0].expand(values.shape[:2])
     o = values.shape[-1]
+    # the squares at the modes are too small by the freedom the fitted parameters took (the fit's scale counts it:
+    # :mod:`~torchmisspec.population._modes`): each component's squares are raised to the fit's scale on average
+    mean_square = r2.sum((0, 1)) / seen.sum((0, 1)).clamp_min(1)
+    raise_by = (nlme.modes.scale.to(r2).pow(2) / mean_square).nan_to_num(nan=1.0, posinf=1.0).clamp_min(1.0)
+    r2 = r2 * raise_by
     return times.reshape(-1), r2.reshape(-1, o), seen.reshape(-1, o)
 
 

@@ -12,6 +12,15 @@ classical fit), and the initial states the data do not give. Every experiment, a
 one batched solve: a column moves one coordinate of every experiment at once (experiments are independent). The
 Laplace covariance of z_i is the block of the inverse Gauss-Newton Hessian (the shared parameters and the initial
 states marginalised): first-order conditional estimation (Lindstrom & Bates 1990) per experiment.
+
+**The noise scale reported** (``Modes.scale``, what a new subject's measurement band and fit take) is each
+component's residual sum of squares over its degrees of freedom left: its residual count less the leverage of its
+residuals, the trace of the fit's hat matrix ``w J A^-1 J^T`` (A the Gauss-Newton Hessian with the prior): the
+parameters fitted to them, each counted as the fraction of it the data determine (a parameter the prior holds counts
+little, a free initial state one). The mean square at the modes (what the fit weighs by, maximum likelihood) is too
+small by that fraction: on R's Orange (5 trees, 7 ages, 2 varying parameters) the fitted parameters take about
+a third of the residuals' freedom, and a new tree's 90 % band held 64 % of its later measurements. The fit's own
+weights stay the mean square's: the modes, their covariances and the population's values are unchanged.
 """
 
 from __future__ import annotations
@@ -231,22 +240,36 @@ def conditional_modes(
     return _laplace(problem, z, r, w, active, penalty)
 
 
+def unbiased_scale(r: torch.Tensor, comp: torch.Tensor, num_components: int, leverage=None) -> torch.Tensor:
+    """``(num_components,)`` each component's noise scale: the sum of its residuals' squares ``r (n,)`` over its
+    degrees of freedom left, its residual count less the sum of their ``leverage (n,)`` (the module's notes; at
+    least one left); ``leverage`` ``None``: the root mean square. NaN where a component has no residual."""
+    if leverage is None:
+        return component_scale(r, comp, num_components)
+    zeros = torch.zeros(num_components, dtype=r.dtype, device=r.device)
+    squares = zeros.index_add(0, comp, r.pow(2))
+    count = zeros.index_add(0, comp, torch.ones_like(r))
+    left = (count - zeros.index_add(0, comp, leverage.clamp(0.0, 1.0))).clamp_min(1.0)
+    return torch.where(count > 0, (squares / left).sqrt(), torch.full_like(squares, math.nan))
+
+
 def _laplace(problem: _Problem, z, r, w, active, penalty) -> Modes:
     """The :class:`Modes` at ``z``: the blocks of the inverse Gauss-Newton Hessian of every experiment's z_i."""
     K, kv, ks = problem.K, problem.kv, problem.ks
     eye = torch.eye(kv, dtype=z.dtype, device=z.device).expand(K, kv, kv)
-    cov_z = eye
+    cov_z, leverage = eye, None
     try:
         J = problem.jacobian(z, r)
         A = J.T @ (w[:, None] * J) + torch.diag(penalty) + torch.diag((~active).to(J))
         full = torch.cholesky_inverse(torch.linalg.cholesky(A))
         block = full[ks : ks + K * kv, ks : ks + K * kv].reshape(K, kv, K, kv)
         cov_z = block[torch.arange(K), :, torch.arange(K), :]
+        leverage = w * ((J @ full) * J).sum(1)  # the hat matrix's diagonal
     except (IntegrationError, torch.linalg.LinAlgError):
         pass  # the prior's covariance: nothing learned about the spread from this fit
     theta, y0 = problem.unpack(z[None])
     eta = problem.typical + problem.spread * z[ks : ks + K * kv].reshape(K, kv)
-    scale = component_scale(r, problem.comp, problem.num_components)
+    scale = unbiased_scale(r, problem.comp, problem.num_components, leverage)
     s = problem.spread
     return Modes(
         eta=eta,
