@@ -216,6 +216,32 @@ def test_intervals_of_exactly_known_experiments_are_the_textbook_ones():
     assert bool(out.effects[0, 0].isnan().all())  # not estimated
 
 
+def test_a_new_subject_s_prior_is_the_textbook_prediction_interval():
+    """Experiments known exactly: the new subject's normal prior has the central 95 % interval of the prediction
+    interval of a new observation: a normal sample's (t with K - 1 degrees of freedom, scale s sqrt(1 + 1/K)), and a
+    regression's at the new covariate (t with K - 2, scale s sqrt(1 + d (D^T D)^-1 d)), by numpy and scipy."""
+    from scipy import stats
+
+    from torchmisspec.population.uncertainty import new_subject_prior
+
+    K = 7
+    g = torch.Generator().manual_seed(11)
+    eta = torch.randn(K, 2, generator=g, dtype=DT)
+    X = torch.randn(K, 1, generator=g, dtype=DT)
+    values, modes = _known_values(eta, X, torch.tensor([[False], [True]]))
+    x = torch.tensor([[1.7]], dtype=DT)
+    typical, spread = new_subject_prior(values, modes, X, x)
+    half = stats.norm.ppf(0.975) * spread.numpy()
+    e = eta[:, 0].numpy()
+    assert half[0] == pytest.approx(stats.t.ppf(0.975, K - 1) * e.std(ddof=1) * math.sqrt(1 + 1 / K), rel=1e-9)
+    D = torch.cat([torch.ones(K, 1, dtype=DT), X - X.mean(0)], -1).numpy()
+    coef, res, *_ = np.linalg.lstsq(D, eta[:, 1].numpy(), rcond=None)
+    d = np.array([1.0, 1.7 - float(X.mean())])
+    s = math.sqrt(res[0] / (K - 2))
+    assert float(typical[0, 1]) == pytest.approx(d @ coef, rel=1e-9)
+    assert half[1] == pytest.approx(stats.t.ppf(0.975, K - 2) * s * math.sqrt(1 + d @ np.linalg.inv(D.T @ D) @ d))
+
+
 def test_intervals_cover_at_their_level():
     """2,000 populations of 8 experiments known exactly: the 95 % intervals of mu and omega cover the truth
     95 % +- 1.5 % of the time (their binomial spread is 0.5 %)."""
@@ -321,7 +347,9 @@ def test_new_subject_from_the_population_and_from_its_measurements():
     times = torch.linspace(0, 1, 6, dtype=DT)
     g = torch.Generator().manual_seed(7)
     alone = predict_subject(pop, torch.tensor([2.0], dtype=DT), times, num_samples=4000, generator=g)
-    mu, omega = float(fit.values.mean[0]), float(fit.values.spread[0])
+    typical, spread = fit.new_subject_prior(torch.zeros(1, 0, dtype=DT))  # the textbook one: its own test
+    mu, omega = float(typical[0, 0]), float(spread[0])
+    assert omega > float(fit.values.spread[0])  # the population's values are estimates
     lo, hi = alone.posterior.interval(0.9)
     z = 1.6448536269514722
     torch.testing.assert_close(hi[0, :, 0], 2.0 + times * (mu + z * omega), rtol=0.03, atol=1e-9)
@@ -384,6 +412,7 @@ def test_layout_orders_varying_then_shared():
 # ---- the next subject's design -------------------------------------------------------------------------------------
 def test_design_first_pick_is_the_brute_force_best_time():
     """dy/dt = c: the sensitivity of y(t) to c is t, so one sample's information is log(1 + t^2 omega^2 / s^2) / 2
+    (omega the new subject's prior spread, the population's values' uncertainty folded in)
     (D-optimality), and the posterior variance it leaves, in units of the spread, 1 / (1 + t^2 omega^2 / s^2) (the
     expected error): the last time wins under both, and the scores are those numbers."""
     from torchmisspec.population.design import Determinant, SubjectParameters, design_subject
@@ -392,7 +421,7 @@ def test_design_first_pick_is_the_brute_force_best_time():
     fit, _, _ = _linear_fit(K=20, seed=8)
     pop = _classical(fit, system, population)
     grid = torch.tensor([0.0, 0.2, 0.5, 0.9, 0.7], dtype=DT).sort().values
-    s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.values.spread[0]) ** 2
+    s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.new_subject_prior(torch.zeros(1, 0, dtype=DT))[1][0]) ** 2
     design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
     assert design.times.tolist() == [0.9]
     assert design.score == pytest.approx(1 - 1 / (1 + 0.81 * w2 / s2), rel=1e-5)

@@ -35,7 +35,7 @@ from ..noise import NoiseModel
 from ._modes import Layout, Modes, conditional_modes
 from ._subjects import parameter_names, subject_system
 from .model import Population, PopulationValues, covariate_centre, covariate_matrix
-from .uncertainty import Intervals, fixed_effects, intervals, standard_errors
+from .uncertainty import Intervals, fixed_effects, intervals, new_subject_prior, standard_errors
 
 __all__ = ["NLMEFit", "fit_nlme", "MAX_ROUNDS", "TOLERANCE"]
 
@@ -81,6 +81,12 @@ class NLMEFit:
         """Confidence intervals of the population's values at ``level``
         (:func:`~torchmisspec.population.uncertainty.intervals`)."""
         return intervals(self.values, self.modes, self.covariates, level)
+
+    def new_subject_prior(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(typical (1, k_v), spread (k_v,))``: a new experiment's prior in eta given its covariates ``x (1, c)``,
+        the population's values' own uncertainty folded in
+        (:func:`~torchmisspec.population.uncertainty.new_subject_prior`)."""
+        return new_subject_prior(self.values, self.modes, self.covariates, x)
 
 
 def make_layout(system, population: Population) -> Layout:

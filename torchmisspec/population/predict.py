@@ -2,10 +2,12 @@
 
 The subject's varying parameters are drawn from
 
-* the population (no measurement yet): eta ~ N(typical(covariates), diag(omega^2)): bands that hold the spread
-  between subjects;
-* their posterior given the subject's first measurements (empirical Bayes): the conditional mode under the
-  population prior and F, with its Laplace covariance (:mod:`~torchmisspec.population._modes`, the shared parameters
+* the population (no measurement yet): eta ~ N(typical(covariates), diag(omega'^2)): bands that hold the spread
+  between subjects, omega' the spread with the population's values' own uncertainty folded in (their standard
+  errors and the spread's degrees of freedom: :func:`~torchmisspec.population.uncertainty.new_subject_prior`; a
+  population of few subjects knows its spread poorly);
+* their posterior given the subject's first measurements (empirical Bayes): the conditional mode under that
+  prior and F, with its Laplace covariance (:mod:`~torchmisspec.population._modes`, the shared parameters
   held at the population's values): the bands narrow as the subject's own data come in.
 
 Each parameter draw is integrated with :data:`F_DRAWS` posterior draws of F (:meth:`CorrectedODE.posterior
@@ -71,7 +73,7 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
     correction = fit.mean_correction
     free = ~given_initial_states(first)
     data = first.with_initial_states(initial_guess(first, fit.system))
-    typical, spread = nlme.values.typical(X), nlme.values.spread
+    typical, spread = nlme.new_subject_prior(X)
     # the population's residual scale at the subject's times (the design's weights): a subject's first few
     # measurements cannot estimate it, and a time where the population's model is off is trusted less
     times = first.padded()[0].reshape(-1)
@@ -96,7 +98,8 @@ def predict_subject(
     if first is not None:
         eta, cov, start = subject_parameters(fit, first, X)
     else:
-        eta, cov, start = nlme.values.typical(X)[0], torch.diag(nlme.values.spread**2), None
+        typical, spread = nlme.new_subject_prior(X)
+        eta, cov, start = typical[0], torch.diag(spread**2), None
     from_first = y0 is None
     if y0 is None:
         if start is None:
