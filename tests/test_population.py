@@ -357,6 +357,7 @@ def test_new_subject_from_the_population_and_from_its_measurements():
     first = tms.Trajectories(times[:3], torch.tensor([[[2.0], [2.5], [3.0]]], dtype=DT), state_names=["y"])
     updated = predict_subject(pop, None, times, first=first, num_samples=8, generator=g)
     s2, t = float(fit.modes.scale[0]) ** 2, times[1:3]
+    mu, omega = float(fit.values.mean[0]), float(fit.values.spread[0])  # the fit to measurements: point estimates
     precision = float((t * t).sum()) / s2 + 1 / omega**2
     mode = (float((t * torch.tensor([0.5, 1.0], dtype=DT)).sum()) / s2 + mu / omega**2) / precision
     assert float(updated.theta[0]) == pytest.approx(mode, rel=5e-3)
@@ -412,7 +413,6 @@ def test_layout_orders_varying_then_shared():
 # ---- the next subject's design -------------------------------------------------------------------------------------
 def test_design_first_pick_is_the_brute_force_best_time():
     """dy/dt = c: the sensitivity of y(t) to c is t, so one sample's information is log(1 + t^2 omega^2 / s^2) / 2
-    (omega the new subject's prior spread, the population's values' uncertainty folded in)
     (D-optimality), and the posterior variance it leaves, in units of the spread, 1 / (1 + t^2 omega^2 / s^2) (the
     expected error): the last time wins under both, and the scores are those numbers."""
     from torchmisspec.population.design import Determinant, SubjectParameters, design_subject
@@ -421,7 +421,7 @@ def test_design_first_pick_is_the_brute_force_best_time():
     fit, _, _ = _linear_fit(K=20, seed=8)
     pop = _classical(fit, system, population)
     grid = torch.tensor([0.0, 0.2, 0.5, 0.9, 0.7], dtype=DT).sort().values
-    s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.new_subject_prior(torch.zeros(1, 0, dtype=DT))[1][0]) ** 2
+    s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.values.spread[0]) ** 2
     design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3))
     assert design.times.tolist() == [0.9]
     assert design.score == pytest.approx(1 - 1 / (1 + 0.81 * w2 / s2), rel=1e-5)

@@ -231,8 +231,7 @@ def design_subject(
 def _one(fit, grid, budget, y0, X, target, generator):
     """``(indices, score)`` of the best times from ``y0`` for ``target``."""
     nlme = fit.nlme
-    typical, spread = nlme.new_subject_prior(X)
-    typical = typical[0]
+    typical, spread = nlme.values.typical(X)[0], nlme.values.spread  # as the subject's fit (predict's notes)
     if isinstance(target, Correction):
         return _for_correction(fit, grid, budget, y0, typical)
     eta = typical + spread * torch.randn(target.draws, spread.shape[0], dtype=spread.dtype, generator=generator)

@@ -4,11 +4,12 @@ The subject's varying parameters are drawn from
 
 * the population (no measurement yet): eta ~ N(typical(covariates), diag(omega'^2)): bands that hold the spread
   between subjects, omega' the spread with the population's values' own uncertainty folded in (their standard
-  errors and the spread's degrees of freedom: :func:`~torchmisspec.population.uncertainty.new_subject_prior`; a
-  population of few subjects knows its spread poorly);
-* their posterior given the subject's first measurements (empirical Bayes): the conditional mode under that
-  prior and F, with its Laplace covariance (:mod:`~torchmisspec.population._modes`, the shared parameters
-  held at the population's values): the bands narrow as the subject's own data come in.
+  errors and the spread's degrees of freedom: :func:`~torchmisspec.population.uncertainty.new_subject_prior`, the
+  textbook prediction interval; a population of few subjects knows its spread poorly);
+* their posterior given the subject's first measurements (empirical Bayes): the conditional mode under the
+  population's point estimates (as NONMEM's and Monolix's empirical Bayes estimates; why, below) and F, with its
+  Laplace covariance (:mod:`~torchmisspec.population._modes`, the shared parameters held at the population's
+  values): the bands narrow as the subject's own data come in.
 
 Each parameter draw is integrated with :data:`F_DRAWS` posterior draws of F (:meth:`CorrectedODE.posterior
 <torchmisspec.CorrectedODE.posterior>`), so the bands hold both; without a correction (F = 0 kept) the draws are of
@@ -73,7 +74,7 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
     correction = fit.mean_correction
     free = ~given_initial_states(first)
     data = first.with_initial_states(initial_guess(first, fit.system))
-    typical, spread = nlme.new_subject_prior(X)
+    typical, spread = nlme.values.typical(X), nlme.values.spread  # the point estimates (the module's notes)
     # the population's residual scale at the subject's times (the design's weights): a subject's first few
     # measurements cannot estimate it, and a time where the population's model is off is trusted less
     times = first.padded()[0].reshape(-1)
