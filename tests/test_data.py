@@ -127,7 +127,9 @@ def test_load_rejects_bad_files(tmp_path):
         tms.Trajectories.load(empty)
     wrong = tmp_path / "w.csv"
     wrong.write_text("a,b,c\n1,2,3\n")
-    with pytest.raises(tms.InputError, match=r"expected a time column 'time', got columns \['a', 'b', 'c'\]"):
+    with pytest.raises(
+        tms.InputError, match=r"expected a time column 'time', got columns \[.*\]; name the one .*--time-column"
+    ):
         tms.Trajectories.load(wrong)
 
 

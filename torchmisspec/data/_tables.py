@@ -117,10 +117,16 @@ def _index_columns(path: Path, header: list[str], time_column, experiment_column
     if experiment_column is not None and not isinstance(experiment_column, str):
         raise InputError(f"experiment_column: expected a column name or None, got {type(experiment_column).__name__}")
     if time_column not in header:
-        raise InputError(f"{path}: expected a time column {time_column!r}, got columns {header}")
+        raise InputError(
+            f"{path}: expected a time column {time_column!r}, got columns {header}; name the one that holds the times "
+            "(time_column=...; on the command line --time-column)"
+        )
     if experiment_column is not None and experiment_column not in header:
         if experiment_column != "experiment":  # named by the caller: a typo must not merge all experiments
-            raise InputError(f"{path}: expected an experiment column {experiment_column!r}, got columns {header}")
+            raise InputError(
+                f"{path}: expected an experiment column {experiment_column!r}, got columns {header}; name the one that "
+                "tells the experiments apart (experiment_column=...; on the command line --experiment-column)"
+            )
         experiment_column = None
     if experiment_column == time_column:
         raise InputError(f"experiment_column: expected a column other than the time column, got {time_column!r}")
