@@ -20,9 +20,10 @@ scale sqrt(omega^2 + SE^2), SE the typical value's standard error at the new exp
 takes the normal with the same central 95 % interval (a Laplace posterior,
 :func:`~torchmisspec.population.predict.subject_parameters`, needs a normal prior): spread
 q sqrt(omega^2 + SE^2), q = t_nu(0.975) / z(0.975). Where the experiments are known exactly that interval is the
-textbook prediction interval of a new observation (a normal sample's, or a regression's at the covariates). Why: on
-R's Orange (a new tree from 4 others: nu about 3, q 1.6) the bands of the point estimates held 72 % of a new tree's
-later measurements at 90 %. With 12 subjects q is about 1.1; with many, 1.
+textbook prediction interval of a new observation (a normal sample's, or a regression's at the covariates). A
+population of few subjects knows its spread poorly: from 4 trees (nu about 3) q is 1.6, from 12 subjects about 1.1,
+from many 1. A new subject predicted from the population alone takes this prior; the fit to its first measurements
+keeps the point estimates (why: :mod:`~torchmisspec.population.predict`).
 
 Why not omega +- 2 SE: a spread's sampling distribution is skewed. At 12 subjects, a sample whose spread comes out
 at 70 % of the truth has a Wald interval that stops short of the truth, while the chi-square interval reaches it;
