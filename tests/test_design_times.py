@@ -67,6 +67,8 @@ def test_a_known_start_is_never_a_sample_and_the_rest_is_the_brute_force_best():
     assert math.isclose(result.design.information_gain, best, rel_tol=1e-9)
     with pytest.raises(tms.InputError, match="at most the 5 candidate times"):
         design.sampling_times(y0, t, 6, system=pk(), gp=gp, skip_first=True)
+    with pytest.raises(tms.InputError, match=r"skip_first: expected True or False, got 'yes'"):
+        design.sampling_times(y0, t, 2, system=pk(), gp=gp, skip_first="yes")  # no truthy string taken as a switch
 
 
 def test_times_are_spread_where_the_path_moves_and_conditioned_on_data():

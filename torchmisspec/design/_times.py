@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from .._errors import InputError
-from .._validation import check_positive_int
+from .._validation import check_flag, check_positive_int
 from ..gp import CorrectionGP
 from ..systems import MisspecifiedSystem
 from ._common import DesignResult, check_candidates, check_system, check_times
@@ -102,7 +102,7 @@ def sampling_times(
     grid = check_times(times, **kd)
     K, T = y0.shape[0], grid.numel()
     per_experiment = check_positive_int(per_experiment, "per_experiment")
-    first = int(bool(skip_first))
+    first = int(check_flag(skip_first, "skip_first"))
     if per_experiment > T - first:
         raise InputError(
             f"per_experiment: expected at most the {T - first} candidate times, got {per_experiment}; pass more "

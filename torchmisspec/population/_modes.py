@@ -246,13 +246,13 @@ def unbiased_scale(r: torch.Tensor, comp: torch.Tensor, num_components: int, lev
     """``(num_components,)`` each component's noise scale: the sum of its residuals' squares ``r (n,)`` over its
     degrees of freedom left, its residual count less the sum of their ``leverage (n,)`` (the module's notes; at
     least one left); ``leverage`` ``None``: the root mean square. NaN where a component has no residual."""
+    scale = component_scale(r, comp, num_components)  # the root mean square: squares over the count
     if leverage is None:
-        return component_scale(r, comp, num_components)
+        return scale
     zeros = torch.zeros(num_components, dtype=r.dtype, device=r.device)
-    squares = zeros.index_add(0, comp, r.pow(2))
     count = zeros.index_add(0, comp, torch.ones_like(r))
     left = (count - zeros.index_add(0, comp, leverage.clamp(0.0, 1.0))).clamp_min(1.0)
-    return torch.where(count > 0, (squares / left).sqrt(), torch.full_like(squares, math.nan))
+    return scale * (count / left).sqrt()  # NaN (no residual) stays NaN
 
 
 def _laplace(problem: _Problem, z, r, w, active, penalty) -> Modes:
