@@ -255,15 +255,22 @@ def unbiased_scale(r: torch.Tensor, comp: torch.Tensor, num_components: int, lev
     return scale * (count / left).sqrt()  # NaN (no residual) stays NaN
 
 
+def inverse_hessian(problem: _Problem, z, r, w, active, penalty) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(J (n, p), A^-1 (p, p))``: the residuals' Jacobian at ``z`` and the inverse of the Gauss-Newton Hessian with
+    the prior, ``A = J^T w J + diag(penalty)`` (an inactive coordinate held by a unit diagonal). Raises
+    :class:`~torch.linalg.LinAlgError` where A is not positive definite."""
+    J = problem.jacobian(z, r)
+    A = J.T @ (w[:, None] * J) + torch.diag(penalty) + torch.diag((~active).to(J))
+    return J, torch.cholesky_inverse(torch.linalg.cholesky(A))
+
+
 def _laplace(problem: _Problem, z, r, w, active, penalty) -> Modes:
     """The :class:`Modes` at ``z``: the blocks of the inverse Gauss-Newton Hessian of every experiment's z_i."""
     K, kv, ks = problem.K, problem.kv, problem.ks
     eye = torch.eye(kv, dtype=z.dtype, device=z.device).expand(K, kv, kv)
     cov_z, leverage = eye, None
     try:
-        J = problem.jacobian(z, r)
-        A = J.T @ (w[:, None] * J) + torch.diag(penalty) + torch.diag((~active).to(J))
-        full = torch.cholesky_inverse(torch.linalg.cholesky(A))
+        J, full = inverse_hessian(problem, z, r, w, active, penalty)
         block = full[ks : ks + K * kv, ks : ks + K * kv].reshape(K, kv, K, kv)
         cov_z = block[torch.arange(K), :, torch.arange(K), :]
         leverage = w * ((J @ full) * J).sum(1)  # the hat matrix's diagonal

@@ -45,6 +45,7 @@ import torch
 from .._errors import InputError, TorchMisspecWarning
 from .._validation import check_positive_int
 from ..data import Trajectories
+from ._f_uncertainty import transformed_deviations
 from ._misfit import misfit_scale
 from ._modes import _paths
 from ._subjects import drawn_controls
@@ -57,9 +58,6 @@ __all__ = ["Correction", "Determinant", "ExpectedError", "SubjectDesign", "Subje
 STEP = 1e-5
 #: posterior draws of F whose spread along each drawn subject's path enters the expected error (the module's notes)
 F_DRAWS = 16
-#: the fraction of a draw's deviation the noise model's transform is differenced over (first order: a draw that
-#: takes a positive state below 0 has no logarithm, its small step has)
-LINEAR = 1e-3
 
 
 class Determinant:
@@ -259,9 +257,7 @@ def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch
             scale=1.0,
         )  # fmt: skip
     paths = _outline(fit, grid, y0, S).observe(post.samples.to(torch.float64)).transpose(0, 1)  # (S, F, T, o)
-    centre = paths.mean(1, keepdim=True)
-    moved = (fit.noise.transform(centre + LINEAR * (paths - centre)) - fit.noise.transform(centre)) / LINEAR
-    return torch.nan_to_num(moved, nan=0.0, posinf=0.0, neginf=0.0)
+    return transformed_deviations(fit.noise, paths, 1)
 
 
 def _for_correction(fit, grid, budget, y0, typical):

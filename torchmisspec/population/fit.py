@@ -57,6 +57,7 @@ from ..learning.pipeline import Pipeline
 from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
+from ._f_uncertainty import correction_shifts
 from ._held_out import best_on_unseen_experiments
 from ._integrated import integrated_modes, integrated_system, with_experiment_index
 from ._misfit import residuals_by_time
@@ -229,8 +230,8 @@ def fit_population(
         )
     fitted, kept, with_f, without = best_on_unseen_experiments(candidates, classical, trajectories)
     fitted = dataclasses.replace(fitted, held_out=(with_f, without))
-    if kept:
-        return fitted
+    if kept:  # F's own uncertainty counted in the population's standard errors (_f_uncertainty's notes)
+        return dataclasses.replace(fitted, nlme=fitted.nlme.with_shifts(correction_shifts(fitted)))
     warn(
         f"fit_population: with the correction conditioned without them, held-out experiments (each with its own "
         f"parameters fitted) are not fitted significantly better than by the population without it (misfit "

@@ -23,6 +23,7 @@ experiment with one set of parameters.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -71,6 +72,9 @@ class NLMEFit:
     correction: object
     rounds: int
     converged: bool
+    #: the population's values moved by F's posterior draws (:mod:`~torchmisspec.population._f_uncertainty`), which
+    #: the standard errors and intervals count; ``None``: F exact (F = 0, or not measured)
+    shifts: object = None
 
     @property
     def thetas(self) -> torch.Tensor:
@@ -80,13 +84,21 @@ class NLMEFit:
     def intervals(self, level: float = 0.95) -> Intervals:
         """Confidence intervals of the population's values at ``level``
         (:func:`~torchmisspec.population.uncertainty.intervals`)."""
-        return intervals(self.values, self.modes, self.covariates, level)
+        return intervals(self.values, self.modes, self.covariates, level, self.shifts)
+
+    def with_shifts(self, shifts) -> NLMEFit:
+        """This fit with F's uncertainty ``shifts`` counted in its standard errors, intervals and a new experiment's
+        prior (``None``: unchanged)."""
+        if shifts is None:
+            return self
+        se = standard_errors(self.values, self.modes, self.covariates, shifts)
+        return dataclasses.replace(self, shifts=shifts, standard_errors=se)
 
     def new_subject_prior(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(typical (1, k_v), spread (k_v,))``: a new experiment's prior in eta given its covariates ``x (1, c)``,
         the population's values' own uncertainty folded in
         (:func:`~torchmisspec.population.uncertainty.new_subject_prior`)."""
-        return new_subject_prior(self.values, self.modes, self.covariates, x)
+        return new_subject_prior(self.values, self.modes, self.covariates, x, self.shifts)
 
 
 def make_layout(system, population: Population) -> Layout:

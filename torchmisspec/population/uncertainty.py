@@ -6,6 +6,11 @@ variance), so that the modes' marginal variance is omega^2 + tau_i^2; then Cov(b
 W = diag(1 / (omega^2 + tau_i^2)), and Var(omega^2) = 2 / (sum_i W_i^2 (K - p) / K), p the parameter's fixed effects
 (REML's count, as the fit's spread; :mod:`~torchmisspec.population.nlme`), SE(omega) = SE(omega^2) / (2 omega).
 
+**F's uncertainty.** Where the population is fitted with a correction, F is held at its posterior mean, and its
+error moves every experiment's parameters alike. The covariance of the population's values over F's posterior draws
+(:mod:`~torchmisspec.population._f_uncertainty`, ``shifts``) is added: to Cov(beta), and to Var(omega^2) (fewer
+degrees of freedom for the spread's interval and a new experiment's prior).
+
 **Intervals** (:func:`intervals`) have the shapes of the exact ones where every experiment's eta is known:
 
 * a typical value or a covariate's effect: beta +- t SE, Student's t with K - p degrees of freedom (the one-sample t
@@ -73,39 +78,50 @@ def _weights(values, modes, j: int) -> torch.Tensor:
     return 1 / (w2 + tau2)
 
 
-def _spread_information(values, modes, j: int, K: int, p: int) -> float:
-    """The information about omega_j^2: sum_i W_i^2 / 2, times REML's (K - p) / K."""
-    return 0.5 * float(_weights(values, modes, j).pow(2).sum()) * max(K - p, 1) / K
+def _spread_variance(values, modes, j: int, K: int, p: int, shifts=None) -> float:
+    """Var(omega_j^2): the inverse of its information, sum_i W_i^2 / 2 times REML's (K - p) / K, plus F's part
+    (``shifts``, :class:`~torchmisspec.population._f_uncertainty.Shifts`; the module's notes); inf where
+    uninformed."""
+    info = 0.5 * float(_weights(values, modes, j).pow(2).sum()) * max(K - p, 1) / K
+    extra = 0.0 if shifts is None else shifts.spread_variance(j)
+    return 1 / info + extra if info > 0 else math.inf
 
 
-def _fixed_covariance(values, modes, X: torch.Tensor, j: int) -> torch.Tensor | None:
-    """``(p, p)`` Cov of parameter ``j``'s intercept and covariate effects, ``(X^T W X)^-1`` (the module's notes);
-    ``None`` where singular."""
+def _dof(values, variance: float, j: int) -> float:
+    """Satterthwaite's degrees of freedom of omega_j^2: 2 omega^4 / Var(omega^2) (0 where uninformed)."""
+    return 2 * float(values.spread[j]) ** 4 / variance if math.isfinite(variance) else 0.0
+
+
+def _fixed_covariance(values, modes, X: torch.Tensor, j: int, shifts=None) -> torch.Tensor | None:
+    """``(p, p)`` Cov of parameter ``j``'s intercept and covariate effects, ``(X^T W X)^-1`` plus F's part
+    (``shifts``; the module's notes); ``None`` where singular."""
     D = fixed_effects(values, X, j)
     try:
-        return torch.linalg.inv(D.T @ (_weights(values, modes, j)[:, None] * D))
+        cov = torch.linalg.inv(D.T @ (_weights(values, modes, j)[:, None] * D))
     except torch.linalg.LinAlgError:
         return None
+    return cov if shifts is None else cov + shifts.fixed_covariance(j).to(cov)
 
 
-def standard_errors(values, modes, X: torch.Tensor) -> tuple:
-    """``(mean (k_v,), spread (k_v,), effects (k_v, c))`` standard errors (the module's notes)."""
+def standard_errors(values, modes, X: torch.Tensor, shifts=None) -> tuple:
+    """``(mean (k_v,), spread (k_v,), effects (k_v, c))`` standard errors (the module's notes), F's uncertainty
+    counted where ``shifts`` are given."""
     K, kv = modes.eta.shape
     se_mean, se_spread = torch.empty(kv, dtype=X.dtype), torch.empty(kv, dtype=X.dtype)
     se_effects = torch.zeros_like(values.effects)
     for j in range(kv):
         D = fixed_effects(values, X, j)
-        cov = _fixed_covariance(values, modes, X, j)
+        cov = _fixed_covariance(values, modes, X, j, shifts)
         if cov is None:
             se_mean[j] = math.inf
         else:
             se_mean[j], se_effects[j, values.acts[j]] = cov.diagonal()[0].sqrt(), cov.diagonal()[1:].sqrt()
-        info = _spread_information(values, modes, j, K, D.shape[-1])
-        se_spread[j] = (1 / math.sqrt(info) if info > 0 else math.inf) / (2 * float(values.spread[j]))
+        variance = _spread_variance(values, modes, j, K, D.shape[-1], shifts)
+        se_spread[j] = math.sqrt(variance) / (2 * float(values.spread[j]))
     return se_mean, se_spread, se_effects
 
 
-def new_subject_prior(values, modes, X: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def new_subject_prior(values, modes, X: torch.Tensor, x: torch.Tensor, shifts=None) -> tuple:
     """``(typical (1, k_v), spread (k_v,))``: a new experiment's normal prior in eta given its covariates ``x (1,
     c)``, the population's ``values`` fitted with the experiments' ``modes`` and covariates ``X (K, c)``: the
     typical value's standard error and the spread's degrees of freedom folded in (the module's notes)."""
@@ -116,25 +132,25 @@ def new_subject_prior(values, modes, X: torch.Tensor, x: torch.Tensor) -> tuple[
     for j in range(kv):
         p = 1 + int(values.acts[j].sum())
         w2 = float(values.spread[j]) ** 2
-        cov = _fixed_covariance(values, modes, X, j)
+        cov = _fixed_covariance(values, modes, X, j, shifts)
         d = fixed_effects(values, x, j)[0]
         known = 0.0 if cov is None else float(d @ cov @ d)  # the typical value's variance at x
-        nu = 2 * w2**2 * _spread_information(values, modes, j, K, p)
+        nu = _dof(values, _spread_variance(values, modes, j, K, p, shifts), j)
         q = float(stats.t.ppf(0.5 + MATCHED / 2, nu) / stats.norm.ppf(0.5 + MATCHED / 2)) if nu > 0 else 1.0
         spread[j] = q * math.sqrt(w2 + known)
     return values.typical(x), spread
 
 
-def intervals(values, modes, X: torch.Tensor, level: float = 0.95) -> Intervals:
+def intervals(values, modes, X: torch.Tensor, level: float = 0.95, shifts=None) -> Intervals:
     """:class:`Intervals` of the population's ``values`` fitted with the experiments' ``modes`` and covariates
-    ``X (K, c)`` at ``level`` (the module's notes)."""
+    ``X (K, c)`` at ``level`` (the module's notes), F's uncertainty counted where ``shifts`` are given."""
     if isinstance(level, bool) or not isinstance(level, float | int) or not 0 < level < 1:
         raise InputError(f"level: expected a confidence level strictly between 0 and 1 (0.95), got {level!r:.40}")
     from scipy import stats
 
     K, kv = modes.eta.shape
     tail = (1 - float(level)) / 2
-    se_mean, _, se_effects = standard_errors(values, modes, X)
+    se_mean, _, se_effects = standard_errors(values, modes, X, shifts)
     mean = torch.empty(kv, 2, dtype=X.dtype)
     spread = torch.empty(kv, 2, dtype=X.dtype)
     effects = torch.full((*values.effects.shape, 2), math.nan, dtype=X.dtype)
@@ -145,7 +161,7 @@ def intervals(values, modes, X: torch.Tensor, level: float = 0.95) -> Intervals:
         acts = values.acts[j]
         effects[j, acts] = values.effects[j, acts, None] + t * se_effects[j, acts, None] * torch.tensor([-1.0, 1.0])
         w2 = float(values.spread[j]) ** 2
-        nu = 2 * w2**2 * _spread_information(values, modes, j, K, p)  # Satterthwaite: 2 omega^4 / Var(omega^2)
+        nu = _dof(values, _spread_variance(values, modes, j, K, p, shifts), j)
         if nu > 0:
             chi = stats.chi2.ppf([1 - tail, tail], nu)
             spread[j] = torch.tensor(nu * w2 / chi, dtype=X.dtype).sqrt()
