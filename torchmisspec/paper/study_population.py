@@ -28,7 +28,8 @@ Fits on the same data, F scored by its integrated error over the concentrations 
 * **ignoring the spread**: :func:`~torchmisspec.fit_correction` with one ka and one V for every subject (the
   package before populations).
 
-The population's typical values and spreads are compared with the truth in units of their standard errors, and by
+The population's typical values and spreads are compared with the truth in units of their standard errors (their
+root mean square over the realizations is about 1 where the standard errors are right), and by
 whether their 95 % intervals (:meth:`~torchmisspec.population.nlme.NLMEFit.intervals`: Student's t for a typical
 value, a chi-square for a spread) hold it. The table beside gives the spreads fitted and those of the 12 subjects
 actually drawn (their log parameters' sample standard deviation): 12 subjects can tell no more than their own
@@ -236,6 +237,7 @@ def table(result: dict) -> str:
         f"| population values within 2 SE (4 per realization) | {sum(v <= 2 for v in z)} of {len(z)} "
         f"({sum(v <= 2 for v in z) / len(z):.0%}); all 4 in {all_in} of {n} | >= {GOALS['within_2se']:.0%} |",
         _drawn_within(runs, result["config"]["subjects"]),
+        _z_spread(runs),
         _coverage(runs),
         f"| new subject from 2 measurements, log-RMSE / classical | {new} | <= 1 |",
         f"| a correction kept | {sum(not r['known_model'] for r in runs)} of {n} | |",
@@ -257,6 +259,15 @@ def _drawn_within(runs: list[dict], K: int) -> str:
             z += [abs(m - tm) / (s / math.sqrt(K)), abs(s - ts) / (s / math.sqrt(2 * (K - 1)))]
     held = sum(v <= 2 for v in z)
     return f"| the bound: the drawn subjects known exactly, within 2 SE | {held} of {len(z)} ({held / len(z):.0%}) | |"
+
+
+def _z_spread(runs: list[dict]) -> str:
+    """The row of the z-scores' root mean square over the realizations, one per population value: about 1 where the
+    standard errors are right (a bias raises it too)."""
+    names = [f"mu {k}" for k in PRIORS] + [f"omega {k}" for k in PRIORS]
+    zs = list(zip(*[r["mean_z"] + r["spread_z"] for r in runs], strict=True))
+    rms = ", ".join(f"{n} {math.sqrt(sum(v * v for v in z) / len(z)):.2f}" for n, z in zip(names, zs, strict=True))
+    return f"| the z-scores' root mean square over the realizations (1 where the standard errors are right) | {rms} | |"
 
 
 def _coverage(runs: list[dict]) -> str:

@@ -19,9 +19,10 @@ the Fisher information's: a standard error that counts F's uncertainty (the two-
 & Topel 1985, with F's posterior in place of the first step's sampling distribution; the two are treated as
 independent).
 
-Why: on issue 43's population study, the typical volume's z-scores against the truth had a standard deviation of
-1.55 over 20 realizations (1 if the standard errors were right), the typical absorption rate's 1.11; where a
-correction is kept, its error is what moves the volume.
+Why: on issue 43's population study (``docs/studies/population.md``), before F's part was counted, the typical
+volume's z-scores against the truth had a root mean square of 1.55 over 20 realizations (1 where the standard errors
+are right), the typical absorption rate's 1.10: where a correction is kept, its error moves the volume (F acts on the
+concentration, which the volume scales), not the absorption rate (read from the depot).
 """
 
 from __future__ import annotations
