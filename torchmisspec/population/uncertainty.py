@@ -8,8 +8,9 @@ W = diag(1 / (omega^2 + tau_i^2)), and Var(omega^2) = 2 / (sum_i W_i^2 (K - p) /
 
 **F's uncertainty.** Where the population is fitted with a correction, F is held at its posterior mean, and its
 error moves every experiment's parameters alike. The covariance of the population's values over F's posterior draws
-(:mod:`~torchmisspec.population._f_uncertainty`, ``shifts``) is added: to Cov(beta), and to Var(omega^2) (fewer
-degrees of freedom for the spread's interval and a new experiment's prior).
+(:mod:`~torchmisspec.population._f_uncertainty`, ``shifts``) is added to Cov(beta): the typical values' and the
+covariates' effects' standard errors and intervals, and a new experiment's prior, count it. The spread's is left as
+the information's (why: that module's notes).
 
 **Intervals** (:func:`intervals`) have the shapes of the exact ones where every experiment's eta is known:
 
@@ -78,13 +79,11 @@ def _weights(values, modes, j: int) -> torch.Tensor:
     return 1 / (w2 + tau2)
 
 
-def _spread_variance(values, modes, j: int, K: int, p: int, shifts=None) -> float:
-    """Var(omega_j^2): the inverse of its information, sum_i W_i^2 / 2 times REML's (K - p) / K, plus F's part
-    (``shifts``, :class:`~torchmisspec.population._f_uncertainty.Shifts`; the module's notes); inf where
+def _spread_variance(values, modes, j: int, K: int, p: int) -> float:
+    """Var(omega_j^2): the inverse of its information, sum_i W_i^2 / 2 times REML's (K - p) / K; inf where
     uninformed."""
     info = 0.5 * float(_weights(values, modes, j).pow(2).sum()) * max(K - p, 1) / K
-    extra = 0.0 if shifts is None else shifts.spread_variance(j)
-    return 1 / info + extra if info > 0 else math.inf
+    return 1 / info if info > 0 else math.inf
 
 
 def _dof(values, variance: float, j: int) -> float:
@@ -116,7 +115,7 @@ def standard_errors(values, modes, X: torch.Tensor, shifts=None) -> tuple:
             se_mean[j] = math.inf
         else:
             se_mean[j], se_effects[j, values.acts[j]] = cov.diagonal()[0].sqrt(), cov.diagonal()[1:].sqrt()
-        variance = _spread_variance(values, modes, j, K, D.shape[-1], shifts)
+        variance = _spread_variance(values, modes, j, K, D.shape[-1])
         se_spread[j] = math.sqrt(variance) / (2 * float(values.spread[j]))
     return se_mean, se_spread, se_effects
 
@@ -135,7 +134,7 @@ def new_subject_prior(values, modes, X: torch.Tensor, x: torch.Tensor, shifts=No
         cov = _fixed_covariance(values, modes, X, j, shifts)
         d = fixed_effects(values, x, j)[0]
         known = 0.0 if cov is None else float(d @ cov @ d)  # the typical value's variance at x
-        nu = _dof(values, _spread_variance(values, modes, j, K, p, shifts), j)
+        nu = _dof(values, _spread_variance(values, modes, j, K, p), j)
         q = float(stats.t.ppf(0.5 + MATCHED / 2, nu) / stats.norm.ppf(0.5 + MATCHED / 2)) if nu > 0 else 1.0
         spread[j] = q * math.sqrt(w2 + known)
     return values.typical(x), spread
@@ -161,7 +160,7 @@ def intervals(values, modes, X: torch.Tensor, level: float = 0.95, shifts=None) 
         acts = values.acts[j]
         effects[j, acts] = values.effects[j, acts, None] + t * se_effects[j, acts, None] * torch.tensor([-1.0, 1.0])
         w2 = float(values.spread[j]) ** 2
-        nu = _dof(values, _spread_variance(values, modes, j, K, p, shifts), j)
+        nu = _dof(values, _spread_variance(values, modes, j, K, p), j)
         if nu > 0:
             chi = stats.chi2.ppf([1 - tail, tail], nu)
             spread[j] = torch.tensor(nu * w2 / chi, dtype=X.dtype).sqrt()
