@@ -39,6 +39,10 @@ are scored by the rule that judges the end.
 **Do no harm** (:mod:`~torchmisspec.population._held_out`): F is kept only where, conditioned without them, it fits
 held-out experiments (each with its own parameters fitted through the ODE) significantly better than the classical
 answer does; otherwise the classical answer is returned, with a warning.
+
+**F's own uncertainty** (:mod:`~torchmisspec.population._f_uncertainty`): where F is kept, the typical values' and
+covariate effects' standard errors and intervals count how far F's posterior draws move them, not only the
+measurements' noise and the experiments' spread.
 """
 
 from __future__ import annotations
