@@ -139,9 +139,10 @@ def population_moves(nlme, system, data, noise, deviations: torch.Tensor) -> Shi
         D = fixed_effects(values, X, j)
         pull = modes.covariance[:, j, j] / values.spread[j] ** 2  # c_ij (the notes)
         DtD_inv = torch.linalg.pinv(D.T @ D)
-        system_j = torch.eye(D.shape[-1], dtype=D.dtype) - DtD_inv @ D.T @ (pull[:, None] * D)
+        eye = torch.eye(D.shape[-1], dtype=D.dtype, device=D.device)
+        system_j = eye - DtD_inv @ D.T @ (pull[:, None] * D)
         least = float(torch.linalg.eigvals(system_j).real.min())  # real: similar to a symmetric matrix
-        system_j = system_j + max(LEAST_LEFT - least, 0.0) * torch.eye(D.shape[-1], dtype=D.dtype)
+        system_j = system_j + max(LEAST_LEFT - least, 0.0) * eye
         rhs = local[:, :, j] @ D @ DtD_inv.T  # (F, p): (D^T D)^-1 D^T a_j for each draw
         fixed.append(torch.linalg.solve(system_j, rhs.T).T)
     return Shifts(fixed)
