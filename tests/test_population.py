@@ -787,3 +787,33 @@ def test_f_s_uncertainty_widens_the_population_s_standard_errors_and_intervals()
     assert float(wide.mean[0, 0]) < float(narrow.mean[0, 0]) and float(wide.mean[0, 1]) > float(narrow.mean[0, 1])
     assert wide.spread.tolist() == narrow.spread.tolist()
     assert fit.with_shifts(None) is fit
+
+
+def test_many_new_subjects_at_once_match_the_closed_form_posterior_of_each():
+    """``subjects_parameters`` fits several new subjects in one batch, each measured at its own times: on the linear
+    model each is the conjugate normal posterior of c, the prior the population's, each sample weighed by the
+    population's misfit scale at that subject's own times (computed here from ``misfit_scale`` per subject), and
+    equal to its own ``subject_parameters``: the subjects do not interact."""
+    from torchmisspec.population.design import misfit_scale
+    from torchmisspec.population.predict import subject_parameters, subjects_parameters
+
+    fit, data, _ = _linear_fit(K=8, seed=12)
+    pop = dataclasses.replace(_classical(fit, linear_system(), Population(["c"], distribution=Normal())), data=data)
+    t, y = data.times, data.states[0, :, 0]
+    picks = torch.tensor([[0, 1, 2], [0, 3, 5], [0, 1, 5], [0, 4, 5]])
+    measured = tms.Trajectories(t[picks], y[picks][..., None], state_names=["y"])
+    X = torch.zeros(1, 0, dtype=DT)
+    eta, cov, y0 = subjects_parameters(pop, measured, X)
+    assert eta.shape == (4, 1) and cov.shape == (4, 1, 1) and y0.shape == (4, 1)
+    mu, omega = float(fit.values.typical(X)[0, 0]), float(fit.values.spread[0])
+    for k, idx in enumerate(picks):
+        tk, yk = t[idx][1:], y[idx][1:] - 2.0
+        w = misfit_scale(pop, t[idx])[1:, 0].pow(-2)
+        precision = 1 / omega**2 + (w * tk**2).sum()
+        mean = (mu / omega**2 + (w * tk * yk).sum()) / precision
+        torch.testing.assert_close(eta[k, 0], mean, rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(cov[k, 0, 0], 1 / precision, rtol=1e-4, atol=1e-9)
+        one = subject_parameters(pop, measured[k], X)
+        torch.testing.assert_close(eta[k], one[0], rtol=1e-5, atol=1e-7)
+    with pytest.raises(tms.InputError, match="measured: expected Trajectories"):
+        subjects_parameters(pop, y, X)

@@ -36,7 +36,7 @@ from ._modes import conditional_modes, held_prior
 from ._subjects import drawn_controls
 from .model import covariate_matrix
 
-__all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "times_from", "F_DRAWS"]
+__all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "subjects_parameters", "times_from", "F_DRAWS"]
 
 #: posterior draws of F per draw of the subject's parameters
 F_DRAWS = 4
@@ -65,22 +65,37 @@ def subject_parameters(fit, first: Trajectories, X: torch.Tensor):
     if not isinstance(first, Trajectories) or first.num_experiments != 1:
         got = type(first).__name__ if not isinstance(first, Trajectories) else f"{first.num_experiments} experiments"
         raise InputError(f"first: expected the new subject's measurements as Trajectories of one experiment, got {got}")
+    eta, cov, y0 = subjects_parameters(fit, first, X)
+    return eta[0], cov[0], y0[0]
+
+
+def subjects_parameters(fit, measured: Trajectories, X: torch.Tensor):
+    """``(eta (K, k_v), covariance (K, k_v, k_v), y0 (K, d))``: :func:`subject_parameters` of each of the ``K``
+    experiments of ``measured``, each an independent new subject (covariates ``X (K or 1, c)``), in one batched fit
+    (the shared parameters are held at the population's values, and each sample is weighed by the population's
+    misfit scale at the subject's own times, so the subjects do not interact): what scoring many candidate sets of
+    sampling times costs as one fit. The fit stops when the subjects' total misfit settles, so a subject's mode can
+    differ from its own fit's by that tolerance."""
+    if not isinstance(measured, Trajectories):
+        raise InputError(
+            f"measured: expected Trajectories (one experiment per new subject), got {type(measured).__name__}"
+        )
     from ..learning.choice._partial_choice import given_initial_states
     from ..learning.refinement.partial import initial_guess
 
     nlme = fit.nlme
-    shared = nlme.modes.shared
-    prior = held_prior(shared)
-    correction = fit.mean_correction
-    free = ~given_initial_states(first)
-    data = first.with_initial_states(initial_guess(first, fit.system))
-    typical, spread = nlme.values.typical(X), nlme.values.spread  # the point estimates (the module's notes)
-    # the population's residual scale at the subject's times (the design's weights): a subject's first few
+    K = measured.num_experiments
+    free = ~given_initial_states(measured)
+    data = measured.with_initial_states(initial_guess(measured, fit.system))
+    typical, spread = nlme.values.typical(X).expand(K, -1), nlme.values.spread  # point estimates (the notes)
+    # the population's residual scale at each subject's own times (the design's weights): a subject's first few
     # measurements cannot estimate it, and a time where the population's model is off is trusted less
-    times = first.padded()[0].reshape(-1)
-    scale = misfit_scale(fit, times)[None]
+    times = measured.padded()[0]
+    scale = torch.stack([misfit_scale(fit, t) for t in times])
+    correction = fit.mean_correction
+    prior = held_prior(nlme.modes.shared)
     modes = conditional_modes(nlme.layout, correction, data, free, fit.noise, typical, spread, prior, scale=scale)
-    return modes.eta[0], modes.covariance[0], modes.initial_states[0]
+    return modes.eta, modes.covariance, modes.initial_states
 
 
 def predict_subject(
