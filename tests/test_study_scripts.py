@@ -198,9 +198,9 @@ def test_campaign_loop_study_smoke(tmp_path):
 
 @pytest.mark.slow
 def test_population_study_smokes(tmp_path):
-    """The three population studies of issue 43 in their smoke modes (one realization, one fold)."""
+    """The four population studies of issue 43 in their smoke modes (one realization, one fold)."""
     for script, key in (("study_population.py", "runs"), ("study_population_design.py", "runs"),
-                        ("study_population_data.py", "runs")):  # fmt: skip
+                        ("study_population_data.py", "runs"), ("study_population_design_data.py", "runs")):  # fmt: skip
         out = tmp_path / f"{script}.json"
         stdout = _script(script, "--smoke", "--json", str(out))
         result = json.loads(out.read_text())
@@ -210,3 +210,7 @@ def test_population_study_smokes(tmp_path):
             bound = result["truth_bound"]
             assert bound["sets"] == 4845 and bound["best"] < bound["random"] < bound["standard"], bound
             assert result["runs"][0]["truth_best_times"] == bound["times"]
+        if script == "study_population_design_data.py":  # every set of 4 scored: the arms are among them
+            run = result["runs"][0]
+            assert run["sets"] == 210 and run["best_parameters"] <= run["designed_parameters"], run
+            assert 1 <= run["designed_parameters_rank"] <= 210 and len(run["designed_times"]) == 4
