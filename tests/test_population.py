@@ -817,3 +817,28 @@ def test_many_new_subjects_at_once_match_the_closed_form_posterior_of_each():
         torch.testing.assert_close(eta[k], one[0], rtol=1e-5, atol=1e-7)
     with pytest.raises(tms.InputError, match="measured: expected Trajectories"):
         subjects_parameters(pop, y, X)
+
+
+def test_a_subject_s_paths_beyond_f_s_training_range_are_named():
+    """A new subject's drawn paths that leave the states F was learned on (its training inputs) get one warning
+    naming the state, the first time more than 5 % of the draws are outside, and F's range; draws inside it, or a
+    share at 5 %, get none; a control F reads is not checked."""
+    import warnings
+    from types import SimpleNamespace
+
+    from torchmisspec.population.predict import warn_beyond_f
+
+    system = SimpleNamespace(correction_inputs=(1, 2), state_names=("gut", "conc"))
+    X = torch.tensor([[0.5, 0.0], [4.0, 9.0]], dtype=DT)  # F learned on conc 0.5-4 (and a control 0-9)
+    fit = SimpleNamespace(corrected=SimpleNamespace(system=system), gp=SimpleNamespace(train_inputs_=X))
+    times = torch.tensor([0.0, 1.0, 2.0, 3.0], dtype=DT)
+    samples = torch.full((40, 1, 4, 2), 2.0, dtype=DT)
+    samples[:2, 0, 2:, 1] = 0.01  # 2 of 40 draws (5 %) below from t = 2: not more than 5 %
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_beyond_f(fit, times, samples)
+    samples[2, 0, 3, 1] = float("nan")  # a draw that left the region counts as not seen
+    samples[3:6, 0, 3, 1] = 1e-300
+    with pytest.warns(tms.TorchMisspecWarning, match=r"conc from t = 3 \(F learned on 0.5 to 4\)") as record:
+        warn_beyond_f(fit, times, samples)
+    assert len(record) == 1 and "gut" not in str(record[0].message)

@@ -36,6 +36,9 @@ from ._modes import conditional_modes, held_prior
 from ._subjects import drawn_controls
 from .model import covariate_matrix
 
+#: the share of a new subject's drawn paths outside F's training range that :func:`warn_beyond_f` warns about
+BEYOND_F = 0.05
+
 __all__ = ["SubjectPrediction", "predict_subject", "subject_parameters", "subjects_parameters", "times_from", "F_DRAWS"]
 
 #: posterior draws of F per draw of the subject's parameters
@@ -134,6 +137,8 @@ def predict_subject(
     if not fit.known_model:
         samples = _with_f_draws(fit, y0.expand(num_samples, -1), times, ctrl[1:], generator)
     times, paths, samples = times[lead:], paths[:, lead:], samples[..., lead:, :]
+    if not fit.known_model:
+        warn_beyond_f(fit, times, samples)
     T = times.shape[0]
     posterior = TrajectoryPosterior(
         times=times[None],
@@ -188,6 +193,36 @@ def _with_f_draws(fit, y0: torch.Tensor, times: torch.Tensor, controls, generato
             TorchMisspecWarning,
         )
     return samples
+
+
+def warn_beyond_f(fit, times: torch.Tensor, samples: torch.Tensor) -> None:
+    """One warning where more than :data:`BEYOND_F` of the drawn paths ``samples (S, 1, T, d)`` take a state that F
+    reads outside the range F was learned on (its training inputs: the states along the population's fitted
+    paths): F is extrapolated there, and the band from that time on is F's prior guess more than the data's (on
+    the populations tutorial, a patient's band at 12 h reached down to 2e-308 mg/L, below every concentration the
+    population was measured at)."""
+    system, X = fit.corrected.system, fit.gp.train_inputs_
+    found = []
+    for p, j in enumerate(system.correction_inputs):
+        if j >= samples.shape[-1]:  # a control F reads: the subject's own, not drawn
+            continue
+        lo, hi = float(X[:, p].min()), float(X[:, p].max())
+        x = samples[..., j].reshape(-1, samples.shape[-2])  # (S, T)
+        seen = torch.isfinite(x)
+        out = ((x < lo) | (x > hi)) & seen
+        share = out.sum(0) / seen.sum(0).clamp_min(1)
+        beyond = (share > BEYOND_F).nonzero().flatten()
+        if beyond.numel():
+            name = system.state_names[j] if system.state_names else f"y{j}"
+            found.append(f"{name} from t = {float(times[beyond[0]]):.4g} (F learned on {lo:.3g} to {hi:.3g})")
+    if found:
+        warn(
+            f"predict_subject: more than {BEYOND_F:.0%} of the subject's drawn paths leave the range of the states F "
+            f"was learned on (the population's fitted paths): {'; '.join(found)}. F is extrapolated there, and the "
+            "band from that time on is F's prior guess more than the data's: read it within that range, or measure "
+            "the subject there",
+            TorchMisspecWarning,
+        )
 
 
 def _paths(fit, y0, times, controls) -> torch.Tensor:
