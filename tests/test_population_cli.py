@@ -148,3 +148,34 @@ def test_next_subject_prediction_of_a_system_with_inputs_is_refused_before_the_w
                  "--next-initial", "2"])  # fmt: skip
     err = capsys.readouterr().err.strip()
     assert code == 2 and "--predict-times: expected a system without inputs" in err and "\n" not in err
+
+
+def test_a_population_saved_once_designs_and_predicts_later_without_the_data(lab, capsys):
+    """``--save`` writes the fitted population; ``--fit`` reads it back instead of fitting ``--data``: the same
+    design and the same next subject's table as the run that fitted it."""
+    saved = lab / "population.pt"
+    common = ["--next-times", "0,0.25,0.5,0.75,1", "--budget", "2", "--next-initial", "2", "--next-covariate",
+              "weight=70", "--predict-times", "0:2:5"]  # fmt: skip
+    fitted = ["--covariate", "c=weight", "--out", str(lab / "s.csv"), "--save", str(saved)]
+    assert _run(lab, *fitted, *common, "--predict-out", str(lab / "a.csv")) == 0
+    first = capsys.readouterr().out
+    assert f"the fitted population saved to {saved} (design or predict the next subject from it with --fit" in first
+    system = f"{lab / 'model.py'}:system"
+    args = ["population", "--fit", str(saved), "--system", system, "--quiet", *common, "--predict-out"]
+    assert main([*args, str(lab / "b.csv")]) == 0
+    later = capsys.readouterr().out
+    assert "loaded a population of 12 experiments of 'system'" in later and "c ~ weight" in later
+    design = [line for line in first.splitlines() if line.startswith("next subject: sample at")]
+    assert design and design == [line for line in later.splitlines() if line.startswith("next subject: sample at")]
+    # the same rows (the first column's name is --experiment-column's, not given to the second run)
+    assert (lab / "a.csv").read_text().splitlines()[1:] == (lab / "b.csv").read_text().splitlines()[1:]
+    assert main(["population", "--system", system, "--quiet"]) == 2
+    assert (
+        "--data / --fit: expected a table to fit (--data) or a population saved with --save (--fit), got neither"
+        in (capsys.readouterr().err)
+    )
+    assert main([*args, str(lab / "c.csv"), "--data", str(lab / "lab.csv")]) == 2
+    assert "got both" in capsys.readouterr().err
+    assert main(["population", "--fit", str(lab / "lab.csv"), "--system", system]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "expected a PopulationFit file written by PopulationFit.save" in err and "\n" not in err

@@ -6,7 +6,9 @@ log-normal by default, shifted by the covariates of ``--covariate``), prints the
 classical answer's and writes every subject's parameters to a CSV. With ``--next-times`` and ``--budget``, it also
 designs the next subject's sampling times (and, with several ``--next-initial``, its starting state: a dose). With
 ``--predict-times``, it predicts the next subject's path with its band: from its first measurements (``--first``, a
-table of that subject's rows), or from the population alone (its ``--next-initial``).
+table of that subject's rows), or from the population alone (its ``--next-initial``). ``--save`` writes the fitted
+population to a file, and ``--fit`` reads it back instead of fitting ``--data``: a lab fits once, and designs and
+predicts each next subject later.
 """
 
 from __future__ import annotations
@@ -53,27 +55,67 @@ def _covariates(items: list[str] | None) -> dict[str, list[str]]:
 
 
 def _population(args: argparse.Namespace) -> int:
-    from ..data import experiment_labels, read_covariates
-    from ..population import Population
-    from ..population.distributions import DISTRIBUTIONS
-    from ..population.fit import fit_population
+    from ..population.fit import PopulationFit
     from ..systems import load_system
 
-    out = check_output(args.out, (".csv",))
-    varying = _names(args.vary, "--vary")
-    covariates = _covariates(args.covariate)
-    population = Population(varying, distribution=DISTRIBUTIONS[args.distribution](), covariates=covariates)
+    if (args.data is None) == (args.fit is None):
+        got = "both" if args.data else "neither"
+        raise InputError(f"--data / --fit: expected a table to fit (--data) or a population saved with --save (--fit), "
+                         f"got {got}")  # fmt: skip
+    save = None if args.save is None else check_output(args.save, (".pt",), "--save")
     system = load_system(args.system)
-    population.indices(system)  # the names checked before the work
+    if args.fit is not None:
+        fit = PopulationFit.load(args.fit, system)
+        population, observed = fit.population, fit.data
+    else:
+        out = check_output(args.out, (".csv",))
+        population = _declared(args, system)
     request = _design_request(args, system, population)
     prediction = _prediction_request(args, system, population)
+    if args.fit is None:
+        fit, observed = _fit(args, system, population, out)
+    else:
+        print(f"loaded a population of {observed.num_experiments} experiments of '{system.name}' from {args.fit}:")
+        print(fit.summary())
+    if save is not None:
+        fit.save(save)
+        print(f"the fitted population saved to {save} (design or predict the next subject from it with --fit {save})")
+    if request is not None:
+        _design(args, fit, request)
+    if prediction is not None:
+        _predict_next(args, fit, prediction, observed)
+    return 0
+
+
+def _declared(args: argparse.Namespace, system):
+    """The population ``--vary``, ``--distribution`` and ``--covariate`` declare, checked against ``system``."""
+    from ..population import Population
+    from ..population.distributions import DISTRIBUTIONS
+
+    if not args.vary:
+        raise InputError("--vary: expected the comma separated names of G's parameters that differ between "
+                         "experiments with --data, e.g. ka,ke,V, got none")  # fmt: skip
+    varying = _names(args.vary, "--vary")
+    population = Population(
+        varying, distribution=DISTRIBUTIONS[args.distribution](), covariates=_covariates(args.covariate)
+    )
+    population.indices(system)  # the names checked before the work
+    return population
+
+
+def _fit(args: argparse.Namespace, system, population, out):
+    """The population fitted to ``--data``, its summary printed and every experiment's parameters written to
+    ``out``: ``(fit, observed)``."""
+    from ..data import experiment_labels, read_covariates
+    from ..population.fit import fit_population
+
     observed = read_observations(args, system)
     columns = list(population.covariate_names)
     values = read_covariates(args.data, columns, experiment_column=args.experiment_column or None) if columns else None
     fit = fit_population(observed, system, population, covariates=values, noise=args.noise, progress=not args.quiet)
     print(
-        f"fitted a population of {observed.num_experiments} experiments of '{system.name}', {', '.join(varying)} "
-        f"varying ({args.distribution}), noise {fit.noise.name!r}:"
+        f"fitted a population of {observed.num_experiments} experiments of '{system.name}', "
+        f"{', '.join(population.varying)} varying ({args.distribution}), noise {fit.noise.name!r}:"
     )
     print(fit.summary())
     labels = experiment_labels(args.data, args.experiment_column or None) if not args.data.endswith(".npz") else None
@@ -82,11 +124,7 @@ def _population(args: argparse.Namespace) -> int:
     rows = [[label, *(f"{float(v):.6g}" for v in theta)] for label, theta in zip(labels, fit.thetas, strict=True)]
     write_csv(out, [args.experiment_column or "experiment", *names], rows)
     print(f"every experiment's parameters written to {out}")
-    if request is not None:
-        _design(args, fit, request)
-    if prediction is not None:
-        _predict_next(args, fit, prediction, observed)
-    return 0
+    return fit, observed
 
 
 def _design_request(args: argparse.Namespace, system, population):
@@ -199,7 +237,9 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
 
 
 def _beyond(times, observed, fit) -> str:
-    """A note where the prediction runs past the population's last measurement."""
+    """A note where the prediction runs past the population's last measurement (none without the data)."""
+    if observed is None:
+        return ""
     last = float(observed.padded()[0].max())
     if float(times.max()) <= last:
         return ""
@@ -208,10 +248,14 @@ def _beyond(times, observed, fit) -> str:
 
 
 def _design(args: argparse.Namespace, fit, request) -> None:
+    import torch
+
     from ..population.design import design_subject
 
     times, starts, covariates = request
-    design = design_subject(fit, times, args.budget, initial_states=starts, covariates=covariates)
+    # the design's drawn subjects seeded: the same command gives the same design
+    g = torch.Generator().manual_seed(0)
+    design = design_subject(fit, times, args.budget, initial_states=starts, covariates=covariates, generator=g)
     state = ", ".join(f"{v:g}" for v in design.initial_state.tolist())
     print(
         f"next subject: sample at {', '.join(f'{t:g}' for t in design.times.tolist())} from the initial state "
@@ -228,10 +272,14 @@ def add_population(sub) -> None:
         help="fit experiments that differ in some of G's parameters (subjects, trees, batches), F shared",
         description=__doc__.split("\n\n")[1],
     )
-    add_data_options(pop, required=True, help="observed trajectories, one experiment per subject (as for 'fit')")
+    add_data_options(pop, required=False, help="observed trajectories, one experiment per subject (as for 'fit'); "
+                     "or --fit")  # fmt: skip
+    pop.add_argument("--fit", help="a population saved with --save (.pt), instead of fitting --data: design or "
+                     "predict the next subject from it (--system the one it was fitted with)")  # fmt: skip
+    pop.add_argument("--save", help="write the fitted population to this .pt file (tensors and plain values only)")
     add_system_option(pop)
-    pop.add_argument("--vary", required=True, help="comma separated names of G's parameters that differ between "
-                     "experiments, e.g. ka,ke,V")  # fmt: skip
+    pop.add_argument("--vary", help="comma separated names of G's parameters that differ between experiments, e.g. "
+                     "ka,ke,V (with --data)")  # fmt: skip
     pop.add_argument(
         "--distribution",
         default="lognormal",

@@ -170,3 +170,9 @@ def _replace_controls(trajectories, controls: Controls):
         return dataclasses.replace(trajectories, controls=controls)
     listed = dict(times=list(trajectories.times), states=list(trajectories.states))
     return dataclasses.replace(trajectories, controls=controls, readings=trajectories._listed_readings(), **listed)
+
+
+def fitted_system(system, nlme):
+    """The system F reads under the population fit ``nlme``: the varying parameters as inputs, the shared ones
+    fixed at the fit's values."""
+    return subject_system(system, nlme.layout.vary, nlme.thetas[0])

@@ -51,6 +51,7 @@ import dataclasses
 import functools
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -61,12 +62,13 @@ from ..learning.pipeline import Pipeline
 from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
+from . import files
 from ._f_uncertainty import correction_shifts
 from ._held_out import best_on_unseen_experiments
 from ._integrated import integrated_modes, integrated_system, with_experiment_index
 from ._misfit import residuals_by_time
 from ._modes import mean_correction
-from ._subjects import parameter_names, subject_system, with_subject_inputs
+from ._subjects import fitted_system, parameter_names, with_subject_inputs
 from .model import Population
 from .nlme import NLMEFit, fit_nlme
 
@@ -136,6 +138,18 @@ class PopulationFit:
     def corrected(self) -> CorrectedODE | None:
         """G with each experiment's parameters as inputs, plus F's posterior mean (``None`` without a correction)."""
         return None if self.gp is None else CorrectedODE(self.subject_system, self.gp)
+
+    def save(self, path) -> Path:
+        """Write this fit to ``path`` (tensors and plain values only, :mod:`~torchmisspec.population.files`): a
+        population fitted once designs and predicts each next subject later. The system is code and is not saved:
+        pass it again to :meth:`load`."""
+        return files.save(self, path)
+
+    @classmethod
+    def load(cls, path, system: MisspecifiedSystem) -> PopulationFit:
+        """The fit :meth:`save` wrote to ``path``; ``system`` the one it was fitted with (checked by name, state
+        dimension and parameter names)."""
+        return files.load(cls, path, system)
 
     def summary(self) -> str:
         """The population's values in a few lines: each varying parameter's typical value and spread with their
@@ -219,7 +233,7 @@ def fit_population(
     options = dict(covariates=covariates, progress=progress)
     classical = fit_nlme(system, trajectories, population, noise, **options)
     candidates = [
-        PopulationFit(system, population, noise, classical, nlme, gp, _plain(system, nlme), trajectories)
+        PopulationFit(system, population, noise, classical, nlme, gp, fitted_system(system, nlme), trajectories)
         for nlme, gp in _learn(system, trajectories, population, noise, pipeline, classical, progress)
     ]
     if not candidates:
@@ -230,7 +244,7 @@ def fit_population(
             TorchMisspecWarning,
         )
         return PopulationFit(
-            system, population, noise, classical, classical, None, _plain(system, classical), trajectories
+            system, population, noise, classical, classical, None, fitted_system(system, classical), trajectories
         )
     fitted, kept, with_f, without = best_on_unseen_experiments(candidates, classical, trajectories)
     fitted = dataclasses.replace(fitted, held_out=(with_f, without))
@@ -252,7 +266,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
     start, joint = _integrated_start(system, trajectories, pipeline, classical, progress)
     out = []
     if joint is not None:
-        correction = mean_correction(_plain(system, start), joint)
+        correction = mean_correction(fitted_system(system, start), joint)
         out.append((fit_nlme(system, trajectories, population, noise, start=start, correction=correction), joint))
     nlme, gp = start, None
     for _ in range(ROUNDS):
@@ -261,7 +275,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
         if getattr(learned, "known_model_", False):  # F = 0 in the first round; later, the last F and its fit stand
             break
         gp = learned
-        correction = mean_correction(_plain(system, nlme), gp)
+        correction = mean_correction(fitted_system(system, nlme), gp)
         nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction)
     return out if gp is None else out + [(nlme, gp)]
 
@@ -304,14 +318,9 @@ def _without_warnings(fit, *args, **kwargs):
         return fit(*args, **kwargs)
 
 
-def _plain(system: MisspecifiedSystem, nlme: NLMEFit) -> MisspecifiedSystem:
-    """The system with the varying parameters as inputs, the shared ones fixed at the fit's values."""
-    return subject_system(system, nlme.layout.vary, nlme.thetas[0])
-
-
 def _subject_data(system: MisspecifiedSystem, nlme: NLMEFit, trajectories: Trajectories):
     """The system F is learned with (the varying parameters as inputs, the shared ones fixed at the fit's values)
     and the data with every experiment's own parameters as its constant inputs."""
     names = parameter_names(system, nlme.layout.vary)
     data = with_subject_inputs(trajectories, nlme.thetas[:, nlme.layout.vary], names)
-    return _plain(system, nlme), data.with_initial_states(nlme.modes.initial_states)
+    return fitted_system(system, nlme), data.with_initial_states(nlme.modes.initial_states)
