@@ -135,7 +135,8 @@ def study(cfg: dict, log=print, executor=None) -> dict:
     for r in runs:
         log(
             f"{r.get('set', 'theoph')} subject {r['subject']}: designed {r['designed_times']} parameters "
-            f"{r['designed_parameters']:.3f} (standard {r['standard_parameters']:.3f}, random {r['random_parameters']:.3f}, rank "
+            f"{r['designed_parameters']:.3f} (standard {r['standard_parameters']:.3f}, random "
+            f"{r['random_parameters']:.3f}, rank "
             f"{r['designed_parameters_rank']} of {r['sets']}); path {r['designed_path']:.3f} (standard "
             f"{r['standard_path']:.3f}, random {r['random_path']:.3f}); fit {r['fit_seconds']:.1f} s"
         )
