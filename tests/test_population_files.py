@@ -103,4 +103,11 @@ def test_a_population_file_refuses_another_system_and_damaged_files(tmp_path):
         PopulationFit.load(tmp_path / "campaign.pt", linear_system())
     with pytest.raises(tms.InputError, match="path: expected an existing PopulationFit file"):
         PopulationFit.load(tmp_path / "missing.pt", linear_system())
-    assert dataclasses.fields(fit)  # the fit itself is untouched by saving
+    from torchmisspec.noise import Relative
+
+    class Mine(Relative):  # a user's noise model: code, refused with the fix named
+        pass
+
+    with pytest.raises(tms.InputError, match=r"save: expected a population fitted with one of the package's noise"):
+        dataclasses.replace(fit, noise=Mine()).save(tmp_path / "mine.pt")
+    assert not (tmp_path / "mine.pt").exists()

@@ -23,6 +23,7 @@ from .._errors import InputError, TorchMisspecError
 from .._validation import check_writable, writing
 from ..design._campaign_data import _noise_blob, _noise_from, data_blob, data_from
 from ..gp import CorrectionGP, _persistence
+from ..noise import NOISE_MODELS
 from ..systems import MisspecifiedSystem
 from ._f_uncertainty import Shifts
 from ._modes import Modes, mean_correction
@@ -42,6 +43,11 @@ _MODES = ("eta", "covariance", "shared", "initial_states", "scale", "z")
 def save(fit, path: str | Path) -> Path:
     """Write the population ``fit`` to ``path`` atomically; the folder must exist."""
     path = check_writable(path)
+    if NOISE_MODELS.get(getattr(fit.noise, "name", None)) is not type(fit.noise):
+        raise InputError(
+            f"save: expected a population fitted with one of the package's noise models {sorted(NOISE_MODELS)}, got "
+            f"{fit.noise!r:.80}, which is code and cannot be saved; refit with a named noise model to save it"
+        )
     gp = fit.gp
     if gp is not None and getattr(gp, "library", None) is not None:
         _persistence.config_of(gp)  # raises: a feature library is code
