@@ -293,11 +293,11 @@ def test_r_indometh_as_a_population_through_the_cli_and_leaving_one_subject_out(
     """The same lab's CSV as a population (issue 43): every subject its own elimination rate k, log-normal. The
     command line fits it with defaults and writes every subject's k, and predicts a next subject (subject 1's first
     2 rows as its first measurements) to 12 h with the band of its new measurements, saying that 12 h is past the
-    data; leaving subjects 1 and 4 out in turn (the
-    population fitted on the other 5; each fit about a minute on 2 cores, so two of the six), the subject is
-    predicted from its first 2 measurements and forecast to 12 h (the data end at 8): finite, positive, with a band,
-    and never worse than the classical answer (the same population with F = 0) beyond 5 % on the geometric mean of
-    the log-RMSE."""
+    data; the fit saved (``--save``) and read back (``--fit``) predicts the same table; leaving subjects 1 and 4 out
+    in turn (the population fitted on the other 5; each fit about a minute on 2 cores, so two of the six), the
+    subject is predicted from its first 2 measurements and forecast to 12 h (the data end at 8): finite, positive,
+    with a band, and never worse than the classical answer (the same population with F = 0) beyond 5 % on the
+    geometric mean of the log-RMSE."""
     from torchmisspec.population import Population
     from torchmisspec.population.fit import fit_population
     from torchmisspec.population.predict import predict_subject
@@ -312,9 +312,16 @@ def test_r_indometh_as_a_population_through_the_cli_and_leaving_one_subject_out(
     code = cli.main(["population", "--data", str(data_file), "--time-column", "hours", "--experiment-column",
                      "subject", "--system", system_arg, "--vary", "k", "--out", str(out), "--quiet",
                      "--predict-times", "0.25:12:48", "--first", str(tmp_path / "first.csv"), "--predict-out",
-                     str(nxt), "--measurements"])  # fmt: skip
+                     str(nxt), "--measurements", "--save", str(tmp_path / "indometh.pt")])  # fmt: skip
     said = capsys.readouterr()
     assert code == 0, said.err
+    # the saved population, read back later, predicts the same next subject without the data or a refit
+    code = cli.main(["population", "--fit", str(tmp_path / "indometh.pt"), "--system", system_arg, "--time-column",
+                     "hours", "--experiment-column", "subject", "--quiet", "--predict-times", "0.25:12:48",
+                     "--first", str(tmp_path / "first.csv"), "--predict-out", str(tmp_path / "again.csv"),
+                     "--measurements"])  # fmt: skip
+    assert code == 0 and "loaded a population of 6 experiments" in capsys.readouterr().out
+    assert (tmp_path / "again.csv").read_text() == nxt.read_text()
     assert "fitted a population of 6 experiments" in said.out and "95% interval" in said.out
     assert "next subject from its first 2 measurements: k = " in said.out and "past the data's last time 8" in said.out
     with nxt.open() as fh:
