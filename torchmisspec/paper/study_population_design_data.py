@@ -54,6 +54,7 @@ from torchmisspec.population.fit import fit_population
 from torchmisspec.population.predict import _paths, subjects_parameters
 
 from ._ratios import describe, paired_ratio
+from .study_population_data import _by_set  # the runs of each data set, as that study groups them
 
 DEFAULT_JSON = ROOT / "benchmarks" / "study_population_design_data.json"
 DOC_PAGE = ROOT / "docs" / "studies" / "population-design-real-data.md"
@@ -145,14 +146,6 @@ def study(cfg: dict, log=print, executor=None) -> dict:
 
 def _ratio(runs, arm: str, other: str, what: str) -> str:
     return describe(paired_ratio([r[f"{arm}_{what}"] for r in runs], [r[f"{other}_{what}"] for r in runs]))
-
-
-def _by_set(result: dict) -> dict[str, list[dict]]:
-    """The runs of each data set (a run from before several sets is theophylline's)."""
-    out: dict[str, list[dict]] = {}
-    for r in result["runs"]:
-        out.setdefault(r.get("set", "theoph"), []).append(r)
-    return out
 
 
 def _rows(name: str, runs: list[dict]) -> list[str]:
