@@ -102,9 +102,13 @@ class ExpectedError:
 
 class SubjectParameters:
     """Design for the subject's own varying parameters (the module's notes); ``draws`` population draws, the
-    ``criterion`` :class:`ExpectedError` (default) or :class:`Determinant`."""
+    ``criterion`` :class:`ExpectedError` (default) or :class:`Determinant`.
 
-    def __init__(self, draws: int = 16, criterion=None) -> None:
+    Why 64 draws by default: the criterion is an average over them, and near ties between sets of times are decided
+    by its sampling error. On theophylline's 12th subject, 10 seeds gave 4 different designs at 16 draws, 4 at 64 (6
+    of 10 the same) and 2 at 256 (5 h against 7 h), at 0.18, 0.22 and 0.45 s per design."""
+
+    def __init__(self, draws: int = 64, criterion=None) -> None:
         self.draws = check_positive_int(draws, "draws")
         criterion = ExpectedError() if criterion is None else criterion
         if not isinstance(criterion, (ExpectedError, Determinant)):

@@ -291,20 +291,28 @@ def _sample_rows(trajectories: Trajectories, system: MisspecifiedSystem) -> torc
     return system.select_outputs(_flat_observed(trajectories)).all(-1)
 
 
-def _ratio(name, options, trajectories, known_copy, system) -> float:
+def copy_errors(name, options, trajectories, known_copy, system) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(errors (N_copy, o), targets (N, o))``: the estimator's error in dy/dt on the correction's outputs at every
+    row of the known model's copy, and the samples ``F~`` it gives at every row of the real data (rows that give no
+    sample included: :func:`_sample_rows` tells which do)."""
     if name == "gp" and not options and known_copy[2] is not None:
         dydt, _, flat = known_copy[2]  # already computed for the noise level
     else:
         dydt, _, flat = _estimate_flat(name, trajectories, options)
     targets = system.select_outputs(dydt - known_flat(system, trajectories, flat))
-    if trajectories.has_missing:
-        targets = targets[_sample_rows(trajectories, system)]
-    spread = float(targets.pow(2).mean().sqrt())
     copy = known_copy[0]
     est, _, _ = _estimate_flat(name, copy, options)
     errors = system.select_outputs(est - known_flat(system, copy, known_copy[1]))  # dy/dt = G on the noise-free copy
-    if copy.has_missing:
-        errors = errors[_sample_rows(copy, system)]
+    return errors, targets
+
+
+def _ratio(name, options, trajectories, known_copy, system) -> float:
+    errors, targets = copy_errors(name, options, trajectories, known_copy, system)
+    if trajectories.has_missing:
+        targets = targets[_sample_rows(trajectories, system)]
+    if known_copy[0].has_missing:
+        errors = errors[_sample_rows(known_copy[0], system)]
+    spread = float(targets.pow(2).mean().sqrt())
     err = float(errors.pow(2).mean().sqrt())
     if not math.isfinite(err) or not math.isfinite(spread):
         return float("inf")
@@ -368,6 +376,13 @@ def choose_derivative(
     Raises:
         InputError: no candidate fits the number of samples (T < 3), or bad arguments.
     """
+    name, options, errors, _ = choose_with_copy(trajectories, system)
+    return name, options, errors
+
+
+def choose_with_copy(trajectories: Trajectories, system: MisspecifiedSystem):
+    """:func:`choose_derivative`'s ``(name, options, errors)`` and the known model's copy of the data it checked them
+    on (``None`` where it could not be simulated)."""
     _check_trajectories_and_system(trajectories, system)
     T = min(trajectories.lengths)
     candidates = [(n, o) for n, o, need in AUTO_CANDIDATES if T >= need]
@@ -385,7 +400,7 @@ def choose_derivative(
             "data) is used unchecked; the known model blows up over the data, so check G and its parameters",
             TorchMisspecWarning,
         )
-        return name, dict(options), {(name, tuple(sorted(options.items()))): math.nan}
+        return name, dict(options), {(name, tuple(sorted(options.items()))): math.nan}, None
     errors: dict[tuple[str, tuple], float] = {}
     for name, options in candidates:
         try:
@@ -393,4 +408,4 @@ def choose_derivative(
         except InputError:
             errors[(name, tuple(sorted(options.items())))] = float("inf")
     key = min(errors, key=errors.get)
-    return key[0], dict(key[1]), errors
+    return key[0], dict(key[1]), errors, known_copy

@@ -49,6 +49,7 @@ from ..._validation import as_tensor, check_finite, check_positive_int, check_re
 from ...data import Trajectories
 from ...parameters import jacobian, parameter_basis
 from ...systems import MisspecifiedSystem
+from ._edges import edge_reach, rms_rows, unreliable_edges
 from ._estimators import (
     AUTO_CANDIDATES,
     ESTIMATOR_ERROR_THRESHOLD,
@@ -56,6 +57,8 @@ from ._estimators import (
     _estimate_flat,
     _sample_rows,
     choose_derivative,
+    choose_with_copy,
+    copy_errors,
     estimator_error,
     known_flat,
 )
@@ -299,15 +302,15 @@ def correction_samples(
     if short and len(short) < trajectories.num_experiments and derivative != "oracle":  # too short to give samples
         options = dict(derivative=derivative, noise_std=noise_std, generator=generator, order=order, window=window)
         return _without_short(trajectories, system, short, degree=degree, **options)
-    dydt, variance, flat_states, used = _derivatives(trajectories, system, derivative, order, window, degree)
+    dydt, variance, flat_states, used, edges = _derivatives(trajectories, system, derivative, order, window, degree)
     lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
     experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
     g = known_flat(system, trajectories, flat_states)
     u = trajectories.flat_controls()
     keep = _complete_rows(trajectories, system)
     if keep is not None:
-        dydt, flat_states, experiment, g, variance, u = (
-            None if a is None else a[keep] for a in (dydt, flat_states, experiment, g, variance, u)
+        dydt, flat_states, experiment, g, variance, u, edges = (
+            None if a is None else a[keep] for a in (dydt, flat_states, experiment, g, variance, u, edges)
         )
     residuals, basis, t, linear = _theta_parts(system, trajectories, flat_states, dydt, g, u, keep)
     targets = system.select_outputs(dydt - g)
@@ -315,7 +318,7 @@ def correction_samples(
     sample_noise = None if variance is None else system.select_outputs(variance)
     if noise > 0:
         targets, sample_noise = _with_noise(targets, sample_noise, noise, noise_std, generator)
-    return CorrectionSamples(
+    samples = CorrectionSamples(
         inputs=system.select_inputs(flat_states, u),
         targets=targets,
         states=flat_states,
@@ -328,6 +331,7 @@ def correction_samples(
         parameters_linear=linear,
         derivative=used,
     )
+    return samples if edges is None or not bool(edges.any()) else samples.subset(~edges)
 
 
 def _checked_options(trajectories, system, derivative, noise_std, generator) -> float:
@@ -345,11 +349,12 @@ def _checked_options(trajectories, system, derivative, noise_std, generator) -> 
 def _derivatives(trajectories: Trajectories, system: MisspecifiedSystem, derivative: str, order, window, degree):
     """``(dy/dt (N, d), its variance (N, d) or None, the states (N, d) filled by the estimator, the estimator's
     name and options)`` for :func:`correction_samples`' ``derivative``."""
+    edges, note = None, ""
     if derivative == "oracle":
         dydt, flat_states = _oracle(trajectories, system)
-        return dydt, None, flat_states, "oracle"
+        return dydt, None, flat_states, "oracle", None
     if derivative == "auto":
-        name, options = _auto_estimator(trajectories, system)
+        name, options, edges, note = _auto_estimator(trajectories, system)
     elif derivative == "central":
         name, options = "central", {"order": order}
     elif derivative == "smooth":
@@ -359,7 +364,8 @@ def _derivatives(trajectories: Trajectories, system: MisspecifiedSystem, derivat
     dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
     if derivative in ("central", "smooth"):  # explicit stencils and local fits: no sample noise (auto: its choice's)
         variance = None
-    return dydt, variance, flat_states, " ".join([name, *(f"{k}={v}" for k, v in sorted(options.items()))])
+    used = " ".join([name, *(f"{k}={v}" for k, v in sorted(options.items()))])
+    return dydt, variance, flat_states, used + note, edges
 
 
 def _oracle(trajectories: Trajectories, system: MisspecifiedSystem):
@@ -379,11 +385,13 @@ def _oracle(trajectories: Trajectories, system: MisspecifiedSystem):
         return system.true_rhs(flat_states, flat_t, trajectories.flat_controls()), flat_states
 
 
-def _auto_estimator(trajectories: Trajectories, system: MisspecifiedSystem) -> tuple[str, dict]:
-    """``(name, options)``: the estimator :func:`choose_derivative` picks, with the warning (:data:`ESTIMATOR_ADVICE`)
-    when its self-checked error exceeds :data:`ESTIMATOR_ERROR_THRESHOLD` of the samples' size."""
-    name, options, errors = choose_derivative(trajectories, system)
-    ratio = errors[(name, tuple(sorted(options.items())))]
+def _auto_estimator(trajectories: Trajectories, system: MisspecifiedSystem):
+    """``(name, options, left out (N,) or None, a note)``: the estimator :func:`choose_derivative` picks, with the
+    warning (:data:`ESTIMATOR_ADVICE`) when its self-checked error exceeds :data:`ESTIMATOR_ERROR_THRESHOLD` of the
+    samples' size, and the edge samples it cannot be trusted at (:mod:`~torchmisspec.learning.samples._edges`)."""
+    name, options, errors, copy = choose_with_copy(trajectories, system)
+    edges, note, kept = _edges(name, options, trajectories, copy, system)
+    ratio = errors[(name, tuple(sorted(options.items())))] if kept is None else kept
     if ratio > ESTIMATOR_ERROR_THRESHOLD:  # NaN: not ranked (choose_derivative said why)
         warn(
             f"{ESTIMATOR_ADVICE} ({name} {options}) has an error on the known "
@@ -393,7 +401,30 @@ def _auto_estimator(trajectories: Trajectories, system: MisspecifiedSystem) -> t
             "best), or fit the correction through the ODE with tms.fit_trajectories",
             TorchMisspecWarning,
         )
-    return name, options
+    return name, options, edges, note
+
+
+def _edges(name, options, trajectories, copy, system):
+    """``(left out (N,) or None, a note for the samples' description, the self-check's ratio on the samples kept)``:
+    the edge samples whose estimator error on the known model's ``copy`` is mostly error
+    (:func:`~torchmisspec.learning.samples._edges.unreliable_edges`)."""
+    if copy is None:
+        return None, "", None
+    errors, targets = copy_errors(name, options, trajectories, copy, system)
+    if trajectories.has_missing:
+        targets = torch.where(_sample_rows(trajectories, system).unsqueeze(-1), targets, math.nan)
+    if copy[0].has_missing:
+        errors = torch.where(_sample_rows(copy[0], system).unsqueeze(-1), errors, math.nan)
+    reach = edge_reach(name, options)
+    out, out_copy, worst = unreliable_edges(errors, targets, copy[0].lengths, trajectories.lengths, reach)
+    if not bool(out.any()):
+        return None, "", None
+    n = int(out.sum())
+    note = (
+        f"; {n} edge sample{'s' * (n > 1)} left out (the estimator's error there on the known model's copy up to "
+        f"{worst:.3g} times the samples' RMS)"
+    )
+    return out, note, rms_rows(errors[~out_copy]) / rms_rows(targets[~out])
 
 
 def _complete_rows(trajectories: Trajectories, system: MisspecifiedSystem) -> torch.Tensor | None:
