@@ -100,3 +100,17 @@ def test_unreliable_edges_keeps_all_where_the_interior_is_poor_or_too_much_would
     nan_rows[0] = math.nan  # a row that gives no sample on the copy is not counted
     out, _, _ = unreliable_edges(nan_rows, torch.ones(18, 1, dtype=DT), lengths, lengths, 2)
     assert out.tolist() == [True] + [False] * 8 + [True] + [False] * 8
+
+
+def test_the_cli_says_what_auto_chose_and_left_out():
+    from types import SimpleNamespace
+
+    from torchmisspec.cli._fit import _derivative
+
+    system, data = _oral_dose()
+    with pytest.warns(tms.TorchMisspecWarning):
+        samples = tms.correction_samples(data, system)
+    gp = SimpleNamespace(derivative_=samples.derivative)
+    assert _derivative(SimpleNamespace(derivative="auto"), gp) == f"'auto': {samples.derivative}"
+    assert "6 edge samples left out" in _derivative(SimpleNamespace(derivative="auto"), gp)
+    assert _derivative(SimpleNamespace(derivative="smooth"), gp) == "'smooth'"

@@ -85,7 +85,7 @@ def _fit(args: argparse.Namespace) -> int:
     print(
         f"fitted the correction of '{system.name}' on {len(gp.samples_)} samples ({observed.num_experiments} "
         f"experiment{'s' if observed.num_experiments != 1 else ''} x {times} times, derivative "
-        f"{args.derivative!r}, noise {gp.noise_.name!r}): {gp!r}"
+        f"{_derivative(args, gp)}, noise {gp.noise_.name!r}): {gp!r}"
     )
     _print_choice(gp, system)
     _print_learned(gp, observed)
@@ -105,6 +105,12 @@ def _fit(args: argparse.Namespace) -> int:
         gp.save(tmp)
     print(f"written to {out}")
     return 0
+
+
+def _derivative(args, gp) -> str:
+    """The estimator asked for, and what ``auto`` chose (with the edge samples it left out)."""
+    used = getattr(gp, "derivative_", None)
+    return f"{args.derivative!r}" if used is None or args.derivative != "auto" else f"'auto': {used}"
 
 
 def _print_choice(gp, system) -> None:
