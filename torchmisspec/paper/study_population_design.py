@@ -22,7 +22,11 @@ F is not refitted with a new subject's 4 samples here: the design's target is th
 F replaced by the truth's saturable elimination in the subject's fit (the population's values and weights as
 fitted). A probe of seed 43500 found the designed late samples worth 0.62x the standard's error with the true F and
 1.03x with the fitted one: the fitted F's error at the low concentrations of the late hours biases the volume fitted
-to them. These two columns measure that over the realizations.
+to them. These two columns measure that over the realizations. Most of that error came from the derivative samples
+at each subject's first time (concentration 0, rising steeply: the smoother's one-sided estimate there was 3.8 times
+the samples' RMS on seed 43501, F -1.7 mg/L/h near 0 where the truth is -0.01); since ``derivative="auto"`` leaves
+out such edge samples (:mod:`~torchmisspec.learning.samples._edges`), designed / standard went from 1.29 (the
+study's run at commit 2e32335) to the value below, and a correction is kept in every realization.
 
 **What any design can reach here** (the truth known): every one of the 4,845 sets of 4 candidate times is scored by
 the linearized expected error of a new subject's parameters under the true model, F and population (both states,
