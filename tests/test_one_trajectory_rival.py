@@ -87,7 +87,9 @@ def test_the_not_significant_warning_of_one_experiment_names_its_time_pieces(one
     early = tms.Trajectories(t[:16], y[None, :16], state_names=data.trajectories.state_names)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        gp = tms.fit_correction(early, data.system, progress=False)
+        # derivative="gp", what auto chose before it left out an edge sample: with that sample kept, no candidate
+        # beats the known model significantly, which is the warning this test reads
+        gp = tms.fit_correction(early, data.system, derivative="gp", progress=False)
     [message] = [str(w.message) for w in caught if "significantly better" in str(w.message)]
     assert "held-out pieces of the experiment's time" in message and "over the 3 pieces" in message
     assert "experiments)" not in message and gp.cross_validation_.folds == 3
