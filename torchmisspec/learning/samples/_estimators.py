@@ -307,7 +307,11 @@ def copy_errors(name, options, trajectories, known_copy, system) -> tuple[torch.
 
 
 def _ratio(name, options, trajectories, known_copy, system) -> float:
-    errors, targets = copy_errors(name, options, trajectories, known_copy, system)
+    return _ratio_of(*copy_errors(name, options, trajectories, known_copy, system), trajectories, known_copy, system)
+
+
+def _ratio_of(errors, targets, trajectories, known_copy, system) -> float:
+    """The self-check's ratio of :func:`copy_errors`' ``errors`` and ``targets``."""
     if trajectories.has_missing:
         targets = targets[_sample_rows(trajectories, system)]
     if known_copy[0].has_missing:
@@ -381,8 +385,9 @@ def choose_derivative(
 
 
 def choose_with_copy(trajectories: Trajectories, system: MisspecifiedSystem):
-    """:func:`choose_derivative`'s ``(name, options, errors)`` and the known model's copy of the data it checked them
-    on (``None`` where it could not be simulated)."""
+    """:func:`choose_derivative`'s ``(name, options, errors)`` and ``(the known model's copy of the data it checked
+    them on, the chosen estimator's (errors on it, samples) from :func:`copy_errors`)`` (``None`` where the copy
+    could not be simulated): the edge check reads them without running the estimator again."""
     _check_trajectories_and_system(trajectories, system)
     T = min(trajectories.lengths)
     candidates = [(n, o) for n, o, need in AUTO_CANDIDATES if T >= need]
@@ -402,10 +407,13 @@ def choose_with_copy(trajectories: Trajectories, system: MisspecifiedSystem):
         )
         return name, dict(options), {(name, tuple(sorted(options.items()))): math.nan}, None
     errors: dict[tuple[str, tuple], float] = {}
+    parts: dict[tuple[str, tuple], tuple] = {}  # each candidate's copy errors and samples, kept for the edge check
     for name, options in candidates:
+        key = (name, tuple(sorted(options.items())))
         try:
-            errors[(name, tuple(sorted(options.items())))] = _ratio(name, options, trajectories, known_copy, system)
+            parts[key] = copy_errors(name, options, trajectories, known_copy, system)
+            errors[key] = _ratio_of(*parts[key], trajectories, known_copy, system)
         except InputError:
-            errors[(name, tuple(sorted(options.items())))] = float("inf")
+            errors[key] = float("inf")
     key = min(errors, key=errors.get)
-    return key[0], dict(key[1]), errors, known_copy
+    return key[0], dict(key[1]), errors, (known_copy, parts.get(key))

@@ -58,7 +58,6 @@ from ._estimators import (
     _sample_rows,
     choose_derivative,
     choose_with_copy,
-    copy_errors,
     estimator_error,
     known_flat,
 )
@@ -408,9 +407,9 @@ def _edges(name, options, trajectories, copy, system):
     """``(left out (N,) or None, a note for the samples' description, the self-check's ratio on the samples kept)``:
     the edge samples whose estimator error on the known model's ``copy`` is mostly error
     (:func:`~torchmisspec.learning.samples._edges.unreliable_edges`)."""
-    if copy is None:
+    if copy is None or copy[1] is None:
         return None, "", None
-    errors, targets = copy_errors(name, options, trajectories, copy, system)
+    copy, (errors, targets) = copy
     if trajectories.has_missing:
         targets = torch.where(_sample_rows(trajectories, system).unsqueeze(-1), targets, math.nan)
     if copy[0].has_missing:
