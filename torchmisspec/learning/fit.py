@@ -42,6 +42,7 @@ from .choice.cross_validation import (
 )
 from .refinement._first_model import feature_template
 from .refinement._known_fit import KNOWN_MODEL_OUTPUTSCALE, known_model_template
+from .refinement._no_worse import no_worse
 from .refinement.trajectory_fit import _mean_field, fit_trajectories
 from .samples.observations import (
     ESTIMATOR_ADVICE,
@@ -486,22 +487,36 @@ def _evidence_choice(pool: list, chooser: CorrectionSamples, samples: Correction
     return result
 
 
-def _through_ode(result: CorrectionGP, system, trajectories, progress, advice) -> CorrectionGP:
+def _through_ode(result: CorrectionGP, system, trajectories, progress, advice, noise=None) -> CorrectionGP:
     """``result`` refined through the ODE (:func:`fit_trajectories`). Where the refinement takes the estimator's
     ``advice`` (a list, possibly empty) rather than the user's ``refine=True`` (``None``), a refinement that cannot be
-    fitted or integrated keeps ``result`` as learned from the derivative samples, says so, and gives the advice."""
-    if advice is None:
+    fitted or integrated, or that forecasts the data worse than ``result`` (:mod:`~torchmisspec.learning.refinement.
+    _no_worse`, with ``noise`` given: every refinement the user did not ask for), keeps ``result`` as learned from
+    the derivative samples, says so, and gives the advice."""
+    if advice is None and noise is None:
         return fit_trajectories(result, system, trajectories, progress=progress)
     try:
-        return fit_trajectories(result, system, trajectories, progress=progress)
+        refined = fit_trajectories(result, system, trajectories, progress=progress)
     except (FittingError, IntegrationError, LinearAlgebraError) as error:
-        warn(
-            f"fit_correction: refining the correction through the ODE (the derivative estimator's advice) failed "
-            f"({str(error)[:200]}); the correction is kept as learned from the derivative samples",
-            TorchMisspecWarning,
-        )
+        if advice is None:
+            raise
+        why = f"failed ({str(error)[:200]})"
+    else:
+        if noise is None:
+            return refined
+        kept, before, after = no_worse(result, refined, system, trajectories, noise)
+        if kept is refined:
+            return refined
+        why = f"forecast the data worse than the model it started from (squared misfit {after:.4g} vs {before:.4g})"
+    taken = "(the derivative estimator's advice) " if advice is not None else ""
+    warn(
+        f"fit_correction: refining the correction through the ODE {taken}{why}; the correction is kept as learned "
+        f"from the derivative samples",
+        TorchMisspecWarning,
+    )
+    if advice is not None:
         _give_advice(advice, None)
-        return result
+    return result
 
 
 def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_f: bool, progress, advice=None):
@@ -511,11 +526,12 @@ def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_
     ``advice``: the estimator's held warnings where the refinement takes their advice (not asked for by the user):
     a refinement that fails then keeps the model unrefined and gives them (:func:`_through_ode`)."""
     trajectories, samples = data.trajectories, data.samples
+    guard = data.noise if refine is None or advice is not None else None  # a refinement the user did not ask for
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
         refine = result.kernel_spec.terms and result.kernel_spec.feature_space and data.system.autonomous
     if refine:  # a new model: the record of the evidence's choice carried over
         selection = getattr(result, "model_selection_", None)
-        result = _through_ode(result, data.system, trajectories, progress, advice)
+        result = _through_ode(result, data.system, trajectories, progress, advice, guard)
         if selection is not None:
             result.model_selection_ = selection
     if posterior is not None:  # theta's posterior under the chosen model, and F conditioned on r - H theta_bar
@@ -527,6 +543,6 @@ def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_
         result.parameters_.warn_if_unidentified("fit_correction")
         if refine_f:  # F through the ODE at theta's mean, theta's posterior kept
             found = result.parameters_
-            result = _through_ode(result, data.declared.at(found.mean), trajectories, progress, advice)
+            result = _through_ode(result, data.declared.at(found.mean), trajectories, progress, advice, guard)
             result.parameters_ = found
     return result, samples
