@@ -93,7 +93,7 @@ def study_smoke(tmp_path):
             check=True,
             capture_output=True,
             text=True,
-            timeout=600,
+            timeout=1500,  # a guard against a hang: the longest smoke takes 3.5 min alone, 10 beside other work
         )
         return json.loads(out.read_text()), proc
 
