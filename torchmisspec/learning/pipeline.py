@@ -210,7 +210,10 @@ def fit_correction(
        the trajectories do not support), for autonomous systems (with inputs or time the fit through the ODE runs
        each experiment under its own profile, but is not yet validated by a study: ask for it with ``refine=True``);
        with uncertain parameters, ``refine=True`` refines F at theta's posterior mean after theta's own fit through
-       the ODE (by default it does not).
+       the ODE (by default it does not). A refinement made without ``refine=True`` (a feature kernel's, or the
+       derivative estimator's advice) is kept only where its forecasts of the data from their first states are no
+       worse, in the noise model's residuals, than those of the model it started from; otherwise that model is
+       returned, with a warning (``learning/refinement/_no_worse.py``).
 
     **Partly measured states** (a component some experiment does not measure, :attr:`Trajectories.measured
     <torchmisspec.Trajectories.measured>`): the correction is learned through the ODE
