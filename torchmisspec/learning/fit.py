@@ -487,13 +487,13 @@ def _evidence_choice(pool: list, chooser: CorrectionSamples, samples: Correction
     return result
 
 
-def _through_ode(result: CorrectionGP, system, trajectories, progress, advice, noise=None) -> CorrectionGP:
+def _through_ode(result: CorrectionGP, system, trajectories, progress, advice, guarded=False) -> CorrectionGP:
     """``result`` refined through the ODE (:func:`fit_trajectories`). Where the refinement takes the estimator's
     ``advice`` (a list, possibly empty) rather than the user's ``refine=True`` (``None``), a refinement that cannot be
-    fitted or integrated, or that forecasts the data worse than ``result`` (:mod:`~torchmisspec.learning.refinement.
-    _no_worse`, with ``noise`` given: every refinement the user did not ask for), keeps ``result`` as learned from
-    the derivative samples, says so, and gives the advice."""
-    if advice is None and noise is None:
+    fitted or integrated, or (where ``guarded``: every refinement the user did not ask for) that forecasts the data
+    worse than ``result`` (``learning/refinement/_no_worse.py``), keeps ``result`` as learned from the derivative
+    samples, says so, and gives the advice."""
+    if advice is None and not guarded:
         return fit_trajectories(result, system, trajectories, progress=progress)
     try:
         refined = fit_trajectories(result, system, trajectories, progress=progress)
@@ -502,9 +502,9 @@ def _through_ode(result: CorrectionGP, system, trajectories, progress, advice, n
             raise
         why = f"failed ({str(error)[:200]})"
     else:
-        if noise is None:
+        if not guarded:
             return refined
-        kept, before, after = no_worse(result, refined, system, trajectories, noise)
+        kept, before, after = no_worse(result, refined, system, trajectories)
         if kept is refined:
             return refined
         why = f"forecast the data worse than the model it started from (squared misfit {after:.4g} vs {before:.4g})"
@@ -526,7 +526,7 @@ def _refined(result: CorrectionGP, data: _ChoiceData, posterior, refine, refine_
     ``advice``: the estimator's held warnings where the refinement takes their advice (not asked for by the user):
     a refinement that fails then keeps the model unrefined and gives them (:func:`_through_ode`)."""
     trajectories, samples = data.trajectories, data.samples
-    guard = data.noise if refine is None or advice is not None else None  # a refinement the user did not ask for
+    guard = refine is None or advice is not None  # a refinement the user did not ask for
     if refine is None:  # the feature kernel's terms, refined through the ODE (fit_trajectories)
         refine = result.kernel_spec.terms and result.kernel_spec.feature_space and data.system.autonomous
     if refine:  # a new model: the record of the evidence's choice carried over

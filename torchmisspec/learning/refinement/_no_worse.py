@@ -11,11 +11,15 @@ about 0.03); the refinement then weighed the depot's misfit 1e5 times too much, 
 model's 0.11 and the known model's 0.31. The cross-validation's do no harm had already passed the unrefined model,
 so the worse one was returned.
 
-**The rule.** Both models forecast every experiment from its observed first state (as a user's prediction does),
-and their residuals are summed in the noise model's space (:func:`~torchmisspec.learning.choice.cross_validation.
-predicted_residuals`, the measure the cross-validation scores by); the refined model is kept where its sum is not
-larger. A refinement the user asked for (``refine=True``, :func:`~torchmisspec.fit_trajectories`) is returned as it
-is.
+**The rule.** Both models forecast every experiment, the starting model from its observed first state, the refined
+one from the initial states it estimated (the first rows' residuals included), and their squared differences from
+the data are summed (the refinement's own measure; the fit runs in the data's units, where every component is of
+order 1); the refined model is kept where its sum is not larger. This catches a refinement that failed, not one
+that did what it was asked: measured in the noise model's space instead (logs, for relative errors), a refined
+Loblolly pine model (real-data suite, experiment 4 held out) scored 5.7 times its start's misfit, its differences
+smaller; its held-out forecast was better than the start's and the classical answer's (log-RMSE 0.031, 0.058,
+0.053). A refinement the user asked for (``refine=True``, :func:`~torchmisspec.fit_trajectories`) is returned as
+it is.
 """
 
 from __future__ import annotations
@@ -32,9 +36,9 @@ from .trajectory_fit import _mean_field
 __all__ = ["forecast_misfit", "no_worse"]
 
 
-def forecast_misfit(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise) -> float:
-    """The sum of squared residuals (``noise``'s) of ``gp``'s corrected mean forecast of every experiment from its
-    first observed state (``inf`` when it cannot be integrated or leaves the data's widened box)."""
+def forecast_misfit(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise=None) -> float:
+    """The sum of squared residuals (``noise``'s; ``None``: the differences) of ``gp``'s corrected mean forecast of
+    every experiment from its first state (``inf`` when it cannot be integrated or leaves the data's widened box)."""
     mean = _mean_field(system, gp.posterior())
     data = trajectories.to(dtype=gp.dtype, device=gp.device)
     try:
@@ -45,10 +49,11 @@ def forecast_misfit(gp: CorrectionGP, system: MisspecifiedSystem, trajectories: 
 
 
 def no_worse(
-    start: CorrectionGP, refined: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories, noise
+    start: CorrectionGP, refined: CorrectionGP, system: MisspecifiedSystem, trajectories: Trajectories
 ) -> tuple[CorrectionGP, float, float]:
-    """``(model, start's misfit, refined's misfit)``: ``refined`` unless its :func:`forecast_misfit` is larger than
-    ``start``'s (then ``start``)."""
-    before = forecast_misfit(start, system, trajectories, noise)
-    after = forecast_misfit(refined, system, trajectories, noise)
+    """``(model, start's misfit, refined's misfit)``: ``refined`` unless its :func:`forecast_misfit` (differences,
+    from its own initial states) is larger than ``start``'s (from the data's first states; then ``start``)."""
+    before = forecast_misfit(start, system, trajectories, None)
+    own = getattr(refined, "initial_states_", None)
+    after = forecast_misfit(refined, system, trajectories.with_initial_states(own), None)
     return (start if after > before else refined), before, after
