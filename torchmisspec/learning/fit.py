@@ -493,7 +493,7 @@ def _through_ode(result: CorrectionGP, system, trajectories, progress, advice, g
     fitted or integrated, or (where ``guarded``: every refinement the user did not ask for) that forecasts the data
     worse than ``result`` (``learning/refinement/_no_worse.py``), keeps ``result`` as learned from the derivative
     samples, says so, and gives the advice."""
-    if advice is None and not guarded:
+    if not guarded:  # the user's refine=True (advice is only ever taken guarded)
         return fit_trajectories(result, system, trajectories, progress=progress)
     try:
         refined = fit_trajectories(result, system, trajectories, progress=progress)
@@ -502,8 +502,6 @@ def _through_ode(result: CorrectionGP, system, trajectories, progress, advice, g
             raise
         why = f"failed ({str(error)[:200]})"
     else:
-        if not guarded:
-            return refined
         kept, before, after = no_worse(result, refined, system, trajectories)
         if kept is refined:
             return refined
