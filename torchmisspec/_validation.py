@@ -519,6 +519,9 @@ class _NoBar:
     def set_postfix(self, *args, **kwargs) -> None:
         pass
 
+    def set_description(self, *args, **kwargs) -> None:
+        pass
+
     def close(self) -> None:
         pass
 

@@ -56,6 +56,7 @@ from pathlib import Path
 import torch
 
 from .._errors import FittingError, InputError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
+from .._validation import progress_bar
 from ..data import Trajectories
 from ..learning.choice.stage import Evidence
 from ..learning.pipeline import Pipeline
@@ -76,6 +77,8 @@ __all__ = ["PopulationFit", "fit_population", "ROUNDS"]
 
 #: rounds of (population, F): the second re-learns F at the parameters the first round's F gave
 ROUNDS = 2
+#: the stages the progress bar counts: the classical fit, the integrated start, the rounds, do no harm
+STAGES = 3 + ROUNDS
 #: the most parameters (experiments x varying parameters) learned with F in the integrated start: its fit checks G's
 #: linearity in every pair of them, and R's ChickWeight (49 chicks x 2) did not finish in 15 minutes
 MAX_INTEGRATED = 40
@@ -231,24 +234,36 @@ def fit_population(
     noise = as_noise_model(noise, trajectories, announce="fit_population")
     pipeline = dataclasses.replace(pipeline, noise=noise)
     options = dict(covariates=covariates, progress=progress)
-    classical = fit_nlme(system, trajectories, population, noise, **options)
-    candidates = [
-        PopulationFit(system, population, noise, classical, nlme, gp, fitted_system(system, nlme), trajectories)
-        for nlme, gp in _learn(system, trajectories, population, noise, pipeline, classical, progress)
-    ]
-    if not candidates:
-        warn(
-            "fit_population: no correction F predicts held-out experiments better than the population without it "
-            "(each experiment with its own parameters); returning the classical answer, the population with F = 0 "
-            "(do no harm: known_model is True on the fit, and its summary says F = 0 kept)",
-            TorchMisspecWarning,
-        )
-        return PopulationFit(
-            system, population, noise, classical, classical, None, fitted_system(system, classical), trajectories
-        )
+    with progress_bar(progress, STAGES, "population: the classical fit (F = 0, EM)", "stage") as stages:
+        classical = fit_nlme(system, trajectories, population, noise, **options)
+        stages.update()
+        candidates = [
+            PopulationFit(system, population, noise, classical, nlme, gp, fitted_system(system, nlme), trajectories)
+            for nlme, gp in _learn(system, trajectories, population, noise, pipeline, classical, progress, stages)
+        ]
+        if not candidates:
+            warn(
+                "fit_population: no correction F predicts held-out experiments better than the population without it "
+                "(each experiment with its own parameters); returning the classical answer, the population with F = 0 "
+                "(do no harm: known_model is True on the fit, and its summary says F = 0 kept)",
+                TorchMisspecWarning,
+            )
+            return PopulationFit(
+                system, population, noise, classical, classical, None, fitted_system(system, classical), trajectories
+            )
+        return _judged(candidates, classical, trajectories, stages)
+
+
+def _judged(candidates: list, classical: NLMEFit, trajectories: Trajectories, stages) -> PopulationFit:
+    """Do no harm (the module's notes): the candidate whose F, conditioned without them, fits held-out experiments
+    best, kept where it fits them significantly better than the classical answer (its standard errors then count
+    F's own uncertainty); otherwise the classical answer, with a warning."""
+    stages.set_description("population: do no harm, F judged on held-out experiments")
     fitted, kept, with_f, without = best_on_unseen_experiments(candidates, classical, trajectories)
     fitted = dataclasses.replace(fitted, held_out=(with_f, without))
+    stages.update()
     if kept:  # F's own uncertainty counted in the population's standard errors (_f_uncertainty's notes)
+        stages.set_description("population: F's own uncertainty in the population's values")
         return dataclasses.replace(fitted, nlme=fitted.nlme.with_shifts(correction_shifts(fitted)))
     warn(
         f"fit_population: with the correction conditioned without them, held-out experiments (each with its own "
@@ -260,16 +275,19 @@ def fit_population(
     return fitted.as_classical()
 
 
-def _learn(system, trajectories, population, noise, pipeline, classical, progress) -> list[tuple]:
+def _learn(system, trajectories, population, noise, pipeline, classical, progress, stages) -> list[tuple]:
     """The candidates ``[(nlme, gp)]`` of (population, F) with F kept (the module's notes): the integrated fit's F
     with the population refitted for it, and F learned in rounds at the integrated start's parameters."""
+    stages.set_description("population: F with every experiment's parameters (through the ODE)")
     start, joint = _integrated_start(system, trajectories, pipeline, classical, progress)
+    stages.update()
     out = []
     if joint is not None:
         correction = mean_correction(fitted_system(system, start), joint)
         out.append((fit_nlme(system, trajectories, population, noise, start=start, correction=correction), joint))
     nlme, gp = start, None
-    for _ in range(ROUNDS):
+    for r in range(ROUNDS):
+        stages.set_description(f"population: F at the experiments' parameters, round {r + 1} of {ROUNDS}")
         sub, data = _subject_data(system, nlme, trajectories)
         learned = _without_warnings(pipeline.fit, data, sub, progress=progress)
         if getattr(learned, "known_model_", False):  # F = 0 in the first round; later, the last F and its fit stand
@@ -277,6 +295,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
         gp = learned
         correction = mean_correction(fitted_system(system, nlme), gp)
         nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction)
+        stages.update()
     return out if gp is None else out + [(nlme, gp)]
 
 
