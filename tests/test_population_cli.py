@@ -185,10 +185,10 @@ def test_the_population_fit_says_which_stage_it_is_in(lab, capfd):
     """A user trial on nlme's Remifentanil saw nothing for 14 minutes after EM's bar: each stage now names itself."""
     data, system = str(lab / "lab.csv"), f"{lab / 'model.py'}:system"
     code = main(["population", "--data", data, "--system", system, "--experiment-column", "subject", "--vary", "c",
-                 "--distribution", "normal"])  # fmt: skip
+                 "--distribution", "normal", "--out", str(lab / "s.csv")])  # fmt: skip
     err = capfd.readouterr().err
     assert code == 0
     for stage in ("population: the classical fit (F = 0, EM)", "population: F with every experiment's parameters"):
         assert stage in err
-    quiet = _run(lab)
+    quiet = _run(lab, "--out", str(lab / "s.csv"))
     assert quiet == 0 and "population: the classical fit" not in capfd.readouterr().err

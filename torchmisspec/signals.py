@@ -144,10 +144,18 @@ class Controls(NotATensor):
 
     @property
     def jumps(self) -> torch.Tensor | None:
-        """The times where a piecewise-constant profile jumps (for the solver's ``jump_t``); ``None`` otherwise."""
+        """The times where a piecewise-constant profile jumps (for the solver's ``jump_t``), in any experiment;
+        ``None`` otherwise. A knot where the value does not change is no jump: a lab's table repeats the input on
+        every row (nlme's Remifentanil: a knot at each of 8 subjects' ~50 sample times, an infusion rate that changes
+        once or twice each), and an adaptive solver told of every knot restarted at each of them."""
         if self.kind != "previous" or self._function is not None:
             return None
-        return torch.unique(self.knots)
+        return torch.unique(self.knots[:, 1:][self.changes()])
+
+    def changes(self) -> torch.Tensor:
+        """``(K, S - 1)``: whether experiment k's value at knot i + 1 differs from its value at knot i (any
+        control): where a piecewise-constant profile jumps."""
+        return (self.values[:, 1:] != self.values[:, :-1]).any(-1)
 
     def at(self, t: torch.Tensor) -> torch.Tensor:
         """The controls at times ``t``: a scalar (every experiment at that time) gives ``(K, m)``; ``(K, T)`` gives

@@ -170,8 +170,10 @@ def _cut_at_jumps(trajectories: Trajectories):
     times, states, rows = [], [], []
     offset = 0
     cut_any = False
-    for (t, y), (knots, _) in zip(trajectories.experiments(), controls.profiles(), strict=True):
-        inner = knots[(knots > t[0]) & (knots < t[-1])].to(t)
+    changes = controls.changes()
+    for k, ((t, y), (knots, _)) in enumerate(zip(trajectories.experiments(), controls.profiles(), strict=True)):
+        jumps = knots[1:][changes[k, : knots.numel() - 1]]  # a repeated value (a lab's table: every row) is no jump
+        inner = jumps[(jumps > t[0]) & (jumps < t[-1])].to(t)
         starts, at_jump = [0], set()
         for s in inner:
             i = int(torch.searchsorted(t, s))  # the first sample at or after the jump
