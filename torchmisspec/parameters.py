@@ -306,7 +306,7 @@ class ParameterPosterior:
         targets g_k (what F absorbs of each parameter's effect), from ``gp``'s current factor."""
         post = gp.posterior()
         parts = [post.with_targets(self.basis_targets[:, :, j].to(post.weights)) for j in range(len(self.names))]
-        return lambda x: torch.stack([p.mean(x, check=False) for p in parts], dim=-1)
+        return lambda x: post.means_of(parts, x)  # one kernel block for every parameter's term
 
     def draw_field(self, system, gp, deltas: torch.Tensor, batch: int):
         """The term each posterior draw adds to the right-hand side (:mod:`torchmisspec.learning.theta.closed_form`):

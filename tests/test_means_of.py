@@ -1,0 +1,29 @@
+"""Posterior.means_of: every parameter's absorbed term from one kernel block, equal to the means one by one."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.gp import _posterior
+
+DT = torch.float64
+
+
+@pytest.mark.parametrize("kernel", ["rbf", "features"])
+@pytest.mark.parametrize("per_output", [False, True])
+def test_means_of_equals_each_mean(kernel, per_output, monkeypatch):
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(60, 2, dtype=DT, generator=g)
+    Y = torch.stack([torch.sin(3 * X[:, 0]), X[:, 1] ** 2], -1) + 0.01 * torch.randn(60, 2, dtype=DT, generator=g)
+    gp = tms.CorrectionGP(kernel=kernel, per_output=per_output).fit(X, Y, progress=False)
+    post = gp.posterior()
+    parts = [post.with_targets(torch.randn(60, 2, dtype=DT, generator=g)) for _ in range(5)]
+    x = torch.rand(300, 2, dtype=DT, generator=g)
+    one_by_one = torch.stack([p.mean(x, check=False) for p in parts], -1)
+    assert one_by_one.shape == (300, 2, 5)
+    assert torch.equal(post.means_of(parts, x), one_by_one)
+    monkeypatch.setattr(_posterior, "MEAN_BLOCK", 64 * 60)  # row blocks of 64: the blocks are put back in order
+    blocked = post.means_of(parts, x)
+    assert (blocked - one_by_one).abs().max() <= 1e-9 * one_by_one.abs().max(), (blocked - one_by_one).abs().max()
