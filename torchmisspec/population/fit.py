@@ -215,7 +215,7 @@ def fit_population(
         covariates: ``{name: (K,) values}`` for the covariates ``population`` names.
         pipeline: how F is learned (:class:`~torchmisspec.Pipeline`; default its defaults).
         noise: the noise model (:mod:`torchmisspec.noise`; default ``"auto"``).
-        progress: show progress bars (EM rounds, F's fit).
+        progress: show progress bars (the stage the fit is in, EM rounds, F's fit).
 
     Returns:
         :class:`PopulationFit` (the module's notes).
