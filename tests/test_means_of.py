@@ -1,4 +1,5 @@
-"""Posterior.means_of: every parameter's absorbed term from one kernel block, equal to the means one by one."""
+"""Posterior.means_of: every parameter's absorbed term from one kernel block, equal to the means one by one (to the
+rounding of the sums: large representer weights cancel)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ def test_means_of_equals_each_mean(kernel, per_output, monkeypatch):
     x = torch.rand(300, 2, dtype=DT, generator=g)
     one_by_one = torch.stack([p.mean(x, check=False) for p in parts], -1)
     assert one_by_one.shape == (300, 2, 5)
-    assert torch.equal(post.means_of(parts, x), one_by_one)
+    together = post.means_of(parts, x)  # one product for all: equal up to the order of the sums
+    assert (together - one_by_one).abs().max() <= 1e-9 * one_by_one.abs().max(), (together - one_by_one).abs().max()
     monkeypatch.setattr(_posterior, "MEAN_BLOCK", 64 * 60)  # row blocks of 64: the blocks are put back in order
     blocked = post.means_of(parts, x)
     assert (blocked - one_by_one).abs().max() <= 1e-9 * one_by_one.abs().max(), (blocked - one_by_one).abs().max()

@@ -20,12 +20,13 @@ import torchmisspec as tms
 from torchmisspec.noise import Additive
 from torchmisspec.population import LogNormal, Normal, Population
 from torchmisspec.population._modes import Modes
-from torchmisspec.population._subjects import _per_row, subject_system, with_subject_inputs
+from torchmisspec.population._subjects import subject_system, with_subject_inputs
 from torchmisspec.population.fit import PopulationFit
 from torchmisspec.population.model import PopulationValues, covariate_matrix
 from torchmisspec.population.nlme import fit_nlme, m_step, make_layout
 from torchmisspec.population.predict import predict_subject
 from torchmisspec.population.uncertainty import intervals, standard_errors
+from torchmisspec.systems._rows import per_row
 
 DT = torch.float64
 
@@ -60,7 +61,7 @@ def test_each_row_gets_its_own_parameters(known):
     g = torch.Generator().manual_seed(0)
     thetas = 0.5 + torch.rand(7, 2, generator=g, dtype=DT)
     y = torch.rand(7, 2, generator=g, dtype=DT)
-    call = _per_row(known, autonomous=True)
+    call = per_row(known, autonomous=True)
     out = call(torch.zeros(7, dtype=DT), y, y.new_zeros(7, 0), thetas)
     ref = torch.stack([system.at(thetas[i]).known_rhs(y[i : i + 1])[0] for i in range(7)])
     torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)

@@ -67,21 +67,26 @@ def test_the_known_models_trial_steps_are_solved_within_their_budget(monkeypatch
         assert calls[i][1] <= limit
 
 
-def test_copies_of_g_share_a_call_per_distinct_theta():
+@pytest.mark.parametrize("branching", [False, True])
+def test_copies_of_g_take_one_call_for_every_row(branching):
+    """A G that broadcasts its parameters over the rows is called once for all copies; one with Python control flow
+    on a parameter's value, once per distinct theta; both give each copy's own G."""
     calls = []
 
     def g(y, theta):
         calls.append(theta.clone())
+        if branching and float(theta[0]) < 0:  # control flow on a value: neither broadcast nor vmap
+            theta = -theta
         return _chain(y, theta)
 
     system = tms.MisspecifiedSystem(g, 2, parameters={"a": (0.5, 0.1), "b": (0.5, 0.1)})
     thetas = torch.tensor([[0.8, 0.3], [0.9, 0.3], [0.8, 0.3], [0.8, 0.4]], dtype=DT)
     y = torch.rand(4 * 3, 2, generator=torch.Generator().manual_seed(1), dtype=DT)  # 3 rows per copy
     rhs = system.copies_rhs(thetas)
-    rhs(y)  # the first call of each copy also checks how G broadcasts
+    rhs(y)  # the first call whose rows differ also finds how G takes each row's theta
     calls.clear()
     out = rhs(y)
-    assert len(calls) == 3  # three distinct thetas
+    assert len(calls) == (3 if branching else 1)  # three distinct thetas, or one call for all
     expected = torch.cat([_chain(y[3 * c : 3 * c + 3], thetas[c]) for c in range(4)])
     torch.testing.assert_close(out, expected)
 

@@ -301,47 +301,36 @@ class ParameterPosterior:
         eps = torch.randn(num_samples, len(self.names), generator=generator, dtype=L.dtype, device=L.device)
         return self.mean + eps @ L.T
 
-    def draw_terms(self, gp):
+    def draw_terms(self, gp, *, with_mean: bool = False):
         """The functions m_k of the module's notes: ``x (M, d_in) -> (M, d_out, k)``, F's posterior mean given the
-        targets g_k (what F absorbs of each parameter's effect), from ``gp``'s current factor."""
+        targets g_k (what F absorbs of each parameter's effect), from ``gp``'s current factor; ``with_mean``: F's
+        posterior mean first, ``(M, d_out, 1 + k)``, from the same kernel block."""
         post = gp.posterior()
         parts = [post.with_targets(self.basis_targets[:, :, j].to(post.weights)) for j in range(len(self.names))]
-        return lambda x: post.means_of(parts, x)  # one kernel block for every parameter's term
+        parts = [post, *parts] if with_mean else parts
+        return post.means_function(parts)  # one kernel block for every parameter's term
 
-    def draw_field(self, system, gp, deltas: torch.Tensor, batch: int):
-        """The term each posterior draw adds to the right-hand side (:mod:`torchmisspec.learning.theta.closed_form`):
-        for draws ``deltas`` ``(S, k)`` of theta - :attr:`mean`, a function ``(y, t, u, x) -> (S * batch, d)`` of the
-        states, times, controls and correction inputs of the rows (draw s drives rows s * batch ... s * batch + batch -
-        1). A nonlinear G is evaluated at each draw's theta (one call of G per distinct theta)."""
-        absorbed = self.draw_terms(gp)
-        base_system = system.at(self.mean)
-        scale = self.prior_scale.to(self.mean)
-        eye = torch.eye(len(self.names), dtype=self.mean.dtype, device=self.mean.device)
-        steps = [system.at(self.mean + scale[j] * eye[j]) for j in range(len(scale))] if self.linear else None
+    def draw_field(self, system, gp, deltas: torch.Tensor, batch: int, *, with_mean: bool = False):
+        """G under each posterior draw (:mod:`torchmisspec.learning.theta.closed_form`): for draws ``deltas`` ``(S, k)``
+        of theta - :attr:`mean`, a function ``(y, t, u, x) -> (S * batch, d)`` of the states, times, controls and
+        correction inputs of the rows (draw s drives rows s * batch ... s * batch + batch - 1): G at the row's theta
+        (one call of G for every row, :meth:`~torchmisspec.MisspecifiedSystem.rows_rhs`) less what F absorbs of the
+        move from :attr:`mean`; ``with_mean``: plus F's posterior mean, from the same kernel block as the absorbed
+        terms (a fit's right-hand side)."""
+        at_mean = system.at(self.mean)
         rows = deltas.repeat_interleave(batch, dim=0)
-        if not self.linear:  # one call of G per distinct theta, on the rows it drives
-            distinct, which = torch.unique(deltas, dim=0, return_inverse=True)
-            drawn = [system.at(self.mean + delta) for delta in distinct]
-            groups = [(which.repeat_interleave(batch) == j).nonzero()[:, 0] for j in range(len(drawn))]
+        moved = bool(deltas.any())  # else every draw at the mean: G and F's mean unmoved
+        if not moved and not with_mean:
+            return lambda y, t, u, x: at_mean.known_rhs(y, t, u)
+        terms = self.draw_terms(gp, with_mean=with_mean)
+        weights = -rows if not with_mean else torch.cat([torch.ones_like(rows[:, :1]), -rows], -1)
 
-        def moved(y: torch.Tensor, t, u) -> torch.Tensor:  # G(y; mean + delta) - G(y; mean), each row's delta
-            base = base_system.known_rhs(y, t, u)
-            if self.linear:
-                g = torch.stack([(s.known_rhs(y, t, u) - base) / scale[j].to(y) for j, s in enumerate(steps)], dim=-1)
-                return (g * rows.to(y).unsqueeze(1)).sum(-1)
-            out = torch.empty_like(base)
-            for part, at in zip(drawn, groups, strict=True):
-                at = at.to(y.device)
-                tt = t[at] if isinstance(t, torch.Tensor) and t.dim() > 0 else t
-                out[at] = part.known_rhs(y[at], tt, None if u is None else u[at])
-            return out - base
+        def field(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
+            m = terms(x.to(gp.device, gp.dtype)).to(y)  # (rows, d_out, k) or (rows, d_out, 1 + k)
+            g = system.rows_rhs(y, t, u, (self.mean + rows).to(y)) if moved else at_mean.known_rhs(y, t, u)
+            return g + system.embed((m * weights.to(y).unsqueeze(1)).sum(-1))
 
-        def term(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
-            m = absorbed(x.to(gp.device, gp.dtype)).to(y)  # (rows, d_out, k)
-            m = system.embed(m.transpose(-1, -2)).transpose(-1, -2)
-            return moved(y, t, u) - (m * rows.to(y).unsqueeze(1)).sum(-1)
-
-        return term
+        return field
 
     @classmethod
     def prior(cls, priors: Priors, num_samples: int, output_dim: int, like: torch.Tensor) -> ParameterPosterior:

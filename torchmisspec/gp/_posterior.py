@@ -206,17 +206,29 @@ class Posterior:
     def means_of(self, others: list[Posterior], x: torch.Tensor) -> torch.Tensor:
         """``(M, d_out, len(others))``: the means at ``x (M, d_in)`` (checked by the caller, as ``mean(x,
         check=False)``) of posteriors that share this one's kernel and training inputs (:meth:`with_targets`), one
-        kernel block for all. Why: the fit of G's parameters through the ODE evaluates one such mean per parameter at
-        every step of its solves; on nlme's Remifentanil (16 parameters) the kernel was most of the population fit's
-        time."""
+        kernel block for all (:meth:`means_function`)."""
+        return self.means_function(others)(x)
+
+    def means_function(self, others: list[Posterior]):
+        """``x -> (M, d_out, P)``: :meth:`means_of` the ``P`` posteriors ``others`` with their weights stacked once,
+        one kernel block and one product for all. Why: the fit of G's parameters through the ODE evaluates F's mean
+        and one such mean per parameter at every step of its solves; on nlme's Remifentanil (16 parameters) the
+        kernel and the products were most of the population fit's time."""
+        P = len(others)
+        stacked = torch.cat([o.factor.alpha for o in others], -1).transpose(-1, -2)  # (B, P m, N)
+        B, m = stacked.shape[0], stacked.shape[1] // P
         rows = max(64, MEAN_BLOCK // max(self.factor.alpha.shape[-2], 1))
-        blocks = []
-        for i in range(0, x.shape[0], rows):
-            K = self._cross(x[i : i + rows])
-            blocks.append(
-                torch.stack([_unbatch((o.factor.alpha.transpose(-1, -2) @ K).transpose(-1, -2)) for o in others], -1)
-            )
-        return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
+
+        def block(x: torch.Tensor) -> torch.Tensor:
+            R = (stacked @ self._cross(x)).reshape(B, P, m, -1)  # (B, P, m, M)
+            return R[0].permute(2, 1, 0) if B == 1 else R[:, :, 0].permute(2, 0, 1)
+
+        def means(x: torch.Tensor) -> torch.Tensor:
+            if x.shape[0] <= rows:
+                return block(x)
+            return torch.cat([block(x[i : i + rows]) for i in range(0, x.shape[0], rows)])
+
+        return means
 
     def mean(self, x, *, check: bool = True) -> torch.Tensor:
         """Posterior mean of F at ``x (M, d_in)``: ``(M, d_out)``. One kernel block times the solve.

@@ -55,9 +55,13 @@ def integrated_system(system: MisspecifiedSystem, nlme) -> MisspecifiedSystem:
                   enumerate(names)}  # fmt: skip
     shared, inner = nlme.modes.shared.detach(), layout.inner
 
-    def known(t, y, u, eta):
+    def known(t, y, u, eta):  # eta (K p,) or, a row's own in each column, (K p, B) (MisspecifiedSystem.rows_rhs)
         index = u[..., m].round().long().clamp(0, K - 1)
-        theta = layout.theta(eta.reshape(K, p).to(y)[index], shared.to(y))
+        if eta.dim() == 1:
+            own = eta.reshape(K, p).to(y)[index]
+        else:
+            own = eta.T.reshape(-1, K, p).to(y)[torch.arange(index.shape[0], device=y.device), index]
+        theta = layout.theta(own, shared.to(y))
         inputs = torch.cat([u[..., :m].to(y), theta[..., layout.vary], theta[..., layout.shared]], -1)
         return inner.known(t, y, inputs)
 

@@ -20,6 +20,7 @@ import torch
 from .._errors import InputError
 from ..signals import Controls
 from ..systems import MisspecifiedSystem
+from ..systems._rows import per_row
 
 __all__ = ["subject_system", "with_subject_inputs", "parameter_names", "with_appended_controls", "drawn_controls"]
 
@@ -31,60 +32,12 @@ def parameter_names(system: MisspecifiedSystem, varying: list[int]) -> list[str]
     return [f"theta_{n}" if n in taken else n for n in names]
 
 
-def _per_row(known, autonomous: bool):
-    """``call(t, y (B, d), u (B, m), theta (B, k))``: the user's G with each row's own theta. Fastest first: G called
-    once with theta as ``(k, B)`` columns (a G written with ``theta[0] * y[..., 0]`` broadcasts them over the rows),
-    kept only where it agrees with the row-by-row answer at the first call; else ``torch.func.vmap`` of G; else one
-    call per distinct theta (a G with Python control flow on a value)."""
-
-    def single(t, y, u, th):
-        return known(y, th) if autonomous else known(t, y, u, th)
-
-    batched = torch.func.vmap(single, in_dims=(0, 0, 0, 0))
-    state = {"way": None}
-
-    def grouped(t, y, u, theta):
-        out = torch.empty_like(y)
-        unique, inverse = torch.unique(theta.detach(), dim=0, return_inverse=True)
-        for g in range(unique.shape[0]):
-            rows = (inverse == g).nonzero().flatten()
-            out[rows] = single(t[rows], y[rows], u[rows], unique[g])  # G's own convention: one theta (k,)
-        return out
-
-    def direct(t, y, u, theta):
-        return single(t, y, u, theta.T)
-
-    def vmapped(t, y, u, theta):
-        return batched(t, y, u, theta)
-
-    def call(t, y, u, theta):
-        if state["way"] is None:
-            if y.shape[0] < 2:
-                return grouped(t, y, u, theta)
-            state["way"] = _first_that_agrees((direct, vmapped), grouped(t, y, u, theta), (t, y, u, theta), grouped)
-        return state["way"](t, y, u, theta)
-
-    return call
-
-
-def _first_that_agrees(ways, reference: torch.Tensor, args, fallback):
-    """The first of ``ways`` whose answer on ``args`` is ``reference`` (``fallback`` when none is)."""
-    for way in ways:
-        try:
-            out = way(*args)
-        except Exception:  # noqa: BLE001 - a way G does not support: the next
-            continue
-        if isinstance(out, torch.Tensor) and out.shape == reference.shape and torch.allclose(out, reference):
-            return way
-    return fallback
-
-
 def subject_system(system: MisspecifiedSystem, varying: list[int], theta: torch.Tensor) -> MisspecifiedSystem:
     """``system`` with the parameters at positions ``varying`` read from appended controls (one per parameter) and
     the others fixed at ``theta (k,)``: a system without uncertain parameters whose G takes each experiment's own."""
     m, d = system.num_controls, system.state_dim
     theta = theta.detach().to(torch.float64)
-    rows = _per_row(system.known, system.autonomous)
+    rows = per_row(system.known, system.autonomous)
     vary = torch.tensor(varying)
     names = [system.parameters.names[i] for i in varying]
 

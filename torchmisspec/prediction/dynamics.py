@@ -381,8 +381,8 @@ class CorrectedODE(nn.Module):
 
         def rhs(y: torch.Tensor, t, u) -> torch.Tensor:  # y (S * B, d): draw s drives rows s * B ... s * B + B - 1
             x = system.select_inputs(y, u)
-            out = known.known_rhs(y, t, u) + system.embed(draws(x.reshape(S, B, -1)).reshape(S * B, -1))
-            return out if theta is None else out + theta(y, t, u, x)
+            g = known.known_rhs(y, t, u) if theta is None else theta(y, t, u, x)
+            return g + system.embed(draws(x.reshape(S, B, -1)).reshape(S * B, -1))
 
         return system.solver_field(rhs, None if controls is None else controls.repeat(S))
 

@@ -27,6 +27,7 @@ from .._validation import (
 from ..parameters import check_priors
 from ..signals import Controls
 from ._fields import LinearField, PointMassGravity, QuadraticField, ZeroField
+from ._rows import per_row
 
 __all__ = [
     "MisspecifiedSystem",
@@ -338,6 +339,31 @@ class MisspecifiedSystem:
         t, u = self._time_and_controls(y, t, u)
         return self._call("G", lambda z: self.known(t, z, u, *theta), y, y.shape, what)
 
+    def rows_rhs(self, y: torch.Tensor, t, u: torch.Tensor | None, theta: torch.Tensor) -> torch.Tensor:
+        """G for states ``(B, d)`` with each row's own uncertain parameters ``theta (B, k)`` (times and controls as in
+        :meth:`known_rhs`): one call of G for the batch where G broadcasts or vmap traces it
+        (:func:`~torchmisspec.systems._rows.per_row`), else one call per distinct theta."""
+        if self.theta is None:
+            raise InputError(f"system '{self.name}': rows_rhs expected a system with uncertain parameters, got none")
+        y = self.check_states(y, "y")
+        if y.dim() != 2 or theta.shape != (y.shape[0], self.theta.shape[0]):
+            raise ShapeError(
+                f"rows_rhs: expected states (B, {self.state_dim}) and parameters (B, {self.theta.shape[0]}), got "
+                f"{tuple(y.shape)} and {tuple(theta.shape)}"
+            )
+        if "_rows" not in self.__dict__:
+            self._rows = per_row(self.known, self.autonomous)
+        t, u = self._time_and_controls(y, t, u)
+        what = f"system '{self.name}': G"
+        out = call_user(lambda z: self._rows(t.expand(y.shape[0]), z, u, theta.to(y)), y, what)
+        return checked_output(out, y.shape, what, y)
+
+    def __getstate__(self) -> dict:
+        """Pickled and copied without the per-row caller (a closure; rebuilt at the next :meth:`rows_rhs`)."""
+        state = dict(self.__dict__)
+        state.pop("_rows", None)
+        return state
+
     def at(self, theta) -> MisspecifiedSystem:
         """This system with its uncertain parameters fixed at ``theta`` ``(k,)`` (a system without uncertain ones)."""
         return self._with_theta(theta, None, "at(theta): expected a system with uncertain parameters to fix")
@@ -366,25 +392,15 @@ class MisspecifiedSystem:
 
     def copies_rhs(self, thetas: torch.Tensor):
         """``rhs(y, t, u)``: G for a batch of ``V`` copies of this system, copy c's rows (the c-th of ``V`` equal
-        blocks of ``y``'s rows) at ``thetas[c]`` ``(V, k)``; one call of G per distinct theta, over the rows of the
-        copies that share it (the perturbed copies of a fit's Jacobian: the state offsets' and the coefficients'
-        copies share the current theta)."""
-        unique, inverse = torch.unique(thetas.detach(), dim=0, return_inverse=True)
-        groups = [(self.at(unique[g]), (inverse == g).nonzero().flatten()) for g in range(unique.shape[0])]
-        V, cache = thetas.shape[0], {}
+        blocks of ``y``'s rows) at ``thetas[c]`` ``(V, k)`` (the perturbed copies of a fit's Jacobian): one call of G
+        with each row's theta (:meth:`rows_rhs`), or at the one theta they share."""
+        unique = torch.unique(thetas.detach(), dim=0)
+        if unique.shape[0] == 1:
+            return self.at(unique[0]).known_rhs
+        V = thetas.shape[0]
 
         def rhs(y, t=None, u=None):
-            rows = y.shape[0] // V
-            if len(groups) == 1:
-                return groups[0][0].known_rhs(y, t, u)
-            if rows not in cache:  # each group's rows, once per batch size
-                block = torch.arange(rows, device=y.device)
-                cache[rows] = [(c.unsqueeze(-1).to(y.device) * rows + block).reshape(-1) for _, c in groups]
-            out = torch.empty_like(y)
-            for (at, _), idx in zip(groups, cache[rows], strict=True):
-                tt = t[idx] if isinstance(t, torch.Tensor) and t.dim() > 0 else t
-                out[idx] = at.known_rhs(y[idx], tt, None if u is None else u[idx])
-            return out
+            return self.rows_rhs(y, t, u, thetas.detach().to(y).repeat_interleave(y.shape[0] // V, 0))
 
         return rhs
 

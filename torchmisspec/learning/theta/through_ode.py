@@ -58,15 +58,14 @@ def _predict(system, gp, posterior, trajectories, thetas: torch.Tensor, draws=No
     V = thetas.shape[0]
     first = trajectories.initial_conditions.to(states)
     times = (times if times.dim() == 2 else times.expand(K, -1)).repeat(V, 1)
-    term = posterior.draw_field(system, gp, thetas - posterior.mean, K)
-    known = system.at(posterior.mean)
-    mean = gp.posterior()
+    known = posterior.draw_field(system, gp, thetas - posterior.mean, K, with_mean=draws is None)  # F's mean in it
 
     def rhs(y, t, u):
         x = system.select_inputs(y, u)
-        xs = x.to(gp.device, gp.dtype)
-        mu = mean.mean(xs, check=False) if draws is None else draws(xs.reshape(V, K, -1)).reshape(V * K, -1)
-        return known.known_rhs(y, t, u) + system.embed(mu.to(y)) + term(y, t, u, x)
+        out = known(y, t, u, x)
+        if draws is None:
+            return out
+        return out + system.embed(draws(x.to(gp.device, gp.dtype).reshape(V, K, -1)).reshape(V * K, -1).to(y))
 
     controls = None if trajectories.controls is None else trajectories.controls.repeat(V)
     field, timed, jumps = system.solver_field(rhs, controls)
