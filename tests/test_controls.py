@@ -359,3 +359,20 @@ def test_a_repeated_value_is_no_jump():
     segments, rows = _cut_at_jumps(tms.Trajectories(knots, states, controls=hold))
     assert segments.num_experiments == 3  # the first experiment cut once, at 6; the second whole
     assert [int(n) for n in segments.lengths] == [7, 6, 12] and rows.numel() == 24
+
+
+def test_a_dose_row_that_measures_nothing_is_named_when_it_is_dropped(tmp_path):
+    """A lab writes the dose row with an empty concentration (nlme's Remifentanil): the experiment starts at its first
+    measured row, and the loader says so and how to keep the start (0 before a dose, written in the cell)."""
+    path = tmp_path / "dose.csv"
+    path.write_text("subject,time,conc,rate\nA,0,,5\nA,1.5,9.5,5\nA,3,12,0\nB,0,0,4\nB,2,7,4\nB,4,6,0\n")
+    with pytest.warns(tms.TorchMisspecWarning, match=r"1 experiment\(s\) measure nothing.*'A': 0 -> 1.5.*0 before"):
+        data = tms.Trajectories.load(
+            path, experiment_column="subject", time_column="time", state_columns=["conc"], control_columns=["rate"]
+        )
+    assert [float(t[0]) for t, _ in data.experiments()] == [1.5, 0.0]
+    assert float(data.controls.knots[0, 0]) == 0.0  # the input is still known from the dose on
+    path.write_text("subject,time,conc,rate\nA,0,0,5\nA,1.5,9.5,5\nA,3,12,0\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tms.Trajectories.load(path, experiment_column="subject", time_column="time", control_columns=["rate"])

@@ -44,7 +44,19 @@ def test_auto_is_relative_for_positive_states_spanning_a_factor_and_says_so():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert as_noise_model("auto", _data([3.0, 4.0, 5.0]), announce="fit_correction") == Additive()  # 1.7x
-        assert as_noise_model("auto", _data([-1.0, 4.0, 50.0]), announce="fit_correction") == Additive()
+        assert as_noise_model("auto", _data([-1.0, -2.0, 4.0, 5.0]), announce="fit_correction") == Additive()
+
+
+def test_a_value_below_zero_that_rules_out_relative_noise_is_named():
+    """A blank-corrected assay's negative concentration among values spanning decades: additive, and said so (a
+    user's trial on nlme's Remifentanil got no word of it)."""
+    decay = [100.0 * 0.7**i for i in range(25)]  # 100 down to 0.02
+    with pytest.warns(tms.TorchMisspecWarning, match="noise 'additive': 1 measured value.*lowest -0.02.*empty"):
+        assert as_noise_model("auto", _data([*decay, -0.02]), announce="fit_correction") == Additive()
+    with warnings.catch_warnings():  # a signal that crosses zero: additive without a word
+        warnings.simplefilter("error")
+        wave = [math.sin(0.5 * i) + 0.01 for i in range(40)]
+        assert as_noise_model("auto", _data(wave), announce="fit_correction") == Additive()
 
 
 def test_a_starting_value_that_is_not_measured_does_not_decide():

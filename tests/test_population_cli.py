@@ -69,7 +69,7 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["--vary", "k"], "expected names among"),
+        (["--vary", "k"], "--vary: expected names among"),
         (["--covariate", "c"], "expected PARAMETER=COLUMN"),
         (["--covariate", "c=age"], "expected covariate column(s) ['age']"),
         (["--next-times", "0,1"], "--budget: expected the number of samples"),

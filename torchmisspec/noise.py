@@ -49,6 +49,8 @@ __all__ = [
 #: ``noise="auto"`` chooses :class:`Relative` when every measured value after the first rows is positive and a
 #: component's largest measurement is at least this many times its smallest.
 RELATIVE_SPAN = 5.0
+#: the largest share of a component's values at 0 or below that the automatic choice names as ruling out relative noise
+FEW_LOW = 0.05
 
 
 class NoiseModel:
@@ -256,6 +258,32 @@ def _auto(trajectories: Trajectories) -> NoiseModel:
     return Additive()
 
 
+def _say_what_ruled_out_relative(flat: torch.Tensor, announce: str) -> None:
+    """Warn where a few small values of 0 or below are all that kept the automatic choice from relative noise: in some
+    component, at most :data:`FEW_LOW` of the measured values, each within a tenth of the positive values' median,
+    while the positive ones span a factor of :data:`RELATIVE_SPAN` (a concentration decaying over decades). A
+    blank-corrected assay's -0.02 or a 0 below the detection limit turned the fit additive, which weighs the small
+    values' errors as the large ones' (a user's trial on nlme's Remifentanil: no word of it). A signal that crosses
+    zero (many values below it, or large ones) is additive without a word."""
+    for j in range(flat.shape[1]):
+        col = flat[~torch.isnan(flat[:, j]), j]
+        low, positive = col[col <= 0], col[col > 0]
+        if not low.numel() or not positive.numel() or low.numel() > FEW_LOW * col.numel():
+            continue
+        if float(low.abs().max()) > 0.1 * float(positive.median()):
+            continue
+        if float(positive.max()) >= RELATIVE_SPAN * float(positive.min()):
+            warn(
+                f"{announce}: noise 'additive': {low.numel()} measured value(s) after the first row are 0 or below "
+                f"(the lowest {float(low.min()):.3g}), so errors proportional to the size (compared as logs) cannot "
+                f"hold them, although the positive values span a factor of at least {RELATIVE_SPAN:g}. If those are "
+                "below a detection limit, leave their cells empty and pass noise='relative'; else pass "
+                "noise='additive' to keep errors of one size and silence this",
+                TorchMisspecWarning,
+            )
+            return
+
+
 def as_noise_model(noise, trajectories: Trajectories, *, announce: str | None = None) -> NoiseModel:
     """The :class:`NoiseModel` ``noise`` names (``"auto"``, ``"additive"``, ``"relative"``, ``"counts"``, or an
     instance, used as it is), a name checked against ``trajectories``' measurements (the components some experiment
@@ -280,6 +308,8 @@ def as_noise_model(noise, trajectories: Trajectories, *, announce: str | None = 
                 "logs); pass noise='additive' for errors of one size",
                 TorchMisspecWarning,
             )
+        elif announce:
+            _say_what_ruled_out_relative(_measured(trajectories), announce)
     elif isinstance(noise, str) and noise in NOISE_MODELS:
         model = NOISE_MODELS[noise]()
     else:

@@ -99,7 +99,15 @@ def _declared(args: argparse.Namespace, system):
     population = Population(
         varying, distribution=DISTRIBUTIONS[args.distribution](), covariates=_covariates(args.covariate)
     )
-    population.indices(system)  # the names checked before the work
+    try:  # the names checked before the work, in the command line's words
+        population.indices(system)
+    except InputError as exc:
+        message = str(exc).replace("varying: ", "--vary: ", 1)
+        raise InputError(
+            message.replace(
+                "declare them in MisspecifiedSystem(", "declare them in the model file's MisspecifiedSystem("
+            )
+        ) from None
     return population
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._errors import InputError, ShapeError
+from .._errors import InputError, ShapeError, TorchMisspecWarning, warn
 from .._validation import check_path, check_writable, writing
 from ..signals import KINDS, Controls
 from ._input import _check_distinct
@@ -97,6 +97,7 @@ def _columns_to_arrays(
     per = _per_experiment(path, header, values, labels, order, experiment_column, value_columns)
     control = None
     if controls:
+        _say_unmeasured_starts(path, per, order, first_control, experiment_column)
         knots = [torch.from_numpy(p[:, 0].copy()) for p in per]
         control = (knots, [torch.from_numpy(p[:, first_control:].copy()) for p in per], controls)
     if len({len(p) for p in per}) > 1:  # ragged: one array per experiment
@@ -107,6 +108,32 @@ def _columns_to_arrays(
     if np.all(times == times[:1]):
         times = times[0]
     return torch.from_numpy(times), torch.from_numpy(states), names, control
+
+
+def _say_unmeasured_starts(path: Path, per: list, order: list[str], first_control: int, experiment_column) -> None:
+    """Warn where an experiment's first rows measure nothing but give its inputs (a dose row with an empty
+    concentration): those rows are dropped (:class:`~torchmisspec.data.Trajectories`), the experiment starts at its
+    first measured row with that value as its initial state, and what the inputs did before it is not simulated (a
+    user's trial on nlme's Remifentanil: the infusion's first 1.5 minutes, without a word)."""
+    late = []
+    for label, block in zip(order, per, strict=True):
+        measured = ~np.isnan(block[:, 1:first_control]).all(-1)
+        first = int(np.argmax(measured))
+        if first > 0 and bool(measured.any()):
+            late.append((label, float(block[0, 0]), float(block[first, 0])))
+    if not late:
+        return
+    named = "; ".join(
+        (f"experiment {label!r}: " if experiment_column is not None else "") + f"{t0:g} -> {t1:g}"
+        for label, t0, t1 in late[:5]
+    )
+    warn(
+        f"{path}: {len(late)} experiment(s) measure nothing in their first row(s) but give inputs there ({named}"
+        f"{' ...' if len(late) > 5 else ''}): each starts at its first measured row, that value its initial state, "
+        "and the inputs before it are not simulated. If the state is known there (0 before a dose), write it in the "
+        "cell",
+        TorchMisspecWarning,
+    )
 
 
 def _index_columns(path: Path, header: list[str], time_column, experiment_column) -> str | None:
