@@ -29,3 +29,20 @@ def test_means_of_equals_each_mean(kernel, per_output, monkeypatch):
     monkeypatch.setattr(_posterior, "MEAN_BLOCK", 64 * 60)  # row blocks of 64: the blocks are put back in order
     blocked = post.means_of(parts, x)
     assert (blocked - one_by_one).abs().max() <= 1e-9 * one_by_one.abs().max(), (blocked - one_by_one).abs().max()
+
+
+def test_the_mean_keeps_its_gradient_to_the_targets_after_a_first_call_without_grad():
+    """The trajectory fit differentiates F's mean through pseudo-targets, and a solver first checks the field under
+    no_grad: the weights stacked at that first call must still carry the graph (it did not, and the fit stood still)."""
+    g = torch.Generator().manual_seed(1)
+    X = torch.rand(40, 1, dtype=DT, generator=g)
+    gp = tms.CorrectionGP().fit(X, torch.sin(4 * X), progress=False)
+    x = torch.rand(30, 1, dtype=DT, generator=g)
+    first, fresh = (torch.sin(4 * X).clone().requires_grad_(True) for _ in range(2))
+    pseudo = gp.posterior().with_targets(first)
+    with torch.no_grad():
+        pseudo.mean(x, check=False)
+    pseudo.mean(x, check=False).sum().backward()
+    gp.posterior().with_targets(fresh).mean(x, check=False).sum().backward()
+    assert float(fresh.grad.abs().max()) > 0
+    torch.testing.assert_close(first.grad, fresh.grad)

@@ -106,6 +106,7 @@ class Posterior:
         #: the extrapolation check's truncated eigenbasis (:meth:`sd_ratio`), built on first use (a 1-tuple, since
         #: the basis itself may be None: the exact solve)
         self._basis: tuple[torch.Tensor | None] | None = None
+        self._own_mean = None  # mean's function of x (means_function of this posterior alone), built on first use
 
     # ---------------------------------------------------------------------------------------------- building
     @classmethod
@@ -198,11 +199,6 @@ class Posterior:
         K = self._gp.covar_module.forward(self._gp.train_inputs_, x)
         return K.unsqueeze(0) if K.dim() == 2 else K
 
-    def _block_mean(self, x: torch.Tensor) -> torch.Tensor:
-        """k(x, X) alpha as ``(M, d_out)``: alpha^T k(X, x), transposed (a contiguous product)."""
-        alpha = self.factor.alpha
-        return _unbatch((alpha.transpose(-1, -2) @ self._cross(x)).transpose(-1, -2))
-
     def means_of(self, others: list[Posterior], x: torch.Tensor) -> torch.Tensor:
         """``(M, d_out, len(others))``: the means at ``x (M, d_in)`` (checked by the caller, as ``mean(x,
         check=False)``) of posteriors that share this one's kernel and training inputs (:meth:`with_targets`), one
@@ -215,7 +211,8 @@ class Posterior:
         and one such mean per parameter at every step of its solves; on nlme's Remifentanil (16 parameters) the
         kernel and the products were most of the population fit's time."""
         P = len(others)
-        stacked = torch.cat([o.factor.alpha for o in others], -1).transpose(-1, -2)  # (B, P m, N)
+        with torch.enable_grad():  # built once, maybe under no_grad (a solver's first check): keep the graph to alpha
+            stacked = torch.cat([o.factor.alpha for o in others], -1).transpose(-1, -2)  # (B, P m, N)
         B, m = stacked.shape[0], stacked.shape[1] // P
         rows = max(64, MEAN_BLOCK // max(self.factor.alpha.shape[-2], 1))
 
@@ -244,10 +241,9 @@ class Posterior:
                 return check_prediction(self.mean(x, check=False), x)
         if isinstance(self.factor, FeatureFactorization):  # phi(x)^T (posterior mean of the coefficients)
             return _unbatch(self._gp.covar_module.base_kernel.features(x) @ self.factor.mean)
-        rows = max(64, MEAN_BLOCK // max(self.factor.alpha.shape[-2], 1))
-        if x.shape[0] <= rows:
-            return self._block_mean(x)
-        return torch.cat([self._block_mean(x[i : i + rows]) for i in range(0, x.shape[0], rows)])
+        if self._own_mean is None:  # the one-posterior case of means_function, its weights stacked once
+            self._own_mean = self.means_function([self])
+        return self._own_mean(x)[..., 0]
 
     # ---------------------------------------------------------------------------------------- the uncertainty
     def _term_spread(self, x: torch.Tensor) -> torch.Tensor | None:
