@@ -283,8 +283,10 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
     stages.update()
     out = []
     if joint is not None:
+        stages.set_description("population: the population refitted under that F (EM through the ODE)")
         correction = mean_correction(fitted_system(system, start), joint)
-        out.append((fit_nlme(system, trajectories, population, noise, start=start, correction=correction), joint))
+        refit = fit_nlme(system, trajectories, population, noise, start=start, correction=correction, progress=progress)
+        out.append((refit, joint))
     nlme, gp = start, None
     for r in range(ROUNDS):
         stages.set_description(f"population: F at the experiments' parameters, round {r + 1} of {ROUNDS}")
@@ -294,7 +296,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
             break
         gp = learned
         correction = mean_correction(fitted_system(system, nlme), gp)
-        nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction)
+        nlme = fit_nlme(system, trajectories, population, noise, start=nlme, correction=correction, progress=progress)
         stages.update()
     return out if gp is None else out + [(nlme, gp)]
 
