@@ -27,7 +27,7 @@ from .._validation import (
 from ..parameters import check_priors
 from ..signals import Controls
 from ._fields import LinearField, PointMassGravity, QuadraticField, ZeroField
-from ._rows import per_row
+from ._rows import rows_of
 
 __all__ = [
     "MisspecifiedSystem",
@@ -343,20 +343,7 @@ class MisspecifiedSystem:
         """G for states ``(B, d)`` with each row's own uncertain parameters ``theta (B, k)`` (times and controls as in
         :meth:`known_rhs`): one call of G for the batch where G broadcasts or vmap traces it
         (:func:`~torchmisspec.systems._rows.per_row`), else one call per distinct theta."""
-        if self.theta is None:
-            raise InputError(f"system '{self.name}': rows_rhs expected a system with uncertain parameters, got none")
-        y = self.check_states(y, "y")
-        if y.dim() != 2 or theta.shape != (y.shape[0], self.theta.shape[0]):
-            raise ShapeError(
-                f"rows_rhs: expected states (B, {self.state_dim}) and parameters (B, {self.theta.shape[0]}), got "
-                f"{tuple(y.shape)} and {tuple(theta.shape)}"
-            )
-        if "_rows" not in self.__dict__:
-            self._rows = per_row(self.known, self.autonomous)
-        t, u = self._time_and_controls(y, t, u)
-        what = f"system '{self.name}': G"
-        out = call_user(lambda z: self._rows(t.expand(y.shape[0]), z, u, theta.to(y)), y, what)
-        return checked_output(out, y.shape, what, y)
+        return rows_of(self, y, t, u, theta)
 
     def __getstate__(self) -> dict:
         """Pickled and copied without the per-row caller (a closure; rebuilt at the next :meth:`rows_rhs`)."""

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["per_row"]
+from .._errors import InputError, ShapeError
+from .._user_code import call_user, checked_output
+
+__all__ = ["per_row", "rows_of"]
 
 
 def per_row(known, autonomous: bool):
@@ -59,3 +62,22 @@ def _first_that_agrees(ways, reference: torch.Tensor, args, fallback):
         if isinstance(out, torch.Tensor) and out.shape == reference.shape and torch.allclose(out, reference):
             return way
     return fallback
+
+
+def rows_of(system, y: torch.Tensor, t, u, theta: torch.Tensor) -> torch.Tensor:
+    """:meth:`MisspecifiedSystem.rows_rhs <torchmisspec.MisspecifiedSystem.rows_rhs>`: G of ``system`` for states
+    ``(B, d)`` with each row's parameters ``theta (B, k)``, its output checked (the per-row caller kept on it)."""
+    if system.theta is None:
+        raise InputError(f"system '{system.name}': rows_rhs expected a system with uncertain parameters, got none")
+    y = system.check_states(y, "y")
+    if y.dim() != 2 or theta.shape != (y.shape[0], system.theta.shape[0]):
+        raise ShapeError(
+            f"rows_rhs: expected states (B, {system.state_dim}) and parameters (B, {system.theta.shape[0]}), got "
+            f"{tuple(y.shape)} and {tuple(theta.shape)}"
+        )
+    if "_rows" not in system.__dict__:
+        system._rows = per_row(system.known, system.autonomous)
+    t, u = system._time_and_controls(y, t, u)
+    what = f"system '{system.name}': G"
+    out = call_user(lambda z: system._rows(t.expand(y.shape[0]), z, u, theta.to(y)), y, what)
+    return checked_output(out, y.shape, what, y)
