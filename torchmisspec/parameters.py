@@ -319,6 +319,7 @@ class ParameterPosterior:
         terms (a fit's right-hand side)."""
         at_mean = system.at(self.mean)
         rows = deltas.repeat_interleave(batch, dim=0)
+        thetas = self.mean + rows  # every row's theta, once (not at every step)
         moved = bool(deltas.any())  # else every draw at the mean: G and F's mean unmoved
         if not moved and not with_mean:
             return lambda y, t, u, x: at_mean.known_rhs(y, t, u)
@@ -327,7 +328,7 @@ class ParameterPosterior:
 
         def field(y: torch.Tensor, t, u, x: torch.Tensor) -> torch.Tensor:
             m = terms(x.to(gp.device, gp.dtype)).to(y)  # (rows, d_out, k) or (rows, d_out, 1 + k)
-            g = system.rows_rhs(y, t, u, (self.mean + rows).to(y)) if moved else at_mean.known_rhs(y, t, u)
+            g = system.rows_rhs(y, t, u, thetas.to(y)) if moved else at_mean.known_rhs(y, t, u)
             return g + system.embed((m * weights.to(y).unsqueeze(1)).sum(-1))
 
         return field
