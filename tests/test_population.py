@@ -436,6 +436,41 @@ def test_design_first_pick_is_the_brute_force_best_time():
         SubjectParameters(criterion="D")
 
 
+def driven_slope(t, y, u, theta):  # dy/dt = c u(t)
+    return theta[0] * u
+
+
+def test_design_under_the_subject_s_input_profile_is_the_brute_force_best_time():
+    """dy/dt = c u(t) with u = 1 on [0, 0.5) and -1 after: the sensitivity of y(t) to c is U(t) = min(t, 1 - t),
+    largest at 0.5 (0.5; at 0.9, 0.1), so one sample there removes 1 - 1 / (1 + 0.25 omega^2 / s^2) of the
+    parameter's variance; without the profile (dy/dt = c) the last time won (the test above). A system with inputs
+    without a profile, or a profile of two experiments, is refused."""
+    from torchmisspec.population.design import SubjectParameters, design_subject
+
+    driven = tms.MisspecifiedSystem(
+        driven_slope, 1, num_controls=1, time_dependent=True, parameters={"c": (1.0, 0.5)}, state_names=["y"]
+    )
+    population = Population(["c"], distribution=Normal())
+    g = torch.Generator().manual_seed(8)
+    profile = tms.Controls(torch.tensor([0.0, 0.5], dtype=DT), torch.tensor([[[1.0], [-1.0]]], dtype=DT))
+    times = torch.linspace(0, 1, 6, dtype=DT)
+    thetas = 1.0 + 0.3 * torch.randn(20, generator=g, dtype=DT)
+    states = 2.0 + thetas[:, None, None] * torch.minimum(times, 1 - times)[None, :, None]
+    states[:, 1:] += 0.1 * torch.randn(states[:, 1:].shape, generator=g, dtype=DT)
+    data = tms.Trajectories(times, states, state_names=["y"], controls=profile.repeat(20))
+    fit = fit_nlme(driven, data, population, Additive())
+    pop = _classical(fit, driven, population)
+    grid = torch.tensor([0.0, 0.2, 0.5, 0.7, 0.9], dtype=DT)
+    s2, w2 = float(fit.modes.scale[0]) ** 2, float(fit.values.spread[0]) ** 2
+    design = design_subject(pop, grid, 1, initial_states=[2.0], target=SubjectParameters(draws=3), controls=profile)
+    assert design.times.tolist() == [0.5]
+    assert design.score == pytest.approx(1 - 1 / (1 + 0.25 * w2 / s2), rel=1e-5)
+    with pytest.raises(tms.InputError, match="expected the subject's input profile"):
+        design_subject(pop, grid, 1, initial_states=[2.0])
+    with pytest.raises(tms.InputError, match="got 2 profiles"):
+        design_subject(pop, grid, 1, initial_states=[2.0], controls=profile[[0, 0]])
+
+
 def test_design_greedy_matches_brute_force_on_a_tiny_problem():
     """Two varying parameters (a rate and a volume), the information in units of the spread (prior the identity):
     the greedy pair's expected log-determinant is within (1 - 1/e) of the best pair's, found by trying them all, and

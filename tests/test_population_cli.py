@@ -137,17 +137,48 @@ def test_next_subject_times_before_its_first_measurement_are_refused_before_the_
     assert "--predict-times: expected times from the subject's first measurement at t = 0.5 on" in err
 
 
-def test_next_subject_prediction_of_a_system_with_inputs_is_refused_before_the_work(lab, capsys):
+def test_the_next_subject_of_a_system_with_inputs_is_predicted_and_designed_under_its_profile(lab, capsys, monkeypatch):
+    """dy/dt = c u(t) with the lab's u = 1 (a column of the table): the next subject's input profile comes from
+    ``--controls`` (refused, before the work, where it is missing); under u = 1 the design is the system without
+    inputs' (its last two times) and the prediction runs; under u = 1 on [0, 0.5) and -1 after, y's sensitivity to
+    c is min(t, 1 - t), so the best times are 0.5 and the next largest."""
+    from torchmisspec.population import fit as fit_module
+
     (lab / "driven.py").write_text(
-        SYSTEM.replace("def slope(y, theta):", "def driven(t, y, u, theta):")
+        SYSTEM.replace("def slope(y, theta):", "def driven(t, y, u, theta):").replace("torch.ones_like(y)", "u")
         + "\n\ndef with_input():\n    return tms.MisspecifiedSystem(driven, 1, state_names=['y'], num_controls=1, "
         "control_names=['u'], time_dependent=True, parameters={'c': (1.0, 0.5)})\n"
     )
-    code = main(["population", "--data", str(lab / "lab.csv"), "--system", f"{lab / 'driven.py'}:with_input",
-                 "--experiment-column", "subject", "--vary", "c", "--quiet", "--predict-times", "0,1",
-                 "--next-initial", "2"])  # fmt: skip
+    rows = list(csv.reader((lab / "lab.csv").open()))
+    with (lab / "driven.csv").open("w", newline="") as fh:
+        csv.writer(fh).writerows([[*rows[0], "u"]] + [[*r, "1"] for r in rows[1:]])
+    for name, profile in (
+        ("one.csv", [["time", "u"], ["0", "1"]]),
+        ("step.csv", [["time", "u"], ["0", "1"], ["0.5", "-1"]]),
+    ):
+        with (lab / name).open("w", newline="") as fh:
+            csv.writer(fh).writerows(profile)
+    args = ["population", "--data", str(lab / "driven.csv"), "--system", f"{lab / 'driven.py'}:with_input",
+            "--experiment-column", "subject", "--vary", "c", "--distribution", "normal", "--input-columns", "u",
+            "--quiet", "--out", str(lab / "s.csv"), "--next-times", "0,0.25,0.5,0.75,1", "--budget", "2",
+            "--next-initial", "2", "--predict-times", "0:1:5", "--predict-out", str(lab / "next.csv")]  # fmt: skip
+    real = fit_module.fit_population
+    monkeypatch.setattr(fit_module, "fit_population", None)  # the fit is never reached
+    assert main(args) == 2
     err = capsys.readouterr().err.strip()
-    assert code == 2 and "--predict-times: expected a system without inputs" in err and "\n" not in err
+    assert "--controls: expected the next subject's input profile for --next-times" in err and "\n" not in err
+    monkeypatch.setattr(fit_module, "fit_population", real)
+    assert main([*args, "--controls", str(lab / "one.csv"), "--save", str(lab / "p.pt")]) == 0
+    said = capsys.readouterr().out
+    assert "next subject: sample at 0.75, 1 from the initial state (2) at 0" in said
+    with (lab / "next.csv").open() as fh:
+        path = [float(r["y_mean"]) for r in csv.DictReader(fh)]
+    assert len(path) == 5 and path[-1] > path[0] + 0.5  # y = 2 + c t under u = 1, c about 1
+    later = ["population", "--fit", str(lab / "p.pt"), "--system", f"{lab / 'driven.py'}:with_input", "--quiet",
+             "--next-times", "0,0.25,0.5,0.75,1", "--budget", "1", "--next-initial", "2", "--controls",
+             str(lab / "step.csv")]  # fmt: skip
+    assert main(later) == 0
+    assert "next subject: sample at 0.5 from the initial state (2) at 0" in capsys.readouterr().out
 
 
 def test_a_population_saved_once_designs_and_predicts_later_without_the_data(lab, capsys):

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 
 from .._errors import InputError
-from ._common import add_data_options, add_system_option, check_output, read_observations, write_csv
+from ._common import add_data_options, add_system_option, check_output, read_controls, read_observations, write_csv
 from ._predict import _table
 from ._tables import parse_times
 
@@ -136,20 +136,21 @@ def _fit(args: argparse.Namespace, system, population, out):
 
 
 def _design_request(args: argparse.Namespace, system, population):
-    """``(times, initial states, covariates)`` of the next subject's design, checked before the work (``None``
-    without ``--next-times``)."""
+    """``(times, initial states, covariates, controls)`` of the next subject's design, checked before the work
+    (``None`` without ``--next-times``)."""
     import torch
 
     if not args.next_times:
         return None
     if args.budget is None:
         raise InputError("--budget: expected the number of samples of the next subject with --next-times, got none")
+    controls = _next_controls(args, system, "--next-times")
     given = _next_covariates(args, population)
     starts = _next_initial(args, system)
     if not starts:
         raise InputError(_initial_message(system, "(repeat it for several candidates)", starts))
     times = torch.tensor(_numbers(args.next_times, "--next-times"), dtype=torch.float64)
-    return times, torch.tensor(starts, dtype=torch.float64), given
+    return times, torch.tensor(starts, dtype=torch.float64), given, controls
 
 
 def _next_covariates(args: argparse.Namespace, population) -> dict | None:
@@ -188,15 +189,13 @@ def _prediction_request(args: argparse.Namespace, system, population):
             raise InputError(
                 "--first: expected --predict-times with it (the times to predict the subject at), got none"
             )
+        if args.controls and not args.next_times:
+            raise InputError("--controls: expected --predict-times or --next-times with it (the next subject's "
+                             "prediction or design it is the input profile of), got neither")  # fmt: skip
         return None
     if not 0 < args.level < 1:
         raise InputError(f"--level: expected a band's coverage in (0, 1), got {args.level}")
-    if system.num_controls:
-        raise InputError(
-            f"--predict-times: expected a system without inputs (the next subject's input profile is not read from "
-            f"the command line), got one with {system.num_controls} {list(system.control_names)}; predict it with "
-            "torchmisspec.population.predict_subject(..., controls=...)"
-        )
+    controls = _next_controls(args, system, "--predict-times")
     times = parse_times(args.predict_times, "--predict-times")
     if not bool(torch.isfinite(times).all()) or bool((times.diff() <= 0).any()):
         raise InputError(f"--predict-times: expected finite, strictly increasing times, got {args.predict_times!r}")
@@ -210,11 +209,28 @@ def _prediction_request(args: argparse.Namespace, system, population):
         from ..population.predict import times_from
 
         times_from(times, first, "--predict-times")  # refused before the fit
-        return times, first, None, covariates
+        return times, first, None, covariates, controls
     starts = _next_initial(args, system)
     if len(starts) != 1:
         raise InputError(_initial_message(system, "(one, or its first measurements with --first)", starts))
-    return times, None, torch.tensor(starts[0], dtype=torch.float64), covariates
+    return times, None, torch.tensor(starts[0], dtype=torch.float64), covariates, controls
+
+
+def _next_controls(args: argparse.Namespace, system, wanted_by: str):
+    """The next subject's input profile of ``--controls`` (one profile; its experiment column, if any, not read),
+    required for a system with inputs and refused for one without."""
+    if not system.num_controls:
+        if args.controls:
+            raise InputError(f"--controls: expected none for system '{system.name}' (it takes no inputs u(t)), got "
+                             f"{args.controls!r}")  # fmt: skip
+        return None
+    if not args.controls:
+        raise InputError(
+            f"--controls: expected the next subject's input profile for {wanted_by} (system '{system.name}' takes "
+            f"{list(system.control_names)}), got none; give a table with the --time-column and one column per input, "
+            f"its rows the profile's samples over the next subject's times"
+        )
+    return read_controls(args.controls, argparse.Namespace(**{**vars(args), "experiment_column": ""}), system, [""])
 
 
 def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
@@ -223,9 +239,9 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
 
     from ..population.predict import predict_subject
 
-    times, first, y0, covariates = request
+    times, first, y0, covariates, controls = request
     generator = torch.Generator().manual_seed(0)
-    pred = predict_subject(fit, y0, times, covariates=covariates, first=first, generator=generator)
+    pred = predict_subject(fit, y0, times, covariates=covariates, first=first, controls=controls, generator=generator)
     post = pred.posterior
     if args.measurements:  # the band its new measurements fall in: the population's residual scale, its noise model
         post = post.measured(fit.noise, fit.nlme.modes.scale, generator=torch.Generator().manual_seed(1))
@@ -260,10 +276,12 @@ def _design(args: argparse.Namespace, fit, request) -> None:
 
     from ..population.design import design_subject
 
-    times, starts, covariates = request
+    times, starts, covariates, controls = request
     # the design's drawn subjects seeded: the same command gives the same design
     g = torch.Generator().manual_seed(0)
-    design = design_subject(fit, times, args.budget, initial_states=starts, covariates=covariates, generator=g)
+    design = design_subject(
+        fit, times, args.budget, initial_states=starts, covariates=covariates, controls=controls, generator=g
+    )
     state = ", ".join(f"{v:g}" for v in design.initial_state.tolist())
     print(
         f"next subject: sample at {', '.join(f'{t:g}' for t in design.times.tolist())} from the initial state "
@@ -325,6 +343,12 @@ def add_population(sub) -> None:
                      "start:stop:count; with --first, from its first measurement's time on")  # fmt: skip
     pop.add_argument("--first", help="the next subject's first measurements, a table laid out as --data (its rows "
                      "only); without it the prediction is from the population alone, from --next-initial")  # fmt: skip
+    pop.add_argument(
+        "--controls",
+        help="for a system with inputs u(t): the next subject's input profile for --predict-times and --next-times, "
+        "a table with the --time-column and one column per input (named as the system's controls, or "
+        "--input-columns), its rows the profile's samples (--input-kind)",
+    )
     pop.add_argument("--predict-out", default="next_subject.csv", help="the next subject's path and band, .csv "
                      "(default: %(default)s)")  # fmt: skip
     pop.add_argument("--level", type=float, default=0.9, help="the band's coverage (default: %(default)s)")

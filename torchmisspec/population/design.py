@@ -148,13 +148,30 @@ class SubjectDesign:
     description: str = ""
 
 
-def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+def _subject_profile(system, controls):
+    """The subject's input profile, checked: one for a system with inputs, none for one without."""
+    from ..signals import Controls
+
+    if not system.num_controls:
+        if controls is not None:
+            raise InputError(f"controls: expected None for system '{system.name}' (it takes no inputs u(t)), got one")
+        return None
+    if not isinstance(controls, Controls) or controls.num_experiments != 1:
+        got = type(controls).__name__ if not isinstance(controls, Controls) else f"{controls.num_experiments} profiles"
+        raise InputError(
+            f"controls: expected the subject's input profile, a torchmisspec.Controls of one experiment with "
+            f"{list(system.control_names)} (system '{system.name}' takes inputs u(t)), got {got}"
+        )
+    return controls
+
+
+def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor, controls=None) -> torch.Tensor:
     """``(S, T, o, k_v)``: d(transformed outputs at ``times``)/d(eta) for S draws ``eta (S, k_v)`` from ``y0 (d,)``
-    by forward differences, one batched solve."""
+    under the subject's input profile ``controls`` (or ``None``) by forward differences, one batched solve."""
     nlme, layout = fit.nlme, fit.nlme.layout
     S, kv = eta.shape
     d = y0.shape[-1]
-    dummy = _outline(fit, times, y0, S)
+    dummy = _outline(fit, times, y0, S, controls)
     steps = torch.cat([torch.zeros(1, kv, dtype=eta.dtype), STEP * torch.eye(kv, dtype=eta.dtype)])  # (1 + kv, kv)
     etas = eta[None] + steps[:, None]  # (1 + kv, S, kv)
     theta = layout.theta(etas, nlme.modes.shared)
@@ -165,12 +182,13 @@ def _sensitivities(fit, y0: torch.Tensor, times: torch.Tensor, eta: torch.Tensor
     return ((z[1:] - z[:1]) / STEP).permute(1, 2, 3, 0)
 
 
-def _outline(fit, times: torch.Tensor, y0: torch.Tensor, S: int) -> Trajectories:
-    """``S`` experiments from ``y0 (d,)`` at ``times``, every state measured: only their layout counts (what is
-    read of a path, :meth:`~torchmisspec.Trajectories.observe`)."""
+def _outline(fit, times: torch.Tensor, y0: torch.Tensor, S: int, controls=None) -> Trajectories:
+    """``S`` experiments from ``y0 (d,)`` at ``times``, every state measured, each under ``controls`` (one profile,
+    or ``None``): only their layout counts (what is read of a path, :meth:`~torchmisspec.Trajectories.observe`)."""
     states = torch.zeros(S, times.shape[0], y0.shape[-1], dtype=torch.float64)
     states[:, 0] = y0
-    return Trajectories(times, states, state_names=fit.system.state_names)
+    every = None if controls is None else controls.repeat(S)
+    return Trajectories(times, states, state_names=fit.system.state_names, controls=every)
 
 
 def _greedy_parameters(J: torch.Tensor, weights: torch.Tensor, criterion, budget: int, allowed, deviations=None):
@@ -204,12 +222,14 @@ def _greedy_parameters(J: torch.Tensor, weights: torch.Tensor, criterion, budget
 
 
 def design_subject(
-    fit, times, budget: int, *, initial_states, covariates=None, target=None, generator: torch.Generator | None = None
-) -> SubjectDesign:
+    fit, times, budget: int, *, initial_states, covariates=None, target=None, controls=None,
+    generator: torch.Generator | None = None,
+) -> SubjectDesign:  # fmt: skip
     """Choose a new subject's ``budget`` sampling times among the candidate ``times (T,)`` (the first is the time of
     its initial state, never a sample) and its initial state among ``initial_states (C, d)`` (dose levels), under the
     population ``fit`` (:class:`~torchmisspec.population.fit.PopulationFit`), for the ``target`` (default
-    :class:`SubjectParameters`); ``covariates`` the subject's (``{name: value}``)."""
+    :class:`SubjectParameters`); ``covariates`` the subject's (``{name: value}``); ``controls`` its input profile
+    (a :class:`~torchmisspec.Controls` of one experiment) for a system with inputs u(t)."""
     target = SubjectParameters() if target is None else target
     if not isinstance(target, (SubjectParameters, Correction)):
         raise InputError(f"target: expected SubjectParameters() or Correction(), got {target!r:.80}")
@@ -223,29 +243,30 @@ def design_subject(
     starts = torch.as_tensor(initial_states, dtype=torch.float64)
     starts = starts[None] if starts.dim() == 1 else starts
     X = covariate_matrix(fit.population, covariates, 1)
-    designs = [_one(fit, grid, budget, y0, X, target, generator) for y0 in starts]
+    controls = _subject_profile(fit.system, controls)
+    designs = [_one(fit, grid, budget, y0, X, target, generator, controls) for y0 in starts]
     scores = torch.tensor([s for _, s in designs], dtype=torch.float64)
     best = int(scores.argmax())
     score = float(scores[best])
     return SubjectDesign(grid[designs[best][0]], starts[best], score, scores, target.describe(score))
 
 
-def _one(fit, grid, budget, y0, X, target, generator):
+def _one(fit, grid, budget, y0, X, target, generator, controls):
     """``(indices, score)`` of the best times from ``y0`` for ``target``."""
     nlme = fit.nlme
     typical, spread = nlme.values.typical(X)[0], nlme.values.spread  # as the subject's fit (predict's notes)
     if isinstance(target, Correction):
-        return _for_correction(fit, grid, budget, y0, typical)
+        return _for_correction(fit, grid, budget, y0, typical, controls)
     eta = typical + spread * torch.randn(target.draws, spread.shape[0], dtype=spread.dtype, generator=generator)
-    J = _sensitivities(fit, y0, grid, eta) * spread  # per unit of the spread
+    J = _sensitivities(fit, y0, grid, eta, controls) * spread  # per unit of the spread
     scale = misfit_scale(fit, grid)
     weights = torch.where(torch.isfinite(scale), 1 / scale.pow(2), torch.zeros_like(scale))
     allowed = torch.arange(grid.numel()) > 0
-    deviations = _correction_deviations(fit, y0, grid, eta, generator)
+    deviations = _correction_deviations(fit, y0, grid, eta, generator, controls)
     return _greedy_parameters(J, weights, target.criterion, budget, allowed, deviations)
 
 
-def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch.Tensor, generator):
+def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch.Tensor, generator, controls):
     """``(S, F, T, o)``: how :data:`F_DRAWS` posterior draws of F move what is measured of each drawn subject
     ``eta (S, k_v)`` from F's mean, in the noise model's space to first order (``None`` without a correction). The
     subject's fit holds F at its mean, so these are errors its parameters absorb (the module's notes). A draw whose
@@ -253,18 +274,18 @@ def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch
     if fit.known_model:
         return None
     S, d = eta.shape[0], y0.shape[-1]
-    controls = drawn_controls(fit.system, fit.nlme.layout, eta, fit.nlme.modes.shared, grid[:1])
+    drawn = drawn_controls(fit.system, fit.nlme.layout, eta, fit.nlme.modes.shared, grid[:1], controls)
     with warnings.catch_warnings():  # the draws' own notes (support, calibration) are not the design's to say
         warnings.simplefilter("ignore", TorchMisspecWarning)
         post = fit.corrected.posterior(
-            y0.expand(S, d), grid, num_samples=F_DRAWS, controls=controls, generator=_on(generator),
+            y0.expand(S, d), grid, num_samples=F_DRAWS, controls=drawn, generator=_on(generator),
             scale=1.0,
         )  # fmt: skip
-    paths = _outline(fit, grid, y0, S).observe(post.samples.to(torch.float64)).transpose(0, 1)  # (S, F, T, o)
+    paths = _outline(fit, grid, y0, S, controls).observe(post.samples.to(torch.float64)).transpose(0, 1)  # (S, F, T, o)
     return transformed_deviations(fit.noise, paths, 1)
 
 
-def _for_correction(fit, grid, budget, y0, typical):
+def _for_correction(fit, grid, budget, y0, typical, controls):
     """The times that teach most about F along the subject's path at its typical parameters."""
     from ..design import sampling_times
 
@@ -273,8 +294,8 @@ def _for_correction(fit, grid, budget, y0, typical):
             "target: Correction() designs for F, but the population's fit kept F = 0 (no correction to learn more "
             "about); design for SubjectParameters() instead"
         )
-    controls = drawn_controls(fit.system, fit.nlme.layout, typical[None], fit.nlme.modes.shared, grid[:1])
+    drawn = drawn_controls(fit.system, fit.nlme.layout, typical[None], fit.nlme.modes.shared, grid[:1], controls)
     chosen = sampling_times(
-        y0[None], grid, budget, system=fit.subject_system, gp=fit.gp, controls=controls, skip_first=True
+        y0[None], grid, budget, system=fit.subject_system, gp=fit.gp, controls=drawn, skip_first=True
     )  # its start is known: never a sample
     return chosen.indices[0].tolist(), float(chosen.design.information_gain)
