@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -701,6 +702,85 @@ def test_the_integrated_fit_s_f_is_a_candidate_where_f_s_own_fit_keeps_none(monk
     # F's own uncertainty is counted in the typical value's standard error (_f_uncertainty)
     plain = standard_errors(fit.nlme.values, fit.nlme.modes, fit.nlme.covariates)
     assert fit.nlme.shifts is not None and float(fit.nlme.standard_errors[0][0]) > float(plain[0][0])
+
+
+def test_the_population_is_refitted_under_the_integrated_f_only_where_it_helps_held_out_experiments(monkeypatch):
+    """The integrated start's F is judged on held-out experiments first (do no harm's rule): refused there, the
+    population is never refitted under it (on nlme's Remifentanil that EM took a minute a round for an F refused in
+    the end), the rounds' F follows, and the summary says a refused misfit in words, not as inf."""
+    from torchmisspec.population import fit as fit_module
+
+    real_judge, real_mean = fit_module.best_on_unseen_experiments, fit_module.mean_correction
+    judged, corrected = [], []
+
+    def judge(fits, classical, data):
+        judged.append([getattr(f.gp, "parameters_", None) is not None for f in fits])
+        if len(judged) == 1:  # the integrated start's F, before its EM: refused, its folds stopped early
+            return fits[0], False, math.inf, 10.0
+        return real_judge(fits, classical, data)
+
+    def mean(system, gp):
+        corrected.append(getattr(gp, "parameters_", None) is not None)
+        return real_mean(system, gp)
+
+    monkeypatch.setattr(fit_module, "best_on_unseen_experiments", judge)
+    monkeypatch.setattr(fit_module, "mean_correction", mean)
+    population = Population(["c"], distribution=Normal())
+    fit = fit_module.fit_population(
+        _sloped_population(True), linear_system(), population, noise="additive", progress=False
+    )
+    assert judged[0] == [True]  # the integrated F alone, before any EM under it
+    assert corrected and not any(corrected)  # no EM under it: only the rounds' F
+    assert all(not any(j) for j in judged[1:])  # and it is no candidate at the end
+    assert fit.gp is None or getattr(fit.gp, "parameters_", None) is None
+    assert fit_module._misfits(math.inf, 10.0) == (
+        "misfit above 10 (its folds stopped once past it) with F conditioned without them, 10 with F = 0"
+    )
+
+
+def test_a_subject_s_paths_below_zero_are_named_where_its_measurements_are_positive():
+    """Drawn paths below 0 of a state measured positive (relative or count noise) are said, with how many and from
+    when; under additive noise (a state that may cross 0) nothing is said."""
+    from types import SimpleNamespace
+
+    from torchmisspec.noise import Relative
+    from torchmisspec.population.predict import warn_below_zero
+
+    times = torch.tensor([0.0, 1.0, 2.0], dtype=DT)
+    samples = torch.tensor([[1.0, 0.5, 0.1], [1.0, 0.2, -0.1], [1.0, 0.3, float("nan")]], dtype=DT)[:, None, :, None]
+    fit = SimpleNamespace(noise=Relative(), system=SimpleNamespace(state_names=["conc"]))
+    with pytest.warns(tms.TorchMisspecWarning, match=r"noise 'relative'\): conc in 1 of 3 from t = 2\."):
+        warn_below_zero(fit, times, samples)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_below_zero(SimpleNamespace(noise=Additive(), system=fit.system), times, samples)
+        warn_below_zero(fit, times, samples.abs())
+
+
+def test_a_candidate_s_folds_stop_once_past_the_classical_total(monkeypatch):
+    """A candidate whose folds so far miss by more than the classical answer's total cannot be kept: each is given
+    that total (or a better candidate's, if lower) as where to stop."""
+    from types import SimpleNamespace
+
+    from torchmisspec.population import _held_out
+
+    K = 6
+    classical = SimpleNamespace(
+        modes=SimpleNamespace(scale=torch.ones(1, dtype=DT), initial_states=None), layout=None, thetas=None
+    )
+    known = torch.full((K,), 10.0, dtype=DT)
+    totals, stops = {"worse": known * 1.2, "better": known * 0.5}, []
+
+    def scores(fit, trajectories, scale, stop=math.inf):
+        stops.append(stop)
+        return totals[fit.name]
+
+    monkeypatch.setattr(_held_out, "_scores", lambda *args: known)
+    monkeypatch.setattr(_held_out, "_held_out_scores", scores)
+    data = linear_data(torch.ones(K, dtype=DT), torch.linspace(0, 1, 4, dtype=DT), torch.Generator())
+    fits = [SimpleNamespace(name=n, noise=Additive()) for n in ("worse", "better", "worse")]
+    _held_out.best_on_unseen_experiments(fits, classical, data)
+    assert stops == [60.0, 60.0, 30.0]
 
 
 def test_the_candidate_kept_is_the_one_that_fits_held_out_experiments_best(monkeypatch):

@@ -266,7 +266,7 @@ def _one(fit, grid, budget, y0, X, target, generator, controls):
     return _greedy_parameters(J, weights, target.criterion, budget, allowed, deviations)
 
 
-def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch.Tensor, generator, controls):
+def _correction_deviations(fit, y0: torch.Tensor, grid: torch.Tensor, eta: torch.Tensor, generator, controls=None):
     """``(S, F, T, o)``: how :data:`F_DRAWS` posterior draws of F move what is measured of each drawn subject
     ``eta (S, k_v)`` from F's mean, in the noise model's space to first order (``None`` without a correction). The
     subject's fit holds F at its mean, so these are errors its parameters absorb (the module's notes). A draw whose

@@ -30,6 +30,7 @@ import torch
 from .._errors import InputError, TorchMisspecWarning, warn
 from .._validation import check_positive_int
 from ..data import Trajectories
+from ..noise import Additive
 from ..prediction._bands import TrajectoryPosterior
 from ._misfit import misfit_scale
 from ._modes import conditional_modes, held_prior
@@ -139,6 +140,7 @@ def predict_subject(
     times, paths, samples = times[lead:], paths[:, lead:], samples[..., lead:, :]
     if not fit.known_model:
         warn_beyond_f(fit, times, samples)
+    warn_below_zero(fit, times, samples)
     T = times.shape[0]
     posterior = TrajectoryPosterior(
         times=times[None],
@@ -221,6 +223,30 @@ def warn_beyond_f(fit, times: torch.Tensor, samples: torch.Tensor) -> None:
             f"was learned on (the population's fitted paths): {'; '.join(found)}. F is extrapolated there, and the "
             "band from that time on is F's prior guess more than the data's: read it within that range, or measure "
             "the subject there",
+            TorchMisspecWarning,
+        )
+
+
+def warn_below_zero(fit, times: torch.Tensor, samples: torch.Tensor) -> None:
+    """One warning where some of the drawn paths ``samples (S, 1, T, d)`` take a state below 0 that the noise model
+    measures as positive (relative or count noise): the band's lower edge is then below 0 there. On nlme's
+    Remifentanil a next subject's band of the concentration reached -0.08 ng/mL after an hour, F's draws near 0
+    (where a correction of the state alone is least pinned) pulling some paths below it."""
+    if isinstance(fit.noise, Additive):
+        return
+    found = []
+    for j in range(samples.shape[-1]):
+        x = samples[..., j].reshape(-1, samples.shape[-2])  # (S, T)
+        below = (x < 0) & torch.isfinite(x)
+        if bool(below.any()):
+            first = int(below.any(0).nonzero()[0])
+            name = fit.system.state_names[j] if fit.system.state_names else f"y{j}"
+            found.append(f"{name} in {int(below.any(1).sum())} of {x.shape[0]} from t = {float(times[first]):.4g}")
+    if found:
+        warn(
+            f"predict_subject: some of the subject's drawn paths go below 0, where its measurements are positive "
+            f"(noise '{fit.noise.name}'): {'; '.join(found)}. The band's lower edge is below 0 there: those are F's "
+            "draws (or G's) beyond what the data pin down, not possible values; read the band's lower edge as 0",
             TorchMisspecWarning,
         )
 
