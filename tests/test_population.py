@@ -702,6 +702,12 @@ def test_the_integrated_fit_s_f_is_a_candidate_where_f_s_own_fit_keeps_none(monk
     # F's own uncertainty is counted in the typical value's standard error (_f_uncertainty)
     plain = standard_errors(fit.nlme.values, fit.nlme.modes, fit.nlme.covariates)
     assert fit.nlme.shifts is not None and float(fit.nlme.standard_errors[0][0]) > float(plain[0][0])
+    # where that widens an interval more than WIDENED times, the summary says why, and gives the interval without it
+    for widened, said in ((1.0, True), (1e9, False)):
+        monkeypatch.setattr(fit_module, "WIDENED", widened)
+        lo, hi = (float(v) for v in dataclasses.replace(fit.nlme, shifts=None).intervals(0.95).mean[0])
+        line = "the typical values' intervals count F's own uncertainty"
+        assert (line in fit.summary()) is said and (f"without it: c [{lo:.4g}, {hi:.4g}]" in fit.summary()) is said
 
 
 def test_the_population_is_refitted_under_the_integrated_f_only_where_it_helps_held_out_experiments(monkeypatch):
@@ -755,6 +761,30 @@ def test_a_subject_s_paths_below_zero_are_named_where_its_measurements_are_posit
         warnings.simplefilter("error")
         warn_below_zero(SimpleNamespace(noise=Additive(), system=fit.system), times, samples)
         warn_below_zero(fit, times, samples.abs())
+
+
+def test_a_mean_path_outside_its_drawn_paths_is_named():
+    """The path at F's mean below 39 of 40 drawn paths (more than 97.5 %) is outside their central 95 %: said, with
+    the state and the first such time; inside them, nothing is said."""
+    from types import SimpleNamespace
+
+    from torchmisspec.population.predict import warn_mean_outside
+
+    times = torch.tensor([0.0, 1.0, 2.0], dtype=DT)
+    fit = SimpleNamespace(system=SimpleNamespace(state_names=["conc"]))
+    mean = torch.tensor([[[1.0], [0.5], [0.2]]], dtype=DT)
+    held = torch.tensor([1.0, 0.6, 1.5], dtype=DT)[None, None, :, None] + torch.linspace(0, 0.1, 40, dtype=DT)[
+        :, None, None, None
+    ]  # fmt: skip
+    held[:, 0, 0] = torch.linspace(0.9, 1.1, 40, dtype=DT)[:, None]  # around the mean at the start
+    with pytest.warns(
+        tms.TorchMisspecWarning, match=r"outside the central 95 % of its paths drawn with F \(conc from t = 1\)"
+    ):
+        warn_mean_outside(fit, times, mean, held)
+    around = mean[None] + torch.linspace(-0.1, 0.1, 40, dtype=DT)[:, None, None, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_mean_outside(fit, times, mean, around)
 
 
 def test_a_candidate_s_folds_stop_once_past_the_classical_total(monkeypatch):

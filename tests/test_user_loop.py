@@ -383,9 +383,11 @@ def test_r_remifentanil_infusions_as_a_population_through_the_cli_with_the_next_
     a minute a round; the whole fit took 171 s on 2 cores); subject 9, given 9 times the dose of subject 1 (its
     concentrations far above the training subjects'), is predicted from its first 2 measurements under its own
     profile (--controls) to 240 minutes, past the data's last time: finite, its mean positive, with a band (whose
-    lower edge, where F's draws take it below 0, is said to be), and no worse than the classical answer (the same
-    population with F = 0) beyond 5 % on the log-RMSE of its later measurements (measured: 0.70 against 1.51, F
-    kept; the classical answer's path falls to 0.05 ng/mL at 140 minutes where 0.56 was measured)."""
+    lower edge, where F's draws take it below 0, is said to be; where the band leaves the mean path, F's draws
+    holding the concentration at a level where F's mean lets it fall, that is said), and no worse than the
+    classical answer (the same population with F = 0) beyond 5 % on the log-RMSE of its later measurements
+    (measured: 0.70 against 1.51, F kept; the classical answer's path falls to 0.05 ng/mL at 140 minutes where 0.56
+    was measured)."""
     from torchmisspec.population.fit import PopulationFit
     from torchmisspec.population.predict import predict_subject
 
@@ -416,7 +418,9 @@ def test_r_remifentanil_infusions_as_a_population_through_the_cli_with_the_next_
     with nxt.open() as fh:
         path = [{k: float(v) for k, v in row.items() if k != "ID"} for row in csv.DictReader(fh)]
     assert len(path) == 60 and all(math.isfinite(v) for row in path for v in row.values())
-    assert all(0 < r["conc_mean"] and r["conc_lower"] < r["conc_mean"] < r["conc_upper"] for r in path[1:])
+    assert all(0 < r["conc_mean"] and r["conc_lower"] < r["conc_upper"] for r in path[1:])
+    if not all(r["conc_lower"] <= r["conc_mean"] <= r["conc_upper"] for r in path):  # F's draws hold the path up
+        assert "lies outside the central 95 % of its paths drawn with F" in said.err
     if any(r["conc_lower"] < 0 for r in path):  # F's draws near 0 pull some paths below it: said, not hidden
         assert "drawn paths go below 0, where its measurements are positive (noise 'relative')" in said.err
     with out.open() as fh:
