@@ -8,8 +8,11 @@
 2. every experiment's parameters learned *with* F (:mod:`~torchmisspec.population._integrated`): the population as
    one system whose uncertain parameters are every experiment's, their prior the classical population, F integrated
    out of the derivative samples (the package's theta-and-F fit, its model chosen by evidence). Its F, with the
-   population refitted for it (EM), is the first candidate. Where some states are not measured this step is skipped
-   (there it runs through the ODE, minutes on theophylline), and above :data:`MAX_INTEGRATED` parameters in all;
+   population refitted for it (EM), is the first candidate, where it already fits held-out experiments better than
+   the classical answer (do no harm's rule, below, judged before that EM: under an F that wiggles every solve is
+   stiff, and on nlme's Remifentanil that EM took a minute a round for an F refused in the end). Where some states
+   are not measured this step is skipped (there it runs through the ODE, minutes on theophylline), and above
+   :data:`MAX_INTEGRATED` parameters in all;
 3. F for those parameters: each experiment's own parameters become known constant inputs of G
    (:mod:`~torchmisspec.population._subjects`) and :func:`~torchmisspec.fit_correction` learns F from every
    experiment with the pipeline given (model choice, the fit through the ODE where states are not measured, its do
@@ -311,7 +314,7 @@ def _learn(system, trajectories, population, noise, pipeline, classical, progres
     candidate = PopulationFit(system, population, noise, classical, start, joint, fitted_system(system, start))
     if joint is not None and _helps(candidate, classical, trajectories, stages):
         stages.set_description("population: the population refitted under that F (EM through the ODE)")
-        correction = mean_correction(fitted_system(system, start), joint)
+        correction = mean_correction(candidate.subject_system, joint)
         refit = fit_nlme(system, trajectories, population, noise, start=start, correction=correction, progress=progress)
         out.append((refit, joint))
     nlme, gp = start, None
