@@ -238,14 +238,13 @@ def warn_below_zero(fit, times: torch.Tensor, samples: torch.Tensor) -> None:
     (where a correction of the state alone is least pinned) pulling some paths below it."""
     if isinstance(fit.noise, Additive):
         return
-    found = []
-    for j in range(samples.shape[-1]):
-        x = samples[..., j].reshape(-1, samples.shape[-2])  # (S, T)
-        below = (x < 0) & torch.isfinite(x)
-        if bool(below.any()):
-            first = int(below.any(0).nonzero()[0])
-            name = fit.system.state_names[j] if fit.system.state_names else f"y{j}"
-            found.append(f"{name} in {int(below.any(1).sum())} of {x.shape[0]} from t = {float(times[first]):.4g}")
+    x = samples[:, 0]  # (S, T, d)
+    below = (x < 0) & torch.isfinite(x)
+    draws = below.any(1).sum(0)  # (d,) how many drawn paths go below 0 in each state
+    found = [
+        f"{name} in {int(draws[j])} of {x.shape[0]} {since}"
+        for j, name, since in _first_times(fit, times, below.any(0))
+    ]
     if found:
         warn(
             f"predict_subject: some of the subject's drawn paths go below 0, where its measurements are positive "
@@ -265,12 +264,7 @@ def warn_mean_outside(fit, times: torch.Tensor, mean: torch.Tensor, samples: tor
     seen = torch.isfinite(x)
     above = ((x > mean) & seen).sum(0) / seen.sum(0).clamp_min(1)
     outside = ((above > 1 - OUTSIDE) | (above < OUTSIDE)) & (seen.sum(0) > 0)
-    found = []
-    for j in range(x.shape[-1]):
-        hit = outside[:, j].nonzero().flatten()
-        if hit.numel():
-            name = fit.system.state_names[j] if fit.system.state_names else f"y{j}"
-            found.append(f"{name} from t = {float(times[hit[0]]):.4g}")
+    found = [f"{name} {since}" for _, name, since in _first_times(fit, times, outside)]
     if found:
         warn(
             f"predict_subject: the subject's path at its parameters' mode and F's mean lies outside the central 95 % "
@@ -279,6 +273,17 @@ def warn_mean_outside(fit, times: torch.Tensor, mean: torch.Tensor, samples: tor
             "the mean path, and measure the subject there",
             TorchMisspecWarning,
         )
+
+
+def _first_times(fit, times: torch.Tensor, flags: torch.Tensor) -> list[tuple[int, str, str]]:
+    """``[(j, state name, "from t = ...")]`` for each state ``j`` that ``flags (T, d)`` marks at some time, with
+    the first such time."""
+    names = fit.system.state_names or [f"y{j}" for j in range(flags.shape[-1])]
+    return [
+        (j, names[j], f"from t = {float(times[flags[:, j].nonzero()[0, 0]]):.4g}")
+        for j in range(flags.shape[-1])
+        if bool(flags[:, j].any())
+    ]
 
 
 def _paths(fit, y0, times, controls) -> torch.Tensor:
