@@ -17,7 +17,9 @@ are alike:
   new measurements drawn as counts (Poisson or negative binomial).
 
 :func:`fit_correction <torchmisspec.fit_correction>` compares the held-out predictions of its candidates (and of the
-known model alone) and fits G's uncertain parameters through the ODE with these residuals. ``noise="auto"`` (the
+known model alone) and fits G's uncertain parameters through the ODE with these residuals, and estimates dy/dt in the
+model's space (:meth:`NoiseModel.transform`, then the chain rule: a derivative sample's noise follows its state's
+size under relative errors; :mod:`~torchmisspec.learning.samples._noise_space`). ``noise="auto"`` (the
 default) picks :class:`Counts` when the measured values are whole numbers, 0 or more, with a 0 after each
 experiment's first row (where every prediction starts, so it is never compared); :class:`Relative` when every measured
 value after the first rows is positive and some component spans a factor of at least :data:`RELATIVE_SPAN` (growth,
@@ -71,6 +73,11 @@ class NoiseModel:
         normal, ``scale (d,)`` the noise's standard deviation in the model's space (a fit's ``noise_scale_``)."""
         eps = torch.randn(y.shape, generator=generator, dtype=y.dtype, device=y.device)
         return self.inverse(self.transform(y) + scale.to(y) * eps)
+
+    def holds(self, y: torch.Tensor) -> torch.Tensor:
+        """Elementwise, whether a measured value ``y`` lies where :meth:`transform` is one to one (the default: every
+        finite value); a derivative estimated in this model's space leaves the others out."""
+        return torch.isfinite(y)
 
     def residuals(self, observed: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
         """``transform(observed) - transform(predicted)`` (a non-finite prediction gives a non-finite residual)."""
@@ -127,6 +134,9 @@ class Relative(NoiseModel):
     def inverse(self, z):
         return torch.exp(z)
 
+    def holds(self, y):
+        return y > 0
+
     def resolution(self, trajectories):
         """Each state's smallest positive measured value: a logarithm is compared there, so the solve must resolve it
         to a few digits (states read only through a readout: none)."""
@@ -162,6 +172,9 @@ class CountNoise(NoiseModel):
 
     def in_units(self, scale):
         return type(self)(torch.as_tensor(self.unit, dtype=scale.dtype) * scale)
+
+    def holds(self, y):
+        return y >= 0
 
     def __repr__(self) -> str:
         name = type(self).__name__

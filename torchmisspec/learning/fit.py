@@ -267,6 +267,7 @@ def _fit(
         return fit_partly_measured(trajectories, system, _fit, progress=progress, noise=noise, **options, **estimator)
     user_candidates = candidates is not None
     candidates = None if candidates is None else list(candidates)  # checked by the Pipeline's Candidates
+    estimator = {**estimator, "noise": noise}  # dy/dt estimated where the errors are alike (samples/_noise_space)
     samples, advice = _samples_and_advice(trajectories, system, derivative, estimator)
     taken = refine is None and bool(advice)  # the estimator's advice taken where a correction is kept:
     refine = True if taken else refine  # F refined through the ODE, and the advice not given

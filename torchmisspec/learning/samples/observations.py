@@ -47,6 +47,7 @@ import torch
 from ..._errors import InputError, ShapeError, TorchMisspecWarning, warn
 from ..._validation import as_tensor, check_finite, check_positive_int, check_real, check_selection
 from ...data import Trajectories
+from ...noise import NoiseModel
 from ...parameters import jacobian, parameter_basis
 from ...systems import MisspecifiedSystem
 from ._edges import edge_reach, rms_rows, unreliable_edges
@@ -62,6 +63,7 @@ from ._estimators import (
     known_flat,
 )
 from ._gp_in_time import GP_MIN_SAMPLES, GPDerivative, estimate_state_noise, gp_derivative, observed_variance
+from ._noise_space import in_noise_space, transforms
 from ._stencils import finite_difference, smoothed_derivative
 
 __all__ = [  # in the order of the API page
@@ -243,6 +245,7 @@ def correction_samples(
     order: int = 2,
     window: int = 7,
     degree: int = 2,
+    noise=None,
 ) -> CorrectionSamples:
     """Samples F~ = dy/dt - G(y) of the missing term at every observed state.
 
@@ -284,6 +287,12 @@ def correction_samples(
         order: finite-difference order for ``"central"`` (2 or 4).
         window: samples per local fit for ``"smooth"``.
         degree: polynomial degree of the local fits for ``"smooth"``.
+        noise: the measurement noise's model (:mod:`torchmisspec.noise`; ``None``, the default, or
+            :class:`~torchmisspec.noise.Additive`: the states as measured). Any other model's estimators (and the
+            self-check of ``"auto"``) run in its space, where the errors are alike (``log y`` for
+            :class:`~torchmisspec.noise.Relative`), and dy/dt and its variance come back by the chain rule; rows it
+            cannot hold (a 0 under relative errors) give no sample (:mod:`~torchmisspec.learning.samples._noise_space`).
+            :func:`~torchmisspec.fit_correction` passes its own.
 
     Returns:
         :class:`CorrectionSamples` with one sample per observed state (``N = K * T``, or the sum of the lengths;
@@ -296,12 +305,24 @@ def correction_samples(
             estimator, or non-finite samples (e.g. a state sitting on a singularity of G or F).
         ShapeError: the trajectories' state dimension differs from the system's.
     """
+    noise_model = noise
     noise = _checked_options(trajectories, system, derivative, noise_std, generator)
+    if noise_model is not None and not isinstance(noise_model, NoiseModel):
+        raise InputError(
+            f"noise: expected a torchmisspec.noise.NoiseModel (the space where the measurement errors are alike) or "
+            f"None, got {type(noise_model).__name__}; pass e.g. torchmisspec.noise.Relative()"
+        )
     short = [k for k, n in enumerate(trajectories.lengths) if n < MIN_DERIVATIVE_TIMES]
     if short and len(short) < trajectories.num_experiments and derivative != "oracle":  # too short to give samples
         options = dict(derivative=derivative, noise_std=noise_std, generator=generator, order=order, window=window)
-        return _without_short(trajectories, system, short, degree=degree, **options)
-    dydt, variance, flat_states, used, edges = _derivatives(trajectories, system, derivative, order, window, degree)
+        return _without_short(trajectories, system, short, degree=degree, noise=noise_model, **options)
+    if derivative != "oracle" and transforms(noise_model):  # estimated where the errors are alike (_noise_space)
+        options = dict(order=order, window=window, degree=degree, checked=True)
+        dydt, variance, flat_states, used, edges = in_noise_space(
+            trajectories, system, noise_model, lambda tr, sy: _derivatives(tr, sy, derivative, **options)
+        )
+    else:
+        dydt, variance, flat_states, used, edges = _derivatives(trajectories, system, derivative, order, window, degree)
     lengths = torch.tensor(trajectories.lengths, device=flat_states.device)
     experiment = torch.arange(trajectories.num_experiments, device=flat_states.device).repeat_interleave(lengths)
     g = known_flat(system, trajectories, flat_states)
@@ -345,15 +366,19 @@ def _checked_options(trajectories, system, derivative, noise_std, generator) -> 
     return noise
 
 
-def _derivatives(trajectories: Trajectories, system: MisspecifiedSystem, derivative: str, order, window, degree):
+def _derivatives(
+    trajectories: Trajectories, system: MisspecifiedSystem, derivative: str, order, window, degree, checked=False
+):
     """``(dy/dt (N, d), its variance (N, d) or None, the states (N, d) filled by the estimator, the estimator's
-    name and options)`` for :func:`correction_samples`' ``derivative``."""
-    edges, note = None, ""
+    name and options)`` for :func:`correction_samples`' ``derivative``. With ``checked``, a stencil chosen by
+    ``"auto"`` gives as every sample's variance the mean square of its error on the self-check's copy (in a noise
+    model's space, where that error is alike for every sample: :mod:`~torchmisspec.learning.samples._noise_space`)."""
+    edges, note, error = None, "", None
     if derivative == "oracle":
         dydt, flat_states = _oracle(trajectories, system)
         return dydt, None, flat_states, "oracle", None
     if derivative == "auto":
-        name, options, edges, note = _auto_estimator(trajectories, system)
+        name, options, edges, note, error = _auto_estimator(trajectories, system)
     elif derivative == "central":
         name, options = "central", {"order": order}
     elif derivative == "smooth":
@@ -363,6 +388,9 @@ def _derivatives(trajectories: Trajectories, system: MisspecifiedSystem, derivat
     dydt, variance, flat_states = _estimate_flat(name, trajectories, options)
     if derivative in ("central", "smooth"):  # explicit stencils and local fits: no sample noise (auto: its choice's)
         variance = None
+    elif variance is None and checked and error is not None:
+        variance = torch.ones_like(dydt)
+        variance[:, list(system.correction_outputs)] = error.to(dydt)
     used = " ".join([name, *(f"{k}={v}" for k, v in sorted(options.items()))])
     return dydt, variance, flat_states, used + note, edges
 
@@ -385,11 +413,12 @@ def _oracle(trajectories: Trajectories, system: MisspecifiedSystem):
 
 
 def _auto_estimator(trajectories: Trajectories, system: MisspecifiedSystem):
-    """``(name, options, left out (N,) or None, a note)``: the estimator :func:`choose_derivative` picks, with the
+    """``(name, options, left out (N,) or None, a note, the mean square of its error on the self-check's copy (o,)
+    or None)``: the estimator :func:`choose_derivative` picks, with the
     warning (:data:`ESTIMATOR_ADVICE`) when its self-checked error exceeds :data:`ESTIMATOR_ERROR_THRESHOLD` of the
     samples' size, and the edge samples it cannot be trusted at (:mod:`~torchmisspec.learning.samples._edges`)."""
     name, options, errors, copy = choose_with_copy(trajectories, system)
-    edges, note, kept = _edges(name, options, trajectories, copy, system)
+    edges, note, kept, error = _edges(name, options, trajectories, copy, system)
     ratio = errors[(name, tuple(sorted(options.items())))] if kept is None else kept
     if ratio > ESTIMATOR_ERROR_THRESHOLD:  # NaN: not ranked (choose_derivative said why)
         warn(
@@ -400,15 +429,16 @@ def _auto_estimator(trajectories: Trajectories, system: MisspecifiedSystem):
             "best), or fit the correction through the ODE with tms.fit_trajectories",
             TorchMisspecWarning,
         )
-    return name, options, edges, note
+    return name, options, edges, note, error
 
 
 def _edges(name, options, trajectories, copy, system):
-    """``(left out (N,) or None, a note for the samples' description, the self-check's ratio on the samples kept)``:
-    the edge samples whose estimator error on the known model's ``copy`` is mostly error
+    """``(left out (N,) or None, a note for the samples' description, the self-check's ratio on the samples kept,
+    the mean square of the estimator's error on the copy's rows kept (o,) or None)``: the edge samples whose estimator
+    error on the known model's ``copy`` is mostly error
     (:func:`~torchmisspec.learning.samples._edges.unreliable_edges`)."""
     if copy is None or copy[1] is None:
-        return None, "", None
+        return None, "", None, None
     copy, (errors, targets) = copy
     if trajectories.has_missing:
         targets = torch.where(_sample_rows(trajectories, system).unsqueeze(-1), targets, math.nan)
@@ -416,14 +446,17 @@ def _edges(name, options, trajectories, copy, system):
         errors = torch.where(_sample_rows(copy[0], system).unsqueeze(-1), errors, math.nan)
     reach = edge_reach(name, options)
     out, out_copy, worst = unreliable_edges(errors, targets, copy[0].lengths, trajectories.lengths, reach)
+    seen = errors[~out_copy]
+    seen = seen[torch.isfinite(seen).all(-1)]
+    error = seen.pow(2).mean(0) if seen.shape[0] else None
     if not bool(out.any()):
-        return None, "", None
+        return None, "", None, error
     n = int(out.sum())
     note = (
         f"; {n} edge sample{'s' * (n > 1)} left out (the estimator's error there on the known model's copy up to "
         f"{worst:.3g} times the samples' RMS)"
     )
-    return out, note, rms_rows(errors[~out_copy]) / rms_rows(targets[~out])
+    return out, note, rms_rows(errors[~out_copy]) / rms_rows(targets[~out]), error
 
 
 def _complete_rows(trajectories: Trajectories, system: MisspecifiedSystem) -> torch.Tensor | None:
