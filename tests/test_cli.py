@@ -963,16 +963,12 @@ def test_predict_gives_the_band_of_new_measurements_from_the_saved_noise(lab, la
     assert f"band of new measurements ({saved.noise_.name} noise" in out
     (header, rows), (header2, rows2) = _table(states), _table(measured)
     assert header == header2
-    widths = []
-    for name in ("biomass", "substrate"):  # wider after the initial state (the same draws, noise added)
+    for name in ("biomass", "substrate"):  # wider on average after the initial state (the draws are random)
         hi, lo = header.index(f"{name}_upper"), header.index(f"{name}_lower")
         later = [(r, r2) for r, r2 in zip(rows, rows2, strict=True) if float(r[1]) > 0]
         plain = sum(float(r[hi]) - float(r[lo]) for r, _ in later)
         noisy = sum(float(r2[hi]) - float(r2[lo]) for _, r2 in later)
-        assert noisy > plain, (name, noisy, plain)
-        widths.append((noisy, plain))
-    # noise adds in quadrature: where F's band dominates a state (substrate, 0.5 % wider) little shows, in all 5 %
-    assert sum(n for n, _ in widths) > 1.05 * sum(p for _, p in widths), widths
+        assert noisy > 1.05 * plain, (name, noisy, plain)
     bare = tmp_path / "bare.pt"
     tms.CorrectionGP().fit(saved.train_inputs_, saved.train_targets_).save(bare)
     assert main(_lab(lab, "predict", "--model", str(bare), *base[2:], "--measurements", "--out", str(measured))) == 2

@@ -672,6 +672,26 @@ def test_a_missing_term_every_experiment_shares_is_learned_and_none_is_refused()
     assert none.known_model and none.nlme is none.classical
 
 
+def test_a_population_learns_f_from_derivatives_in_its_noise_model_s_space(monkeypatch):
+    """fit_population's default pipeline estimates dy/dt in the noise model's space (Samples(in_noise_space=True),
+    one experiment's default leaves it off); a pipeline given is used as given, its noise model the fit's."""
+    from torchmisspec.population import fit as population_fit
+
+    seen = []
+    monkeypatch.setattr(population_fit, "_learn", lambda system, data, pop, noise, pipeline, *rest: seen.append(
+        pipeline) or [])  # fmt: skip
+    population = Population(["c"], distribution=Normal())
+    with pytest.warns(tms.TorchMisspecWarning, match="returning the classical answer"):
+        population_fit.fit_population(_sloped_population(True), linear_system(), population, noise="additive",
+                                      progress=False)  # fmt: skip
+        given = tms.Pipeline(samples=tms.learning.Samples(derivative="central"))
+        population_fit.fit_population(_sloped_population(True), linear_system(), population, pipeline=given,
+                                      noise="additive", progress=False)  # fmt: skip
+    assert seen[0].samples.in_noise_space and not tms.Pipeline().samples.in_noise_space
+    assert not seen[1].samples.in_noise_space and seen[1].samples.derivative == "central"
+    assert seen[1].noise == tms.noise.Additive()
+
+
 def test_the_integrated_fit_s_f_is_a_candidate_where_f_s_own_fit_keeps_none(monkeypatch):
     """Where F's own fit at fixed parameters keeps F = 0, the F of the fit that learns every experiment's parameters
     with it is still offered, and do no harm keeps it on data with a shared missing term."""

@@ -194,9 +194,7 @@ def pk_fit_and_predict(scales):
     t = torch.linspace(0, 8, 15, dtype=DT)
     y = tms.simulate(truth, y0, t).states
     y = y * (1 + 0.02 * torch.randn(y.shape, generator=g, dtype=DT))
-    # additive: the 2 % noise is relative, and in its space (log y) the choice is the feature kernel at either scale
-    # (predictions equal to 1e-10): the RBF's standardized inputs are what this checks
-    gp = tms.fit_correction(tms.Trajectories(t, y * S), system, progress=False, noise="additive")
+    gp = tms.fit_correction(tms.Trajectories(t, y * S), system, progress=False)
     return gp, tms.CorrectedODE(system, gp).predict(y0[:3] * S, t) / S
 
 

@@ -267,7 +267,7 @@ def _fit(
         return fit_partly_measured(trajectories, system, _fit, progress=progress, noise=noise, **options, **estimator)
     user_candidates = candidates is not None
     candidates = None if candidates is None else list(candidates)  # checked by the Pipeline's Candidates
-    estimator = {**estimator, "noise": noise}  # dy/dt estimated where the errors are alike (samples/_noise_space)
+    estimator = _sampled_in(estimator, noise)
     samples, advice = _samples_and_advice(trajectories, system, derivative, estimator)
     taken = refine is None and bool(advice)  # the estimator's advice taken where a correction is kept:
     refine = True if taken else refine  # F refined through the ODE, and the advice not given
@@ -306,6 +306,13 @@ def _fit(
     result.samples_ = samples
     result.input_names_ = system.input_names(trajectories)  # what gp.terms() calls the inputs
     return result
+
+
+def _sampled_in(estimator: dict, noise) -> dict:
+    """:func:`~torchmisspec.correction_samples`' keywords from the estimator's options: ``in_noise_space`` becomes
+    the fit's noise model (dy/dt estimated where the errors are alike: samples/_noise_space)."""
+    options = {k: v for k, v in estimator.items() if k != "in_noise_space"}
+    return {**options, "noise": noise} if estimator.get("in_noise_space") else options
 
 
 @dataclass(frozen=True)

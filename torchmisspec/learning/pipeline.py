@@ -115,7 +115,7 @@ class Pipeline:
             raise InputError(
                 f"fit_correction: unexpected option(s) {unknown}; expected the pipeline's options (gp, candidates, "
                 "select, derivative, folds, refine, noise) or the estimator's (noise_std, order, window, degree, "
-                "generator)"
+                "generator, in_noise_space)"
             )
         choice = HeldOut(folds=folds) if select == "cv" else Evidence()
         return cls(

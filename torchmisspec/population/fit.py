@@ -64,6 +64,7 @@ from .._validation import progress_bar
 from ..data import Trajectories
 from ..learning.choice.stage import Evidence
 from ..learning.pipeline import Pipeline
+from ..learning.samples.stage import Samples
 from ..noise import as_noise_model
 from ..prediction.dynamics import CorrectedODE
 from ..systems import MisspecifiedSystem
@@ -236,7 +237,9 @@ def fit_population(
         population: :class:`~torchmisspec.population.Population`: which parameters vary, their distribution, and
             the covariates that shift them.
         covariates: ``{name: (K,) values}`` for the covariates ``population`` names.
-        pipeline: how F is learned (:class:`~torchmisspec.Pipeline`; default its defaults).
+        pipeline: how F is learned (:class:`~torchmisspec.Pipeline`; default its defaults with dy/dt estimated in
+            the noise model's space, ``Samples(in_noise_space=True)``: on nlme's Remifentanil, one noise size for
+            every derivative sample left F free at low concentrations, and paths drawn with F stalled there).
         noise: the noise model (:mod:`torchmisspec.noise`; default ``"auto"``).
         progress: show progress bars (the stage the fit is in, EM rounds, F's fit).
 
@@ -251,7 +254,7 @@ def fit_population(
         )
     if not isinstance(population, Population):
         raise InputError(f"population: expected a torchmisspec.population.Population, got {type(population).__name__}")
-    pipeline = Pipeline() if pipeline is None else pipeline
+    pipeline = Pipeline(samples=Samples(in_noise_space=True)) if pipeline is None else pipeline
     if pipeline.noise != "auto":  # the pipeline's own noise model is the fit's
         noise = pipeline.noise
     noise = as_noise_model(noise, trajectories, announce="fit_population")

@@ -25,6 +25,13 @@ class Samples:
         window: the smoother's window (observations).
         degree: the smoother's polynomial degree.
         generator: the random generator of ``noise_std``'s noise (``None``: torch's global one).
+        in_noise_space: estimate dy/dt in the fit's noise model's space (``log y`` under relative errors) and bring it
+            back by the chain rule (:mod:`~torchmisspec.learning.samples._noise_space`): each sample's noise then
+            follows its state's size. Off by default for one experiment's fit: on the real-data suite
+            (``scripts/study_real_data.py``) it made Loblolly's coarse growth curves (6 ages) and the hare-lynx
+            pelts (21 years) worse (default / classical 0.61 -> 0.84 and 0.70 -> 1.06); a population fits with it
+            (:func:`~torchmisspec.population.fit_population`: on nlme's Remifentanil, concentrations over three
+            decades, F's spread at low concentrations fell below the elimination it corrects).
 
     Calling it gives the samples: ``Samples(derivative="gp")(trajectories, system)``.
     """
@@ -35,6 +42,7 @@ class Samples:
     window: int = 7
     degree: int = 2
     generator: torch.Generator | None = None
+    in_noise_space: bool = False
 
     def __post_init__(self):
         if not isinstance(self.derivative, str):
@@ -46,17 +54,20 @@ class Samples:
             raise InputError(f"noise_std: expected a standard deviation >= 0, got {self.noise_std!r:.60}")
         for name in ("order", "window", "degree"):
             check_positive_int(getattr(self, name), name)
+        if not isinstance(self.in_noise_space, bool):
+            raise InputError(f"in_noise_space: expected True or False, got {self.in_noise_space!r:.60}")
         if self.generator is not None and not isinstance(self.generator, torch.Generator):
             raise InputError(f"generator: expected a torch.Generator or None, got {type(self.generator).__name__}")
 
     def __call__(self, trajectories, system) -> CorrectionSamples:
         """The correction samples of ``trajectories`` under ``system`` (:func:`~torchmisspec.correction_samples`)."""
-        return correction_samples(trajectories, system, derivative=self.derivative, **self.estimator)
+        options = {k: v for k, v in self.estimator.items() if k != "in_noise_space"}  # needs the fit's noise model
+        return correction_samples(trajectories, system, derivative=self.derivative, **options)
 
     @property
     def estimator(self) -> dict:
         """The estimator's options that differ from :func:`~torchmisspec.correction_samples`' defaults, as its
         keywords (``derivative`` apart)."""
         defaults = Samples()
-        names = ("noise_std", "order", "window", "degree", "generator")
+        names = ("noise_std", "order", "window", "degree", "generator", "in_noise_space")
         return {n: getattr(self, n) for n in names if getattr(self, n) != getattr(defaults, n)}
