@@ -992,3 +992,20 @@ def test_a_warning_repeated_by_the_library_reaches_the_user_once(capsys):
         "torchmisspec population: warning: EM did not settle",
         "torchmisspec population: warning: another",
     ]
+
+
+def test_predict_says_where_the_band_of_a_positive_state_goes_below_zero():
+    """Relative or count noise measures a state as positive: a band's lower edge below 0 is said, with the state and
+    its first such time; under additive noise, or with the edge at or above 0, nothing is."""
+    from types import SimpleNamespace
+
+    from torchmisspec.cli._predict import below_zero
+    from torchmisspec.noise import Additive, Counts, Relative
+
+    times = torch.tensor([0.0, 1.0, 2.0, 4.0], dtype=torch.float64)
+    lower = torch.tensor([[[1.0, 3.0], [0.5, 2.0], [-0.01, 1.0], [-0.02, 0.5]]], dtype=torch.float64)
+    said = below_zero(SimpleNamespace(noise_=Relative()), lower, times, ["conc", "cells"])
+    assert "lower edge goes below 0 (conc from t = 2)" in said and "cells" not in said and "'relative'" in said
+    assert "(y1 from t = 2)" in below_zero(SimpleNamespace(noise_=Counts()), lower.flip(-1), times, None)
+    assert below_zero(SimpleNamespace(noise_=Additive()), lower, times, ["conc", "cells"]) == ""
+    assert below_zero(SimpleNamespace(noise_=Relative()), lower.abs(), times, ["conc", "cells"]) == ""
