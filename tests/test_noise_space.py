@@ -131,6 +131,11 @@ def test_fit_correction_in_the_noise_space_learns_f_at_small_states_too():
     assert float(sd[0]) < 0.1, (mean, sd)
 
 
-def test_in_noise_space_must_be_a_flag():
+def test_in_noise_space_must_be_a_flag_and_the_stage_called_alone_needs_the_noise_model():
     with pytest.raises(tms.InputError, match=r"in_noise_space: expected True or False, got 'yes'"):
         tms.learning.Samples(in_noise_space="yes")
+    stage, data, system = tms.learning.Samples(derivative="central", in_noise_space=True), _data(), _decay()
+    with pytest.raises(tms.InputError, match=r"True\) estimates dy/dt in a noise model.s space, got none"):
+        stage(data, system)
+    direct = tms.correction_samples(data, system, derivative="central", noise=Relative())
+    assert torch.equal(stage(data, system, noise=Relative()).targets, direct.targets)

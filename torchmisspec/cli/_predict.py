@@ -143,16 +143,12 @@ def below_zero(gp, lower, times, names) -> str:
     Indometh (one subject, a one-compartment bolus written for the trial) the band reached -0.013 mcg/mL past the
     last measurement: F's draws near the smallest concentrations measured."""
     from ..noise import Additive, NoiseModel
+    from ..prediction._flags import first_flagged
 
     noise = getattr(gp, "noise_", None)
     if not isinstance(noise, NoiseModel) or isinstance(noise, Additive):
         return ""
-    below = (lower < 0).any(0)  # (T, d)
-    found = [
-        f"{names[j] if names else f'y{j}'} from t = {float(times[below[:, j]][0]):.4g}"
-        for j in range(below.shape[-1])
-        if bool(below[:, j].any())
-    ]
+    found = [f"{name} {since}" for _, name, since in first_flagged(names, times, (lower < 0).any(0))]
     if not found:
         return ""
     return (

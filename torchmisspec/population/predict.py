@@ -32,6 +32,7 @@ from .._validation import check_positive_int
 from ..data import Trajectories
 from ..noise import Additive
 from ..prediction._bands import TrajectoryPosterior
+from ..prediction._flags import first_flagged
 from ._misfit import misfit_scale
 from ._modes import conditional_modes, held_prior
 from ._subjects import drawn_controls
@@ -282,14 +283,8 @@ def warn_mean_outside(fit, times: torch.Tensor, mean: torch.Tensor, samples: tor
 
 
 def _first_times(fit, times: torch.Tensor, flags: torch.Tensor) -> list[tuple[int, str, str]]:
-    """``[(j, state name, "from t = ...")]`` for each state ``j`` that ``flags (T, d)`` marks at some time, with
-    the first such time."""
-    names = fit.system.state_names or [f"y{j}" for j in range(flags.shape[-1])]
-    return [
-        (j, names[j], f"from t = {float(times[flags[:, j].nonzero()[0, 0]]):.4g}")
-        for j in range(flags.shape[-1])
-        if bool(flags[:, j].any())
-    ]
+    """:func:`~torchmisspec.prediction._flags.first_flagged` with the fit's state names."""
+    return first_flagged(fit.system.state_names, times, flags)
 
 
 def _paths(fit, y0, times, controls) -> torch.Tensor:

@@ -305,21 +305,20 @@ def correction_samples(
             estimator, or non-finite samples (e.g. a state sitting on a singularity of G or F).
         ShapeError: the trajectories' state dimension differs from the system's.
     """
-    noise_model = noise
-    noise = _checked_options(trajectories, system, derivative, noise_std, generator)
-    if noise_model is not None and not isinstance(noise_model, NoiseModel):
+    extra = _checked_options(trajectories, system, derivative, noise_std, generator)  # noise_std as a float
+    if noise is not None and not isinstance(noise, NoiseModel):
         raise InputError(
             f"noise: expected a torchmisspec.noise.NoiseModel (the space where the measurement errors are alike) or "
-            f"None, got {type(noise_model).__name__}; pass e.g. torchmisspec.noise.Relative()"
+            f"None, got {type(noise).__name__}; pass e.g. torchmisspec.noise.Relative()"
         )
     short = [k for k, n in enumerate(trajectories.lengths) if n < MIN_DERIVATIVE_TIMES]
     if short and len(short) < trajectories.num_experiments and derivative != "oracle":  # too short to give samples
         options = dict(derivative=derivative, noise_std=noise_std, generator=generator, order=order, window=window)
-        return _without_short(trajectories, system, short, degree=degree, noise=noise_model, **options)
-    if derivative != "oracle" and transforms(noise_model):  # estimated where the errors are alike (_noise_space)
+        return _without_short(trajectories, system, short, degree=degree, noise=noise, **options)
+    if derivative != "oracle" and transforms(noise):  # estimated where the errors are alike (_noise_space)
         options = dict(order=order, window=window, degree=degree, checked=True)
         dydt, variance, flat_states, used, edges = in_noise_space(
-            trajectories, system, noise_model, lambda tr, sy: _derivatives(tr, sy, derivative, **options)
+            trajectories, system, noise, lambda tr, sy: _derivatives(tr, sy, derivative, **options)
         )
     else:
         dydt, variance, flat_states, used, edges = _derivatives(trajectories, system, derivative, order, window, degree)
@@ -336,8 +335,8 @@ def correction_samples(
     targets = system.select_outputs(dydt - g)
     check_finite(targets, f"correction samples dy/dt - G(y) of system '{system.name}'")
     sample_noise = None if variance is None else system.select_outputs(variance)
-    if noise > 0:
-        targets, sample_noise = _with_noise(targets, sample_noise, noise, noise_std, generator)
+    if extra > 0:
+        targets, sample_noise = _with_noise(targets, sample_noise, extra, noise_std, generator)
     samples = CorrectionSamples(
         inputs=system.select_inputs(flat_states, u),
         targets=targets,

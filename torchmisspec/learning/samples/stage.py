@@ -59,9 +59,17 @@ class Samples:
         if self.generator is not None and not isinstance(self.generator, torch.Generator):
             raise InputError(f"generator: expected a torch.Generator or None, got {type(self.generator).__name__}")
 
-    def __call__(self, trajectories, system) -> CorrectionSamples:
-        """The correction samples of ``trajectories`` under ``system`` (:func:`~torchmisspec.correction_samples`)."""
-        options = {k: v for k, v in self.estimator.items() if k != "in_noise_space"}  # needs the fit's noise model
+    def __call__(self, trajectories, system, noise=None) -> CorrectionSamples:
+        """The correction samples of ``trajectories`` under ``system`` (:func:`~torchmisspec.correction_samples`);
+        with ``in_noise_space``, in the space of ``noise`` (a :class:`~torchmisspec.noise.NoiseModel`, required)."""
+        options = {k: v for k, v in self.estimator.items() if k != "in_noise_space"}
+        if self.in_noise_space:
+            if noise is None:
+                raise InputError(
+                    "noise: Samples(in_noise_space=True) estimates dy/dt in a noise model's space, got none; pass "
+                    "noise=torchmisspec.noise.Relative() (or the fit's gp.noise_), or in_noise_space=False"
+                )
+            options["noise"] = noise
         return correction_samples(trajectories, system, derivative=self.derivative, **options)
 
     @property
