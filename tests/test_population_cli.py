@@ -101,10 +101,15 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     assert _run(lab, *common, "--first", str(lab / "first.csv"), "--predict-out", str(lab / "updated.csv")) == 0
     printed = capsys.readouterr().out
     assert "next subject from its first 6 measurements: c = " in printed and "past the data's last time 1" in printed
+    assert "band not calibrated: no held-out subject could be checked from its first 6" in printed  # all they have
     fitted = {r[0]: float(r[1]) for r in list(csv.reader((lab / "s.csv").open()))[1:]}
     # within its posterior sd (0.05 noise at 5 times up to 1: about 0.03); the weights differ (the new subject's
     # samples are weighed by the population's residual scale at their times)
     assert float(printed.split("c = ")[1].split(";")[0]) == pytest.approx(fitted["3"], abs=0.03)
+    with (lab / "first2.csv").open("w", newline="") as fh:
+        csv.writer(fh).writerows([["time", "y", "weight"], *([r[2], r[0], r[3]] for r in own[:2])])
+    assert _run(lab, *common, "--first", str(lab / "first2.csv"), "--predict-out", str(lab / "two.csv")) == 0
+    assert "times, as held-out subjects needed from their first 2" in capsys.readouterr().out  # its own calibration
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "alone.csv")) == 0
     assert "next subject from the population alone" in capsys.readouterr().out
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "noisy.csv"), "--measurements") == 0

@@ -10,9 +10,11 @@ import pytest
 import torch
 
 import torchmisspec as tms
+from torchmisspec.gp._calibration import BandCalibration
 from torchmisspec.noise import Additive
 from torchmisspec.population import Normal, Population
 from torchmisspec.population._subjects import fitted_system
+from torchmisspec.population.calibration import SubjectCalibration, calibrate_subjects
 from torchmisspec.population.design import design_subject
 from torchmisspec.population.fit import PopulationFit
 from torchmisspec.population.nlme import fit_nlme
@@ -42,13 +44,18 @@ def _population(with_f: bool) -> PopulationFit:
     nlme = fit_nlme(system, data, population, Additive())
     sub = fitted_system(system, nlme)
     if not with_f:
-        return PopulationFit(system, population, Additive(), nlme, nlme, None, sub, data)
+        fit = PopulationFit(system, population, Additive(), nlme, nlme, None, sub, data)
+        return dataclasses.replace(fit, calibration=calibrate_subjects(fit))
     X = torch.linspace(1.0, 6.0, 12, dtype=DT)[:, None]
     gp = tms.CorrectionGP().fit(X, 0.1 * torch.sin(X) + 0.01 * torch.randn(12, 1, generator=g, dtype=DT))
     from torchmisspec.population._f_uncertainty import Shifts
 
     shifted = nlme.with_shifts(Shifts([0.02 * torch.randn(16, 1, generator=g, dtype=DT)]))
-    return PopulationFit(system, population, Additive(), nlme, shifted, gp, sub, data, held_out=(1.0, 2.0))
+    band = BandCalibration(1.5, 0.9, 0.7, 0.91, (1.0, 1.5), (0.7, 0.91), 5, False, 40, held_out="subjects")
+    calibration = SubjectCalibration(band, False, 2, 0.1, 0.3)  # the band under F's mean, widened 1.5 times
+    return PopulationFit(
+        system, population, Additive(), nlme, shifted, gp, sub, data, held_out=(1.0, 2.0), calibration=calibration
+    )
 
 
 @pytest.mark.parametrize("with_f", [False, True])
@@ -59,6 +66,7 @@ def test_a_saved_population_designs_and_predicts_the_next_subject_as_the_fit_did
     assert raw["format"] == "torchmisspec.PopulationFit" and (raw["gp"] is None) != with_f
     back = PopulationFit.load(path, linear_system())
     assert back.known_model == fit.known_model and back.held_out == fit.held_out
+    assert back.calibration == fit.calibration and fit.calibration is not None
     assert back.population == fit.population and type(back.noise) is type(fit.noise)
     for a, b in ((fit.nlme, back.nlme), (fit.classical, back.classical)):
         for k in ("mean", "spread", "effects"):

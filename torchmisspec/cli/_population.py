@@ -240,6 +240,10 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
     from ..population.predict import predict_subject
 
     times, first, y0, covariates, controls = request
+    cal = fit.calibration
+    if first is not None and cal is not None and first.num_times != cal.first:  # calibrated for its count, if it can be
+        again = fit.recalibrated(first.num_times, progress=not args.quiet)
+        fit = again if again.calibration is not None else fit
     generator = torch.Generator().manual_seed(0)
     pred = predict_subject(fit, y0, times, covariates=covariates, first=first, controls=controls, generator=generator)
     post = pred.posterior
@@ -256,8 +260,22 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
     print(
         f"next subject from {source}: {values}; its path at {times.numel()} times with the central "
         f"{args.level:.0%} band{' of new measurements' if args.measurements else ''} written to {out}"
-        f"{_beyond(times, observed, fit)}"
+        f"{_beyond(times, observed, fit)}{_calibrated(pred, fit, first)}"
     )
+
+
+def _calibrated(pred, fit, first) -> str:
+    """A note of how the band was calibrated on held-out subjects (none from the population alone)."""
+    cal = fit.calibration
+    if first is None or cal is None:
+        return ""
+    if first.num_times != cal.first:
+        return (
+            f"; its band not calibrated: no held-out subject could be checked from its first {first.num_times} "
+            f"measurements (more measured after them, F's samples recorded), the fit's calibration is for {cal.first}"
+        )
+    note = f"; its band widened {pred.band_scale:.3g} times, as held-out subjects needed from their first {cal.first}"
+    return note + ("" if cal.f_draws or cal.other is None else ", the paths under F's mean (its draws scored worse)")
 
 
 def _beyond(times, observed, fit) -> str:

@@ -18,7 +18,7 @@ __all__ = ["BandCalibration"]
 
 
 #: What a calibration can hold out.
-HELD_OUT = ("experiments", "time pieces")
+HELD_OUT = ("experiments", "time pieces", "subjects")
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,8 @@ class BandCalibration:
             coverage is within one standard error of the best one tried, and a warning was issued).
         num_points: the held-out (time, component) entries compared at each scale.
         held_out: what was held out: ``"experiments"``, or ``"time pieces"`` of one experiment (each forecast from
-            its first state by the model refitted on the others).
+            its first state by the model refitted on the others), or ``"subjects"`` of a population (each
+            predicted from its first measurements: :mod:`torchmisspec.population.calibration`).
     """
 
     scale: float

@@ -32,7 +32,7 @@ from ..learning.choice.cross_validation import significant_gain
 from ..learning.refinement._known_fit import held_out
 from ._modes import _paths, conditional_modes, held_prior, mean_correction
 
-__all__ = ["best_on_unseen_experiments", "FOLDS"]
+__all__ = ["best_on_unseen_experiments", "fold_gp", "FOLDS"]
 
 #: the folds experiments are held out in (at most; one per experiment when there are fewer)
 FOLDS = 5
@@ -56,17 +56,23 @@ def _scores(layout, thetas, initial_states, correction, trajectories, noise, sca
     return torch.where(torch.isfinite(per), per, torch.full_like(per, math.inf)).cpu().to(torch.float64)
 
 
-def _fold_correction(fit, keep: torch.Tensor):
-    """F's posterior mean conditioned on the samples of the experiments ``keep (K,)`` marks (hyperparameters kept);
-    ``None`` where the model's training samples are not the recorded ones (then nothing can be held out)."""
+def fold_gp(fit, keep: torch.Tensor):
+    """F conditioned on the samples of the experiments ``keep (K,)`` marks (hyperparameters kept); ``None`` where the
+    model's training samples are not the recorded ones (then nothing can be held out)."""
     gp, samples = fit.gp, getattr(fit.gp, "samples_", None)
     X, Y = gp.train_inputs_, gp.train_targets_
     if samples is None or X is None or X.shape[0] != len(samples) or not torch.allclose(X, samples.inputs.to(X)):
         return None
     rows = keep.to(samples.experiment.device)[samples.experiment]
     noise = gp.train_noise_
-    fold = gp.condition(X[rows], Y[rows], noise=None if noise is None else noise[rows])
-    return mean_correction(fit.subject_system, fold)
+    return gp.condition(X[rows], Y[rows], noise=None if noise is None else noise[rows])
+
+
+def _fold_correction(fit, keep: torch.Tensor):
+    """F's posterior mean conditioned on the samples of the experiments ``keep (K,)`` marks (:func:`fold_gp`);
+    ``None`` where nothing can be held out."""
+    fold = fold_gp(fit, keep)
+    return None if fold is None else mean_correction(fit.subject_system, fold)
 
 
 def _held_out_scores(fit, trajectories, scale, stop: float = math.inf) -> torch.Tensor:

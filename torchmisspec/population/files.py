@@ -6,9 +6,10 @@ designs or predicts each next subject later. A file holds one dictionary of plai
 and read with ``torch.load(weights_only=True)`` (tensors and plain containers only: a crafted file cannot run code):
 the population's declaration (its varying parameters' names, their distributions by name, the covariates), the
 noise model by name, both mixed-effects fits (the classical one, F = 0, and the one with F: their values, every
-experiment's modes, the standard errors and F's shifts of them), F (:func:`~torchmisspec.gp._persistence.to_blob`)
-and the data fitted. The system is code and is not saved: :func:`load` takes it again, checked by name, state
-dimension and parameter names, and rebuilds everything derived from it (the layout, the system F reads, F's mean).
+experiment's modes, the standard errors and F's shifts of them), F (:func:`~torchmisspec.gp._persistence.to_blob`),
+the data fitted, and the calibration of a new subject's bands (:mod:`~torchmisspec.population.calibration`). The
+system is code and is not saved: :func:`load` takes it again, checked by name, state dimension and parameter names,
+and rebuilds everything derived from it (the layout, the system F reads, F's mean).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from ..systems import MisspecifiedSystem
 from ._f_uncertainty import Shifts
 from ._modes import Modes, mean_correction
 from ._subjects import fitted_system
+from .calibration import SubjectCalibration
 from .distributions import DISTRIBUTIONS
 from .model import Population, PopulationValues
 from .nlme import NLMEFit, make_layout
@@ -62,6 +64,7 @@ def save(fit, path: str | Path) -> Path:
         "gp": None if gp is None else _persistence.to_blob(gp),
         "data": None if fit.data is None else data_blob(fit.data),
         "held_out": None if fit.held_out is None else [float(v) for v in fit.held_out],
+        "calibration": None if fit.calibration is None else fit.calibration.to_dict(),
     }
     tmp = path.with_name(path.name + ".tmp")
     with writing(path):
@@ -93,6 +96,7 @@ def load(cls, path: str | Path, system: MisspecifiedSystem):
             system, population, _noise_from(blob["noise"], f"{path} (field 'noise')"), classical, nlme, gp,
             fitted_system(system, nlme), data_from(blob["data"], path, torch.float64, torch.device("cpu")),
             None if blob["held_out"] is None else tuple(float(v) for v in blob["held_out"]),
+            _calibration_from(blob.get("calibration"), path),
         )  # fmt: skip
     except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as exc:
         raise InputError(f"{path}: a damaged PopulationFit file ({type(exc).__name__}: {exc})") from exc
@@ -104,6 +108,11 @@ def load(cls, path: str | Path, system: MisspecifiedSystem):
         correction = mean_correction(fit.subject_system, fit.gp)
         fit = _with_correction(fit, correction)
     return fit
+
+
+def _calibration_from(record, path: Path):
+    """The subject calibration of a file (``None``: none saved, as in a file from before calibrations)."""
+    return None if record is None else SubjectCalibration.from_dict(record, f"{path} (field 'calibration')")
 
 
 def _system_record(system: MisspecifiedSystem) -> dict:

@@ -60,7 +60,7 @@ from pathlib import Path
 import torch
 
 from .._errors import FittingError, InputError, IntegrationError, LinearAlgebraError, TorchMisspecWarning, warn
-from .._validation import progress_bar
+from .._validation import check_flag, progress_bar
 from ..data import Trajectories
 from ..learning.choice.stage import Evidence
 from ..learning.pipeline import Pipeline
@@ -75,6 +75,7 @@ from ._integrated import integrated_modes, integrated_system, with_experiment_in
 from ._misfit import residuals_by_time
 from ._modes import mean_correction
 from ._subjects import fitted_system, parameter_names, with_subject_inputs
+from .calibration import SubjectCalibration, calibrate_subjects
 from .model import Population
 from .nlme import NLMEFit, fit_nlme
 
@@ -82,8 +83,8 @@ __all__ = ["PopulationFit", "fit_population", "ROUNDS"]
 
 #: rounds of (population, F): the second re-learns F at the parameters the first round's F gave
 ROUNDS = 2
-#: the stages the progress bar counts: the classical fit, the integrated start, the rounds, do no harm
-STAGES = 3 + ROUNDS
+#: the stages the progress bar counts: the classical fit, the integrated start, the rounds, do no harm, calibration
+STAGES = 4 + ROUNDS
 #: the most parameters (experiments x varying parameters) learned with F in the integrated start: its fit checks G's
 #: linearity in every pair of them, and R's ChickWeight (49 chicks x 2) did not finish in 15 minutes
 MAX_INTEGRATED = 40
@@ -116,6 +117,9 @@ class PopulationFit:
     #: ``(misfit with F, misfit with F = 0)`` of the held-out experiments that decided do no harm (``None`` where no
     #: correction was a candidate)
     held_out: tuple[float, float] | None = None
+    #: how much a new subject's band from its first measurements is widened, measured on held-out subjects
+    #: (:func:`~torchmisspec.population.calibration.calibrate_subjects`; ``None``: not calibrated)
+    calibration: SubjectCalibration | None = None
 
     @property
     def known_model(self) -> bool:
@@ -132,7 +136,8 @@ class PopulationFit:
     def as_classical(self) -> PopulationFit:
         """The classical answer as a fit of its own: the population fitted with F = 0, no correction (what
         :func:`~torchmisspec.population.predict.predict_subject` predicts with G alone)."""
-        return dataclasses.replace(self, nlme=self.classical, gp=None)
+        calibration = self.calibration if self.known_model else None  # measured with F: not the classical answer's
+        return dataclasses.replace(self, nlme=self.classical, gp=None, calibration=calibration)
 
     @property
     def thetas(self) -> torch.Tensor:
@@ -148,6 +153,13 @@ class PopulationFit:
     def corrected(self) -> CorrectedODE | None:
         """G with each experiment's parameters as inputs, plus F's posterior mean (``None`` without a correction)."""
         return None if self.gp is None else CorrectedODE(self.subject_system, self.gp)
+
+    def recalibrated(self, first: int, *, progress: bool = False) -> PopulationFit:
+        """This fit with a new subject's band calibrated for subjects predicted from their ``first`` measurements
+        (:func:`~torchmisspec.population.calibration.calibrate_subjects`; the fit's own is for
+        :data:`~torchmisspec.population.calibration.FIRST`). Its calibration is ``None`` where none can be measured
+        (no subject has more measurements, or F's training samples are not recorded, as in a loaded fit)."""
+        return dataclasses.replace(self, calibration=calibrate_subjects(self, first=first, progress=progress))
 
     def save(self, path) -> Path:
         """Write this fit to ``path`` (tensors and plain values only, :mod:`~torchmisspec.population.files`): a
@@ -191,6 +203,8 @@ class PopulationFit:
             kind += f" (held-out experiments' {_misfits(*self.held_out)})"
         coordinates = ", ".join(dict.fromkeys(f"{d.name}: {_eta(d)}" for d in dists))
         lines.append(f"spread in eta = {coordinates}; {kind}")
+        if self.calibration is not None:
+            lines.append(str(self.calibration))
         return "\n".join(lines + _f_widened(self.nlme, names))
 
 
@@ -226,6 +240,7 @@ def fit_population(
     covariates=None,
     pipeline: Pipeline | None = None,
     noise="auto",
+    calibrate: bool = True,
     progress: bool = True,
 ) -> PopulationFit:
     """Fit a population of experiments that differ in some of G's parameters, and the correction F they share.
@@ -241,6 +256,9 @@ def fit_population(
             the noise model's space, ``Samples(in_noise_space=True)``: on nlme's Remifentanil, one noise size for
             every derivative sample left F free at low concentrations, and paths drawn with F stalled there).
         noise: the noise model (:mod:`torchmisspec.noise`; default ``"auto"``).
+        calibrate: measure how much a new subject's band from its first measurements must widen, by predicting
+            held-out subjects (:func:`~torchmisspec.population.calibration.calibrate_subjects`; ``result.calibration``,
+            used by :func:`~torchmisspec.population.predict.predict_subject`); seconds more.
         progress: show progress bars (the stage the fit is in, EM rounds, F's fit).
 
     Returns:
@@ -254,6 +272,7 @@ def fit_population(
         )
     if not isinstance(population, Population):
         raise InputError(f"population: expected a torchmisspec.population.Population, got {type(population).__name__}")
+    calibrate = check_flag(calibrate, "calibrate")
     pipeline = Pipeline(samples=Samples(in_noise_space=True)) if pipeline is None else pipeline
     if pipeline.noise != "auto":  # the pipeline's own noise model is the fit's
         noise = pipeline.noise
@@ -261,23 +280,34 @@ def fit_population(
     pipeline = dataclasses.replace(pipeline, noise=noise)
     options = dict(covariates=covariates, progress=progress)
     with progress_bar(progress, STAGES, "population: the classical fit (F = 0, EM)", "stage") as stages:
-        classical = fit_nlme(system, trajectories, population, noise, **options)
-        stages.update()
-        candidates = [
-            PopulationFit(system, population, noise, classical, nlme, gp, fitted_system(system, nlme), trajectories)
-            for nlme, gp in _learn(system, trajectories, population, noise, pipeline, classical, progress, stages)
-        ]
-        if not candidates:
-            warn(
-                "fit_population: no correction F predicts held-out experiments better than the population without it "
-                "(each experiment with its own parameters); returning the classical answer, the population with F = 0 "
-                "(do no harm: known_model is True on the fit, and its summary says F = 0 kept)",
-                TorchMisspecWarning,
-            )
-            return PopulationFit(
-                system, population, noise, classical, classical, None, fitted_system(system, classical), trajectories
-            )
-        return _judged(candidates, classical, trajectories, stages)
+        fitted = _fitted(system, trajectories, population, noise, pipeline, options, stages)
+        if not calibrate:
+            return fitted
+        stages.set_description("population: a new subject's bands calibrated on held-out subjects")
+        return dataclasses.replace(fitted, calibration=calibrate_subjects(fitted, progress=progress))
+
+
+def _fitted(system, trajectories, population, noise, pipeline, options, stages) -> PopulationFit:
+    """:func:`fit_population`'s fit before its bands are calibrated: the classical fit, the candidates with F, and
+    do no harm's judgement of them."""
+    classical = fit_nlme(system, trajectories, population, noise, **options)
+    stages.update()
+    progress = options["progress"]
+    candidates = [
+        PopulationFit(system, population, noise, classical, nlme, gp, fitted_system(system, nlme), trajectories)
+        for nlme, gp in _learn(system, trajectories, population, noise, pipeline, classical, progress, stages)
+    ]
+    if not candidates:
+        warn(
+            "fit_population: no correction F predicts held-out experiments better than the population without it "
+            "(each experiment with its own parameters); returning the classical answer, the population with F = 0 "
+            "(do no harm: known_model is True on the fit, and its summary says F = 0 kept)",
+            TorchMisspecWarning,
+        )
+        return PopulationFit(
+            system, population, noise, classical, classical, None, fitted_system(system, classical), trajectories
+        )
+    return _judged(candidates, classical, trajectories, stages)
 
 
 def _judged(candidates: list, classical: NLMEFit, trajectories: Trajectories, stages) -> PopulationFit:

@@ -1,0 +1,172 @@
+"""A new subject's bands calibrated on held-out subjects (:mod:`torchmisspec.population.calibration`).
+
+Against closed forms (the widening in the noise model's space, the interval score by hand), on synthetic held-out
+draws whose right answer is known (which way of drawing the band, what scale), and end to end on a population of the
+linear model dy/dt = c whose residual scale is made too small: the uncalibrated band then misses, the calibrated one
+covers at its level.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+import torchmisspec as tms
+from torchmisspec.gp._calibration import BandCalibration
+from torchmisspec.noise import Additive, Relative
+from torchmisspec.population import Normal, Population
+from torchmisspec.population import calibration as cal
+from torchmisspec.population._subjects import fitted_system
+from torchmisspec.population.fit import PopulationFit
+from torchmisspec.population.nlme import fit_nlme
+from torchmisspec.population.predict import SubjectDraws, predict_subject
+
+DT = torch.float64
+
+
+def slope(y, theta):
+    return theta[0] * torch.ones_like(y)
+
+
+def _population(K: int = 24, seed: int = 0) -> PopulationFit:
+    """K experiments of y = 2 + c t, c ~ N(1, 0.3^2), noise 0.1, 8 times; F = 0 (the classical fit)."""
+    g = torch.Generator().manual_seed(seed)
+    times = torch.linspace(0, 2, 8, dtype=DT)
+    c = 1.0 + 0.3 * torch.randn(K, generator=g, dtype=DT)
+    states = 2.0 + c[:, None, None] * times[None, :, None] + 0.1 * torch.randn(K, 8, 1, generator=g, dtype=DT)
+    states[:, 0] = 2.0
+    data = tms.Trajectories(times, states, state_names=["y"])
+    system = tms.MisspecifiedSystem(slope, 1, parameters={"c": (1.0, 0.5)}, state_names=["y"])
+    population = Population(["c"], distribution=Normal())
+    nlme = fit_nlme(system, data, population, Additive())
+    return PopulationFit(system, population, Additive(), nlme, nlme, None, fitted_system(system, nlme), data)
+
+
+def test_paths_widen_about_the_mean_in_the_noise_model_s_space():
+    mean = torch.tensor([[1.0, 2.0, 4.0]], dtype=DT)
+    samples = torch.tensor([[[2.0, 1.0, 8.0]], [[0.5, -1.0, math.nan]]], dtype=DT)
+    plain = cal.widened(samples, mean, 3.0, Additive())
+    torch.testing.assert_close(plain, mean + 3.0 * (samples - mean), equal_nan=True)
+    rel = cal.widened(samples, mean, 3.0, Relative())
+    assert float(rel[0, 0, 0]) == pytest.approx(8.0)  # 1 * (2 / 1)^3
+    assert float(rel[0, 0, 1]) == pytest.approx(0.25)  # 2 * (1 / 2)^3
+    assert float(rel[1, 0, 0]) == pytest.approx(0.125)
+    assert float(rel[1, 0, 1]) == pytest.approx(2.0 + 3.0 * (-1.0 - 2.0))  # below 0: widened in the states' units
+    assert math.isnan(float(rel[1, 0, 2]))
+    torch.testing.assert_close(cal.widened(samples, mean, 1.0, Relative()), samples, equal_nan=True)
+
+
+def test_the_interval_score_by_hand():
+    lo, hi = torch.tensor([0.0, 0.0, 0.0], dtype=DT), torch.tensor([1.0, 1.0, 1.0], dtype=DT)
+    obs = torch.tensor([0.5, 1.5, math.nan], dtype=DT)
+    # widths 1 and 1; the second lies 0.5 above: + 2 / 0.1 * 0.5 = 10; the missing one is not scored
+    assert cal.interval_score([(lo, hi, obs)], Additive(), 0.9) == pytest.approx((1.0 + 11.0) / 2)
+
+
+def _synthetic(parameters_sd: float, parameters_shift: float, f_sd: float, f_shift: float, K=8, T=40, S=64):
+    """Held-out draws of K subjects whose later measurements are standard normal about a mean path at 0: the
+    parameters' draws N(shift, sd^2) and F's draws likewise."""
+    g = torch.Generator().manual_seed(0)
+    held = []
+    for _ in range(K):
+        draws = SubjectDraws(
+            times=torch.arange(T, dtype=DT),
+            mean=torch.zeros(1, T, 1, dtype=DT),
+            parameters=parameters_shift + parameters_sd * torch.randn(S, 1, T, 1, generator=g, dtype=DT),
+            with_f=f_shift + f_sd * torch.randn(S * 2, 1, T, 1, generator=g, dtype=DT),
+            eta=torch.zeros(1, dtype=DT),
+            covariance=torch.eye(1, dtype=DT),
+        )
+        held.append((draws, torch.randn(T, 1, generator=g, dtype=DT)))
+    return held
+
+
+@pytest.mark.parametrize(
+    ("draws", "f_draws", "scale"),
+    [((0.5, 0.0, 1.0, -2.0), False, 2.0), ((0.1, -2.0, 1.0, 0.0), True, 1.0)],
+    ids=["f-draws-biased", "parameters-biased"],
+)
+def test_the_band_is_drawn_the_way_held_out_subjects_score_better_and_scaled_to_cover(
+    monkeypatch, draws, f_draws, scale
+):
+    fit = _population(K=3)
+    fit = dataclasses.replace(fit, nlme=dataclasses.replace(fit.nlme, modes=dataclasses.replace(
+        fit.nlme.modes, scale=torch.zeros(1, dtype=DT))))  # fmt: skip
+    monkeypatch.setattr(cal, "_held_out_draws", lambda *a: _synthetic(*draws))
+    found = cal.calibrate_subjects(fit)
+    assert found.f_draws is f_draws and found.other is not None and found.score < found.other
+    assert found.band.reached and found.band.coverage >= 0.9
+    assert found.scale == pytest.approx(scale, rel=0.15)  # N(0, 1) measurements, draws of sd 1 / scale
+    assert found.band.held_out == "subjects" and found.first == cal.FIRST and "0.9" in str(found)
+
+
+def test_a_population_whose_residual_scale_is_too_small_gets_bands_that_cover_held_out_subjects():
+    fit = _population()
+    honest = cal.calibrate_subjects(fit)
+    assert honest.other is None and not honest.f_draws  # F = 0: the parameters' draws, no other way
+    assert honest.band.coverage >= 0.9 and 0.5 < honest.scale < 2.0
+    # a population sure of itself: its spread and residual scale too small (the subject pinned near the typical c)
+    small = dataclasses.replace(fit.nlme.modes, scale=fit.nlme.modes.scale / 4)
+    values = dataclasses.replace(fit.nlme.values, spread=fit.nlme.values.spread / 10)
+    narrow = dataclasses.replace(fit, nlme=dataclasses.replace(fit.nlme, modes=small, values=values))
+    narrow = dataclasses.replace(narrow, classical=narrow.nlme)
+    found = cal.calibrate_subjects(narrow)
+    assert found.band.coverage_at_one < 0.8 and found.scale > 1.5 and found.band.coverage >= 0.9
+    # the prediction uses it: the uncalibrated paths widened by its scale, the population-alone band untouched
+    narrow = dataclasses.replace(narrow, calibration=found)
+    times = torch.linspace(0, 2, 8, dtype=DT)
+    first = tms.Trajectories(times[:2], torch.tensor([[[2.0], [2.3]]], dtype=DT), state_names=["y"])
+    runs = [predict_subject(narrow, None, times, first=first, num_samples=16, calibrated=on,
+                            generator=torch.Generator().manual_seed(1)) for on in (True, False)]  # fmt: skip
+    assert runs[0].band_scale == found.scale and runs[1].band_scale == 1.0
+    torch.testing.assert_close(
+        runs[0].posterior.samples, cal.widened(runs[1].posterior.samples, runs[1].posterior.mean_path, found.scale,
+                                               Additive()))  # fmt: skip
+    alone = [predict_subject(f, torch.tensor([2.0], dtype=DT), times, num_samples=8,
+                             generator=torch.Generator().manual_seed(2))
+             for f in (narrow, dataclasses.replace(narrow, calibration=None))]  # fmt: skip
+    torch.testing.assert_close(alone[0].posterior.samples, alone[1].posterior.samples)
+    assert alone[0].band_scale == 1.0
+    assert "band from its first 2 measurements" in narrow.summary()
+
+
+def test_a_calibration_record_round_trips_and_a_damaged_one_is_refused():
+    band = BandCalibration(1.5, 0.9, 0.7, 0.91, (1.0, 1.5), (0.7, 0.91), 5, False, 40, held_out="subjects")
+    record = cal.SubjectCalibration(band, False, 2, 0.1, 0.3)
+    assert cal.SubjectCalibration.from_dict(record.to_dict(), "f.pt") == record
+    with pytest.raises(tms.InputError, match="f.pt: expected a subject calibration record"):
+        cal.SubjectCalibration.from_dict({"band": record.to_dict()["band"]}, "f.pt")
+    with pytest.raises(tms.InputError, match="damaged"):
+        cal.SubjectCalibration.from_dict({**record.to_dict(), "first": 0}, "f.pt")
+
+
+def test_calibration_options_are_checked():
+    from torchmisspec.population import fit_population
+
+    fit = _population(K=3)
+    with pytest.raises(tms.InputError, match="first"):
+        cal.calibrate_subjects(fit, first=0)
+    with pytest.raises(tms.InputError, match="level"):
+        cal.calibrate_subjects(fit, level=1.5)
+    with pytest.raises(tms.InputError, match="calibrate"):
+        fit_population(fit.data, fit.system, fit.population, calibrate="yes", progress=False)
+    assert cal.calibrate_subjects(dataclasses.replace(fit, data=None)) is None
+    assert cal.calibrate_subjects(fit, first=8) is None  # no subject has more than 8 measurements
+
+
+def test_a_subject_with_another_count_of_first_measurements_is_not_scaled_silently():
+    fit = _population(K=12)
+    fit = dataclasses.replace(fit, calibration=cal.calibrate_subjects(fit))
+    times = torch.linspace(0, 2, 8, dtype=DT)
+    first = tms.Trajectories(times[:3], torch.tensor([[[2.0], [2.3], [2.6]]], dtype=DT), state_names=["y"])
+    with pytest.warns(
+        tms.TorchMisspecWarning, match=r"first 2 measurements, and this one has 3.*recalibrated\(first=3\)"
+    ):
+        pred = predict_subject(fit, None, times, first=first, num_samples=8)
+    assert pred.band_scale == 1.0
+    again = fit.recalibrated(3)
+    assert again.calibration.first == 3 and again.calibration.band.num_points == 12 * 5
+    assert predict_subject(again, None, times, first=first, num_samples=8).band_scale == again.calibration.scale
