@@ -29,7 +29,9 @@ Methods, on the same folds:
   other information.
 
 Also recorded: the 90 % band of new measurements of the package's prediction and whether it holds the held-out
-values, and the wall time of each population fit (the speed goal: theophylline's 12 subjects, all of them).
+values, calibrated on the other subjects (:mod:`torchmisspec.population.calibration`, the default) and not, the
+calibration's scale, and the wall time of each population fit with its calibration (the speed goal: theophylline's
+12 subjects, all of them).
 """
 
 from __future__ import annotations
@@ -89,10 +91,16 @@ def run_one(task: tuple[str, int, dict]) -> dict:
     for method, model in (("package", fit), ("classical", fit.as_classical())):
         pred = predict_subject(model, None, t, first=first, num_samples=cfg["num_samples"], generator=g)
         out[method] = _log_rmse(pred.posterior.mean_path[0, FIRST:, c], held)
-        if method == "package":
-            band = pred.posterior.measured(fit.noise, fit.nlme.modes.scale, generator=g).interval(0.9)
-            inside = (held >= band[0][0, FIRST:, c]) & (held <= band[1][0, FIRST:, c])
-            out["covered"], out["scored"] = int(inside.sum()), int(held.numel())
+    for key, calibrated in (("covered", True), ("covered_uncalibrated", False)):
+        pred = predict_subject(
+            fit, None, t, first=first, num_samples=cfg["num_samples"], generator=g, calibrated=calibrated
+        )
+        band = pred.posterior.measured(fit.noise, fit.nlme.modes.scale, generator=g).interval(0.9)
+        inside = (held >= band[0][0, FIRST:, c]) & (held <= band[1][0, FIRST:, c])
+        out[key], out["scored"] = int(inside.sum()), int(held.numel())
+    cal = fit.calibration
+    out["band_scale"] = None if cal is None else cal.scale
+    out["f_draws"] = None if cal is None else cal.f_draws
     gp = tms.fit_correction(train, system, noise=data.noise, progress=False)
     pooled = tms.CorrectedODE(system.at(gp.parameters_.mean), gp).predict(y[0][None].nan_to_num(0.0), t)[0]
     out["one_set"] = _log_rmse(pooled[FIRST:, c], held)
@@ -142,9 +150,29 @@ def _rows(name: str, runs: list[dict]) -> list[str]:
         f"{describe(paired_ratio(pkg, [r['classical'] for r in runs]))} | <= {GOALS['vs_classical']} |",
         f"| {name}: package / one set of parameters | {describe(paired_ratio(pkg, [r['one_set'] for r in runs]))} | |",
         f"| {name}: package / the subject alone | {describe(paired_ratio(pkg, [r['alone'] for r in runs]))} | |",
-        f"| {name}: held-out measurements in the package's 90 % band | {covered:.2f} | |",
+        f"| {name}: held-out measurements in the package's 90 % band (calibrated on the other subjects) | "
+        f"{covered:.2f} | 0.9 |",
+        f"| {name}: the same, the band uncalibrated | {_share(runs, 'covered_uncalibrated')} | |",
+        f"| {name}: the calibration's scale (median; F's draws kept in the band) | {_scales(runs)} | |",
         f"| {name}: a correction kept (F not 0) | {sum(not r['known_model'] for r in runs)} of {n} | |",
     ]
+
+
+def _share(runs: list[dict], key: str) -> str:
+    """The share of the held-out measurements in the bands of ``key`` (a run from before it: not measured)."""
+    if any(key not in r for r in runs):
+        return "not measured"
+    return f"{sum(r[key] for r in runs) / max(sum(r['scored'] for r in runs), 1):.2f}"
+
+
+def _scales(runs: list[dict]) -> str:
+    """The calibration's median scale and how often the band kept F's draws."""
+    found = [r for r in runs if r.get("band_scale") is not None]
+    if not found:
+        return "not measured"
+    scales = sorted(r["band_scale"] for r in found)
+    kept = sum(bool(r["f_draws"]) for r in found)
+    return f"{scales[len(scales) // 2]:.2f} [{scales[0]:.2f}, {scales[-1]:.2f}]; {kept} of {len(found)}"
 
 
 def table(result: dict) -> str:
