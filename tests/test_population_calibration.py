@@ -170,3 +170,29 @@ def test_a_subject_with_another_count_of_first_measurements_is_not_scaled_silent
     again = fit.recalibrated(3)
     assert again.calibration.first == 3 and again.calibration.band.num_points == 12 * 5
     assert predict_subject(again, None, times, first=first, num_samples=8).band_scale == again.calibration.scale
+
+
+def test_a_drawn_subject_whose_path_stalls_is_named_in_the_subject_s_terms(monkeypatch):
+    import warnings
+
+    import torchmisspec.population.predict as predict_module
+
+    fit = _population(K=6)
+    real = predict_module._paths
+
+    def stalling(fit, y0, times, controls):
+        paths = real(fit, y0, times, controls).clone()
+        paths[3, 4:] = math.nan
+        warnings.warn("CorrectedODE.predict: 1 of 9 forecast(s) stop early (initial condition(s) [3] ...)",
+                      tms.TorchMisspecWarning, stacklevel=2)  # fmt: skip
+        return paths
+
+    monkeypatch.setattr(predict_module, "_paths", stalling)
+    times = torch.linspace(0, 2, 8, dtype=DT)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        pred = predict_subject(fit, torch.tensor([2.0], dtype=DT), times, num_samples=8)
+    said = [str(w.message) for w in caught]
+    assert not any("initial condition" in m for m in said), said
+    assert any("the paths of 1 of 8 draws of the subject's parameters (under F's mean) stop early" in m for m in said)
+    assert bool(torch.isnan(pred.posterior.samples[2, 0, 4:]).all())
