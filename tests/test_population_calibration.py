@@ -23,6 +23,7 @@ from torchmisspec.population._subjects import fitted_system
 from torchmisspec.population.fit import PopulationFit
 from torchmisspec.population.nlme import fit_nlme
 from torchmisspec.population.predict import SubjectDraws, predict_subject
+from torchmisspec.prediction._bands import widened
 
 DT = torch.float64
 
@@ -48,15 +49,15 @@ def _population(K: int = 24, seed: int = 0) -> PopulationFit:
 def test_paths_widen_about_the_mean_in_the_noise_model_s_space():
     mean = torch.tensor([[1.0, 2.0, 4.0]], dtype=DT)
     samples = torch.tensor([[[2.0, 1.0, 8.0]], [[0.5, -1.0, math.nan]]], dtype=DT)
-    plain = cal.widened(samples, mean, 3.0, Additive())
+    plain = widened(samples, mean, 3.0, Additive())
     torch.testing.assert_close(plain, mean + 3.0 * (samples - mean), equal_nan=True)
-    rel = cal.widened(samples, mean, 3.0, Relative())
+    rel = widened(samples, mean, 3.0, Relative())
     assert float(rel[0, 0, 0]) == pytest.approx(8.0)  # 1 * (2 / 1)^3
     assert float(rel[0, 0, 1]) == pytest.approx(0.25)  # 2 * (1 / 2)^3
     assert float(rel[1, 0, 0]) == pytest.approx(0.125)
     assert float(rel[1, 0, 1]) == pytest.approx(2.0 + 3.0 * (-1.0 - 2.0))  # below 0: widened in the states' units
     assert math.isnan(float(rel[1, 0, 2]))
-    torch.testing.assert_close(cal.widened(samples, mean, 1.0, Relative()), samples, equal_nan=True)
+    torch.testing.assert_close(widened(samples, mean, 1.0, Relative()), samples, equal_nan=True)
 
 
 def test_the_interval_score_by_hand():
@@ -123,7 +124,7 @@ def test_a_population_whose_residual_scale_is_too_small_gets_bands_that_cover_he
                             generator=torch.Generator().manual_seed(1)) for on in (True, False)]  # fmt: skip
     assert runs[0].band_scale == found.scale and runs[1].band_scale == 1.0
     torch.testing.assert_close(
-        runs[0].posterior.samples, cal.widened(runs[1].posterior.samples, runs[1].posterior.mean_path, found.scale,
+        runs[0].posterior.samples, widened(runs[1].posterior.samples, runs[1].posterior.mean_path, found.scale,
                                                Additive()))  # fmt: skip
     alone = [predict_subject(f, torch.tensor([2.0], dtype=DT), times, num_samples=8,
                              generator=torch.Generator().manual_seed(2))

@@ -11,7 +11,8 @@ too. On R's Loblolly, 0.68 of a new tree's later heights fell in the 90 % band (
 samples (its hyperparameters kept, as do no harm does), and every held-out subject with more than ``first``
 measurements is predicted from its first ``first`` ones exactly as a user's new subject is. The band's spread is
 widened (or narrowed) by one factor ``c`` on every drawn path's deviation from the mean path, in the noise model's
-space (:func:`widened`: a relative band widens by a factor, and stays positive), and ``c`` is the smallest one under
+space (:func:`~torchmisspec.prediction._bands.widened`: a relative band widens by a factor, and stays positive), and
+``c`` is the smallest one under
 which the subject's later measurements lie in the central ``level`` band of new measurements (paths plus the
 population's measurement noise) at least a fraction ``level`` of the time, by the bisection of
 :func:`~torchmisspec.torchmisspec.calibrate_bands` (Kuleshov et al. 2018, with subjects as the calibration set).
@@ -32,11 +33,12 @@ from .._errors import FittingError, InputError, IntegrationError, LinearAlgebraE
 from .._validation import check_positive_int, progress_bar
 from ..data import Trajectories
 from ..gp._calibration import BandCalibration
-from ..prediction._bands import band_quantiles, path_quantiles
+from ..prediction._bands import band_quantiles, path_quantiles, widened
 from ..prediction.calibration import _check_level, _smallest_covering_scale
 from ._held_out import FOLDS, fold_gp
+from .predict import subject_draws
 
-__all__ = ["FIRST", "SubjectCalibration", "calibrate_subjects", "interval_score", "widened"]
+__all__ = ["FIRST", "SubjectCalibration", "calibrate_subjects", "interval_score"]
 
 #: the measurements a held-out subject is predicted from by default (the issue's new subject: its first 2)
 FIRST = 2
@@ -97,18 +99,6 @@ class SubjectCalibration:
         return cls(band, values["f_draws"], values["first"], float(values["score"]), other)
 
 
-def widened(samples: torch.Tensor, mean: torch.Tensor, scale: float, noise) -> torch.Tensor:
-    """``samples (S, ..., d)`` with their deviation from ``mean (..., d)`` times ``scale`` in ``noise``'s space
-    (``T(mean) + c (T(y) - T(mean))``, mapped back): a relative band widens by a factor and stays positive. An
-    entry the model cannot hold (``noise.holds``: a draw at or below 0 under relative noise) is widened in the
-    states' own units."""
-    z, zm = noise.transform(samples), noise.transform(mean)
-    inside = noise.holds(samples) & noise.holds(mean)
-    spaced = noise.inverse(zm + scale * (z - zm))
-    plain = mean + scale * (samples - mean)
-    return torch.where(inside, spaced, plain)
-
-
 def _head(one: Trajectories, m: int) -> Trajectories:
     """The first ``m`` rows of the one experiment ``one`` (its controls and readout kept)."""
     t, y = one.experiments()[0]
@@ -130,8 +120,6 @@ def _predicted(fit, one: Trajectories, k: int, m: int, num_samples: int, generat
     """``(draws, later observed values (T - m, o))`` of experiment ``k`` (``one``) predicted from its first ``m`` rows
     under ``fit`` (:func:`~torchmisspec.population.predict.subject_draws`, with F's draws where F is kept; its
     warnings held: they are the calibration's, not the user's); ``None`` where it cannot be predicted."""
-    from .predict import subject_draws
-
     covariates = {n: float(fit.nlme.covariates[k, c]) for c, n in enumerate(fit.population.covariate_names)}
     t = one.experiments()[0][0]
     try:
@@ -183,7 +171,8 @@ def _held_out_draws(fit, m: int, num_samples: int, seed: int, progress: bool) ->
 def _band(held: list, noise, scale: torch.Tensor, quantiles: torch.Tensor, seed: int, with_f: bool):
     """``band(c)``: ``[(lower, upper, observed)]`` of every held-out subject's later measurements: the central band of
     new measurements (the paths, with F's draws or under F's mean, widened by c in ``noise``'s space
-    (:func:`widened`), plus the population's noise ``scale``), the same noise draws at every c."""
+    (:func:`~torchmisspec.prediction._bands.widened`), plus the population's noise ``scale``), the same noise draws
+    at every c."""
     cases = []
     for i, (draws, observed) in enumerate(held):
         T = observed.shape[0]

@@ -33,12 +33,11 @@ from .._errors import InputError, TorchMisspecWarning, warn
 from .._validation import check_flag, check_positive_int
 from ..data import Trajectories
 from ..noise import Additive
-from ..prediction._bands import TrajectoryPosterior
+from ..prediction._bands import TrajectoryPosterior, widened
 from ..prediction._flags import first_flagged
 from ._misfit import misfit_scale
 from ._modes import conditional_modes, held_prior
 from ._subjects import drawn_controls
-from .calibration import widened
 from .model import covariate_matrix
 
 #: the share of a new subject's drawn paths outside F's training range that :func:`warn_beyond_f` warns about

@@ -66,6 +66,18 @@ def path_quantiles(samples: torch.Tensor, qs: torch.Tensor) -> torch.Tensor:
     return torch.where(side < 0.5, low, torch.where(side > 0.5, high, 0.5 * (low + high)))
 
 
+def widened(samples: torch.Tensor, mean: torch.Tensor, scale: float, noise) -> torch.Tensor:
+    """``samples (S, ..., d)`` with their deviation from ``mean (..., d)`` times ``scale`` in ``noise``'s space
+    (``T(mean) + c (T(y) - T(mean))``, mapped back): a relative band widens by a factor and stays positive. An
+    entry the model cannot hold (``noise.holds``: a draw at or below 0 under relative noise) is widened in the
+    states' own units."""
+    z, zm = noise.transform(samples), noise.transform(mean)
+    inside = noise.holds(samples) & noise.holds(mean)
+    spaced = noise.inverse(zm + scale * (z - zm))
+    plain = mean + scale * (samples - mean)
+    return torch.where(inside, spaced, plain)
+
+
 @dataclass(frozen=True)
 class TrajectoryPosterior:
     """Predicted trajectories under S posterior draws of the correction (:meth:`CorrectedODE.posterior`).
