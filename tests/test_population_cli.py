@@ -109,7 +109,7 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     with (lab / "first2.csv").open("w", newline="") as fh:
         csv.writer(fh).writerows([["time", "y", "weight"], *([r[2], r[0], r[3]] for r in own[:2])])
     assert _run(lab, *common, "--first", str(lab / "first2.csv"), "--predict-out", str(lab / "two.csv")) == 0
-    assert "times, as held-out subjects needed from their first 2" in capsys.readouterr().out  # its own calibration
+    assert "times its spread, as held-out subjects needed from their first 2" in capsys.readouterr().out
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "alone.csv")) == 0
     assert "next subject from the population alone" in capsys.readouterr().out
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "noisy.csv"), "--measurements") == 0

@@ -274,7 +274,11 @@ def _calibrated(pred, fit, first) -> str:
             f"; its band not calibrated: no held-out subject could be checked from its first {first.num_times} "
             f"measurements (more measured after them, F's samples recorded), the fit's calibration is for {cal.first}"
         )
-    note = f"; its band widened {pred.band_scale:.3g} times, as held-out subjects needed from their first {cal.first}"
+    how = "widened" if pred.band_scale >= 1 else "narrowed"
+    note = (
+        f"; its band {how} to {pred.band_scale:.3g} times its spread, as held-out subjects needed from their first "
+        f"{cal.first}"
+    )
     return note + ("" if cal.f_draws or cal.other is None else ", the paths under F's mean (its draws scored worse)")
 
 
