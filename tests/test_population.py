@@ -802,6 +802,8 @@ def test_a_mean_path_outside_its_drawn_paths_is_named():
         tms.TorchMisspecWarning, match=r"outside the central 95 % of its paths drawn with F \(conc from t = 1\)"
     ):
         warn_mean_outside(fit, times, mean, held)
+    with pytest.warns(tms.TorchMisspecWarning, match=r"paths drawn over its parameters under F's mean \(conc from"):
+        warn_mean_outside(fit, times, mean, held, with_f=False)  # a calibration that chose F's mean
     around = mean[None] + torch.linspace(-0.1, 0.1, 40, dtype=DT)[:, None, None, None]
     around[:, 0, 0] = mean[0, 0] * (1 + 1e-9)  # every path at the mean (the subject's own first state): not outside
     with warnings.catch_warnings():

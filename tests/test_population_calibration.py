@@ -58,6 +58,9 @@ def test_paths_widen_about_the_mean_in_the_noise_model_s_space():
     assert float(rel[1, 0, 1]) == pytest.approx(2.0 + 3.0 * (-1.0 - 2.0))  # below 0: widened in the states' units
     assert math.isnan(float(rel[1, 0, 2]))
     torch.testing.assert_close(widened(samples, mean, 1.0, Relative()), samples, equal_nan=True)
+    start = torch.full((16, 1, 1), 79.3, dtype=DT)  # every path at the subject's fitted first state
+    for scale in (0.64, 1.1, 2.7):  # through log and back, 79.3 moved by a rounding error and left its own band
+        assert torch.equal(widened(start, start[0], scale, Relative()), start)
 
 
 def test_the_interval_score_by_hand():

@@ -432,8 +432,9 @@ def test_r_remifentanil_infusions_as_a_population_through_the_cli_with_the_next_
         path = [{k: float(v) for k, v in row.items() if k != "ID"} for row in csv.DictReader(fh)]
     assert len(path) == 60 and all(math.isfinite(v) for row in path for v in row.values())
     assert all(0 < r["conc_mean"] and r["conc_lower"] < r["conc_upper"] for r in path[1:])
+    assert path[0]["conc_lower"] == path[0]["conc_mean"] == path[0]["conc_upper"]  # its fitted first state, exactly
     if not all(r["conc_lower"] <= r["conc_mean"] <= r["conc_upper"] for r in path):  # F's draws hold the path up
-        assert "lies outside the central 95 % of its paths drawn with F" in said.err
+        assert "lies outside the central 95 % of its paths drawn" in said.err
     if any(r["conc_lower"] < 0 for r in path):  # F's draws near 0 pull some paths below it: said, not hidden
         assert "drawn paths go below 0, where its measurements are positive (noise 'relative')" in said.err
     with out.open() as fh:

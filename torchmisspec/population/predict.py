@@ -210,8 +210,7 @@ def predict_subject(
     if draws.with_f is not None:
         warn_beyond_f(fit, times, samples)
     warn_below_zero(fit, times, samples)
-    if draws.with_f is not None:
-        warn_mean_outside(fit, times, mean, samples)
+    warn_mean_outside(fit, times, mean, samples, with_f=draws.with_f is not None)
     T = times.shape[0]
     posterior = TrajectoryPosterior(
         times=times[None],
@@ -321,14 +320,18 @@ def warn_below_zero(fit, times: torch.Tensor, samples: torch.Tensor) -> None:
         )
 
 
-def warn_mean_outside(fit, times: torch.Tensor, mean: torch.Tensor, samples: torch.Tensor) -> None:
+def warn_mean_outside(
+    fit, times: torch.Tensor, mean: torch.Tensor, samples: torch.Tensor, *, with_f: bool = True
+) -> None:
     """One warning where the path at the parameters' mode and F's mean, ``mean (1, T, d)``, lies above or below
     more than :data:`OUTSIDE` of the drawn paths ``samples (S, 1, T, d)`` (outside a 95 % band; paths that agree with
-    it to the solver's precision, as at the subject's own first state, are neither). On nlme's Remifentanil, while
-    F's derivative samples took one noise size for every concentration, a next subject's concentration at F's mean
-    fell to 0.18 ng/mL while 95 % of the paths drawn with F stayed above 1.75: F's posterior spread at low
-    concentrations (0.5-0.6 ng/mL/min) exceeded the elimination there (0.01-0.15), so most draws of F held the path at
-    some level where the mean of F let it fall (now estimated in the noise model's space:
+    it to the solver's precision, as at the subject's own first state, are neither). ``with_f``: the paths were
+    drawn with F's draws; else over the subject's parameters under F's mean (a calibration that chose F's mean),
+    where a path at the parameters' mode outside their paths means the path bends with them (G nonlinear in them).
+    On nlme's Remifentanil, while F's derivative samples took one noise size for every concentration, a next
+    subject's concentration at F's mean fell to 0.18 ng/mL while 95 % of the paths drawn with F stayed above 1.75: F's
+    posterior spread at low concentrations (0.5-0.6 ng/mL/min) exceeded the elimination there (0.01-0.15), so most
+    draws of F held the path at some level where the mean of F let it fall (now estimated in the noise model's space:
     :mod:`~torchmisspec.learning.samples._noise_space`)."""
     x = samples[:, 0]  # (S, T, d)
     seen = torch.isfinite(x)
@@ -338,14 +341,21 @@ def warn_mean_outside(fit, times: torch.Tensor, mean: torch.Tensor, samples: tor
     below = ((x < mean[0] - tol) & seen).sum(0) / n
     outside = ((above > 1 - OUTSIDE) | (below > 1 - OUTSIDE)) & (seen.sum(0) > 0)
     found = [f"{name} {since}" for _, name, since in _first_times(fit, times, outside)]
-    if found:
-        warn(
-            f"predict_subject: the subject's path at its parameters' mode and F's mean lies outside the central 95 % "
-            f"of its paths drawn with F ({'; '.join(found)}): F's draws there move the path where F's mean does not "
-            "(F's uncertainty is larger than the dynamics it corrects, as near a steady state). Read the band, not "
-            "the mean path, and measure the subject there",
-            TorchMisspecWarning,
-        )
+    if not found:
+        return
+    why = (
+        "with F ({}): F's draws there move the path where F's mean does not (F's uncertainty is larger than the "
+        "dynamics it corrects, as near a steady state)"
+        if with_f
+        else "over its parameters under F's mean ({}): the path bends with its parameters, and the one at their "
+        "mode is not the middle of those drawn about it"
+    )
+    warn(
+        f"predict_subject: the subject's path at its parameters' mode and F's mean lies outside the central 95 % "
+        f"of its paths drawn {why.format('; '.join(found))}. Read the band, not the mean path, and measure the "
+        "subject there",
+        TorchMisspecWarning,
+    )
 
 
 def _first_times(fit, times: torch.Tensor, flags: torch.Tensor) -> list[tuple[int, str, str]]:
