@@ -172,6 +172,19 @@ def test_a_forecast_that_fails_late_returns_what_it_has_flagged(riccati, one_thr
     assert torch.allclose(states[0, :4], before[0], rtol=1e-6, atol=1e-9)
 
 
+def test_a_quoted_message_is_cut_at_a_clause_not_mid_word():
+    """A solver's failure quoted in a warning is cut at the end of a clause (a Soybean trial's ended "shorten the
+    time span, sta")."""
+    from torchmisspec._errors import clipped
+
+    text = "the solver gave up at t = 73.26 (underflow); the rows with the largest state: [26, 54]. " + "A path " * 40
+    assert (
+        clipped(text) == "the solver gave up at t = 73.26 (underflow); the rows with the largest state: [26, 54]. ..."
+    )
+    words = "word " * 100
+    assert clipped(words, 50) == "word " * 9 + "word ..." and clipped("short", 50) == "short"
+
+
 def test_a_forecast_with_nothing_computed_still_raises(riccati):
     with pytest.raises(tms.IntegrationError, match="blows up"):
         riccati.predict(torch.tensor([[2.0]], dtype=DT), torch.linspace(0, 2, 5, dtype=DT))

@@ -256,19 +256,23 @@ def check_populations(ns: dict) -> None:
     low, high = fit.nlme.intervals().spread[0].tolist()
     assert abs(float(values.spread[0]) - 0.18) < 0.01 and abs(low - 0.13) < 0.005 and abs(high - 0.28) < 0.005
     assert high < 0.3
-    # "This patient's band holds 79 % of their samples, the population's band all of them"; "its variance in log k
+    # "This patient's band from two samples holds 88 % of their samples, the population's 96 %"; "its variance in log k
     # from about 0.042 to 0.0065"; "the spread's square (0.031)"
     inside = []
     for p in (ns["alone"], ns["updated"]):
         lo, hi = p.posterior.measured(fit.noise, fit.nlme.modes.scale).interval(0.9)
         inside.append(float(((ns["samples"] >= lo[0]) & (ns["samples"] <= hi[0])).float().mean()))
-    assert inside[0] == 1.0 and 0.7 <= inside[1] < 0.9
+    assert inside[0] >= 0.9 and 0.75 <= inside[1] < 0.95
     # "keeps the paths under F's mean (with F's draws ... about as well)"; "narrows their spread to 0.89 times, holding
     # 0.90 of the held-out patients' later samples (0.94 before)"
     cal = fit.calibration
     assert cal.first == 2 and not cal.f_draws and abs(cal.score - cal.other) < 0.05 * cal.score
     assert abs(cal.scale - 0.89) < 0.05 and cal.band.coverage >= 0.9 and abs(cal.band.coverage_at_one - 0.94) < 0.02
     assert ns["updated"].band_scale == cal.scale
+    # "the textbook prediction interval held 0.93 of their later samples, and is narrowed to 0.83 times its spread"
+    alone = fit.calibration_alone
+    assert alone.first == 0 and abs(alone.scale - 0.83) < 0.05 and abs(alone.band.coverage_at_one - 0.93) < 0.02
+    assert alone.band.coverage >= 0.9 and ns["alone"].band_scale == alone.scale
     assert abs(float(ns["alone"].eta_covariance[0, 0]) - 0.042) < 0.002
     assert abs(float(values.spread[0]) ** 2 - 0.031) < 0.002
     assert abs(float(ns["updated"].eta_covariance[0, 0]) - 0.0065) < 0.0005

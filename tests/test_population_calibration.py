@@ -32,15 +32,17 @@ def slope(y, theta):
     return theta[0] * torch.ones_like(y)
 
 
-def _population(K: int = 24, seed: int = 0) -> PopulationFit:
-    """K experiments of y = 2 + c t, c ~ N(1, 0.3^2), noise 0.1, 8 times; F = 0 (the classical fit)."""
+def _population(K: int = 24, seed: int = 0, d: int = 1) -> PopulationFit:
+    """K experiments of y = 2 + c t (each of ``d`` states), c ~ N(1, 0.3^2), noise 0.1, 8 times; F = 0 (the classical
+    fit)."""
     g = torch.Generator().manual_seed(seed)
     times = torch.linspace(0, 2, 8, dtype=DT)
     c = 1.0 + 0.3 * torch.randn(K, generator=g, dtype=DT)
-    states = 2.0 + c[:, None, None] * times[None, :, None] + 0.1 * torch.randn(K, 8, 1, generator=g, dtype=DT)
+    states = 2.0 + c[:, None, None] * times[None, :, None] + 0.1 * torch.randn(K, 8, d, generator=g, dtype=DT)
     states[:, 0] = 2.0
-    data = tms.Trajectories(times, states, state_names=["y"])
-    system = tms.MisspecifiedSystem(slope, 1, parameters={"c": (1.0, 0.5)}, state_names=["y"])
+    names = ["y", "z"][:d]
+    data = tms.Trajectories(times, states, state_names=names)
+    system = tms.MisspecifiedSystem(slope, d, parameters={"c": (1.0, 0.5)}, state_names=names)
     population = Population(["c"], distribution=Normal())
     nlme = fit_nlme(system, data, population, Additive())
     return PopulationFit(system, population, Additive(), nlme, nlme, None, fitted_system(system, nlme), data)
@@ -99,7 +101,7 @@ def test_the_band_is_drawn_the_way_held_out_subjects_score_better_and_scaled_to_
     fit = _population(K=3)
     fit = dataclasses.replace(fit, nlme=dataclasses.replace(fit.nlme, modes=dataclasses.replace(
         fit.nlme.modes, scale=torch.zeros(1, dtype=DT))))  # fmt: skip
-    monkeypatch.setattr(cal, "_held_out_draws", lambda *a: _synthetic(*draws))
+    monkeypatch.setattr(cal, "_held_out_draws", lambda fit, counts, *a: dict.fromkeys(counts, _synthetic(*draws)))
     found = cal.calibrate_subjects(fit)
     assert found.f_draws is f_draws and found.other is not None and found.score < found.other
     assert found.band.reached and found.band.coverage >= 0.9
@@ -137,6 +139,54 @@ def test_a_population_whose_residual_scale_is_too_small_gets_bands_that_cover_he
     assert "band from its first 2 measurements" in narrow.summary()
 
 
+def _prior_spread_times(monkeypatch, factor: float) -> None:
+    """A new subject's prior spread (the textbook one, :meth:`NLMEFit.new_subject_prior`) times ``factor``."""
+    from torchmisspec.population.nlme import NLMEFit
+
+    real = NLMEFit.new_subject_prior
+    monkeypatch.setattr(NLMEFit, "new_subject_prior", lambda self, x: (real(self, x)[0], real(self, x)[1] * factor))
+
+
+def test_a_band_from_the_population_alone_is_calibrated_on_held_out_subjects_from_their_initial_state(monkeypatch):
+    """From the population alone (first=0) every held-out subject is predicted from its first row's state: its 7 later
+    measurements are the calibration's. A population that knows its spread holds them as it is; with a new subject's
+    prior spread 10 times too small the band is widened, 4 times too large narrowed, each to cover 0.9; the
+    prediction from the population alone then uses it (and the calibration from first measurements does not)."""
+    fit = _population()
+    honest = cal.calibrate_subjects(fit, first=cal.ALONE)
+    assert honest.first == cal.ALONE and honest.band.num_points == 24 * 7 and honest.band.coverage >= 0.9
+    assert 0.6 < honest.scale < 1.6 and "band from the population alone" in str(honest)
+    _prior_spread_times(monkeypatch, 4.0)
+    wide = cal.calibrate_subjects(fit, first=cal.ALONE)
+    monkeypatch.undo()
+    _prior_spread_times(monkeypatch, 0.1)
+    narrow = cal.calibrate_subjects(fit, first=cal.ALONE)
+    assert narrow.band.coverage_at_one < 0.6 and narrow.scale > 3.0 and narrow.band.coverage >= 0.9
+    assert wide.band.coverage_at_one > 0.97 and wide.scale < 0.6 and wide.band.coverage >= 0.9
+    small = dataclasses.replace(fit, calibration_alone=narrow)
+    times, y0 = torch.linspace(0, 2, 8, dtype=DT), torch.tensor([2.0], dtype=DT)
+    runs = [predict_subject(small, y0, times, num_samples=16, calibrated=on, generator=torch.Generator().manual_seed(1))
+            for on in (True, False)]  # fmt: skip
+    assert runs[0].band_scale == narrow.scale and runs[1].band_scale == 1.0
+    torch.testing.assert_close(
+        runs[0].posterior.samples, widened(runs[1].posterior.samples, runs[1].posterior.mean_path, narrow.scale,
+                                               Additive()))  # fmt: skip
+    first = tms.Trajectories(times[:2], torch.tensor([[[2.0], [2.3]]], dtype=DT), state_names=["y"])
+    assert predict_subject(small, None, times, first=first, num_samples=8).band_scale == 1.0  # not for first ones
+    assert "band from the population alone" in small.summary()
+
+
+def test_a_held_out_subject_whose_first_row_misses_a_state_is_not_used_from_the_population_alone():
+    """Its initial state is not known (a user could not give it either): left out, not estimated from later rows."""
+    fit = _population(K=12, d=2)
+    states = fit.data.states.clone()
+    states[3, 0, 1] = math.nan
+    gappy = dataclasses.replace(fit, data=tms.Trajectories(fit.data.times, states, state_names=["y", "z"]))
+    assert cal.calibrate_subjects(fit, first=cal.ALONE).band.num_points == 12 * 7 * 2
+    assert cal.calibrate_subjects(gappy, first=cal.ALONE).band.num_points == 11 * 7 * 2
+    assert cal.calibrate_subjects(gappy).band.num_points == 12 * 6 * 2  # from its first 2 rows: it is predicted
+
+
 def test_a_calibration_record_round_trips_and_a_damaged_one_is_refused():
     band = BandCalibration(1.5, 0.9, 0.7, 0.91, (1.0, 1.5), (0.7, 0.91), 5, False, 40, held_out="subjects")
     record = cal.SubjectCalibration(band, False, 2, 0.1, 0.3)
@@ -144,7 +194,9 @@ def test_a_calibration_record_round_trips_and_a_damaged_one_is_refused():
     with pytest.raises(tms.InputError, match="f.pt: expected a subject calibration record"):
         cal.SubjectCalibration.from_dict({"band": record.to_dict()["band"]}, "f.pt")
     with pytest.raises(tms.InputError, match="damaged"):
-        cal.SubjectCalibration.from_dict({**record.to_dict(), "first": 0}, "f.pt")
+        cal.SubjectCalibration.from_dict({**record.to_dict(), "first": -1}, "f.pt")
+    alone = dataclasses.replace(record, first=cal.ALONE)
+    assert cal.SubjectCalibration.from_dict(alone.to_dict(), "f.pt") == alone
 
 
 def test_calibration_options_are_checked():
@@ -152,7 +204,7 @@ def test_calibration_options_are_checked():
 
     fit = _population(K=3)
     with pytest.raises(tms.InputError, match="first"):
-        cal.calibrate_subjects(fit, first=0)
+        cal.calibrate_subjects(fit, first=-1)
     with pytest.raises(tms.InputError, match="level"):
         cal.calibrate_subjects(fit, level=1.5)
     with pytest.raises(tms.InputError, match="calibrate"):

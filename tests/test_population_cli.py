@@ -111,7 +111,9 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     assert _run(lab, *common, "--first", str(lab / "first2.csv"), "--predict-out", str(lab / "two.csv")) == 0
     assert "times its spread, as held-out subjects needed from their first 2" in capsys.readouterr().out
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "alone.csv")) == 0
-    assert "next subject from the population alone" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "next subject from the population alone" in printed
+    assert "times its spread, as held-out subjects needed from the population alone" in printed
     assert _run(lab, *common, "--next-initial", "2", "--predict-out", str(lab / "noisy.csv"), "--measurements") == 0
     assert "band of new measurements written" in capsys.readouterr().out
     updated, alone = (
@@ -127,6 +129,27 @@ def test_next_subject_predicted_from_its_first_measurements(lab, capsys):
     for t, y in ((float(r[2]), float(r[0])) for r in own[1:]):
         row = updated[round(t / 0.2)]
         assert row[2] - 0.15 < y < row[3] + 0.15  # its samples (noise 0.05) near its band
+
+
+@pytest.mark.parametrize("labelled", [True, False])
+def test_first_measurements_of_two_subjects_are_refused_with_the_fix(lab, capsys, labelled):
+    """A --first table holding two subjects' rows (the lab's table cut short): one line that says so, whether its
+    subject column labels them (it was not read: "no column 'experiment'" advised --experiment-column, given) or not
+    (the same times twice)."""
+    rows = list(csv.reader((lab / "lab.csv").open()))
+    two = [r for r in rows[1:] if r[1] in ("3", "4") and float(r[2]) <= 0.2]
+    with (lab / "two.csv").open("w", newline="") as fh:
+        if labelled:
+            csv.writer(fh).writerows([["time", "y", "subject"], *([r[2], r[0], r[1]] for r in two)])
+        else:
+            csv.writer(fh).writerows([["time", "y"], *([r[2], r[0]] for r in two)])
+    assert _run(lab, "--predict-times", "0:2:11", "--first", str(lab / "two.csv")) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err and "--experiment-column subject on" not in err, err
+    if labelled:
+        assert "--first: expected the next subject's first measurements (one subject's rows), got 2 subjects" in err
+    else:
+        assert "expected one row per experiment and time, got time 0.0 more than once" in err, err
 
 
 def test_next_subject_times_before_its_first_measurement_are_refused_before_the_work(lab, capsys, monkeypatch):

@@ -45,7 +45,8 @@ def _population(with_f: bool) -> PopulationFit:
     sub = fitted_system(system, nlme)
     if not with_f:
         fit = PopulationFit(system, population, Additive(), nlme, nlme, None, sub, data)
-        return dataclasses.replace(fit, calibration=calibrate_subjects(fit))
+        return dataclasses.replace(fit, calibration=calibrate_subjects(fit), calibration_alone=calibrate_subjects(
+            fit, first=0))  # fmt: skip
     X = torch.linspace(1.0, 6.0, 12, dtype=DT)[:, None]
     gp = tms.CorrectionGP().fit(X, 0.1 * torch.sin(X) + 0.01 * torch.randn(12, 1, generator=g, dtype=DT))
     from torchmisspec.population._f_uncertainty import Shifts
@@ -53,9 +54,11 @@ def _population(with_f: bool) -> PopulationFit:
     shifted = nlme.with_shifts(Shifts([0.02 * torch.randn(16, 1, generator=g, dtype=DT)]))
     band = BandCalibration(1.5, 0.9, 0.7, 0.91, (1.0, 1.5), (0.7, 0.91), 5, False, 40, held_out="subjects")
     calibration = SubjectCalibration(band, False, 2, 0.1, 0.3)  # the band under F's mean, widened 1.5 times
+    alone = SubjectCalibration(dataclasses.replace(band, scale=0.7), True, 0, 0.2, 0.4)  # F's draws, narrowed
     return PopulationFit(
-        system, population, Additive(), nlme, shifted, gp, sub, data, held_out=(1.0, 2.0), calibration=calibration
-    )
+        system, population, Additive(), nlme, shifted, gp, sub, data, held_out=(1.0, 2.0), calibration=calibration,
+        calibration_alone=alone,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize("with_f", [False, True])
@@ -67,6 +70,7 @@ def test_a_saved_population_designs_and_predicts_the_next_subject_as_the_fit_did
     back = PopulationFit.load(path, linear_system())
     assert back.known_model == fit.known_model and back.held_out == fit.held_out
     assert back.calibration == fit.calibration and fit.calibration is not None
+    assert back.calibration_alone == fit.calibration_alone and fit.calibration_alone.first == 0
     assert back.population == fit.population and type(back.noise) is type(fit.noise)
     for a, b in ((fit.nlme, back.nlme), (fit.classical, back.classical)):
         for k in ("mean", "spread", "effects"):

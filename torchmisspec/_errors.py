@@ -71,6 +71,19 @@ class NumericalWarning(TorchMisspecWarning):
     """A numerical fix was applied (jitter added to a covariance diagonal) or a result may be inaccurate."""
 
 
+def clipped(text: str, limit: int = 300) -> str:
+    """``text`` cut to at most about ``limit`` characters at the end of a sentence or clause (``". "``, ``"; "``,
+    ``": "``) with " ..." after it, not mid-word: a quoted message inside another (a solver's failure in a warning)
+    stays readable (on a Soybean trial the solver's advice ended "shorten the time span, sta")."""
+    if len(text) <= limit:
+        return text
+    head = text[:limit]
+    cut = max(head.rfind(mark) for mark in (". ", "; ", ": ")) + 1  # keeping the mark
+    if cut < limit // 4:  # no clause end late enough: at the last word
+        cut = head.rfind(" ")
+    return (head[:cut] if cut > 0 else head).rstrip() + " ..."
+
+
 def warn(message: str, category: type[Warning] = NumericalWarning) -> None:
     """Issue a warning attributed to the first caller outside torchmisspec (the user's line, wherever inside the
     package the problem was found)."""

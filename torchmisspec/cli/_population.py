@@ -14,6 +14,7 @@ predicts each next subject later.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from .._errors import InputError
 from ._common import add_data_options, add_system_option, check_output, read_controls, read_observations, write_csv
@@ -201,11 +202,17 @@ def _prediction_request(args: argparse.Namespace, system, population):
         raise InputError(f"--predict-times: expected finite, strictly increasing times, got {args.predict_times!r}")
     check_output(args.predict_out, (".csv",), "--predict-out")
     covariates = _next_covariates(args, population)
-    if args.first:
-        # its rows only: an experiment column there, if any, is not read
+    if args.first:  # its subject column read where it has one (two subjects' rows are then refused by name)
+        column = args.experiment_column if args.experiment_column in _text_header(args.first) else ""
         first = read_observations(
-            argparse.Namespace(**{**vars(args), "data": args.first, "experiment_column": ""}), system
+            argparse.Namespace(**{**vars(args), "data": args.first, "experiment_column": column}), system
         )
+        if first.num_experiments != 1:  # a subject column there labels them: one subject's rows are wanted
+            raise InputError(
+                f"--first: expected the next subject's first measurements (one subject's rows), got "
+                f"{first.num_experiments} subjects in {args.first} (its column {args.experiment_column!r}); keep the "
+                "next subject's rows only"
+            )
         from ..population.predict import times_from
 
         times_from(times, first, "--predict-times")  # refused before the fit
@@ -231,6 +238,20 @@ def _next_controls(args: argparse.Namespace, system, wanted_by: str):
             f"its rows the profile's samples over the next subject's times"
         )
     return read_controls(args.controls, argparse.Namespace(**{**vars(args), "experiment_column": ""}), system, [""])
+
+
+def _text_header(path: str) -> list[str]:
+    """The column names of a text table's first line (none for an archive, or a file that cannot be read: the
+    reader then says what is wrong)."""
+    import csv
+
+    if Path(path).suffix == ".npz":
+        return []
+    try:
+        with open(path, newline="", encoding="utf-8", errors="replace") as fh:
+            return [c.strip() for c in next(csv.reader(fh), [])]
+    except OSError:
+        return []
 
 
 def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
@@ -265,20 +286,19 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
 
 
 def _calibrated(pred, fit, first) -> str:
-    """A note of how the band was calibrated on held-out subjects (none from the population alone)."""
-    cal = fit.calibration
-    if first is None or cal is None:
+    """A note of how the band was calibrated on held-out subjects (from their first measurements, or from the
+    population alone)."""
+    cal = fit.calibration if first is not None else fit.calibration_alone
+    if cal is None:
         return ""
-    if first.num_times != cal.first:
+    if first is not None and first.num_times != cal.first:
         return (
             f"; its band not calibrated: no held-out subject could be checked from its first {first.num_times} "
             f"measurements (more measured after them, F's samples recorded), the fit's calibration is for {cal.first}"
         )
     how = "widened" if pred.band_scale >= 1 else "narrowed"
-    note = (
-        f"; its band {how} to {pred.band_scale:.3g} times its spread, as held-out subjects needed from their first "
-        f"{cal.first}"
-    )
+    source = "from the population alone" if first is None else f"from their first {cal.first}"
+    note = f"; its band {how} to {pred.band_scale:.3g} times its spread, as held-out subjects needed {source}"
     return note + ("" if cal.f_draws or cal.other is None else ", the paths under F's mean (its draws scored worse)")
 
 

@@ -30,8 +30,9 @@ Methods, on the same folds:
 
 Also recorded: the 90 % band of new measurements of the package's prediction and whether it holds the held-out
 values, calibrated on the other subjects (:mod:`torchmisspec.population.calibration`, the default) and not, the
-calibration's scale, and the wall time of each population fit with its calibration (the speed goal: theophylline's
-12 subjects, all of them).
+calibration's scale; the same for the band from the population alone (the subject's first row's state, every later
+measurement scored; the textbook prediction interval when uncalibrated); and the wall time of each population fit
+with its calibrations (the speed goal: theophylline's 12 subjects, all of them).
 """
 
 from __future__ import annotations
@@ -98,6 +99,7 @@ def run_one(task: tuple[str, int, dict]) -> dict:
         band = pred.posterior.measured(fit.noise, fit.nlme.modes.scale, generator=g).interval(0.9)
         inside = (held >= band[0][0, FIRST:, c]) & (held <= band[1][0, FIRST:, c])
         out[key], out["scored"] = int(inside.sum()), int(held.numel())
+    out.update(_alone_covered(fit, trajs.initial_conditions[k], t, y[1:, c], c, cfg, g))
     cal = fit.calibration
     out["band_scale"] = None if cal is None else cal.scale
     out["f_draws"] = None if cal is None else cal.f_draws
@@ -108,6 +110,19 @@ def run_one(task: tuple[str, int, dict]) -> dict:
     alone = fit_known_model(system, first, torch.zeros(1, y.shape[-1], dtype=torch.bool), noise)
     path = tms.simulate(system.at(alone.theta), y[0][None], t, rtol=1e-7, atol=1e-9).states[0]
     out["alone"] = _log_rmse(path[FIRST:, c], held)
+    return out
+
+
+def _alone_covered(fit, y0: torch.Tensor, t: torch.Tensor, later: torch.Tensor, c: int, cfg: dict, g) -> dict:
+    """How many of the subject's measurements after its first row lie in the 90 % band of new measurements from the
+    population alone (its first row's state), calibrated on the other subjects and not."""
+    out = {"alone_scored": int(torch.isfinite(later).sum())}
+    for key, calibrated in (("alone_covered", True), ("alone_covered_uncalibrated", False)):
+        pred = predict_subject(fit, y0, t, num_samples=cfg["num_samples"], generator=g, calibrated=calibrated)
+        lo, hi = pred.posterior.measured(fit.noise, fit.nlme.modes.scale, generator=g).interval(0.9)
+        out[key] = int(((later >= lo[0, 1:, c]) & (later <= hi[0, 1:, c])).sum())
+    cal = fit.calibration_alone
+    out["alone_band_scale"] = None if cal is None else cal.scale
     return out
 
 
@@ -154,25 +169,34 @@ def _rows(name: str, runs: list[dict]) -> list[str]:
         f"{covered:.2f} | 0.9 |",
         f"| {name}: the same, the band uncalibrated | {_share(runs, 'covered_uncalibrated')} | |",
         f"| {name}: the calibration's scale (median; F's draws kept in the band) | {_scales(runs)} | |",
+        f"| {name}: from the population alone (its first row's state), held-out measurements in the 90 % band "
+        f"(calibrated) | {_share(runs, 'alone_covered', 'alone_scored')} | 0.9 |",
+        f"| {name}: the same, the band uncalibrated (the textbook prediction interval) | "
+        f"{_share(runs, 'alone_covered_uncalibrated', 'alone_scored')} | |",
+        f"| {name}: the population-alone calibration's scale (median) | {_scales(runs, 'alone_band_scale')} | |",
         f"| {name}: a correction kept (F not 0) | {sum(not r['known_model'] for r in runs)} of {n} | |",
     ]
 
 
-def _share(runs: list[dict], key: str) -> str:
-    """The share of the held-out measurements in the bands of ``key`` (a run from before it: not measured)."""
+def _share(runs: list[dict], key: str, scored: str = "scored") -> str:
+    """The share of the held-out measurements (``scored``) in the bands of ``key`` (a run from before it: not
+    measured)."""
     if any(key not in r for r in runs):
         return "not measured"
-    return f"{sum(r[key] for r in runs) / max(sum(r['scored'] for r in runs), 1):.2f}"
+    return f"{sum(r[key] for r in runs) / max(sum(r[scored] for r in runs), 1):.2f}"
 
 
-def _scales(runs: list[dict]) -> str:
-    """The calibration's median scale and how often the band kept F's draws."""
-    found = [r for r in runs if r.get("band_scale") is not None]
+def _scales(runs: list[dict], key: str = "band_scale") -> str:
+    """The calibration's median scale (``key``), and how often the band from the first measurements kept F's
+    draws."""
+    found = [r for r in runs if r.get(key) is not None]
     if not found:
         return "not measured"
-    scales = sorted(r["band_scale"] for r in found)
-    kept = sum(bool(r["f_draws"]) for r in found)
-    return f"{scales[len(scales) // 2]:.2f} [{scales[0]:.2f}, {scales[-1]:.2f}]; {kept} of {len(found)}"
+    scales = sorted(r[key] for r in found)
+    median = f"{scales[len(scales) // 2]:.2f} [{scales[0]:.2f}, {scales[-1]:.2f}]"
+    if key != "band_scale":
+        return median
+    return f"{median}; {sum(bool(r['f_draws']) for r in found)} of {len(found)}"
 
 
 def table(result: dict) -> str:

@@ -16,6 +16,10 @@ space (:func:`~torchmisspec.prediction._bands.widened`: a relative band widens b
 which the subject's later measurements lie in the central ``level`` band of new measurements (paths plus the
 population's measurement noise) at least a fraction ``level`` of the time, by the bisection of
 :func:`~torchmisspec.torchmisspec.calibrate_bands` (Kuleshov et al. 2018, with subjects as the calibration set).
+``first=0`` calibrates the band from the population alone (the subject's measured initial state, no measurement
+after it: the textbook prediction interval of :func:`~torchmisspec.population.uncertainty.new_subject_prior`); it is
+conservative where the population's spread is known poorly (R's Theoph: 0.97 of a held-out subject's measurements in
+the 90 % band; Loblolly: 1.00), and narrowed to what the held-out subjects need.
 The population's values are those fitted with every subject (refitting them per fold costs a population fit each):
 the held-out subjects' spread counted in them makes the calibration, if anything, optimistic.
 """
@@ -38,10 +42,12 @@ from ..prediction.calibration import _check_level, _smallest_covering_scale
 from ._held_out import FOLDS, fold_gp
 from .predict import subject_draws
 
-__all__ = ["FIRST", "SubjectCalibration", "calibrate_subjects", "interval_score"]
+__all__ = ["ALONE", "FIRST", "SubjectCalibration", "calibrate_subjects", "calibrations", "interval_score"]
 
 #: the measurements a held-out subject is predicted from by default (the issue's new subject: its first 2)
 FIRST = 2
+#: ``first`` for a band from the population alone (the subject's initial state only)
+ALONE = 0
 #: what a held-out subject's fit or prediction may raise (it is left out of the calibration then)
 FAILURES = (FittingError, IntegrationError, LinearAlgebraError)
 
@@ -57,7 +63,8 @@ class SubjectCalibration:
             F's mean, F's uncertainty absorbed into the scale: where F's draws moved the held-out subjects' paths
             away from their measurements, as on R's Loblolly, where a draw of F that wiggles below the growth rate
             stalls a tree's height).
-        first: how many of each held-out subject's first measurements it was predicted from.
+        first: how many of each held-out subject's first measurements it was predicted from (:data:`ALONE`, 0: from
+            the population alone, its first row the initial state).
         score: the held-out interval score of the band chosen; ``other``: that of the other way (``None``: F = 0,
             no other way).
     """
@@ -76,8 +83,9 @@ class SubjectCalibration:
     def __str__(self) -> str:
         way = "F's posterior draws" if self.f_draws else "F's mean (its draws scored worse)"
         way = "the known model (F = 0)" if self.other is None else way
+        source = "the population alone" if self.first == ALONE else f"its first {self.first} measurements"
         return (
-            f"a new subject's {self.band.level:.0%} band from its first {self.first} measurements: the paths under "
+            f"a new subject's {self.band.level:.0%} band from {source}: the paths under "
             f"{way}, their spread times {self.scale:.3g}; it held {self.band.coverage:.3f} of the held-out subjects' "
             f"later measurements (times 1: {self.band.coverage_at_one:.3f}; {self.band.num_points} measurements)"
         )
@@ -93,7 +101,7 @@ class SubjectCalibration:
         if not isinstance(values, dict) or set(values) != {"band", "f_draws", "first", "score", "other"}:
             raise InputError(f"{path}: expected a subject calibration record, got {values!r:.200}")
         band = BandCalibration.from_dict(values["band"], path)
-        if not isinstance(values["f_draws"], bool) or not isinstance(values["first"], int) or values["first"] < 1:
+        if not isinstance(values["f_draws"], bool) or not isinstance(values["first"], int) or values["first"] < 0:
             raise InputError(f"{path}: the subject calibration record is damaged ({values!r:.200})")
         other = None if values["other"] is None else float(values["other"])
         return cls(band, values["f_draws"], values["first"], float(values["score"]), other)
@@ -118,16 +126,25 @@ def _observed(one: Trajectories) -> torch.Tensor:
 
 def _predicted(fit, one: Trajectories, k: int, m: int, num_samples: int, generator):
     """``(draws, later observed values (T - m, o))`` of experiment ``k`` (``one``) predicted from its first ``m`` rows
+    (``m = 0``: from the population alone, its first row's states the initial state, later values those after it)
     under ``fit`` (:func:`~torchmisspec.population.predict.subject_draws`, with F's draws where F is kept; its
-    warnings held: they are the calibration's, not the user's); ``None`` where it cannot be predicted."""
+    warnings held: they are the calibration's, not the user's); ``None`` where it cannot be predicted (from the
+    population alone: a state not measured in its first row)."""
     covariates = {n: float(fit.nlme.covariates[k, c]) for c, n in enumerate(fit.population.covariate_names)}
     t = one.experiments()[0][0]
+    y0, first = None, None
+    if m == ALONE:  # the state a user gives: set (a dose), or measured in full in the first row (not estimated)
+        y0, m = one.initial_conditions[0], 1
+        if not bool(torch.isfinite(y0 if one.initial_states is not None else one.experiments()[0][1][0]).all()):
+            return None
+    else:
+        first = _head(one, m)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", TorchMisspecWarning)
             draws = subject_draws(
-                fit, None, t, covariates=covariates, first=_head(one, m), controls=one.controls,
-                num_samples=num_samples, generator=generator,
+                fit, y0, t, covariates=covariates, first=first, controls=one.controls, num_samples=num_samples,
+                generator=generator,
             )  # fmt: skip
     except FAILURES:
         return None
@@ -149,22 +166,24 @@ def _without(fit, held: list[int]):
     return fold
 
 
-def _held_out_draws(fit, m: int, num_samples: int, seed: int, progress: bool) -> list:
-    """``[(draws, observed (T, o))]`` of every held-out subject with more than ``m`` rows, each from its first ``m``,
-    F conditioned without its fold; ``draws`` cut to the times after the first ``m``."""
+def _held_out_draws(fit, counts: tuple[int, ...], num_samples: int, seed: int, progress: bool) -> dict:
+    """``{m: [(draws, observed (T, o))]}`` for each ``m`` of ``counts``: every held-out subject with more than ``m``
+    rows (more than 1 for the population alone) predicted from its first ``m``, F conditioned once per fold without
+    it; ``draws`` cut to the times after them."""
     data = fit.data
     K = data.num_experiments
     folds = min(FOLDS, K)
-    out = []
+    out = {m: [] for m in counts}
     with progress_bar(progress, folds, "population: bands calibrated on held-out subjects", "fold") as bar:
         for f in range(folds):
-            held = [k for k in range(K) if k % folds == f and data.lengths[k] > m]
+            held = [k for k in range(K) if k % folds == f and data.lengths[k] > max(min(counts), 1)]
             bar.update()
             fold = _without(fit, held) if held else None
             for k in held if fold is not None else []:
-                got = _predicted(fold, data[[k]], k, m, num_samples, torch.Generator().manual_seed(seed + k))
-                if got is not None:
-                    out.append(got)
+                for m in (m for m in counts if data.lengths[k] > max(m, 1)):
+                    got = _predicted(fold, data[[k]], k, m, num_samples, torch.Generator().manual_seed(seed + k))
+                    if got is not None:
+                        out[m].append(got)
     return out
 
 
@@ -244,21 +263,34 @@ def _candidate(held: list, fit, level: float, seed: int, with_f: bool):
 def calibrate_subjects(
     fit, *, first: int = FIRST, level: float = 0.9, num_samples: int = 32, seed: int = 0, progress: bool = False
 ) -> SubjectCalibration | None:
-    """How a new subject's band from its ``first`` measurements must be drawn and scaled (the module's notes),
-    measured on the subjects of the population ``fit`` (:class:`~torchmisspec.population.fit.PopulationFit` with its
-    data); ``None`` where no subject has more than ``first`` measurements or none can be predicted. ``num_samples``
-    parameter draws per held-out subject (each with F's draws); ``seed`` fixes them."""
-    first = check_positive_int(first, "first")
+    """How a new subject's band from its ``first`` measurements must be drawn and scaled (the module's notes;
+    ``first=0``, :data:`ALONE`: from the population alone), measured on the subjects of the population ``fit``
+    (:class:`~torchmisspec.population.fit.PopulationFit` with its data); ``None`` where no subject has more than
+    ``first`` measurements or none can be predicted. ``num_samples`` parameter draws per held-out subject (each with
+    F's draws); ``seed`` fixes them."""
+    first = check_positive_int(first, "first", minimum=0)
+    return calibrations(fit, (first,), level=level, num_samples=num_samples, seed=seed, progress=progress)[first]
+
+
+def calibrations(
+    fit, counts: tuple[int, ...], *, level: float = 0.9, num_samples: int = 32, seed: int = 0, progress: bool = False
+) -> dict:
+    """``{m: SubjectCalibration or None}``: :func:`calibrate_subjects` for each ``m`` of ``counts`` (checked counts,
+    0 or more), F conditioned once per fold for all of them."""
     level = _check_level(level)
     num_samples = check_positive_int(num_samples, "num_samples")
     if fit.data is None:
-        return None
-    held = _held_out_draws(fit, first, num_samples, seed, progress)
-    if not held:
-        return None
+        return dict.fromkeys(counts)
+    held = _held_out_draws(fit, counts, num_samples, seed, progress)
+    return {m: _chosen(held[m], fit, level, seed, m) if held[m] else None for m in counts}
+
+
+def _chosen(held: list, fit, level: float, seed: int, first: int) -> SubjectCalibration:
+    """The calibration of the bands with F's draws or under F's mean, whichever has the lower held-out interval
+    score (a tie: F's own draws)."""
     options = [False] if held[0][0].with_f is None else [True, False]
     scored = {with_f: _candidate(held, fit, level, seed, with_f) for with_f in options}
-    f_draws = min(options, key=lambda with_f: (scored[with_f][1], not with_f))  # a tie: F's own draws
+    f_draws = min(options, key=lambda with_f: (scored[with_f][1], not with_f))
     band, score = scored[f_draws]
     other = scored.get(not f_draws)
     return SubjectCalibration(band, f_draws, first, score, None if other is None else other[1])

@@ -65,6 +65,7 @@ def save(fit, path: str | Path) -> Path:
         "data": None if fit.data is None else data_blob(fit.data),
         "held_out": None if fit.held_out is None else [float(v) for v in fit.held_out],
         "calibration": None if fit.calibration is None else fit.calibration.to_dict(),
+        "calibration_alone": None if fit.calibration_alone is None else fit.calibration_alone.to_dict(),
     }
     tmp = path.with_name(path.name + ".tmp")
     with writing(path):
@@ -96,7 +97,8 @@ def load(cls, path: str | Path, system: MisspecifiedSystem):
             system, population, _noise_from(blob["noise"], f"{path} (field 'noise')"), classical, nlme, gp,
             fitted_system(system, nlme), data_from(blob["data"], path, torch.float64, torch.device("cpu")),
             None if blob["held_out"] is None else tuple(float(v) for v in blob["held_out"]),
-            _calibration_from(blob.get("calibration"), path),
+            _calibration_from(blob.get("calibration"), path, "calibration"),
+            _calibration_from(blob.get("calibration_alone"), path, "calibration_alone"),
         )  # fmt: skip
     except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as exc:
         raise InputError(f"{path}: a damaged PopulationFit file ({type(exc).__name__}: {exc})") from exc
@@ -110,9 +112,9 @@ def load(cls, path: str | Path, system: MisspecifiedSystem):
     return fit
 
 
-def _calibration_from(record, path: Path):
-    """The subject calibration of a file (``None``: none saved, as in a file from before calibrations)."""
-    return None if record is None else SubjectCalibration.from_dict(record, f"{path} (field 'calibration')")
+def _calibration_from(record, path: Path, field: str):
+    """The subject calibration of a file's ``field`` (``None``: none saved, as in a file from before calibrations)."""
+    return None if record is None else SubjectCalibration.from_dict(record, f"{path} (field '{field}')")
 
 
 def _system_record(system: MisspecifiedSystem) -> dict:

@@ -75,7 +75,7 @@ from ._integrated import integrated_modes, integrated_system, with_experiment_in
 from ._misfit import residuals_by_time
 from ._modes import mean_correction
 from ._subjects import fitted_system, parameter_names, with_subject_inputs
-from .calibration import SubjectCalibration, calibrate_subjects
+from .calibration import ALONE, FIRST, SubjectCalibration, calibrate_subjects, calibrations
 from .model import Population
 from .nlme import NLMEFit, fit_nlme
 
@@ -120,6 +120,8 @@ class PopulationFit:
     #: how much a new subject's band from its first measurements is widened, measured on held-out subjects
     #: (:func:`~torchmisspec.population.calibration.calibrate_subjects`; ``None``: not calibrated)
     calibration: SubjectCalibration | None = None
+    #: the same for a new subject's band from the population alone (its initial state; ``None``: not calibrated)
+    calibration_alone: SubjectCalibration | None = None
 
     @property
     def known_model(self) -> bool:
@@ -136,8 +138,11 @@ class PopulationFit:
     def as_classical(self) -> PopulationFit:
         """The classical answer as a fit of its own: the population fitted with F = 0, no correction (what
         :func:`~torchmisspec.population.predict.predict_subject` predicts with G alone)."""
-        calibration = self.calibration if self.known_model else None  # measured with F: not the classical answer's
-        return dataclasses.replace(self, nlme=self.classical, gp=None, calibration=calibration)
+        kept = self.known_model  # else measured with F: not the classical answer's
+        return dataclasses.replace(
+            self, nlme=self.classical, gp=None, calibration=self.calibration if kept else None,
+            calibration_alone=self.calibration_alone if kept else None,
+        )  # fmt: skip
 
     @property
     def thetas(self) -> torch.Tensor:
@@ -203,8 +208,7 @@ class PopulationFit:
             kind += f" (held-out experiments' {_misfits(*self.held_out)})"
         coordinates = ", ".join(dict.fromkeys(f"{d.name}: {_eta(d)}" for d in dists))
         lines.append(f"spread in eta = {coordinates}; {kind}")
-        if self.calibration is not None:
-            lines.append(str(self.calibration))
+        lines += [str(c) for c in (self.calibration_alone, self.calibration) if c is not None]
         return "\n".join(lines + _f_widened(self.nlme, names))
 
 
@@ -256,9 +260,11 @@ def fit_population(
             the noise model's space, ``Samples(in_noise_space=True)``: on nlme's Remifentanil, one noise size for
             every derivative sample left F free at low concentrations, and paths drawn with F stalled there).
         noise: the noise model (:mod:`torchmisspec.noise`; default ``"auto"``).
-        calibrate: measure how much a new subject's band from its first measurements must widen, by predicting
-            held-out subjects (:func:`~torchmisspec.population.calibration.calibrate_subjects`; ``result.calibration``,
-            used by :func:`~torchmisspec.population.predict.predict_subject`); seconds more.
+        calibrate: measure how much a new subject's band from its first measurements, and from the population alone,
+            must widen or narrow, by predicting held-out subjects
+            (:func:`~torchmisspec.population.calibration.calibrate_subjects`; ``result.calibration`` and
+            ``result.calibration_alone``, used by :func:`~torchmisspec.population.predict.predict_subject`); seconds
+            more.
         progress: show progress bars (the stage the fit is in, EM rounds, F's fit).
 
     Returns:
@@ -284,7 +290,8 @@ def fit_population(
         if not calibrate:
             return fitted
         stages.set_description("population: a new subject's bands calibrated on held-out subjects")
-        return dataclasses.replace(fitted, calibration=calibrate_subjects(fitted, progress=progress))
+        found = calibrations(fitted, (ALONE, FIRST), progress=progress)
+        return dataclasses.replace(fitted, calibration=found[FIRST], calibration_alone=found[ALONE])
 
 
 def _fitted(system, trajectories, population, noise, pipeline, options, stages) -> PopulationFit:

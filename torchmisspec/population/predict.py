@@ -15,11 +15,11 @@ Each parameter draw is integrated with :data:`F_DRAWS` posterior draws of F (:me
 <torchmisspec.CorrectedODE.posterior>`), so the bands hold both; without a correction (F = 0 kept) the draws are of
 the parameters alone. The result is a :class:`~torchmisspec.TrajectoryPosterior` of one path: its ``interval`` is
 the band of the subject's states, ``measured(...)`` that of its new measurements. F's draws are the GP's own
-(``scale=1.0`` of :meth:`CorrectedODE.posterior <torchmisspec.CorrectedODE.posterior>`). A band updated by the
-subject's first measurements is then scaled as the population's held-out subjects showed it must be
-(:mod:`~torchmisspec.population.calibration`, ``fit.calibration``): on R's Loblolly 0.68 of a new tree's later heights
-fell in the uncalibrated 90 % band, its 2 early heights pinning its curve as if the population's residual scale held
-for its whole future.
+(``scale=1.0`` of :meth:`CorrectedODE.posterior <torchmisspec.CorrectedODE.posterior>`). Either band is then
+scaled as the population's held-out subjects showed it must be (:mod:`~torchmisspec.population.calibration`,
+``fit.calibration`` and ``fit.calibration_alone``): on R's Loblolly 0.68 of a new tree's later heights fell in the
+uncalibrated 90 % band from its 2 early heights, which pin its curve as if the population's residual scale held for
+its whole future, and 1.00 in the band from the population alone.
 """
 
 from __future__ import annotations
@@ -182,14 +182,14 @@ def predict_subject(
     measurements ``first`` where given (the module's notes); ``y0=None`` takes ``first``'s fitted initial state,
     at its first time: ``times`` then run from there on (the path is integrated from that time; a time before it is
     refused). ``y0`` given is the state at ``times[0]``. ``controls``: the subject's own input profile for a system
-    with controls. ``num_samples`` parameter draws. ``calibrated``: with ``first``, the band as the fit's calibration
-    on held-out subjects found it must be (``fit.calibration``, :mod:`~torchmisspec.population.calibration`, where
-    the fit has one): with F's draws or F's mean, and the drawn paths' deviation from the mean path times its scale in
-    the noise model's space. A band from the population alone is the textbook prediction interval and is not
-    scaled."""
+    with controls. ``num_samples`` parameter draws. ``calibrated``: the band as the fit's calibration
+    on held-out subjects found it must be (``fit.calibration`` with ``first``, ``fit.calibration_alone`` from the
+    population alone; :mod:`~torchmisspec.population.calibration`, where the fit has one): with F's draws or F's
+    mean, and the drawn paths' deviation from the mean path times its scale in the noise model's space
+    (``calibrated=False``: the model's own band; from the population alone, the textbook prediction interval)."""
     calibrated = check_flag(calibrated, "calibrated")
-    calibration = fit.calibration if calibrated and first is not None else None
-    if calibration is not None and first.num_times != calibration.first:
+    calibration = (fit.calibration if first is not None else fit.calibration_alone) if calibrated else None
+    if calibration is not None and first is not None and first.num_times != calibration.first:
         warn(
             f"predict_subject: the fit's bands are calibrated for a subject predicted from its first "
             f"{calibration.first} measurements, and this one has {first.num_times}: its band is the model's own, not "
@@ -246,10 +246,11 @@ def _with_f_draws(fit, y0: torch.Tensor, times: torch.Tensor, controls, generato
     """``(S F_DRAWS, 1, T, d)``: every parameter draw's path (row of ``y0 (S, d)`` and ``controls``) under
     :data:`F_DRAWS` posterior draws of F; the draws that left the data's region are NaN from there, with one warning
     in the subject's terms (the solver's names the rows of ``y0``, here parameter draws, "initial conditions")."""
-    with warnings.catch_warnings():
+    with warnings.catch_warnings():  # the drawn paths that leave, said below; the mean paths that stall, said once
         warnings.filterwarnings(
             "ignore", "CorrectedODE.posterior: .* sampled paths left the region", TorchMisspecWarning
-        )
+        )  # (by _parameter_paths: the same parameter draws under F's mean; the solver's words reached a trial)
+        warnings.filterwarnings("ignore", "CorrectedODE.predict: .* stop early", TorchMisspecWarning)
         post = fit.corrected.posterior(
             y0, times, num_samples=F_DRAWS, controls=controls, generator=_on(generator), scale=1.0
         )  # F's own band: the held-out calibration of fit_correction does not apply to a population's F

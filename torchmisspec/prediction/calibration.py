@@ -47,6 +47,7 @@ from .._errors import (
     NumericalWarning,
     ShapeError,
     TorchMisspecWarning,
+    clipped,
     warn,
 )
 from .._validation import as_tensor, check_flag, check_positive_int, check_real, progress_bar
@@ -373,7 +374,7 @@ def _held_out(results: list[dict], gp) -> list[dict]:
     if fold_warnings:
         warn(
             f"calibrate_bands: the refit of the GP on {len(fold_warnings)} fold(s) warned (first: "
-            f"{fold_warnings[0][:300]}). The folds are refitted with the model's own settings (e.g. max_iter="
+            f"{clipped(fold_warnings[0])}). The folds are refitted with the model's own settings (e.g. max_iter="
             f"{gp.max_iter}) and used as they are; to change the settings, fit the model with others (a "
             "CorrectionGP(max_iter=...) template) and calibrate again",
             NumericalWarning,

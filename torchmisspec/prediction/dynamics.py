@@ -9,7 +9,7 @@ import math
 import torch
 from torch import nn
 
-from .._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, warn
+from .._errors import InputError, IntegrationError, NotFittedError, ShapeError, TorchMisspecWarning, clipped, warn
 from .._ode import initial_conditions_and_times, solve
 from .._validation import check_input_names, check_positive_int, check_real
 from ..data import Trajectories
@@ -188,7 +188,8 @@ class CorrectedODE(nn.Module):
             f"CorrectedODE.predict: {len(stopped)} of {B} forecast(s) stop early (initial condition(s) "
             f"{stopped[:10]}{' ...' if len(stopped) > 10 else ''}, their last output reached at t = "
             f"{', '.join(f'{t:.4g}' for t in last)}{' ...' if len(stopped) > 5 else ''}): their states are NaN from "
-            f"the first output time not reached, flagged in model.incomplete. The solver: {str(failure)[:300]}",
+            f"the first output time not reached, flagged in model.incomplete. The first solve that failed: "
+            f"{clipped(str(failure), 500)}",
             TorchMisspecWarning,
         )
         return out
