@@ -155,6 +155,7 @@ def test_a_band_from_the_population_alone_is_calibrated_on_held_out_subjects_fro
     fit = _population()
     honest = cal.calibrate_subjects(fit, first=cal.ALONE)
     assert honest.first == cal.ALONE and honest.band.num_points == 24 * 7 and honest.band.coverage >= 0.9
+    assert honest.subjects == 24 and "168 measurements of 24 subjects" in str(honest)
     assert 0.6 < honest.scale < 1.6 and "band from the population alone" in str(honest)
     _prior_spread_times(monkeypatch, 4.0)
     wide = cal.calibrate_subjects(fit, first=cal.ALONE)
@@ -174,6 +175,22 @@ def test_a_band_from_the_population_alone_is_calibrated_on_held_out_subjects_fro
     first = tms.Trajectories(times[:2], torch.tensor([[[2.0], [2.3]]], dtype=DT), state_names=["y"])
     assert predict_subject(small, None, times, first=first, num_samples=8).band_scale == 1.0  # not for first ones
     assert "band from the population alone" in small.summary()
+
+
+def test_a_band_is_widened_on_few_held_out_subjects_but_not_narrowed(monkeypatch):
+    """Fewer than MIN_TO_NARROW held-out subjects: a band too wide stays the model's own, and says so; one too narrow
+    is widened as on many (R's Orange, 4 held-out trees: narrowed to 0.30, the band held 0.70 of a fifth tree)."""
+    fit = _population(K=cal.MIN_TO_NARROW - 1)
+    _prior_spread_times(monkeypatch, 4.0)
+    wide = cal.calibrate_subjects(fit, first=cal.ALONE)
+    assert wide.subjects == cal.MIN_TO_NARROW - 1 and wide.scale == 1.0 and min(wide.band.scales) < 0.6
+    assert wide.band.coverage == wide.band.coverage_at_one > 0.97 and "not narrowed" in str(wide)
+    monkeypatch.undo()
+    _prior_spread_times(monkeypatch, 0.1)
+    narrow = cal.calibrate_subjects(fit, first=cal.ALONE)
+    assert narrow.scale > 3.0 and narrow.band.coverage >= 0.9 and "not narrowed" not in str(narrow)
+    record = narrow.to_dict()
+    assert cal.SubjectCalibration.from_dict(record, "f.pt") == narrow and record["subjects"] == cal.MIN_TO_NARROW - 1
 
 
 def test_a_held_out_subject_whose_first_row_misses_a_state_is_not_used_from_the_population_alone():
