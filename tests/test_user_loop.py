@@ -360,8 +360,10 @@ def test_r_indometh_as_a_population_through_the_cli_and_leaving_one_subject_out(
                 assert fit.calibration is not None and pred.band_scale == fit.calibration.scale
         ratios.append(errors[0] / errors[1])
     assert math.exp(np.mean(np.log(ratios))) <= 1.05, ratios
-    # measured: 18 of 18 (its bands narrowed to 0.70-0.81 of their spread; over all six subjects 48 of 54, as without)
+    # measured: 18 of 18 (before narrowing needed 8 held-out subjects, its bands narrowed to 0.70-0.81 of their
+    # spread held them too; over all six subjects 48 of 54, as without); on 5 subjects a band is not narrowed
     assert inside >= 0.8 * later, (inside, later)
+    assert fit.calibration.scale >= 1.0 and fit.calibration.subjects == 5
 
 
 REMIFENTANIL_SYSTEM = textwrap.dedent(
