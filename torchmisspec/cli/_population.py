@@ -14,7 +14,6 @@ predicts each next subject later.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from .._errors import InputError
 from ._common import add_data_options, add_system_option, check_output, read_controls, read_observations, write_csv
@@ -203,7 +202,9 @@ def _prediction_request(args: argparse.Namespace, system, population):
     check_output(args.predict_out, (".csv",), "--predict-out")
     covariates = _next_covariates(args, population)
     if args.first:  # its subject column read where it has one (two subjects' rows are then refused by name)
-        column = args.experiment_column if args.experiment_column in _text_header(args.first) else ""
+        from ..data._tables import header
+
+        column = args.experiment_column if args.experiment_column in (header(args.first) or []) else ""
         first = read_observations(
             argparse.Namespace(**{**vars(args), "data": args.first, "experiment_column": column}), system
         )
@@ -240,20 +241,6 @@ def _next_controls(args: argparse.Namespace, system, wanted_by: str):
     return read_controls(args.controls, argparse.Namespace(**{**vars(args), "experiment_column": ""}), system, [""])
 
 
-def _text_header(path: str) -> list[str]:
-    """The column names of a text table's first line (none for an archive, or a file that cannot be read: the
-    reader then says what is wrong)."""
-    import csv
-
-    if Path(path).suffix == ".npz":
-        return []
-    try:
-        with open(path, newline="", encoding="utf-8", errors="replace") as fh:
-            return [c.strip() for c in next(csv.reader(fh), [])]
-    except OSError:
-        return []
-
-
 def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
     """The next subject's path and band at ``--predict-times``, written to ``--predict-out``."""
     import torch
@@ -288,7 +275,7 @@ def _predict_next(args: argparse.Namespace, fit, request, observed) -> None:
 def _calibrated(pred, fit, first) -> str:
     """A note of how the band was calibrated on held-out subjects (from their first measurements, or from the
     population alone)."""
-    cal = fit.calibration if first is not None else fit.calibration_alone
+    cal = fit.calibration_for(first)
     if cal is None:
         return ""
     if first is not None and first.num_times != cal.first:

@@ -173,7 +173,8 @@ def _rows(name: str, runs: list[dict]) -> list[str]:
         f"(calibrated) | {_share(runs, 'alone_covered', 'alone_scored')} | 0.9 |",
         f"| {name}: the same, the band uncalibrated (the textbook prediction interval) | "
         f"{_share(runs, 'alone_covered_uncalibrated', 'alone_scored')} | |",
-        f"| {name}: the population-alone calibration's scale (median) | {_scales(runs, 'alone_band_scale')} | |",
+        f"| {name}: the population-alone calibration's scale (median) | "
+        f"{_scales(runs, 'alone_band_scale', f_draws=False)} | |",
         f"| {name}: a correction kept (F not 0) | {sum(not r['known_model'] for r in runs)} of {n} | |",
     ]
 
@@ -186,15 +187,15 @@ def _share(runs: list[dict], key: str, scored: str = "scored") -> str:
     return f"{sum(r[key] for r in runs) / max(sum(r[scored] for r in runs), 1):.2f}"
 
 
-def _scales(runs: list[dict], key: str = "band_scale") -> str:
-    """The calibration's median scale (``key``), and how often the band from the first measurements kept F's
+def _scales(runs: list[dict], key: str = "band_scale", *, f_draws: bool = True) -> str:
+    """The calibration's median scale (``key``) with its range, and (``f_draws``) how often the band kept F's
     draws."""
     found = [r for r in runs if r.get(key) is not None]
     if not found:
         return "not measured"
     scales = sorted(r[key] for r in found)
     median = f"{scales[len(scales) // 2]:.2f} [{scales[0]:.2f}, {scales[-1]:.2f}]"
-    if key != "band_scale":
+    if not f_draws:
         return median
     return f"{median}; {sum(bool(r['f_draws']) for r in found)} of {len(found)}"
 

@@ -159,6 +159,11 @@ class PopulationFit:
         """G with each experiment's parameters as inputs, plus F's posterior mean (``None`` without a correction)."""
         return None if self.gp is None else CorrectedODE(self.subject_system, self.gp)
 
+    def calibration_for(self, first: Trajectories | None) -> SubjectCalibration | None:
+        """The calibration of a new subject's band from its measurements ``first`` (:attr:`calibration`), or from
+        the population alone where ``first`` is ``None`` (:attr:`calibration_alone`)."""
+        return self.calibration if first is not None else self.calibration_alone
+
     def recalibrated(self, first: int, *, progress: bool = False) -> PopulationFit:
         """This fit with a new subject's band calibrated for subjects predicted from their ``first`` measurements
         (:func:`~torchmisspec.population.calibration.calibrate_subjects`; the fit's own is for

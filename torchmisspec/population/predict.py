@@ -188,7 +188,7 @@ def predict_subject(
     mean, and the drawn paths' deviation from the mean path times its scale in the noise model's space
     (``calibrated=False``: the model's own band; from the population alone, the textbook prediction interval)."""
     calibrated = check_flag(calibrated, "calibrated")
-    calibration = (fit.calibration if first is not None else fit.calibration_alone) if calibrated else None
+    calibration = fit.calibration_for(first) if calibrated else None
     if calibration is not None and first is not None and first.num_times != calibration.first:
         warn(
             f"predict_subject: the fit's bands are calibrated for a subject predicted from its first "
@@ -344,17 +344,17 @@ def warn_mean_outside(
     found = [f"{name} {since}" for _, name, since in _first_times(fit, times, outside)]
     if not found:
         return
+    where = "; ".join(found)
     why = (
-        "with F ({}): F's draws there move the path where F's mean does not (F's uncertainty is larger than the "
-        "dynamics it corrects, as near a steady state)"
+        f"with F ({where}): F's draws there move the path where F's mean does not (F's uncertainty is larger than "
+        "the dynamics it corrects, as near a steady state)"
         if with_f
-        else "over its parameters under F's mean ({}): the path bends with its parameters, and the one at their "
-        "mode is not the middle of those drawn about it"
+        else f"over its parameters under F's mean ({where}): the path bends with its parameters, and the one at "
+        "their mode is not the middle of those drawn about it"
     )
     warn(
         f"predict_subject: the subject's path at its parameters' mode and F's mean lies outside the central 95 % "
-        f"of its paths drawn {why.format('; '.join(found))}. Read the band, not the mean path, and measure the "
-        "subject there",
+        f"of its paths drawn {why}. Read the band, not the mean path, and measure the subject there",
         TorchMisspecWarning,
     )
 
