@@ -66,6 +66,16 @@ def test_population_from_a_lab_table_with_a_covariate(lab, capsys):
     assert "95% interval" in printed
 
 
+def test_next_times_take_the_forms_predict_times_takes(lab, capsys):
+    """``--next-times 0:1:5`` designs as the comma list of the same times does (a newcomer wrote the form
+    ``--predict-times`` takes, and was refused)."""
+    said = []
+    for times in ("0,0.25,0.5,0.75,1", "0:1:5"):
+        assert _run(lab, "--next-times", times, "--budget", "2", "--next-initial", "2") == 0
+        said.append([line for line in capsys.readouterr().out.splitlines() if line.startswith("next subject:")])
+    assert said[0] == said[1] and said[0]
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

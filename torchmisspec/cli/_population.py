@@ -149,7 +149,7 @@ def _design_request(args: argparse.Namespace, system, population):
     starts = _next_initial(args, system)
     if not starts:
         raise InputError(_initial_message(system, "(repeat it for several candidates)", starts))
-    times = torch.tensor(_numbers(args.next_times, "--next-times"), dtype=torch.float64)
+    times = parse_times(args.next_times, "--next-times")  # the forms --predict-times takes
     return times, torch.tensor(starts, dtype=torch.float64), given, controls
 
 
@@ -352,8 +352,9 @@ def add_population(sub) -> None:
     pop.add_argument("--out", default="subjects.csv", help="every experiment's parameters, .csv (default: %(default)s)")
     pop.add_argument(
         "--next-times",
-        help="comma separated times of the next subject: the first is that of its initial state (--next-initial, "
-        "never sampled), the others the candidate sampling times",
+        help="times of the next subject, as --predict-times takes them (start:stop:count, a comma list or a file "
+        "of times): the first is that of its initial state (--next-initial, never sampled), the others the "
+        "candidate sampling times",
     )
     pop.add_argument("--budget", type=int, help="how many of them to sample")
     pop.add_argument(
